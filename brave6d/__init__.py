@@ -1,0 +1,1 @@
+"""brave6d stage."""

@@ -1,0 +1,142 @@
+"""Atomic file writes: write a temporary file in the same folder, fsync, then rename.
+
+A reader therefore sees either the old file or the complete new one, never a half-written
+file, even when the process is killed mid-write.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.errors import DataError
+
+
+def atomic_write(path: Path | str, write: Callable[[BinaryIO], None]) -> Path:
+    """Call ``write(fileobj)`` on a temp file next to ``path`` and rename it over ``path``."""
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            write(handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp_name, target)
+    except BaseException:
+        try:
+            os.unlink(tmp_name)
+        except FileNotFoundError:
+            pass
+        raise
+    _fsync_dir(target.parent)
+    return target
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write_bytes(path: Path | str, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically."""
+    return atomic_write(path, lambda handle: handle.write(data))
+
+
+def atomic_write_text(path: Path | str, text: str) -> Path:
+    """Write UTF-8 ``text`` to ``path`` atomically."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: Path | str, data: Any, indent: int | None = 2) -> Path:
+    """Write ``data`` as JSON atomically; NaN/inf are refused (they are not JSON)."""
+    text = json.dumps(data, indent=indent, allow_nan=False, default=_json_default)
+    return atomic_write_text(path, text + "\n")
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot serialise {type(obj).__name__} to JSON")
+
+
+def read_json(path: Path | str) -> Any:
+    """Read a JSON file; a missing or corrupt file raises :class:`DataError` naming it."""
+    p = Path(path)
+    try:
+        return json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DataError(f"{p}: file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"{p}: not valid JSON ({exc})") from None
+
+
+def write_png(path: Path | str, image: NDArray[Any]) -> Path:
+    """Write an 8-bit RGB (H, W, 3), 8-bit grey or 16-bit grey (H, W) image as PNG, atomically."""
+    import cv2
+
+    arr = np.ascontiguousarray(image)
+    if arr.dtype not in (np.uint8, np.uint16):
+        raise DataError(f"{path}: PNG images must be uint8 or uint16, got {arr.dtype}")
+    if arr.ndim == 3 and arr.shape[2] == 3:
+        arr = arr[:, :, ::-1]  # RGB -> BGR for OpenCV
+    elif arr.ndim != 2:
+        raise DataError(f"{path}: expected (H, W) or (H, W, 3) image, got shape {arr.shape}")
+    ok, buf = cv2.imencode(".png", arr)
+    if not ok:
+        raise DataError(f"{path}: PNG encoding failed")
+    return atomic_write_bytes(path, buf.tobytes())
+
+
+def read_png(path: Path | str, expect: str = "any") -> NDArray[Any]:
+    """Read a PNG as RGB uint8 (H, W, 3) or grey uint8/uint16 (H, W); errors name the file.
+
+    ``expect`` is ``"rgb"``, ``"depth"`` (uint16 grey), or ``"any"``.
+    """
+    import cv2
+
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f"{p}: image not found")
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DataError(f"{p}: cannot decode image (corrupt or not a PNG)")
+    if img.ndim == 3:
+        img = img[:, :, 2::-1] if img.shape[2] == 4 else img[:, :, ::-1]
+        img = np.ascontiguousarray(img)
+    if expect == "rgb" and (img.ndim != 3 or img.dtype != np.uint8):
+        raise DataError(f"{p}: expected an 8-bit RGB image, got {img.dtype} with shape {img.shape}")
+    if expect == "depth" and (img.ndim != 2 or img.dtype != np.uint16):
+        raise DataError(f"{p}: expected a uint16 depth image in mm, got {img.dtype} with shape {img.shape}")
+    return img
+
+
+def depth_m_to_mm_u16(depth_m: NDArray[np.floating]) -> NDArray[np.uint16]:
+    """Metric depth (NaN/inf/<=0 = no data) -> uint16 millimetres (0 = no data, saturates at 65535)."""
+    d = np.asarray(depth_m, dtype=np.float64)
+    mm = np.where(np.isfinite(d) & (d > 0), np.rint(d * 1000.0), 0.0)
+    return np.clip(mm, 0, 65535).astype(np.uint16)
+
+
+def depth_mm_u16_to_m(depth_mm: NDArray[np.uint16]) -> NDArray[np.float32]:
+    """uint16 millimetres -> float32 metres (0 stays 0 = no data)."""
+    return np.asarray(depth_mm, dtype=np.float32) / 1000.0

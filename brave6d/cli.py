@@ -1,0 +1,85 @@
+"""The ``brave6d`` command line: one sub-command per stage, dispatched lazily.
+
+``brave6d --help`` lists the commands without importing any stage (torch, open3d, ... load only
+when their command runs). Each command module provides ``configure(parser)`` and
+``run(args) -> int``. A :class:`~brave6d.errors.BraveError` ends the program with one line on
+stderr and exit status 2, never with a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from brave6d.errors import BraveError
+
+
+@dataclass(frozen=True)
+class Command:
+    name: str
+    module: str
+    help: str
+
+
+#: Every command, in pipeline order. A stage adds its line here when it exists.
+COMMANDS: tuple[Command, ...] = (
+    Command("spec", "brave6d.spec_cli", "validate a scene spec (YAML) and print a summary"),
+    Command("init", "brave6d.init_cli", "create a scene directory from a scene spec"),
+    Command("demo", "brave6d.demo", "run the whole pipeline on the embedded demo scene"),
+)
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("brave6d")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _top_parser() -> argparse.ArgumentParser:
+    width = max(len(c.name) for c in COMMANDS)
+    listing = "\n".join(f"  {c.name.ljust(width)}  {c.help}" for c in COMMANDS)
+    parser = argparse.ArgumentParser(
+        prog="brave6d",
+        description="BRAVE-6D pipeline: capture, calibrate, train 3D Gaussian Splatting scenes, "
+        "annotate, export and serve them to active-vision agents.",
+        epilog=f"commands (in pipeline order):\n{listing}\n\nRun 'brave6d COMMAND --help' for a command's options.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"brave6d {_version()}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    parser.add_argument("command", choices=[c.name for c in COMMANDS], metavar="COMMAND", help="see below")
+    parser.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the console script."""
+    from brave6d.progress import setup_logging
+
+    top = _top_parser()
+    ns = top.parse_args(argv)
+    command = next(c for c in COMMANDS if c.name == ns.command)
+    module = importlib.import_module(command.module)
+    parser = argparse.ArgumentParser(prog=f"brave6d {command.name}", description=command.help)
+    module.configure(parser)
+    args = parser.parse_args(ns.args)
+    args.verbose = ns.verbose + getattr(args, "verbose", 0)
+    setup_logging(args.verbose)
+    try:
+        return int(module.run(args) or 0)
+    except BraveError as exc:  # user-facing: one line, no traceback
+        print(f"brave6d {command.name}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"brave6d {command.name}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

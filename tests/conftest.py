@@ -1,0 +1,28 @@
+"""Shared pytest configuration: hypothesis profiles and small fixtures."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import matplotlib
+import pytest
+from hypothesis import HealthCheck, settings
+
+matplotlib.use("Agg")
+
+# Shared, noisy machines: no per-example deadline. CI is derandomised so that a red run can be
+# reproduced exactly; locally hypothesis explores new examples each run.
+settings.register_profile("ci", deadline=None, derandomize=True, max_examples=60,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.register_profile("dev", deadline=None, max_examples=100,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "dev"))
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+DEMO_SPEC = REPO_ROOT / "data" / "demo" / "scene.yaml"
+
+
+@pytest.fixture(scope="session")
+def demo_spec_path() -> Path:
+    return DEMO_SPEC

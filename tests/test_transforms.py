@@ -1,0 +1,203 @@
+"""Rigid transforms: round trips, hard cases (angle 0, near pi, exactly pi, sign flips,
+degenerate look-at) and rejection of non-rigid input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import assume, given
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from brave6d.errors import NonRigidTransformError
+from brave6d.transforms import (
+    check_rigid,
+    format_tum_line,
+    invert,
+    look_at,
+    make_transform,
+    matrix_to_quat_wxyz,
+    matrix_to_rpy_deg,
+    matrix_to_tum,
+    matrix_to_ur_pose,
+    orthonormalize,
+    parse_tum_line,
+    pose_distance,
+    quat_wxyz_to_matrix,
+    rotation_angle,
+    rotation_distance,
+    rpy_deg_to_matrix,
+    transform_points,
+    tum_to_matrix,
+    ur_pose_to_matrix,
+)
+
+finite = st.floats(-10.0, 10.0, allow_nan=False, allow_infinity=False)
+vec3 = st.tuples(finite, finite, finite)
+unit_quats = st.tuples(*[st.floats(-1, 1, allow_nan=False)] * 4).filter(
+    lambda q: np.linalg.norm(q) > 1e-3).map(lambda q: np.asarray(q) / np.linalg.norm(q))
+poses = st.tuples(vec3, unit_quats).map(
+    lambda tq: make_transform(Rotation.from_quat(tq[1]).as_matrix(), tq[0]))
+
+
+def assert_same_transform(A: np.ndarray, B: np.ndarray, atol: float = 1e-9) -> None:
+    np.testing.assert_allclose(A, B, atol=atol, rtol=0)
+
+
+# ----------------------------------------------------------------------------- round trips
+@given(poses)
+def test_ur_pose_round_trip(T: np.ndarray) -> None:
+    pose = matrix_to_ur_pose(T)
+    assert len(pose) == 6 and all(math.isfinite(v) for v in pose)
+    assert np.linalg.norm(pose[3:]) <= math.pi + 1e-12
+    assert_same_transform(ur_pose_to_matrix(pose), T)
+
+
+@given(poses)
+def test_tum_round_trip_and_text(T: np.ndarray) -> None:
+    values = matrix_to_tum(T)
+    assert values[6] >= 0.0  # canonical sign: qw >= 0
+    assert_same_transform(tum_to_matrix(values), T)
+    frame_id, parsed = parse_tum_line(format_tum_line(17, T))
+    assert frame_id == "17"
+    assert_same_transform(parsed, T)
+
+
+@given(poses)
+def test_inverse_is_exact(T: np.ndarray) -> None:
+    assert_same_transform(invert(T) @ T, np.eye(4), atol=1e-12 * max(1.0, np.abs(T).max()) * 10)
+    assert_same_transform(invert(invert(T)), T)
+
+
+@given(poses, st.lists(vec3, min_size=1, max_size=5))
+def test_transform_points_matches_homogeneous(T: np.ndarray, pts: list) -> None:
+    P = np.asarray(pts)
+    homog = (T @ np.c_[P, np.ones(len(P))].T).T[:, :3]
+    np.testing.assert_allclose(transform_points(T, P), homog, atol=1e-12)
+
+
+@given(unit_quats)
+def test_quaternion_wxyz_round_trip_and_sign_flip(q_xyzw: np.ndarray) -> None:
+    q_wxyz = q_xyzw[[3, 0, 1, 2]]
+    R = quat_wxyz_to_matrix(q_wxyz)
+    np.testing.assert_allclose(quat_wxyz_to_matrix(-q_wxyz), R, atol=1e-12)  # q and -q: same rotation
+    back = matrix_to_quat_wxyz(R)
+    assert back[0] >= 0.0
+    np.testing.assert_allclose(abs(back @ q_wxyz), 1.0, atol=1e-9)
+
+
+@given(st.tuples(st.floats(-179, 179), st.floats(-89, 89), st.floats(-179, 179)))
+def test_rpy_round_trip(rpy: tuple) -> None:
+    np.testing.assert_allclose(matrix_to_rpy_deg(rpy_deg_to_matrix(rpy)), rpy, atol=1e-7)
+
+
+# ----------------------------------------------------------------------------- hard cases
+@pytest.mark.parametrize("angle", [0.0, 1e-12, 1e-8, math.pi - 1e-9, math.pi - 1e-6, math.pi])
+@pytest.mark.parametrize("axis", [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 1), (-0.3, 0.2, 0.9)])
+def test_rotation_vector_edge_angles(angle: float, axis: tuple) -> None:
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    pose = [0.1, -0.2, 0.3, *(a * angle)]
+    T = ur_pose_to_matrix(pose)
+    back = matrix_to_ur_pose(T)
+    assert all(math.isfinite(v) for v in back)
+    assert_same_transform(ur_pose_to_matrix(back), T)
+    assert abs(np.linalg.norm(back[3:]) - angle) < 1e-7
+    assert abs(rotation_angle(T[:3, :3]) - angle) < 1e-7
+
+
+def test_rotation_distance_is_accurate_near_zero_and_pi() -> None:
+    R0 = rpy_deg_to_matrix((10, 20, 30))
+    tiny = Rotation.from_rotvec([1e-9, 0, 0]).as_matrix()
+    assert abs(rotation_distance(R0, R0 @ tiny) - 1e-9) < 1e-12  # arccos-based formulas fail here
+    flip = Rotation.from_rotvec([0, math.pi, 0]).as_matrix()
+    assert abs(rotation_distance(R0, R0 @ flip) - math.pi) < 1e-9
+    T1, T2 = make_transform(R0, [0, 0, 0]), make_transform(R0 @ flip, [3, 4, 0])
+    rot, trans = pose_distance(T1, T2)
+    assert abs(rot - math.pi) < 1e-9 and abs(trans - 5.0) < 1e-12
+
+
+@given(vec3, vec3)
+def test_look_at_points_optical_axis_at_target(eye: tuple, target: tuple) -> None:
+    e, t = np.asarray(eye), np.asarray(target)
+    assume(np.linalg.norm(t - e) > 1e-3)
+    T = look_at(e, t)
+    check_rigid(T)
+    z = T[:3, 2]
+    np.testing.assert_allclose(z, (t - e) / np.linalg.norm(t - e), atol=1e-9)
+    cam_target = transform_points(invert(T), t[None])[0]
+    np.testing.assert_allclose(cam_target[:2], 0.0, atol=1e-9 * max(1.0, np.abs(t - e).max()))
+    assert cam_target[2] > 0
+
+
+def test_look_at_roll_convention_image_up_is_world_up() -> None:
+    T = look_at([0.0, -1.0, 0.5], [0.0, 0.0, 0.0])
+    # camera -y (image up) must have a positive world z component
+    assert (-T[:3, 1])[2] > 0.0
+    assert abs(T[:3, 0][2]) < 1e-12  # x axis horizontal: no roll
+
+
+@pytest.mark.parametrize("direction", [(0, 0, -1), (0, 0, 1), (1e-9, 0, -1), (0, 1e-8, 1)])
+def test_look_at_parallel_to_up_is_finite_and_deterministic(direction: tuple) -> None:
+    eye = np.array([0.4, 0.1, 0.5])
+    target = eye + np.asarray(direction, float)
+    T1 = look_at(eye, target)
+    T2 = look_at(eye, target)
+    assert np.all(np.isfinite(T1))
+    check_rigid(T1)
+    np.testing.assert_array_equal(T1, T2)
+    np.testing.assert_allclose(T1[:3, 2], np.asarray(direction) / np.linalg.norm(direction), atol=1e-9)
+
+
+def test_look_at_rejects_coincident_eye_and_target() -> None:
+    with pytest.raises(NonRigidTransformError, match="coincide"):
+        look_at([1, 2, 3], [1, 2, 3])
+
+
+# ----------------------------------------------------------------------------- rejection
+@pytest.mark.parametrize(
+    ("matrix", "message"),
+    [
+        (np.diag([2.0, 1.0, 1.0, 1.0]), "not orthonormal"),
+        (np.diag([1.0, 1.0, -1.0, 1.0]), "reflection"),
+        (np.eye(3), "expected a 4x4"),
+        (np.r_[np.eye(4)[:3], [[0.0, 0.0, 0.1, 1.0]]], "bottom row"),
+        (np.full((4, 4), np.nan), "NaN"),
+        (make_transform(np.eye(3) + np.array([[0, 1e-3, 0], [0, 0, 0], [0, 0, 0]]), [0, 0, 0]), "sheared"),
+    ],
+)
+def test_check_rigid_rejects_non_rigid(matrix: np.ndarray, message: str) -> None:
+    with pytest.raises(NonRigidTransformError, match=message):
+        check_rigid(matrix, "cam_T_x")
+
+
+def test_error_names_the_transform() -> None:
+    with pytest.raises(NonRigidTransformError, match="^frame 12 base_T_tcp"):
+        check_rigid(np.diag([1.0, 1.0, 1.0, 2.0]), "frame 12 base_T_tcp")
+
+
+@given(poses, st.floats(1e-4, 0.5))
+def test_orthonormalize_projects_perturbed_rotation_back(T: np.ndarray, eps: float) -> None:
+    noisy = T[:3, :3] + eps * np.array([[0.3, -0.1, 0.2], [0.05, 0.1, -0.2], [0.1, 0.2, 0.0]])
+    R = orthonormalize(noisy)
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) > 0
+
+
+@pytest.mark.parametrize("bad", [[0, 0, 0, 0, 0], [0, 0, 0, np.nan, 0, 0], [0, 0, 0, 0, 0, np.inf]])
+def test_ur_pose_rejects_malformed(bad: list) -> None:
+    with pytest.raises(NonRigidTransformError):
+        ur_pose_to_matrix(bad)
+
+
+@pytest.mark.parametrize("line", ["1 0 0 0 0 0 0", "1 a 0 0 0 0 0 1", "1 0 0 0 0 0 0 0"])
+def test_tum_line_rejects_malformed(line: str) -> None:
+    with pytest.raises(NonRigidTransformError):
+        parse_tum_line(line)
+
+
+def test_tum_line_accepts_commas() -> None:
+    frame, T = parse_tum_line("3, 0.1, 0.2, 0.3, 0, 0, 0, 1")
+    assert frame == "3"
+    np.testing.assert_allclose(T[:3, 3], [0.1, 0.2, 0.3])
