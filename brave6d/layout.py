@@ -27,6 +27,46 @@ log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
+class CaptureLayout:
+    """Paths of one capture folder: the scene capture or the calibration board capture."""
+
+    root: Path
+
+    @property
+    def plan_path(self) -> Path:
+        return self.root / "plan.json"
+
+    @property
+    def plan_plot_path(self) -> Path:
+        return self.root / "plan.png"
+
+    @property
+    def frames_path(self) -> Path:
+        return self.root / "frames.jsonl"
+
+    @property
+    def camera_path(self) -> Path:
+        return self.root / "camera.json"
+
+    @property
+    def rgb_dir(self) -> Path:
+        return self.root / "rgb"
+
+    @property
+    def depth_dir(self) -> Path:
+        return self.root / "depth"
+
+    @property
+    def sim_truth_dir(self) -> Path:
+        """Simulator ground truth (object-id buffers, true poses) for tests only: no stage reads it."""
+        return self.root / "sim_truth"
+
+    def frames(self) -> list[FrameRecord]:
+        """All complete frame records."""
+        return FrameLog(self.frames_path).read()
+
+
+@dataclass(frozen=True)
 class SceneDir:
     """Paths of one scene directory (see DESIGN.md, "Data flow")."""
 
@@ -42,28 +82,38 @@ class SceneDir:
 
     # capture/
     @property
+    def capture(self) -> CaptureLayout:
+        """The scene capture (``capture/``)."""
+        return CaptureLayout(self.root / "capture")
+
+    @property
+    def board_capture(self) -> CaptureLayout:
+        """The ChArUco board capture used for calibration (``calibration/board_capture/``)."""
+        return CaptureLayout(self.calibration_dir / "board_capture")
+
+    @property
     def capture_dir(self) -> Path:
-        return self.root / "capture"
+        return self.capture.root
 
     @property
     def plan_path(self) -> Path:
-        return self.capture_dir / "plan.json"
+        return self.capture.plan_path
 
     @property
     def frames_path(self) -> Path:
-        return self.capture_dir / "frames.jsonl"
+        return self.capture.frames_path
 
     @property
     def camera_path(self) -> Path:
-        return self.capture_dir / "camera.json"
+        return self.capture.camera_path
 
     @property
     def rgb_dir(self) -> Path:
-        return self.capture_dir / "rgb"
+        return self.capture.rgb_dir
 
     @property
     def depth_dir(self) -> Path:
-        return self.capture_dir / "depth"
+        return self.capture.depth_dir
 
     # calibration/
     @property
@@ -105,8 +155,8 @@ class SceneDir:
         return load_scene_spec(self.spec_path)
 
     def frames(self) -> list[FrameRecord]:
-        """All complete frame records of the capture."""
-        return FrameLog(self.frames_path).read()
+        """All complete frame records of the scene capture."""
+        return self.capture.frames()
 
 
 def init_scene_dir(root: Path | str, spec_file: Path | str) -> SceneDir:

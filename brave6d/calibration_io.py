@@ -1,0 +1,58 @@
+"""Read and write the calibration results every later stage uses.
+
+``calibration/intrinsics.json`` holds ``{"camera": PinholeCamera.to_json(), ...}`` and
+``calibration/handeye.json`` holds ``{"tcp_T_cam": 4x4, ...}``; other keys (residuals, method,
+uncertainty) are calibration's own. Stages read only through these functions, so they depend on
+the kernel, not on calibration's internals, and never on the simulator's truth.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.atomic import atomic_write_json, read_json
+from brave6d.camera import PinholeCamera
+from brave6d.errors import DataError, NonRigidTransformError
+from brave6d.layout import FrameRecord, SceneDir
+from brave6d.transforms import check_rigid
+
+
+def write_intrinsics(scene: SceneDir, camera: PinholeCamera, **details: Any) -> None:
+    """Write ``calibration/intrinsics.json`` (``details``: RMS, per-view errors, method, ...)."""
+    atomic_write_json(scene.intrinsics_path, {"camera": camera.to_json(), **details})
+
+
+def read_intrinsics(scene: SceneDir) -> PinholeCamera:
+    """The calibrated intrinsics (with distortion); errors name the file."""
+    data = read_json(scene.intrinsics_path)
+    try:
+        return PinholeCamera.from_json(data["camera"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataError(f"{scene.intrinsics_path}: field 'camera' is missing or malformed ({exc})") from None
+
+
+def write_handeye(scene: SceneDir, tcp_T_cam: NDArray[np.float64], **details: Any) -> None:
+    """Write ``calibration/handeye.json`` (``details``: method, residuals, uncertainty, ...)."""
+    T = check_rigid(tcp_T_cam, "tcp_T_cam")
+    atomic_write_json(scene.handeye_path, {"tcp_T_cam": T.tolist(), **details})
+
+
+def read_handeye(scene: SceneDir) -> NDArray[np.float64]:
+    """The calibrated ``tcp_T_cam``; errors name the file."""
+    data = read_json(scene.handeye_path)
+    if "tcp_T_cam" not in data:
+        raise DataError(f"{scene.handeye_path}: field 'tcp_T_cam' is missing")
+    try:
+        return check_rigid(data["tcp_T_cam"], f"{scene.handeye_path}: tcp_T_cam")
+    except NonRigidTransformError as exc:
+        raise DataError(str(exc)) from None
+
+
+def camera_poses(scene: SceneDir, records: list[FrameRecord] | None = None) -> list[tuple[FrameRecord, NDArray[np.float64]]]:
+    """``(record, base_T_cam)`` for every captured frame: ``base_T_tcp @ tcp_T_cam`` (calibrated)."""
+    tcp_T_cam = read_handeye(scene)
+    frames = scene.frames() if records is None else records
+    return [(r, r.base_T_tcp_matrix @ tcp_T_cam) for r in frames]
