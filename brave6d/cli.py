@@ -28,6 +28,8 @@ class Command:
 COMMANDS: tuple[Command, ...] = (
     Command("spec", "brave6d.spec_cli", "validate a scene spec (YAML) and print a summary"),
     Command("init", "brave6d.init_cli", "create a scene directory from a scene spec"),
+    Command("capture", "capture.cli", "plan capture views and capture them with a robot and a camera"),
+    Command("annotate", "annotation.cli", "import 3D-DAT object poses and export BOP ground truth"),
     Command("demo", "brave6d.demo", "run the whole pipeline on the embedded demo scene"),
 )
 
