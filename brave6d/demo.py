@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from brave6d.errors import BraveError
-from brave6d.layout import SceneDir, init_scene_dir
+from brave6d.layout import SceneDir, init_scene_dir, write_spec
 from brave6d.progress import StageResult, Stopwatch, format_table
 from brave6d.spec import SceneSpec
 
@@ -64,6 +64,7 @@ def stage_scene(ctx: DemoContext) -> StageResult:
 #: Pipeline order. Each stage package appends its line when it exists.
 STAGES: tuple[DemoStage, ...] = (
     DemoStage("scene", "brave6d.demo:stage_scene", "validate the demo spec and create the scene directory"),
+    DemoStage("capture", "capture.demo:stage_capture", "plan the views and capture them (simulated UR5e + camera)"),
 )
 
 
@@ -88,10 +89,20 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: What ``--quick`` changes in the spec: few views on two rings (CI's miniature end-to-end run).
+QUICK_CAPTURE = {"distances_m": [0.3, 0.45], "views_per_distance": 10}
+
+
 def prepare(workdir: Path, spec_file: Path = DEMO_SPEC, quick: bool = False, device: str = "auto") -> DemoContext:
-    """Create (or reuse) the demo scene directory under ``workdir``."""
+    """Create (or reuse) the demo scene directory under ``workdir`` (a miniature variant if ``quick``)."""
     scene = init_scene_dir(Path(workdir) / "scene", spec_file)
-    return DemoContext(workdir=Path(workdir), scene=scene, spec=scene.load_spec(), quick=quick, device=device)
+    spec = scene.load_spec()
+    if quick:
+        capture = spec.capture.model_copy(update=QUICK_CAPTURE)
+        spec = spec.model_copy(update={"capture": capture, "name": f"{spec.name}_quick"})
+        write_spec(scene, spec)
+        spec = scene.load_spec()
+    return DemoContext(workdir=Path(workdir), scene=scene, spec=spec, quick=quick, device=device)
 
 
 def run_stages(ctx: DemoContext, only: list[str] | None = None) -> list[StageResult]:

@@ -365,7 +365,7 @@ def parse_scene_spec(data: Any, source: Path | str = "<memory>", check_files: bo
     if not isinstance(data, dict):
         raise SpecError(f"{src}: the spec must be a YAML mapping at the top level, got {type(data).__name__}")
     try:
-        spec = SceneSpec.model_validate({**data, "source": src.resolve() if src.exists() else None})
+        spec = SceneSpec.model_validate({**data, "source": None if str(source) == "<memory>" else src.resolve()})
     except ValidationError as exc:
         field_path, msg = _first_error(exc)
         raise SpecError(f"{src}: field '{field_path}': {msg}") from None

@@ -1,0 +1,75 @@
+"""``brave6d capture plan|run SCENE_DIR``: plan the views, then capture them with a robot/camera pair."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from brave6d.calibration_io import read_handeye
+from brave6d.errors import BraveError
+from brave6d.layout import SceneDir
+
+log = logging.getLogger(__name__)
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    plan = sub.add_parser("plan", help="plan the capture views (writes capture/plan.json and plan.png)")
+    plan.add_argument("scene_dir", type=Path, help="scene directory (made by 'brave6d init')")
+    run = sub.add_parser("run", help="capture the planned views (plans first when there is no plan)")
+    run.add_argument("scene_dir", type=Path, help="scene directory (made by 'brave6d init')")
+    run.add_argument("--robot", default="sim", help="'sim' or 'ur:HOST' (a UR arm reachable over RTDE)")
+    run.add_argument("--camera", default="sim", help="'sim' or 'oak' (a Luxonis OAK over USB)")
+    run.add_argument("--resume", action="store_true", help="continue an interrupted capture")
+    run.add_argument("--force", action="store_true", help="move an existing capture aside and start again")
+    run.add_argument("--supersample", type=int, default=None,
+                     help="simulated camera: rays per pixel side (default: 1, with 3x3 on silhouette edges)")
+
+
+def mounting_for_planning(scene: SceneDir) -> tuple[np.ndarray | None, str]:
+    """The calibrated tcp_T_cam when calibration ran, else None (the planner uses the spec's guess)."""
+    if scene.handeye_path.exists():
+        return read_handeye(scene), f"calibrated ({scene.handeye_path})"
+    return None, "robot.tcp_T_camera_guess from the spec"
+
+
+def make_plan(scene: SceneDir):  # noqa: ANN201 - returns capture.planning.Plan
+    """Plan the scene's capture, save plan.json and the plot, return the plan."""
+    from capture.planning import BoxSet, plan_views, plot_plan, save_plan
+
+    spec = scene.load_spec()
+    tcp_T_cam, source = mounting_for_planning(scene)
+    plan = plan_views(spec, tcp_T_cam)
+    plan.meta["tcp_T_cam_source"] = source
+    save_plan(plan, scene.capture.plan_path)
+    plot_plan(plan, scene.capture.plan_plot_path, BoxSet.from_specs(spec.collision_boxes), spec.workspace)
+    log.info("planned %d views (%d dropped) with the %s mounting", len(plan.views), len(plan.dropped), source)
+    return plan
+
+
+def run(args: argparse.Namespace) -> int:
+    scene = SceneDir(args.scene_dir)
+    if not scene.spec_path.is_file():
+        raise BraveError(f"{scene.root}: not a scene directory (no scene.yaml); create it with 'brave6d init'")
+    if args.action == "plan":
+        plan = make_plan(scene)
+        print(f"planned {len(plan.views)} views, dropped {len(plan.dropped)}; "
+              f"estimated {plan.estimated_time_s:.0f} s (naive ring order: {plan.naive_travel_time_s:.0f} s travel)")
+        print(f"wrote {scene.capture.plan_path} and {scene.capture.plan_plot_path}")
+        return 0
+    from capture.backends import open_rig
+    from capture.planning import load_plan
+    from capture.runner import CaptureOptions, run_capture
+
+    spec = scene.load_spec()
+    plan = load_plan(scene.capture.plan_path) if scene.capture.plan_path.exists() else make_plan(scene)
+    options = CaptureOptions(settle_time_s=spec.capture.settle_time_s, save_depth=spec.capture.depth,
+                             resume=args.resume, force=args.force)
+    with open_rig(spec, args.robot, args.camera, supersample=args.supersample) as rig:
+        summary = run_capture(scene.capture, plan.views, rig.robot, rig.camera, options)
+    print(f"captured {summary.written} frames ({summary.resumed_from} kept from before, {summary.total} in all) "
+          f"in {summary.wall_seconds:.1f} s wall, {summary.robot_seconds:.1f} s robot time")
+    return 0

@@ -1,0 +1,126 @@
+"""The capture runner with the simulated robot and camera: resume after a kill, refusals, faults."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from brave6d.atomic import read_json, read_png
+from brave6d.errors import DataError
+from brave6d.layout import SceneDir, init_scene_dir
+from capture.backends import open_rig
+from capture.cli import make_plan
+from capture.protocols import RobotError
+from capture.runner import CaptureExistsError, CaptureOptions, run_capture
+
+
+def _small_scene(tmp_path: Path, demo_spec_path: Path, views: int = 4) -> SceneDir:
+    """The demo scene with a small camera and few views, so that a capture takes seconds."""
+    data = yaml.safe_load(demo_spec_path.read_text())
+    data["camera"].update({"width": 160, "height": 100})
+    data["capture"].update({"distances_m": [0.3, 0.45], "views_per_distance": views})
+    spec = tmp_path / "spec" / "scene.yaml"
+    spec.parent.mkdir()
+    (spec.parent / "meshes").symlink_to(demo_spec_path.parent / "meshes")
+    spec.write_text(yaml.safe_dump(data))
+    return init_scene_dir(tmp_path / "scene", spec)
+
+
+def test_capture_writes_frames_and_refuses_overwrite(tmp_path: Path, demo_spec_path: Path) -> None:
+    scene = _small_scene(tmp_path, demo_spec_path)
+    plan = make_plan(scene)
+    spec = scene.load_spec()
+    with open_rig(spec) as rig:
+        summary = run_capture(scene.capture, plan.views, rig.robot, rig.camera)
+    records = scene.frames()
+    assert summary.written == len(plan.views) == len(records) > 0
+    assert [r.index for r in records] == list(range(len(records)))
+    for record in records:
+        rgb = read_png(scene.capture_dir / record.rgb, "rgb")
+        depth = read_png(scene.capture_dir / str(record.depth), "depth")
+        assert rgb.shape == (100, 160, 3) and depth.shape == (100, 160)
+        assert 150 < np.median(depth[depth > 0]) < 800  # millimetres: the table at 0.3-0.45 m
+    assert read_json(scene.capture.camera_path)["intrinsics"]["width"] == 160
+    with open_rig(spec) as rig, pytest.raises(CaptureExistsError, match="complete capture exists.*--force"):
+        run_capture(scene.capture, plan.views, rig.robot, rig.camera)
+    with open_rig(spec) as rig:  # --force keeps the old capture aside, never deletes it
+        run_capture(scene.capture, plan.views[:1], rig.robot, rig.camera, CaptureOptions(force=True))
+    aside = [p for p in scene.root.iterdir() if p.name.startswith("capture.old-")]
+    assert len(aside) == 1 and len((aside[0] / "frames.jsonl").read_text().splitlines()) == len(records)
+    assert len(scene.frames()) == 1
+
+
+def test_robot_fault_stops_arm_and_keeps_frames(tmp_path: Path, demo_spec_path: Path) -> None:
+    scene = _small_scene(tmp_path, demo_spec_path)
+    plan = make_plan(scene)
+    spec = scene.load_spec()
+    with open_rig(spec) as rig:
+        robot = rig.robot
+        original = robot.move_joints
+        stops: list[float] = []
+        calls = {"n": 0}
+
+        def faulty_move(q: np.ndarray) -> None:
+            calls["n"] += 1
+            if calls["n"] == 3:
+                raise RobotError("protective stop (simulated fault)")
+            original(q)
+
+        original_stop = robot.stop
+        robot.move_joints = faulty_move  # type: ignore[method-assign]
+        robot.stop = lambda: (stops.append(robot.now()), original_stop())  # type: ignore[method-assign]
+        with pytest.raises(RobotError, match="protective stop"):
+            run_capture(scene.capture, plan.views, robot, rig.camera)
+    assert len(stops) == 1, "the arm must be stopped on a fault"
+    assert len(scene.frames()) == 2
+    with open_rig(spec) as rig:
+        summary = run_capture(scene.capture, plan.views, rig.robot, rig.camera, CaptureOptions(resume=True))
+    assert summary.resumed_from == 2 and summary.total == len(plan.views)
+
+
+def test_resume_refuses_other_camera(tmp_path: Path, demo_spec_path: Path) -> None:
+    scene = _small_scene(tmp_path, demo_spec_path)
+    plan = make_plan(scene)
+    spec = scene.load_spec()
+    with open_rig(spec) as rig:
+        run_capture(scene.capture, plan.views[:1], rig.robot, rig.camera)
+    other = spec.model_copy(update={"camera": spec.camera.model_copy(update={"hfov_deg": 60.0})})
+    with open_rig(other) as rig, pytest.raises(DataError, match="intrinsics differ"):
+        run_capture(scene.capture, plan.views, rig.robot, rig.camera, CaptureOptions(resume=True))
+
+
+@pytest.mark.slow
+def test_killed_capture_resumes_without_loss_or_duplicates(tmp_path: Path, demo_spec_path: Path) -> None:
+    scene = _small_scene(tmp_path, demo_spec_path, views=8)
+    plan = make_plan(scene)
+    n = len(plan.views)
+    cmd = [sys.executable, "-m", "brave6d.cli", "capture", "run", str(scene.root)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 300
+    while time.time() < deadline:
+        done = len(scene.frames_path.read_text().splitlines()) if scene.frames_path.exists() else 0
+        if done >= 3:
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    kept = scene.frames()
+    assert 3 <= len(kept) < n, "the kill must land mid-run"
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 2 and "--resume" in again.stderr  # refuses without --resume
+    resumed = subprocess.run([*cmd, "--resume"], capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    records = scene.frames()
+    assert sorted(r.view_id for r in records) == sorted(str(v.view_id) for v in plan.views)
+    assert sorted(r.index for r in records) == list(range(n))  # no frame lost, none twice
+    assert records[: len(kept)] == kept  # finished frames untouched
+    for record in records:
+        read_png(scene.capture_dir / record.rgb, "rgb")
