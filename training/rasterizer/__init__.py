@@ -1,0 +1,28 @@
+"""Differentiable 3D Gaussian Splatting rasterizer: one function, two backends.
+
+``from training.rasterizer import rasterize`` (also ``training.rasterize``)::
+
+    rgb, depth, alpha, info = rasterize(means, quats, scales, opacities, colors,
+                                        viewmats, Ks, width, height, sh_degree=3)
+
+* ``cuda``: ``gsplat.rasterization`` (non-packed, ``RGB+ED``), imported lazily.
+* ``cpu``: Numba kernels (``_cpu_kernels``) with forward and backward, compiled once per
+  machine into an on-disk cache; same conventions as gsplat 1.5.3's CUDA kernels
+  (EWA projection with the Jacobian clamp, eps2d = 0.3 px^2, opacity-aware 3.33 sigma
+  boxes, 16 px tiles, depth order, alpha <= 0.999, skip below 1/255, stop before T <= 1e-4,
+  SH up to degree 3 shifted by +0.5 and clamped at 0).
+* ``auto``: follows the tensors (CUDA tensors -> ``cuda``, CPU tensors -> ``cpu``).
+* ``_torch_reference``: a slow pure-torch implementation, only for tests and benchmarks.
+
+Inputs are checked (``RasterInputError``, a ``BraveError``): NaN/inf are rejected by
+name and count; zero or denormal quaternions act as the identity with zero gradient;
+scales are clamped to ``[1e-9, 1e6]``; Gaussians outside ``[near_plane, far_plane]``
+are culled.  ``info`` works with gsplat 1.5.3's ``DefaultStrategy`` (``packed=False``).
+On shared CPU machines set ``OMP_WAIT_POLICY=PASSIVE`` before torch starts: spinning
+OpenMP threads otherwise steal the cores the kernels run on.
+"""
+
+from ._api import rasterize
+from ._validation import RasterBackendError, RasterInputError
+
+__all__ = ["RasterBackendError", "RasterInputError", "rasterize"]
