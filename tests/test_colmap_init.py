@@ -1,0 +1,147 @@
+"""COLMAP initialisation with known poses, the sparse/ model, and the fallbacks."""
+
+from __future__ import annotations
+
+import logging
+import struct
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from brave6d.camera import PinholeCamera
+from training.colmap_init import (
+    ColmapOptions,
+    initial_points,
+    nearest_camera_pairs,
+    random_points,
+    voxel_downsample,
+)
+from training.dataset import load_scene
+from training.synthetic import plane_views, write_scene
+
+CAM = PinholeCamera(320, 200, 250.0, 250.0, 159.5, 99.5)
+OPTS = ColmapOptions(max_features=2048, neighbours=5, min_points=200)
+
+
+@pytest.fixture(scope="module")
+def plane_scene(tmp_path_factory: pytest.TempPathFactory):
+    """A textured plane z = 0 seen by 2 rings x 8 cameras; COLMAP run once for the module."""
+    root = tmp_path_factory.mktemp("colmap") / "scene"
+    tcp_T_cam = np.eye(4)
+    tcp_T_cam[:3, 3] = [0.0, -0.05, 0.02]
+    scene = write_scene(root, CAM, plane_views(CAM, [0.45, 0.6], 8), tcp_T_cam=tcp_T_cam)
+    data = load_scene(scene)
+    init = initial_points(scene, data, OPTS, max_points=50_000)
+    return scene, data, init
+
+
+def test_triangulated_points_lie_on_the_plane(plane_scene) -> None:
+    _, _, init = plane_scene
+    assert init.source == "colmap"
+    assert len(init) >= 500
+    z = np.abs(init.points[:, 2])
+    assert np.median(z) < 0.002  # pixels are ~2 mm on the plane
+    assert np.quantile(z, 0.9) < 0.006
+    assert np.all(np.abs(init.points[:, :2]) < 0.32)  # on the textured square (0.6 m)
+    assert init.colors.shape == init.points.shape and init.colors.max() <= 1.0
+    assert init.colors.std() > 0.05  # real colours from the images, not a constant
+
+
+def _centre(image: pycolmap.Image) -> np.ndarray:
+    return np.asarray(image.projection_center())
+
+
+def test_sparse_model_loads_with_pycolmap_and_keeps_the_calibrated_centres(plane_scene) -> None:
+    scene, data, init = plane_scene
+    model = scene.sparse_dir / "0"
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        assert (model / name).is_file()
+    rec = pycolmap.Reconstruction(str(model))
+    assert rec.num_cameras() == 1
+    cam = rec.cameras[1]
+    assert cam.model == pycolmap.CameraModelId.PINHOLE
+    np.testing.assert_allclose(cam.params, [CAM.fx, CAM.fy, CAM.cx, CAM.cy])
+    by_name = {im.name: im for im in rec.images.values()}
+    assert len(by_name) == len(data.views)  # holdout views included (poses only)
+    for v in data.views:
+        np.testing.assert_allclose(_centre(by_name[v.rgb_path.name]), v.base_T_cam[:3, 3], atol=1e-6)
+        R_cw = by_name[v.rgb_path.name].cam_from_world().rotation.matrix()
+        np.testing.assert_allclose(R_cw, v.base_T_cam[:3, :3].T, atol=1e-9)
+    assert rec.num_points3D() >= len(init)
+    holdout = (scene.sparse_dir / "holdout.txt").read_text().split()
+    assert holdout == [v.rgb_path.name for v in data.test]
+    # held-out images contributed no observations
+    assert all(by_name[n].num_points3D == 0 for n in holdout)
+
+
+def test_sparse_model_is_classic_colmap_binary(plane_scene) -> None:
+    """Readers of other 3DGS tools (Inria's read_extrinsics_binary) parse the classic layout."""
+    scene, data, _ = plane_scene
+    raw = (scene.sparse_dir / "0" / "cameras.bin").read_bytes()
+    n, cam_id, model_id, w, h = struct.unpack("<QiiQQ", raw[:32])
+    params = struct.unpack("<4d", raw[32:64])
+    assert (n, cam_id, model_id, w, h) == (1, 1, 1, 320, 200)  # model 1 = PINHOLE
+    assert params == (CAM.fx, CAM.fy, CAM.cx, CAM.cy)
+    raw = (scene.sparse_dir / "0" / "images.bin").read_bytes()
+    (n_images,) = struct.unpack("<Q", raw[:8])
+    assert n_images == len(data.views)
+    _, qw, qx, qy, qz, _, _, _, camera_id = struct.unpack("<idddddddi", raw[8:72])
+    name = raw[72:raw.index(b"\0", 72)].decode()
+    assert camera_id == 1 and name.endswith(".png")
+    assert abs(qw * qw + qx * qx + qy * qy + qz * qz - 1) < 1e-9
+
+
+def test_pairs_link_nearest_cameras() -> None:
+    centres = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [10, 0, 0]], float)
+    assert nearest_camera_pairs(centres, 1) == [(0, 1), (1, 2), (2, 3)]
+    assert nearest_camera_pairs(centres[:1], 3) == []
+
+
+def test_depth_fallback_when_colmap_finds_nothing(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    scene = write_scene(tmp_path / "blank", cam, plane_views(cam, [0.45], 6, blank=True))
+    data = load_scene(scene)
+    with caplog.at_level(logging.WARNING):
+        init = initial_points(scene, data, ColmapOptions(max_features=256, neighbours=2), max_points=3000)
+    assert init.source == "depth"
+    assert "falling back to depth" in caplog.text
+    assert 100 < len(init) <= 3000
+    assert np.abs(init.points[:, 2]).max() < 2e-3  # depth is quantised to whole millimetres
+    rec = pycolmap.Reconstruction(str(scene.sparse_dir / "0"))
+    assert rec.num_points3D() >= len(init)  # the same points in sparse/ for other tools
+
+
+def test_random_fallback_warns(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    scene = write_scene(tmp_path / "nodepth", cam, plane_views(cam, [0.45], 4, blank=True), with_depth=False)
+    data = load_scene(scene)
+    with caplog.at_level(logging.WARNING):
+        init = initial_points(scene, data, method="depth", max_points=500)
+    assert init.source == "random" and len(init) == 500
+    assert "RANDOM" in caplog.text
+
+
+def test_voxel_downsample_and_random_points() -> None:
+    rng = np.random.default_rng(0)
+    pts = rng.random((20_000, 3))
+    p, _, voxel = voxel_downsample(pts, rng.random((20_000, 3)).astype(np.float32), 1000)
+    assert len(p) <= 1000 and voxel > 0 and np.all((p >= 0) & (p <= 1))
+    r = random_points(np.zeros(3), np.ones(3) * 2, 50, seed=3)
+    assert r.points.shape == (50, 3) and np.all((r.points >= 0) & (r.points <= 2))
+
+
+def test_unchanged_model_is_reused(plane_scene, monkeypatch: pytest.MonkeyPatch) -> None:
+    import training.colmap_init as ci
+
+    scene, data, init = plane_scene
+
+    def boom(*a, **k):  # type: ignore[no-untyped-def]
+        raise AssertionError("triangulated again")
+
+    monkeypatch.setattr(ci, "triangulate", boom)
+    again = initial_points(scene, data, OPTS, max_points=50_000)
+    assert again.source == "colmap" and "reused" in again.details
+    np.testing.assert_array_equal(again.points, init.points)  # same order: same training
+    np.testing.assert_array_equal(again.colors, init.colors)

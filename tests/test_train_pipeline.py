@@ -1,0 +1,104 @@
+"""The training stage end to end on a small synthetic scene: CLI, outputs, metrics, resume."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+from plyfile import PlyData
+
+from brave6d.camera import PinholeCamera
+from brave6d.errors import BraveError
+from brave6d.layout import SceneDir
+from training import cli
+from training.ply import inria_attribute_names, read_ply
+from training.synthetic import plane_views, write_scene
+
+CAM = PinholeCamera(160, 100, 125.0, 125.0, 79.5, 49.5)
+
+
+def parse(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    cli.configure(parser)
+    return parser.parse_args(list(argv))
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> SceneDir:
+    root = tmp_path_factory.mktemp("pipe") / "scene"
+    scene = write_scene(root, CAM, plane_views(CAM, [0.45, 0.6], 8))
+    (scene.capture_dir / "rgb" / "000003.png").write_bytes(b"corrupt")
+    assert cli.run(parse(str(root), "--preset", "fast", "--steps", "20", "--device", "cpu",
+                         "--skip-bad-frames")) == 0
+    return scene
+
+
+def test_outputs_and_metrics(trained: SceneDir) -> None:
+    splat = trained.splat_dir
+    metrics = json.loads((splat / "metrics.json").read_text())
+    for key in ("steps", "train_time_s", "total_time_s", "num_gaussians", "memory", "holdout", "skipped_frames",
+                "images", "init", "curve"):
+        assert key in metrics, key
+    assert metrics["steps"] == 20 and metrics["device"] == "cpu"
+    assert metrics["memory"]["peak_rss_mb"] > 10
+    assert metrics["images"]["undistorted_once"] is True
+    assert [s["index"] for s in metrics["skipped_frames"]] == [3]
+    hold = metrics["holdout"]
+    assert hold["n_views"] == 2 and set(hold["per_level"]) == {"0", "1"}
+    assert np.isfinite(hold["psnr"]) and hold["psnr"] > 10
+    for level in hold["per_level"].values():
+        assert {"psnr", "ssim", "n_views", "distance_m"} <= set(level)
+    assert metrics["init"]["source"] in ("colmap", "depth")
+    assert len(list((splat / "holdout").glob("*.png"))) == 2
+    assert (splat / "curves.png").stat().st_size > 1000
+    names = [p.name for p in PlyData.read(str(splat / "point_cloud.ply"))["vertex"].properties]
+    assert names == inria_attribute_names()
+    assert read_ply(splat / "point_cloud.ply").num_gaussians == metrics["num_gaussians"]
+    pycolmap.Reconstruction(str(trained.sparse_dir / "0"))  # loads
+
+
+def test_resume_continues_from_the_last_checkpoint(trained: SceneDir) -> None:
+    assert cli.run(parse(str(trained.root), "--preset", "fast", "--steps", "30", "--device", "cpu",
+                         "--skip-bad-frames", "--resume")) == 0
+    metrics = json.loads((trained.splat_dir / "metrics.json").read_text())
+    assert metrics["resumed_from_step"] == 20 and metrics["steps"] == 30
+    assert metrics["init"]["source"] == "checkpoint"
+
+
+def test_bad_frame_stops_without_the_flag(trained: SceneDir) -> None:
+    with pytest.raises(BraveError, match=r"000003\.png"):
+        cli.run(parse(str(trained.root), "--preset", "fast", "--steps", "5", "--device", "cpu"))
+
+
+def test_missing_calibration_is_named(tmp_path: Path) -> None:
+    scene = write_scene(tmp_path / "s", CAM, plane_views(CAM, [0.5], 3))
+    scene.handeye_path.unlink()
+    with pytest.raises(BraveError, match="handeye.json"):
+        cli.run(parse(str(scene.root), "--device", "cpu"))
+
+
+def test_cuda_without_gpu_is_a_clear_error(trained: SceneDir) -> None:
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is present")
+    with pytest.raises(BraveError, match="no CUDA GPU"):
+        cli.run(parse(str(trained.root), "--device", "cuda", "--steps", "1"))
+
+
+def test_demo_stage_quick(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from training.demo import QUICK, stage_train
+
+    scene = write_scene(tmp_path / "demo", CAM, plane_views(CAM, [0.45, 0.6], 6))
+    ctx = SimpleNamespace(scene=scene, spec=None, quick=True, device="cpu")
+    result = stage_train(ctx)
+    assert result.name == "train" and result.status == "ok"
+    assert result.figures["steps"] == QUICK.steps
+    assert "holdout PSNR" in result.figures and "PSNR@0.45m" in result.figures and "PSNR@0.60m" in result.figures
+    assert (scene.splat_dir / "point_cloud.ply").is_file()

@@ -1,0 +1,133 @@
+"""``train_scene``: the whole training stage on one scene directory.
+
+Frames + calibrated poses -> initial points (COLMAP, ``sparse/0``) -> training -> holdout
+evaluation -> ``splat/point_cloud.ply`` (Inria layout), ``splat/metrics.json``,
+``splat/curves.png``, ``splat/holdout/<view>.png`` (render | ground truth) and
+``splat/checkpoints/``.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from brave6d.errors import BraveError
+from brave6d.layout import SceneDir
+from training.colmap_init import ColmapOptions, initial_points
+from training.dataset import load_scene
+from training.evaluate import evaluate_holdout, peak_memory_mb, plot_curves, write_metrics
+from training.model import GaussianModel
+from training.ply import write_ply
+from training.presets import Preset
+from training.trainer import Trainer, list_checkpoints, resolve_device
+
+log = logging.getLogger(__name__)
+
+
+def train_scene(
+    scene: SceneDir,
+    preset: Preset,
+    device: str = "auto",
+    resume: bool = False,
+    skip_bad_frames: bool = False,
+    init_method: str = "auto",
+    colmap: ColmapOptions | None = None,
+    show_progress: bool = True,
+) -> dict[str, Any]:
+    """Train ``scene`` with ``preset`` and write the ``splat/`` outputs; returns the metrics."""
+    t_start = time.perf_counter()
+    dev = resolve_device(device)
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
+    splat = scene.splat_dir
+    ckpt_dir = splat / "checkpoints"
+    if not resume and list_checkpoints(ckpt_dir):
+        log.info("starting afresh: the checkpoints in %s will be replaced (use --resume to continue)", ckpt_dir)
+        for old in list_checkpoints(ckpt_dir):
+            old.unlink()
+    data = load_scene(scene, preset.downscale, skip_bad_frames)
+    log.info("images: %s", data.undistortion)
+    init_info: dict[str, Any]
+    if resume and list_checkpoints(ckpt_dir):
+        # the model comes from the checkpoint; a placeholder keeps the constructor simple
+        model = GaussianModel.from_points([[0.0, 0.0, 0.0]], sh_degree=preset.sh_degree, device=dev)
+        init_info = {"source": "checkpoint"}
+    else:
+        init = initial_points(scene, data, colmap or ColmapOptions(), preset.max_init_points, preset.seed, init_method)
+        log.info("initial points: %d from %s", len(init), init.source)
+        model = GaussianModel.from_points(init.points, init.colors, preset.sh_degree, preset.init_opacity,
+                                          preset.init_scale, device=dev)
+        init_info = {"source": init.source, "points": len(init), **init.details}
+    t_init = time.perf_counter() - t_start
+
+    def holdout_psnr(trainer: Trainer) -> float:
+        return evaluate_holdout(trainer.model, data).psnr
+
+    trainer = Trainer(data, model, preset, ckpt_dir, dev, show_progress=show_progress, eval_callback=holdout_psnr)
+    result = trainer.train(resume=resume)
+    model = trainer.model
+    ply_path = write_ply(splat / "point_cloud.ply", model.to_splat())
+    t_eval = time.perf_counter()
+    shutil.rmtree(splat / "holdout", ignore_errors=True)  # no stale views from an earlier split
+    holdout = evaluate_holdout(model, data, splat / "holdout")
+    t_eval = time.perf_counter() - t_eval
+    if result.curve:
+        result.curve[-1]["holdout_psnr"] = holdout.psnr
+        plot_curves(splat / "curves.png", result.curve,
+                    f"{scene.root.name}: preset {preset.name}, {result.steps} steps, holdout {holdout.psnr:.2f} dB")
+    metrics: dict[str, Any] = {
+        "preset": preset.name,
+        "device": str(dev),
+        "steps": result.steps,
+        "planned_steps": preset.steps,
+        "stopped_by": result.stopped_by,
+        "resumed_from_step": result.resumed_from,
+        "train_time_s": result.train_seconds,
+        "train_cpu_s": result.train_cpu_seconds,
+        "threads": {"torch": torch.get_num_threads(), "numba": _numba_threads()},
+        "init_time_s": t_init,
+        "eval_time_s": t_eval,
+        "total_time_s": time.perf_counter() - t_start,
+        "num_gaussians": result.num_gaussians,
+        "memory": peak_memory_mb(dev),
+        "holdout": holdout.to_json(),
+        "n_train_views": len(data.train),
+        "n_holdout_views": len(data.test),
+        "holdout_protocol": "10% of the views of each distance level, evenly spaced in capture order",
+        "skipped_frames": [{"index": s.index, "view_id": s.view_id, "reason": s.reason} for s in data.skipped],
+        "images": {"undistorted_once": True, "how": data.undistortion, "width": data.camera.width,
+                   "height": data.camera.height, "downscale": data.downscale,
+                   "metrics_resolution": f"{data.camera.width}x{data.camera.height}"},
+        "poses": "base_T_tcp (robot) @ tcp_T_cam (calibrated, calibration/handeye.json)",
+        "init": init_info,
+        "outputs": {"ply": str(ply_path), "curves": str(splat / "curves.png"),
+                    "holdout_images": str(splat / "holdout"), "checkpoints": str(ckpt_dir),
+                    "colmap_model": str(scene.sparse_dir / "0")},
+        "preset_config": preset.to_json(),
+        "curve": result.curve,
+    }
+    write_metrics(splat / "metrics.json", metrics)
+    return metrics
+
+
+def _numba_threads() -> int | None:
+    try:
+        import numba
+
+        return int(numba.get_num_threads())
+    except Exception:  # noqa: BLE001 - numba is the CPU rasterizer's dependency; absent on some CUDA installs
+        return None
+
+
+def require_capture(scene: SceneDir) -> None:
+    """Fail early, naming what is missing, before anything heavy is imported or started."""
+    for path, what in ((scene.frames_path, "the capture (run the capture stage)"),
+                       (scene.intrinsics_path, "the intrinsics (run the calibration stage)"),
+                       (scene.handeye_path, "the hand-eye transform (run the calibration stage)")):
+        if not Path(path).exists():
+            raise BraveError(f"{path}: missing; training needs {what}")

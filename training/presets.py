@@ -1,0 +1,132 @@
+"""Training presets: the hyperparameters of one training run, as a typed, frozen dataclass.
+
+``default`` follows the Inria reference (30k steps, learning rates, densification schedule;
+see REFERENCES.md). ``quality`` trains longer (50k steps, densifying until 25k). ``fast`` is
+tuned for the CPU demo (2 cores, no GPU): half-resolution images (320x200 for the demo), 3000
+steps, densification from step 300 to 1800 every 150 steps without opacity reset (a reset needs
+thousands of steps to recover), SH degree 2, at most 150k Gaussians and a 14-minute budget.
+On the demo capture it reaches about 28 dB holdout PSNR in about 4 minutes of training on an
+idle 2-core machine (see benchmarks/training.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+from typing import Any
+
+from brave6d.errors import BraveError
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Everything that shapes a training run (all steps count optimiser iterations)."""
+
+    name: str
+    steps: int = 30_000
+    downscale: int = 1  # images are resampled to 1/downscale of the undistorted resolution
+    time_budget_s: float | None = None  # stop (and evaluate) when training has run this long
+    seed: int = 0
+    # loss
+    ssim_lambda: float = 0.2
+    # spherical harmonics: degree +1 every `sh_degree_interval` steps up to `sh_degree`
+    sh_degree: int = 3
+    sh_degree_interval: int = 1000
+    # Adam learning rates (Inria); means: times the scene extent, exponential decay init -> final
+    means_lr_init: float = 1.6e-4
+    means_lr_final: float = 1.6e-6
+    sh0_lr: float = 2.5e-3
+    shN_lr: float = 2.5e-3 / 20.0
+    opacities_lr: float = 5e-2
+    scales_lr: float = 5e-3
+    quats_lr: float = 1e-3
+    adam_eps: float = 1e-15
+    # initialisation
+    init_opacity: float = 0.1
+    init_scale: float = 1.0  # multiplies the mean 3-nearest-neighbour distance
+    max_init_points: int = 300_000
+    # densification (gsplat DefaultStrategy names; Inria values)
+    refine_start: int = 500
+    refine_stop: int = 15_000
+    refine_every: int = 100
+    reset_every: int = 3000
+    grow_grad2d: float = 2e-4
+    grow_scale3d: float = 0.01
+    prune_opa: float = 0.005
+    prune_scale3d: float = 0.1
+    max_gaussians: int | None = None  # growth is limited to the highest gradients beyond this
+    # bookkeeping
+    checkpoint_every: int = 5000
+    keep_checkpoints: int = 2
+    curve_every: int = 100  # record (time, train PSNR, #Gaussians) for the training curves
+    eval_every: int = 0  # holdout evaluation during training (0: only at the end)
+
+    def __post_init__(self) -> None:
+        if self.steps < 1:
+            raise BraveError(f"preset {self.name}: steps must be >= 1, got {self.steps}")
+        if self.downscale < 1:
+            raise BraveError(f"preset {self.name}: downscale must be >= 1, got {self.downscale}")
+        if not 0 <= self.sh_degree <= 3:
+            raise BraveError(f"preset {self.name}: sh_degree must be in 0..3, got {self.sh_degree}")
+        if not 0.0 <= self.ssim_lambda <= 1.0:
+            raise BraveError(f"preset {self.name}: ssim_lambda must be in [0, 1], got {self.ssim_lambda}")
+        if self.checkpoint_every < 1 or self.keep_checkpoints < 1:
+            raise BraveError(f"preset {self.name}: checkpoint_every and keep_checkpoints must be >= 1")
+
+    def with_overrides(self, **changes: Any) -> Preset:
+        """A copy with some fields replaced (``None`` values are ignored)."""
+        return replace(self, **{k: v for k, v in changes.items() if v is not None})
+
+    def with_steps(self, steps: int) -> Preset:
+        """A copy for a run of ``steps`` steps: every step-based schedule scales with it."""
+        if steps == self.steps:
+            return self
+        f = steps / self.steps
+
+        def sc(v: int) -> int:
+            return max(1, round(v * f))
+
+        return replace(
+            self, steps=steps, sh_degree_interval=sc(self.sh_degree_interval),
+            refine_start=sc(self.refine_start), refine_stop=sc(self.refine_stop),
+            refine_every=sc(self.refine_every), reset_every=sc(self.reset_every),
+            checkpoint_every=sc(self.checkpoint_every), curve_every=sc(self.curve_every),
+            eval_every=sc(self.eval_every) if self.eval_every else 0,
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+DEFAULT = Preset(name="default")
+
+QUALITY = Preset(
+    name="quality", steps=50_000, refine_stop=25_000, checkpoint_every=5000,
+)
+
+FAST = Preset(
+    name="fast",
+    steps=3000,
+    downscale=2,
+    time_budget_s=14 * 60.0,
+    sh_degree=2,
+    sh_degree_interval=600,
+    refine_start=300,
+    refine_stop=1800,
+    refine_every=150,
+    reset_every=1_000_000,  # no opacity reset: too few steps remain to recover from one
+    grow_grad2d=2e-4,
+    max_gaussians=150_000,
+    max_init_points=60_000,
+    checkpoint_every=750,
+    curve_every=30,
+)
+
+PRESETS: dict[str, Preset] = {p.name: p for p in (FAST, DEFAULT, QUALITY)}
+
+
+def get_preset(name: str) -> Preset:
+    """The preset called ``name`` (``fast``, ``default`` or ``quality``)."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise BraveError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}") from None
