@@ -1,0 +1,625 @@
+"""The HTTP + WebSocket API of the render server (FastAPI; OpenAPI schema at ``/openapi.json``,
+interactive docs at ``/docs``).
+
+Endpoints (all JSON unless noted; errors are ``{"error": message, "field": where, "status": code}``):
+
+=========================================  =====================================================
+``GET  /health``                            liveness, device, open episodes
+``GET  /bundle``                            scene name, intrinsics, render defaults, objects
+                                            (BOP ids, ``world_T_obj``, diameters, symmetries),
+                                            collision boxes, workspace, holdout views, versions
+``GET  /bundle/models/{obj_id}``            the object model (BOP PLY, millimetres)
+``POST /episodes``                          reset: new episode, returns the first observation
+``GET  /episodes``                          the episodes this server knows
+``GET  /episodes/{id}``                     state: pose, counters, target (no images)
+``POST /episodes/{id}/set_pose``            teleport to an absolute pose
+``POST /episodes/{id}/move``                move with a twist for a duration
+``POST /episodes/{id}/close``               close, returns the episode's totals
+``GET  /episodes/{id}/observation.npz``     the last observation as NumPy ``.npz`` (binary:
+                                            rgb uint8, depth float32 metres, K, poses, ids)
+``WS   /episodes/{id}/ws``                  the same actions as JSON messages
+``GET  /viewer/``                           the browser viewer
+=========================================  =====================================================
+
+Poses are ``world_T_cam`` (OpenCV camera axes, metres), given as a 4x4 matrix, as
+``position`` + ``quaternion_wxyz``, or as ``look_at`` ``{eye, target, up}``. Numbers must be
+finite; a matrix must be rigid (``|R^T R - I| <= 1e-5``, ``det R > 0``, bottom row 0 0 0 1;
+it is then re-orthonormalised); a quaternion must have norm 1 within 1e-3.
+
+Observations carry RGB (``png`` or ``jpeg``, base64) and depth (``f32``: base64 of
+little-endian float32, row-major, metres, 0 = no data), the intrinsics ``K``, ``world_T_cam``
+and, per object instance, ``cam_T_obj`` (metres; BOP's ``cam_R_m2c``/``cam_t_m2c`` in mm
+follow from it) and its visible fraction. Every response reports ``timings_ms`` (``render``:
+the rasterizer call; ``total``: the whole request) and the header ``X-Render-Ms``.
+
+Robustness: request bodies (and WebSocket messages) are limited to ``max_body_bytes``
+(413); each action runs under ``request_timeout_s`` (504; a timed-out action is withdrawn
+before it changes anything); malformed JSON is 400, invalid values 422, unknown episodes 404,
+closed or busy episodes 409, too many open episodes 429; unexpected errors are 500 and the
+server keeps serving.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import io
+import json
+import logging
+import time
+from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import cv2
+import numpy as np
+from fastapi import FastAPI, Request, WebSocket, WebSocketDisconnect
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse, RedirectResponse, Response
+from fastapi.staticfiles import StaticFiles
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from brave6d.errors import BraveError, NonRigidTransformError
+from brave6d.transforms import check_rigid, look_at, make_transform, orthonormalize
+from serve.bundle import Bundle, load_bundle
+from serve.episodes import (
+    Cancelled,
+    EpisodeError,
+    EpisodeManager,
+    EpisodeNotFound,
+    Observation,
+    SceneServer,
+    StepResult,
+    Ticket,
+)
+
+log = logging.getLogger(__name__)
+
+VIEWER_DIR = Path(__file__).resolve().parent / "viewer"
+
+MIN_SIZE = 16
+MAX_WIDTH = 1280
+MAX_HEIGHT = 960
+MAX_MOVE_DURATION_S = 10.0
+RIGID_ATOL = 1e-5
+QUAT_NORM_TOL = 1e-3
+
+
+@dataclass(frozen=True)
+class ServerLimits:
+    """Operational limits of one server."""
+
+    max_body_bytes: int = 64 * 1024
+    request_timeout_s: float = 30.0
+    max_episodes: int = 32
+    idle_timeout_s: float = 900.0
+    workers: int = 16
+
+
+# ----------------------------------------------------------------------------- request models
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
+Quat = Annotated[list[Finite], Field(min_length=4, max_length=4)]
+Row4 = Annotated[list[Finite], Field(min_length=4, max_length=4)]
+Mat4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
+Width = Annotated[int, Field(ge=MIN_SIZE, le=MAX_WIDTH, description=f"pixels, {MIN_SIZE}..{MAX_WIDTH}")]
+Height = Annotated[int, Field(ge=MIN_SIZE, le=MAX_HEIGHT, description=f"pixels, {MIN_SIZE}..{MAX_HEIGHT}")]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class LookAt(_Strict):
+    """An OpenCV camera at ``eye`` looking at ``target``; image-up is ``up`` projected (default world +z)."""
+
+    eye: Vec3
+    target: Vec3
+    up: Vec3 = [0.0, 0.0, 1.0]
+
+
+class PoseIn(_Strict):
+    """``world_T_cam``: exactly one of ``world_T_cam`` (4x4), ``position`` + ``quaternion_wxyz``, ``look_at``."""
+
+    world_T_cam: Mat4 | None = None
+    position: Vec3 | None = None
+    quaternion_wxyz: Quat | None = None
+    look_at: LookAt | None = None
+
+    @model_validator(mode="after")
+    def _one_form(self) -> PoseIn:
+        forms = [self.world_T_cam is not None, self.position is not None or self.quaternion_wxyz is not None,
+                 self.look_at is not None]
+        if sum(forms) != 1:
+            raise ValueError("give exactly one of: world_T_cam (4x4), position + quaternion_wxyz, look_at")
+        if forms[1] and (self.position is None or self.quaternion_wxyz is None):
+            raise ValueError("position and quaternion_wxyz go together")
+        self.matrix()  # raises ValueError with the reason
+        return self
+
+    def matrix(self) -> np.ndarray:
+        if self.world_T_cam is not None:
+            try:
+                T = check_rigid(self.world_T_cam, "world_T_cam", atol=RIGID_ATOL)
+            except NonRigidTransformError as exc:
+                raise ValueError(f"not a rigid transform: {exc}") from None
+            return make_transform(orthonormalize(T[:3, :3]), T[:3, 3])
+        if self.look_at is not None:
+            try:
+                return look_at(self.look_at.eye, self.look_at.target, self.look_at.up)
+            except NonRigidTransformError as exc:
+                raise ValueError(str(exc)) from None
+        q = np.asarray(self.quaternion_wxyz, dtype=np.float64)
+        norm = float(np.linalg.norm(q))
+        if abs(norm - 1.0) > QUAT_NORM_TOL:
+            raise ValueError(f"quaternion_wxyz must be a unit quaternion (w, x, y, z), got norm {norm:.6g}")
+        from brave6d.transforms import quat_wxyz_to_matrix
+
+        return make_transform(quat_wxyz_to_matrix(q / norm), self.position)
+
+
+class ObsOptions(_Strict):
+    rgb: Literal["png", "jpeg", "none"] = Field("png", description="RGB encoding (base64); 'none' omits it")
+    depth: Literal["f32", "none"] = Field("f32", description="'f32': base64 of little-endian float32 metres")
+
+
+class ResetRequest(ObsOptions):
+    target: int | str | None = Field(None, description="target instance: gt_id (int) or object name")
+    width: Width | None = None
+    height: Height | None = None
+    start: PoseIn | None = Field(None, description="start pose; omitted: a seeded random start around the target")
+    seed: Annotated[int, Field(ge=0, lt=2**63)] | None = None
+
+
+class SetPoseRequest(ObsOptions):
+    pose: PoseIn
+
+
+class MoveRequest(ObsOptions):
+    linear: Vec3 = Field([0.0, 0.0, 0.0], description="m/s")
+    angular: Vec3 = Field([0.0, 0.0, 0.0], description="rad/s")
+    duration: Annotated[float, Field(gt=0, le=MAX_MOVE_DURATION_S, allow_inf_nan=False)] = Field(
+        ..., description=f"seconds, (0, {MAX_MOVE_DURATION_S}]")
+    frame: Literal["camera", "world"] = Field("camera", description="see serve.geometry")
+
+    @model_validator(mode="after")
+    def _moves(self) -> MoveRequest:
+        if not any(self.linear) and not any(self.angular):
+            raise ValueError("the move does nothing: linear and angular velocities are both zero")
+        return self
+
+
+class WsMessage(ObsOptions):
+    op: Literal["set_pose", "move", "get", "close"]
+    request_id: str | int | None = None
+    pose: PoseIn | None = None
+    linear: Vec3 | None = None
+    angular: Vec3 | None = None
+    duration: Annotated[float, Field(gt=0, le=MAX_MOVE_DURATION_S, allow_inf_nan=False)] | None = None
+    frame: Literal["camera", "world"] = "camera"
+
+
+# ----------------------------------------------------------------------------- response models (docs)
+class ErrorOut(BaseModel):
+    error: str
+    field: str | None = None
+    status: int
+
+
+class ObjectOut(BaseModel):
+    gt_id: int
+    obj_id: int
+    name: str
+    is_target: bool
+    cam_T_obj: list[list[float]]
+    px_count_all: int | None
+    px_count_visib: int | None
+    visib_fract: float | None
+    bbox_obj: list[int] | None
+    bbox_visib: list[int] | None
+
+
+class ImageOut(BaseModel):
+    encoding: str
+    data: str
+    shape: list[int]
+
+
+class ObservationOut(BaseModel):
+    width: int
+    height: int
+    K: list[list[float]]
+    world_T_cam: list[list[float]]
+    rgb: ImageOut | None
+    depth: ImageOut | None
+    objects: list[ObjectOut]
+
+
+class StepOut(BaseModel):
+    episode_id: str
+    action: str
+    step: int
+    accepted: bool
+    collided: bool
+    refusal: dict[str, Any] | None
+    adjustments: int
+    move: dict[str, Any] | None
+    target: dict[str, Any]
+    observation: ObservationOut
+    timings_ms: dict[str, float]
+
+
+# ----------------------------------------------------------------------------- encoding
+def encode_observation(obs: Observation, rgb: str = "png", depth: str = "f32") -> tuple[dict[str, Any], float]:
+    """JSON-ready observation and the milliseconds spent encoding."""
+    t0 = time.perf_counter()
+    out: dict[str, Any] = {"width": obs.camera.width, "height": obs.camera.height, "K": obs.camera.K.tolist(),
+                           "world_T_cam": obs.world_T_cam.tolist(), "rgb": None, "depth": None,
+                           "objects": [o.to_json() for o in obs.objects]}
+    if rgb != "none":
+        bgr = np.ascontiguousarray(obs.rgb[:, :, ::-1])
+        ok, buf = (cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1]) if rgb == "png"
+                   else cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 90]))
+        if not ok:
+            raise RuntimeError("image encoding failed")
+        out["rgb"] = {"encoding": rgb, "data": base64.b64encode(buf.tobytes()).decode("ascii"),
+                      "shape": list(obs.rgb.shape)}
+    if depth == "f32":
+        d = np.ascontiguousarray(obs.depth, dtype="<f4")
+        out["depth"] = {"encoding": "f32", "data": base64.b64encode(d.tobytes()).decode("ascii"),
+                        "shape": list(d.shape)}
+    return out, (time.perf_counter() - t0) * 1000.0
+
+
+def step_json(result: StepResult, opts: ObsOptions, t_start: float) -> dict[str, Any]:
+    obs, enc_ms = encode_observation(result.observation, opts.rgb, opts.depth)
+    target = result.observation.target()
+    timings = {**result.timings_ms, "encode": enc_ms, "total": (time.perf_counter() - t_start) * 1000.0}
+    return {"episode_id": result.episode_id, "action": result.action, "step": result.step,
+            "accepted": result.accepted, "collided": result.collided,
+            "refusal": result.refusal.to_json() if result.refusal else None,
+            "adjustments": result.adjustments, "move": result.move,
+            "target": {"gt_id": target.gt_id, "obj_id": target.obj_id, "name": target.name} if target else {},
+            "observation": obs, "timings_ms": timings}
+
+
+def observation_npz(obs: Observation) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, rgb=obs.rgb, depth=obs.depth.astype(np.float32), K=obs.camera.K, world_T_cam=obs.world_T_cam,
+             cam_T_obj=np.stack([o.cam_T_obj for o in obs.objects]) if obs.objects else np.zeros((0, 4, 4)),
+             gt_id=np.array([o.gt_id for o in obs.objects], dtype=np.int64),
+             obj_id=np.array([o.obj_id for o in obs.objects], dtype=np.int64),
+             visib_fract=np.array([o.visibility.visib_fract if o.visibility else np.nan for o in obs.objects]))
+    return buf.getvalue()
+
+
+# ----------------------------------------------------------------------------- errors
+def _error(status: int, message: str, field: str | None = None, headers: dict[str, str] | None = None) -> JSONResponse:
+    return JSONResponse({"error": message, "field": field, "status": status}, status_code=status, headers=headers)
+
+
+def _loc(loc: Any) -> str:
+    return ".".join(str(p) for p in loc if not (isinstance(p, str) and ("[" in p or p.startswith("function-"))))
+
+
+def validation_error_body(errors: list[dict[str, Any]]) -> tuple[int, str, str | None]:
+    """(status, message, field) of pydantic/FastAPI validation errors (malformed JSON -> 400)."""
+    if not errors:
+        return 422, "invalid request", None
+    err = errors[0]
+    if err.get("type") == "json_invalid":
+        ctx = err.get("ctx", {}) or {}
+        return 400, f"malformed JSON: {ctx.get('error', err.get('msg'))}", "body"
+    if err.get("type") == "missing" and tuple(err.get("loc", ())) == ("body",):
+        return 400, "malformed JSON: the request needs a JSON object body", "body"
+    msg = str(err.get("msg", "invalid value")).removeprefix("Value error, ")
+    if err.get("type") in ("finite_number",):
+        msg = "must be a finite number (NaN and inf are refused)"
+    field = _loc(err.get("loc", ()))
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    return 422, f"{field}: {msg}{more}" if field else msg + more, field or None
+
+
+class BodyLimitMiddleware:
+    """Refuse HTTP request bodies larger than ``limit`` bytes with 413 (checked on the declared
+    length and on the bytes actually received; the body is buffered, then replayed)."""
+
+    def __init__(self, app: Any, limit: int) -> None:
+        self.app = app
+        self.limit = limit
+
+    async def __call__(self, scope: dict[str, Any], receive: Any, send: Any) -> None:
+        if scope["type"] != "http" or scope.get("method") in ("GET", "HEAD", "OPTIONS"):
+            await self.app(scope, receive, send)
+            return
+        headers = dict(scope.get("headers") or [])
+        declared = headers.get(b"content-length")
+        if declared is not None:
+            try:
+                too_big = int(declared) > self.limit
+            except ValueError:
+                too_big = False
+            if too_big:
+                await self._reject(scope, receive, send)
+                return
+        chunks = []
+        size = 0
+        more = True
+        while more:
+            message = await receive()
+            if message["type"] == "http.disconnect":
+                return
+            body = message.get("body", b"")
+            size += len(body)
+            if size > self.limit:
+                await self._reject(scope, receive, send)
+                return
+            chunks.append(body)
+            more = message.get("more_body", False)
+        data = b"".join(chunks)
+        sent = False
+
+        async def replay() -> dict[str, Any]:
+            nonlocal sent
+            if not sent:
+                sent = True
+                return {"type": "http.request", "body": data, "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+    async def _reject(self, scope: dict[str, Any], receive: Any, send: Any) -> None:
+        response = _error(413, f"request body larger than {self.limit} bytes", "body", {"Connection": "close"})
+        await response(scope, receive, send)
+
+
+# ----------------------------------------------------------------------------- the app
+def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Path | str | None = None,
+               limits: ServerLimits = ServerLimits(), scene: SceneServer | None = None,
+               verify: bool = True, warm_up: bool = True) -> FastAPI:
+    """The FastAPI app serving ``bundle`` (a loaded :class:`Bundle` or a bundle folder, verified)."""
+    if not isinstance(bundle, Bundle):
+        bundle = load_bundle(bundle, verify=verify)
+    scene = scene if scene is not None else SceneServer(bundle, device)
+    if warm_up:
+        from serve.renderer import lookat_default
+
+        try:
+            scene.renderer.warm_up(bundle.camera, lookat_default(bundle.start, bundle.objects[0].world_T_obj[:3, 3]
+                                                                 if bundle.objects else np.zeros(3)))
+        except BraveError:
+            pass
+    manager = EpisodeManager(scene, log_dir, max_episodes=limits.max_episodes,
+                             idle_timeout_s=limits.idle_timeout_s, lock_timeout_s=limits.request_timeout_s)
+    executor = ThreadPoolExecutor(max_workers=limits.workers, thread_name_prefix="brave6d-serve")
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+        yield
+        manager.close_all()
+        executor.shutdown(wait=False, cancel_futures=True)
+
+    app = FastAPI(
+        lifespan=lifespan,
+        title="BRAVE-6D render server",
+        version="1",
+        description="Move a camera through a trained 3D Gaussian Splatting scene and get RGB-D views with "
+                    "ground-truth object poses. World = robot base frame, metres, OpenCV camera axes; "
+                    "errors are {error, field, status}. See serve/app.py.",
+    )
+    app.state.manager = manager
+    app.state.scene = scene
+    app.state.bundle = bundle
+    app.state.limits = limits
+    app.state.executor = executor
+    app.add_middleware(BodyLimitMiddleware, limit=limits.max_body_bytes)
+
+    # -------------------------------------------------------------- error handlers
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        status, msg, field = validation_error_body(list(exc.errors()))
+        return _error(status, msg, field)
+
+    @app.exception_handler(EpisodeError)
+    async def _episode(request: Request, exc: EpisodeError) -> JSONResponse:
+        return _error(exc.status, str(exc), exc.field)
+
+    @app.exception_handler(BraveError)
+    async def _brave(request: Request, exc: BraveError) -> JSONResponse:
+        return _error(422, str(exc))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        detail = exc.detail if isinstance(exc.detail, str) else json.dumps(exc.detail)
+        if exc.status_code == 404 and detail == "Not Found":
+            detail = f"no such endpoint: {request.method} {request.url.path}"
+        if exc.status_code == 405:
+            detail = f"method {request.method} not allowed on {request.url.path}"
+        return _error(exc.status_code, detail)
+
+    @app.exception_handler(Exception)
+    async def _internal(request: Request, exc: Exception) -> JSONResponse:
+        log.exception("internal error on %s %s", request.method, request.url.path)
+        return _error(500, f"internal error: {type(exc).__name__}: {exc}")
+
+    async def run_action(fn: Any, *args: Any, **kwargs: Any) -> StepResult:
+        """Run a blocking action in the pool; on timeout withdraw it (504) unless already committed."""
+        ticket = Ticket()
+        loop = asyncio.get_running_loop()
+        fut = loop.run_in_executor(executor, lambda: fn(*args, ticket=ticket, **kwargs))
+        done, _ = await asyncio.wait({fut}, timeout=limits.request_timeout_s)
+        if not done and ticket.cancel():
+            fut.add_done_callback(lambda f: f.exception())  # consume the Cancelled raised later
+            raise _Timeout()
+        try:
+            return await fut
+        except Cancelled:  # pragma: no cover - only when cancel won the race
+            raise _Timeout() from None
+
+    class _Timeout(EpisodeError):
+        status = 504
+
+        def __init__(self) -> None:
+            super().__init__(f"the request took longer than {limits.request_timeout_s:g} s and was withdrawn "
+                             "(nothing changed); the server is overloaded or the image is too large")
+
+    def respond(result: StepResult, opts: ObsOptions, t0: float, status: int = 200) -> JSONResponse:
+        body = step_json(result, opts, t0)
+        return JSONResponse(body, status_code=status, headers={
+            "X-Render-Ms": f"{result.timings_ms.get('render', 0.0):.2f}",
+            "Server-Timing": f"render;dur={result.timings_ms.get('render', 0.0):.2f}, "
+                             f"total;dur={body['timings_ms']['total']:.2f}"})
+
+    err = {400: {"model": ErrorOut}, 404: {"model": ErrorOut}, 409: {"model": ErrorOut},
+           413: {"model": ErrorOut}, 422: {"model": ErrorOut}, 429: {"model": ErrorOut}, 504: {"model": ErrorOut}}
+
+    # -------------------------------------------------------------- routes
+    @app.get("/", include_in_schema=False)
+    def root() -> RedirectResponse:
+        return RedirectResponse("/viewer/")
+
+    @app.get("/health", summary="liveness")
+    def health() -> dict[str, Any]:
+        return {"status": "ok", "bundle": bundle.name, "device": scene.device,
+                "gaussians": scene.renderer.num_gaussians, "episodes_open": manager.open_count(),
+                "renders": scene.renderer.renders}
+
+    @app.get("/bundle", summary="what the bundle holds (objects, intrinsics, collision boxes, ...)")
+    def get_bundle() -> dict[str, Any]:
+        return {**bundle.summary(), "device": scene.device,
+                "limits": {"min_size": MIN_SIZE, "max_width": MAX_WIDTH, "max_height": MAX_HEIGHT,
+                           "max_move_duration_s": MAX_MOVE_DURATION_S, "max_body_bytes": limits.max_body_bytes,
+                           "request_timeout_s": limits.request_timeout_s, "max_episodes": limits.max_episodes}}
+
+    @app.get("/bundle/models/{obj_id}", summary="object model (BOP PLY, mm)", responses=err)
+    def get_model(obj_id: int) -> FileResponse:
+        for o in bundle.objects:
+            if o.obj_id == obj_id:
+                return FileResponse(bundle.model_path(o), media_type="application/octet-stream",
+                                    filename=Path(o.model).name)
+        raise EpisodeNotFound(f"no object with obj_id {obj_id} (known: {sorted({o.obj_id for o in bundle.objects})})",
+                              "obj_id")
+
+    @app.post("/episodes", status_code=201, response_model=StepOut, responses=err, summary="reset: start an episode")
+    async def reset(req: ResetRequest) -> JSONResponse:
+        t0 = time.perf_counter()
+        start = req.start.matrix() if req.start is not None else None
+        result = await run_action(manager.reset, target=req.target, width=req.width, height=req.height,
+                                  start=start, seed=req.seed)
+        return respond(result, req, t0, 201)
+
+    @app.get("/episodes", summary="list episodes")
+    def list_episodes() -> dict[str, Any]:
+        return {"episodes": manager.list()}
+
+    @app.get("/episodes/{episode_id}", responses=err, summary="episode state (no images)")
+    def get_episode(episode_id: str) -> dict[str, Any]:
+        return manager.get(episode_id).state()
+
+    @app.post("/episodes/{episode_id}/set_pose", response_model=StepOut, responses=err,
+              summary="teleport the camera to an absolute pose")
+    async def set_pose(episode_id: str, req: SetPoseRequest) -> JSONResponse:
+        t0 = time.perf_counter()
+        manager.get(episode_id)
+        result = await run_action(manager.set_pose, episode_id, req.pose.matrix())
+        return respond(result, req, t0)
+
+    @app.post("/episodes/{episode_id}/move", response_model=StepOut, responses=err,
+              summary="move with a constant twist, stopping at the first collision")
+    async def move(episode_id: str, req: MoveRequest) -> JSONResponse:
+        t0 = time.perf_counter()
+        manager.get(episode_id)
+        result = await run_action(manager.move, episode_id, req.linear, req.angular, req.duration, req.frame)
+        return respond(result, req, t0)
+
+    @app.post("/episodes/{episode_id}/close", responses=err, summary="close an episode")
+    async def close(episode_id: str) -> dict[str, Any]:
+        manager.get(episode_id)
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(executor, manager.close, episode_id)
+
+    @app.get("/episodes/{episode_id}/observation.npz", responses=err, summary="last observation as .npz",
+             response_class=Response)
+    def get_npz(episode_id: str) -> Response:
+        ep = manager.get(episode_id)
+        if ep.last is None:
+            return _error(409, "no observation yet")
+        return Response(observation_npz(ep.last), media_type="application/octet-stream",
+                        headers={"Content-Disposition": f'attachment; filename="{episode_id}.npz"'})
+
+    @app.websocket("/episodes/{episode_id}/ws")
+    async def ws(websocket: WebSocket, episode_id: str) -> None:
+        await websocket.accept()
+        try:
+            manager.get(episode_id)
+        except EpisodeError as exc:
+            await websocket.send_json({"error": str(exc), "field": exc.field, "status": exc.status})
+            await websocket.close(code=4404)
+            return
+        while True:
+            try:
+                text = await websocket.receive_text()
+            except WebSocketDisconnect:
+                return
+            except (KeyError, RuntimeError):  # a binary frame or a closed socket
+                await websocket.close(code=1003)
+                return
+            reply = await _ws_handle(text, episode_id)
+            await websocket.send_json(reply)
+            if reply.get("action") == "close" and "error" not in reply:
+                await websocket.close()
+                return
+
+    async def _ws_handle(text: str, episode_id: str) -> dict[str, Any]:
+        t0 = time.perf_counter()
+        if len(text.encode("utf-8")) > limits.max_body_bytes:
+            return {"error": f"message larger than {limits.max_body_bytes} bytes", "field": "message", "status": 413}
+        request_id = None
+        try:
+            raw = json.loads(text)
+            request_id = raw.get("request_id") if isinstance(raw, dict) else None
+            msg = WsMessage.model_validate(raw)
+        except json.JSONDecodeError as exc:
+            return {"error": f"malformed JSON: {exc}", "field": "message", "status": 400}
+        except ValidationError as exc:
+            status, m, field = validation_error_body(exc.errors(include_url=False))
+            return {"error": m, "field": field, "status": status, "request_id": request_id}
+        try:
+            if msg.op == "get":
+                ep = manager.get(episode_id)
+                return {**ep.state(), "action": "get", "request_id": request_id}
+            if msg.op == "close":
+                loop = asyncio.get_running_loop()
+                out = await loop.run_in_executor(executor, manager.close, episode_id)
+                return {**out, "action": "close", "request_id": request_id}
+            if msg.op == "set_pose":
+                if msg.pose is None:
+                    return {"error": "set_pose needs 'pose'", "field": "pose", "status": 422, "request_id": request_id}
+                result = await run_action(manager.set_pose, episode_id, msg.pose.matrix())
+            else:
+                if msg.duration is None:
+                    return {"error": "move needs 'duration'", "field": "duration", "status": 422,
+                            "request_id": request_id}
+                lin = msg.linear or [0.0, 0.0, 0.0]
+                ang = msg.angular or [0.0, 0.0, 0.0]
+                if not any(lin) and not any(ang):
+                    return {"error": "the move does nothing: linear and angular velocities are both zero",
+                            "field": "linear", "status": 422, "request_id": request_id}
+                result = await run_action(manager.move, episode_id, lin, ang, msg.duration, msg.frame)
+            return {**step_json(result, msg, t0), "request_id": request_id}
+        except EpisodeError as exc:
+            return {"error": str(exc), "field": exc.field, "status": exc.status, "request_id": request_id}
+        except BraveError as exc:
+            return {"error": str(exc), "field": None, "status": 422, "request_id": request_id}
+        except Exception as exc:  # keep the socket alive
+            log.exception("internal error on the WebSocket of %s", episode_id)
+            return {"error": f"internal error: {type(exc).__name__}: {exc}", "field": None, "status": 500,
+                    "request_id": request_id}
+
+    if VIEWER_DIR.is_dir():
+        app.mount("/viewer", StaticFiles(directory=VIEWER_DIR, html=True), name="viewer")
+    return app

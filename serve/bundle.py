@@ -1,0 +1,623 @@
+"""The scene bundle: everything the render server loads, in one self-contained, checksummed folder.
+
+``brave6d export SCENE_DIR`` writes ``<scene>/bundle/``::
+
+    manifest.json     format, scene name, creation time, the versions that made it (brave6d,
+                      torch, numpy, scipy, plyfile, python, git commit when known) and, per file,
+                      its sha256 and size. Written last.
+    splat.ply         the trained Gaussians (Inria 3DGS PLY layout, copied unchanged)
+    scene.json        pinhole intrinsics of the undistorted images, render defaults (size,
+                      near/far, background, depth validity), collision boxes (oriented, world
+                      frame), workspace bounds, camera collision radius, start-pose hints
+    objects.json      one entry per annotated instance (``gt_id`` = the BOP ground-truth index):
+                      ``obj_id`` (BOP), name, ``world_T_obj`` (metres), ``model`` (BOP PLY in mm),
+                      ``diameter_mm``, symmetries (BOP style, mm)
+    models/obj_XXXXXX.ply   the object models in millimetres (BOP's files when the BOP export
+                      exists, else converted from the annotation's meshes)
+    holdout.json      the views held out of training: frame index, view id, ``world_T_cam``,
+                      image file (``holdout/<name>.png``, undistorted) when present
+    holdout/          the held-out undistorted RGB images
+
+The folder is built in a hidden sibling and renamed into place (all or nothing).
+:func:`load_bundle` recomputes every checksum and refuses a bundle whose files do not match
+its manifest (or that lists a file outside itself); files the manifest does not list are
+ignored (never read).
+
+What another stage writes is read in ONE small function each (easy to adapt when a format
+changes): :func:`find_splat_ply`, :func:`read_annotation_instances`, :func:`holdout_frames`,
+:func:`scene_camera`.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.atomic import atomic_write_json, read_json
+from brave6d.camera import PinholeCamera
+from brave6d.errors import BraveError, DataError, NonRigidTransformError
+from brave6d.layout import SceneDir
+from brave6d.transforms import check_rigid
+from serve.geometry import DEFAULT_CAMERA_RADIUS, CollisionWorld, OrientedBox, Workspace
+
+log = logging.getLogger(__name__)
+
+FORMAT = "brave6d-bundle/1"
+MANIFEST = "manifest.json"
+SPLAT = "splat.ply"
+SCENE = "scene.json"
+OBJECTS = "objects.json"
+HOLDOUT = "holdout.json"
+REQUIRED = (SPLAT, SCENE, OBJECTS, HOLDOUT)
+
+Matrix4 = NDArray[np.float64]
+
+
+class BundleError(DataError):
+    """A bundle is missing, malformed, or does not match its manifest."""
+
+
+# ----------------------------------------------------------------------------- typed bundle
+@dataclass(frozen=True)
+class RenderDefaults:
+    """How views are rendered unless a request says otherwise."""
+
+    width: int
+    height: int
+    near: float = 0.01
+    far: float = 100.0
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    depth_alpha_min: float = 0.5  # depth is 0 (no data) where the splat's alpha is below this
+
+    def to_json(self) -> dict[str, Any]:
+        return {"width": self.width, "height": self.height, "near": self.near, "far": self.far,
+                "background": list(self.background), "depth_alpha_min": self.depth_alpha_min}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> RenderDefaults:
+        return cls(int(d["width"]), int(d["height"]), float(d.get("near", 0.01)), float(d.get("far", 100.0)),
+                   tuple(float(x) for x in d.get("background", (0, 0, 0))),  # type: ignore[arg-type]
+                   float(d.get("depth_alpha_min", 0.5)))
+
+
+@dataclass(frozen=True)
+class BundleObject:
+    """One annotated instance (``gt_id`` = its index in BOP's ``scene_gt`` lists)."""
+
+    gt_id: int
+    obj_id: int
+    name: str
+    world_T_obj: Matrix4
+    model: str  # relative path of the model PLY (mm) inside the bundle
+    diameter_mm: float
+    class_name: str | None = None
+    symmetries_discrete_mm: tuple[tuple[float, ...], ...] = ()
+    symmetries_continuous: tuple[dict[str, Any], ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        return {"gt_id": self.gt_id, "obj_id": self.obj_id, "name": self.name, "class": self.class_name,
+                "world_T_obj": np.asarray(self.world_T_obj).tolist(), "model": self.model,
+                "diameter_mm": self.diameter_mm,
+                "symmetries_discrete_mm": [list(m) for m in self.symmetries_discrete_mm],
+                "symmetries_continuous": list(self.symmetries_continuous)}
+
+
+@dataclass(frozen=True)
+class HoldoutView:
+    index: int
+    view_id: str
+    world_T_cam: Matrix4
+    image: str | None = None  # relative path inside the bundle
+
+    def to_json(self) -> dict[str, Any]:
+        return {"index": self.index, "view_id": self.view_id, "world_T_cam": self.world_T_cam.tolist(),
+                "image": self.image}
+
+
+@dataclass(frozen=True)
+class Bundle:
+    """A loaded (and verified) bundle."""
+
+    root: Path
+    manifest: dict[str, Any]
+    name: str
+    camera: PinholeCamera  # undistorted pinhole at the default render size
+    render: RenderDefaults
+    world: CollisionWorld
+    objects: tuple[BundleObject, ...]
+    holdout: tuple[HoldoutView, ...]
+    start: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def splat_path(self) -> Path:
+        return self.root / SPLAT
+
+    def model_path(self, obj: BundleObject) -> Path:
+        return self.root / obj.model
+
+    def object_by(self, key: int | str) -> BundleObject:
+        """Instance by ``gt_id`` (int) or by name (str); a name shared by several instances is refused."""
+        if isinstance(key, int):
+            for o in self.objects:
+                if o.gt_id == key:
+                    return o
+            raise KeyError(f"no object instance with gt_id {key} (known: {[o.gt_id for o in self.objects]})")
+        matches = [o for o in self.objects if o.name == key]
+        if len(matches) == 1:
+            return matches[0]
+        if not matches:
+            raise KeyError(f"no object named {key!r} (known: {[o.name for o in self.objects]})")
+        raise KeyError(f"{len(matches)} instances are named {key!r}: give a gt_id instead")
+
+    def summary(self) -> dict[str, Any]:
+        """JSON description for clients (what ``GET /bundle`` returns)."""
+        return {
+            "format": self.manifest.get("format"), "name": self.name,
+            "created": self.manifest.get("created"), "versions": self.manifest.get("versions", {}),
+            "gaussians": self.manifest.get("gaussians"),
+            "camera": self.camera.to_json(), "render": self.render.to_json(),
+            "collision": {"boxes": [b.to_json() for b in self.world.boxes],
+                          "workspace": self.world.workspace.to_json(),
+                          "camera_radius": self.world.camera_radius},
+            "objects": [o.to_json() for o in self.objects],
+            "holdout": [h.to_json() for h in self.holdout],
+            "start": self.start,
+        }
+
+
+# ----------------------------------------------------------------------------- adapters (one per source)
+def find_splat_ply(scene: SceneDir) -> Path:
+    """The trained splat of a scene: ``splat/point_cloud.ply``, else the newest
+    ``splat/**/point_cloud*.ply`` (Inria's ``point_cloud/iteration_N/point_cloud.ply``)."""
+    direct = scene.splat_dir / "point_cloud.ply"
+    if direct.is_file():
+        return direct
+    candidates = sorted(scene.splat_dir.glob("**/point_cloud*.ply"), key=lambda p: p.stat().st_mtime)
+    if candidates:
+        return candidates[-1]
+    raise BraveError(f"{scene.splat_dir}: no trained splat (point_cloud.ply); train the scene first")
+
+
+def read_annotation_instances(scene: SceneDir) -> list[dict[str, Any]]:
+    """The annotated instances from ``annotation/objects.json`` (format ``brave6d-annotation/1``).
+
+    Returns, in the annotation's instance order (= BOP ``gt_id`` order), dicts with ``obj_id``,
+    ``name``, ``class``, ``world_T_obj`` (metres), ``mesh`` (absolute path), ``scale`` (mesh
+    units to metres), ``symmetries_discrete`` (flattened 4x4, metres) and
+    ``symmetries_continuous`` ({axis, offset (metres)}).
+    """
+    path = scene.annotation_dir / "objects.json"
+    if not path.is_file():
+        raise BraveError(f"{path}: no imported annotation; run 'brave6d annotate import-3ddat DAT_DIR "
+                         f"{scene.root}' first")
+    data = read_json(path)
+    try:
+        models = {int(o["obj_id"]): o for o in data["objects"]}
+        out = []
+        for n, inst in enumerate(data["instances"]):
+            obj = models[int(inst["obj_id"])]
+            mesh = Path(obj["mesh"])
+            out.append({
+                "obj_id": int(inst["obj_id"]), "name": str(obj["name"]), "class": obj.get("class"),
+                "world_T_obj": check_rigid(inst["world_T_model"], f"{path}: instances[{n}].world_T_model"),
+                "mesh": mesh if mesh.is_absolute() else (scene.annotation_dir / mesh).resolve(),
+                "scale": float(obj.get("scale", 1.0)),
+                "symmetries_discrete": [list(map(float, m)) for m in obj.get("symmetries_discrete", [])],
+                "symmetries_continuous": list(obj.get("symmetries_continuous", [])),
+            })
+    except (KeyError, TypeError, ValueError, NonRigidTransformError) as exc:
+        raise DataError(f"{path}: malformed annotation ({type(exc).__name__}: {exc})") from None
+    return out
+
+
+def holdout_frames(scene: SceneDir) -> list[tuple[Any, Matrix4]]:
+    """``(frame record, world_T_cam)`` of the views held out of training.
+
+    Sources, first found wins: ``splat/metrics.json`` (a list under ``holdout``, ``holdout_views``,
+    ``test_views`` or ``test``: frame indices, view ids, image names, or dicts with one of
+    ``index``/``view_id``/``name``), ``sparse/holdout.txt`` (image names), else the trainer's
+    rule (:func:`training.dataset.holdout_split`). No capture or calibration: no views.
+    """
+    from brave6d.calibration_io import camera_poses
+
+    try:
+        views = camera_poses(scene)
+    except DataError as exc:
+        log.warning("no holdout views in the bundle: %s", exc)
+        return []
+    if not views:
+        return []
+    wanted: set[str] | None = None
+    metrics = scene.splat_dir / "metrics.json"
+    if metrics.is_file():
+        data = read_json(metrics)
+        for key in ("holdout", "holdout_views", "test_views", "test"):
+            items = data.get(key) if isinstance(data, dict) else None
+            if isinstance(items, dict):
+                items = items.get("views") or items.get("indices") or items.get("view_ids")
+            if isinstance(items, list) and items:
+                wanted = set()
+                for it in items:
+                    if isinstance(it, dict):
+                        it = it.get("index", it.get("view_id", it.get("name")))
+                    wanted.add(str(it))
+                break
+    if wanted is None and (scene.sparse_dir / "holdout.txt").is_file():
+        wanted = {ln.strip() for ln in (scene.sparse_dir / "holdout.txt").read_text().splitlines() if ln.strip()}
+    if wanted is None:
+        try:
+            from training.dataset import holdout_split
+
+            _, test = holdout_split([r for r, _ in views])
+            wanted = {str(i) for i in test}
+        except ImportError:  # pragma: no cover - training is part of the package
+            wanted = set()
+
+    def keys(r: Any) -> set[str]:
+        return {str(r.index), r.view_id, Path(r.rgb).name, Path(r.rgb).stem}
+
+    return [(r, T) for r, T in views if keys(r) & wanted]
+
+
+def scene_camera(scene: SceneDir, spec: Any) -> PinholeCamera:
+    """The pinhole camera of the undistorted images: the calibrated intrinsics without distortion
+    (as the BOP export and the trainer use), else the spec's nominal camera (with a warning)."""
+    from brave6d.calibration_io import read_intrinsics
+
+    if scene.intrinsics_path.is_file():
+        return read_intrinsics(scene).without_distortion()
+    log.warning("%s: no calibrated intrinsics; using the spec's nominal camera", scene.intrinsics_path)
+    return spec.camera.pinhole().without_distortion()
+
+
+# ----------------------------------------------------------------------------- models
+def _read_ply_mesh(path: Path) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Vertices and triangles of a PLY mesh (plyfile; any vertex properties beyond x y z ignored)."""
+    from plyfile import PlyData
+
+    try:
+        ply = PlyData.read(str(path))
+        v = ply["vertex"].data
+        verts = np.stack([np.asarray(v[a], dtype=np.float64) for a in ("x", "y", "z")], axis=1)
+        faces_raw = ply["face"].data
+        name = "vertex_indices" if "vertex_indices" in faces_raw.dtype.names else "vertex_index"
+        faces = np.stack([np.asarray(f, dtype=np.int64)[:3] for f in faces_raw[name]]) if len(faces_raw) else \
+            np.zeros((0, 3), np.int64)
+    except Exception as exc:  # noqa: BLE001 - plyfile raises many types on broken files
+        raise DataError(f"{path}: cannot read the PLY mesh ({type(exc).__name__}: {exc})") from None
+    return verts, faces
+
+
+def load_model_m(path: Path) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """A bundle model (BOP PLY in mm) in metres."""
+    v, f = _read_ply_mesh(path)
+    return v / 1000.0, f
+
+
+def _convert_mesh_to_mm(mesh: Path, scale: float, out: Path) -> NDArray[np.float64]:
+    """Write ``mesh`` (any trimesh format) scaled to millimetres as a binary PLY; returns vertices (mm)."""
+    import trimesh
+    from plyfile import PlyData, PlyElement
+
+    try:
+        tm = trimesh.load(str(mesh), force="mesh", process=False)
+    except Exception as exc:  # noqa: BLE001 - trimesh raises many types on broken files
+        raise DataError(f"{mesh}: cannot load mesh ({type(exc).__name__}: {exc})") from None
+    v = np.asarray(tm.vertices, dtype=np.float64) * scale * 1000.0
+    f = np.asarray(tm.faces, dtype=np.int32)
+    vert = np.empty(len(v), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    vert["x"], vert["y"], vert["z"] = v[:, 0], v[:, 1], v[:, 2]
+    face = np.empty(len(f), dtype=[("vertex_indices", "<i4", (3,))])
+    face["vertex_indices"] = f
+    out.parent.mkdir(parents=True, exist_ok=True)
+    PlyData([PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face")], text=False,
+            comments=["BRAVE-6D bundle model (millimetres)"]).write(str(out))
+    return v
+
+
+def model_diameter(points: NDArray[np.float64]) -> float:
+    """Largest distance between two points (over the convex hull's vertices)."""
+    from scipy.spatial import ConvexHull
+    from scipy.spatial.distance import cdist
+
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) < 2:
+        return 0.0
+    try:
+        pts = pts[ConvexHull(pts).vertices]
+    except Exception:  # noqa: BLE001, S110 - flat / degenerate point set (QhullError): use every point
+        pass
+    best = 0.0
+    for start in range(0, len(pts), 2048):
+        best = max(best, float(cdist(pts[start:start + 2048], pts[start:]).max()))
+    return best
+
+
+def _bop_models(scene: SceneDir) -> tuple[Path | None, dict[int, dict[str, Any]]]:
+    """``(models folder, models_info)`` of the scene's BOP export, or ``(None, {})``."""
+    models = scene.bop_dir / "models"
+    info_path = models / "models_info.json"
+    if not info_path.is_file():
+        return None, {}
+    try:
+        return models, {int(k): v for k, v in read_json(info_path).items()}
+    except (ValueError, AttributeError) as exc:
+        raise DataError(f"{info_path}: malformed ({exc})") from None
+
+
+# ----------------------------------------------------------------------------- export
+@dataclass(frozen=True)
+class ExportResult:
+    root: Path
+    gaussians: int
+    objects: int
+    holdout_views: int
+    bytes: int
+    models_from: str  # "bop" or "annotation"
+
+
+def versions() -> dict[str, str]:
+    """Versions of what makes and reads a bundle (from package metadata: imports nothing heavy)."""
+    out: dict[str, str] = {"python": platform.python_version()}
+    for pkg in ("brave6d", "torch", "numpy", "scipy", "plyfile", "open3d", "fastapi"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = "not installed"
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
+                                capture_output=True, text=True, timeout=5, check=False)
+        if commit.returncode == 0:
+            out["git_commit"] = commit.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return out
+
+
+def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while block := handle.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, include_holdout_images: bool = True,
+                  camera_radius: float = DEFAULT_CAMERA_RADIUS, width: int | None = None, height: int | None = None,
+                  near: float = 0.01, far: float = 100.0, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                  depth_alpha_min: float = 0.5) -> ExportResult:
+    """Write the bundle of ``scene_dir`` (default ``<scene>/bundle``) atomically; see the module docstring."""
+    from training.ply import read_ply
+
+    scene = SceneDir(scene_dir)
+    if not scene.spec_path.is_file():
+        raise BraveError(f"{scene.spec_path}: not a scene directory (no scene.yaml)")
+    spec = scene.load_spec()
+    target = Path(out) if out is not None else scene.bundle_dir
+    for label, value in (("width", width), ("height", height)):
+        if value is not None and not 16 <= value <= 8192:
+            raise BraveError(f"render {label} must be in 16..8192, got {value}")
+    if camera_radius < 0 or not np.isfinite(camera_radius):
+        raise BraveError(f"camera radius must be a finite number >= 0, got {camera_radius}")
+    splat_src = find_splat_ply(scene)
+    splat = read_ply(splat_src)
+    if splat.num_gaussians == 0:
+        raise DataError(f"{splat_src}: the splat holds no Gaussians")
+    instances = read_annotation_instances(scene)
+    camera = scene_camera(scene, spec)
+    if width is not None or height is not None:
+        camera = camera.scaled(width or camera.width, height or camera.height)
+    bop_models, bop_info = _bop_models(scene)
+    frames = holdout_frames(scene)
+
+    target.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    try:
+        shutil.copyfile(splat_src, staging / SPLAT)
+        objects, models_from = _export_objects(staging, instances, bop_models, bop_info)
+        atomic_write_json(staging / OBJECTS, {
+            "format": "brave6d-bundle-objects/1",
+            "frame": "world = robot base frame; world_T_obj in metres maps model points (model file in mm "
+                     "times 0.001) to the world; gt_id = index in BOP scene_gt lists",
+            "objects": [o.to_json() for o in objects]})
+        render = RenderDefaults(camera.width, camera.height, near, far, tuple(background), depth_alpha_min)  # type: ignore[arg-type]
+        boxes = [OrientedBox(b.name, b.matrix(), b.size) for b in spec.collision_boxes]
+        atomic_write_json(staging / SCENE, {
+            "format": FORMAT, "name": spec.name, "camera": camera.to_json(), "render": render.to_json(),
+            "collision": {"boxes": [b.to_json() for b in boxes],
+                          "workspace": {"min": list(spec.workspace.min), "max": list(spec.workspace.max)},
+                          "camera_radius": camera_radius},
+            "start": {"target": list(spec.capture.target), "distances_m": list(spec.capture.distances_m),
+                      "min_elevation_deg": spec.capture.min_elevation_deg,
+                      "max_elevation_deg": spec.capture.max_elevation_deg,
+                      "azimuth_range_deg": list(spec.capture.azimuth_range_deg)},
+        })
+        holdout = []
+        undistorted = _undistorted_rgb(scene) if include_holdout_images and frames else None
+        for record, world_T_cam in frames:
+            image = None
+            src = undistorted(record) if undistorted is not None else None
+            if src is not None and src.is_file():
+                image = f"holdout/{src.name}"
+                (staging / "holdout").mkdir(exist_ok=True)
+                shutil.copyfile(src, staging / image)
+            holdout.append(HoldoutView(record.index, record.view_id, world_T_cam, image))
+        atomic_write_json(staging / HOLDOUT, {"views": [h.to_json() for h in holdout]})
+        files = _file_table(staging)
+        atomic_write_json(staging / MANIFEST, {
+            "format": FORMAT, "name": spec.name,
+            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "source": {"scene": str(scene.root.resolve()), "splat": str(splat_src.resolve())},
+            "gaussians": splat.num_gaussians, "sh_degree": splat.sh_degree,
+            "versions": versions(), "files": files})
+        _commit(staging, target)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    size = sum(v["bytes"] for v in files.values())
+    log.info("bundle written to %s (%d Gaussians, %d objects, %d holdout views, %.1f MB)", target,
+             splat.num_gaussians, len(objects), len(holdout), size / 1e6)
+    return ExportResult(target, splat.num_gaussians, len(objects), len(holdout), size, models_from)
+
+
+def _undistorted_rgb(scene: SceneDir) -> Any:
+    """``record -> path`` of the undistorted RGB frames (made once by the kernel's cache), or None."""
+    from brave6d.undistort import ensure_undistorted
+
+    try:
+        return ensure_undistorted(scene).rgb_path
+    except (DataError, OSError) as exc:
+        log.warning("holdout images left out: cannot undistort the capture (%s)", exc)
+        return None
+
+
+def _export_objects(staging: Path, instances: list[dict[str, Any]], bop_models: Path | None,
+                    bop_info: dict[int, dict[str, Any]]) -> tuple[list[BundleObject], str]:
+    models_dir = staging / "models"
+    models_dir.mkdir()
+    done: dict[int, tuple[str, float, list, list]] = {}
+    source = "bop" if bop_models is not None else "annotation"
+    objects = []
+    for gt_id, inst in enumerate(instances):
+        obj_id = inst["obj_id"]
+        if obj_id not in done:
+            rel = f"models/obj_{obj_id:06d}.ply"
+            bop_file = bop_models / f"obj_{obj_id:06d}.ply" if bop_models is not None else None
+            if bop_file is not None and bop_file.is_file() and obj_id in bop_info:
+                shutil.copyfile(bop_file, staging / rel)
+                info = bop_info[obj_id]
+                diameter = float(info["diameter"])
+                discrete = [list(map(float, m)) for m in info.get("symmetries_discrete", [])]
+                continuous = list(info.get("symmetries_continuous", []))
+            else:
+                verts_mm = _convert_mesh_to_mm(inst["mesh"], inst["scale"], staging / rel)
+                diameter = model_diameter(verts_mm)
+                discrete = []
+                for m in inst["symmetries_discrete"]:
+                    mm = np.asarray(m, dtype=np.float64).reshape(4, 4)
+                    mm[:3, 3] *= 1000.0
+                    discrete.append(mm.reshape(-1).tolist())
+                continuous = [{"axis": list(s["axis"]), "offset": [1000.0 * float(o) for o in s.get("offset", (0, 0, 0))]}
+                              for s in inst["symmetries_continuous"]]
+            done[obj_id] = (rel, diameter, discrete, continuous)
+        rel, diameter, discrete, continuous = done[obj_id]
+        objects.append(BundleObject(gt_id, obj_id, inst["name"], inst["world_T_obj"], rel, diameter,
+                                    inst.get("class"), tuple(tuple(m) for m in discrete), tuple(continuous)))
+    return objects, source
+
+
+def _file_table(root: Path) -> dict[str, dict[str, Any]]:
+    table = {}
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        rel = path.relative_to(root).as_posix()
+        if rel == MANIFEST:
+            continue
+        table[rel] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
+    return table
+
+
+def _commit(staging: Path, final: Path) -> None:
+    """Replace ``final`` by ``staging`` (old folder moved aside, then deleted)."""
+    old = None
+    if final.exists() or final.is_symlink():
+        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.old-", dir=final.parent))
+        os.rmdir(old)
+        os.replace(final, old)
+    try:
+        os.replace(staging, final)
+    except BaseException:
+        if old is not None:
+            os.replace(old, final)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+# ----------------------------------------------------------------------------- load + verify
+def verify_manifest(root: Path | str) -> dict[str, Any]:
+    """Read ``manifest.json`` and check every listed file's size and sha256; returns the manifest."""
+    base = Path(root)
+    if not base.is_dir():
+        raise BundleError(f"{base}: bundle folder not found")
+    path = base / MANIFEST
+    if not path.is_file():
+        raise BundleError(f"{path}: no manifest; not a bundle (export one with 'brave6d export SCENE_DIR')")
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise BundleError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        got = manifest.get("format") if isinstance(manifest, dict) else None
+        raise BundleError(f"{path}: unsupported bundle format {got!r} (this server reads {FORMAT!r})")
+    files = manifest.get("files")
+    if not isinstance(files, dict):
+        raise BundleError(f"{path}: field 'files' is missing")
+    resolved_root = base.resolve()
+    for rel, entry in files.items():
+        p = (base / rel)
+        if Path(rel).is_absolute() or ".." in Path(rel).parts or not p.resolve().is_relative_to(resolved_root):
+            raise BundleError(f"{path}: file {rel!r} lies outside the bundle")
+        if not p.is_file():
+            raise BundleError(f"{p}: listed in the manifest but missing")
+        if not isinstance(entry, dict) or "sha256" not in entry:
+            raise BundleError(f"{path}: entry for {rel!r} has no sha256")
+        size = p.stat().st_size
+        if "bytes" in entry and size != entry["bytes"]:
+            raise BundleError(f"{p}: size {size} bytes does not match the manifest ({entry['bytes']}); "
+                              "the bundle was modified or is incomplete")
+        digest = sha256_file(p)
+        if digest != entry["sha256"]:
+            raise BundleError(f"{p}: sha256 {digest[:12]}... does not match the manifest "
+                              f"({str(entry['sha256'])[:12]}...); the bundle was modified or is corrupt")
+    missing = [r for r in REQUIRED if r not in files]
+    if missing:
+        raise BundleError(f"{path}: the manifest does not list {missing}")
+    return manifest
+
+
+def load_bundle(root: Path | str, verify: bool = True) -> Bundle:
+    """Load a bundle; with ``verify`` (default) every checksum is checked first."""
+    base = Path(root)
+    if verify:
+        manifest = verify_manifest(base)
+    else:
+        manifest = read_json(base / MANIFEST)
+    try:
+        scene = read_json(base / SCENE)
+        camera = PinholeCamera.from_json(scene["camera"])
+        render = RenderDefaults.from_json(scene["render"])
+        coll = scene["collision"]
+        world = CollisionWorld(tuple(OrientedBox.from_json(b) for b in coll["boxes"]),
+                               Workspace.from_json(coll["workspace"]),
+                               float(coll.get("camera_radius", DEFAULT_CAMERA_RADIUS)))
+        objs = read_json(base / OBJECTS)["objects"]
+        objects = tuple(BundleObject(
+            int(o["gt_id"]), int(o["obj_id"]), str(o["name"]),
+            check_rigid(o["world_T_obj"], f"{OBJECTS}: objects[{i}].world_T_obj"), str(o["model"]),
+            float(o["diameter_mm"]), o.get("class"),
+            tuple(tuple(float(x) for x in m) for m in o.get("symmetries_discrete_mm", [])),
+            tuple(o.get("symmetries_continuous", []))) for i, o in enumerate(objs))
+        holdout = tuple(HoldoutView(int(h["index"]), str(h["view_id"]), check_rigid(h["world_T_cam"], "holdout view"),
+                                    h.get("image")) for h in read_json(base / HOLDOUT)["views"])
+    except (KeyError, TypeError, ValueError, BraveError) as exc:
+        raise BundleError(f"{base}: malformed bundle ({type(exc).__name__}: {exc})") from None
+    listed = set(manifest.get("files", {}))
+    for o in objects:
+        if verify and o.model not in listed:
+            raise BundleError(f"{base}: model {o.model} of object {o.name} is not in the manifest")
+    return Bundle(base, manifest, str(scene.get("name", base.name)), camera, render, world, objects, holdout,
+                  dict(scene.get("start", {})))

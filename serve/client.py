@@ -1,0 +1,223 @@
+"""Python client of the render server (httpx): returns NumPy arrays, raises on errors.
+
+    from serve.client import BraveClient
+
+    with BraveClient("http://127.0.0.1:8765") as client:
+        step = client.reset(target="hex_nut", width=320, height=240, seed=0)
+        obs = step.observation                      # rgb (H, W, 3) uint8, depth (H, W) float32 m
+        step = client.move(linear=(0, 0, 0.05), duration=1.0)   # 5 cm forward (camera frame)
+        if not step.accepted:
+            print("refused:", step.refusal["message"])
+        client.close()
+
+Poses are ``world_T_cam`` 4x4 arrays (OpenCV camera axes, metres). A refused action is not an
+error: it returns a :class:`StepResult` with ``accepted == False``. HTTP errors (4xx/5xx) raise
+:class:`ServerError` with the server's message, field and status.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+from dataclasses import dataclass, field
+from typing import Any, Self
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from brave6d.errors import BraveError
+
+DEFAULT_URL = "http://127.0.0.1:8765"
+
+
+class ServerError(BraveError):
+    """The server answered with an error (4xx/5xx)."""
+
+    def __init__(self, status: int, message: str, field: str | None = None) -> None:
+        super().__init__(f"server error {status}: {message}")
+        self.status = status
+        self.message = message
+        self.field = field
+
+
+@dataclass(frozen=True)
+class ObjectGT:
+    """Ground truth of one object instance in one view (``cam_T_obj`` in metres)."""
+
+    gt_id: int
+    obj_id: int
+    name: str
+    is_target: bool
+    cam_T_obj: NDArray[np.float64]
+    visib_fract: float | None
+    px_count_visib: int | None
+    px_count_all: int | None
+    bbox_visib: list[int] | None
+
+    @property
+    def cam_R_m2c(self) -> NDArray[np.float64]:
+        return self.cam_T_obj[:3, :3]
+
+    @property
+    def cam_t_m2c_mm(self) -> NDArray[np.float64]:
+        """BOP's translation (millimetres)."""
+        return self.cam_T_obj[:3, 3] * 1000.0
+
+
+@dataclass(frozen=True)
+class Observation:
+    width: int
+    height: int
+    K: NDArray[np.float64]
+    world_T_cam: NDArray[np.float64]
+    rgb: NDArray[np.uint8] | None
+    depth: NDArray[np.float32] | None
+    objects: list[ObjectGT]
+
+    def target(self) -> ObjectGT | None:
+        return next((o for o in self.objects if o.is_target), None)
+
+
+@dataclass(frozen=True)
+class StepResult:
+    episode_id: str
+    action: str
+    step: int
+    accepted: bool
+    collided: bool
+    refusal: dict[str, Any] | None
+    adjustments: int
+    observation: Observation
+    move: dict[str, Any] | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    target: dict[str, Any] = field(default_factory=dict)
+
+
+def decode_observation(data: dict[str, Any]) -> Observation:
+    """An observation from the server's JSON."""
+    rgb = None
+    if data.get("rgb"):
+        import cv2
+
+        buf = np.frombuffer(base64.b64decode(data["rgb"]["data"]), dtype=np.uint8)
+        bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        rgb = np.ascontiguousarray(bgr[:, :, ::-1])
+    depth = None
+    if data.get("depth"):
+        h, w = data["depth"]["shape"]
+        depth = np.frombuffer(base64.b64decode(data["depth"]["data"]), dtype="<f4").reshape(h, w).astype(np.float32)
+    objects = [ObjectGT(int(o["gt_id"]), int(o["obj_id"]), str(o["name"]), bool(o["is_target"]),
+                        np.asarray(o["cam_T_obj"], dtype=np.float64), o.get("visib_fract"), o.get("px_count_visib"),
+                        o.get("px_count_all"), o.get("bbox_visib")) for o in data["objects"]]
+    return Observation(int(data["width"]), int(data["height"]), np.asarray(data["K"], dtype=np.float64),
+                       np.asarray(data["world_T_cam"], dtype=np.float64), rgb, depth, objects)
+
+
+def decode_step(data: dict[str, Any]) -> StepResult:
+    return StepResult(data["episode_id"], data["action"], int(data["step"]), bool(data["accepted"]),
+                      bool(data["collided"]), data.get("refusal"), int(data["adjustments"]),
+                      decode_observation(data["observation"]), data.get("move"), data.get("timings_ms", {}),
+                      data.get("target", {}))
+
+
+def pose_json(pose: ArrayLike | dict[str, Any]) -> dict[str, Any]:
+    """A 4x4 ``world_T_cam`` (array) or an already formed pose dict -> the API's pose object."""
+    if isinstance(pose, dict):
+        return pose
+    return {"world_T_cam": np.asarray(pose, dtype=np.float64).reshape(4, 4).tolist()}
+
+
+class BraveClient:
+    """Synchronous client of one server; remembers the current episode (``episode_id``)."""
+
+    def __init__(self, base_url: str = DEFAULT_URL, timeout: float = 120.0, rgb: str = "png", depth: str = "f32",
+                 transport: Any = None) -> None:
+        import httpx
+
+        kwargs: dict[str, Any] = {"base_url": base_url, "timeout": timeout}
+        if transport is not None:
+            kwargs["transport"] = transport
+        self._http = httpx.Client(**kwargs)
+        self.rgb = rgb
+        self.depth = depth
+        self.episode_id: str | None = None
+
+    # -------------------------------------------------------------- plumbing
+    def _request(self, method: str, path: str, **kwargs: Any) -> Any:
+        r = self._http.request(method, path, **kwargs)
+        if r.status_code >= 400:
+            try:
+                body = r.json()
+                raise ServerError(r.status_code, str(body.get("error", body)), body.get("field"))
+            except ValueError:
+                raise ServerError(r.status_code, r.text[:200]) from None
+        return r
+
+    def _eid(self, episode_id: str | None) -> str:
+        eid = episode_id or self.episode_id
+        if eid is None:
+            raise BraveError("no episode: call reset() first")
+        return eid
+
+    def _opts(self) -> dict[str, Any]:
+        return {"rgb": self.rgb, "depth": self.depth}
+
+    # -------------------------------------------------------------- API
+    def health(self) -> dict[str, Any]:
+        return self._request("GET", "/health").json()
+
+    def bundle(self) -> dict[str, Any]:
+        return self._request("GET", "/bundle").json()
+
+    def model(self, obj_id: int) -> bytes:
+        """The object's model file (BOP PLY, mm)."""
+        return self._request("GET", f"/bundle/models/{obj_id}").content
+
+    def reset(self, target: int | str | None = None, width: int | None = None, height: int | None = None,
+              start: ArrayLike | dict[str, Any] | None = None, seed: int | None = None) -> StepResult:
+        body: dict[str, Any] = {**self._opts()}
+        for key, value in (("target", target), ("width", width), ("height", height), ("seed", seed)):
+            if value is not None:
+                body[key] = value
+        if start is not None:
+            body["start"] = pose_json(start)
+        step = decode_step(self._request("POST", "/episodes", json=body).json())
+        self.episode_id = step.episode_id
+        return step
+
+    def set_pose(self, world_T_cam: ArrayLike | dict[str, Any], episode_id: str | None = None) -> StepResult:
+        body = {"pose": pose_json(world_T_cam), **self._opts()}
+        return decode_step(self._request("POST", f"/episodes/{self._eid(episode_id)}/set_pose", json=body).json())
+
+    def move(self, linear: ArrayLike = (0.0, 0.0, 0.0), angular: ArrayLike = (0.0, 0.0, 0.0), duration: float = 1.0,
+             frame: str = "camera", episode_id: str | None = None) -> StepResult:
+        body = {"linear": [float(v) for v in np.asarray(linear, dtype=float).reshape(3)],
+                "angular": [float(v) for v in np.asarray(angular, dtype=float).reshape(3)],
+                "duration": float(duration), "frame": frame, **self._opts()}
+        return decode_step(self._request("POST", f"/episodes/{self._eid(episode_id)}/move", json=body).json())
+
+    def state(self, episode_id: str | None = None) -> dict[str, Any]:
+        return self._request("GET", f"/episodes/{self._eid(episode_id)}").json()
+
+    def observation_npz(self, episode_id: str | None = None) -> dict[str, NDArray[Any]]:
+        """The last observation as arrays (rgb, depth, K, world_T_cam, cam_T_obj, gt_id, obj_id, visib_fract)."""
+        content = self._request("GET", f"/episodes/{self._eid(episode_id)}/observation.npz").content
+        with np.load(io.BytesIO(content)) as npz:
+            return {k: npz[k] for k in npz.files}
+
+    def close(self, episode_id: str | None = None) -> dict[str, Any]:
+        """Close the episode (the current one by default); returns its totals."""
+        eid = self._eid(episode_id)
+        out = self._request("POST", f"/episodes/{eid}/close").json()
+        if eid == self.episode_id:
+            self.episode_id = None
+        return out
+
+    def disconnect(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.disconnect()

@@ -1,0 +1,543 @@
+"""Episodes: the state machine behind the API, independent of HTTP.
+
+An episode has a target instance, an image size (a scaled copy of the bundle's pinhole
+camera), the current camera pose ``world_T_cam`` and counters. Actions:
+
+* ``reset`` (creating the episode): start pose given (any free pose) or drawn from a seeded
+  random generator on a spherical cap around the target (capture-like distances and
+  elevations, looking at the target's model centre); returns the first observation.
+* ``set_pose``: teleport to an absolute pose (only the destination is checked, as habitat's
+  ``get_observations_at``).
+* ``move``: a constant twist for a duration, integrated and stopped at the last free substep
+  (:mod:`serve.geometry`). A move that is blocked at its first substep goes nowhere.
+
+**Refusal** (AI2-THOR semantics): an action whose destination (``set_pose``) or first substep
+(``move``) is in collision or outside the workspace is refused with the reason; the camera
+stays where it was, the adjustment counter does not change, and the observation returned is
+the previous one (not re-rendered). A move stopped part-way is *accepted* (``collided: true``
+plus the reason) and the camera stays at the last free pose, as habitat does.
+
+**Position adjustments**: every accepted ``set_pose`` or ``move`` counts one; the start pose
+of ``reset`` does not.
+
+Each episode is appended, one JSON record per action, to ``<log_dir>/<episode_id>.jsonl``
+(reset, every action with the poses before/after, refusal, adjustments, timings, the target's
+pose in the camera frame and visible fraction; close with the totals). Every action holds the
+episode's lock, so concurrent requests on one episode run one after the other; different
+episodes run concurrently (renders share one device lock in the renderer).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+import math
+import os
+import secrets
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.camera import PinholeCamera
+from brave6d.errors import BraveError
+from brave6d.transforms import invert, look_at
+from serve.bundle import Bundle, BundleObject, load_model_m
+from serve.geometry import MoveResult, Refusal, integrate_twist
+from serve.renderer import SplatRenderer
+from serve.visibility import Visibility, VisibilityComputer
+
+log = logging.getLogger(__name__)
+
+Matrix4 = NDArray[np.float64]
+
+
+# ----------------------------------------------------------------------------- errors
+class EpisodeError(BraveError):
+    """Base of the errors an API client can cause; ``status`` is the HTTP status to answer with."""
+
+    status = 400
+    field: str | None = None
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        if field is not None:
+            self.field = field
+
+
+class EpisodeNotFound(EpisodeError):
+    status = 404
+
+
+class EpisodeClosed(EpisodeError):
+    status = 409
+
+
+class EpisodeBusy(EpisodeError):
+    status = 409
+
+
+class TooManyEpisodes(EpisodeError):
+    status = 429
+
+
+class InvalidAction(EpisodeError):
+    status = 422
+
+
+class Cancelled(Exception):
+    """The request timed out before its result was committed; nothing changed."""
+
+
+class Ticket:
+    """Lets a timed-out request withdraw an action before it is committed (all or nothing)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.cancelled = False
+        self.committed = False
+
+    def commit(self, apply: Any) -> None:
+        with self._lock:
+            if self.cancelled:
+                raise Cancelled()
+            apply()
+            self.committed = True
+
+    def cancel(self) -> bool:
+        """True when the action is withdrawn (it will not be applied); False when it already was."""
+        with self._lock:
+            if self.committed:
+                return False
+            self.cancelled = True
+            return True
+
+
+# ----------------------------------------------------------------------------- observations
+@dataclass(frozen=True)
+class ObjectObservation:
+    gt_id: int
+    obj_id: int
+    name: str
+    cam_T_obj: Matrix4
+    visibility: Visibility | None
+    is_target: bool
+
+    def to_json(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"gt_id": self.gt_id, "obj_id": self.obj_id, "name": self.name,
+                             "is_target": self.is_target, "cam_T_obj": self.cam_T_obj.tolist()}
+        if self.visibility is not None:
+            d.update(self.visibility.to_json())
+        else:
+            d.update({"px_count_all": None, "px_count_visib": None, "visib_fract": None,
+                      "bbox_obj": None, "bbox_visib": None})
+        return d
+
+
+@dataclass(frozen=True)
+class Observation:
+    rgb: NDArray[np.uint8]
+    depth: NDArray[np.float32]
+    camera: PinholeCamera
+    world_T_cam: Matrix4
+    objects: tuple[ObjectObservation, ...]
+    timings_ms: dict[str, float]
+
+    def target(self) -> ObjectObservation | None:
+        return next((o for o in self.objects if o.is_target), None)
+
+
+@dataclass
+class StepResult:
+    episode_id: str
+    action: str
+    step: int
+    accepted: bool
+    collided: bool
+    refusal: Refusal | None
+    adjustments: int
+    observation: Observation
+    move: dict[str, Any] | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class SceneServer:
+    """Bundle + renderer + visibility: renders observations for any pose and image size."""
+
+    def __init__(self, bundle: Bundle, device: str = "auto", renderer: SplatRenderer | None = None,
+                 occlusion_tolerance: float = 0.015, visibility: bool = True) -> None:
+        self.bundle = bundle
+        self.renderer = renderer if renderer is not None else SplatRenderer(bundle.splat_path, device)
+        models = [load_model_m(bundle.model_path(o)) for o in bundle.objects]
+        self.centres_world = []
+        for o, (verts, _) in zip(bundle.objects, models):
+            c = 0.5 * (verts.min(axis=0) + verts.max(axis=0)) if len(verts) else np.zeros(3)
+            self.centres_world.append(o.world_T_obj[:3, :3] @ c + o.world_T_obj[:3, 3])
+        self.visibility: VisibilityComputer | None = None
+        if visibility and bundle.objects:
+            try:
+                self.visibility = VisibilityComputer(models, [o.world_T_obj for o in bundle.objects],
+                                                     occlusion_tolerance)
+            except ImportError as exc:  # Open3D missing: poses still served, visibility null
+                log.warning("visible fractions disabled: %s", exc)
+
+    @property
+    def device(self) -> str:
+        return self.renderer.device
+
+    def camera_for(self, width: int, height: int) -> PinholeCamera:
+        cam = self.bundle.camera
+        if (width, height) == (cam.width, cam.height):
+            return cam
+        return cam.scaled(width, height)
+
+    def observe(self, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None) -> Observation:
+        r = self.bundle.render
+        t0 = time.perf_counter()
+        out = self.renderer.render(world_T_cam, camera, near=r.near, far=r.far, background=r.background,
+                                   depth_alpha_min=r.depth_alpha_min)
+        t1 = time.perf_counter()
+        vis: list[Visibility | None] = [None] * len(self.bundle.objects)
+        if self.visibility is not None:
+            vis = list(self.visibility.compute(world_T_cam, camera, out.depth))
+        t2 = time.perf_counter()
+        cam_T_world = invert(world_T_cam)
+        objects = tuple(ObjectObservation(o.gt_id, o.obj_id, o.name, cam_T_world @ o.world_T_obj, v,
+                                          o.gt_id == target_gt_id) for o, v in zip(self.bundle.objects, vis))
+        timings = {"render": out.render_ms, "render_queue": out.queue_ms, "visibility": (t2 - t1) * 1000.0,
+                   "observe": (t2 - t0) * 1000.0}
+        return Observation(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), objects, timings)
+
+    def random_start(self, target: BundleObject, rng: np.random.Generator, tries: int = 500) -> Matrix4:
+        """A free pose on a spherical cap around the target, looking at its model centre."""
+        s = self.bundle.start
+        dists = s.get("distances_m") or [0.2, 0.5]
+        d_lo, d_hi = float(min(dists)), float(max(dists))
+        el_lo = math.radians(float(s.get("min_elevation_deg", 30.0)))
+        el_hi = math.radians(float(s.get("max_elevation_deg", 80.0)))
+        az_lo, az_hi = (math.radians(float(a)) for a in s.get("azimuth_range_deg", (-180.0, 180.0)))
+        centre = self.centres_world[target.gt_id] if target.gt_id < len(self.centres_world) else target.world_T_obj[:3, 3]
+        for _ in range(tries):
+            d = rng.uniform(d_lo, d_hi)
+            el = rng.uniform(el_lo, el_hi)
+            az = rng.uniform(az_lo, az_hi)
+            eye = centre + d * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+            T = look_at(eye, centre)
+            if self.bundle.world.check(T) is None:
+                return T
+        raise InvalidAction(f"no free start pose found around object {target.name!r} in {tries} tries "
+                            "(check the collision boxes and the workspace)", "start")
+
+
+# ----------------------------------------------------------------------------- episode log
+class EpisodeLog:
+    """Append-only JSONL log of one episode (one flushed line per record; fsync on close)."""
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+        self._handle = None
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._handle = open(path, "a", encoding="utf-8")  # noqa: SIM115 - kept open for the episode
+
+    def write(self, record: dict[str, Any]) -> None:
+        if self._handle is None:
+            return
+        record = {"time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds"), **record}
+        self._handle.write(json.dumps(record, allow_nan=False, default=_json_default) + "\n")
+        self._handle.flush()
+
+    def close(self) -> None:
+        if self._handle is not None:
+            try:
+                os.fsync(self._handle.fileno())
+            except OSError:
+                pass
+            self._handle.close()
+            self._handle = None
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise TypeError(f"cannot serialise {type(obj).__name__}")
+
+
+def read_episode_log(path: Path | str) -> list[dict[str, Any]]:
+    """The records of an episode log (a partial last line is ignored)."""
+    records = []
+    for line in Path(path).read_text(encoding="utf-8").splitlines():
+        if line.strip():
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError:
+                break
+    return records
+
+
+# ----------------------------------------------------------------------------- episodes
+@dataclass
+class Episode:
+    id: str
+    target: BundleObject
+    camera: PinholeCamera
+    world_T_cam: Matrix4
+    seed: int | None
+    log: EpisodeLog
+    created: float = field(default_factory=time.monotonic)
+    last_active: float = field(default_factory=time.monotonic)
+    adjustments: int = 0
+    steps: int = 0
+    refusals: int = 0
+    collisions: int = 0
+    closed: bool = False
+    close_reason: str | None = None
+    last: Observation | None = None
+    render_ms: list[float] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def state(self) -> dict[str, Any]:
+        return {"episode_id": self.id, "closed": self.closed, "close_reason": self.close_reason,
+                "target": {"gt_id": self.target.gt_id, "obj_id": self.target.obj_id, "name": self.target.name},
+                "width": self.camera.width, "height": self.camera.height, "K": self.camera.K.tolist(),
+                "world_T_cam": self.world_T_cam.tolist(), "adjustments": self.adjustments,
+                "steps": self.steps, "refusals": self.refusals, "collisions": self.collisions,
+                "seed": self.seed, "age_s": time.monotonic() - self.created,
+                "log": str(self.log.path) if self.log.path else None}
+
+    def summary(self) -> dict[str, Any]:
+        ms = np.asarray(self.render_ms) if self.render_ms else np.zeros(0)
+        return {"steps": self.steps, "adjustments": self.adjustments, "refusals": self.refusals,
+                "collisions": self.collisions, "duration_s": time.monotonic() - self.created,
+                "render_ms_median": float(np.median(ms)) if len(ms) else None,
+                "world_T_cam": self.world_T_cam.tolist()}
+
+
+def _target_record(obs: Observation) -> dict[str, Any]:
+    t = obs.target()
+    if t is None:
+        return {}
+    return {"target_cam_T_obj": t.cam_T_obj.tolist(),
+            "target_visib_fract": t.visibility.visib_fract if t.visibility else None}
+
+
+class EpisodeManager:
+    """Creates, runs and expires episodes (thread-safe)."""
+
+    def __init__(self, scene: SceneServer, log_dir: Path | str | None = None, max_episodes: int = 32,
+                 idle_timeout_s: float = 900.0, keep_closed: int = 256, lock_timeout_s: float = 30.0) -> None:
+        self.scene = scene
+        self.log_dir = Path(log_dir) if log_dir is not None else None
+        self.max_episodes = max_episodes
+        self.idle_timeout_s = idle_timeout_s
+        self.keep_closed = keep_closed
+        self.lock_timeout_s = lock_timeout_s
+        self._episodes: OrderedDict[str, Episode] = OrderedDict()
+        self._lock = threading.Lock()
+
+    # -------------------------------------------------------------- bookkeeping
+    def _expire(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            stale = [e for e in self._episodes.values()
+                     if not e.closed and now - e.last_active > self.idle_timeout_s]
+        for e in stale:
+            if e.lock.acquire(timeout=0):
+                try:
+                    self._close(e, "expired (idle)")
+                finally:
+                    e.lock.release()
+        with self._lock:
+            closed = [k for k, e in self._episodes.items() if e.closed]
+            for k in closed[: max(0, len(closed) - self.keep_closed)]:
+                del self._episodes[k]
+
+    def open_count(self) -> int:
+        with self._lock:
+            return sum(1 for e in self._episodes.values() if not e.closed)
+
+    def list(self) -> list[dict[str, Any]]:
+        self._expire()
+        with self._lock:
+            return [{"episode_id": e.id, "closed": e.closed, "steps": e.steps, "adjustments": e.adjustments,
+                     "target": e.target.name} for e in self._episodes.values()]
+
+    def get(self, episode_id: str) -> Episode:
+        with self._lock:
+            ep = self._episodes.get(episode_id)
+        if ep is None:
+            raise EpisodeNotFound(f"unknown episode {episode_id!r} (never created, or closed and forgotten)",
+                                  "episode_id")
+        return ep
+
+    def _acquire(self, ep: Episode) -> None:
+        if not ep.lock.acquire(timeout=self.lock_timeout_s):
+            raise EpisodeBusy(f"episode {ep.id} is busy with another request")
+        if ep.closed:
+            ep.lock.release()
+            raise EpisodeClosed(f"episode {ep.id} is closed ({ep.close_reason}); reset a new one", "episode_id")
+
+    # -------------------------------------------------------------- actions
+    def reset(self, *, target: int | str | None = None, width: int | None = None, height: int | None = None,
+              start: Matrix4 | None = None, seed: int | None = None, ticket: Ticket | None = None) -> StepResult:
+        self._expire()
+        bundle = self.scene.bundle
+        if not bundle.objects:
+            raise InvalidAction("the bundle has no objects to target", "target")
+        if target is None:
+            tgt = bundle.objects[0]
+        else:
+            try:
+                tgt = bundle.object_by(target)
+            except KeyError as exc:
+                raise InvalidAction(str(exc.args[0]), "target") from None
+        w = width or bundle.render.width
+        h = height or bundle.render.height
+        camera = self.scene.camera_for(w, h)
+        if start is not None:
+            refusal = bundle.world.check(start)
+            if refusal is not None:
+                raise InvalidAction(f"start pose refused: {refusal.message}", "start")
+            T0 = np.array(start, dtype=np.float64)
+            used_seed = seed
+        else:
+            used_seed = seed if seed is not None else secrets.randbits(31)
+            T0 = self.scene.random_start(tgt, np.random.default_rng(used_seed))
+        with self._lock:
+            if sum(1 for e in self._episodes.values() if not e.closed) >= self.max_episodes:
+                raise TooManyEpisodes(f"too many open episodes ({self.max_episodes}); close one first")
+            eid = secrets.token_hex(8)
+            ep = Episode(eid, tgt, camera, T0, used_seed,
+                         EpisodeLog(self.log_dir / f"{eid}.jsonl" if self.log_dir else None))
+            self._episodes[eid] = ep  # reserve the slot
+        ep.lock.acquire()
+        try:
+            t0 = time.perf_counter()
+            try:
+                obs = self.scene.observe(T0, camera, tgt.gt_id)
+                if ticket is not None:
+                    ticket.commit(lambda: None)
+            except BaseException:
+                with self._lock:
+                    self._episodes.pop(eid, None)
+                ep.log.close()
+                if ep.log.path is not None and ep.log.path.exists():
+                    ep.log.path.unlink()
+                raise
+            ep.last = obs
+            ep.render_ms.append(obs.timings_ms["render"])
+            timings = {**obs.timings_ms, "step": (time.perf_counter() - t0) * 1000.0}
+            ep.log.write({"event": "reset", "episode_id": eid, "bundle": bundle.name,
+                          "target": {"gt_id": tgt.gt_id, "obj_id": tgt.obj_id, "name": tgt.name},
+                          "width": w, "height": h, "K": camera.K.tolist(), "seed": used_seed,
+                          "start": "given" if start is not None else "random", "world_T_cam": T0.tolist(),
+                          "timings_ms": timings, **_target_record(obs)})
+            return StepResult(eid, "reset", 0, True, False, None, 0, obs, None, timings)
+        finally:
+            ep.lock.release()
+
+    def set_pose(self, episode_id: str, world_T_cam: Matrix4, ticket: Ticket | None = None) -> StepResult:
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            T = np.array(world_T_cam, dtype=np.float64)
+            return self._finish(ep, "set_pose", T, self.scene.bundle.world.check(T), None,
+                                {"world_T_cam": T.tolist()}, ticket)
+        finally:
+            ep.lock.release()
+
+    def move(self, episode_id: str, linear: Any, angular: Any, duration: float, frame: str = "camera",
+             ticket: Ticket | None = None) -> StepResult:
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            try:
+                res: MoveResult = integrate_twist(self.scene.bundle.world, ep.world_T_cam, linear, angular,
+                                                  duration, frame)
+            except ValueError as exc:
+                raise InvalidAction(str(exc), "duration") from None
+            move = {"fraction": res.fraction, "substeps": res.substeps, "path_m": res.path_m}
+            requested = {"linear": list(map(float, linear)), "angular": list(map(float, angular)),
+                         "duration": float(duration), "frame": frame}
+            if not res.moved:  # blocked at the first substep: refused
+                return self._finish(ep, "move", ep.world_T_cam, res.refusal, move, requested, ticket)
+            return self._finish(ep, "move", res.world_T_cam, None, move, requested, ticket,
+                                stopped_by=res.refusal)
+        finally:
+            ep.lock.release()
+
+    def _finish(self, ep: Episode, action: str, T: Matrix4, refusal: Refusal | None, move: dict[str, Any] | None,
+                requested: dict[str, Any], ticket: Ticket | None, stopped_by: Refusal | None = None) -> StepResult:
+        t0 = time.perf_counter()
+        before = ep.world_T_cam
+        if refusal is not None:
+            obs = ep.last
+            assert obs is not None
+
+            def apply() -> None:
+                ep.steps += 1
+                ep.refusals += 1
+                ep.last_active = time.monotonic()
+        else:
+            obs = self.scene.observe(T, ep.camera, ep.target.gt_id)
+
+            def apply() -> None:
+                ep.steps += 1
+                ep.adjustments += 1
+                ep.world_T_cam = T
+                ep.last = obs
+                ep.render_ms.append(obs.timings_ms["render"])
+                ep.last_active = time.monotonic()
+                if stopped_by is not None:
+                    ep.collisions += 1
+        if ticket is not None:
+            ticket.commit(apply)
+        else:
+            apply()
+        accepted = refusal is None
+        collided = refusal is not None or stopped_by is not None
+        reason = refusal or stopped_by
+        timings = ({**obs.timings_ms} if accepted else {"render": 0.0, "render_queue": 0.0, "visibility": 0.0,
+                                                        "observe": 0.0})
+        timings["step"] = (time.perf_counter() - t0) * 1000.0
+        ep.log.write({"event": action, "step": ep.steps, "accepted": accepted, "collided": collided,
+                      "refusal": reason.to_json() if reason else None, "requested": requested,
+                      "world_T_cam_before": before.tolist(), "world_T_cam": ep.world_T_cam.tolist(),
+                      "adjustments": ep.adjustments, "move": move, "timings_ms": timings, **_target_record(obs)})
+        return StepResult(ep.id, action, ep.steps, accepted, collided, reason, ep.adjustments, obs, move, timings)
+
+    def close(self, episode_id: str, reason: str = "closed by the client") -> dict[str, Any]:
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            return self._close(ep, reason)
+        finally:
+            ep.lock.release()
+
+    def _close(self, ep: Episode, reason: str) -> dict[str, Any]:
+        summary = ep.summary()
+        ep.closed = True
+        ep.close_reason = reason
+        ep.log.write({"event": "close", "reason": reason, **summary})
+        ep.log.close()
+        ep.last = None  # free the images (closed episodes are kept for GET /episodes/{id})
+        return {"episode_id": ep.id, "closed": True, "reason": reason, **summary}
+
+    def close_all(self, reason: str = "server shutdown") -> None:
+        with self._lock:
+            eps = [e for e in self._episodes.values() if not e.closed]
+        for e in eps:
+            if e.lock.acquire(timeout=5.0):
+                try:
+                    if not e.closed:
+                        self._close(e, reason)
+                finally:
+                    e.lock.release()

@@ -1,0 +1,210 @@
+"""Render one view of a bundle's Gaussians with :func:`training.rasterize` (forward only).
+
+* The splat is read once (``training.ply.read_ply``), activated (``sigmoid`` opacity, ``exp``
+  scale, normalised ``wxyz`` quaternion, SH ``[N, K, 3]``) and kept on the chosen device
+  (``cuda`` or ``cpu``; ``auto`` picks CUDA when torch sees a GPU).
+* Gaussians whose activated opacity is below 1/255 are dropped at load: the rasterizer skips
+  any Gaussian whose alpha ``o * exp(-sigma) <= o`` is below 1/255, so they can never change a
+  pixel (lossless).
+* Per request, Gaussians that cannot reach the image are culled on the device before the
+  rasterizer runs: centres outside ``(near, far)`` (the rasterizer drops those itself) and
+  Gaussians whose screen footprint, bounded from above through the largest scale and the
+  projection Jacobian (see :meth:`SplatRenderer._cull`), lies outside the image. Lossless
+  too (the rasterizer would draw nothing of them); it saves their projection and binning.
+* SH bands that are all zero (a degree-2 model saved with 45 ``f_rest``) are not evaluated.
+* Renders run under ``torch.no_grad`` and one lock: the CPU kernels use every core, and
+  concurrent renders would only slow each other down. ``render_ms`` is the wall time of the
+  rasterizer call (including waiting for the GPU), ``queue_ms`` the wait for the lock.
+* Depth is the rasterizer's expected z-depth (camera frame, metres, float32); pixels whose
+  alpha is below ``depth_alpha_min`` get depth 0 (= no data, the project's depth convention).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.camera import PinholeCamera
+from brave6d.errors import BraveError
+from brave6d.transforms import invert
+
+log = logging.getLogger(__name__)
+
+#: The rasterizer skips a Gaussian whose alpha at a pixel is below this (gsplat's 1/255).
+MIN_ALPHA = 1.0 / 255.0
+
+
+def resolve_device(device: str) -> str:
+    """``auto`` -> ``cuda`` when torch sees a GPU, else ``cpu``; ``cuda`` without a GPU is an error."""
+    import torch
+
+    if device not in ("auto", "cpu", "cuda"):
+        raise BraveError(f"device must be auto, cpu or cuda, got {device!r}")
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise BraveError("device 'cuda' requested but torch sees no GPU (use --device cpu or auto)")
+    return device
+
+
+def effective_sh_degree(shN: NDArray[np.float32]) -> int:
+    """The lowest SH degree that represents ``shN`` [N, K, 3] exactly: PLY writers pad lower-degree
+    models with zero coefficients (e.g. a degree-2 model saved with 45 ``f_rest``), and evaluating
+    those zero bands changes nothing but costs time."""
+    from training.ply import sh_degree_for
+
+    degree = sh_degree_for(shN.shape[1])
+    while degree > 0:
+        lo = degree * degree - 1  # coefficients of degree `degree` are [lo, (degree+1)^2 - 1)
+        if np.any(shN[:, lo:(degree + 1) ** 2 - 1]):
+            break
+        degree -= 1
+    return degree
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    rgb: NDArray[np.uint8]  # (H, W, 3)
+    depth: NDArray[np.float32]  # (H, W) metres, 0 = no data
+    alpha: NDArray[np.float32]  # (H, W)
+    render_ms: float
+    queue_ms: float
+    gaussians_drawn: int
+
+
+class SplatRenderer:
+    """The Gaussians of one splat PLY, ready to render (see the module docstring)."""
+
+    def __init__(self, splat_path: Path | str, device: str = "auto", cull: bool = True) -> None:
+        import torch
+
+        from training.ply import read_ply
+
+        self.device = resolve_device(device)
+        splat = read_ply(splat_path)
+        opac = 1.0 / (1.0 + np.exp(-splat.opacities.astype(np.float64)))
+        keep = opac >= MIN_ALPHA
+        finite = (np.isfinite(splat.means).all(1) & np.isfinite(splat.scales).all(1)
+                  & np.isfinite(splat.quats).all(1) & np.isfinite(splat.opacities)
+                  & np.isfinite(splat.sh0).all((1, 2)) & np.isfinite(splat.shN).all((1, 2)))
+        if not finite.all():
+            log.warning("%s: dropping %d Gaussians with NaN/inf parameters", splat_path, int((~finite).sum()))
+        keep &= finite
+        self.n_loaded = splat.num_gaussians
+        self.n_pruned = int((~keep).sum())
+        dev = torch.device(self.device)
+        f32 = torch.float32
+        quats = splat.quats[keep].astype(np.float64)
+        norm = np.linalg.norm(quats, axis=1, keepdims=True)
+        quats = np.where(norm > 1e-12, quats / np.maximum(norm, 1e-12), np.array([1.0, 0, 0, 0]))
+        scales = np.exp(np.clip(splat.scales[keep].astype(np.float64), -30, 30))
+        self.means = torch.as_tensor(splat.means[keep], dtype=f32, device=dev).contiguous()
+        self.quats = torch.as_tensor(quats, dtype=f32, device=dev).contiguous()
+        self.scales = torch.as_tensor(scales, dtype=f32, device=dev).contiguous()
+        self.opacities = torch.as_tensor(opac[keep], dtype=f32, device=dev).contiguous()
+        self.sh_degree = effective_sh_degree(splat.shN[keep])
+        k = (self.sh_degree + 1) ** 2 - 1
+        coeffs = np.concatenate([splat.sh0[keep], splat.shN[keep][:, :k]], axis=1)
+        self.colors = torch.as_tensor(coeffs, dtype=f32, device=dev).contiguous()
+        self.max_scale = self.scales.max(dim=1).values.contiguous()
+        self.cull = cull
+        self.lock = threading.Lock()
+        self.renders = 0
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.means.shape[0])
+
+    def _cull(self, viewmat, K, width: int, height: int, near: float, far: float):  # type: ignore[no-untyped-def]
+        """Indices of Gaussians that may touch the image (a superset; see the module docstring).
+
+        The rasterizer's screen radius is at most ``3.33 * sqrt(lambda_max(J S J^T) + 0.3)`` px
+        with ``S`` the 3D covariance (``lambda_max <= s_max^2``) and ``J`` the projection
+        Jacobian, whose x/z, y/z terms are clamped to the image plus 30 % of the half field of
+        view; ``||J||_2 <= ||J||_F = sqrt(fx^2 (1 + tx^2) + fy^2 (1 + ty^2)) / z`` with the
+        clamp limits ``tx``, ``ty``. Gaussians whose centre plus that bound (plus one pixel)
+        misses the image are dropped, as are centres outside ``(near, far)`` (the rasterizer
+        culls those itself).
+        """
+        import torch
+
+        fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+        tx = max(cx, width - cx) / fx + 0.3 * (0.5 * width / fx)
+        ty = max(cy, height - cy) / fy + 0.3 * (0.5 * height / fy)
+        jf = math.sqrt(fx * fx * (1.0 + tx * tx) + fy * fy * (1.0 + ty * ty))
+        R = viewmat[:3, :3]
+        t = viewmat[:3, 3]
+        pc = self.means @ R.T + t
+        z = pc[:, 2]
+        front = (z > near) & (z < far)
+        zc = torch.clamp(z, min=near)
+        u = fx * pc[:, 0] / zc + cx
+        v = fy * pc[:, 1] / zc + cy
+        sig = jf * self.max_scale / zc
+        rad = 3.33 * torch.sqrt(sig * sig + 0.3) + 1.0
+        inside = (u + rad > -1.0) & (u - rad < width) & (v + rad > -1.0) & (v - rad < height)
+        return torch.nonzero(front & inside, as_tuple=False).squeeze(1)
+
+    def render(self, world_T_cam: NDArray[np.float64], camera: PinholeCamera, *, near: float = 0.01,
+               far: float = 100.0, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+               depth_alpha_min: float = 0.5) -> RenderOutput:
+        """Render the view of an undistorted pinhole ``camera`` at ``world_T_cam`` (OpenCV axes)."""
+        import torch
+
+        from training import rasterize
+
+        if camera.has_distortion:
+            raise BraveError("the renderer draws pinhole images: give an undistorted camera")
+        dev = self.means.device
+        viewmat = torch.as_tensor(invert(world_T_cam), dtype=torch.float32, device=dev)
+        K = torch.as_tensor(camera.K, dtype=torch.float32, device=dev)
+        bg = torch.as_tensor(background, dtype=torch.float32, device=dev).reshape(1, 3)
+        t_wait = time.perf_counter()
+        with self.lock:
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                if self.cull:
+                    idx = self._cull(viewmat, K, camera.width, camera.height, near, far)
+                    if idx.numel() == 0:  # nothing in view: keep one Gaussian so shapes stay valid
+                        idx = torch.zeros(1, dtype=torch.long, device=dev)
+                    args = (self.means[idx], self.quats[idx], self.scales[idx], self.opacities[idx],
+                            self.colors[idx])
+                else:
+                    args = (self.means, self.quats, self.scales, self.opacities, self.colors)
+                colors, depth, alpha, _ = rasterize(
+                    *args, viewmat[None], K[None], camera.width, camera.height,
+                    sh_degree=self.sh_degree, near_plane=near, far_plane=far, backgrounds=bg,
+                    backend="cuda" if dev.type == "cuda" else "cpu")
+                rgb = (colors[0].clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8)
+                a = alpha[0, :, :, 0]
+                d = torch.where(a >= depth_alpha_min, depth[0, :, :, 0], torch.zeros_like(a))
+                d = torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0)
+                rgb_np, d_np, a_np = rgb.cpu().numpy(), d.float().cpu().numpy(), a.float().cpu().numpy()
+            t1 = time.perf_counter()
+            self.renders += 1
+        drawn = int(args[0].shape[0])
+        return RenderOutput(rgb_np, d_np, a_np, (t1 - t0) * 1000.0, (t0 - t_wait) * 1000.0, drawn)
+
+    def warm_up(self, camera: PinholeCamera, world_T_cam: NDArray[np.float64]) -> float:
+        """One render (loads the compiled kernels / CUDA context); returns its milliseconds."""
+        small = camera.scaled(max(16, camera.width // 4), max(16, camera.height // 4))
+        return self.render(world_T_cam, small).render_ms
+
+
+def lookat_default(bundle_start: dict, fallback_target: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A sensible default view: from the capture's middle distance at 45 deg elevation towards the target."""
+    from brave6d.transforms import look_at
+
+    target = np.asarray(bundle_start.get("target", fallback_target), dtype=np.float64)
+    dists = bundle_start.get("distances_m") or [0.3]
+    d = float(np.median(dists))
+    el = math.radians(45.0)
+    eye = target + d * np.array([-math.cos(el), 0.0, math.sin(el)])
+    return look_at(eye, target)

@@ -1,0 +1,98 @@
+"""The server's renderer: lossless culling and SH trimming, depth conventions, device choice."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from brave6d.camera import PinholeCamera
+from brave6d.errors import BraveError
+from brave6d.transforms import look_at
+from serve.renderer import SplatRenderer, effective_sh_degree, resolve_device
+from serve.synthetic import synthetic_splat
+
+CAMERA = PinholeCamera.from_hfov(160, 120, 70.0)
+
+
+@pytest.fixture(scope="module")
+def splat_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from training.ply import write_ply
+
+    splat = synthetic_splat(6000, sh_degree=1, seed=3)
+    n = splat.num_gaussians
+    # a few Gaussians that can never be drawn (opacity < 1/255) and one with NaN: dropped at load
+    splat.opacities[:5] = -8.0
+    splat.means[5] = np.nan
+    assert n > 6000 - 100
+    path = tmp_path_factory.mktemp("splat") / "point_cloud.ply"
+    write_ply(path, splat)  # padded to degree 3 with zero coefficients
+    return path
+
+
+@pytest.mark.parametrize("eye", [(0.25, -0.15, 0.30), (0.46, 0.0, 0.12), (0.9, 0.5, 0.6), (0.2, 0.0, 0.05)])
+def test_culling_is_lossless(splat_path: Path, eye: tuple[float, float, float]) -> None:
+    culled = SplatRenderer(splat_path, device="cpu", cull=True)
+    full = SplatRenderer(splat_path, device="cpu", cull=False)
+    T = look_at(eye, (0.46, 0.0, 0.01))
+    a, b = culled.render(T, CAMERA), full.render(T, CAMERA)
+    assert a.gaussians_drawn <= b.gaussians_drawn
+    np.testing.assert_allclose(a.alpha, b.alpha, atol=2e-5)
+    assert np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max() <= 1  # float rounding only
+    np.testing.assert_allclose(a.depth, b.depth, atol=1e-5)
+
+
+def test_culling_saves_work_in_close_views(splat_path: Path) -> None:
+    r = SplatRenderer(splat_path, device="cpu")
+    out = r.render(look_at((0.46, -0.05, 0.10), (0.46, 0.0, 0.01)), CAMERA)
+    assert out.gaussians_drawn < 0.5 * r.num_gaussians
+
+
+def test_load_drops_invisible_and_broken_gaussians_and_trims_sh(splat_path: Path) -> None:
+    r = SplatRenderer(splat_path, device="cpu")
+    assert r.n_pruned == 6 and r.num_gaussians == r.n_loaded - 6
+    assert r.sh_degree == 1 and r.colors.shape[1] == 4  # the zero-padded bands are not evaluated
+
+
+def test_effective_sh_degree() -> None:
+    sh = np.zeros((3, 15, 3), np.float32)
+    assert effective_sh_degree(sh) == 0
+    sh[1, 7, 2] = 0.1  # a degree-2 coefficient
+    assert effective_sh_degree(sh) == 2
+    sh[0, 14, 0] = 1e-9
+    assert effective_sh_degree(sh) == 3
+    assert effective_sh_degree(np.zeros((2, 0, 3), np.float32)) == 0
+
+
+def test_depth_and_background(splat_path: Path) -> None:
+    r = SplatRenderer(splat_path, device="cpu")
+    # looking up into the empty sky: nothing drawn, background colour, depth 0 (no data)
+    T = look_at((0.46, 0.0, 0.3), (0.46, 0.0, 1.0))
+    out = r.render(T, CAMERA, background=(0.0, 1.0, 0.0))
+    assert out.depth.dtype == np.float32 and np.all(out.depth == 0)
+    assert np.all(out.rgb[..., 1] == 255) and np.all(out.rgb[..., 0] == 0)
+    # looking down at the table from 30 cm: depth about 0.29 m at the centre
+    T = look_at((0.30, -0.2, 0.30), (0.30, -0.2, 0.0), up=(1, 0, 0))
+    out = r.render(T, CAMERA)
+    assert abs(float(out.depth[60, 80]) - 0.30) < 0.005
+    assert out.render_ms > 0
+
+
+def test_device_choice() -> None:
+    import torch
+
+    assert resolve_device("cpu") == "cpu"
+    assert resolve_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(BraveError):
+        resolve_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(BraveError, match="no GPU"):
+            resolve_device("cuda")
+
+
+def test_distorted_camera_is_refused(splat_path: Path) -> None:
+    r = SplatRenderer(splat_path, device="cpu")
+    cam = PinholeCamera(160, 120, 100.0, 100.0, 80.0, 60.0, (0.1, 0.0, 0.0, 0.0))
+    with pytest.raises(BraveError, match="undistorted"):
+        r.render(np.eye(4), cam)
