@@ -28,8 +28,14 @@ class Command:
 COMMANDS: tuple[Command, ...] = (
     Command("spec", "brave6d.spec_cli", "validate a scene spec (YAML) and print a summary"),
     Command("init", "brave6d.init_cli", "create a scene directory from a scene spec"),
+    Command("calibrate", "calibration.cli", "capture the ChArUco board, calibrate intrinsics and the hand-eye transform"),
     Command("capture", "capture.cli", "plan capture views and capture them with a robot and a camera"),
     Command("annotate", "annotation.cli", "import 3D-DAT object poses and export BOP ground truth"),
+    Command("train", "training.cli", "train a 3D Gaussian Splatting scene and evaluate it on held-out views"),
+    Command("export", "serve.export_cli", "write the scene bundle that the render server loads"),
+    Command("serve", "serve.cli", "serve a bundle to active-vision agents (HTTP + WebSocket, browser viewer)"),
+    Command("evaluate", "evaluation.cli", "score agent episodes (BOP Average Recall, adjustments) and print a leaderboard"),
+    Command("report", "evaluation.report_cli", "write the accuracy-vs-time report from real measurements"),
     Command("demo", "brave6d.demo", "run the whole pipeline on the embedded demo scene"),
 )
 

@@ -64,7 +64,15 @@ def stage_scene(ctx: DemoContext) -> StageResult:
 #: Pipeline order. Each stage package appends its line when it exists.
 STAGES: tuple[DemoStage, ...] = (
     DemoStage("scene", "brave6d.demo:stage_scene", "validate the demo spec and create the scene directory"),
+    DemoStage("calibrate", "calibration.demo:stage_calibrate",
+              "capture the ChArUco board, calibrate intrinsics and hand-eye (simulated rig)"),
     DemoStage("capture", "capture.demo:stage_capture", "plan the views and capture them (simulated UR5e + camera)"),
+    DemoStage("annotate", "annotation.demo:stage_annotation", "write the 3D-DAT folder, import it, export BOP ground truth"),
+    DemoStage("train", "training.demo:stage_train", "train the 3DGS scene on the CPU and evaluate the holdout"),
+    DemoStage("export", "serve.demo:stage_export", "write the scene bundle"),
+    DemoStage("serve", "serve.demo:stage_serve", "serve the bundle on loopback and run one scripted episode"),
+    DemoStage("evaluate", "evaluation.demo:stage_evaluate", "run the active and static baselines on every object and score them"),
+    DemoStage("report", "evaluation.report:stage_report", "write the accuracy-vs-time report"),
 )
 
 
@@ -117,7 +125,7 @@ def run_stages(ctx: DemoContext, only: list[str] | None = None) -> list[StageRes
             except BraveError as exc:
                 ctx.results.append(StageResult(stage.name, watch.seconds, "failed", {"error": str(exc)}))
                 raise
-        result.seconds = watch.seconds
+        result.name, result.seconds = stage.name, watch.seconds
         ctx.results.append(result)
         print(f"{prefix} done in {watch.seconds:.1f} s  {result.figures_text()}", file=sys.stderr, flush=True)
     return ctx.results
