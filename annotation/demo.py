@@ -56,17 +56,23 @@ def stage_annotation(ctx: DemoContext) -> StageResult:
     """Demo stage: write the 3D-DAT folder, import it, export BOP; figures for the summary table."""
     from annotation.bop import export_bop
     from annotation.importer import import_threedat
+    from annotation.validation import mask_iou_against_sim_truth
     from brave6d.progress import StageResult
 
     dat_dir = ctx.workdir / "threedat"
     write_demo_threedat(ctx.scene.root, dat_dir)
     imported = import_threedat(dat_dir, ctx.scene.root)
     exported = export_bop(ctx.scene.root)
-    return StageResult("annotation", figures={
+    figures = {
         "objects": imported.n_objects,
         "instances": imported.n_instances,
         "views": exported.images,
         "align rms mm": imported.alignment.rms_mm,
         "targets": exported.targets,
         "mean visib": exported.mean_visib_fract,
-    })
+    }
+    if (ctx.scene.capture.sim_truth_dir / "object_ids").is_dir():
+        # a check of the export against the simulator's id buffers; nothing downstream reads them
+        check = mask_iou_against_sim_truth(ctx.scene.root)
+        figures["mask IoU vs sim (mean/min)"] = f"{check['mean_iou']:.3f}/{check['min_iou']:.3f}"
+    return StageResult("annotation", figures=figures)

@@ -260,7 +260,7 @@ def holdout_frames(scene: SceneDir) -> list[tuple[Any, Matrix4]]:
         wanted = {ln.strip() for ln in (scene.sparse_dir / "holdout.txt").read_text().splitlines() if ln.strip()}
     if wanted is None:
         try:
-            from training.dataset import holdout_split
+            from training import holdout_split
 
             _, test = holdout_split([r for r, _ in views])
             wanted = {str(i) for i in test}
@@ -401,7 +401,7 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
                   near: float = 0.01, far: float = 100.0, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
                   depth_alpha_min: float = 0.5) -> ExportResult:
     """Write the bundle of ``scene_dir`` (default ``<scene>/bundle``) atomically; see the module docstring."""
-    from training.ply import read_ply
+    from training import read_ply
 
     scene = SceneDir(scene_dir)
     if not scene.spec_path.is_file():

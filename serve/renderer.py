@@ -58,7 +58,7 @@ def effective_sh_degree(shN: NDArray[np.float32]) -> int:
     """The lowest SH degree that represents ``shN`` [N, K, 3] exactly: PLY writers pad lower-degree
     models with zero coefficients (e.g. a degree-2 model saved with 45 ``f_rest``), and evaluating
     those zero bands changes nothing but costs time."""
-    from training.ply import sh_degree_for
+    from training import sh_degree_for
 
     degree = sh_degree_for(shN.shape[1])
     while degree > 0:
@@ -85,7 +85,7 @@ class SplatRenderer:
     def __init__(self, splat_path: Path | str, device: str = "auto", cull: bool = True) -> None:
         import torch
 
-        from training.ply import read_ply
+        from training import read_ply
 
         self.device = resolve_device(device)
         splat = read_ply(splat_path)

@@ -121,7 +121,7 @@ def synthetic_splat(n_gaussians: int = 20_000, sh_degree: int = 0, seed: int = 0
     them: like the fuzzy, overlapping Gaussians of a trained scene they raise the number of
     Gaussians per pixel (the compositing cost) without changing what the image shows.
     Benchmarks use it; tests keep the default 0."""
-    from training.ply import SH_C0, SplatData
+    from training import SH_C0, SplatData
 
     rng = np.random.default_rng(seed)
     parts = []
@@ -190,7 +190,7 @@ def ring_poses(n_views: int, distance: float = 0.3, elevation_deg: float = 50.0)
 def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree: int = 0, n_views: int = 10,
                          width: int = 320, height: int = 240, seed: int = 0, volume_fraction: float = 0.0) -> SceneDir:
     """Write the synthetic scene directory (see the module docstring); returns it."""
-    from training.ply import write_ply
+    from training import write_ply
 
     scene = SceneDir(root)
     scene.root.mkdir(parents=True, exist_ok=True)
