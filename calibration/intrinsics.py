@@ -11,13 +11,22 @@ error (per-view PnP). Both return an :class:`IntrinsicsResult`; its JSON
 
 Distortion models (``distortion=``, the length of OpenCV's coefficient vector):
 ``"0"`` none, ``"4"`` k1 k2 p1 p2, ``"5"`` + k3 (default), ``"8"`` rational (k4-k6),
-``"12"`` + thin prism (s1-s4), ``"14"`` + tilted sensor (tx, ty).
+``"12"`` + thin prism (s1-s4), ``"14"`` + tilted sensor (tx, ty); ``"radial"``: the five
+coefficients with the tangential ones held at zero (k1 k2 0 0 k3).
+
+Tangential distortion (p1, p2) trades off against the principal point: fitting it to a lens
+that has none triples the principal point's uncertainty (demo camera, 30 board views, 0.06 px
+corner noise: cx 1-sigma 0.36 px with "5", 0.11 px with "radial"), and a principal point
+error of 1 px turns the hand-eye rotation by 1/f rad. :func:`calibrate_intrinsics_auto` fits
+"5" and keeps it only when p1 or p2 differs from zero by :data:`TANGENTIAL_SIGNIFICANCE`
+sigma or more; otherwise it refits "radial" (the choice is in :attr:`IntrinsicsResult.notes`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,9 +41,11 @@ from calibration.board import CharucoDetection
 
 __all__ = [
     "DISTORTION_MODELS",
+    "TANGENTIAL_SIGNIFICANCE",
     "IntrinsicsResult",
     "IntrinsicsView",
     "calibrate_intrinsics",
+    "calibrate_intrinsics_auto",
     "evaluate_intrinsics",
 ]
 
@@ -49,7 +60,11 @@ DISTORTION_MODELS: dict[str, tuple[int, int]] = {
     "8": (cv2.CALIB_RATIONAL_MODEL, 8),
     "12": (cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_THIN_PRISM_MODEL, 12),
     "14": (cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_THIN_PRISM_MODEL | cv2.CALIB_TILTED_MODEL, 14),
+    "radial": (cv2.CALIB_ZERO_TANGENT_DIST, 5),
 }
+
+#: :func:`calibrate_intrinsics_auto` keeps tangential distortion when ``|p| / sigma`` reaches this.
+TANGENTIAL_SIGNIFICANCE = 3.0
 
 
 @dataclass(frozen=True)
@@ -79,7 +94,8 @@ class IntrinsicsResult:
 
     ``source``: ``"charuco"`` (calibrated) or ``"factory"`` (given, only evaluated);
     ``rms_px``: overall corner reprojection RMS of the used views; ``std``: 1-sigma of
-    fx, fy, cx, cy and the distortion coefficients from OpenCV (empty for ``factory``).
+    fx, fy, cx, cy and the distortion coefficients from OpenCV (empty for ``factory``);
+    ``notes``: how the model was chosen (:func:`calibrate_intrinsics_auto`).
     """
 
     source: str
@@ -93,6 +109,7 @@ class IntrinsicsResult:
     std: dict[str, float]
     rounds: int
     warnings: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
 
     @property
     def dropped_views(self) -> list[IntrinsicsView]:
@@ -115,6 +132,7 @@ class IntrinsicsResult:
             "views": [v.to_json() for v in self.views],
             "dropped_views": [{"index": v.index, "name": v.name, "reason": v.reason} for v in self.dropped_views],
             "warnings": list(self.warnings),
+            "notes": list(self.notes),
         }
 
     @staticmethod
@@ -132,7 +150,7 @@ class IntrinsicsResult:
                 str(d["source"]), int(cam["width"]), int(cam["height"]), K, dist, str(d["distortion_model"]),
                 float(d["rms_px"]), tuple(IntrinsicsView.from_json(v) for v in d["views"]),
                 {str(k): float(v) for k, v in d.get("std", {}).items()}, int(d["rounds"]),
-                tuple(str(w) for w in d.get("warnings", ())),
+                tuple(str(w) for w in d.get("warnings", ())), tuple(str(n) for n in d.get("notes", ())),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise DataError(f"intrinsics: missing or malformed field ({type(exc).__name__}: {exc})") from None
@@ -220,7 +238,7 @@ def calibrate_intrinsics(
     :class:`DegenerateGeometryError` when fewer than ``min_views`` usable views remain.
     """
     if distortion not in DISTORTION_MODELS:
-        raise ValueError(f"unknown distortion model {distortion!r}; choose from {sorted(DISTORTION_MODELS, key=int)}")
+        raise ValueError(f"unknown distortion model {distortion!r}; choose from {list(DISTORTION_MODELS)}")
     obj_all = np.asarray(object_points, dtype=np.float64).reshape(-1, 3)
     label = _names(len(detections), names)
     w, h = int(image_size[0]), int(image_size[1])
@@ -294,6 +312,28 @@ def calibrate_intrinsics(
                         "add views with the board tilted 30-45 deg in different directions")
     # The overall RMS over the finally used views (OpenCV's value is over corners of those views).
     return IntrinsicsResult("charuco", w, h, K, dist, distortion, float(rms), tuple(views), std, rounds, tuple(warnings))
+
+
+def calibrate_intrinsics_auto(
+    detections: Sequence[CharucoDetection],
+    object_points: ArrayLike,
+    image_size: tuple[int, int],
+    **kwargs: Any,
+) -> IntrinsicsResult:
+    """:func:`calibrate_intrinsics` with model ``"5"`` when the data show tangential distortion,
+    else ``"radial"`` (see the module docstring); ``kwargs`` as for :func:`calibrate_intrinsics`."""
+    full = calibrate_intrinsics(detections, object_points, image_size, distortion="5", **kwargs)
+    z = {k: abs(float(full.dist[i])) / full.std[k] if full.std.get(k, 0.0) > 0 else math.inf
+         for i, k in ((2, "p1"), (3, "p2"))}
+    shown = ", ".join(f"{k} {full.dist[i]:+.5f} ({z[k]:.1f} sigma)" for i, k in ((2, "p1"), (3, "p2")))
+    if max(z.values()) >= TANGENTIAL_SIGNIFICANCE:
+        note = f"tangential distortion kept: {shown} (>= {TANGENTIAL_SIGNIFICANCE:g} sigma)"
+        return replace(full, notes=(*full.notes, note))
+    radial = calibrate_intrinsics(detections, object_points, image_size, distortion="radial", **kwargs)
+    note = (f"tangential distortion held at zero: {shown} not significant (< {TANGENTIAL_SIGNIFICANCE:g} sigma); "
+            f"principal point 1-sigma {full.std['cx']:.3f}/{full.std['cy']:.3f} px with it, "
+            f"{radial.std['cx']:.3f}/{radial.std['cy']:.3f} px without")
+    return replace(radial, notes=(*radial.notes, note))
 
 
 def evaluate_intrinsics(

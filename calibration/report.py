@@ -51,7 +51,7 @@ def intrinsics_markdown(result: IntrinsicsResult) -> list[str]:
         "## Intrinsics",
         "",
         (f"Source: **{result.source}**, image {result.width} x {result.height} px, distortion model "
-         f"{result.distortion_model} coefficients, overall reprojection RMS **{result.rms_px:.3f} px** "
+         f"`{result.distortion_model}`, overall reprojection RMS **{result.rms_px:.3f} px** "
          f"({sum(v.used for v in result.views)} of {len(result.views)} views used, {result.rounds} round(s))."),
         "",
         *_table(["fx", "fy", "cx", "cy"], [[pm("fx", K[0, 0]), pm("fy", K[1, 1]), pm("cx", K[0, 2]), pm("cy", K[1, 2])]]),
@@ -62,6 +62,7 @@ def intrinsics_markdown(result: IntrinsicsResult) -> list[str]:
                 [[v.name, str(v.n_corners), _f(v.rms_px), v.reason] for v in result.views]),
         "",
     ]
+    lines += [f"- model: {n}" for n in result.notes]
     lines += [f"- warning: {w}" for w in result.warnings]
     return lines
 
