@@ -14,6 +14,8 @@ Endpoints (all JSON unless noted; errors are ``{"error": message, "field": where
 ``GET  /episodes/{id}``                     state: pose, counters, target (no images)
 ``POST /episodes/{id}/set_pose``            teleport to an absolute pose
 ``POST /episodes/{id}/move``                move with a twist for a duration
+``POST /episodes/{id}/estimates``           submit the final pose estimates (current camera
+                                            frame) and end the episode
 ``POST /episodes/{id}/close``               close, returns the episode's totals
 ``GET  /episodes/{id}/observation.npz``     the last observation as NumPy ``.npz`` (binary:
                                             rgb uint8, depth float32 metres, K, poses, ids)
@@ -106,6 +108,9 @@ Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
 Quat = Annotated[list[Finite], Field(min_length=4, max_length=4)]
 Row4 = Annotated[list[Finite], Field(min_length=4, max_length=4)]
 Mat4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
+AgentName = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:+\- ]+$",
+                                 description="agent name for the leaderboard (letters, digits, _ . : + - space)")]
+MAX_ESTIMATES = 100
 Width = Annotated[int, Field(ge=MIN_SIZE, le=MAX_WIDTH, description=f"pixels, {MIN_SIZE}..{MAX_WIDTH}")]
 Height = Annotated[int, Field(ge=MIN_SIZE, le=MAX_HEIGHT, description=f"pixels, {MIN_SIZE}..{MAX_HEIGHT}")]
 
@@ -173,6 +178,23 @@ class ResetRequest(ObsOptions):
     height: Height | None = None
     start: PoseIn | None = Field(None, description="start pose; omitted: a seeded random start around the target")
     seed: Annotated[int, Field(ge=0, lt=2**63)] | None = None
+    agent: AgentName | None = None
+
+
+class EstimateIn(_Strict):
+    """One pose estimate, ``cam_T_obj`` in the camera frame of the current view."""
+
+    obj_id: Annotated[int, Field(ge=0)]
+    R: Annotated[list[Finite], Field(min_length=9, max_length=9, description="rotation, 9 values row-major")]
+    t_m: Vec3 = Field(..., description="translation, metres")
+    score: Finite = 1.0
+
+
+class SubmitRequest(_Strict):
+    """The agent's final estimates (may be empty: the agent found nothing); ends the episode."""
+
+    estimates: Annotated[list[EstimateIn], Field(max_length=MAX_ESTIMATES)]
+    agent: AgentName | None = None
 
 
 class SetPoseRequest(ObsOptions):
@@ -446,7 +468,7 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
         log.exception("internal error on %s %s", request.method, request.url.path)
         return _error(500, f"internal error: {type(exc).__name__}: {exc}")
 
-    async def run_action(fn: Any, *args: Any, **kwargs: Any) -> StepResult:
+    async def run_action(fn: Any, *args: Any, **kwargs: Any) -> Any:
         """Run a blocking action in the pool; on timeout withdraw it (504) unless already committed."""
         ticket = Ticket()
         loop = asyncio.get_running_loop()
@@ -509,7 +531,7 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
         t0 = time.perf_counter()
         start = req.start.matrix() if req.start is not None else None
         result = await run_action(manager.reset, target=req.target, width=req.width, height=req.height,
-                                  start=start, seed=req.seed)
+                                  start=start, seed=req.seed, agent=req.agent)
         return respond(result, req, t0, 201)
 
     @app.get("/episodes", summary="list episodes")
@@ -535,6 +557,12 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
         manager.get(episode_id)
         result = await run_action(manager.move, episode_id, req.linear, req.angular, req.duration, req.frame)
         return respond(result, req, t0)
+
+    @app.post("/episodes/{episode_id}/estimates", responses=err,
+              summary="submit the final pose estimates (current camera frame) and end the episode")
+    async def submit(episode_id: str, req: SubmitRequest) -> dict[str, Any]:
+        manager.get(episode_id)
+        return await run_action(manager.submit, episode_id, [e.model_dump() for e in req.estimates], req.agent)
 
     @app.post("/episodes/{episode_id}/close", responses=err, summary="close an episode")
     async def close(episode_id: str) -> dict[str, Any]:

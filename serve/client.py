@@ -8,7 +8,8 @@
         step = client.move(linear=(0, 0, 0.05), duration=1.0)   # 5 cm forward (camera frame)
         if not step.accepted:
             print("refused:", step.refusal["message"])
-        client.close()
+        client.submit([PoseEstimate(obj_id=1, cam_T_obj=my_estimate, score=0.9)], agent="mine")
+        # (submit ends the episode; client.close() ends one without estimates)
 
 Poses are ``world_T_cam`` 4x4 arrays (OpenCV camera axes, metres). A refused action is not an
 error: it returns a :class:`StepResult` with ``accepted == False``. HTTP errors (4xx/5xx) raise
@@ -93,6 +94,21 @@ class StepResult:
     target: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class PoseEstimate:
+    """An agent's estimate of one object's pose in the camera frame of the current view
+    (``cam_T_obj`` 4x4, metres, OpenCV axes), with a confidence ``score`` (higher = surer)."""
+
+    obj_id: int
+    cam_T_obj: NDArray[np.float64]
+    score: float = 1.0
+
+    def to_json(self) -> dict[str, Any]:
+        T = np.asarray(self.cam_T_obj, dtype=np.float64).reshape(4, 4)
+        return {"obj_id": int(self.obj_id), "R": T[:3, :3].reshape(-1).tolist(), "t_m": T[:3, 3].tolist(),
+                "score": float(self.score)}
+
+
 def decode_observation(data: dict[str, Any]) -> Observation:
     """An observation from the server's JSON."""
     rgb = None
@@ -174,9 +190,12 @@ class BraveClient:
         return self._request("GET", f"/bundle/models/{obj_id}").content
 
     def reset(self, target: int | str | None = None, width: int | None = None, height: int | None = None,
-              start: ArrayLike | dict[str, Any] | None = None, seed: int | None = None) -> StepResult:
+              start: ArrayLike | dict[str, Any] | None = None, seed: int | None = None,
+              agent: str | None = None) -> StepResult:
+        """Start an episode; ``agent`` names the agent on the leaderboard."""
         body: dict[str, Any] = {**self._opts()}
-        for key, value in (("target", target), ("width", width), ("height", height), ("seed", seed)):
+        for key, value in (("target", target), ("width", width), ("height", height), ("seed", seed),
+                           ("agent", agent)):
             if value is not None:
                 body[key] = value
         if start is not None:
@@ -204,6 +223,19 @@ class BraveClient:
         content = self._request("GET", f"/episodes/{self._eid(episode_id)}/observation.npz").content
         with np.load(io.BytesIO(content)) as npz:
             return {k: npz[k] for k in npz.files}
+
+    def submit(self, estimates: list[PoseEstimate | dict[str, Any]], agent: str | None = None,
+               episode_id: str | None = None) -> dict[str, Any]:
+        """Hand in the final estimates (camera frame of the current view) and end the episode;
+        returns the episode's totals. Dicts are sent as given (``{obj_id, R (9), t_m (3), score}``)."""
+        eid = self._eid(episode_id)
+        body: dict[str, Any] = {"estimates": [e.to_json() if isinstance(e, PoseEstimate) else e for e in estimates]}
+        if agent is not None:
+            body["agent"] = agent
+        out = self._request("POST", f"/episodes/{eid}/estimates", json=body).json()
+        if eid == self.episode_id:
+            self.episode_id = None
+        return out
 
     def close(self, episode_id: str | None = None) -> dict[str, Any]:
         """Close the episode (the current one by default); returns its totals."""

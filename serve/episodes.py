@@ -10,6 +10,11 @@ camera), the current camera pose ``world_T_cam`` and counters. Actions:
   ``get_observations_at``).
 * ``move``: a constant twist for a duration, integrated and stopped at the last free substep
   (:mod:`serve.geometry`). A move that is blocked at its first substep goes nowhere.
+* ``submit``: hand in the final pose estimates (camera frame of the current view) and end the
+  episode. The log then holds everything scoring needs that only the server knows: the final
+  view's pose, ``K``, image size, every object's ground-truth ``cam_T_obj`` and visible
+  fraction, and the final depth image (``<episode_id>_final_depth.png``, uint16 mm, beside the
+  log). See :func:`submission_record`.
 
 **Refusal** (AI2-THOR semantics): an action whose destination (``set_pose``) or first substep
 (``move``) is in collision or outside the workspace is refused with the reason; the camera
@@ -22,7 +27,8 @@ of ``reset`` does not.
 
 Each episode is appended, one JSON record per action, to ``<log_dir>/<episode_id>.jsonl``
 (reset, every action with the poses before/after, refusal, adjustments, timings, the target's
-pose in the camera frame and visible fraction; close with the totals). Every action holds the
+pose in the camera frame and visible fraction; submit with the estimates and the final view's
+ground truth; close with the totals). Every action holds the
 episode's lock, so concurrent requests on one episode run one after the other; different
 episodes run concurrently (renders share one device lock in the renderer).
 """
@@ -45,9 +51,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from brave6d.atomic import depth_m_to_mm_u16, write_png
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError
-from brave6d.transforms import invert, look_at
+from brave6d.transforms import invert, look_at, orthonormalize
 from serve.bundle import Bundle, BundleObject, load_model_m
 from serve.geometry import MoveResult, Refusal, integrate_twist
 from serve.renderer import SplatRenderer
@@ -292,6 +299,7 @@ class Episode:
     world_T_cam: Matrix4
     seed: int | None
     log: EpisodeLog
+    agent: str | None = None
     created: float = field(default_factory=time.monotonic)
     last_active: float = field(default_factory=time.monotonic)
     adjustments: int = 0
@@ -300,6 +308,7 @@ class Episode:
     collisions: int = 0
     closed: bool = False
     close_reason: str | None = None
+    submitted: bool = False
     last: Observation | None = None
     render_ms: list[float] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -310,7 +319,8 @@ class Episode:
                 "width": self.camera.width, "height": self.camera.height, "K": self.camera.K.tolist(),
                 "world_T_cam": self.world_T_cam.tolist(), "adjustments": self.adjustments,
                 "steps": self.steps, "refusals": self.refusals, "collisions": self.collisions,
-                "seed": self.seed, "age_s": time.monotonic() - self.created,
+                "seed": self.seed, "agent": self.agent, "submitted": self.submitted,
+                "age_s": time.monotonic() - self.created,
                 "log": str(self.log.path) if self.log.path else None}
 
     def summary(self) -> dict[str, Any]:
@@ -319,6 +329,69 @@ class Episode:
                 "collisions": self.collisions, "duration_s": time.monotonic() - self.created,
                 "render_ms_median": float(np.median(ms)) if len(ms) else None,
                 "world_T_cam": self.world_T_cam.tolist()}
+
+
+#: Largest ``|R^T R - I|`` accepted for a submitted rotation (then re-orthonormalised).
+ESTIMATE_ROTATION_ATOL = 1e-3
+#: File name (beside the log) of the depth image of the view an episode's estimates refer to.
+FINAL_DEPTH_SUFFIX = "_final_depth.png"
+
+
+@dataclass(frozen=True)
+class SubmittedEstimate:
+    """One pose estimate handed in by an agent: ``cam_T_obj`` of ``obj_id`` in the camera frame of
+    the view current at submission (``R`` 3x3, ``t_m`` metres), with a confidence ``score``."""
+
+    obj_id: int
+    R: NDArray[np.float64]
+    t_m: NDArray[np.float64]
+    score: float = 1.0
+
+    def to_json(self) -> dict[str, Any]:
+        return {"obj_id": self.obj_id, "R": self.R.reshape(-1).tolist(), "t_m": self.t_m.tolist(),
+                "score": self.score}
+
+
+def check_estimate(index: int, obj_id: int, R: Any, t_m: Any, score: float, known: set[int]) -> SubmittedEstimate:
+    """A validated (finite, rotation orthonormal within ``ESTIMATE_ROTATION_ATOL`` with det > 0,
+    known ``obj_id``) and re-orthonormalised estimate; else :class:`InvalidAction` naming the field."""
+    where = f"estimates.{index}"
+    if int(obj_id) not in known:
+        raise InvalidAction(f"{where}.obj_id: unknown object id {obj_id} (known: {sorted(known)})", f"{where}.obj_id")
+    rot = np.asarray(R, dtype=np.float64)
+    if rot.size != 9:
+        raise InvalidAction(f"{where}.R: must have 9 values (3x3, row-major), got {rot.size}", f"{where}.R")
+    rot = rot.reshape(3, 3)
+    t = np.asarray(t_m, dtype=np.float64).reshape(-1)
+    if t.size != 3:
+        raise InvalidAction(f"{where}.t_m: must have 3 values (metres), got {t.size}", f"{where}.t_m")
+    for name, values in (("R", rot), ("t_m", t), ("score", np.asarray([score], dtype=np.float64))):
+        if not np.all(np.isfinite(values)):
+            raise InvalidAction(f"{where}.{name}: must be finite (NaN and inf are refused)", f"{where}.{name}")
+    err = float(np.max(np.abs(rot.T @ rot - np.eye(3))))
+    det = float(np.linalg.det(rot))
+    if err > ESTIMATE_ROTATION_ATOL or det <= 0:
+        raise InvalidAction(f"{where}.R: not a rotation (must be orthonormal with det +1: max |R^T R - I| = "
+                            f"{err:.3g}, det = {det:.3g})", f"{where}.R")
+    return SubmittedEstimate(int(obj_id), orthonormalize(rot), t, float(score))
+
+
+def submission_record(ep: Episode, estimates: list[SubmittedEstimate], bundle: Bundle,
+                      depth_file: str | None) -> dict[str, Any]:
+    """The ``submit`` log record: the estimates and what only the server knows about the final
+    view (pose, ``K``, image size, depth file, every object's ground truth in that camera frame)."""
+    obs = ep.last
+    assert obs is not None
+    return {"event": "submit", "episode_id": ep.id, "agent": ep.agent, "bundle": bundle.name,
+            "bundle_root": str(bundle.root.resolve()),
+            "target": {"gt_id": ep.target.gt_id, "obj_id": ep.target.obj_id, "name": ep.target.name},
+            "estimates": [e.to_json() for e in estimates],
+            "final_view": {"world_T_cam": obs.world_T_cam.tolist(), "K": obs.camera.K.tolist(),
+                           "width": obs.camera.width, "height": obs.camera.height,
+                           "depth_file": depth_file, "depth_unit": "mm"},
+            "objects": [o.to_json() for o in obs.objects],
+            "adjustments": ep.adjustments, "steps": ep.steps, "refusals": ep.refusals,
+            "collisions": ep.collisions, "elapsed_s": time.monotonic() - ep.created}
 
 
 def _target_record(obs: Observation) -> dict[str, Any]:
@@ -387,7 +460,8 @@ class EpisodeManager:
 
     # -------------------------------------------------------------- actions
     def reset(self, *, target: int | str | None = None, width: int | None = None, height: int | None = None,
-              start: Matrix4 | None = None, seed: int | None = None, ticket: Ticket | None = None) -> StepResult:
+              start: Matrix4 | None = None, seed: int | None = None, agent: str | None = None,
+              ticket: Ticket | None = None) -> StepResult:
         self._expire()
         bundle = self.scene.bundle
         if not bundle.objects:
@@ -416,7 +490,7 @@ class EpisodeManager:
                 raise TooManyEpisodes(f"too many open episodes ({self.max_episodes}); close one first")
             eid = secrets.token_hex(8)
             ep = Episode(eid, tgt, camera, T0, used_seed,
-                         EpisodeLog(self.log_dir / f"{eid}.jsonl" if self.log_dir else None))
+                         EpisodeLog(self.log_dir / f"{eid}.jsonl" if self.log_dir else None), agent)
             self._episodes[eid] = ep  # reserve the slot
         ep.lock.acquire()
         try:
@@ -435,7 +509,7 @@ class EpisodeManager:
             ep.last = obs
             ep.render_ms.append(obs.timings_ms["render"])
             timings = {**obs.timings_ms, "step": (time.perf_counter() - t0) * 1000.0}
-            ep.log.write({"event": "reset", "episode_id": eid, "bundle": bundle.name,
+            ep.log.write({"event": "reset", "episode_id": eid, "bundle": bundle.name, "agent": agent,
                           "target": {"gt_id": tgt.gt_id, "obj_id": tgt.obj_id, "name": tgt.name},
                           "width": w, "height": h, "K": camera.K.tolist(), "seed": used_seed,
                           "start": "given" if start is not None else "random", "world_T_cam": T0.tolist(),
@@ -513,6 +587,41 @@ class EpisodeManager:
                       "world_T_cam_before": before.tolist(), "world_T_cam": ep.world_T_cam.tolist(),
                       "adjustments": ep.adjustments, "move": move, "timings_ms": timings, **_target_record(obs)})
         return StepResult(ep.id, action, ep.steps, accepted, collided, reason, ep.adjustments, obs, move, timings)
+
+    def submit(self, episode_id: str, estimates: list[dict[str, Any]], agent: str | None = None,
+               ticket: Ticket | None = None) -> dict[str, Any]:
+        """Log the final estimates (``{obj_id, R, t_m, score}``, camera frame of the current view)
+        with the final view's ground truth and depth image, then close the episode."""
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            if ep.last is None:
+                raise InvalidAction("the episode has no observation to refer the estimates to", "episode_id")
+            known = {o.obj_id for o in self.scene.bundle.objects}
+            clean = [check_estimate(i, e.get("obj_id", -1), e.get("R", ()), e.get("t_m", ()), e.get("score", 1.0),
+                                    known) for i, e in enumerate(estimates)]
+            depth = depth_m_to_mm_u16(ep.last.depth)
+            out: dict[str, Any] = {}
+
+            def apply() -> None:
+                depth_file = None
+                if ep.log.path is not None:
+                    depth_file = f"{ep.id}{FINAL_DEPTH_SUFFIX}"
+                    write_png(ep.log.path.with_name(depth_file), depth)
+                if agent is not None:
+                    ep.agent = agent
+                ep.submitted = True
+                ep.log.write(submission_record(ep, clean, self.scene.bundle, depth_file))
+                out.update(self._close(ep, "submitted"))
+                out.update({"submitted": True, "estimates": len(clean), "depth_file": depth_file, "agent": ep.agent})
+
+            if ticket is not None:
+                ticket.commit(apply)
+            else:
+                apply()
+            return out
+        finally:
+            ep.lock.release()
 
     def close(self, episode_id: str, reason: str = "closed by the client") -> dict[str, Any]:
         ep = self.get(episode_id)

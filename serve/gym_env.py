@@ -23,6 +23,9 @@ observation, because the benchmark's agents must estimate it.
 * ``{"world_T_cam": 4x4}`` (or any pose dict the API takes): teleport (``set_pose``);
 * ``{"stop": True}``: the agent declares it is done (habitat's STOP): the episode ends with
   ``terminated = True`` and is closed on the server.
+* ``{"submit": [PoseEstimate | {obj_id, R, t_m, score}, ...]}`` (or :meth:`BraveEnv.submit`):
+  hand in the final pose estimates (camera frame of the current view); the episode ends with
+  ``terminated = True``; ``info["submission"]`` holds the server's reply.
 
 **Reward** (documented choice): the increase of the target's visible pixel area since the
 previous step, as a fraction of the image area (``px_count_visib`` difference / (W * H));
@@ -44,7 +47,7 @@ import httpx
 import numpy as np
 from numpy.typing import NDArray
 
-from serve.client import BraveClient, Observation, ServerError, StepResult
+from serve.client import BraveClient, Observation, PoseEstimate, ServerError, StepResult
 
 log = logging.getLogger(__name__)
 
@@ -111,8 +114,9 @@ class BraveEnv(_EnvBase):  # type: ignore[misc]
     def __init__(self, base_url: str = "http://127.0.0.1:8765", *, client: BraveClient | None = None,
                  target: int | str | None = None, width: int = 320, height: int = 240, max_steps: int = 100,
                  step_duration: float = 0.5, max_linear: float = 0.1, max_angular: float = 0.5,
-                 frame: str = "camera", render_mode: str | None = "rgb_array") -> None:
+                 frame: str = "camera", render_mode: str | None = "rgb_array", agent: str | None = None) -> None:
         self.client = client if client is not None else BraveClient(base_url)
+        self.agent = agent
         self._own_client = client is None
         self.target = target
         self.width, self.height = int(width), int(height)
@@ -168,7 +172,8 @@ class BraveEnv(_EnvBase):  # type: ignore[misc]
         if seed is not None and hasattr(self.action_space, "seed"):
             self.action_space.seed(seed)
         step = self.client.reset(target=opts.get("target", self.target), width=opts.get("width", self.width),
-                                 height=opts.get("height", self.height), start=opts.get("start"), seed=seed)
+                                 height=opts.get("height", self.height), start=opts.get("start"), seed=seed,
+                                 agent=opts.get("agent", self.agent))
         self._steps = 0
         self._done = False
         self._last = step.observation
@@ -183,6 +188,12 @@ class BraveEnv(_EnvBase):  # type: ignore[misc]
             obs = self._obs(self._last)
             return obs, 0.0, True, False, {"episode_id": summary.get("episode_id"), "stopped": True,
                                            "adjustments": summary.get("adjustments"), "summary": summary}
+        if isinstance(action, dict) and "submit" in action:
+            reply = self.client.submit(list(action["submit"]), agent=action.get("agent"))
+            self._done = True
+            return self._obs(self._last), 0.0, True, False, {
+                "episode_id": reply.get("episode_id"), "submitted": True,
+                "adjustments": reply.get("adjustments"), "submission": reply, "summary": reply}
         if isinstance(action, dict) and ("world_T_cam" in action or "position" in action or "look_at" in action):
             step = self.client.set_pose(action.get("world_T_cam", action))
         elif isinstance(action, dict):
@@ -202,6 +213,14 @@ class BraveEnv(_EnvBase):  # type: ignore[misc]
         if step.accepted:
             reward = (self._visible_px(step.observation) - before) / float(step.observation.width * step.observation.height)
         return self._end_step(step.observation, reward, self._info(step))
+
+    def submit(self, estimates: list[PoseEstimate | dict[str, Any]], agent: str | None = None
+               ) -> tuple[dict[str, NDArray[Any]], float, bool, bool, dict[str, Any]]:
+        """Hand in the final estimates and end the episode (the ``{"submit": ...}`` action)."""
+        action: dict[str, Any] = {"submit": estimates}
+        if agent is not None:
+            action["agent"] = agent
+        return self.step(action)
 
     def _end_step(self, observation: Observation, reward: float, info: dict[str, Any]
                   ) -> tuple[dict[str, NDArray[Any]], float, bool, bool, dict[str, Any]]:

@@ -1,0 +1,132 @@
+"""The demo's evaluation stage: both baselines on every demo object, scored like any agent.
+
+``stage_evaluate`` serves the scene's bundle on a loopback port in a background thread (as the
+serve stage does), runs the static and the active baseline (:mod:`evaluation.baseline`) on
+every object instance, one episode each from the same seeded start, scores the episode logs
+with :mod:`evaluation.episodes` and writes, under ``<workdir>/evaluation/``:
+
+* ``episodes/`` the episode logs and final depth images (cleared first);
+* ``leaderboard.csv``/``.json``, ``episodes.csv``, ``per_object.csv`` (as ``brave6d evaluate``);
+* ``baseline.json`` (``brave6d-baseline/1``): per agent and per episode AR and adjustments,
+  what the accuracy-vs-time report plots (see :func:`baseline_summary`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from brave6d.errors import BraveError
+
+if TYPE_CHECKING:
+    from brave6d.demo import DemoContext
+    from brave6d.progress import StageResult
+    from evaluation.baseline import EpisodeOutcome
+    from evaluation.episodes import Leaderboard
+
+log = logging.getLogger(__name__)
+
+BASELINE_FORMAT = "brave6d-baseline/1"
+#: Image size of the baseline episodes (the agent's pixel thresholds were chosen at this width).
+IMAGE_WIDTH = 320
+
+
+@dataclass
+class BaselineRun:
+    """The outcomes of the baseline episodes and their leaderboard."""
+
+    outcomes: list[EpisodeOutcome]
+    board: Leaderboard
+    width: int
+    height: int
+    bundle: str
+
+
+def clear_logs(folder: Path) -> None:
+    """Remove the episode logs and final depth images a previous run left in ``folder``."""
+    if not folder.is_dir():
+        return
+    for pattern in ("*.jsonl", "*_final_depth.png"):
+        for p in folder.glob(pattern):
+            p.unlink()
+
+
+def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: int = 0,
+                  width: int = IMAGE_WIDTH) -> BaselineRun:
+    """Serve ``bundle_dir`` on loopback, run the static then the active baseline on every object
+    (seed ``seed + gt_id``: both start alike), score the logs; writes nothing but the logs."""
+    from evaluation.baseline import BaselineAgent, BaselineConfig, static_config
+    from evaluation.episodes import models_from_bundle, read_episodes, score_episodes
+    from serve.app import create_app
+    from serve.bundle import load_bundle
+    from serve.client import BraveClient
+    from serve.runner import ServerThread
+
+    bundle = load_bundle(bundle_dir)
+    if not bundle.objects:
+        raise BraveError(f"{bundle_dir}: the bundle has no objects to evaluate on")
+    logs = out_dir / "episodes"
+    clear_logs(logs)
+    height = max(16, round(width * bundle.render.height / bundle.render.width))
+    app = create_app(bundle, device=device, log_dir=logs)
+    active = BaselineConfig()
+    outcomes = []
+    with ServerThread(app) as server, BraveClient(server.url) as client:
+        agent = BaselineAgent(client, active)
+        for obj in bundle.objects:
+            for config in (static_config(active), active):
+                outcomes.append(agent.run_episode(obj.gt_id, seed=seed + obj.gt_id, width=width, height=height,
+                                                  config=config))
+    episodes = read_episodes([logs])
+    board = score_episodes(episodes, models_from_bundle(bundle, {o.obj_id for o in bundle.objects}))
+    return BaselineRun(outcomes, board, width, height, bundle.name)
+
+
+def baseline_summary(run: BaselineRun) -> dict[str, Any]:
+    """``baseline.json``: ``agents`` (a list, best AR first: agent, episodes, AR, AR per metric,
+    mean adjustments, mean wall time) and ``episodes`` (per episode: agent, variant, object,
+    seed, AR, AR per metric, adjustments, wall time, how the registration went)."""
+    by_id = {o.episode_id: o for o in run.outcomes}
+    agents = [{k: v for k, v in a.to_json().items() if k != "per_object"} for a in run.board.agents]
+    episodes = []
+    for s in run.board.episodes:
+        row = s.to_json()
+        out = by_id.get(row["episode_id"])
+        reg = out.registration if out is not None else None
+        episodes.append({
+            "agent": row["agent"], "variant": "active" if row["agent"].endswith("active") else "static",
+            "object": row["target"], "gt_id": row["target_gt_id"], "obj_id": row["obj_id"], "seed": row["seed"],
+            "episode_id": row["episode_id"], "ar": row["ar"], "ar_vsd": row["ar_vsd"], "ar_mssd": row["ar_mssd"],
+            "ar_mspd": row["ar_mspd"], "adjustments": row["adjustments"], "wall_time_s": row["wall_time_s"],
+            "target_distance_m": row["target_distance_m"], "found": bool(out.found) if out is not None else None,
+            "registration_method": reg.method if reg is not None else None,
+            "registration_score": reg.score if reg is not None else None})
+    return {"format": BASELINE_FORMAT, "bundle": run.bundle, "image_size": [run.width, run.height],
+            "metrics": list(run.board.config.metrics), "agents": agents, "episodes": episodes}
+
+
+def stage_evaluate(ctx: DemoContext) -> StageResult:
+    """Demo stage: run and score both baselines on every demo object (see the module docstring)."""
+    from brave6d.atomic import atomic_write_json
+    from brave6d.progress import StageResult
+    from evaluation.baseline import ACTIVE_AGENT, STATIC_AGENT
+    from evaluation.episodes import write_leaderboard
+
+    bundle_dir = ctx.scene.bundle_dir
+    if not (bundle_dir / "manifest.json").is_file():
+        raise BraveError(f"{bundle_dir}: no bundle; run the export stage first")
+    out = ctx.workdir / "evaluation"
+    run = run_baselines(bundle_dir, out, device=ctx.device)
+    write_leaderboard(run.board, out)
+    atomic_write_json(out / "baseline.json", baseline_summary(run))
+    log.info("baseline leaderboard:\n%s\n%s", run.board.table(), run.board.object_table())
+    scores = {a.agent: a for a in run.board.agents}
+    active, static = scores.get(ACTIVE_AGENT), scores.get(STATIC_AGENT)
+    return StageResult("evaluate", figures={
+        "episodes": len(run.board.episodes),
+        "AR active": active.ar if active else "n/a",
+        "AR static": static.ar if static else "n/a",
+        "mean adjustments": active.mean_adjustments if active else "n/a",
+    })

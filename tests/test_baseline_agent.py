@@ -1,0 +1,217 @@
+"""The weight-free baseline agent (evaluation.baseline): perception and registration on ray-cast
+views with a known answer, then both variants end to end against a live server on 127.0.0.1
+(the demo's evaluation stage on the synthetic bundle), the client and Gym-style submission."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from brave6d.transforms import invert, look_at, make_transform
+from evaluation.baseline import (
+    BaselineAgent,
+    BaselineConfig,
+    Cluster,
+    perceive,
+    read_model_ply,
+    register_model,
+    sample_model,
+    static_config,
+)
+from evaluation.bop_metrics import identity_symmetries, mssd
+from evaluation.episodes import read_episodes
+from evaluation.renderer import render_depth
+from serve.app import create_app
+from serve.bundle import Bundle, load_bundle
+from serve.client import BraveClient, PoseEstimate
+from serve.gym_env import BraveEnv
+from serve.runner import ServerThread
+from serve.synthetic import cube_mesh_mm, make_synthetic_bundle, write_mesh_ply
+
+K = np.array([[277.0, 0.0, 159.5], [0.0, 277.0, 119.5], [0.0, 0.0, 1.0]])  # 320 x 240, 60 deg
+W, H = 320, 240
+
+
+def l_shape_mm(scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """An L-shaped block (no rotational symmetry) resting on z = 0, millimetres."""
+    bar = trimesh.creation.box((40, 12, 12), make_transform(np.eye(3), (0, 0, 6)))
+    post = trimesh.creation.box((12, 12, 24), make_transform(np.eye(3), (14, 0, 24)))
+    mesh = trimesh.util.concatenate([bar, post])
+    return np.asarray(mesh.vertices) * scale, np.asarray(mesh.faces)
+
+
+def diameter_mm(vertices: np.ndarray) -> float:
+    from serve.bundle import model_diameter
+
+    return model_diameter(vertices)
+
+
+def view(vertices: np.ndarray, faces: np.ndarray, world_T_obj: np.ndarray, world_T_cam: np.ndarray,
+         noise_m: float = 0.0005, seed: int = 0) -> np.ndarray:
+    """Depth (m) of the object on a table top (z = 0, 0.6 m square), ray cast, with noise."""
+    table = trimesh.creation.box((600, 600, 10), make_transform(np.eye(3), (0, 0, -5)))
+    cam_T_world = invert(world_T_cam)
+    depths = []
+    for v, f, T in ((vertices, faces, world_T_obj), (np.asarray(table.vertices), np.asarray(table.faces), np.eye(4))):
+        P = cam_T_world @ T
+        depths.append(render_depth(v, f, P[:3, :3], P[:3, 3] * 1000.0, K, W, H))
+    d = np.where(depths[0] > 0, depths[0], np.inf)
+    d = np.minimum(d, np.where(depths[1] > 0, depths[1], np.inf))
+    d = np.where(np.isfinite(d), d / 1000.0, 0.0)
+    rng = np.random.default_rng(seed)
+    return np.where(d > 0, d + rng.normal(0.0, noise_m, d.shape), 0.0).astype(np.float32)
+
+
+def scene_case(scale: float, distance: float, elevation_deg: float = 55.0,  # type: ignore[no-untyped-def]
+               yaw_deg: float = 30.0):
+    """(vertices, faces, model cloud, world_T_obj, world_T_cam, depth) of an L on a table."""
+    v, f = l_shape_mm(scale)
+    model = sample_model(7, v, f, diameter_mm(v), 1500, seed=0)
+    world_T_obj = make_transform(Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix(), (0.02, -0.01, 0.0))
+    centre = world_T_obj[:3, 3] + np.array([0.0, 0.0, 0.012 * scale])
+    el, az = np.radians(elevation_deg), np.radians(200.0)
+    eye = centre + distance * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    world_T_cam = look_at(eye, centre)
+    return v, f, model, world_T_obj, world_T_cam, view(v, f, world_T_obj, world_T_cam)
+
+
+# ----------------------------------------------------------------------------- units
+def test_model_sample_is_on_the_surface_with_outward_normals(tmp_path: Path) -> None:
+    v, f = cube_mesh_mm()
+    m = sample_model(1, v, f, 34.64, 1000, seed=3)
+    assert m.points.shape == (1000, 3) and m.diameter_m == pytest.approx(0.03464)
+    p = m.points * 1000.0
+    on_face = np.isclose(np.abs(p[:, 0]), 10) | np.isclose(np.abs(p[:, 1]), 10) | np.isclose(p[:, 2], 0) | \
+        np.isclose(p[:, 2], 20)
+    assert on_face.all()
+    centre = np.array([0.0, 0.0, 0.01])
+    assert np.all(np.einsum("ij,ij->i", m.normals, m.points - centre) > 0)
+    flipped = sample_model(1, v, f[:, ::-1], 34.64, 1000, seed=3)  # inward winding is repaired
+    np.testing.assert_array_equal(flipped.normals, m.normals)
+    np.testing.assert_array_equal(sample_model(1, v, f, 34.64, 1000, seed=3).points, m.points)
+    write_mesh_ply(tmp_path / "cube.ply", v, f)
+    verts, faces = read_model_ply((tmp_path / "cube.ply").read_bytes())
+    np.testing.assert_allclose(verts, v)
+    np.testing.assert_array_equal(faces, f)
+
+
+def test_perception_finds_the_object_above_the_table() -> None:
+    v, f, model, world_T_obj, world_T_cam, depth = scene_case(1.0, 0.25)
+    seen = perceive(depth, K, world_T_cam, model, None, BaselineConfig())
+    assert seen.plane is not None and seen.cluster is not None
+    up = world_T_cam[2, :3]
+    assert float(seen.plane.n @ up) > 0.99  # the table, not the object's faces
+    truth = invert(world_T_cam) @ world_T_obj
+    centre = truth[:3, :3] @ (v.mean(axis=0) / 1000.0) + truth[:3, 3]
+    assert np.linalg.norm(seen.cluster.centroid - centre) < 0.5 * model.diameter_m
+    assert 0.5 * model.extents[0] < seen.cluster.extents[0] < 1.3 * model.extents[0]
+
+
+@pytest.mark.parametrize("scale, distance", [(1.0, 0.25), (0.3, 0.09)], ids=["45mm", "tiny-14mm"])
+def test_registration_recovers_the_pose(scale: float, distance: float) -> None:
+    v, f, model, world_T_obj, world_T_cam, depth = scene_case(scale, distance)
+    config = BaselineConfig()
+    seen = perceive(depth, K, world_T_cam, model, None, config)
+    assert seen.cluster is not None
+    reg = register_model(model, seen.cluster, seen.plane, depth, K, config, seen.min_height)
+    truth = invert(world_T_cam) @ world_T_obj
+    err = mssd(reg.cam_T_obj[:3, :3], reg.cam_T_obj[:3, 3] * 1000, truth[:3, :3], truth[:3, 3] * 1000, v,
+               identity_symmetries())
+    assert err < 0.1 * model.diameter_m * 1000, (err, reg)
+    again = register_model(model, seen.cluster, seen.plane, depth, K, config, seen.min_height)
+    np.testing.assert_array_equal(again.cam_T_obj, reg.cam_T_obj)  # deterministic
+
+
+def test_registration_falls_back_cleanly_on_a_few_points() -> None:
+    v, f = cube_mesh_mm()
+    model = sample_model(1, v, f, 34.64, 500)
+    cluster = Cluster(np.array([[0.0, 0.0, 0.3], [0.001, 0.0, 0.3], [0.0, 0.001, 0.301]]),
+                      np.array([[10, 10], [11, 10], [10, 11]]))
+    reg = register_model(model, cluster, None, np.zeros((H, W), np.float32), K, BaselineConfig())
+    assert np.all(np.isfinite(reg.cam_T_obj)) and reg.method in ("resting", "centroid")
+    assert np.linalg.norm(reg.cam_T_obj[:3, 3] - [0.0, 0.0, 0.3]) < 2 * model.diameter_m
+
+
+def test_nothing_to_see_gives_no_cluster() -> None:
+    v, f = cube_mesh_mm()
+    model = sample_model(1, v, f, 34.64, 500)
+    assert perceive(np.zeros((H, W), np.float32), K, np.eye(4), model, None, BaselineConfig()).cluster is None
+
+
+# ----------------------------------------------------------------------------- end to end
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory: pytest.TempPathFactory) -> Bundle:
+    return load_bundle(make_synthetic_bundle(tmp_path_factory.mktemp("baseline_scene"), n_gaussians=8000))
+
+
+@pytest.fixture(scope="module")
+def stage(bundle: Bundle, tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    from evaluation.demo import stage_evaluate
+
+    work = tmp_path_factory.mktemp("evaluate_stage")
+    ctx = SimpleNamespace(scene=SimpleNamespace(bundle_dir=bundle.root), workdir=work, device="cpu", quick=True)
+    return stage_evaluate(ctx), work / "evaluation"
+
+
+def test_evaluation_stage_runs_both_baselines_on_every_object(stage,  # type: ignore[no-untyped-def]
+                                                              bundle: Bundle) -> None:
+    result, out = stage
+    assert result.figures["episodes"] == 2 * len(bundle.objects)
+    for key in ("AR active", "AR static", "mean adjustments"):
+        assert isinstance(result.figures[key], float) and np.isfinite(result.figures[key])
+    for name in ("leaderboard.csv", "leaderboard.json", "episodes.csv", "per_object.csv", "baseline.json"):
+        assert (out / name).is_file(), name
+    summary = json.loads((out / "baseline.json").read_text())
+    assert summary["format"] == "brave6d-baseline/1" and summary["image_size"] == [320, 240]
+    assert {a["agent"] for a in summary["agents"]} == {"baseline-active", "baseline-static"}
+    assert {"agent", "ar", "ar_vsd", "ar_mssd", "ar_mspd", "mean_adjustments", "mean_wall_time_s", "episodes"} <= \
+        set(summary["agents"][0])
+    rows = summary["episodes"]
+    assert len(rows) == 2 * len(bundle.objects)
+    for row in rows:
+        assert 0.0 <= row["ar"] <= 1.0 and row["found"] is True
+        assert row["adjustments"] == 0 if row["variant"] == "static" else row["adjustments"] >= 0
+    objects = (out / "per_object.csv").read_text().splitlines()
+    assert len(objects) == 1 + 2 * len(bundle.objects) and "cube_red" in objects[1] + objects[2]
+
+
+def test_baselines_find_the_cube_and_start_alike(stage, bundle: Bundle) -> None:  # type: ignore[no-untyped-def]
+    _, out = stage
+    episodes = read_episodes([out / "episodes"])
+    starts: dict[str, list] = {}
+    for e in episodes:
+        reset = json.loads(e.path.read_text().splitlines()[0])
+        starts.setdefault(e.target.name, []).append(np.asarray(reset["world_T_cam"]))
+        assert e.submitted and len(e.estimates) == 1
+        est, truth = e.estimates[0], e.target.cam_T_obj
+        centre = np.array([0.0, 0.0, 0.01])  # the cube's centre in its model frame
+        error = np.linalg.norm((est.R @ centre + est.t_m) - (truth[:3, :3] @ centre + truth[:3, 3]))
+        assert error < 0.012, (e.agent, e.target.name, error)  # a reasonably placed 20 mm cube
+    for name, poses in starts.items():
+        np.testing.assert_array_equal(poses[0], poses[1], err_msg=name)
+
+
+def test_client_and_gym_env_submit(bundle: Bundle, tmp_path: Path) -> None:
+    app = create_app(bundle, device="cpu", log_dir=tmp_path, warm_up=False)
+    with ServerThread(app) as server, BraveClient(server.url) as client:
+        assert server.host == "127.0.0.1"
+        agent = BaselineAgent(client)
+        first = agent.run_episode("cube_blue", seed=5, width=160, height=120, config=static_config())
+        again = agent.run_episode("cube_blue", seed=5, width=160, height=120, config=static_config())
+        np.testing.assert_array_equal(first.registration.cam_T_obj, again.registration.cam_T_obj)
+        assert first.submission["submitted"] and first.adjustments == 0
+        env = BraveEnv(client=client, target="cube_red", width=64, height=48, agent="gym-agent")
+        obs, info = env.reset(seed=1)
+        truth = next(o for o in info["objects"] if o.is_target)
+        obs, reward, terminated, truncated, info = env.submit([PoseEstimate(truth.obj_id, truth.cam_T_obj)])
+        assert terminated and not truncated and info["submission"]["estimates"] == 1
+        with pytest.raises(RuntimeError):
+            env.step(np.zeros(6))
+    agents = {e.agent for e in read_episodes([tmp_path])}
+    assert agents == {"baseline-static", "gym-agent"}
