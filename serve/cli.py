@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import socket
-import sys
 from pathlib import Path
 
 from brave6d.errors import BraveError
+from brave6d.runtime import quiet_openmp
 
 log = logging.getLogger(__name__)
 
@@ -31,24 +30,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="largest request body / WebSocket message (default 65536)")
     parser.add_argument("--idle-timeout", type=float, default=900.0,
                         help="close episodes idle for this many seconds (default 900)")
-
-
-def quiet_openmp() -> None:
-    """Make OpenMP threads sleep instead of spin while they wait (``OMP_WAIT_POLICY=PASSIVE``).
-
-    torch and the numba CPU rasterizer each run their own OpenMP thread team. With the default
-    (spinning) policy the team that just finished keeps the cores busy while the other one
-    starts, and on a shared or small machine a render then takes several times longer
-    (measured on 2 cores under load: 320x240 median 210 ms spinning vs 50 ms passive). The
-    variable is read when the OpenMP runtime loads, so this must run before torch / numba are
-    imported; an explicit ``OMP_WAIT_POLICY`` in the environment is respected.
-    """
-    if "OMP_WAIT_POLICY" in os.environ:
-        return
-    if "torch" in sys.modules or "numba" in sys.modules:
-        log.info("torch/numba already loaded: set OMP_WAIT_POLICY=PASSIVE before starting for lower latency")
-        return
-    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 
 def run(args: argparse.Namespace) -> int:

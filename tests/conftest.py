@@ -5,6 +5,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+# OpenMP threads sleep while they wait (as the CLI sets it): spinning teams of torch and numba
+# slow each other down several times on a small machine. Must be set before torch loads.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import matplotlib
 import pytest
 from hypothesis import HealthCheck, settings
