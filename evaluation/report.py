@@ -1,0 +1,230 @@
+"""The accuracy-vs-time report: one Markdown page with PNG plots, from real measurements.
+
+``build_report(workdir, settings)`` measures (or reuses cached measurements of) the demo scene
+``<workdir>/scene`` and writes ``<workdir>/report/report.md`` with ``training.png``,
+``handeye.png``, ``latency.png``, ``views.png`` and ``baseline.png`` beside it:
+
+1. holdout PSNR/SSIM against training time, steps and Gaussians (:mod:`evaluation.report_training`);
+2. hand-eye error against calibration poses and solve time (:mod:`evaluation.report_handeye`);
+3. render latency against resolution and Gaussians (:mod:`evaluation.report_latency`);
+4. holdout PSNR against views per distance level and their robot time (:mod:`evaluation.report_views`);
+5. baseline AR against adjustments (:mod:`evaluation.report_baseline`).
+
+Measurements are cached under ``report/measurements/`` (:mod:`evaluation.measurements`);
+:func:`write_report` renders the page from that folder alone. A section whose input is missing,
+or whose measurement fails, says so on the page; the other sections are still written. The
+page ends with "How to choose settings", one derived sentence per section.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from brave6d.atomic import atomic_write_text
+from brave6d.layout import SceneDir
+from brave6d.errors import BraveError
+from brave6d.progress import StageResult, Stopwatch
+from evaluation.measurements import Measurement, MeasurementStore, describe_machine
+from evaluation import report_baseline, report_handeye, report_latency, report_training, report_views
+from evaluation.report_common import Section
+from evaluation.report_handeye import HandEyeSweep
+from evaluation.report_latency import LatencySweep
+from evaluation.report_views import ViewsSweep
+
+if TYPE_CHECKING:
+    from brave6d.demo import DemoContext
+
+log = logging.getLogger(__name__)
+
+#: Measurement names, in the order they are measured (cheap first; ``training`` reads files only).
+MEASUREMENTS = ("handeye", "latency", "views", "training", "baseline")
+#: The plots the sections write (removed before each rendering, so none outlives its data).
+FIGURES = ("training.png", "handeye.png", "latency.png", "views.png", "baseline.png")
+
+
+@dataclass(frozen=True)
+class ReportSettings:
+    """The sweeps of one report run; :meth:`for_mode` gives the quick (CI) and full variants."""
+
+    handeye: HandEyeSweep = field(default_factory=HandEyeSweep)
+    latency: LatencySweep = field(default_factory=LatencySweep)
+    views: ViewsSweep = field(default_factory=ViewsSweep)
+    benchmark_json: Path | None = None
+
+    @staticmethod
+    def for_mode(quick: bool, device: str = "auto", benchmark_json: Path | None = None) -> ReportSettings:
+        """Quick: a miniature sweep of every section (well under 2 minutes on 2 cores); full: the demo's."""
+        if quick:
+            return ReportSettings(
+                handeye=HandEyeSweep(sizes=(3, 5, 8, 12), repeats=3),
+                latency=LatencySweep(fractions=(1 / 8, 1 / 4, 1 / 2, 1.0), scales=(0.25, 0.5), repeats=3, views=2,
+                                     device=device),
+                views=ViewsSweep(fractions=(0.25, 0.5, 1.0), steps=40, evaluations=4, max_gaussians=4000,
+                                 device=device),
+                benchmark_json=benchmark_json,
+            )
+        return ReportSettings(latency=LatencySweep(device=device), views=ViewsSweep(device=device),
+                              benchmark_json=benchmark_json)
+
+
+@dataclass
+class ReportResult:
+    """What :func:`build_report` did: the page, its plots and how long each measurement took."""
+
+    markdown: Path
+    figures: list[Path]
+    seconds: dict[str, float]
+    statuses: dict[str, str]
+
+
+def report_dir(workdir: Path) -> Path:
+    return Path(workdir) / "report"
+
+
+def measurement_store(workdir: Path, refresh: bool = False) -> MeasurementStore:
+    return MeasurementStore(report_dir(workdir) / "measurements", refresh=refresh)
+
+
+def measure_all(workdir: Path, settings: ReportSettings, refresh: bool = False,
+                only: tuple[str, ...] | None = None) -> tuple[dict[str, Measurement], dict[str, float]]:
+    """Measure (or reuse) every section's data; a failing section is recorded, not raised."""
+    scene = SceneDir(Path(workdir) / "scene")
+    store = measurement_store(workdir, refresh)
+    steps: dict[str, Callable[[], Measurement]] = {
+        "handeye": lambda: report_handeye.measure_handeye(scene, store, settings.handeye),
+        "latency": lambda: report_latency.measure_latency(scene, store, settings.latency),
+        "views": lambda: report_views.measure_views(scene, store, settings.views),
+        "training": lambda: report_training.collect_training(scene, store, settings.benchmark_json),
+        "baseline": lambda: report_baseline.collect_baseline(Path(workdir), store),
+    }
+    results: dict[str, Measurement] = {}
+    seconds: dict[str, float] = {}
+    for name in MEASUREMENTS:
+        if only and name not in only:
+            continue
+        t0 = time.perf_counter()
+        try:
+            results[name] = steps[name]()
+        except KeyboardInterrupt:
+            raise
+        except Exception as exc:  # noqa: BLE001 - one broken section must not cost the whole page
+            log.warning("report: measuring %s failed: %s", name, exc, exc_info=True)
+            results[name] = store.failed(name, f"{type(exc).__name__}: {exc}")
+        seconds[name] = time.perf_counter() - t0
+        log.info("report: %s %s in %.1f s", name, results[name].status, seconds[name])
+    return results, seconds
+
+
+def render_sections(measurements: dict[str, Measurement | None], out_dir: Path) -> list[Section]:
+    """The five sections, in page order, from measurements (any of them may be None).
+
+    A measurement file that cannot be rendered (edited by hand, from an older version) gives a
+    section that says so instead of stopping the page.
+    """
+    get = measurements.get
+    renders: list[tuple[str, Callable[[], Section]]] = [
+        (report_training.TITLE, lambda: report_training.render_training(get("training"), get("views"), out_dir)),
+        (report_handeye.TITLE, lambda: report_handeye.render_handeye(get("handeye"), out_dir)),
+        (report_latency.TITLE, lambda: report_latency.render_latency(get("latency"), out_dir)),
+        (report_views.TITLE, lambda: report_views.render_views(get("views"), out_dir)),
+        (report_baseline.TITLE, lambda: report_baseline.render_baseline(get("baseline"), out_dir)),
+    ]
+    sections = []
+    for title, render in renders:
+        try:
+            sections.append(render())
+        except Exception as exc:  # noqa: BLE001 - one unreadable measurement must not cost the whole page
+            log.warning("report: rendering %r failed: %s", title, exc, exc_info=True)
+            sections.append(Section(title, f"> **Not available.** The cached measurement could not be rendered "
+                                           f"({type(exc).__name__}: {exc}); run `brave6d report --refresh`.\n"))
+    return sections
+
+
+def write_report(workdir: Path, seconds: dict[str, float] | None = None) -> ReportResult:
+    """Render ``report/report.md`` and its PNGs from the cached measurements only (no measuring)."""
+    out = report_dir(workdir)
+    store = measurement_store(workdir)
+    measurements = {name: store.load(name) for name in MEASUREMENTS}
+    for name in FIGURES:  # a section that lost its data must not keep an old plot
+        (out / name).unlink(missing_ok=True)
+    sections = render_sections(measurements, out)
+    page = compose(Path(workdir), sections, measurements, seconds or {})
+    md = atomic_write_text(out / "report.md", page)
+    statuses = {k: (m.status if m is not None else "absent") for k, m in measurements.items()}
+    return ReportResult(md, [f for s in sections for f in s.figures], seconds or {}, statuses)
+
+
+def compose(workdir: Path, sections: list[Section], measurements: dict[str, Measurement | None],
+            seconds: dict[str, float]) -> str:
+    """The whole page: header (machine, scene, time spent), the sections, how to choose settings."""
+    machines = {describe_machine(m.machine, with_load=False)
+                for m in measurements.values() if m is not None and m.machine}
+    spent = sum(m.seconds for m in measurements.values() if m is not None)
+    now = _dt.datetime.now().isoformat(timespec="seconds")
+    header = [
+        f"# What accuracy costs in time: {workdir.name}/scene",
+        "",
+        "Every figure below is measured on the scene directory "
+        f"`{workdir / 'scene'}`; each plot states the machine and the settings it was measured with.",
+        "",
+        f"- Machine: {'; '.join(sorted(machines)) or 'not recorded'}",
+        f"- Written {now}; "
+        + (f"this run measured for {sum(seconds.values()):.0f} s; " if seconds else "from cached measurements; ")
+        + f"the sweeps' points took {spent:.0f} s in all (cached in `report/measurements/`).",
+        "- Sections: " + ", ".join(f"{name} {_status(measurements.get(name))}" for name in MEASUREMENTS),
+        "",
+    ]
+    advice = [s.advice for s in sections if s.advice]
+    closing = ["## How to choose settings", ""]
+    closing.append(" ".join(advice) if advice else
+                   "No section has enough measurements to derive advice yet; run the missing stages first.")
+    return "\n".join(header) + "\n" + "\n".join(s.markdown() for s in sections) + "\n" + "\n".join(closing) + "\n"
+
+
+def _status(m: Measurement | None) -> str:
+    if m is None:
+        return "(not measured)"
+    return f"({m.status}{'' if m.status != 'partial' else f', {len(m.points)} points'})"
+
+
+def build_report(workdir: Path, settings: ReportSettings, refresh: bool = False,
+                 only: tuple[str, ...] | None = None, measure: bool = True) -> ReportResult:
+    """Measure what is not cached (unless ``measure`` is False), then write the page."""
+    seconds: dict[str, float] = {}
+    if measure:
+        _, seconds = measure_all(workdir, settings, refresh, only)
+    return write_report(workdir, seconds)
+
+
+def stage_report(ctx: DemoContext) -> StageResult:
+    """The demo's last stage: ``brave6d report`` on ``ctx.workdir`` (quick sweeps with ``ctx.quick``).
+
+    It runs in a child process because the timings need OpenMP threads that sleep while they
+    wait (``OMP_WAIT_POLICY=PASSIVE``, as ``brave6d serve`` sets it): the policy is read once,
+    when torch loads, and the demo process loaded torch long before this stage. With spinning
+    threads the rasterizer measured up to ten times slower on 2 cores than the server renders.
+    """
+    cmd = [sys.executable, "-m", "brave6d.cli", "report", "--workdir", str(ctx.workdir),
+           "--mode", "quick" if ctx.quick else "full", "--device", ctx.device]
+    env = {**os.environ, "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
+    with Stopwatch() as watch:
+        done = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL, check=False)
+    if done.returncode != 0:
+        raise BraveError(f"the report failed (exit status {done.returncode}; see the messages above): {' '.join(cmd)}")
+    store = measurement_store(ctx.workdir)
+    statuses = {name: (m.status if (m := store.load(name)) is not None else "absent") for name in MEASUREMENTS}
+    plots = sum((report_dir(ctx.workdir) / name).is_file() for name in FIGURES)
+    missing = [k for k, v in statuses.items() if v != "complete"]
+    return StageResult("report", figures={
+        "report": str(report_dir(ctx.workdir) / "report.md"), "plots": plots, "seconds": round(watch.seconds, 1),
+        "incomplete": "+".join(missing) or "none",
+    })

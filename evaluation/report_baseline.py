@@ -1,0 +1,178 @@
+"""Report section 5: baseline Average Recall against camera adjustments.
+
+Reads ``<workdir>/evaluation/baseline.json`` written by the evaluation stage. Its schema is
+not fixed yet, so the reader is lenient: a list of episodes, or ``{"episodes": [...]}``
+(also ``results``/``runs``), or ``{agent: [episodes]}``; per episode the agent under
+``agent``/``agent_name``/``name``, AR under ``ar``/``AR``/``average_recall``/``score``, the
+adjustments under ``adjustments``/``n_adjustments``/``position_adjustments``, and optionally
+the wall time and the object. Episodes without AR or adjustments are counted and named in
+the section, never guessed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+from brave6d.atomic import read_json
+from brave6d.errors import DataError
+from brave6d.progress import format_table
+from evaluation.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info
+from evaluation.report_common import Section, finite, fmt, nan_note, num, provenance, unavailable
+from evaluation.report_plots import legend, new_figure, plot_line, save_figure
+
+NAME = "baseline"
+TITLE = "5. Baseline agents: Average Recall against adjustments"
+
+AGENT_KEYS = ("agent", "agent_name", "name")
+AR_KEYS = ("ar", "AR", "average_recall", "score")
+ADJ_KEYS = ("adjustments", "n_adjustments", "position_adjustments")
+TIME_KEYS = ("wall_time_s", "wall_s", "seconds", "time_s", "duration_s")
+OBJECT_KEYS = ("object", "target", "obj_name", "obj_id")
+
+
+def baseline_path(workdir: Path) -> Path:
+    return Path(workdir) / "evaluation" / "baseline.json"
+
+
+def collect_baseline(workdir: Path, store: MeasurementStore) -> Measurement:
+    """Normalise ``baseline.json`` into the ``baseline`` measurement (missing file: a note)."""
+    path = baseline_path(workdir)
+    if (absent := store.require(NAME, [(path, "evaluation")])) is not None:
+        return absent
+    try:
+        data = read_json(path)
+    except DataError as exc:
+        return store.failed(NAME, str(exc))
+    # reading is cheap: always collect afresh (the cached copy serves write_report)
+    m = Measurement(name=NAME, key={"baseline": file_stamp(path)}, settings={"source": str(path)},
+                    machine=machine_info("cpu"))
+    episodes = episodes_of(data)
+    m.points, skipped = [], 0
+    for e in episodes:
+        point = {"agent": str(_first(e, AGENT_KEYS) or "unnamed"), "ar": num(_first(e, AR_KEYS)),
+                 "adjustments": num(_first(e, ADJ_KEYS)), "wall_s": num(_first(e, TIME_KEYS)),
+                 "object": _first(e, OBJECT_KEYS)}
+        if not (math.isfinite(point["ar"]) and math.isfinite(point["adjustments"])):
+            skipped += 1
+        m.points.append(point)
+    m.summary = {"episodes": len(episodes), "incomplete_episodes": skipped,
+                 "top_level": type(data).__name__, "agents": agents_of(data)}
+    m.status = "complete"
+    store.save(m)
+    return m
+
+
+def episodes_of(data: Any) -> list[dict[str, Any]]:
+    """The episode dicts of a baseline file in any of the accepted shapes (see the module doc)."""
+    if isinstance(data, list):
+        return [e for e in data if isinstance(e, dict)]
+    if not isinstance(data, dict):
+        return []
+    for key in ("episodes", "results", "runs"):
+        if isinstance(data.get(key), list):
+            return episodes_of(data[key])
+    out: list[dict[str, Any]] = []
+    for agent, value in data.items():
+        inner = value.get("episodes") if isinstance(value, dict) else value
+        if isinstance(inner, list):
+            out += [{"agent": agent, **e} for e in inner if isinstance(e, dict)]
+    return out
+
+
+def agents_of(data: Any) -> list[dict[str, Any]]:
+    """Agent-level figures of a leaderboard-like file (``{"agents": [...]}``), else an empty list."""
+    rows = data.get("agents") if isinstance(data, dict) else None
+    if not isinstance(rows, list):
+        return []
+    out = []
+    for r in rows:
+        if isinstance(r, dict) and _first(r, AGENT_KEYS) is not None:
+            out.append({"agent": str(_first(r, AGENT_KEYS)), "ar": num(_first(r, AR_KEYS)),
+                        "adjustments": num(_first(r, ("mean_adjustments", *ADJ_KEYS))),
+                        "wall_s": num(_first(r, ("mean_wall_time_s", *TIME_KEYS))),
+                        "episodes": _first(r, ("episodes",))})
+    return out
+
+
+def _first(entry: dict[str, Any], keys: tuple[str, ...]) -> Any:
+    for k in keys:
+        if entry.get(k) is not None:
+            return entry[k]
+    return None
+
+
+# ----------------------------------------------------------------------------- rendering
+def by_agent(points: list[dict[str, Any]], from_file: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
+    """Per agent: episodes, AR, mean adjustments and mean wall time: the file's agent figures where it
+    has them (``from_file``), else means over the agent's episodes (finite values only)."""
+    given = {r["agent"]: r for r in from_file or []}
+    groups: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for p in points:
+        groups[str(p.get("agent"))].append(p)
+    rows = []
+    for agent, pts in sorted(groups.items()):
+        row = {"agent": agent, "episodes": len(pts)}
+        for k in ("ar", "adjustments", "wall_s"):
+            values = finite([p.get(k) for p in pts])
+            row[k] = float(values.mean()) if values.size else math.nan
+            if agent in given and math.isfinite(num(given[agent].get(k))):
+                row[k] = num(given[agent][k])
+        rows.append(row)
+    return rows
+
+
+def render_baseline(m: Measurement | None, out_dir: Path) -> Section:
+    """Section 5 from its measurement: scatter of episodes, agent means, table, advice."""
+    if m is None or not m.usable or not m.points:
+        return unavailable(TITLE, m, "Baseline episodes")
+    rows = by_agent(m.points, m.summary.get("agents"))
+    pooled = bool(m.summary.get("agents"))
+    fig, (ax,) = new_figure(1, panel=(6.0, 3.6))
+    dropped = 0
+    for r in rows:
+        pts = [p for p in m.points if str(p.get("agent")) == r["agent"]]
+        dropped += plot_line(ax, [p.get("adjustments") for p in pts], [p.get("ar") for p in pts],
+                             f"{r['agent']} (episodes)", fmt="o", alpha=0.5)
+    dropped += plot_line(ax, [r["adjustments"] for r in rows], [r["ar"] for r in rows],
+                         "agent (leaderboard AR)" if pooled else "agent mean", fmt="k*", ms=12)
+    for r in rows:
+        if math.isfinite(r["adjustments"]) and math.isfinite(r["ar"]):
+            ax.annotate(r["agent"], (r["adjustments"], r["ar"]), textcoords="offset points", xytext=(8, -3), fontsize=8)
+    ax.margins(x=0.2)  # room for the agent names
+    ax.set_xlabel("camera position adjustments per episode")
+    ax.set_ylabel("BOP Average Recall")
+    legend(ax)
+    png = save_figure(fig, out_dir / "baseline.png", "Baseline agents: Average Recall against adjustments",
+                      describe_machine(m.machine), f"source: {m.settings.get('source')}")
+    table = [(r["agent"], r["episodes"], fmt(r["ar"], 3), fmt(r["adjustments"], 1), fmt(r["wall_s"], 1)) for r in rows]
+    ar_text = ("AR is the leaderboard's, pooled over each agent's episodes" if pooled
+               else "AR is the mean over each agent's episodes")
+    incomplete = int(num(m.summary.get("incomplete_episodes")) or 0)
+    body = (f"From `{m.settings.get('source')}` ({m.summary.get('episodes')} episodes; {ar_text}).\n\n"
+            f"![AR against adjustments]({png.name})\n\n"
+            + format_table(["agent", "episodes", "AR", "mean adjustments", "wall s"], table)
+            + ("" if not incomplete else f"\n\n> {incomplete} episodes lack AR or adjustments in the file.")
+            + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted episode values"))
+    return Section(TITLE, body, advice_baseline(rows), [png])
+
+
+def advice_baseline(rows: list[dict[str, Any]]) -> str:
+    """AR gained per extra adjustment between the agent with the fewest and the most adjustments."""
+    ok = sorted((r for r in rows if math.isfinite(r["ar"]) and math.isfinite(r["adjustments"])),
+                key=lambda r: r["adjustments"])
+    if len(ok) < 2:
+        return ""
+    lo, hi = ok[0], ok[-1]
+    extra = hi["adjustments"] - lo["adjustments"]
+    gain = hi["ar"] - lo["ar"]
+    if extra <= 0:
+        return ""
+    head = f"**Agent motion:** {hi['agent']} spends {fmt(extra, 1)} more adjustments per episode than {lo['agent']}"
+    if gain > 0:
+        return (f"{head} for {fmt(gain, 3)} more AR ({fmt(lo['ar'], 3)} -> {fmt(hi['ar'], 3)}: "
+                f"{fmt(gain / extra, 3)} AR per adjustment).")
+    return (f"{head} and scores {fmt(-gain, 3)} less AR ({fmt(lo['ar'], 3)} -> {fmt(hi['ar'], 3)}): on this scene "
+            "the extra moves did not pay.")

@@ -1,0 +1,355 @@
+"""The accuracy-vs-time report: rendering from measurement JSONs, cache and resume, missing inputs,
+NaN handling, the baseline reader, and a miniature real measurement of every sweep."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from brave6d.atomic import atomic_write_json, read_json
+from evaluation.measurements import Measurement, MeasurementStore, run_sweep
+from evaluation.report import FIGURES, ReportSettings, build_report, compose, measure_all, stage_report
+from evaluation.report import measurement_store, write_report
+from evaluation.report_baseline import by_agent, collect_baseline, episodes_of, render_baseline
+from evaluation.report_common import fmt, median, quantile
+from evaluation.report_handeye import HandEyeSweep
+from evaluation.report_latency import LatencySweep, render_latency
+from evaluation.report_plots import finite_pairs, new_figure, plot_line
+from evaluation.report_training import collect_training, render_training
+from evaluation.report_views import ViewsSweep, render_views
+
+MACHINE = {"cpu": "Test CPU", "cores": 2, "gpu": None, "device": "cpu", "torch": "2.13.0", "torch_threads": 2}
+
+
+# ----------------------------------------------------------------------------- fabricated measurements
+def _save(store: MeasurementStore, name: str, points: list[dict], summary: dict, settings: dict | None = None,
+          status: str = "complete") -> Measurement:
+    m = Measurement(name=name, key={"test": True}, settings=settings or {"fixture": name}, machine=MACHINE,
+                    status=status, points=points, summary=summary, seconds=1.0)
+    store.save(m)
+    return m
+
+
+def fabricate(workdir: Path, nan: bool = False) -> MeasurementStore:
+    """Plausible measurements for every section (``nan``: a few values missing)."""
+    store = measurement_store(workdir)
+    curve = [{"source": "scene", "step": s, "time_s": s * 0.1, "gaussians": 1000 + 10 * s,
+              "train_psnr": 15 + s / 100, "psnr": None} for s in (30, 60, 90)]
+    curve[-1]["psnr"] = 21.5
+    _save(store, "training", curve, {"steps": 90, "train_s": 9.0, "total_s": 12.0, "gaussians": 1900, "psnr": 21.5,
+                                     "ssim": 0.71, "per_level": {"0": {"distance_m": 0.3, "psnr": 22.0}},
+                                     "n_train": 20, "n_holdout": 2, "stopped_by": "steps", "init": "colmap"},
+          {"preset": "fast", "steps": 90, "image": "80x50"})
+    he = []
+    for n, errs in ((3, [0.9, 1.1, 3.0]), (6, [0.30, 0.35, 0.40]), (12, [0.10, 0.12, 0.14])):
+        for r, mm in enumerate(errs):
+            he.append({"id": f"n{n}-r{r}", "n": n, "solve_s": 0.1 * n, "accepted_by_default_limits": True,
+                       "methods": {"refined": {"mm": mm, "deg": mm / 10, "time_s": 0.1 * n},
+                                   "park": {"mm": 2 * mm, "deg": mm / 5, "time_s": 0.001}}})
+    he.append({"id": "n3-r3", "n": 3, "error": "DegenerateGeometryError: rotation span", "solve_s": 0.01})
+    _save(store, "handeye", he, {"n_frames": 12, "n_usable": 12, "truth": "simulation truth", "has_truth": True,
+                                 "robot_s_per_pose": 2.0, "detect_s_per_frame": 0.02, "focal_px": 250.0,
+                                 "nearest_m": 0.2})
+    lat = [{"id": f"g{n}-{w}x{h}", "gaussians": n, "width": w, "height": h, "median_ms": n * w * h / 1e6,
+            "p90_ms": None, "samples": 3} for n in (1000, 4000) for w, h in ((80, 50), (160, 100))]
+    if nan:
+        lat[0]["median_ms"] = None
+    _save(store, "latency", lat, {"splat": "/x/point_cloud.ply", "n_total": 4000})
+    views = []
+    for k, psnr in ((2, 18.0), (5, 20.8), (10, 21.0)):
+        views.append({"id": f"v{k}", "fraction": k / 10, "views_per_level": [k, k], "n_train": 2 * k, "steps": 40,
+                      "psnr": None if (nan and k == 5) else psnr, "ssim": 0.5 + k / 100, "gaussians": 900,
+                      "train_s": 3.0, "curve": [{"step": 20, "time_s": 1.5, "gaussians": 800, "psnr": psnr - 1,
+                                                 "ssim": 0.5}, {"step": 40, "time_s": 3.0, "gaussians": 900,
+                                                                "psnr": psnr, "ssim": 0.5 + k / 100}]})
+    _save(store, "views", views, {"levels": {"0": {"distance_m": 0.3, "train_views": 10, "capture_s_per_view": 1.5},
+                                             "1": {"distance_m": 0.45, "train_views": 10, "capture_s_per_view": 2.5}},
+                                  "holdout_views": 2}, {"steps": 40, "preset": "fast"})
+    base = [{"agent": "active", "ar": 0.6, "adjustments": 4, "wall_s": 10.0, "object": "a"},
+            {"agent": "active", "ar": 0.8, "adjustments": 6, "wall_s": 12.0, "object": "b"},
+            {"agent": "static", "ar": 0.3, "adjustments": 0, "wall_s": 2.0, "object": "a"},
+            {"agent": "static", "ar": 0.5 if not nan else None, "adjustments": 0, "wall_s": 2.0, "object": "b"}]
+    _save(store, "baseline", base, {"episodes": 4, "incomplete_episodes": int(nan)}, {"source": "/x/baseline.json"})
+    return store
+
+
+def _valid_png(path: Path) -> tuple[int, int]:
+    with Image.open(path) as im:
+        im.verify()
+    with Image.open(path) as im:
+        assert im.format == "PNG"
+        return im.size
+
+
+def test_report_from_fabricated_measurements(tmp_path: Path) -> None:
+    fabricate(tmp_path)
+    result = write_report(tmp_path)
+    md = result.markdown.read_text()
+    assert [p.name for p in result.figures] == ["training.png", "handeye.png", "latency.png", "views.png",
+                                                "baseline.png"]
+    for png in result.figures:
+        w, h = _valid_png(png)
+        assert w > 400 and h > 250
+        assert f"]({png.name})" in md
+    assert md.count("\n## ") == 6 and "## How to choose settings" in md
+    # numbers on the page are those of the JSON
+    he = read_json(tmp_path / "report" / "measurements" / "handeye.json")["points"]
+    mm6 = [p["methods"]["refined"]["mm"] for p in he if p["n"] == 6]
+    assert re.search(rf"\| 6 +\| 3/3 +\| 3 +\| {fmt(median(mm6), 3)} +\| {fmt(quantile(mm6, 0.25), 3)}-", md)
+    assert re.search(r"\| 3 +\| 3/4 ", md)  # the failed trial is counted, not hidden
+    assert re.search(r"\| 4,000 +\| 16\.0 +\| 64\.0 +\|", md)  # latency = Gaussians x pixels / 1e6
+    assert re.search(r"\| 5/5 +\| 10 +\| 20 +\| 20\.80 +\| 0\.5500 ", md)  # views: robot s = 5 * 1.5 + 5 * 2.5
+    assert re.search(r"\| active +\| 2 +\| 0\.700 +\| 5\.0 ", md)
+    assert "holdout PSNR 21.50 dB" in md
+    # advice derived from the numbers
+    advice = md.split("## How to choose settings")[1]
+    # half a pixel at 0.2 m with f = 250 px: 0.4 mm / 0.115 deg; 3 poses had a failed trial
+    assert "6 poses keep the error against the truth within half a pixel" in advice
+    assert "5/5 training views per level come within 0.5 dB of 10/10" in advice
+    assert "0.060 AR per adjustment" in advice  # (0.7 - 0.4) / 5
+    assert "Latency grows as Gaussians^1.00 x pixels^1.00" in advice
+    assert "NaN" not in md
+
+
+def test_nan_values_are_named_not_plotted_silently(tmp_path: Path) -> None:
+    store = fabricate(tmp_path, nan=True)
+    out = tmp_path / "report"
+    latency = render_latency(store.load("latency"), out).body
+    assert "2 latency cells had no finite value" in latency  # one cell, drawn in both panels
+    assert re.search(r"\| 1,000 +\| n/a +\|", latency)  # the table shows the gap as n/a
+    views = render_views(store.load("views"), out).body
+    assert "2 plotted view-sweep values had no finite value" in views and re.search(r"\| 5/5 .*\| n/a +\|", views)
+    baseline = render_baseline(store.load("baseline"), out).body
+    assert "1 episodes lack AR or adjustments" in baseline and "1 plotted episode values had no finite" in baseline
+    fig, (ax,) = new_figure(1)
+    dropped = plot_line(ax, [1, 2, 3, 4], [1.0, float("nan"), None, 2.0], "series")
+    assert dropped == 2 and ax.get_legend_handles_labels()[1] == ["series (2 NaN not drawn)"]
+    assert finite_pairs([1, None, 3], [float("inf"), 2, 3]) == ([3.0], [3.0], 2)
+    assert plot_line(ax, [1, 2], [None, None], "empty") == 2
+    assert ax.get_legend_handles_labels()[1][-1] == "empty (2 NaN not drawn): no finite values"
+
+
+def test_missing_inputs_give_section_notes(tmp_path: Path) -> None:
+    (tmp_path / "scene").mkdir()
+    stage = stage_report(SimpleNamespace(workdir=tmp_path, quick=True, device="cpu"))  # the demo's last stage
+    assert stage.status == "ok" and stage.figures["plots"] == 0
+    assert stage.figures["incomplete"] == "handeye+latency+views+training+baseline"
+    md = (tmp_path / "report" / "report.md").read_text()
+    assert md.count("**Not available.**") == 5
+    assert "board_capture/frames.jsonl` (run the calibration stage)" in md
+    assert "evaluation/baseline.json` (run the evaluation stage)" in md
+    assert "splat/metrics.json` (run the training stage)" in md
+    assert not any((tmp_path / "report" / f).exists() for f in FIGURES)
+    assert "No section has enough measurements" in md
+
+
+def test_page_renders_from_nothing_from_a_broken_file_and_from_a_partial_sweep(tmp_path: Path) -> None:
+    md = write_report(tmp_path).markdown.read_text()
+    assert md.count("nothing measured yet") == 5
+    store = measurement_store(tmp_path)
+    _save(store, "latency", [{"id": "x", "median_ms": 3.0}], {})  # hand-edited: no gaussians/width/height
+    md = write_report(tmp_path).markdown.read_text()
+    assert "could not be rendered (KeyError: 'width'); run `brave6d report --refresh`" in md
+    store = fabricate(tmp_path)
+    views = store.load("views")
+    assert views is not None
+    views.status, views.points = "partial", views.points[:2]
+    assert "**Partial sweep (2 points so far).**" in render_views(views, tmp_path / "report").body
+    assert "views (partial, 2 points)" in compose(tmp_path, [], {"views": views}, {})
+
+
+def test_training_section_reads_metrics_and_the_benchmark_json(tmp_path: Path) -> None:
+    from brave6d.layout import SceneDir
+
+    scene = SceneDir(tmp_path / "scene")
+    curve = [{"step": 0.0, "time_s": 0.0, "train_psnr": None, "num_gaussians": 100.0},
+             {"step": 50.0, "time_s": 5.0, "train_psnr": 20.0, "num_gaussians": 400.0},
+             {"step": 100.0, "time_s": 10.0, "train_psnr": 24.0, "num_gaussians": 800.0, "holdout_psnr": 22.0}]
+    atomic_write_json(scene.splat_dir / "metrics.json", {
+        "preset": "fast", "device": "cpu", "steps": 100, "planned_steps": 200, "stopped_by": "time budget",
+        "train_time_s": 10.0, "total_time_s": 15.0, "num_gaussians": 800, "n_train_views": 9, "n_holdout_views": 1,
+        "holdout": {"psnr": 22.0, "ssim": 0.8, "per_level": {"0": {"distance_m": 0.3, "psnr": 22.0, "ssim": 0.8}}},
+        "images": {"metrics_resolution": "80x50"}, "init": {"source": "colmap"}, "preset_config": {}, "curve": curve})
+    atomic_write_json(scene.splat_dir / "benchmark_training.json", {"preset": "fast", "points": [
+        {"step": s, "train_time_s": s / 10, "holdout_psnr": p, "holdout_ssim": 0.7, "num_gaussians": 500}
+        for s, p in ((0, 10.0), (50, 21.0), (100, 21.4), (150, 21.6))]})
+    store = MeasurementStore(tmp_path / "m")
+    m = collect_training(scene, store)
+    assert [p["source"] for p in m.points] == ["scene", "scene"] + ["benchmark"] * 4  # step 0 has no EMA yet
+    section = render_training(m, None, tmp_path / "out")
+    assert "holdout PSNR 22.00 dB" in section.body and re.search(r"\| 150 +\| 15\.0 +\| 500 +\| 21\.60 ", section.body)
+    assert "run `python benchmarks/training.py" not in section.body
+    assert ("on the benchmarks/training.py run, 100 steps (10.0 s, 500 Gaussians) reach within 0.5 dB of the "
+            "21.60 dB after 150 steps") in section.advice  # 21.4 >= 21.6 - 0.5 > 21.0
+    assert "hit its time budget after 100 of 200 planned steps, so the full schedule needs about 0.3 min" \
+        in section.advice
+    _valid_png(tmp_path / "out" / "training.png")
+
+
+# ----------------------------------------------------------------------------- cache and resume
+def test_sweep_resumes_after_an_interruption_and_refresh_remeasures(tmp_path: Path) -> None:
+    calls: list[int] = []
+    interrupt = {"at": 2}
+
+    def measure(x: int) -> dict:
+        calls.append(x)
+        if x == interrupt["at"]:
+            raise KeyboardInterrupt
+        return {"x": x, "y": x * x}
+
+    items = [(f"p{x}", x) for x in range(5)]
+    store = MeasurementStore(tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(store, store.resume("sq", {"k": 1}, {}, {}), items, measure, "test")
+    saved = store.load("sq")
+    assert saved is not None and saved.status == "partial" and [p["x"] for p in saved.points] == [0, 1]
+    interrupt["at"] = -1
+    m = run_sweep(store, store.resume("sq", {"k": 1}, {}, {}), items, measure, "test")
+    assert calls == [0, 1, 2, 2, 3, 4] and m.status == "complete" and [p["y"] for p in m.points] == [0, 1, 4, 9, 16]
+    assert run_sweep(store, store.resume("sq", {"k": 1}, {}, {}), items, measure, "test").points == m.points
+    assert len(calls) == 6  # complete with the same key: nothing is measured again
+    run_sweep(store, store.resume("sq", {"k": 2}, {}, {}), items, measure, "test")  # the inputs changed
+    assert len(calls) == 11
+    fresh = MeasurementStore(tmp_path, refresh=True)
+    run_sweep(fresh, fresh.resume("sq", {"k": 2}, {}, {}), items, measure, "test")
+    assert len(calls) == 16
+    assert json.loads((tmp_path / "sq.json").read_text())["points"][4]["y"] == 16
+
+
+def test_nan_in_a_point_is_stored_as_null(tmp_path: Path) -> None:
+    store = MeasurementStore(tmp_path)
+    m = run_sweep(store, store.resume("n", {}, {}, {}), [("a", 1)], lambda _: {"v": float("nan")}, "t")
+    assert m.points[0]["v"] is None and read_json(tmp_path / "n.json")["points"][0]["v"] is None
+
+
+# ----------------------------------------------------------------------------- baseline reader
+@pytest.mark.parametrize("data", [
+    [{"agent": "a", "AR": 0.5, "n_adjustments": 3}, {"agent_name": "b", "average_recall": 0.2, "adjustments": 0}],
+    {"episodes": [{"agent": "a", "ar": 0.5, "adjustments": 3}, {"name": "b", "score": 0.2, "adjustments": 0}]},
+    {"a": [{"ar": 0.5, "position_adjustments": 3}], "b": {"episodes": [{"ar": 0.2, "adjustments": 0}]}},
+])
+def test_baseline_file_shapes(tmp_path: Path, data: object) -> None:
+    atomic_write_json(tmp_path / "evaluation" / "baseline.json", data)
+    m = collect_baseline(tmp_path, MeasurementStore(tmp_path / "m"))
+    assert m.status == "complete"
+    assert sorted((p["agent"], p["ar"], p["adjustments"]) for p in m.points) == [("a", 0.5, 3.0), ("b", 0.2, 0.0)]
+
+
+def test_baseline_file_broken_or_odd(tmp_path: Path) -> None:
+    assert episodes_of("nonsense") == [] and episodes_of({"meta": 1}) == []
+    path = tmp_path / "evaluation" / "baseline.json"
+    path.parent.mkdir()
+    path.write_text("{not json")
+    m = collect_baseline(tmp_path, MeasurementStore(tmp_path / "m"))
+    assert m.status == "failed" and "not valid JSON" in m.note
+
+
+# ----------------------------------------------------------------------------- real, miniature sweeps
+def _board_capture(scene_root: Path, n_views: int = 8) -> None:
+    """A rendered ChArUco board capture of the demo spec's board with exact robot poses."""
+    from brave6d.atomic import write_png
+    from brave6d.calibration_io import write_intrinsics
+    from brave6d.camera import PinholeCamera
+    from brave6d.layout import FrameLog, FrameRecord, SceneDir
+    from brave6d.transforms import invert
+    from calibration import plan_for_board
+    from calibration.synthetic import render_board_view
+
+    scene = SceneDir(scene_root)
+    spec = scene.load_spec()
+    X = spec.simulation.true_tcp_T_camera.matrix()
+    camera = PinholeCamera.from_hfov(640, 480, 60.0)
+    W = spec.board.pose.matrix()
+    frames = FrameLog(scene.board_capture.frames_path)
+    for i, p in enumerate(plan_for_board(spec.board, 0.3, X, n_views, K=camera.K, image_size=(640, 480))):
+        grey = render_board_view(spec.board, camera.K, invert(p.base_T_tcp @ X) @ W, (640, 480), supersample=2)
+        write_png(scene.board_capture.root / f"rgb/{i:06d}.png", np.repeat(grey[:, :, None], 3, axis=2))
+        frames.append(FrameRecord(index=i, view_id=p.name, distance_level=0, distance_m=0.3, rgb=f"rgb/{i:06d}.png",
+                                  base_T_tcp=p.base_T_tcp.tolist(), joints=[0.0] * 6, timestamp=2.5 * i))
+    write_intrinsics(scene, camera, method="synthetic")
+
+
+def _plane_scene(root: Path) -> None:
+    """A captured, calibrated plane scene with a small random splat in ``splat/``."""
+    from brave6d.camera import PinholeCamera
+    from training.ply import SplatData, write_ply
+    from training.synthetic import plane_views, random_gaussians, write_scene
+
+    camera = PinholeCamera.from_hfov(64, 48, 60.0)
+    write_scene(root, camera, plane_views(camera, [0.3, 0.45], per_ring=5))
+    g = {k: v.numpy() for k, v in random_gaussians(400, extent=0.1).items()}
+    write_ply(root / "splat" / "point_cloud.ply", SplatData(g["means"], g["sh0"], g["shN"], g["opacities"],
+                                                            g["scales"], g["quats"]))
+
+
+def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: Path,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    from brave6d.layout import init_scene_dir
+
+    init_scene_dir(tmp_path / "hand" / "scene", demo_spec_path)
+    _board_capture(tmp_path / "hand" / "scene")
+    settings = ReportSettings(
+        handeye=HandEyeSweep(sizes=(3, 5), repeats=2),
+        latency=LatencySweep(fractions=(0.5, 1.0), scales=(0.5, 1.0), repeats=1, views=1, device="cpu"),
+        views=ViewsSweep(fractions=(0.5, 1.0), steps=4, evaluations=2, max_gaussians=500, downscale=None,
+                         device="cpu"),
+    )
+    measured, _ = measure_all(tmp_path / "hand", settings, only=("handeye",))
+    he = measured["handeye"]
+    assert he.status == "complete" and he.summary["n_usable"] == 8 and he.summary["robot_s_per_pose"] == 2.5
+    assert [p["n"] for p in he.points] == [3, 3, 5, 5, 8]
+    full = he.points[-1]["methods"]["refined"]
+    assert full["mm"] < 1.0 and full["deg"] < 0.1  # exact poses, noise-free board: close to the truth
+
+    _plane_scene(tmp_path / "plane" / "scene")
+    result = build_report(tmp_path / "plane", settings, only=("latency", "views", "training"))
+    assert result.statuses["latency"] == "complete" and result.statuses["views"] == "complete"
+    assert result.statuses["training"] == "missing"  # no metrics.json: the section says so
+    store = measurement_store(tmp_path / "plane")
+    lat, views = store.load("latency"), store.load("views")
+    assert lat is not None and views is not None
+    assert len(lat.points) == 4 and all(p["median_ms"] > 0 for p in lat.points)
+    assert {p["gaussians"] for p in lat.points} == {200, 400}
+    assert [p["views_per_level"] for p in views.points] == [[2, 2], [4, 4]]
+    assert all(math.isfinite(p["psnr"]) and p["steps"] == 4 for p in views.points)
+    assert views.summary["levels"]["0"]["capture_s_per_view"] == 1.0  # time stamps 0, 1, 2, ...
+    md = result.markdown.read_text()
+    assert "report run (all views, 4 steps, 32x24 images)" in md and "## 4. Capture" in md
+    for name in ("training.png", "latency.png", "views.png"):
+        _valid_png(tmp_path / "plane" / "report" / name)
+
+    def must_not_run(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a cached measurement was measured again")
+
+    import calibration
+    import training.dataset
+    import training.ply
+
+    monkeypatch.setattr(training.dataset, "load_scene", must_not_run)
+    monkeypatch.setattr(training.ply, "read_ply", must_not_run)
+    monkeypatch.setattr(calibration, "calibrate_handeye", must_not_run)
+    again, _ = measure_all(tmp_path / "plane", settings, only=("latency", "views"))
+    assert again["latency"].points == lat.points and again["views"].points == views.points
+    assert measure_all(tmp_path / "hand", settings, only=("handeye",))[0]["handeye"].points == he.points
+
+
+def test_baseline_leaderboard_agent_figures_win_over_episode_means(tmp_path: Path) -> None:
+    episodes = [{"agent": "active", "ar": 0.5, "adjustments": 4, "wall_time_s": 3.0, "target": "nut"},
+                {"agent": "active", "ar": 1.0, "adjustments": 6, "wall_time_s": 5.0, "target": "cup"},
+                {"agent": "static", "ar": 0.2, "adjustments": 0, "wall_time_s": 1.0, "target": "nut"}]
+    board = {"format": "brave6d-leaderboard/1", "episodes": episodes,
+             "agents": [{"agent": "active", "episodes": 2, "ar": 0.7, "mean_adjustments": 5.0,
+                         "mean_wall_time_s": 4.0}]}
+    atomic_write_json(tmp_path / "evaluation" / "baseline.json", board)
+    m = collect_baseline(tmp_path, MeasurementStore(tmp_path / "m"))
+    rows = {r["agent"]: r for r in by_agent(m.points, m.summary["agents"])}
+    assert rows["active"]["ar"] == 0.7 and rows["active"]["adjustments"] == 5.0  # pooled AR, not the 0.75 mean
+    assert rows["static"]["ar"] == 0.2 and rows["static"]["wall_s"] == 1.0
+    assert [p["object"] for p in m.points] == ["nut", "cup", "nut"]
