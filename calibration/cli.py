@@ -53,6 +53,7 @@ def _check_args(args: argparse.Namespace, scene: SceneDir) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from calibration.board import export_board
     from calibration.board_capture import DEFAULT_VIEWS, capture_board, plan_only
     from calibration.pipeline import calibrate_scene, summary_lines
 
@@ -61,6 +62,9 @@ def run(args: argparse.Namespace) -> int:
     spec = scene.load_spec()
     layout = scene.board_capture
     views = args.views or DEFAULT_VIEWS
+    if args.action in ("plan", "all"):
+        printable = export_board(spec.board, scene.calibration_dir / "board.pdf")
+        print(f"printable board at true scale (print at 100 %): {printable}")
     if args.action == "plan":
         plan = plan_only(layout, spec, args.robot, args.camera, views)
         print(f"planned {len(plan.views)} board views at {plan.distance_m:.2f} m "
