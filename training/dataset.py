@@ -77,6 +77,11 @@ class TrainingData:
     downscale: int = 1
     undistortion: str = "none"  # how images were undistorted (for metrics.json)
     depth_camera: PinholeCamera | None = None  # set when depth files are still distorted (raw)
+    valid_mask: NDArray[np.bool_] | None = None  # [H, W] pixels undistortion filled; None: all
+
+    def valid_tensor(self, device: torch.device | str) -> Tensor | None:
+        """:attr:`valid_mask` as a bool tensor on ``device`` (None: every pixel is valid)."""
+        return None if self.valid_mask is None else torch.from_numpy(self.valid_mask).to(device)
 
     @property
     def views(self) -> list[View]:
@@ -195,8 +200,25 @@ def load_scene(scene: SceneDir, downscale: int = 1, skip_bad_frames: bool = Fals
         raise DataError(f"{scene.frames_path}: no usable training frames")
     if downscale > 1:
         how += f"; resampled to {width}x{height} (1/{downscale}, area averaging)"
+    valid = valid_pixels(raw_camera, width, height)
+    if valid is not None:
+        how += f"; {int((~valid).sum())} border pixels without raw data are left out of the loss and the metrics"
     log.info("training data: %d train / %d holdout views, %d skipped, %s", len(train), len(test), len(skipped), how)
-    return TrainingData(camera, train, test, skipped, full, root, downscale, how, depth_camera)
+    return TrainingData(camera, train, test, skipped, full, root, downscale, how, depth_camera, valid)
+
+
+def valid_pixels(raw: PinholeCamera, width: int, height: int) -> NDArray[np.bool_] | None:
+    """Pixels of the undistorted image (resampled to ``width`` x ``height``) fully inside the raw image.
+
+    Undistorting a lens with distortion leaves black border pixels that no raw pixel maps to; a
+    resampled pixel counts as valid only if every capture pixel it averages is. None when the
+    camera has no distortion (every pixel is valid).
+    """
+    if not raw.has_distortion:
+        return None
+    inside = raw.undistort_image(np.full((raw.height, raw.width), 255, np.uint8), cv2.INTER_LINEAR)
+    valid = resample(inside, width, height) >= 255
+    return None if bool(valid.all()) else valid
 
 
 def _scaled_size(camera: PinholeCamera, downscale: int) -> tuple[int, int]:

@@ -20,7 +20,7 @@ import torch
 
 from brave6d.atomic import atomic_write, atomic_write_json, write_png
 from training.dataset import TrainingData, View, image_tensor
-from training.losses import psnr, ssim
+from training.losses import fill_invalid, psnr, ssim
 from training.model import GaussianModel
 
 log = logging.getLogger(__name__)
@@ -70,11 +70,13 @@ def render_view(model: GaussianModel, view: View, data: TrainingData, sh_degree:
 def evaluate_holdout(model: GaussianModel, data: TrainingData, image_dir: Path | None = None) -> HoldoutMetrics:
     """Score ``model`` on ``data.test``; with ``image_dir``, write ``<view_id>.png`` (render | GT)."""
     scores: list[ViewScore] = []
+    valid = data.valid_tensor(model.device)
     for view in data.test:
         render = render_view(model, view, data)
         gt = image_tensor(view, model.device)
+        scored = fill_invalid(gt, render, valid)  # border pixels without raw data do not score
         scores.append(ViewScore(view.index, view.view_id, view.distance_level, view.distance_m,
-                                psnr(render, gt), float(ssim(render, gt))))
+                                psnr(render, gt, valid), float(ssim(render, scored))))
         if image_dir is not None:
             side = torch.cat([render, gt], dim=1)
             write_png(image_dir / f"{view.view_id}.png",

@@ -80,7 +80,28 @@ def photometric_loss(render: Tensor, target: Tensor, ssim_lambda: float = 0.2) -
 PSNR_MAX = 100.0
 
 
-def psnr(img1: Tensor, img2: Tensor) -> float:
-    """Peak signal-to-noise ratio in dB for images in [0, 1] (capped at 100 dB)."""
-    mse = float(((img1.detach().float() - img2.detach().float()) ** 2).mean())
+def fill_invalid(target: Tensor, render: Tensor, valid: Tensor | None) -> Tensor:
+    """``target`` with its invalid pixels replaced by the (detached) render.
+
+    Undistortion leaves pixels at the image border that no raw pixel maps to (black). Replacing
+    them by the render makes their L1 term zero (no L1 gradient) and SSIM windows there compare
+    the render with itself, so what the border holds changes neither the loss nor the scores.
+    ``valid``: bool [H, W] (None: every pixel is valid).
+    """
+    if valid is None:
+        return target
+    return torch.where(valid[..., None], target, render.detach())
+
+
+def psnr(img1: Tensor, img2: Tensor, valid: Tensor | None = None) -> float:
+    """Peak signal-to-noise ratio in dB for images in [0, 1] (capped at 100 dB).
+
+    ``valid``: bool [H, W]; the mean squared error is taken over those pixels only.
+    """
+    sq = (img1.detach().float() - img2.detach().float()) ** 2
+    if valid is not None:
+        count = int(valid.sum())
+        mse = float(sq[valid].sum()) / (count * sq.shape[-1]) if count else 0.0
+    else:
+        mse = float(sq.mean())
     return -10.0 * math.log10(max(mse, 1e-10))

@@ -33,7 +33,7 @@ from brave6d.atomic import atomic_write
 from brave6d.errors import BraveError, DataError
 from brave6d.progress import progress_bar
 from training.dataset import TrainingData, image_tensor
-from training.losses import photometric_loss, psnr
+from training.losses import fill_invalid, photometric_loss, psnr
 from training.model import PARAM_NAMES, GaussianModel
 from training.presets import Preset
 from training.strategy import make_strategy
@@ -128,6 +128,7 @@ class Trainer:
         self.viewmats = torch.stack(cams).to(self.device)
         self.K = torch.from_numpy(data.camera.K).float().to(self.device)
         self.images = [torch.from_numpy(v.image).to(self.device) for v in data.train]
+        self.valid = data.valid_tensor(self.device)
 
     # ------------------------------------------------------------------ setup
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
@@ -183,6 +184,7 @@ class Trainer:
         gt = self.images[i].float() / 255.0
         render, _, info = self.render(self.viewmats[i], sh_degree_at(step, p, self.model.sh_degree))
         self.strategy.step_pre_backward(self.model.params, self.optimizers, self.strategy_state, step, info)
+        gt = fill_invalid(gt, render, self.valid)
         loss, l1, _ = photometric_loss(render, gt, p.ssim_lambda)
         loss_value = float(loss.detach())
         if not math.isfinite(loss_value):
@@ -195,7 +197,7 @@ class Trainer:
                                          packed=False)
         self._check_params("after the optimiser step")
         self.step += 1
-        value = psnr(render, gt)
+        value = psnr(render, gt, self.valid)
         self.psnr_ema = value if self.psnr_ema is None else 0.9 * self.psnr_ema + 0.1 * value
         self.loss_ema = loss_value if self.loss_ema is None else 0.9 * self.loss_ema + 0.1 * loss_value
         return {"loss": loss_value, "l1": float(l1.detach()), "psnr": value}
