@@ -38,7 +38,7 @@ def test_what_the_border_holds_changes_neither_loss_nor_gradient() -> None:
         r = render.clone().requires_grad_(True)
         loss, _, _ = photometric_loss(r, fill_invalid(gt, r, valid), 0.2)
         loss.backward()
-        results.append((float(loss), r.grad.clone(), psnr(r, gt, valid)))
+        results.append((float(loss.detach()), r.grad.clone(), psnr(r, gt, valid)))
     for loss, grad, value in results[1:]:
         assert loss == results[0][0] and value == results[0][2]
         assert torch.equal(grad, results[0][1])
