@@ -8,6 +8,7 @@ the kernel, not on calibration's internals, and never on the simulator's truth.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,13 +26,18 @@ def write_intrinsics(scene: SceneDir, camera: PinholeCamera, **details: Any) -> 
     atomic_write_json(scene.intrinsics_path, {"camera": camera.to_json(), **details})
 
 
+def read_camera_json(path: Path, key: str) -> PinholeCamera:
+    """The :class:`PinholeCamera` stored under ``key`` of the JSON file ``path``; errors name both."""
+    data = read_json(path)
+    try:
+        return PinholeCamera.from_json(data[key])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataError(f"{path}: field '{key}' is missing or malformed ({exc})") from None
+
+
 def read_intrinsics(scene: SceneDir) -> PinholeCamera:
     """The calibrated intrinsics (with distortion); errors name the file."""
-    data = read_json(scene.intrinsics_path)
-    try:
-        return PinholeCamera.from_json(data["camera"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise DataError(f"{scene.intrinsics_path}: field 'camera' is missing or malformed ({exc})") from None
+    return read_camera_json(scene.intrinsics_path, "camera")
 
 
 def write_handeye(scene: SceneDir, tcp_T_cam: NDArray[np.float64], **details: Any) -> None:

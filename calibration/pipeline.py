@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from brave6d.atomic import read_json, read_png
-from brave6d.calibration_io import write_handeye, write_intrinsics
+from brave6d.atomic import read_png
+from brave6d.calibration_io import read_camera_json, write_handeye, write_intrinsics
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError, DataError
 from brave6d.layout import CaptureLayout, FrameRecord, SceneDir
@@ -114,11 +114,7 @@ def _located(where: Path) -> Iterator[None]:
 
 
 def _capture_camera(layout: CaptureLayout) -> PinholeCamera:
-    data = read_json(layout.camera_path)
-    try:
-        return PinholeCamera.from_json(data["intrinsics"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise DataError(f"{layout.camera_path}: field 'intrinsics' is missing or malformed ({exc})") from None
+    return read_camera_json(layout.camera_path, "intrinsics")
 
 
 def detect_board_frames(scene: SceneDir, spec: SceneSpec) -> BoardFrames:
