@@ -14,7 +14,8 @@ Nothing is learned and nothing is downloaded; every step is classical geometry (
    of sight so that it covers about ``approach_box_px`` (not more: MSPD counts pixels), keeping
    the elevation; refused poses are retried 10 degrees higher or lower, then farther. A move
    that loses the target is followed by one look from ``relook_lift_deg`` higher (a splat table
-   seen obliquely can look centimetres higher than it is and swallow a small object).
+   seen obliquely can look centimetres higher than it is and swallow a small object). Then it
+   looks from ``orbit_deg`` azimuth offsets at that distance (the sides one view misses).
 3. **Registration** (:func:`register_model`): the model (a surface sample of the BOP model, mm
    -> m) is aligned to the cluster with FPFH + RANSAC from several seeds, plus 48 "resting on
    the table" hypotheses (each model axis up, 8 yaws); every hypothesis is refined with
@@ -23,6 +24,10 @@ Nothing is learned and nothing is downloaded; every step is classical geometry (
    observed free space and (weakly) tilt. Voxel sizes are fractions of the model diameter, so
    tiny objects work alike. The best hypothesis is submitted, its score as the confidence; with
    no cluster at all, a guess where the target was last seen (at first: on the optical axis).
+4. **Choice across views** (active, :func:`register_views`): every view with a cluster is
+   registered on its own; the registration whose mean score over all views (their clusters
+   and depth images, through the known camera poses) is highest is submitted, in the last
+   view's frame. A view that saw a splat artefact or a neighbour scores badly in the others.
 
 The static variant does 1 and 3 on the first view only. The agent reads from ``GET /bundle``
 only what a user of the benchmark is given about the target: its ``obj_id``, model and
@@ -67,6 +72,8 @@ class BaselineConfig:
     min_elevation_deg: float = 0.0  # also move when the target is seen from lower than this
     approach_elevation_deg: float | None = None  # None: keep the elevation (at least the minimum)
     relook_lift_deg: float = 30.0  # a move lost the target: look again from this much higher
+    orbit_deg: tuple[float, ...] = (35.0, -35.0)  # then look from these azimuth offsets too (active)
+    select_across_views: bool = True  # active: submit the view registration that best explains all views
     plane_ransac_m: float = 0.003  # inlier distance of the table plane fit
     voxel_fraction: float = 0.08  # registration voxel = fraction x diameter
     ransac_seeds: tuple[int, ...] = (0, 1, 2, 3)
@@ -360,13 +367,32 @@ class Registration:
     hypotheses: int
 
 
-def _visible(model: ModelCloud, cam_T_obj: Array) -> NDArray[np.int64]:
-    """Indices of the model points whose (outward) normal faces the camera under ``cam_T_obj``
-    (back-face culling; self-occlusion of concave parts is ignored)."""
+def _visible(model: ModelCloud, cam_T_obj: Array, eyes: Array | None = None) -> NDArray[np.int64]:
+    """Indices of the model points whose (outward) normal faces a camera under ``cam_T_obj``
+    (back-face culling; self-occlusion of concave parts is ignored). ``eyes``: camera centres
+    in the reference camera's frame, (K, 3); None: only the reference camera (the origin)."""
     R, t = cam_T_obj[:3, :3], cam_T_obj[:3, 3]
-    facing = np.einsum("ij,ij->i", model.normals @ R.T, model.points @ R.T + t) < 0.0
+    normals, pts = model.normals @ R.T, model.points @ R.T + t
+    centres = np.zeros((1, 3)) if eyes is None else np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
+    facing = np.zeros(len(pts), dtype=bool)
+    for eye in centres:
+        facing |= np.einsum("ij,ij->i", normals, pts - eye) < 0.0
     idx = np.flatnonzero(facing)
     return idx if len(idx) >= 10 else np.arange(len(model.points))
+
+
+@dataclass(frozen=True)
+class ViewEvidence:
+    """One more depth image of the target for registration: what the camera saw and where it
+    was, ``ref_T_cam``, relative to the camera whose frame the pose is estimated in."""
+
+    depth: NDArray[np.floating]
+    K: Array
+    ref_T_cam: Array
+
+    @property
+    def eye(self) -> Array:
+        return np.asarray(self.ref_T_cam, dtype=np.float64)[:3, 3]
 
 
 @dataclass
@@ -377,9 +403,12 @@ class _Scene:
     tree: Any  # scipy cKDTree of points
     plane: Plane | None
     min_height: float  # the segmentation's cut above the plane
-    depth: NDArray[np.floating]
-    K: Array
+    views: list[ViewEvidence]  # the first is the reference camera (identity)
     tol: float
+
+    @property
+    def eyes(self) -> Array:
+        return np.stack([v.eye for v in self.views])
 
 
 def _score(model: ModelCloud, T: Array, scene: _Scene) -> tuple[float, float]:
@@ -390,7 +419,7 @@ def _score(model: ModelCloud, T: Array, scene: _Scene) -> tuple[float, float]:
     free space (the depth image sees through them), and a small penalty for tilt (:func:`_tilt`)."""
     from scipy.spatial import cKDTree
 
-    vis = _visible(model, T)
+    vis = _visible(model, T, scene.eyes)
     pts = model.points[vis] @ T[:3, :3].T + T[:3, 3]
     d_scene, _ = cKDTree(pts).query(scene.points)
     covered = pts
@@ -414,20 +443,34 @@ def _tilt(T: Array, plane: Plane | None) -> float:
 
 
 def _free_space(pts: Array, scene: _Scene) -> float:
-    """Fraction of camera-frame points that the depth image sees through (observed depth farther
-    than the point by more than the tolerance); 1 when a point is behind the camera."""
-    z = pts[:, 2]
-    if np.any(z <= 1e-3):
+    """Mean over the views of the fraction of (reference-frame) points that the view's depth
+    image sees through (observed depth farther than the point by more than the tolerance); 1
+    when a point is behind the reference camera."""
+    if np.any(pts[:, 2] <= 1e-3):
         return 1.0
-    h, w = scene.depth.shape
-    u = np.rint(scene.K[0, 0] * pts[:, 0] / z + scene.K[0, 2]).astype(np.int64)
-    v = np.rint(scene.K[1, 1] * pts[:, 1] / z + scene.K[1, 2]).astype(np.int64)
+    fractions = []
+    for view in scene.views:
+        cam_T_ref = invert(view.ref_T_cam)
+        fractions.append(_seen_through(pts @ cam_T_ref[:3, :3].T + cam_T_ref[:3, 3], view, scene.tol))
+    return float(np.mean(fractions))
+
+
+def _seen_through(pts: Array, view: ViewEvidence, tol: float) -> float:
+    """Fraction of camera-frame ``pts`` in front of the camera and inside ``view``'s image whose
+    observed depth is farther than the point by more than ``tol``."""
+    z = pts[:, 2]
+    front = z > 1e-3
+    pts, z = pts[front], z[front]
+    depth, K = np.asarray(view.depth), np.asarray(view.K, dtype=np.float64)
+    h, w = depth.shape
+    u = np.rint(K[0, 0] * pts[:, 0] / z + K[0, 2]).astype(np.int64)
+    v = np.rint(K[1, 1] * pts[:, 1] / z + K[1, 2]).astype(np.int64)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    observed = scene.depth[v[inside], u[inside]]
+    observed = depth[v[inside], u[inside]]
     valid = observed > 0
     if not np.any(valid):
         return 0.0
-    return float(np.mean(observed[valid] > z[inside][valid] + scene.tol))
+    return float(np.mean(observed[valid] > z[inside][valid] + tol))
 
 
 def _icp(model: ModelCloud, T: Array, scene: _Scene, scene_pcd: Any, voxel: float) -> Array:
@@ -435,7 +478,7 @@ def _icp(model: ModelCloud, T: Array, scene: _Scene, scene_pcd: Any, voxel: floa
     the correspondence distance); returns the refined ``cam_T_obj``."""
     reg = _o3d().pipelines.registration
     for dist in (3.0 * voxel, 1.5 * voxel):
-        vis = _visible(model, T)
+        vis = _visible(model, T, scene.eyes)
         target = _cloud(model.points[vis], model.normals[vis])
         res = reg.registration_icp(scene_pcd, target, dist, invert(T), reg.TransformationEstimationPointToPlane(),
                                    reg.ICPConvergenceCriteria(max_iteration=30))
@@ -482,10 +525,11 @@ def register_model(model: ModelCloud, cluster: Cluster, plane: Plane | None, dep
                    config: BaselineConfig, min_height: float = 0.0) -> Registration:
     """The model's pose in the camera frame from the cluster (see the module docstring, step 3)."""
     with one_thread():
-        return _register(model, cluster, plane, depth, K, config, min_height)
+        view = ViewEvidence(np.asarray(depth), np.asarray(K, dtype=np.float64), np.eye(4))
+        return _register(model, cluster, plane, [view], config, min_height)
 
 
-def _register(model: ModelCloud, cluster: Cluster, plane: Plane | None, depth: NDArray[np.floating], K: Array,
+def _register(model: ModelCloud, cluster: Cluster, plane: Plane | None, views: list[ViewEvidence],
               config: BaselineConfig, min_height: float) -> Registration:
     from scipy.spatial import cKDTree
 
@@ -494,7 +538,7 @@ def _register(model: ModelCloud, cluster: Cluster, plane: Plane | None, depth: N
     if len(scene_pcd.points) < 5:
         scene_pcd = _cloud(cluster.points)
     scene_pts = np.asarray(scene_pcd.points)
-    scene = _Scene(scene_pts, cKDTree(scene_pts), plane, min_height, np.asarray(depth), np.asarray(K), 1.5 * voxel)
+    scene = _Scene(scene_pts, cKDTree(scene_pts), plane, min_height, views, 1.5 * voxel)
     hypotheses: list[tuple[str, Array]] = []
     if len(scene_pts) >= 15:
         hypotheses += [("ransac", T) for T in _ransac(model, scene_pcd, voxel, config)]
@@ -601,11 +645,18 @@ class BaselineAgent:
         else:
             target_w = _to_world(obs, _axis_anchor(*backproject(obs.depth, obs.K), obs.K))
         refused = 0
+        trail = [(obs, seen)]  # every view of the episode and what the agent made of it
         if cfg.active and seen.cluster is not None:  # never fly towards something not found
-            obs, seen, target_w, refused = self._approach(obs, seen, target_w, model, cfg)
-        if seen.cluster is not None:
+            obs, seen, target_w, refused = self._approach(obs, seen, target_w, model, cfg, trail)
+            if cfg.orbit_deg and any(p.cluster is not None for _, p in trail):
+                obs, seen, n_refused = self._orbit(obs, seen, target_w, model, cfg, trail)
+                refused += n_refused
+        registration = None
+        if cfg.active and cfg.select_across_views and sum(p.cluster is not None for _, p in trail) > 1:
+            registration = register_views(model, trail, cfg)
+        elif seen.cluster is not None:
             registration = register_model(model, seen.cluster, seen.plane, obs.depth, obs.K, cfg, seen.min_height)
-        else:  # nothing (more) found: a guess where the target was last seen (at first: the view's centre)
+        if registration is None:  # nothing (more) found: a guess where the target was last seen (at first: the view's centre)
             anchor = invert(obs.world_T_cam) @ np.append(target_w, 1.0)
             registration = Registration(_resting_pose(model, np.eye(3), anchor[None, :3], seen.plane), 0.0, 0.0,
                                         "axis", 0)
@@ -619,7 +670,7 @@ class BaselineAgent:
                               time.perf_counter() - t0, reply)
 
     def _approach(self, obs: Any, seen: Perception, target_w: Array, model: ModelCloud,
-                  cfg: BaselineConfig) -> tuple[Any, Perception, Array, int]:
+                  cfg: BaselineConfig, trail: list[tuple[Any, Perception]]) -> tuple[Any, Perception, Array, int]:
         """Move until the target covers ``min_box_px`` and is seen from at least
         ``min_elevation_deg`` above the table (step 2 of the module docstring). When a move
         loses the target, look once more from ``relook_lift_deg`` higher (a splat's table can
@@ -649,7 +700,28 @@ class BaselineAgent:
             cam_T_world = invert(obs.world_T_cam)
             prior = cam_T_world[:3, :3] @ target_w + cam_T_world[:3, 3]
             seen = perceive(obs.depth, obs.K, obs.world_T_cam, model, prior, cfg)
+            trail.append((obs, seen))
         return obs, seen, target_w, refused
+
+    def _orbit(self, obs: Any, seen: Perception, target_w: Array, model: ModelCloud, cfg: BaselineConfig,
+               trail: list[tuple[Any, Perception]]) -> tuple[Any, Perception, int]:
+        """Look at the target from ``orbit_deg`` azimuth offsets at the current distance and
+        elevation (the sides a single view misses); returns the last view and the refusals."""
+        eye = obs.world_T_cam[:3, 3]
+        dist, azimuth, elevation = float(np.linalg.norm(eye - target_w)), _azimuth(eye, target_w), \
+            _elevation_deg(eye, target_w)
+        refused = 0
+        for offset in cfg.orbit_deg:
+            step, n_refused = self._look_from(target_w, dist, azimuth + math.radians(offset), elevation, cfg)
+            refused += n_refused
+            if step is None:
+                continue
+            obs = step.observation
+            cam_T_world = invert(obs.world_T_cam)
+            seen = perceive(obs.depth, obs.K, obs.world_T_cam, model,
+                            cam_T_world[:3, :3] @ target_w + cam_T_world[:3, 3], cfg)
+            trail.append((obs, seen))
+        return obs, seen, refused
 
     def _move_towards(self, obs: Any, target_w: Array, size_px: float, model: ModelCloud,
                       cfg: BaselineConfig) -> tuple[Any, int]:
@@ -682,6 +754,36 @@ class BaselineAgent:
                     return step, refused
                 refused += 1
         return None, refused
+
+
+def register_views(model: ModelCloud, trail: list[tuple[Any, Perception]], config: BaselineConfig) -> Registration | None:
+    """The target's pose in the last view's camera frame, chosen among the registrations of
+    every view of ``trail`` (observations with ``world_T_cam``, ``depth``, ``K``, and the
+    agent's :class:`Perception`) by how well each explains all the views: its mean score over
+    the views' clusters and depth images (a registration of something the other views do not
+    see scores badly in them). None when no view has a cluster."""
+    from scipy.spatial import cKDTree
+
+    found = [(o, p) for o, p in trail if p.cluster is not None]
+    if not found:
+        return None
+    voxel = max(config.voxel_fraction * model.diameter_m, 5e-4)
+    scenes = []
+    for o, p in found:
+        pts = np.asarray(_cloud(p.cluster.points).voxel_down_sample(0.5 * voxel).points)
+        view = ViewEvidence(np.asarray(o.depth), np.asarray(o.K, dtype=np.float64), np.eye(4))
+        scenes.append((_Scene(pts, cKDTree(pts), p.plane, p.min_height, [view], 1.5 * voxel),
+                       invert(np.asarray(o.world_T_cam, dtype=np.float64))))
+    best: tuple[float, Array, Registration] | None = None
+    for o, p in found:
+        reg = register_model(model, p.cluster, p.plane, o.depth, o.K, config, p.min_height)
+        world_T_obj = np.asarray(o.world_T_cam, dtype=np.float64) @ reg.cam_T_obj
+        score = float(np.mean([_score(model, cam_T_world @ world_T_obj, scene)[0] for scene, cam_T_world in scenes]))
+        if best is None or score > best[0] + 1e-12:
+            best = (score, world_T_obj, reg)
+    score, world_T_obj, reg = best
+    ref_T_world = invert(np.asarray(trail[-1][0].world_T_cam, dtype=np.float64))
+    return Registration(ref_T_world @ world_T_obj, score, reg.fitness, reg.method, reg.hypotheses)
 
 
 def _azimuth(eye: Array, target: Array) -> float:

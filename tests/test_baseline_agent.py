@@ -21,6 +21,7 @@ from evaluation.baseline import (
     perceive,
     read_model_ply,
     register_model,
+    register_views,
     sample_model,
     static_config,
 )
@@ -126,6 +127,46 @@ def test_registration_recovers_the_pose(scale: float, distance: float) -> None:
     assert err < 0.1 * model.diameter_m * 1000, (err, reg)
     again = register_model(model, seen.cluster, seen.plane, depth, K, config, seen.min_height)
     np.testing.assert_array_equal(again.cam_T_obj, reg.cam_T_obj)  # deterministic
+
+
+def _observation(v: np.ndarray, f: np.ndarray, model, world_T_obj: np.ndarray, azimuth_deg: float,  # type: ignore[no-untyped-def]
+                 shown_T_obj: np.ndarray | None = None, noise_m: float = 0.0005):
+    """One view of the L from ``azimuth_deg`` (0.25 m, 55 deg up) and the agent's perception of it;
+    ``shown_T_obj``: where the depth image shows the object (a view that sees something else)."""
+    centre = world_T_obj[:3, 3] + np.array([0.0, 0.0, 0.012])
+    el, az = np.radians(55.0), np.radians(azimuth_deg)
+    world_T_cam = look_at(centre + 0.25 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]),
+                          centre)
+    depth = view(v, f, world_T_obj if shown_T_obj is None else shown_T_obj, world_T_cam, noise_m)
+    obs = SimpleNamespace(world_T_cam=world_T_cam, depth=depth, K=K)
+    return obs, perceive(depth, K, world_T_cam, model, None, BaselineConfig())
+
+
+@pytest.mark.parametrize("misleading_at", [0, 1, 2])
+def test_choice_across_views_outvotes_a_misleading_view(misleading_at: int) -> None:
+    """Of three views, one shows the object 6 cm from where the other two see it (a neighbour or
+    a splat artefact), and shows it most clearly (no depth noise, so its own registration scores
+    best in its own view): the submitted pose is where the other two see it, expressed in the
+    last view's frame."""
+    v, f, model, world_T_obj, _, _ = scene_case(1.0, 0.25)
+    elsewhere = world_T_obj @ make_transform(Rotation.from_euler("z", 70, degrees=True).as_matrix(), (0.06, 0.0, 0.0))
+    trail = [_observation(v, f, model, world_T_obj, az, elsewhere, 0.0) if i == misleading_at else
+             _observation(v, f, model, world_T_obj, az, None, 0.002) for i, az in enumerate((200.0, 235.0, 165.0))]
+    assert all(p.cluster is not None for _, p in trail)
+    reg = register_views(model, trail, BaselineConfig())
+    assert reg is not None and np.all(np.isfinite(reg.cam_T_obj))
+    world_T_est = trail[-1][0].world_T_cam @ reg.cam_T_obj
+    centre = (v.mean(axis=0) / 1000.0)
+    est, true, wrong = (T[:3, :3] @ centre + T[:3, 3] for T in (world_T_est, world_T_obj, elsewhere))
+    assert np.linalg.norm(est - true) < 0.5 * model.diameter_m < np.linalg.norm(est - wrong), (est, true, wrong)
+    assert reg.score > 0.3  # it explains the consistent views (scores are at most 1)
+
+
+def test_choice_across_views_needs_a_cluster() -> None:
+    v, f, model, world_T_obj, _, _ = scene_case(1.0, 0.25)
+    obs, seen = _observation(v, f, model, world_T_obj, 200.0)
+    from dataclasses import replace as dc_replace
+    assert register_views(model, [(obs, dc_replace(seen, cluster=None))], BaselineConfig()) is None
 
 
 def test_registration_falls_back_cleanly_on_a_few_points() -> None:
