@@ -370,32 +370,13 @@ class Registration:
     hypotheses: int
 
 
-def _visible(model: ModelCloud, cam_T_obj: Array, eyes: Array | None = None) -> NDArray[np.int64]:
-    """Indices of the model points whose (outward) normal faces a camera under ``cam_T_obj``
-    (back-face culling; self-occlusion of concave parts is ignored). ``eyes``: camera centres
-    in the reference camera's frame, (K, 3); None: only the reference camera (the origin)."""
+def _visible(model: ModelCloud, cam_T_obj: Array) -> NDArray[np.int64]:
+    """Indices of the model points whose (outward) normal faces the camera under ``cam_T_obj``
+    (back-face culling; self-occlusion of concave parts is ignored)."""
     R, t = cam_T_obj[:3, :3], cam_T_obj[:3, 3]
-    normals, pts = model.normals @ R.T, model.points @ R.T + t
-    centres = np.zeros((1, 3)) if eyes is None else np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
-    facing = np.zeros(len(pts), dtype=bool)
-    for eye in centres:
-        facing |= np.einsum("ij,ij->i", normals, pts - eye) < 0.0
+    facing = np.einsum("ij,ij->i", model.normals @ R.T, model.points @ R.T + t) < 0.0
     idx = np.flatnonzero(facing)
     return idx if len(idx) >= 10 else np.arange(len(model.points))
-
-
-@dataclass(frozen=True)
-class ViewEvidence:
-    """One more depth image of the target for registration: what the camera saw and where it
-    was, ``ref_T_cam``, relative to the camera whose frame the pose is estimated in."""
-
-    depth: NDArray[np.floating]
-    K: Array
-    ref_T_cam: Array
-
-    @property
-    def eye(self) -> Array:
-        return np.asarray(self.ref_T_cam, dtype=np.float64)[:3, 3]
 
 
 @dataclass
@@ -406,12 +387,9 @@ class _Scene:
     tree: Any  # scipy cKDTree of points
     plane: Plane | None
     min_height: float  # the segmentation's cut above the plane
-    views: list[ViewEvidence]  # the first is the reference camera (identity)
+    depth: NDArray[np.floating]
+    K: Array
     tol: float
-
-    @property
-    def eyes(self) -> Array:
-        return np.stack([v.eye for v in self.views])
 
 
 def _score(model: ModelCloud, T: Array, scene: _Scene) -> tuple[float, float]:
@@ -422,7 +400,7 @@ def _score(model: ModelCloud, T: Array, scene: _Scene) -> tuple[float, float]:
     free space (the depth image sees through them), and a small penalty for tilt (:func:`_tilt`)."""
     from scipy.spatial import cKDTree
 
-    vis = _visible(model, T, scene.eyes)
+    vis = _visible(model, T)
     pts = model.points[vis] @ T[:3, :3].T + T[:3, 3]
     d_scene, _ = cKDTree(pts).query(scene.points)
     covered = pts
@@ -446,34 +424,20 @@ def _tilt(T: Array, plane: Plane | None) -> float:
 
 
 def _free_space(pts: Array, scene: _Scene) -> float:
-    """Mean over the views of the fraction of (reference-frame) points that the view's depth
-    image sees through (observed depth farther than the point by more than the tolerance); 1
-    when a point is behind the reference camera."""
-    if np.any(pts[:, 2] <= 1e-3):
-        return 1.0
-    fractions = []
-    for view in scene.views:
-        cam_T_ref = invert(view.ref_T_cam)
-        fractions.append(_seen_through(pts @ cam_T_ref[:3, :3].T + cam_T_ref[:3, 3], view, scene.tol))
-    return float(np.mean(fractions))
-
-
-def _seen_through(pts: Array, view: ViewEvidence, tol: float) -> float:
-    """Fraction of camera-frame ``pts`` in front of the camera and inside ``view``'s image whose
-    observed depth is farther than the point by more than ``tol``."""
+    """Fraction of camera-frame points that the depth image sees through (observed depth farther
+    than the point by more than the tolerance); 1 when a point is behind the camera."""
     z = pts[:, 2]
-    front = z > 1e-3
-    pts, z = pts[front], z[front]
-    depth, K = np.asarray(view.depth), np.asarray(view.K, dtype=np.float64)
-    h, w = depth.shape
-    u = np.rint(K[0, 0] * pts[:, 0] / z + K[0, 2]).astype(np.int64)
-    v = np.rint(K[1, 1] * pts[:, 1] / z + K[1, 2]).astype(np.int64)
+    if np.any(z <= 1e-3):
+        return 1.0
+    h, w = scene.depth.shape
+    u = np.rint(scene.K[0, 0] * pts[:, 0] / z + scene.K[0, 2]).astype(np.int64)
+    v = np.rint(scene.K[1, 1] * pts[:, 1] / z + scene.K[1, 2]).astype(np.int64)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    observed = depth[v[inside], u[inside]]
+    observed = scene.depth[v[inside], u[inside]]
     valid = observed > 0
     if not np.any(valid):
         return 0.0
-    return float(np.mean(observed[valid] > z[inside][valid] + tol))
+    return float(np.mean(observed[valid] > z[inside][valid] + scene.tol))
 
 
 def _icp(model: ModelCloud, T: Array, scene: _Scene, scene_pcd: Any, voxel: float) -> Array:
@@ -481,7 +445,7 @@ def _icp(model: ModelCloud, T: Array, scene: _Scene, scene_pcd: Any, voxel: floa
     the correspondence distance); returns the refined ``cam_T_obj``."""
     reg = _o3d().pipelines.registration
     for dist in (3.0 * voxel, 1.5 * voxel):
-        vis = _visible(model, T, scene.eyes)
+        vis = _visible(model, T)
         target = _cloud(model.points[vis], model.normals[vis])
         res = reg.registration_icp(scene_pcd, target, dist, invert(T), reg.TransformationEstimationPointToPlane(),
                                    reg.ICPConvergenceCriteria(max_iteration=30))
@@ -528,20 +492,32 @@ def register_model(model: ModelCloud, cluster: Cluster, plane: Plane | None, dep
                    config: BaselineConfig, min_height: float = 0.0) -> Registration:
     """The model's pose in the camera frame from the cluster (see the module docstring, step 3)."""
     with one_thread():
-        view = ViewEvidence(np.asarray(depth), np.asarray(K, dtype=np.float64), np.eye(4))
-        return _register(model, cluster, plane, [view], config, min_height)
+        voxel = _voxel_size(model, config)
+        scene, scene_pcd = _view_scene(cluster, plane, min_height, depth, K, voxel)
+        return _register(model, scene, scene_pcd, config, voxel)
 
 
-def _register(model: ModelCloud, cluster: Cluster, plane: Plane | None, views: list[ViewEvidence],
-              config: BaselineConfig, min_height: float) -> Registration:
+def _voxel_size(model: ModelCloud, config: BaselineConfig) -> float:
+    """Registration voxel (m): a fraction of the model diameter, so tiny objects work alike."""
+    return max(config.voxel_fraction * model.diameter_m, 5e-4)
+
+
+def _view_scene(cluster: Cluster, plane: Plane | None, min_height: float, depth: NDArray[np.floating], K: Array,
+                voxel: float) -> tuple[_Scene, Any]:
+    """What registration and scoring need about one view: the cluster thinned to half a voxel
+    (all its points when that leaves fewer than 5) as a :class:`_Scene` and an Open3D cloud."""
     from scipy.spatial import cKDTree
 
-    voxel = max(config.voxel_fraction * model.diameter_m, 5e-4)
     scene_pcd = _cloud(cluster.points).voxel_down_sample(0.5 * voxel)
     if len(scene_pcd.points) < 5:
         scene_pcd = _cloud(cluster.points)
     scene_pts = np.asarray(scene_pcd.points)
-    scene = _Scene(scene_pts, cKDTree(scene_pts), plane, min_height, views, 1.5 * voxel)
+    scene = _Scene(scene_pts, cKDTree(scene_pts), plane, min_height, np.asarray(depth), np.asarray(K), 1.5 * voxel)
+    return scene, scene_pcd
+
+
+def _register(model: ModelCloud, scene: _Scene, scene_pcd: Any, config: BaselineConfig, voxel: float) -> Registration:
+    scene_pts, plane = scene.points, scene.plane
     hypotheses: list[tuple[str, Array]] = []
     if len(scene_pts) >= 15:
         hypotheses += [("ransac", T) for T in _ransac(model, scene_pcd, voxel, config)]
@@ -651,7 +627,7 @@ class BaselineAgent:
         trail = [(obs, seen)]  # every view of the episode and what the agent made of it
         if cfg.active and seen.cluster is not None:  # never fly towards something not found
             obs, seen, target_w, refused = self._approach(obs, seen, target_w, model, cfg, trail)
-            if cfg.orbit_deg and any(p.cluster is not None for _, p in trail):
+            if cfg.orbit_deg:
                 obs, seen, n_refused = self._orbit(obs, seen, target_w, model, cfg, trail)
                 refused += n_refused
         registration = None
@@ -700,9 +676,7 @@ class BaselineAgent:
             if step is None:
                 break
             obs = step.observation
-            cam_T_world = invert(obs.world_T_cam)
-            prior = cam_T_world[:3, :3] @ target_w + cam_T_world[:3, 3]
-            seen = perceive(obs.depth, obs.K, obs.world_T_cam, model, prior, cfg)
+            seen = _perceive_near(obs, target_w, model, cfg)
             trail.append((obs, seen))
         return obs, seen, target_w, refused
 
@@ -720,9 +694,7 @@ class BaselineAgent:
             if step is None:
                 continue
             obs = step.observation
-            cam_T_world = invert(obs.world_T_cam)
-            seen = perceive(obs.depth, obs.K, obs.world_T_cam, model,
-                            cam_T_world[:3, :3] @ target_w + cam_T_world[:3, 3], cfg)
+            seen = _perceive_near(obs, target_w, model, cfg)
             trail.append((obs, seen))
         return obs, seen, refused
 
@@ -765,35 +737,39 @@ def register_views(model: ModelCloud, trail: list[tuple[Any, Perception]], confi
     agent's :class:`Perception`) by how well each explains all the views: its mean score over
     the views' clusters and depth images (a registration of something the other views do not
     see scores badly in them). None when no view has a cluster."""
-    from scipy.spatial import cKDTree
-
     found = [(o, p) for o, p in trail if p.cluster is not None]
     if not found:
         return None
-    voxel = max(config.voxel_fraction * model.diameter_m, 5e-4)
-    scenes = []
-    for o, p in found:
-        pts = np.asarray(_cloud(p.cluster.points).voxel_down_sample(0.5 * voxel).points)
-        view = ViewEvidence(np.asarray(o.depth), np.asarray(o.K, dtype=np.float64), np.eye(4))
-        scenes.append((_Scene(pts, cKDTree(pts), p.plane, p.min_height, [view], 1.5 * voxel),
-                       invert(np.asarray(o.world_T_cam, dtype=np.float64))))
-    best: tuple[float, Array, Registration] | None = None
-    for o, p in found:
-        reg = register_model(model, p.cluster, p.plane, o.depth, o.K, config, p.min_height)
-        world_T_obj = np.asarray(o.world_T_cam, dtype=np.float64) @ reg.cam_T_obj
-        score = float(np.mean([_score(model, cam_T_world @ world_T_obj, scene)[0] for scene, cam_T_world in scenes]))
-        if best is None or score > best[0] + 1e-12:
-            best = (score, world_T_obj, reg)
-    score, world_T_obj, reg = best
-    ref_T_world = invert(np.asarray(trail[-1][0].world_T_cam, dtype=np.float64))
-    cam_T_obj = ref_T_world @ world_T_obj
-    if config.refine_in_final_view and trail[-1][1].cluster is not None:  # scored in this view: fit its depth
-        last, _ = scenes[-1]
-        with one_thread():
-            cam_T_obj = _icp(model, cam_T_obj, last, _cloud(last.points), voxel)
-        score = float(np.mean([_score(model, cam_T_world @ invert(ref_T_world) @ cam_T_obj, sc)[0]
-                               for sc, cam_T_world in scenes]))
+    with one_thread():
+        voxel = _voxel_size(model, config)
+        scenes = [_view_scene(p.cluster, p.plane, p.min_height, o.depth, o.K, voxel) for o, p in found]
+        cams_T_world = [invert(np.asarray(o.world_T_cam, dtype=np.float64)) for o, _ in found]
+
+        def mean_score(world_T_obj: Array) -> float:
+            return float(np.mean([_score(model, cam_T_world @ world_T_obj, scene)[0]
+                                  for (scene, _), cam_T_world in zip(scenes, cams_T_world)]))
+
+        best: tuple[float, Array, Registration] | None = None
+        for (o, _), (scene, scene_pcd) in zip(found, scenes):
+            reg = _register(model, scene, scene_pcd, config, voxel)
+            world_T_obj = np.asarray(o.world_T_cam, dtype=np.float64) @ reg.cam_T_obj
+            score = mean_score(world_T_obj)
+            if best is None or score > best[0] + 1e-12:
+                best = (score, world_T_obj, reg)
+        score, world_T_obj, reg = best
+        world_T_ref = np.asarray(trail[-1][0].world_T_cam, dtype=np.float64)
+        cam_T_obj = invert(world_T_ref) @ world_T_obj
+        if config.refine_in_final_view and trail[-1][1].cluster is not None:  # scored in this view: fit its depth
+            last, last_pcd = scenes[-1]
+            cam_T_obj = _icp(model, cam_T_obj, last, last_pcd, voxel)
+            score = mean_score(world_T_ref @ cam_T_obj)
     return Registration(cam_T_obj, score, reg.fitness, reg.method, reg.hypotheses)
+
+
+def _perceive_near(obs: Any, target_w: Array, model: ModelCloud, cfg: BaselineConfig) -> Perception:
+    """:func:`perceive` in ``obs`` with the prior where the target was last seen (``target_w``, world)."""
+    cam_T_world = invert(obs.world_T_cam)
+    return perceive(obs.depth, obs.K, obs.world_T_cam, model, cam_T_world[:3, :3] @ target_w + cam_T_world[:3, 3], cfg)
 
 
 def _azimuth(eye: Array, target: Array) -> float:

@@ -5,6 +5,7 @@ views with a known answer, then both variants end to end against a live server o
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -165,8 +166,7 @@ def test_choice_across_views_outvotes_a_misleading_view(misleading_at: int) -> N
 def test_choice_across_views_needs_a_cluster() -> None:
     v, f, model, world_T_obj, _, _ = scene_case(1.0, 0.25)
     obs, seen = _observation(v, f, model, world_T_obj, 200.0)
-    from dataclasses import replace as dc_replace
-    assert register_views(model, [(obs, dc_replace(seen, cluster=None))], BaselineConfig()) is None
+    assert register_views(model, [(obs, replace(seen, cluster=None))], BaselineConfig()) is None
 
 
 def test_registration_falls_back_cleanly_on_a_few_points() -> None:
