@@ -950,12 +950,14 @@ _FWD_FIELDS = 6
 
 @njit(cache=True, error_model="numpy", fastmath=_PIXEL_MATH)
 def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-              out, t_final, last_ids, bwd_costs, st):
+              out, t_final, last_ids, bwd_costs, st, row_done):
     """Composite one tile front to back, Gaussian by Gaussian.
 
     Each reachable row is a fixed 16-lane, branch-free loop that LLVM vectorises, applying
     the per-pixel rules of gsplat's forward kernel: alpha = min(0.999, o exp(-sigma)),
     skip if sigma < 0 or alpha < 1/255, stop (exclusive) when T would drop to <= 1e-4.
+    A row whose pixels have all stopped is skipped (``row_done`` counts them per row): its
+    lanes would change nothing.
     """
     c, x0, y0, x1, y1 = _tile_box(tile, tile_w, tile_h, width, height)
     none = _int32_bits_as_float32(np.int32(-1))
@@ -970,7 +972,9 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         st[p + _F_A2] = _F0
         st[p + _F_A3] = _F0
         st[p + _F_LAST] = none
-    n_pix = (x1 - x0) * (y1 - y0)
+    row_done[:] = 0
+    row_w = x1 - x0
+    n_pix = row_w * (y1 - y0)
     n_done = 0
     x0c = _F32(x0) + _F05
     for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
@@ -991,6 +995,8 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         ylo, yhi, row_test = _visit(rec, g, x0, y0, x1, y1)
         kbits = _int32_bits_as_float32(np.int32(k))
         for y in range(ylo, yhi + 1):
+            if row_done[y - y0] >= row_w:
+                continue  # every pixel of this row has stopped
             dy = my - (_F32(y) + _F05)
             if row_test and _row_misses_tile(rec, g, dy, x0, x1):
                 continue
@@ -1016,6 +1022,7 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
                 st[p + _F_T] = next_t if use else (-t_cur if stop else t_cur)
                 st[p + _F_LAST] = kbits if use else l_cur
                 n_stop += np.int32(stop)
+            row_done[y - y0] += n_stop
             n_done += n_stop
         if n_done >= n_pix:
             break
@@ -1055,10 +1062,11 @@ def rasterize_fwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
     counter = np.zeros(1, np.int64)
     for _w in prange(n_workers):
         st = np.empty(_FWD_FIELDS * _TP, np.float32)
+        row_done = np.empty(_TS, np.int64)
         i = _atomic_fetch_add(counter, 1)
         while i < n_tiles:
             _fwd_tile(order[i], rec, backgrounds, width, height, tile_w, tile_h,
-                      tile_offsets, flatten_ids, out, t_final, last_ids, bwd_costs, st)
+                      tile_offsets, flatten_ids, out, t_final, last_ids, bwd_costs, st, row_done)
             i = _atomic_fetch_add(counter, 1)
     return out, t_final, last_ids, bwd_costs
 
@@ -1084,7 +1092,7 @@ _L0, _L1, _L2, _L3, _L4, _L5, _L6, _L7, _L8, _L9, _L10, _L11 = [
 
 @njit(cache=True, error_model="numpy", fastmath=_PIXEL_MATH)
 def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-              t_final, last_ids, v_out, v_alpha, isect_grads, st, last, lanes, with_abs):
+              t_final, last_ids, v_out, v_alpha, isect_grads, st, last, row_last, lanes, with_abs):
     """Backward of one tile by reverse traversal, 16-lane rows like :func:`_fwd_tile`.
 
     Per-pixel rules follow gsplat's backward kernel: T is recovered by dividing by
@@ -1094,10 +1102,12 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
     of the tile gets a row, zero if it contributes nothing).  ``error_model="numpy"`` drops
     numba's zero-division check (1 - alpha >= 0.001 here), which would block vectorisation.
     ``with_abs`` is None or an (unused) array: numba prunes the absolute-gradient sums at
-    compile time when it is None.
+    compile time when it is None.  A row is skipped for intersections behind all of its
+    pixels' last contributors (``row_last``): its lanes would add nothing.
     """
     c, x0, y0, x1, y1 = _tile_box(tile, tile_w, tile_h, width, height)
     max_last = np.int32(-1)
+    row_last[:] = -1
     for i in range(_TP):
         p = np.uint64(i)
         ly = i // _TS
@@ -1125,6 +1135,7 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
             lk = last_ids[c, y, x]
             last[p] = lk
             max_last = max(max_last, lk)
+            row_last[ly] = max(row_last[ly], lk)
         else:  # lanes outside the image never match (last = -1) and contribute nothing
             st[p + _O_T] = _F1
             st[p + _O_W0] = _F0
@@ -1159,6 +1170,8 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         k32 = np.int32(k)
         touched = False
         for y in range(ylo, yhi + 1):
+            if k32 > row_last[y - y0]:
+                continue  # behind every pixel's last contributor in this row
             dy = my - (_F32(y) + _F05)
             if row_test and _row_misses_tile(rec, g, dy, x0, x1):
                 continue
@@ -1246,12 +1259,13 @@ def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
     for _w in prange(n_workers):
         st = np.empty(_BWD_FIELDS * _TP, np.float32)
         last = np.empty(_TP, np.int32)
+        row_last = np.empty(_TS, np.int32)
         lanes = np.empty(_N_GRAD * _TS, np.float32)
         i = _atomic_fetch_add(counter, 1)
         while i < n_tiles:
             _bwd_tile(order[i], rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
                       flatten_ids, t_final, last_ids, v_out, v_alpha, isect_grads, st, last,
-                      lanes, with_abs)
+                      row_last, lanes, with_abs)
             i = _atomic_fetch_add(counter, 1)
     total = np.zeros((n_cg, _N_GRAD), np.float32)
     for cg in prange(n_cg):
