@@ -175,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="do not set OMP_WAIT_POLICY=PASSIVE (see the module docstring)")
     args = parser.parse_args(argv)
     repeats = args.repeats or (2 if args.quick else 7)
-    ref_repeats = args.reference_repeats or (1 if args.quick else 3)
+    ref_repeats = args.reference_repeats or (1 if args.quick else 5)
 
     import numba
 

@@ -12,10 +12,12 @@ Nothing is learned and nothing is downloaded; every step is classical geometry (
 2. **Approach** (active variant only, and only towards a target it found): while the cluster
    covers less than ``min_box_px`` (geometric mean of its pixel box), teleport along the line
    of sight so that it covers about ``approach_box_px`` (not more: MSPD counts pixels), keeping
-   the elevation; refused poses are retried 10 degrees higher or lower, then farther. A move
-   that loses the target is followed by one look from ``relook_lift_deg`` higher (a splat table
-   seen obliquely can look centimetres higher than it is and swallow a small object). Then it
-   looks from ``orbit_deg`` azimuth offsets at that distance (the sides one view misses).
+   the elevation, but never nearer than the standoff (by default the bundle's nearest capture
+   ring: closer than any training view a splat shows artefacts, not detail, so a small object may
+   stay below ``min_box_px``); refused poses are retried 10 degrees higher or lower, then farther.
+   A move that loses the target is followed by one look from ``relook_lift_deg`` higher (a splat
+   table seen obliquely can look centimetres higher than it is and swallow a small object). Then
+   it looks from ``orbit_deg`` azimuth offsets at that distance (the sides one view misses).
 3. **Registration** (:func:`register_model`): the model (a surface sample of the BOP model, mm
    -> m) is aligned to the cluster with FPFH + RANSAC from several seeds, plus 48 "resting on
    the table" hypotheses (each model axis up, 8 yaws); every hypothesis is refined with
@@ -24,12 +26,16 @@ Nothing is learned and nothing is downloaded; every step is classical geometry (
    observed free space and (weakly) tilt. Voxel sizes are fractions of the model diameter, so
    tiny objects work alike. The best hypothesis is submitted, its score as the confidence; with
    no cluster at all, a guess where the target was last seen (at first: on the optical axis).
-4. **Choice across views** (active, :func:`register_views`): every view with a cluster is
-   registered on its own; the registration whose mean score over all views (their clusters
-   and depth images, through the known camera poses) is highest is submitted, in the last
-   view's frame, after a last ICP onto that view's cluster (the pose is scored in that view, and
-   a splat's depth differs a little between views). A view that saw a splat artefact or a
-   neighbour scores badly in the others.
+4. **Back to the start** (active, ``report_from_start``): the agent returns to its start pose
+   (one more adjustment) and submits there. The start lies on the capture rings, where the splat
+   was trained and its depth is trustworthy; the final view is where VSD (on that depth) and
+   MSPD (in pixels) are scored.
+5. **Choice across views** (active, :func:`register_views`): every view with a cluster is
+   registered on its own and each view is weighted by how well its own best registration
+   explains it (a view of a splat artefact or of a neighbour votes less). The start view's own
+   registration is submitted unless another view's registration, refined by ICP in the start
+   view, explains all the views better by more than ``switch_margin`` (reliability-weighted mean
+   score).
 
 The static variant does 1 and 3 on the first view only. The agent reads from ``GET /bundle``
 only what a user of the benchmark is given about the target: its ``obj_id``, model and
@@ -60,6 +66,7 @@ Array = NDArray[np.float64]
 ACTIVE_AGENT = "baseline-active"
 STATIC_AGENT = "baseline-static"
 UPRIGHT_WEIGHT = 0.1  # weight of the "resting on a face" prior in the registration score
+DEFAULT_STANDOFF_M = 0.10  # nearest approach when neither the config nor the bundle says
 
 
 @dataclass(frozen=True)
@@ -70,13 +77,16 @@ class BaselineConfig:
     min_box_px: float = 32.0  # move while the target's box (geometric mean of w, h) is smaller
     approach_box_px: float = 40.0  # ... aiming for about this size (MSPD, in pixels, punishes large boxes)
     max_moves: int = 4
-    min_distance_m: float = 0.10  # never nearer than this (nor than 3 model diameters)
+    min_distance_m: float | None = None  # never nearer (nor than 3 diameters); None: the nearest capture ring
     min_elevation_deg: float = 0.0  # also move when the target is seen from lower than this
     approach_elevation_deg: float | None = None  # None: keep the elevation (at least the minimum)
     relook_lift_deg: float = 30.0  # a move lost the target: look again from this much higher
     orbit_deg: tuple[float, ...] = (35.0, -35.0)  # then look from these azimuth offsets too (active)
-    select_across_views: bool = True  # active: submit the view registration that best explains all views
-    refine_in_final_view: bool = True  # ... then ICP it onto the last view's cluster (where it is scored)
+    select_across_views: bool = True  # active: weigh every view's registration against all views
+    view_weighting: str = "reliability"  # "mean": every view alike; "reliability": by its own best score
+    report_from_start: bool = True  # active: go back to the start view to submit (step 5)
+    switch_margin: float | None = 0.05  # keep the final view's own fit unless outvoted by this; None: best mean
+    refine_in_final_view: bool = True  # switch_margin None: ICP the chosen pose onto the final view's cluster
     plane_ransac_m: float = 0.003  # inlier distance of the table plane fit
     voxel_fraction: float = 0.08  # registration voxel = fraction x diameter
     ransac_seeds: tuple[int, ...] = (0, 1, 2, 3)
@@ -597,6 +607,15 @@ class BaselineAgent:
 
 
 
+    def standoff_m(self, cfg: BaselineConfig) -> float:
+        """The nearest the agent goes: ``cfg.min_distance_m``, or by default the nearest capture
+        ring of the bundle (``GET /bundle`` ``start.distances_m``): a splat renders artefacts where
+        it was never trained, so a closer look shows less, not more. 0.10 m if the bundle lists none."""
+        if cfg.min_distance_m is not None:
+            return float(cfg.min_distance_m)
+        rings = (self.bundle_info.get("start") or {}).get("distances_m") or []
+        return float(min(rings)) if rings else DEFAULT_STANDOFF_M
+
     def model(self, obj_id: int) -> ModelCloud:
         """The target's model cloud from the server (``GET /bundle`` diameter, model PLY)."""
         if obj_id not in self._models:
@@ -630,9 +649,16 @@ class BaselineAgent:
             if cfg.orbit_deg:
                 obs, seen, n_refused = self._orbit(obs, seen, target_w, model, cfg, trail)
                 refused += n_refused
+        if cfg.active and cfg.report_from_start and len(trail) > 1 and trail[0][1].cluster is not None:
+            step_back, n_refused = self._return_to(trail[0][0].world_T_cam)
+            refused += n_refused
+            if step_back is not None:  # the same view as at the start: the same perception (no prior to bias it)
+                obs, seen = step_back.observation, trail[0][1]
+                if not np.array_equal(obs.depth, trail[0][0].depth):
+                    seen = _perceive_near(obs, target_w, model, cfg)
         registration = None
         if cfg.active and cfg.select_across_views and sum(p.cluster is not None for _, p in trail) > 1:
-            registration = register_views(model, trail, cfg)
+            registration = register_views(model, trail, cfg, final=(obs, seen))
         elif seen.cluster is not None:
             registration = register_model(model, seen.cluster, seen.plane, obs.depth, obs.K, cfg, seen.min_height)
         if registration is None:  # nothing (more) found: a guess where the target was last seen (at first: the view's centre)
@@ -701,11 +727,11 @@ class BaselineAgent:
     def _move_towards(self, obs: Any, target_w: Array, size_px: float, model: ModelCloud,
                       cfg: BaselineConfig) -> tuple[Any, int]:
         """Look at ``target_w`` from the distance where it covers about ``approach_box_px`` (never
-        farther than now, never nearer than ``min_distance_m`` or 3 diameters), from the same
+        farther than now, never nearer than :meth:`standoff_m` or 3 diameters), from the same
         azimuth and elevation (or ``approach_elevation_deg``, at least ``min_elevation_deg``)."""
         eye = obs.world_T_cam[:3, 3]
         dist = float(np.linalg.norm(eye - target_w))
-        near = max(cfg.min_distance_m, 3.0 * model.diameter_m)
+        near = max(self.standoff_m(cfg), 3.0 * model.diameter_m)
         goal = max(dist * min(size_px / cfg.approach_box_px, 1.0), near)
         if goal > 0.9 * dist:  # too little to gain for an adjustment (or it would back off)
             return None, 0
@@ -713,6 +739,12 @@ class BaselineAgent:
         if elevation is None:
             elevation = max(_elevation_deg(eye, target_w), cfg.min_elevation_deg)
         return self._look_from(target_w, goal, _azimuth(eye, target_w), elevation, cfg)
+
+    def _return_to(self, world_T_cam: Array) -> tuple[Any, int]:
+        """Teleport back to ``world_T_cam`` (a pose the episode already held, so normally free);
+        returns the accepted step (None if refused) and the number of refusals."""
+        step = self.client.set_pose(np.asarray(world_T_cam, dtype=np.float64))
+        return (step, 0) if step.accepted else (None, 1)
 
     def _look_from(self, target_w: Array, distance: float, azimuth: float, elevation_deg: float,
                    cfg: BaselineConfig) -> tuple[Any, int]:
@@ -731,39 +763,73 @@ class BaselineAgent:
         return None, refused
 
 
-def register_views(model: ModelCloud, trail: list[tuple[Any, Perception]], config: BaselineConfig) -> Registration | None:
-    """The target's pose in the last view's camera frame, chosen among the registrations of
-    every view of ``trail`` (observations with ``world_T_cam``, ``depth``, ``K``, and the
-    agent's :class:`Perception`) by how well each explains all the views: its mean score over
-    the views' clusters and depth images (a registration of something the other views do not
-    see scores badly in them). None when no view has a cluster."""
+def register_views(model: ModelCloud, trail: list[tuple[Any, Perception]], config: BaselineConfig,
+                   final: tuple[Any, Perception] | None = None) -> Registration | None:
+    """The target's pose in the final view's camera frame (``final``, default the last view of
+    ``trail``) from the registrations of every view of ``trail`` (observations with
+    ``world_T_cam``, ``depth``, ``K``, and the agent's :class:`Perception`), each judged by its
+    weighted mean score over all the views' clusters and depth images (:func:`view_weights`; a
+    registration of something the other views do not see scores badly in them).
+
+    With ``config.switch_margin`` (and a cluster in the final view) the final view's own
+    registration is submitted unless another view's registration, refined by ICP in the final
+    view, beats its weighted mean score by more than the margin: the final view is where VSD and
+    MSPD are scored, and a pose that fits it is kept unless the other views clearly outvote it.
+    Without a margin the registration with the best weighted mean is submitted, ICP-refined in
+    the final view when ``config.refine_in_final_view``. None when no view has a cluster."""
     found = [(o, p) for o, p in trail if p.cluster is not None]
     if not found:
         return None
+    final_obs, final_seen = final if final is not None else trail[-1]
     with one_thread():
         voxel = _voxel_size(model, config)
         scenes = [_view_scene(p.cluster, p.plane, p.min_height, o.depth, o.K, voxel) for o, p in found]
         cams_T_world = [invert(np.asarray(o.world_T_cam, dtype=np.float64)) for o, _ in found]
+        regs = [_register(model, scene, scene_pcd, config, voxel) for scene, scene_pcd in scenes]
+        weights = view_weights([r.score for r in regs], config.view_weighting)
+        world_T_ref = np.asarray(final_obs.world_T_cam, dtype=np.float64)
 
-        def mean_score(world_T_obj: Array) -> float:
-            return float(np.mean([_score(model, cam_T_world @ world_T_obj, scene)[0]
-                                  for (scene, _), cam_T_world in zip(scenes, cams_T_world)]))
+        def mean_score(cam_T_obj: Array) -> float:  # a pose in the final view's frame
+            world_T_obj = world_T_ref @ cam_T_obj
+            return float(np.dot(weights, [_score(model, cam_T_world @ world_T_obj, scene)[0]
+                                          for (scene, _), cam_T_world in zip(scenes, cams_T_world)]))
 
-        best: tuple[float, Array, Registration] | None = None
-        for (o, _), (scene, scene_pcd) in zip(found, scenes):
-            reg = _register(model, scene, scene_pcd, config, voxel)
-            world_T_obj = np.asarray(o.world_T_cam, dtype=np.float64) @ reg.cam_T_obj
-            score = mean_score(world_T_obj)
-            if best is None or score > best[0] + 1e-12:
-                best = (score, world_T_obj, reg)
-        score, world_T_obj, reg = best
-        world_T_ref = np.asarray(trail[-1][0].world_T_cam, dtype=np.float64)
-        cam_T_obj = invert(world_T_ref) @ world_T_obj
-        if config.refine_in_final_view and trail[-1][1].cluster is not None:  # scored in this view: fit its depth
-            last, last_pcd = scenes[-1]
-            cam_T_obj = _icp(model, cam_T_obj, last, last_pcd, voxel)
-            score = mean_score(world_T_ref @ cam_T_obj)
+        in_final = [invert(world_T_ref) @ np.asarray(o.world_T_cam, dtype=np.float64) @ r.cam_T_obj
+                    for (o, _), r in zip(found, regs)]
+        final_scene = None
+        if final_seen.cluster is not None:
+            final_scene = _view_scene(final_seen.cluster, final_seen.plane, final_seen.min_height,
+                                      final_obs.depth, final_obs.K, voxel)
+        if config.switch_margin is not None and final_scene is not None:
+            own = _register(model, *final_scene, config, voxel)
+            keep = (mean_score(own.cam_T_obj), own.cam_T_obj, own)
+            challengers = [(mean_score(T), T, r) for T, r in
+                           ((_icp(model, T0, *final_scene, voxel), r) for T0, r in zip(in_final, regs))]
+            best = max(challengers, key=lambda c: c[0])
+            score, cam_T_obj, reg = best if best[0] > keep[0] + config.switch_margin else keep
+            return Registration(cam_T_obj, score, reg.fitness, reg.method, reg.hypotheses)
+        score, cam_T_obj, reg = max(((mean_score(T), T, r) for T, r in zip(in_final, regs)), key=lambda c: c[0])
+        if config.refine_in_final_view and final_scene is not None:  # scored in this view: fit its depth
+            cam_T_obj = _icp(model, cam_T_obj, *final_scene, voxel)
+            score = mean_score(cam_T_obj)
     return Registration(cam_T_obj, score, reg.fitness, reg.method, reg.hypotheses)
+
+
+def view_weights(own_scores: list[float], weighting: str) -> Array:
+    """Weights (summing to 1) of the views in :func:`register_views`'s mean score. "mean": all
+    alike. "reliability": each view by the score of its own best registration (clipped at 0): a
+    view that no model pose explains well (a splat artefact or a neighbour taken for the target)
+    votes less, one that none explains at all not at all. All alike if none is positive."""
+    n = len(own_scores)
+    if weighting not in ("mean", "reliability"):
+        raise BraveError(f"baseline: view_weighting must be 'mean' or 'reliability', got {weighting!r}")
+    w = np.clip(np.asarray(own_scores, dtype=np.float64), 0.0, None) if weighting == "reliability" else np.ones(n)
+    w = np.where(np.isfinite(w), w, 0.0)
+    top = float(w.max(initial=0.0))
+    if not top > 0:
+        return np.full(n, 1.0 / n)
+    w = w / top  # first to at most 1: the sum of huge scores must not overflow
+    return w / float(w.sum())
 
 
 def _perceive_near(obs: Any, target_w: Array, model: ModelCloud, cfg: BaselineConfig) -> Perception:

@@ -12,7 +12,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+
+from brave6d.errors import BraveError
 
 from brave6d.transforms import invert, look_at, make_transform
 from evaluation.baseline import (
@@ -25,6 +29,7 @@ from evaluation.baseline import (
     register_views,
     sample_model,
     static_config,
+    view_weights,
 )
 from evaluation.bop_metrics import identity_symmetries, mssd
 from evaluation.episodes import read_episodes
@@ -143,24 +148,87 @@ def _observation(v: np.ndarray, f: np.ndarray, model, world_T_obj: np.ndarray, a
     return obs, perceive(depth, K, world_T_cam, model, None, BaselineConfig())
 
 
+@pytest.mark.parametrize("switch_margin", [0.05, None], ids=["keep-unless-outvoted", "best-mean"])
 @pytest.mark.parametrize("misleading_at", [0, 1, 2])
-def test_choice_across_views_outvotes_a_misleading_view(misleading_at: int) -> None:
+def test_choice_across_views_outvotes_a_misleading_view(misleading_at: int, switch_margin: float | None) -> None:
     """Of three views, one shows the object 6 cm from where the other two see it (a neighbour or
     a splat artefact), and shows it most clearly (no depth noise, so its own registration scores
     best in its own view): the submitted pose is where the other two see it, expressed in the
-    last view's frame."""
+    last view's frame. With a switch margin the last view's own fit is kept when it agrees with
+    the other view and outvoted when the last view is the misleading one."""
     v, f, model, world_T_obj, _, _ = scene_case(1.0, 0.25)
     elsewhere = world_T_obj @ make_transform(Rotation.from_euler("z", 70, degrees=True).as_matrix(), (0.06, 0.0, 0.0))
     trail = [_observation(v, f, model, world_T_obj, az, elsewhere, 0.0) if i == misleading_at else
              _observation(v, f, model, world_T_obj, az, None, 0.002) for i, az in enumerate((200.0, 235.0, 165.0))]
     assert all(p.cluster is not None for _, p in trail)
-    reg = register_views(model, trail, BaselineConfig())
+    reg = register_views(model, trail, BaselineConfig(switch_margin=switch_margin))
     assert reg is not None and np.all(np.isfinite(reg.cam_T_obj))
     world_T_est = trail[-1][0].world_T_cam @ reg.cam_T_obj
     centre = (v.mean(axis=0) / 1000.0)
     est, true, wrong = (T[:3, :3] @ centre + T[:3, 3] for T in (world_T_est, world_T_obj, elsewhere))
     assert np.linalg.norm(est - true) < 0.5 * model.diameter_m < np.linalg.norm(est - wrong), (est, true, wrong)
     assert reg.score > 0.3  # it explains the consistent views (scores are at most 1)
+
+
+def test_choice_across_views_reports_in_the_final_view() -> None:
+    """``final``: the chosen pose is expressed in that view's frame (the agent went back to its
+    start view to submit), whatever the order of the views it registered."""
+    v, f, model, world_T_obj, _, _ = scene_case(1.0, 0.25)
+    trail = [_observation(v, f, model, world_T_obj, az) for az in (200.0, 235.0, 165.0)]
+    reg = register_views(model, trail, BaselineConfig(), final=trail[0])
+    assert reg is not None and np.all(np.isfinite(reg.cam_T_obj))
+    centre = v.mean(axis=0) / 1000.0
+    world_T_est = trail[0][0].world_T_cam @ reg.cam_T_obj
+    error = np.linalg.norm((world_T_est[:3, :3] @ centre + world_T_est[:3, 3])
+                           - (world_T_obj[:3, :3] @ centre + world_T_obj[:3, 3]))
+    assert error < 0.1 * model.diameter_m, error
+    in_last = register_views(model, trail, BaselineConfig())  # default: the last view of the trail
+    world_T_last = trail[-1][0].world_T_cam @ in_last.cam_T_obj
+    assert np.linalg.norm(world_T_last[:3, 3] - world_T_est[:3, 3]) < 0.1 * model.diameter_m
+
+
+def test_view_weights_trust_views_by_their_own_fit() -> None:
+    np.testing.assert_allclose(view_weights([0.8, 0.2, -0.3], "reliability"), [0.8, 0.2, 0.0])
+    np.testing.assert_allclose(view_weights([0.8, 0.2, -0.3], "mean"), [1 / 3] * 3)
+    np.testing.assert_allclose(view_weights([-0.1, 0.0], "reliability"), [0.5, 0.5])  # none fits: alike
+    np.testing.assert_allclose(view_weights([float("nan"), 0.5], "reliability"), [0.0, 1.0])
+    with pytest.raises(BraveError, match="view_weighting"):
+        view_weights([0.5], "median")
+
+
+@given(st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64), min_size=1, max_size=12),
+       st.sampled_from(["mean", "reliability"]))
+def test_view_weights_are_always_a_distribution(scores: list[float], weighting: str) -> None:
+    w = view_weights(scores, weighting)
+    assert w.shape == (len(scores),) and np.all(np.isfinite(w)) and np.all(w >= 0)
+    assert abs(float(w.sum()) - 1.0) < 1e-9
+
+
+def test_a_view_no_pose_explains_well_votes_less() -> None:
+    """A view whose cluster is not the object (a ball the L-shaped model fits only in part) gets
+    a clearly smaller weight than the views that see the object (with "mean" all are alike)."""
+    v, f, model, world_T_obj, _, _ = scene_case(1.0, 0.25)
+    trail = [_observation(v, f, model, world_T_obj, az) for az in (200.0, 235.0)]
+    blob_v, blob_f = trimesh.creation.icosphere(2, 30.0).vertices, trimesh.creation.icosphere(2, 30.0).faces
+    blob_T = make_transform(np.eye(3), world_T_obj[:3, 3] + np.array([0.0, 0.0, 0.03]))
+    trail.append(_observation(np.asarray(blob_v), np.asarray(blob_f), model, world_T_obj, 165.0, blob_T))
+    from evaluation.baseline import _register, _view_scene, _voxel_size
+
+    voxel = _voxel_size(model, BaselineConfig())
+    own = [_register(model, *_view_scene(p.cluster, p.plane, p.min_height, o.depth, o.K, voxel),
+                     BaselineConfig(), voxel).score for o, p in trail]
+    w = view_weights(own, "reliability")
+    assert w[2] < 0.75 * min(w[0], w[1]), (own, w)
+    assert np.ptp(view_weights(own, "mean")) == 0
+
+
+def test_standoff_is_the_nearest_capture_ring_unless_configured() -> None:
+    def agent(start: dict) -> BaselineAgent:
+        return BaselineAgent(SimpleNamespace(bundle=lambda: {"objects": [], "start": start}))
+
+    assert agent({"distances_m": [0.3, 0.2, 0.5]}).standoff_m(BaselineConfig()) == pytest.approx(0.2)
+    assert agent({}).standoff_m(BaselineConfig()) == pytest.approx(0.10)
+    assert agent({"distances_m": [0.3]}).standoff_m(BaselineConfig(min_distance_m=0.12)) == pytest.approx(0.12)
 
 
 def test_choice_across_views_needs_a_cluster() -> None:
@@ -236,6 +304,25 @@ def test_baselines_find_the_cube_and_start_alike(stage, bundle: Bundle) -> None:
         assert error < 0.012, (e.agent, e.target.name, error)  # a reasonably placed 20 mm cube
     for name, poses in starts.items():
         np.testing.assert_array_equal(poses[0], poses[1], err_msg=name)
+
+
+def test_active_baseline_submits_from_its_start_view(stage) -> None:  # type: ignore[no-untyped-def]
+    """The active variant explores, then goes back to the pose it started from (inside the
+    capture rings, where the splat was trained) and submits there; the move back counts."""
+    _, out = stage
+    checked = 0
+    for e in read_episodes([out / "episodes"]):
+        if e.agent != "baseline-active":
+            continue
+        records = [json.loads(line) for line in e.path.read_text().splitlines()]
+        moves = [r for r in records if r["event"] in ("set_pose", "move") and r["accepted"]]
+        if len(moves) < 2:
+            continue
+        start = np.asarray(records[0]["world_T_cam"])
+        np.testing.assert_allclose(moves[-1]["world_T_cam"], start, atol=1e-12)
+        assert moves[-1]["adjustments"] == len(moves)
+        checked += 1
+    assert checked >= 1
 
 
 def test_client_and_gym_env_submit(bundle: Bundle, tmp_path: Path) -> None:

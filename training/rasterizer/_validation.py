@@ -83,6 +83,10 @@ def _require_shape(name: str, t: Tensor, shape: tuple) -> None:
 def _require_finite(name: str, t: Tensor) -> None:
     if t.numel() == 0:
         return
+    # One reduction first: a NaN or inf anywhere makes the sum non-finite, so a finite sum
+    # proves the tensor finite; only a non-finite sum (or a float overflow) needs the full test.
+    if bool(torch.isfinite(t.detach().sum())):
+        return
     finite = torch.isfinite(t.detach())
     if not bool(finite.all()):
         n_bad = int((~finite).sum())
