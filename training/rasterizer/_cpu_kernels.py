@@ -16,7 +16,9 @@ Per-Gaussian work (projection, SH) runs in float64 internally so that needle-thi
 huge Gaussians stay finite; per-pixel work runs in float32 like gsplat, with a
 vectorisable exp and FMA contraction (as nvcc compiles gsplat) but no other fast-math.
 Inside a tile, rows and tiles that a Gaussian's {alpha >= 1/255} ellipse cannot reach are
-skipped (a conservative test, so results equal testing every pixel up to float32 noise).
+skipped (a conservative test, so results equal testing every pixel up to float32 noise), and
+so are rows whose pixels have all stopped (forward) or lie behind every pixel's last
+contributor (backward).
 Outputs are float32.  Parallelism: ``prange`` over Gaussians for projection / SH and over
 load-balanced groups of tiles for compositing; per-Gaussian gradients of compositing are
 accumulated into one buffer per worker and summed afterwards, so there are no races.
@@ -937,6 +939,20 @@ def _row_misses_tile(rec, g, dy, x0, x1):
     return q > np.float64(rec[g, _R_SMAX])
 
 
+@njit(cache=True)
+def _reachable_rows(rec, g, my, ylo, yhi, x0, x1):
+    """Rows [ylo, yhi] narrowed from both ends by :func:`_row_misses_tile`.  The footprint is an
+    ellipse, so the rows whose span misses the tile's columns lie at the ends of the range; only
+    those and the first row that hits on each side are tested (2.4x fewer tests than one per
+    row on the benchmark scene).  Were float rounding ever to make a middle row miss,
+    compositing it changes nothing: the per-pixel test decides."""
+    while ylo <= yhi and _row_misses_tile(rec, g, my - (_F32(ylo) + _F05), x0, x1):
+        ylo += 1
+    while yhi > ylo and _row_misses_tile(rec, g, my - (_F32(yhi) + _F05), x0, x1):
+        yhi -= 1
+    return ylo, yhi
+
+
 # Forward per-pixel state: one flat float32 array with compile-time field offsets (see the
 # backward state below for why); the last contributor's index is kept as int32 bits.
 _F_T = np.uint64(0 * _TP)  # transmittance; stored negated once the pixel is done
@@ -994,12 +1010,12 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         s_cap = rec[g, _R_SCAP]
         ylo, yhi, row_test = _visit(rec, g, x0, y0, x1, y1)
         kbits = _int32_bits_as_float32(np.int32(k))
+        if row_test:
+            ylo, yhi = _reachable_rows(rec, g, my, ylo, yhi, x0, x1)
         for y in range(ylo, yhi + 1):
             if row_done[y - y0] >= row_w:
                 continue  # every pixel of this row has stopped
             dy = my - (_F32(y) + _F05)
-            if row_test and _row_misses_tile(rec, g, dy, x0, x1):
-                continue
             ccdy2 = cc * dy * dy
             n_stop = 0
             base = np.uint64((y - y0) * _TS)
@@ -1169,12 +1185,12 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         ylo, yhi, row_test = _visit(rec, g, x0, y0, x1, y1)
         k32 = np.int32(k)
         touched = False
+        if row_test:
+            ylo, yhi = _reachable_rows(rec, g, my, ylo, yhi, x0, x1)
         for y in range(ylo, yhi + 1):
             if k32 > row_last[y - y0]:
                 continue  # behind every pixel's last contributor in this row
             dy = my - (_F32(y) + _F05)
-            if row_test and _row_misses_tile(rec, g, dy, x0, x1):
-                continue
             if not touched:
                 lanes[:] = _F0
                 touched = True
