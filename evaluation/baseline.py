@@ -776,7 +776,9 @@ def register_views(model: ModelCloud, trail: list[tuple[Any, Perception]], confi
     view, beats its weighted mean score by more than the margin: the final view is where VSD and
     MSPD are scored, and a pose that fits it is kept unless the other views clearly outvote it.
     Without a margin the registration with the best weighted mean is submitted, ICP-refined in
-    the final view when ``config.refine_in_final_view``. None when no view has a cluster."""
+    the final view when ``config.refine_in_final_view``. A final view whose :class:`Perception`
+    is one of the trail's (the same object) is not registered again. None when no view has a
+    cluster."""
     found = [(o, p) for o, p in trail if p.cluster is not None]
     if not found:
         return None
@@ -796,13 +798,21 @@ def register_views(model: ModelCloud, trail: list[tuple[Any, Perception]], confi
 
         in_final = [invert(world_T_ref) @ np.asarray(o.world_T_cam, dtype=np.float64) @ r.cam_T_obj
                     for (o, _), r in zip(found, regs)]
+        # the final view is often one of the trail's (the agent went back to its start): reuse its work
+        i_final = next((i for i, (_, p) in enumerate(found) if p is final_seen), None)
         final_scene = None
-        if final_seen.cluster is not None:
+        if i_final is not None:
+            final_scene = scenes[i_final]
+        elif final_seen.cluster is not None:
             final_scene = _view_scene(final_seen.cluster, final_seen.plane, final_seen.min_height,
                                       final_obs.depth, final_obs.K, voxel)
         if config.switch_margin is not None and final_scene is not None:
-            own = _register(model, *final_scene, config, voxel)
-            keep = (mean_score(own.cam_T_obj), own.cam_T_obj, own)
+            if i_final is not None:
+                own, own_T = regs[i_final], in_final[i_final]
+            else:
+                own = _register(model, *final_scene, config, voxel)
+                own_T = own.cam_T_obj
+            keep = (mean_score(own_T), own_T, own)
             challengers = [(mean_score(T), T, r) for T, r in
                            ((_icp(model, T0, *final_scene, voxel), r) for T0, r in zip(in_final, regs))]
             best = max(challengers, key=lambda c: c[0])
