@@ -605,8 +605,6 @@ class BaselineAgent:
             self._bundle = self.client.bundle()
         return self._bundle
 
-
-
     def standoff_m(self, cfg: BaselineConfig) -> float:
         """The nearest the agent goes: ``cfg.min_distance_m``, or by default the nearest capture
         ring of the bundle (``GET /bundle`` ``start.distances_m``): a splat renders artefacts where

@@ -17,7 +17,6 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from brave6d.errors import BraveError
-
 from brave6d.transforms import invert, look_at, make_transform
 from evaluation.baseline import (
     BaselineAgent,
@@ -209,9 +208,9 @@ def test_a_view_no_pose_explains_well_votes_less() -> None:
     a clearly smaller weight than the views that see the object (with "mean" all are alike)."""
     v, f, model, world_T_obj, _, _ = scene_case(1.0, 0.25)
     trail = [_observation(v, f, model, world_T_obj, az) for az in (200.0, 235.0)]
-    blob_v, blob_f = trimesh.creation.icosphere(2, 30.0).vertices, trimesh.creation.icosphere(2, 30.0).faces
-    blob_T = make_transform(np.eye(3), world_T_obj[:3, 3] + np.array([0.0, 0.0, 0.03]))
-    trail.append(_observation(np.asarray(blob_v), np.asarray(blob_f), model, world_T_obj, 165.0, blob_T))
+    ball = trimesh.creation.icosphere(2, 30.0)
+    ball_T = make_transform(np.eye(3), world_T_obj[:3, 3] + np.array([0.0, 0.0, 0.03]))
+    trail.append(_observation(np.asarray(ball.vertices), np.asarray(ball.faces), model, world_T_obj, 165.0, ball_T))
     from evaluation.baseline import _register, _view_scene, _voxel_size
 
     voxel = _voxel_size(model, BaselineConfig())
