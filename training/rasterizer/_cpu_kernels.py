@@ -972,8 +972,10 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
     Each reachable row is a fixed 16-lane, branch-free loop that LLVM vectorises, applying
     the per-pixel rules of gsplat's forward kernel: alpha = min(0.999, o exp(-sigma)),
     skip if sigma < 0 or alpha < 1/255, stop (exclusive) when T would drop to <= 1e-4.
-    A row whose pixels have all stopped is skipped (``row_done`` counts them per row): its
-    lanes would change nothing.
+    A row whose pixels have all stopped is skipped (``row_done`` counts its stopped lanes,
+    those outside the image included): its lanes would change nothing.  The row loop only
+    ORs the lanes' stop flags and recounts a row when one stopped: an int64 counter in the
+    loop made LLVM use 8-lane vectors instead of 16.
     """
     c, x0, y0, x1, y1 = _tile_box(tile, tile_w, tile_h, width, height)
     none = _int32_bits_as_float32(np.int32(-1))
@@ -988,10 +990,10 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         st[p + _F_A2] = _F0
         st[p + _F_A3] = _F0
         st[p + _F_LAST] = none
-    row_done[:] = 0
     row_w = x1 - x0
-    n_pix = row_w * (y1 - y0)
-    n_done = 0
+    row_done[:] = _TS - row_w  # stopped lanes per row, counting those outside the image
+    n_pix = _TS * (y1 - y0)
+    n_done = (_TS - row_w) * (y1 - y0)
     x0c = _F32(x0) + _F05
     for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
         g = flatten_ids[k]
@@ -1013,11 +1015,11 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         if row_test:
             ylo, yhi = _reachable_rows(rec, g, my, ylo, yhi, x0, x1)
         for y in range(ylo, yhi + 1):
-            if row_done[y - y0] >= row_w:
+            if row_done[y - y0] >= _TS:
                 continue  # every pixel of this row has stopped
             dy = my - (_F32(y) + _F05)
             ccdy2 = cc * dy * dy
-            n_stop = 0
+            any_stop = False
             base = np.uint64((y - y0) * _TS)
             for lx in range(np.uint64(_TS)):
                 p = base + lx
@@ -1037,9 +1039,13 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
                 st[p + _F_A3] += c3 * vis
                 st[p + _F_T] = next_t if use else (-t_cur if stop else t_cur)
                 st[p + _F_LAST] = kbits if use else l_cur
-                n_stop += np.int32(stop)
-            row_done[y - y0] += n_stop
-            n_done += n_stop
+                any_stop |= stop
+            if any_stop:  # rare (a pixel stops once): recount the row's stopped lanes
+                n_row = 0
+                for lx in range(np.uint64(_TS)):
+                    n_row += st[base + lx + _F_T] < _F0
+                n_done += n_row - row_done[y - y0]
+                row_done[y - y0] = n_row
         if n_done >= n_pix:
             break
     max_last = np.int64(-1)
@@ -1091,35 +1097,54 @@ def rasterize_fwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
 # compile-time field offsets (uint64, so no wrap-around code): LLVM then sees constant
 # distances between fields and vectorises the row loop without runtime alias checks.
 _O_T = np.uint64(0 * _TP)  # transmittance, recovered backwards
-_O_B0 = np.uint64(1 * _TP)  # 4 fields: colour accumulated behind the current Gaussian
-_O_B1 = np.uint64(2 * _TP)
-_O_B2 = np.uint64(3 * _TP)
-_O_B3 = np.uint64(4 * _TP)
-_O_W0 = np.uint64(5 * _TP)  # 4 fields: dL/d(output colour)
-_O_W1 = np.uint64(6 * _TP)
-_O_W2 = np.uint64(7 * _TP)
-_O_W3 = np.uint64(8 * _TP)
-_O_VAB = np.uint64(9 * _TP)  # T_final * (dL/dalpha_out - background . dL/dcolour)
-_BWD_FIELDS = 10
-_L0, _L1, _L2, _L3, _L4, _L5, _L6, _L7, _L8, _L9, _L10, _L11 = [
-    np.uint64(j * _TS) for j in range(_N_GRAD)
-]
+_O_W0 = np.uint64(1 * _TP)  # 4 fields: dL/d(output colour)
+_O_W1 = np.uint64(2 * _TP)
+_O_W2 = np.uint64(3 * _TP)
+_O_W3 = np.uint64(4 * _TP)
+_O_D = np.uint64(5 * _TP)  # T_final (dL/dalpha_out - bg . w) - (colour behind) . w, see below
+_O_LAST = np.uint64(6 * _TP)  # int32 bits of the pixel's last contributing intersection
+_BWD_FIELDS = 7
+# Per-lane sums of one Gaussian in one tile (16 lanes each), in their own array: in the
+# state array LLVM could not prove them apart from the row's fields and would not vectorise.
+_L_U = np.uint64(0 * _TS)  # sum of u = dL/dalpha * dalpha/dopacity (the opacity gradient)
+_L_QY = np.uint64(1 * _TS)  # sum of u * dy
+_L_QYY = np.uint64(2 * _TS)  # sum of u * dy^2
+_L_C0 = np.uint64(3 * _TS)  # 4 sums: colour (RGB + depth) gradients
+_L_C1 = np.uint64(4 * _TS)
+_L_C2 = np.uint64(5 * _TS)
+_L_C3 = np.uint64(6 * _TS)
+_L_AX = np.uint64(7 * _TS)  # 2 sums of per-pixel |dL/dmeans2d| (absgrad only)
+_L_AY = np.uint64(8 * _TS)
+_L_QX = np.uint64(9 * _TS)  # 3 products with the lane's dx, formed before the fold
+_L_QXX = np.uint64(10 * _TS)
+_L_QXY = np.uint64(11 * _TS)
+_N_LANE_SUMS = 12
 
 
 @njit(cache=True, error_model="numpy", fastmath=_PIXEL_MATH)
 def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-              t_final, last_ids, v_out, v_alpha, isect_grads, st, last, row_last, lanes, with_abs):
+              t_final, last_ids, v_out, v_alpha, isect_grads, st, row_last, lanes, with_abs):
     """Backward of one tile by reverse traversal, 16-lane rows like :func:`_fwd_tile`.
 
     Per-pixel rules follow gsplat's backward kernel: T is recovered by dividing by
-    (1 - alpha), the colour accumulated behind the current Gaussian is tracked, and the
-    alpha-cap branch gets no gradient.  Per-Gaussian sums are kept per lane in ``lanes``
-    (12 x 16) and folded once per Gaussian into ``isect_grads[k]`` (every intersection k
-    of the tile gets a row, zero if it contributes nothing).  ``error_model="numpy"`` drops
-    numba's zero-division check (1 - alpha >= 0.001 here), which would block vectorisation.
-    ``with_abs`` is None or an (unused) array: numba prunes the absolute-gradient sums at
-    compile time when it is None.  A row is skipped for intersections behind all of its
-    pixels' last contributors (``row_last``): its lanes would add nothing.
+    (1 - alpha) and the alpha-cap branch gets no gradient.  Two exact rewrites keep the
+    row loop short:
+
+    * the colour accumulated behind the current Gaussian only enters through its dot
+      product with the pixel's dL/dcolour ``w``, so one scalar per pixel is tracked,
+      ``D = T_final (dL/dalpha_out - bg . w) - (colour behind) . w``, and
+      ``dL/dalpha = T (c . w) + D / (1 - alpha)``;
+    * with ``u = dL/dalpha * exp(-sigma)`` (the opacity gradient) every screen-space
+      gradient is ``-opacity * u`` times a polynomial in (dx, dy); dy is fixed along a row
+      and dx along a lane, so the lanes sum u, u dy and u dy^2 over rows and the dx
+      factors are applied once per Gaussian and tile, before the 16 lanes are folded.
+
+    Every intersection k of the tile gets a row in ``isect_grads`` (zero if it contributes
+    nothing).  ``error_model="numpy"`` drops numba's zero-division check (1 - alpha >=
+    0.001 here), which would block vectorisation.  ``with_abs`` is None or an (unused)
+    array: numba prunes the absolute-gradient sums at compile time when it is None.  A row
+    is skipped for intersections behind all of its pixels' last contributors
+    (``row_last``): its lanes would add nothing.
     """
     c, x0, y0, x1, y1 = _tile_box(tile, tile_w, tile_h, width, height)
     max_last = np.int32(-1)
@@ -1130,10 +1155,6 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         lx = i - ly * _TS
         y = y0 + ly
         x = x0 + lx
-        st[p + _O_B0] = _F0
-        st[p + _O_B1] = _F0
-        st[p + _O_B2] = _F0
-        st[p + _O_B3] = _F0
         if y < y1 and x < x1:
             t_f = t_final[c, y, x]
             w0 = v_out[c, y, x, 0]
@@ -1147,9 +1168,9 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
             st[p + _O_W1] = w1
             st[p + _O_W2] = w2
             st[p + _O_W3] = w3
-            st[p + _O_VAB] = t_f * (v_alpha[c, y, x] - bg_dot)
+            st[p + _O_D] = t_f * (v_alpha[c, y, x] - bg_dot)
             lk = last_ids[c, y, x]
-            last[p] = lk
+            st[p + _O_LAST] = _int32_bits_as_float32(lk)
             max_last = max(max_last, lk)
             row_last[ly] = max(row_last[ly], lk)
         else:  # lanes outside the image never match (last = -1) and contribute nothing
@@ -1158,8 +1179,8 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
             st[p + _O_W1] = _F0
             st[p + _O_W2] = _F0
             st[p + _O_W3] = _F0
-            st[p + _O_VAB] = _F0
-            last[p] = -1
+            st[p + _O_D] = _F0
+            st[p + _O_LAST] = _int32_bits_as_float32(np.int32(-1))
     x0c = _F32(x0) + _F05
     start = tile_offsets[tile]
     end = tile_offsets[tile + 1]
@@ -1195,6 +1216,7 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
                 lanes[:] = _F0
                 touched = True
             ccdy2 = cc * dy * dy
+            dy2 = dy * dy
             base = np.uint64((y - y0) * _TS)
             for lx in range(np.uint64(_TS)):
                 p = base + lx
@@ -1202,58 +1224,69 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
                 sigma = _F05 * (ca * dx * dx + ccdy2) + cb * dx * dy
                 vis = exp_neg(min(max(sigma, _F0), s_cap))
                 alpha = min(_FALPHA_MAX, op * vis)
-                ok = (sigma >= _F0) & (alpha >= _FALPHA_THR) & (k32 <= last[p])
+                ok = (sigma >= _F0) & (alpha >= _FALPHA_THR) & (k32 <= _float32_bits_as_int32(st[p + _O_LAST]))
                 ra = _F1 / (_F1 - alpha)
                 t_old = st[p + _O_T]
                 t_cur = t_old * ra
-                fac = alpha * t_cur
                 w0 = st[p + _O_W0]
                 w1 = st[p + _O_W1]
                 w2 = st[p + _O_W2]
                 w3 = st[p + _O_W3]
-                bb0 = st[p + _O_B0]
-                bb1 = st[p + _O_B1]
-                bb2 = st[p + _O_B2]
-                bb3 = st[p + _O_B3]
-                v_al = ((c0 * t_cur - bb0 * ra) * w0 + (c1 * t_cur - bb1 * ra) * w1
-                        + (c2 * t_cur - bb2 * ra) * w2 + (c3 * t_cur - bb3 * ra) * w3
-                        + ra * st[p + _O_VAB])
+                d_cur = st[p + _O_D]
+                cw = c0 * w0 + c1 * w1 + c2 * w2 + c3 * w3
+                v_al = t_cur * cw + ra * d_cur
                 grad_ok = ok & (op * vis <= _FALPHA_MAX)
-                v_sigma = -op * vis * v_al if grad_ok else _F0
-                gx = v_sigma * (ca * dx + cb * dy)
-                gy = v_sigma * (cb * dx + cc * dy)
-                lanes[lx + _L0] += gx
-                lanes[lx + _L1] += gy
-                lanes[lx + _L2] += _F05 * v_sigma * dx * dx
-                lanes[lx + _L3] += v_sigma * dx * dy
-                lanes[lx + _L4] += _F05 * v_sigma * dy * dy
-                lanes[lx + _L5] += vis * v_al if grad_ok else _F0
-                fac_ok = fac if ok else _F0
-                lanes[lx + _L6] += fac_ok * w0
-                lanes[lx + _L7] += fac_ok * w1
-                lanes[lx + _L8] += fac_ok * w2
-                lanes[lx + _L9] += fac_ok * w3
+                u = vis * v_al if grad_ok else _F0
+                lanes[lx + _L_U] += u
+                lanes[lx + _L_QY] += u * dy
+                lanes[lx + _L_QYY] += u * dy2
+                fac_ok = alpha * t_cur if ok else _F0
+                lanes[lx + _L_C0] += fac_ok * w0
+                lanes[lx + _L_C1] += fac_ok * w1
+                lanes[lx + _L_C2] += fac_ok * w2
+                lanes[lx + _L_C3] += fac_ok * w3
                 if with_abs is not None:
-                    lanes[lx + _L10] += abs(gx)
-                    lanes[lx + _L11] += abs(gy)
+                    v_sigma = -op * u
+                    lanes[lx + _L_AX] += abs(v_sigma * (ca * dx + cb * dy))
+                    lanes[lx + _L_AY] += abs(v_sigma * (cb * dx + cc * dy))
                 st[p + _O_T] = t_cur if ok else t_old
-                st[p + _O_B0] = bb0 + c0 * fac_ok
-                st[p + _O_B1] = bb1 + c1 * fac_ok
-                st[p + _O_B2] = bb2 + c2 * fac_ok
-                st[p + _O_B3] = bb3 + c3 * fac_ok
+                st[p + _O_D] = d_cur - fac_ok * cw
         if not touched:
             isect_grads[k, :] = _F0
             continue
+        for lx in range(np.uint64(_TS)):
+            dx = mx - (x0c + _F32(lx))
+            u_dx = lanes[lx + _L_U] * dx
+            lanes[lx + _L_QX] = u_dx
+            lanes[lx + _L_QXX] = u_dx * dx
+            lanes[lx + _L_QXY] = lanes[lx + _L_QY] * dx
         # fold the 16 lanes pairwise: elementwise steps (vectorisable, no reassociation)
         half = _TS // 2
         while half >= 1:
-            for j in range(_N_GRAD):
+            for j in range(_N_LANE_SUMS):
                 o = j * _TS
                 for i in range(half):
                     lanes[o + i] += lanes[o + i + half]
             half //= 2
-        for j in range(_N_GRAD):
-            isect_grads[k, j] = lanes[j * _TS]
+        # v_sigma = -op * u; sums of v_sigma * (dx, dy, dx^2, dx dy, dy^2)
+        s_x = -op * lanes[_L_QX]
+        s_y = -op * lanes[_L_QY]
+        isect_grads[k, 0] = ca * s_x + cb * s_y
+        isect_grads[k, 1] = cb * s_x + cc * s_y
+        isect_grads[k, 2] = -_F05 * op * lanes[_L_QXX]
+        isect_grads[k, 3] = -op * lanes[_L_QXY]
+        isect_grads[k, 4] = -_F05 * op * lanes[_L_QYY]
+        isect_grads[k, 5] = lanes[_L_U]
+        isect_grads[k, 6] = lanes[_L_C0]
+        isect_grads[k, 7] = lanes[_L_C1]
+        isect_grads[k, 8] = lanes[_L_C2]
+        isect_grads[k, 9] = lanes[_L_C3]
+        if with_abs is not None:
+            isect_grads[k, 10] = lanes[_L_AX]
+            isect_grads[k, 11] = lanes[_L_AY]
+        else:
+            isect_grads[k, 10] = _F0
+            isect_grads[k, 11] = _F0
 
 
 @njit(parallel=True, cache=True)
@@ -1274,13 +1307,12 @@ def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
     counter = np.zeros(1, np.int64)
     for _w in prange(n_workers):
         st = np.empty(_BWD_FIELDS * _TP, np.float32)
-        last = np.empty(_TP, np.int32)
         row_last = np.empty(_TS, np.int32)
-        lanes = np.empty(_N_GRAD * _TS, np.float32)
+        lanes = np.empty(_N_LANE_SUMS * _TS, np.float32)
         i = _atomic_fetch_add(counter, 1)
         while i < n_tiles:
             _bwd_tile(order[i], rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
-                      flatten_ids, t_final, last_ids, v_out, v_alpha, isect_grads, st, last,
+                      flatten_ids, t_final, last_ids, v_out, v_alpha, isect_grads, st,
                       row_last, lanes, with_abs)
             i = _atomic_fetch_add(counter, 1)
     total = np.zeros((n_cg, _N_GRAD), np.float32)
