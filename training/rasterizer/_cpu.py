@@ -90,8 +90,10 @@ class _Composite(torch.autograd.Function):
         c, n = radii.shape[:2]
         tile_w = math.ceil(width / TILE_SIZE)
         tile_h = math.ceil(height / TILE_SIZE)
-        tile_offsets, flatten_ids, gauss_offsets, isect_of = K.bin_gaussians(
-            _np(means2d), _np(radii), _np(depths), tile_w, tile_h)
+        rec = K.prepare_splats(_np(means2d).reshape(c * n, 2), _np(conics).reshape(c * n, 3),
+                               _np(colors).reshape(c * n, 4), _np(opacities).reshape(c * n))
+        tile_offsets, flatten_ids, isect_rows, gauss_offsets, isect_of = K.bin_splats(
+            rec, _np(radii), _np(depths), tile_w, tile_h, width, height)
         if flatten_ids.shape[0] >= _MAX_ISECTS:
             raise RasterInputError(
                 f"rasterize: {flatten_ids.shape[0]} Gaussian-tile intersections exceed the CPU "
@@ -99,15 +101,13 @@ class _Composite(torch.autograd.Function):
             )
         n_workers = max(1, numba.get_num_threads())
         order = K.tile_order(K.forward_costs(tile_offsets))
-        rec = K.prepare_splats(_np(means2d).reshape(c * n, 2), _np(conics).reshape(c * n, 3),
-                               _np(colors).reshape(c * n, 4), _np(opacities).reshape(c * n))
         out, t_final, last_ids, bwd_costs = K.rasterize_fwd(
             rec, _np(backgrounds), width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-            order, n_workers,
+            isect_rows, order, n_workers,
         )
         ctx.save_for_backward(means2d, opacities, backgrounds)
-        ctx.plan = (tile_w, tile_h, tile_offsets, flatten_ids, gauss_offsets, isect_of,
-                    bwd_costs, n_workers, t_final, last_ids, rec)
+        ctx.plan = (tile_w, tile_h, tile_offsets, flatten_ids, isect_rows, gauss_offsets,
+                    isect_of, bwd_costs, n_workers, t_final, last_ids, rec)
         ctx.cfg = (width, height, absgrad)
         t_final_t = torch.from_numpy(t_final)
         alphas = (1.0 - t_final_t)[..., None]
@@ -116,15 +116,15 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_out, v_alphas):
         means2d, opacities, backgrounds = ctx.saved_tensors
-        (tile_w, tile_h, tile_offsets, flatten_ids, gauss_offsets, isect_of, bwd_costs,
-         n_workers, t_final, last_ids, rec) = ctx.plan
+        (tile_w, tile_h, tile_offsets, flatten_ids, isect_rows, gauss_offsets, isect_of,
+         bwd_costs, n_workers, t_final, last_ids, rec) = ctx.plan
         width, height, absgrad = ctx.cfg
         c, n = opacities.shape
         v_out = _zeros_if_none(v_out, torch.empty(c, height, width, 4))
         v_alphas = _zeros_if_none(v_alphas, torch.empty(c, height, width, 1))
         grads = K.rasterize_bwd(
             rec, _np(backgrounds), width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-            gauss_offsets, isect_of, K.tile_order(bwd_costs), n_workers, t_final, last_ids,
+            isect_rows, gauss_offsets, isect_of, K.tile_order(bwd_costs), n_workers, t_final, last_ids,
             _np(v_out), _np(v_alphas).reshape(c, height, width),
             np.empty(0, np.float32) if absgrad else None,
         )

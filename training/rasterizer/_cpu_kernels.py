@@ -735,78 +735,6 @@ def _argsort_depths(depths):
 
 
 @njit(cache=True)
-def bin_gaussians(means2d, radii, depths, tile_w, tile_h):
-    """Sort Gaussian-tile intersections by (camera, tile, depth).
-
-    Returns ``tile_offsets`` [C*tile_h*tile_w + 1] (int64) and ``flatten_ids`` [n_isects]
-    (int32 index ``c * N + g``): tile t's Gaussians, front to back, are
-    ``flatten_ids[tile_offsets[t]:tile_offsets[t + 1]]``.  Ties in depth keep index
-    order (a stable sort, like gsplat's radix sort).  Also returns the Gaussian-major view
-    ``gauss_offsets`` [C*N + 1], ``isect_of`` [n_isects]: the intersections of Gaussian cg
-    (in tile order) are ``isect_of[gauss_offsets[cg]:gauss_offsets[cg + 1]]``.
-    """
-    n_cam = means2d.shape[0]
-    n = means2d.shape[1]
-    per_img = tile_w * tile_h
-    counts = np.zeros(n_cam * per_img + 1, np.int64)
-    rects = np.zeros((n_cam, n, 4), np.int64)
-    for c in range(n_cam):
-        for g in range(n):
-            if radii[c, g, 0] <= 0 or radii[c, g, 1] <= 0:
-                continue
-            x0, y0, x1, y1 = _tile_rect(np.float64(means2d[c, g, 0]), np.float64(means2d[c, g, 1]),
-                                        np.float64(radii[c, g, 0]), np.float64(radii[c, g, 1]),
-                                        tile_w, tile_h)
-            rects[c, g, 0] = x0
-            rects[c, g, 1] = y0
-            rects[c, g, 2] = x1
-            rects[c, g, 3] = y1
-            base = c * per_img
-            for ty in range(y0, y1):
-                for tx in range(x0, x1):
-                    counts[base + ty * tile_w + tx + 1] += 1
-    offsets = np.cumsum(counts)
-    n_isects = offsets[-1]
-    flatten_ids = np.empty(n_isects, np.int32)
-    cursor = offsets[:-1].copy()
-    # gaussian-major view of the same intersections: isect_of[gauss_offsets[cg]:...]
-    gauss_offsets = np.zeros(n_cam * n + 1, np.int64)
-    for c in range(n_cam):
-        for g in range(n):
-            gauss_offsets[c * n + g + 1] = ((rects[c, g, 2] - rects[c, g, 0])
-                                            * (rects[c, g, 3] - rects[c, g, 1]))
-    gauss_offsets = np.cumsum(gauss_offsets)
-    isect_of = np.empty(n_isects, np.int64)
-    for c in range(n_cam):
-        n_vis = 0
-        for g in range(n):
-            if rects[c, g, 2] > rects[c, g, 0] and rects[c, g, 3] > rects[c, g, 1]:
-                n_vis += 1
-        vis = np.empty(n_vis, np.int64)
-        dep = np.empty(n_vis, np.float32)
-        j = 0
-        for g in range(n):
-            if rects[c, g, 2] > rects[c, g, 0] and rects[c, g, 3] > rects[c, g, 1]:
-                vis[j] = g
-                dep[j] = depths[c, g]
-                j += 1
-        order = _argsort_depths(dep)
-        base = c * per_img
-        for oi in range(n_vis):
-            g = vis[order[oi]]
-            cg = np.int32(c * n + g)
-            j = gauss_offsets[c * n + g]
-            for ty in range(rects[c, g, 1], rects[c, g, 3]):
-                for tx in range(rects[c, g, 0], rects[c, g, 2]):
-                    t = base + ty * tile_w + tx
-                    flatten_ids[cursor[t]] = cg
-                    isect_of[j] = cursor[t]
-                    cursor[t] += 1
-                    j += 1
-    return offsets, flatten_ids, gauss_offsets, isect_of
-
-
-@njit(cache=True)
 def tile_order(costs):
     """Tiles sorted by decreasing cost estimate: workers take them in this order from a
     shared atomic counter, so long tiles start first and no worker idles while another
@@ -921,36 +849,170 @@ def _visit(rec, g, x0, y0, x1, y1):
     return np.int64(ylo), np.int64(yhi), row_test
 
 
-@njit(cache=True)
-def _row_misses_tile(rec, g, dy, x0, x1):
-    """True when no pixel centre of this tile row can pass the alpha threshold.
+@njit(cache=True, inline="always")
+def _row_misses_tile(mx, dy, pad, slope, ca, cb, cc, smax, x0, x1):
+    """True when no pixel centre of a tile row can pass the alpha threshold (float64).
 
     Along the row (dy = my - py fixed) sigma is a parabola in dx = mx - px, minimal at
-    dx = -(cb / ca) dy; the row is skipped when its minimum over the tile's (padded)
-    columns exceeds smax.  No sqrt or division, so it costs less than one lane loop.
+    dx = -(cb / ca) dy; the row misses when its minimum over the tile's (padded) columns
+    exceeds smax.  No sqrt or division, so all rows of a tile are tested in one vector loop.
     """
-    d = np.float64(dy)
-    mx = np.float64(rec[g, _R_MX])
-    pad = np.float64(rec[g, _R_PAD])
-    dx = -np.float64(rec[g, _R_SLOPE]) * d
+    dx = -slope * dy
     dx = min(max(dx, mx - (x1 - 0.5) - pad), mx - (x0 + 0.5) + pad)
-    q = (0.5 * (np.float64(rec[g, _R_CA]) * dx * dx + np.float64(rec[g, _R_CC]) * d * d)
-         + np.float64(rec[g, _R_CB]) * dx * d)
-    return q > np.float64(rec[g, _R_SMAX])
+    q = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+    return q > smax
 
 
 @njit(cache=True)
-def _reachable_rows(rec, g, my, ylo, yhi, x0, x1):
-    """Rows [ylo, yhi] narrowed from both ends by :func:`_row_misses_tile`.  The footprint is an
-    ellipse, so the rows whose span misses the tile's columns lie at the ends of the range; only
-    those and the first row that hits on each side are tested (2.4x fewer tests than one per
-    row on the benchmark scene).  Were float rounding ever to make a middle row miss,
-    compositing it changes nothing: the per-pixel test decides."""
-    while ylo <= yhi and _row_misses_tile(rec, g, my - (_F32(ylo) + _F05), x0, x1):
-        ylo += 1
-    while yhi > ylo and _row_misses_tile(rec, g, my - (_F32(yhi) + _F05), x0, x1):
-        yhi -= 1
-    return ylo, yhi
+def _tile_rows(rec, g, x0, y0, x1, y1):
+    """Rows [ylo, yhi] of tile (x0, y0, x1, y1) that record g's {alpha >= 1/255} footprint
+    can reach; yhi < ylo when it misses the tile.
+
+    The bounding rows and columns of the ellipse come first; when the ellipse crosses the
+    tile's left or right edge, each row is also tested against the tile's columns
+    (:func:`_row_misses_tile`) and the range is cut to the first and last row that passes.
+    The footprint is convex, so no row in between can miss; were float rounding ever to
+    make one, compositing it changes nothing (the per-pixel test decides).  Rows outside
+    the image of a border tile are never in the range.
+    """
+    if not (rec[g, _R_OP] >= _FALPHA_THR):
+        return np.int64(y0), np.int64(y0 - 1)  # alpha <= opacity never reaches 1/255
+    ylo, yhi, row_test = _visit(rec, g, x0, y0, x1, y1)
+    if not row_test or yhi < ylo:
+        return ylo, yhi
+    my = rec[g, _R_MY]
+    mx = np.float64(rec[g, _R_MX])
+    pad = np.float64(rec[g, _R_PAD])
+    slope = np.float64(rec[g, _R_SLOPE])
+    ca = np.float64(rec[g, _R_CA])
+    cb = np.float64(rec[g, _R_CB])
+    cc = np.float64(rec[g, _R_CC])
+    smax = np.float64(rec[g, _R_SMAX])
+    first = np.int64(_TS)
+    last = np.int64(-1)
+    for r in range(_TS):  # fixed length and branch-free: LLVM vectorises it
+        y = y0 + r
+        dy = np.float64(my - (_F32(y) + _F05))  # the float32 dy of the pixel loops
+        hit = (y >= ylo) & (y <= yhi) & ~_row_misses_tile(mx, dy, pad, slope, ca, cb, cc,
+                                                           smax, x0, x1)
+        first = min(first, r if hit else _TS)
+        last = max(last, r if hit else -1)
+    if last < 0:
+        return np.int64(y0), np.int64(y0 - 1)
+    return np.int64(y0 + first), np.int64(y0 + last)
+
+
+@njit(parallel=True, cache=True)
+def _splat_tiles(rec, radii, tile_w, tile_h, width, height):
+    """Per (camera, Gaussian) cg: its bounding box of tiles (gsplat's rule, ``rects``) and
+    for each tile of the box, row-major from ``box_offsets[cg]``, the packed reachable rows
+    ``ylo | yhi << 8`` relative to the tile (-1: the footprint misses the tile); ``n_hit``
+    [CN + 1] counts the tiles each record reaches (at index cg + 1)."""
+    n_cam = radii.shape[0]
+    n = radii.shape[1]
+    rects = np.zeros((n_cam * n, 4), np.int64)
+    area = np.zeros(n_cam * n + 1, np.int64)
+    for cg in prange(n_cam * n):
+        c = cg // n
+        g = cg - c * n
+        if radii[c, g, 0] <= 0 or radii[c, g, 1] <= 0:
+            continue
+        x0, y0, x1, y1 = _tile_rect(np.float64(rec[cg, _R_MX]), np.float64(rec[cg, _R_MY]),
+                                    np.float64(radii[c, g, 0]), np.float64(radii[c, g, 1]),
+                                    tile_w, tile_h)
+        rects[cg, 0] = x0
+        rects[cg, 1] = y0
+        rects[cg, 2] = x1
+        rects[cg, 3] = y1
+        area[cg + 1] = (x1 - x0) * (y1 - y0)
+    box_offsets = np.cumsum(area)
+    rows = np.empty(box_offsets[-1], np.int32)
+    n_hit = np.zeros(n_cam * n + 1, np.int64)
+    for cg in prange(n_cam * n):
+        j = box_offsets[cg]
+        hits = 0
+        for ty in range(rects[cg, 1], rects[cg, 3]):
+            py0 = ty * _TS
+            py1 = min(py0 + _TS, height)
+            for tx in range(rects[cg, 0], rects[cg, 2]):
+                px0 = tx * _TS
+                ylo, yhi = _tile_rows(rec, cg, px0, py0, min(px0 + _TS, width), py1)
+                if yhi >= ylo:
+                    rows[j] = np.int32((ylo - py0) | ((yhi - py0) << 8))
+                    hits += 1
+                else:
+                    rows[j] = -1
+                j += 1
+        n_hit[cg + 1] = hits
+    return rects, box_offsets, rows, n_hit
+
+
+@njit(cache=True)
+def bin_splats(rec, radii, depths, tile_w, tile_h, width, height):
+    """Sort the (camera, Gaussian)-tile intersections by (camera, tile, depth).
+
+    Candidates are the tiles of each Gaussian's bounding box (gsplat's rule); those its
+    {alpha >= 1/255} footprint cannot reach are dropped (a fifth on the benchmark scene).
+    Returns ``tile_offsets`` [C*tile_h*tile_w + 1] (int64), ``flatten_ids`` [n_isects]
+    (int32 record index ``c * N + g``) and ``isect_rows`` [n_isects] (int32, rows
+    ``ylo | yhi << 8`` of the tile to composite): tile t's Gaussians, front to back, are
+    ``flatten_ids[tile_offsets[t]:tile_offsets[t + 1]]``.  Ties in depth keep index order
+    (a stable sort, like gsplat's radix sort).  Also returns the Gaussian-major view
+    ``gauss_offsets`` [C*N + 1], ``isect_of`` [n_isects]: the intersections of record cg
+    (in tile order) are ``isect_of[gauss_offsets[cg]:gauss_offsets[cg + 1]]``.
+    """
+    n_cam = radii.shape[0]
+    n = radii.shape[1]
+    per_img = tile_w * tile_h
+    rects, box_offsets, rows, n_hit = _splat_tiles(rec, radii, tile_w, tile_h, width, height)
+    counts = np.zeros(n_cam * per_img + 1, np.int64)
+    for cg in range(n_cam * n):
+        base = (cg // n) * per_img
+        j = box_offsets[cg]
+        for ty in range(rects[cg, 1], rects[cg, 3]):
+            for tx in range(rects[cg, 0], rects[cg, 2]):
+                if rows[j] >= 0:
+                    counts[base + ty * tile_w + tx + 1] += 1
+                j += 1
+    offsets = np.cumsum(counts)
+    n_isects = offsets[-1]
+    flatten_ids = np.empty(n_isects, np.int32)
+    isect_rows = np.empty(n_isects, np.int32)
+    cursor = offsets[:-1].copy()
+    gauss_offsets = np.cumsum(n_hit)
+    isect_of = np.empty(n_isects, np.int64)
+    for c in range(n_cam):
+        n_vis = 0
+        for g in range(n):
+            if n_hit[c * n + g + 1] > 0:
+                n_vis += 1
+        vis = np.empty(n_vis, np.int64)
+        dep = np.empty(n_vis, np.float32)
+        i = 0
+        for g in range(n):
+            if n_hit[c * n + g + 1] > 0:
+                vis[i] = g
+                dep[i] = depths[c, g]
+                i += 1
+        order = _argsort_depths(dep)
+        base = c * per_img
+        for oi in range(n_vis):
+            cg = c * n + vis[order[oi]]
+            j = box_offsets[cg]
+            jg = gauss_offsets[cg]
+            for ty in range(rects[cg, 1], rects[cg, 3]):
+                for tx in range(rects[cg, 0], rects[cg, 2]):
+                    r = rows[j]
+                    j += 1
+                    if r < 0:
+                        continue
+                    t = base + ty * tile_w + tx
+                    flatten_ids[cursor[t]] = np.int32(cg)
+                    isect_rows[cursor[t]] = r
+                    isect_of[jg] = cursor[t]
+                    cursor[t] += 1
+                    jg += 1
+    return offsets, flatten_ids, isect_rows, gauss_offsets, isect_of
 
 
 # Forward per-pixel state: one flat float32 array with compile-time field offsets (see the
@@ -966,7 +1028,7 @@ _FWD_FIELDS = 6
 
 @njit(cache=True, error_model="numpy", fastmath=_PIXEL_MATH)
 def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-              out, t_final, last_ids, bwd_costs, st, row_done):
+              isect_rows, out, t_final, last_ids, bwd_costs, st, row_done):
     """Composite one tile front to back, Gaussian by Gaussian.
 
     Each reachable row is a fixed 16-lane, branch-free loop that LLVM vectorises, applying
@@ -998,8 +1060,6 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
     for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
         g = flatten_ids[k]
         op = rec[g, _R_OP]
-        if not (op >= _FALPHA_THR):
-            continue  # alpha <= opacity can never reach the threshold
         mx = rec[g, _R_MX]
         my = rec[g, _R_MY]
         ca = rec[g, _R_CA]
@@ -1010,11 +1070,9 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         c2 = rec[g, _R_C2]
         c3 = rec[g, _R_C3]
         s_cap = rec[g, _R_SCAP]
-        ylo, yhi, row_test = _visit(rec, g, x0, y0, x1, y1)
+        rows = isect_rows[k]
         kbits = _int32_bits_as_float32(np.int32(k))
-        if row_test:
-            ylo, yhi = _reachable_rows(rec, g, my, ylo, yhi, x0, x1)
-        for y in range(ylo, yhi + 1):
+        for y in range(y0 + (rows & 255), y0 + (rows >> 8) + 1):
             if row_done[y - y0] >= _TS:
                 continue  # every pixel of this row has stopped
             dy = my - (_F32(y) + _F05)
@@ -1067,7 +1125,7 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
 
 @njit(parallel=True, cache=True)
 def rasterize_fwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-                  order, n_workers):
+                  isect_rows, order, n_workers):
     """Composite 4 channels (RGB + depth) of records ``rec`` [CN,16] (prepare_splats).
 
     ``n_workers`` workers take tiles in ``order`` (:func:`tile_order`) from a shared
@@ -1088,7 +1146,8 @@ def rasterize_fwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
         i = _atomic_fetch_add(counter, 1)
         while i < n_tiles:
             _fwd_tile(order[i], rec, backgrounds, width, height, tile_w, tile_h,
-                      tile_offsets, flatten_ids, out, t_final, last_ids, bwd_costs, st, row_done)
+                      tile_offsets, flatten_ids, isect_rows, out, t_final, last_ids, bwd_costs,
+                      st, row_done)
             i = _atomic_fetch_add(counter, 1)
     return out, t_final, last_ids, bwd_costs
 
@@ -1123,7 +1182,7 @@ _N_LANE_SUMS = 12
 
 @njit(cache=True, error_model="numpy", fastmath=_PIXEL_MATH)
 def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-              t_final, last_ids, v_out, v_alpha, isect_grads, st, row_last, lanes, with_abs):
+              isect_rows, t_final, last_ids, v_out, v_alpha, isect_grads, st, row_last, lanes, with_abs):
     """Backward of one tile by reverse traversal, 16-lane rows like :func:`_fwd_tile`.
 
     Per-pixel rules follow gsplat's backward kernel: T is recovered by dividing by
@@ -1190,9 +1249,6 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
     for k in range(stop, start - 1, -1):
         g = flatten_ids[k]
         op = rec[g, _R_OP]
-        if not (op >= _FALPHA_THR):
-            isect_grads[k, :] = _F0
-            continue
         mx = rec[g, _R_MX]
         my = rec[g, _R_MY]
         ca = rec[g, _R_CA]
@@ -1203,12 +1259,10 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         c2 = rec[g, _R_C2]
         c3 = rec[g, _R_C3]
         s_cap = rec[g, _R_SCAP]
-        ylo, yhi, row_test = _visit(rec, g, x0, y0, x1, y1)
+        rows = isect_rows[k]
         k32 = np.int32(k)
         touched = False
-        if row_test:
-            ylo, yhi = _reachable_rows(rec, g, my, ylo, yhi, x0, x1)
-        for y in range(ylo, yhi + 1):
+        for y in range(y0 + (rows & 255), y0 + (rows >> 8) + 1):
             if k32 > row_last[y - y0]:
                 continue  # behind every pixel's last contributor in this row
             dy = my - (_F32(y) + _F05)
@@ -1291,7 +1345,7 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
 
 @njit(parallel=True, cache=True)
 def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-                  gauss_offsets, isect_of, order, n_workers, t_final, last_ids, v_out, v_alpha,
+                  isect_rows, gauss_offsets, isect_of, order, n_workers, t_final, last_ids, v_out, v_alpha,
                   with_abs):
     """Backward of :func:`rasterize_fwd` by reverse traversal (gsplat's scheme).
 
@@ -1312,7 +1366,7 @@ def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
         i = _atomic_fetch_add(counter, 1)
         while i < n_tiles:
             _bwd_tile(order[i], rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
-                      flatten_ids, t_final, last_ids, v_out, v_alpha, isect_grads, st,
+                      flatten_ids, isect_rows, t_final, last_ids, v_out, v_alpha, isect_grads, st,
                       row_last, lanes, with_abs)
             i = _atomic_fetch_add(counter, 1)
     total = np.zeros((n_cg, _N_GRAD), np.float32)
