@@ -40,6 +40,7 @@ from numba.extending import intrinsic
 from ._constants import (
     ALPHA_MAX,
     ALPHA_THRESHOLD,
+    DEPTH_ALPHA_EPS,
     QUAT_MIN_SQNORM,
     RADIUS_EXTEND,
     RADIUS_MAX,
@@ -55,6 +56,7 @@ _FALPHA_MAX = np.float32(ALPHA_MAX)
 _FALPHA_THR = np.float32(ALPHA_THRESHOLD)
 _FT_MIN = np.float32(T_MIN)
 _FEXTEND = np.float32(RADIUS_EXTEND)
+_FDEPTH_EPS = np.float32(DEPTH_ALPHA_EPS)
 _F32_MAX = 3.0e38
 _TS = TILE_SIZE
 _TP = TILE_SIZE * TILE_SIZE
@@ -765,8 +767,11 @@ _N_REC = 16
 
 
 @njit(parallel=True, cache=True)
-def prepare_splats(means2d, conics, colors, opacities):
+def prepare_splats(means2d, conics, rgb, depths, opacities):
     """Pack the per-(camera, Gaussian) inputs of compositing into [CN, 16] records.
+
+    ``means2d`` [C,N,2], ``conics`` [C,N,3], ``depths`` [C,N], ``opacities`` [N] and ``rgb``
+    [C,N,3] or [1,N,3] (one colour per Gaussian for all cameras).
 
     Footprint: alpha >= 1/255 needs sigma <= smax = log(255 * opacity), an ellipse with
     half-extents rx, ry (computed in float64).  ``pad`` (px) absorbs float32 rounding of
@@ -776,26 +781,33 @@ def prepare_splats(means2d, conics, colors, opacities):
     ``smax + 1``, where no pixel can pass, to keep exp() away from slow denormals without
     changing any decision.
     """
-    n = means2d.shape[0]
-    rec = np.zeros((n, _N_REC), np.float32)
-    for i in prange(n):
-        op = opacities[i]
-        rec[i, _R_MX] = means2d[i, 0]
-        rec[i, _R_MY] = means2d[i, 1]
-        rec[i, _R_CA] = conics[i, 0]
-        rec[i, _R_CB] = conics[i, 1]
-        rec[i, _R_CC] = conics[i, 2]
+    n_cam = means2d.shape[0]
+    n = means2d.shape[1]
+    shared = rgb.shape[0] == 1
+    rec = np.zeros((n_cam * n, _N_REC), np.float32)
+    for i in prange(n_cam * n):
+        c = i // n
+        g = i - c * n
+        op = opacities[g]
+        rec[i, _R_MX] = means2d[c, g, 0]
+        rec[i, _R_MY] = means2d[c, g, 1]
+        rec[i, _R_CA] = conics[c, g, 0]
+        rec[i, _R_CB] = conics[c, g, 1]
+        rec[i, _R_CC] = conics[c, g, 2]
         rec[i, _R_OP] = op
-        for ch in range(4):
-            rec[i, _R_C0 + ch] = colors[i, ch]
+        cc_ = 0 if shared else c
+        rec[i, _R_C0] = rgb[cc_, g, 0]
+        rec[i, _R_C1] = rgb[cc_, g, 1]
+        rec[i, _R_C2] = rgb[cc_, g, 2]
+        rec[i, _R_C3] = depths[c, g]
         rec[i, _R_RY] = -1.0
         if not (op >= _FALPHA_THR):
             continue  # never passes the threshold; tiles skip it
-        mx = np.float64(means2d[i, 0])
-        my = np.float64(means2d[i, 1])
-        ca = np.float64(conics[i, 0])
-        cb = np.float64(conics[i, 1])
-        cc = np.float64(conics[i, 2])
+        mx = np.float64(means2d[c, g, 0])
+        my = np.float64(means2d[c, g, 1])
+        ca = np.float64(conics[c, g, 0])
+        cb = np.float64(conics[c, g, 1])
+        cc = np.float64(conics[c, g, 2])
         smax = math.log(np.float64(op) / np.float64(ALPHA_THRESHOLD))
         det = ca * cc - cb * cb
         rec[i, _R_SCAP] = smax + 1.0
@@ -1028,7 +1040,8 @@ _FWD_FIELDS = 6
 
 @njit(cache=True, error_model="numpy", fastmath=_PIXEL_MATH)
 def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-              isect_rows, out, t_final, last_ids, bwd_costs, st, row_done):
+              isect_rows, rgb, depth, alpha_img, t_final, acc_depth, last_ids, bwd_costs, st,
+              row_done):
     """Composite one tile front to back, Gaussian by Gaussian.
 
     Each reachable row is a fixed 16-lane, branch-free loop that LLVM vectorises, applying
@@ -1111,11 +1124,14 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         for x in range(x0, x1):
             p = np.uint64((y - y0) * _TS + (x - x0))
             t_cur = abs(st[p + _F_T])
-            out[c, y, x, 0] = st[p + _F_A0] + t_cur * backgrounds[c, 0]
-            out[c, y, x, 1] = st[p + _F_A1] + t_cur * backgrounds[c, 1]
-            out[c, y, x, 2] = st[p + _F_A2] + t_cur * backgrounds[c, 2]
-            out[c, y, x, 3] = st[p + _F_A3] + t_cur * backgrounds[c, 3]
+            alpha = _F1 - t_cur
+            rgb[c, y, x, 0] = st[p + _F_A0] + t_cur * backgrounds[c, 0]
+            rgb[c, y, x, 1] = st[p + _F_A1] + t_cur * backgrounds[c, 1]
+            rgb[c, y, x, 2] = st[p + _F_A2] + t_cur * backgrounds[c, 2]
+            depth[c, y, x, 0] = st[p + _F_A3] / max(alpha, _FDEPTH_EPS)
+            alpha_img[c, y, x, 0] = alpha
             t_final[c, y, x] = t_cur
+            acc_depth[c, y, x] = st[p + _F_A3]
             lk = _float32_bits_as_int32(st[p + _F_LAST])
             last_ids[c, y, x] = lk
             max_last = max(max_last, np.int64(lk))
@@ -1126,16 +1142,22 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
 @njit(parallel=True, cache=True)
 def rasterize_fwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
                   isect_rows, order, n_workers):
-    """Composite 4 channels (RGB + depth) of records ``rec`` [CN,16] (prepare_splats).
+    """Composite 4 channels (RGB + depth) of records ``rec`` [CN,16] (prepare_splats) over
+    ``backgrounds`` [C,3] (depth has none).
 
     ``n_workers`` workers take tiles in ``order`` (:func:`tile_order`) from a shared
-    counter.  Returns out [C,H,W,4] (background included), the final transmittance
-    [C,H,W], the index of the last contributing intersection per pixel [C,H,W] int32 (-1 if
-    none) and per-tile cost estimates for ordering the backward pass.
+    counter.  Returns RGB [C,H,W,3] (background included), expected depth [C,H,W,1]
+    (accumulated depth / max(alpha, DEPTH_ALPHA_EPS)), alpha [C,H,W,1], the final transmittance and
+    the accumulated depth [C,H,W] (for the backward pass), the index of the last
+    contributing intersection per pixel [C,H,W] int32 (-1 if none) and per-tile cost
+    estimates for ordering the backward pass.
     """
     n_cam = backgrounds.shape[0]
-    out = np.empty((n_cam, height, width, 4), np.float32)
+    rgb = np.empty((n_cam, height, width, 3), np.float32)
+    depth = np.empty((n_cam, height, width, 1), np.float32)
+    alpha_img = np.empty((n_cam, height, width, 1), np.float32)
     t_final = np.empty((n_cam, height, width), np.float32)
+    acc_depth = np.empty((n_cam, height, width), np.float32)
     last_ids = np.empty((n_cam, height, width), np.int32)
     bwd_costs = np.empty(tile_offsets.shape[0] - 1, np.int64)
     n_tiles = order.shape[0]
@@ -1146,10 +1168,10 @@ def rasterize_fwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
         i = _atomic_fetch_add(counter, 1)
         while i < n_tiles:
             _fwd_tile(order[i], rec, backgrounds, width, height, tile_w, tile_h,
-                      tile_offsets, flatten_ids, isect_rows, out, t_final, last_ids, bwd_costs,
-                      st, row_done)
+                      tile_offsets, flatten_ids, isect_rows, rgb, depth, alpha_img, t_final,
+                      acc_depth, last_ids, bwd_costs, st, row_done)
             i = _atomic_fetch_add(counter, 1)
-    return out, t_final, last_ids, bwd_costs
+    return rgb, depth, alpha_img, t_final, acc_depth, last_ids, bwd_costs
 
 
 # Backward per-pixel state lives in one flat float32 array of _BWD_FIELDS x 256 with
@@ -1182,7 +1204,8 @@ _N_LANE_SUMS = 12
 
 @njit(cache=True, error_model="numpy", fastmath=_PIXEL_MATH)
 def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-              isect_rows, t_final, last_ids, v_out, v_alpha, isect_grads, st, row_last, lanes, with_abs):
+              isect_rows, t_final, acc_depth, last_ids, v_rgb, v_depth, v_alpha, isect_grads, st,
+              row_last, lanes, with_abs):
     """Backward of one tile by reverse traversal, 16-lane rows like :func:`_fwd_tile`.
 
     Per-pixel rules follow gsplat's backward kernel: T is recovered by dividing by
@@ -1216,18 +1239,24 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         x = x0 + lx
         if y < y1 and x < x1:
             t_f = t_final[c, y, x]
-            w0 = v_out[c, y, x, 0]
-            w1 = v_out[c, y, x, 1]
-            w2 = v_out[c, y, x, 2]
-            w3 = v_out[c, y, x, 3]
-            bg_dot = (backgrounds[c, 0] * w0 + backgrounds[c, 1] * w1 + backgrounds[c, 2] * w2
-                      + backgrounds[c, 3] * w3)
+            w0 = v_rgb[c, y, x, 0]
+            w1 = v_rgb[c, y, x, 1]
+            w2 = v_rgb[c, y, x, 2]
+            # expected depth = accumulated depth / max(alpha, eps): chain rule as autograd's
+            alpha = _F1 - t_f
+            den = max(alpha, _FDEPTH_EPS)
+            v_d = v_depth[c, y, x, 0]
+            w3 = v_d / den
+            v_al = v_alpha[c, y, x, 0]
+            if alpha >= _FDEPTH_EPS:
+                v_al -= v_d * ((acc_depth[c, y, x] / den) / den)
+            bg_dot = backgrounds[c, 0] * w0 + backgrounds[c, 1] * w1 + backgrounds[c, 2] * w2
             st[p + _O_T] = t_f
             st[p + _O_W0] = w0
             st[p + _O_W1] = w1
             st[p + _O_W2] = w2
             st[p + _O_W3] = w3
-            st[p + _O_D] = t_f * (v_alpha[c, y, x] - bg_dot)
+            st[p + _O_D] = t_f * (v_al - bg_dot)
             lk = last_ids[c, y, x]
             st[p + _O_LAST] = _int32_bits_as_float32(lk)
             max_last = max(max_last, lk)
@@ -1345,15 +1374,18 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
 
 @njit(parallel=True, cache=True)
 def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-                  isect_rows, gauss_offsets, isect_of, order, n_workers, t_final, last_ids, v_out, v_alpha,
-                  with_abs):
-    """Backward of :func:`rasterize_fwd` by reverse traversal (gsplat's scheme).
+                  isect_rows, gauss_offsets, isect_of, order, n_workers, t_final, acc_depth,
+                  last_ids, v_rgb, v_depth, v_alpha, n_colour_cams, with_abs):
+    """Backward of :func:`rasterize_fwd` by reverse traversal (gsplat's scheme), given the
+    gradients of its three images (``v_rgb`` [C,H,W,3], ``v_depth`` and ``v_alpha``
+    [C,H,W,1]).
 
-    Returns per-(camera, Gaussian) gradients [CN, 12]: means2d (2), conic (3), opacity
-    (1), colour (4: RGB + depth), and the sum of per-pixel absolute means2d gradients (2,
-    zero unless ``with_abs`` is an array rather than None).  Tiles are taken dynamically; each writes one gradient row per intersection, and the
-    rows of a Gaussian are summed in tile order, so the result does not depend on the
-    schedule or the number of threads.
+    Returns the gradients of means2d [C,N,2], conics [C,N,3], RGB [Cc,N,3] (``n_colour_cams``
+    Cc = 1: one colour per Gaussian, summed over cameras), depths [C,N], opacities [N]
+    (summed over cameras) and the per-pixel absolute means2d gradients [C,N,2] (zero unless
+    ``with_abs`` is an array rather than None).  Tiles are taken dynamically; each writes
+    one gradient row per intersection, and the rows of a Gaussian are summed in tile order,
+    so the result does not depend on the schedule or the number of threads.
     """
     n_cg = rec.shape[0]
     isect_grads = np.empty((flatten_ids.shape[0], _N_GRAD), np.float32)
@@ -1366,8 +1398,8 @@ def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
         i = _atomic_fetch_add(counter, 1)
         while i < n_tiles:
             _bwd_tile(order[i], rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
-                      flatten_ids, isect_rows, t_final, last_ids, v_out, v_alpha, isect_grads, st,
-                      row_last, lanes, with_abs)
+                      flatten_ids, isect_rows, t_final, acc_depth, last_ids, v_rgb, v_depth,
+                      v_alpha, isect_grads, st, row_last, lanes, with_abs)
             i = _atomic_fetch_add(counter, 1)
     total = np.zeros((n_cg, _N_GRAD), np.float32)
     for cg in prange(n_cg):
@@ -1375,4 +1407,28 @@ def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
             k = isect_of[j]
             for q in range(_N_GRAD):
                 total[cg, q] += isect_grads[k, q]
-    return total
+    n_cam = backgrounds.shape[0]
+    n = n_cg // n_cam
+    v_means2d = np.empty((n_cam, n, 2), np.float32)
+    v_conics = np.empty((n_cam, n, 3), np.float32)
+    v_colours = np.zeros((n_colour_cams, n, 3), np.float32)
+    v_depths = np.empty((n_cam, n), np.float32)
+    v_opacities = np.zeros(n, np.float32)
+    v_abs = np.empty((n_cam, n, 2), np.float32)
+    for g in prange(n):
+        for c in range(n_cam):
+            cg = c * n + g
+            cc = c if n_colour_cams > 1 else 0
+            v_means2d[c, g, 0] = total[cg, 0]
+            v_means2d[c, g, 1] = total[cg, 1]
+            v_conics[c, g, 0] = total[cg, 2]
+            v_conics[c, g, 1] = total[cg, 3]
+            v_conics[c, g, 2] = total[cg, 4]
+            v_opacities[g] += total[cg, 5]
+            v_colours[cc, g, 0] += total[cg, 6]
+            v_colours[cc, g, 1] += total[cg, 7]
+            v_colours[cc, g, 2] += total[cg, 8]
+            v_depths[c, g] = total[cg, 9]
+            v_abs[c, g, 0] = total[cg, 10]
+            v_abs[c, g, 1] = total[cg, 11]
+    return v_means2d, v_conics, v_colours, v_depths, v_opacities, v_abs

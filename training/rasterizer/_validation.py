@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -80,16 +81,31 @@ def _require_shape(name: str, t: Tensor, shape: tuple) -> None:
         raise RasterInputError(f"rasterize: `{name}` must have shape {want}, got {list(t.shape)}")
 
 
+def _host_array(t: Tensor) -> np.ndarray | None:
+    """A NumPy view (no copy) of a CPU tensor, None for other devices.
+
+    The checks below run on it with NumPy: on a CPU, each small torch operation may wake the
+    intra-op thread pool (tens of microseconds with OMP_WAIT_POLICY=PASSIVE), and the checks
+    are a dozen such operations per render."""
+    return t.detach().numpy() if t.device.type == "cpu" else None
+
+
 def _require_finite(name: str, t: Tensor) -> None:
     if t.numel() == 0:
         return
     # One reduction first: a NaN or inf anywhere makes the sum non-finite, so a finite sum
     # proves the tensor finite; only a non-finite sum (or a float overflow) needs the full test.
-    if bool(torch.isfinite(t.detach().sum())):
+    host = _host_array(t)
+    if host is not None:
+        with np.errstate(over="ignore", invalid="ignore"):
+            if np.isfinite(host.sum()):
+                return
+        n_bad = int(host.size - np.count_nonzero(np.isfinite(host)))
+    elif bool(torch.isfinite(t.detach().sum())):
         return
-    finite = torch.isfinite(t.detach())
-    if not bool(finite.all()):
-        n_bad = int((~finite).sum())
+    else:
+        n_bad = int((~torch.isfinite(t.detach())).sum())
+    if n_bad:
         raise RasterInputError(
             f"rasterize: `{name}` contains {n_bad} NaN/inf value(s) out of {t.numel()}"
         )
@@ -134,10 +150,16 @@ def sanitize_quats(quats: Tensor) -> Tensor:
     """Replace zero / denormal quaternions by the identity (zero gradient there)."""
     if quats.numel() == 0:
         return quats
-    sq = (quats.detach().double() ** 2).sum(-1)
-    bad = sq < QUAT_MIN_SQNORM
-    if not bool(bad.any()):
-        return quats
+    host = _host_array(quats)
+    if host is not None:
+        bad_host = np.square(host, dtype=np.float64).sum(-1) < QUAT_MIN_SQNORM
+        if not bad_host.any():
+            return quats
+        bad = torch.from_numpy(bad_host)
+    else:
+        bad = (quats.detach().double() ** 2).sum(-1) < QUAT_MIN_SQNORM
+        if not bool(bad.any()):
+            return quats
     identity = torch.zeros_like(quats)
     identity[:, 0] = 1.0
     return torch.where(bad[:, None], identity, quats)
@@ -145,6 +167,9 @@ def sanitize_quats(quats: Tensor) -> Tensor:
 
 def sanitize_scales(scales: Tensor) -> Tensor:
     """Clamp activated scales to the documented range (zero gradient where clamped)."""
+    host = _host_array(scales)
+    if host is not None and (host.size == 0 or (host.min() >= SCALE_MIN and host.max() <= SCALE_MAX)):
+        return scales  # the clamp would be the identity, gradient included
     return scales.clamp(min=SCALE_MIN, max=SCALE_MAX)
 
 
