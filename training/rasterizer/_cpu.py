@@ -94,14 +94,14 @@ class _Composite(torch.autograd.Function):
         tile_h = math.ceil(height / TILE_SIZE)
         rgb3 = rgb if rgb.dim() == 3 else rgb[None]
         rec = K.prepare_splats(_np(means2d), _np(conics), _np(rgb3), _np(depths), _np(opacities))
+        n_workers = max(1, numba.get_num_threads())
         tile_offsets, flatten_ids, isect_rows, gauss_offsets, isect_of = K.bin_splats(
-            rec, _np(radii), _np(depths), tile_w, tile_h, width, height)
+            rec, _np(radii), _np(depths), tile_w, tile_h, width, height, n_workers)
         if flatten_ids.shape[0] >= _MAX_ISECTS:
             raise RasterInputError(
                 f"rasterize: {flatten_ids.shape[0]} Gaussian-tile intersections exceed the CPU "
                 f"kernel's limit of {_MAX_ISECTS}; render fewer or smaller Gaussians"
             )
-        n_workers = max(1, numba.get_num_threads())
         order = K.tile_order(K.forward_costs(tile_offsets))
         bg = _np(backgrounds) if backgrounds is not None else np.zeros((c, 3), np.float32)
         rgb_img, depth_img, alpha_img, t_final, acc_depth, last_ids, bwd_costs = K.rasterize_fwd(
