@@ -15,13 +15,14 @@ RasterizeToPixels3DGSFwd/Bwd.cu, SphericalHarmonicsCUDA.cu, IntersectTile.cu):
 Per-Gaussian work (projection, SH) runs in float64 internally so that needle-thin or
 huge Gaussians stay finite; per-pixel work runs in float32 like gsplat, with a
 vectorisable exp and FMA contraction (as nvcc compiles gsplat) but no other fast-math.
-Inside a tile, rows and tiles that a Gaussian's {alpha >= 1/255} ellipse cannot reach are
-skipped (a conservative test, so results equal testing every pixel up to float32 noise), and
-so are rows whose pixels have all stopped (forward) or lie behind every pixel's last
-contributor (backward).
-Outputs are float32.  Parallelism: ``prange`` over Gaussians for projection / SH and over
-load-balanced groups of tiles for compositing; per-Gaussian gradients of compositing are
-accumulated into one buffer per worker and summed afterwards, so there are no races.
+Binning drops the tiles of a Gaussian's bounding box that its {alpha >= 1/255} ellipse
+cannot reach and records, per intersection, the rows of the tile it can reach (a
+conservative test, so results equal testing every pixel); compositing also skips rows whose
+pixels have all stopped (forward) or lie behind every pixel's last contributor (backward).
+Outputs are float32.  Parallelism: ``prange`` over Gaussians for projection / SH / binning
+and workers taking tiles from a shared counter for compositing; the backward pass writes one
+gradient row per intersection and sums each Gaussian's rows in tile order, so there are no
+races and results do not depend on the number of threads.
 
 All kernels are compiled with ``cache=True`` (on-disk cache next to this file), so the
 JIT cost is paid once per machine.
