@@ -18,9 +18,6 @@ from hypothesis import strategies as st
 from training.rasterizer import _cpu_kernels as K
 from training.rasterizer._constants import ALPHA_THRESHOLD, TILE_SIZE
 
-finite = {"allow_nan": False, "allow_infinity": False}
-
-
 @st.composite
 def projected_scenes(draw):
     """Random 3D Gaussians projected by the kernel into 1-2 cameras of a small image."""
