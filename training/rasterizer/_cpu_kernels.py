@@ -917,10 +917,10 @@ def _tile_rows(rec, g, x0, y0, x1, y1):
 
 @njit(parallel=True, cache=True)
 def _splat_tiles(rec, radii, tile_w, tile_h, width, height):
-    """Per (camera, Gaussian) cg: its bounding box of tiles (gsplat's rule, ``rects``) and
-    for each tile of the box, row-major from ``box_offsets[cg]``, the packed reachable rows
-    ``ylo | yhi << 8`` relative to the tile (-1: the footprint misses the tile); ``n_hit``
-    [CN + 1] counts the tiles each record reaches (at index cg + 1)."""
+    """The tiles each (camera, Gaussian) cg reaches, out of its bounding box of tiles
+    (gsplat's rule): ``n_hit[cg + 1]`` of them, listed from ``box_offsets[cg]`` in
+    row-major tile order as the flat tile index ``hit_tiles`` (camera included) and the
+    packed reachable rows ``hit_rows`` (``ylo | yhi << 8``, relative to the tile)."""
     n_cam = radii.shape[0]
     n = radii.shape[1]
     rects = np.zeros((n_cam * n, 4), np.int64)
@@ -939,11 +939,13 @@ def _splat_tiles(rec, radii, tile_w, tile_h, width, height):
         rects[cg, 3] = y1
         area[cg + 1] = (x1 - x0) * (y1 - y0)
     box_offsets = np.cumsum(area)
-    rows = np.empty(box_offsets[-1], np.int32)
+    hit_tiles = np.empty(box_offsets[-1], np.int32)
+    hit_rows = np.empty(box_offsets[-1], np.int32)
     n_hit = np.zeros(n_cam * n + 1, np.int64)
+    per_img = tile_w * tile_h
     for cg in prange(n_cam * n):
         j = box_offsets[cg]
-        hits = 0
+        base = (cg // n) * per_img
         for ty in range(rects[cg, 1], rects[cg, 3]):
             py0 = ty * _TS
             py1 = min(py0 + _TS, height)
@@ -951,13 +953,11 @@ def _splat_tiles(rec, radii, tile_w, tile_h, width, height):
                 px0 = tx * _TS
                 ylo, yhi = _tile_rows(rec, cg, px0, py0, min(px0 + _TS, width), py1)
                 if yhi >= ylo:
-                    rows[j] = np.int32((ylo - py0) | ((yhi - py0) << 8))
-                    hits += 1
-                else:
-                    rows[j] = -1
-                j += 1
-        n_hit[cg + 1] = hits
-    return rects, box_offsets, rows, n_hit
+                    hit_tiles[j] = np.int32(base + ty * tile_w + tx)
+                    hit_rows[j] = np.int32((ylo - py0) | ((yhi - py0) << 8))
+                    j += 1
+        n_hit[cg + 1] = j - box_offsets[cg]
+    return box_offsets, hit_tiles, hit_rows, n_hit
 
 
 @njit(cache=True)
@@ -1010,22 +1010,17 @@ def bin_splats(rec, radii, depths, tile_w, tile_h, width, height, n_workers):
     into its own slots of every tile (chunk w's entries follow chunk w-1's), so the
     result does not depend on the number of workers.
     """
-    n = radii.shape[1]
-    per_img = tile_w * tile_h
-    n_tiles = radii.shape[0] * per_img
-    rects, box_offsets, rows, n_hit = _splat_tiles(rec, radii, tile_w, tile_h, width, height)
+    n_tiles = radii.shape[0] * tile_w * tile_h
+    box_offsets, hit_tiles, hit_rows, n_hit = _splat_tiles(rec, radii, tile_w, tile_h, width,
+                                                           height)
     order = _depth_order(n_hit, depths)
     n_rec = order.shape[0]
     chunk_counts = np.zeros((n_workers, n_tiles), np.int64)
     for w in prange(n_workers):
         for oi in range(w * n_rec // n_workers, (w + 1) * n_rec // n_workers):
             cg = order[oi]
-            base = (cg // n) * per_img
-            j = box_offsets[cg]
-            for ty in range(rects[cg, 1], rects[cg, 3]):
-                for tx in range(rects[cg, 0], rects[cg, 2]):
-                    chunk_counts[w, base + ty * tile_w + tx] += rows[j] >= 0
-                    j += 1
+            for j in range(box_offsets[cg], box_offsets[cg] + n_hit[cg + 1]):
+                chunk_counts[w, hit_tiles[j]] += 1
     offsets = np.zeros(n_tiles + 1, np.int64)
     cursors = np.empty((n_workers, n_tiles), np.int64)
     for t in range(n_tiles):
@@ -1043,22 +1038,15 @@ def bin_splats(rec, radii, depths, tile_w, tile_h, width, height, n_workers):
         cursor = cursors[w]
         for oi in range(w * n_rec // n_workers, (w + 1) * n_rec // n_workers):
             cg = order[oi]
-            base = (cg // n) * per_img
-            j = box_offsets[cg]
             jg = gauss_offsets[cg]
-            for ty in range(rects[cg, 1], rects[cg, 3]):
-                for tx in range(rects[cg, 0], rects[cg, 2]):
-                    r = rows[j]
-                    j += 1
-                    if r < 0:
-                        continue
-                    t = base + ty * tile_w + tx
-                    slot = cursor[t]
-                    flatten_ids[slot] = np.int32(cg)
-                    isect_rows[slot] = r
-                    isect_of[jg] = slot
-                    cursor[t] = slot + 1
-                    jg += 1
+            for j in range(box_offsets[cg], box_offsets[cg] + n_hit[cg + 1]):
+                t = hit_tiles[j]
+                slot = cursor[t]
+                flatten_ids[slot] = np.int32(cg)
+                isect_rows[slot] = hit_rows[j]
+                isect_of[jg] = slot
+                cursor[t] = slot + 1
+                jg += 1
     return offsets, flatten_ids, isect_rows, gauss_offsets, isect_of
 
 
