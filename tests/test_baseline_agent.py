@@ -22,6 +22,10 @@ from evaluation.baseline import (
     BaselineAgent,
     BaselineConfig,
     Cluster,
+    _multiview_icp,
+    _view_scene,
+    _voxel_size,
+    one_thread,
     perceive,
     read_model_ply,
     register_model,
@@ -184,6 +188,35 @@ def test_choice_across_views_reports_in_the_final_view() -> None:
     in_last = register_views(model, trail, BaselineConfig())  # default: the last view of the trail
     world_T_last = trail[-1][0].world_T_cam @ in_last.cam_T_obj
     assert np.linalg.norm(world_T_last[:3, 3] - world_T_est[:3, 3]) < 0.1 * model.diameter_m
+
+
+def test_refinement_on_all_views_pins_the_pose_down() -> None:
+    """Starting 5 mm and 6 degrees off, ICP on the clusters of three noisy views at once (in the
+    first view's frame) lands clearly nearer the truth (MSSD) than ICP on that view alone."""
+    v, f, model, world_T_obj, _, _ = scene_case(1.0, 0.25)
+    trail = [_observation(v, f, model, world_T_obj, az, None, 0.002) for az in (200.0, 250.0, 150.0)]
+    assert all(p.cluster is not None for _, p in trail)
+    config = BaselineConfig()
+    voxel = _voxel_size(model, config)
+    scenes = [_view_scene(p.cluster, p.plane, p.min_height, o.depth, o.K, voxel) for o, p in trail]
+    ref_T_world = invert(trail[0][0].world_T_cam)
+    refs_T_cam = [ref_T_world @ o.world_T_cam for o, _ in trail]
+    truth = ref_T_world @ world_T_obj
+    start = truth @ make_transform(Rotation.from_euler("xz", [6.0, -6.0], degrees=True).as_matrix(),
+                                   (0.004, -0.003, 0.0))
+
+    def error(T: np.ndarray) -> float:
+        return float(mssd(T[:3, :3], T[:3, 3] * 1000, truth[:3, :3], truth[:3, 3] * 1000, v, identity_symmetries()))
+
+    with one_thread():  # as the agent runs it: Open3D's parallel sums vary otherwise
+        both = _multiview_icp(model, start, [sc for sc, _ in scenes], refs_T_cam, voxel)
+        again = _multiview_icp(model, start, [sc for sc, _ in scenes], refs_T_cam, voxel)
+        alone = _multiview_icp(model, start, [scenes[0][0]], refs_T_cam[:1], voxel)
+    assert np.all(np.isfinite(both))
+    # measured: start 9.8 mm, the first view alone 2.2 mm, all three views 1.5 mm (two: 1.3 mm)
+    assert error(both) < 0.7 * error(alone) < error(start), (error(both), error(alone), error(start))
+    assert error(both) < 0.05 * model.diameter_m * 1000
+    np.testing.assert_array_equal(again, both)
 
 
 def test_view_weights_trust_views_by_their_own_fit() -> None:
