@@ -455,13 +455,19 @@ def _free_space(pts: Array, scene: _Scene) -> float:
 
 
 def _icp(model: ModelCloud, T: Array, scene: _Scene, scene_pcd: Any, voxel: float) -> Array:
-    """Point-to-plane ICP of the cluster onto the visible model points (two rounds, shrinking
-    the correspondence distance); returns the refined ``cam_T_obj``."""
+    """Point-to-plane ICP of the cluster onto the visible model points; returns the refined
+    ``cam_T_obj``."""
+    return _icp_rounds(model, T, scene_pcd, lambda T_now: _visible(model, T_now), voxel)
+
+
+def _icp_rounds(model: ModelCloud, T: Array, source: Any, facing: Any, voxel: float) -> Array:
+    """Two rounds of point-to-plane ICP of the ``source`` cloud onto the model points that
+    ``facing(T)`` selects for the current pose, shrinking the correspondence distance."""
     reg = _o3d().pipelines.registration
     for dist in (3.0 * voxel, 1.5 * voxel):
-        vis = _visible(model, T)
+        vis = facing(T)
         target = _cloud(model.points[vis], model.normals[vis])
-        res = reg.registration_icp(scene_pcd, target, dist, invert(T), reg.TransformationEstimationPointToPlane(),
+        res = reg.registration_icp(source, target, dist, invert(T), reg.TransformationEstimationPointToPlane(),
                                    reg.ICPConvergenceCriteria(max_iteration=30))
         if res.fitness > 0 and np.all(np.isfinite(res.transformation)):
             T = invert(np.asarray(res.transformation))
@@ -474,18 +480,13 @@ def _multiview_icp(model: ModelCloud, ref_T_obj: Array, scenes: list[_Scene], re
     (``refs_T_cam``: each view's camera in that frame), onto the model points facing any of
     the views: the views together see more sides of the object than one, which pins the
     pose down better. Returns the refined ``ref_T_obj``."""
-    reg = _o3d().pipelines.registration
     pts = np.concatenate([sc.points @ T[:3, :3].T + T[:3, 3] for sc, T in zip(scenes, refs_T_cam)])
     source = _cloud(pts).voxel_down_sample(0.5 * voxel)
-    T = ref_T_obj
-    for dist in (3.0 * voxel, 1.5 * voxel):
-        vis = np.unique(np.concatenate([_visible(model, invert(ref_T_cam) @ T) for ref_T_cam in refs_T_cam]))
-        target = _cloud(model.points[vis], model.normals[vis])
-        res = reg.registration_icp(source, target, dist, invert(T), reg.TransformationEstimationPointToPlane(),
-                                   reg.ICPConvergenceCriteria(max_iteration=30))
-        if res.fitness > 0 and np.all(np.isfinite(res.transformation)):
-            T = invert(np.asarray(res.transformation))
-    return T
+
+    def facing_any(T: Array) -> NDArray[np.int64]:
+        return np.unique(np.concatenate([_visible(model, invert(ref_T_cam) @ T) for ref_T_cam in refs_T_cam]))
+
+    return _icp_rounds(model, ref_T_obj, source, facing_any, voxel)
 
 
 def _resting_rotations(plane: Plane | None, yaw_steps: int) -> list[Array]:
