@@ -821,8 +821,8 @@ def register_views(model: ModelCloud, trail: list[tuple[Any, Perception]], confi
             return float(np.dot(weights, [_score(model, cam_T_world @ world_T_obj, scene)[0]
                                           for (scene, _), cam_T_world in zip(scenes, cams_T_world)]))
 
-        in_final = [invert(world_T_ref) @ np.asarray(o.world_T_cam, dtype=np.float64) @ r.cam_T_obj
-                    for (o, _), r in zip(found, regs)]
+        refs_T_cam = [invert(world_T_ref) @ np.asarray(o.world_T_cam, dtype=np.float64) for o, _ in found]
+        in_final = [ref_T_cam @ r.cam_T_obj for ref_T_cam, r in zip(refs_T_cam, regs)]
         # the final view is often one of the trail's (the agent went back to its start): reuse its work
         i_final = next((i for i, (_, p) in enumerate(found) if p is final_seen), None)
         final_scene = None
@@ -845,7 +845,6 @@ def register_views(model: ModelCloud, trail: list[tuple[Any, Perception]], confi
                 if best[0] > score + config.switch_margin:
                     score, cam_T_obj, reg = best
             if config.multiview_refine and len(found) > 1:
-                refs_T_cam = [invert(world_T_ref) @ np.asarray(o.world_T_cam, dtype=np.float64) for o, _ in found]
                 refined = _multiview_icp(model, cam_T_obj, [sc for sc, _ in scenes], refs_T_cam, voxel)
                 refined_score = mean_score(refined)
                 if refined_score >= score:

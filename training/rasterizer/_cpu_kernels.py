@@ -966,29 +966,13 @@ def _depth_order(n_hit, depths):
     depth (stable: ties keep index order, like gsplat's radix sort)."""
     n_cam = depths.shape[0]
     n = depths.shape[1]
-    n_vis = 0
-    for cg in range(n_cam * n):
-        if n_hit[cg + 1] > 0:
-            n_vis += 1
-    out = np.empty(n_vis, np.int64)
+    out = np.empty(np.count_nonzero(n_hit[1:]), np.int64)
     i = 0
     for c in range(n_cam):
-        m = 0
-        for g in range(n):
-            if n_hit[c * n + g + 1] > 0:
-                m += 1
-        vis = np.empty(m, np.int64)
-        dep = np.empty(m, np.float32)
-        j = 0
-        for g in range(n):
-            if n_hit[c * n + g + 1] > 0:
-                vis[j] = c * n + g
-                dep[j] = depths[c, g]
-                j += 1
-        order = _argsort_depths(dep)
-        for j in range(m):
-            out[i] = vis[order[j]]
-            i += 1
+        vis = np.flatnonzero(n_hit[c * n + 1:(c + 1) * n + 1])
+        order = _argsort_depths(depths[c][vis])
+        out[i:i + vis.shape[0]] = c * n + vis[order]
+        i += vis.shape[0]
     return out
 
 
