@@ -36,10 +36,10 @@ from numpy.typing import NDArray
 
 from annotation.bop_format import BopLayout, dump_bop_json
 from annotation.models import MeshData, load_mesh, model_info_mm, write_ply
-from annotation.staging import link_or_copy, staged_folder
+from annotation.staging import link_or_copy
 from annotation.store import Annotation, AnnotatedObject, load_annotation
 from annotation.visibility import InstanceMasks, MaskRenderer, bbox_xywh
-from brave6d.atomic import atomic_write_json, atomic_write_text, read_png
+from brave6d.atomic import atomic_write_json, atomic_write_text, read_png, staged_folder
 from brave6d.calibration_io import camera_poses
 from brave6d.errors import DataError
 from brave6d.layout import SceneDir

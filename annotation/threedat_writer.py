@@ -26,9 +26,9 @@ import numpy as np
 import yaml
 from numpy.typing import ArrayLike
 
-from annotation.staging import link_or_copy, staged_folder
+from annotation.staging import link_or_copy
 from annotation.threedat import LibraryEntry, ThreeDatCamera, ThreeDatId, id_key, id_sort_key
-from brave6d.atomic import atomic_write_text
+from brave6d.atomic import atomic_write_text, staged_folder
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError
 from brave6d.transforms import check_rigid, format_tum_line

@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -51,6 +54,65 @@ def _fsync_dir(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def move_aside(path: Path | str, reason: str = "old") -> Path:
+    """Rename ``path`` to a free ``<name>.<reason>-<YYYYmmdd-HHMMSS>[-N]`` beside it and return the new path.
+
+    The one way any command gets user data out of its way: nothing is deleted, the rename stays on
+    the same file system (instant, atomic), and two moves in the same second never collide.
+    """
+    source = Path(path)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    candidate = source.with_name(f"{source.name}.{reason}-{stamp}")
+    n = 1
+    while candidate.exists() or candidate.is_symlink():
+        n += 1
+        candidate = source.with_name(f"{source.name}.{reason}-{stamp}-{n}")
+    os.rename(source, candidate)
+    _fsync_dir(source.parent)
+    return candidate
+
+
+@contextmanager
+def staged_folder(target: Path | str) -> Iterator[Path]:
+    """Yield an empty staging folder beside ``target``; on normal exit it replaces ``target``.
+
+    A whole folder or nothing: on an exception the staging folder is deleted and ``target`` is
+    left as it was. Only use this for folders the program itself made (the previous ``target`` is
+    deleted after the swap); user data is moved aside with :func:`move_aside` first.
+    """
+    final = Path(target)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.parent))
+    try:
+        yield staging
+        replace_folder(staging, final)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+
+
+def replace_folder(staging: Path, final: Path) -> None:
+    """Swap ``staging`` into place of ``final`` with two renames; the old ``final`` is deleted after.
+
+    A crash between the renames leaves the old folder as a hidden ``.<name>.old-*`` sibling,
+    never a missing one.
+    """
+    old: Path | None = None
+    if final.exists() or final.is_symlink():
+        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.old-", dir=final.parent))
+        os.rmdir(old)
+        os.replace(final, old)
+    try:
+        os.replace(staging, final)
+    except BaseException:
+        if old is not None:
+            os.replace(old, final)
+        raise
+    _fsync_dir(final.parent)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def atomic_write_bytes(path: Path | str, data: bytes) -> Path:

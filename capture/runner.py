@@ -9,7 +9,6 @@ run simply overwrites. On Ctrl-C, a crash or a robot fault the arm is stopped fi
 from __future__ import annotations
 
 import logging
-import shutil
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -19,7 +18,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from brave6d.atomic import atomic_write_json, depth_m_to_mm_u16, read_json, write_png
+from brave6d.atomic import atomic_write_json, depth_m_to_mm_u16, move_aside, read_json, write_png
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError, DataError
 from brave6d.layout import CaptureLayout, FrameLog, FrameRecord
@@ -72,8 +71,7 @@ def prepare_capture_folder(layout: CaptureLayout, n_planned: int, options: Captu
     """
     existing = FrameLog(layout.frames_path).read() if layout.frames_path.exists() else []
     if existing and options.force:
-        aside = layout.root.with_name(f"{layout.root.name}.old-{time.strftime('%Y%m%d-%H%M%S')}")
-        shutil.move(str(layout.root), aside)
+        aside = move_aside(layout.root)
         log.warning("moved the previous capture (%d frames) to %s", len(existing), aside)
         return []
     if existing and not options.resume:

@@ -34,7 +34,6 @@ import datetime as _dt
 import hashlib
 import json
 import logging
-import os
 import platform
 import shutil
 import subprocess
@@ -47,7 +46,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from brave6d.atomic import atomic_write_json, read_json
+from brave6d.atomic import atomic_write_json, read_json, replace_folder
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError, DataError, NonRigidTransformError
 from brave6d.layout import SceneDir
@@ -464,7 +463,7 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
             "source": {"scene": str(scene.root.resolve()), "splat": str(splat_src.resolve())},
             "gaussians": splat.num_gaussians, "sh_degree": splat.sh_degree,
             "versions": versions(), "files": files})
-        _commit(staging, target)
+        replace_folder(staging, target)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
@@ -528,23 +527,6 @@ def _file_table(root: Path) -> dict[str, dict[str, Any]]:
             continue
         table[rel] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
     return table
-
-
-def _commit(staging: Path, final: Path) -> None:
-    """Replace ``final`` by ``staging`` (old folder moved aside, then deleted)."""
-    old = None
-    if final.exists() or final.is_symlink():
-        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.old-", dir=final.parent))
-        os.rmdir(old)
-        os.replace(final, old)
-    try:
-        os.replace(staging, final)
-    except BaseException:
-        if old is not None:
-            os.replace(old, final)
-        raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 # ----------------------------------------------------------------------------- load + verify
