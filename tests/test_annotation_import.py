@@ -166,7 +166,7 @@ def test_export_failure_keeps_the_previous_export(tmp_path: Path) -> None:
     export_bop(scene.root)
     layout = BopLayout.of_scene(scene)
     before = {p: p.read_bytes() for p in sorted(scene.bop_dir.rglob("*")) if p.is_file()}
-    (scene.root / "undistorted" / "rgb" / "000001.png").unlink()  # the export fails at view 1
+    (scene.capture_dir / "rgb" / "000001.png").unlink()  # the export fails at view 1
     with pytest.raises(BraveError, match="000001.png"):
         export_bop(scene.root, BopExportOptions(scene_id=3))
     after = {p: p.read_bytes() for p in sorted(scene.bop_dir.rglob("*")) if p.is_file()}

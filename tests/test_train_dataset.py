@@ -88,6 +88,8 @@ def test_missing_frame_names_it_or_is_skipped(tmp_path: Path) -> None:
     scene, _, _ = small_scene(tmp_path)
     load_scene(scene)  # undistorted copy exists now
     (scene.root / "undistorted" / "rgb" / "000003.png").unlink()
+    load_scene(scene)  # a lost undistorted file is simply made again
+    (scene.capture_dir / "rgb" / "000003.png").unlink()
     with pytest.raises(DataError, match=r"frame 3 \(v0003\).*000003.png.*--skip-bad-frames"):
         load_scene(scene)
     data = load_scene(scene, skip_bad_frames=True)
