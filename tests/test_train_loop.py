@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -9,12 +10,13 @@ import pytest
 import torch
 
 from brave6d.camera import PinholeCamera
+from brave6d.errors import DataError
 from training.dataset import TrainingData, View
 from training.evaluate import evaluate_holdout
 from training.model import GaussianModel
 from training.presets import Preset
 from training.synthetic import random_gaussians, render_views, ring_poses
-from training.trainer import Trainer, TrainingDiverged, list_checkpoints, means_lr
+from training.trainer import Trainer, TrainingDiverged, list_checkpoints, means_lr, read_checkpoint
 
 CAM = PinholeCamera(48, 36, 40.0, 40.0, 23.5, 17.5)
 
@@ -84,7 +86,7 @@ def test_nan_stops_with_a_clear_message_and_keeps_the_last_good_checkpoint(tiny_
     with pytest.raises(TrainingDiverged, match=r"step 14: parameter\(s\) scales hold NaN/inf.*ckpt_000010\.pt"):
         trainer.train()
     assert [p.name for p in list_checkpoints(ck)] == ["ckpt_000010.pt"]
-    ckpt = torch.load(ck / "ckpt_000010.pt", weights_only=False)
+    ckpt = read_checkpoint(ck / "ckpt_000010.pt")  # tensors and plain values only
     assert ckpt["step"] == 10
     assert all(torch.isfinite(t).all() for t in ckpt["params"].values())
 
@@ -153,3 +155,54 @@ def test_time_budget_stops_training(tiny_data: TrainingData, tmp_path: Path) -> 
     assert result.stopped_by == "time budget"
     assert 0 < result.steps < 10_000
     assert list_checkpoints(tmp_path / "d")[-1].name == f"ckpt_{result.steps:06d}.pt"
+
+
+class RunsCode:
+    """Unpickling this runs code: it writes ``marker`` (what a crafted checkpoint would do)."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):  # type: ignore[no-untyped-def]
+        return (exec, (f"open({str(self.marker)!r}, 'w').write('ran')",))
+
+
+@pytest.mark.parametrize("writer", ["torch.save", "pickle.dumps"])
+def test_a_crafted_checkpoint_is_refused_not_run(tiny_data: TrainingData, tmp_path: Path, writer: str) -> None:
+    ck = tmp_path / "ck"
+    ck.mkdir()
+    marker = tmp_path / "marker"
+    payload = {"version": 1, "step": 10, "params": RunsCode(marker)}
+    path = ck / "ckpt_000010.pt"
+    if writer == "torch.save":
+        torch.save(payload, path)
+    else:
+        path.write_bytes(pickle.dumps(payload, protocol=2))
+    pickle.loads(pickle.dumps(RunsCode(tmp_path / "proof")))  # the payload does run code when unpickled
+    assert (tmp_path / "proof").read_text() == "ran"
+    trainer = Trainer(tiny_data, init_model(), tiny_preset(steps=20), ck, show_progress=False)
+    with pytest.raises(DataError, match=r"ckpt_000010\.pt: refused to load this checkpoint: it needs exec to load .*could run code"):
+        trainer.train(resume=True)
+    assert not marker.exists()
+    assert trainer.step == 0 and list_checkpoints(ck) == [path]
+
+
+def test_resume_skips_a_torn_checkpoint_but_never_starts_over_silently(tiny_data: TrainingData,
+                                                                      tmp_path: Path) -> None:
+    ck = tmp_path / "ck"
+    Trainer(tiny_data, init_model(), tiny_preset(steps=20), ck, show_progress=False).train()
+    (ck / "ckpt_000020.pt").write_bytes(b"torn")
+    resumed = Trainer(tiny_data, init_model(), tiny_preset(steps=20), ck, show_progress=False).train(resume=True)
+    assert resumed.resumed_from == 10 and resumed.steps == 20
+    for path in list_checkpoints(ck):
+        path.write_bytes(path.read_bytes()[:100])
+    with pytest.raises(DataError, match=r"ck: none of the 2 checkpoint\(s\) can be read; start again without"):
+        Trainer(tiny_data, init_model(), tiny_preset(steps=20), ck, show_progress=False).train(resume=True)
+
+
+def test_a_checkpoint_missing_a_field_is_named(tiny_data: TrainingData, tmp_path: Path) -> None:
+    ck = tmp_path / "ck"
+    ck.mkdir()
+    torch.save({"version": 1, "step": 10}, ck / "ckpt_000010.pt")
+    with pytest.raises(DataError, match=r"ckpt_000010\.pt: not a usable brave6d checkpoint \(KeyError: 'train_views'\)"):
+        Trainer(tiny_data, init_model(), tiny_preset(steps=20), ck, show_progress=False).train(resume=True)

@@ -11,13 +11,16 @@ naming the step; checkpoints are only written from finite states, so the last on
 Checkpoints (every ``checkpoint_every`` steps, atomic) hold parameters, optimiser and strategy
 state and every RNG, so that ``resume=True`` continues exactly where the run stopped: on the
 CPU a resumed run ends with the same parameters as an uninterrupted one, and equal seeds give
-equal results.
+equal results. They hold tensors and plain values (numbers, strings, lists, dicts) only and are
+read with ``torch.load(weights_only=True)``: a checkpoint from elsewhere cannot run code, and
+one that needs anything else to load is refused with an error naming it.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import pickle
 import re
 import time
 from collections.abc import Callable
@@ -46,6 +49,10 @@ _CKPT = re.compile(r"^ckpt_(\d{6,})\.pt$")
 
 class TrainingDiverged(BraveError):
     """The loss or a parameter became NaN/inf; training stopped (the last checkpoint is kept)."""
+
+
+class UnreadableCheckpoint(DataError):
+    """A checkpoint file that is torn or not a checkpoint at all (an older one may still be good)."""
 
 
 @dataclass
@@ -281,6 +288,15 @@ class Trainer:
         }
 
     def load_state_dict(self, ckpt: dict[str, Any], source: str = "checkpoint") -> None:
+        """Continue from ``ckpt``; a checkpoint of another version, split or shape raises naming ``source``."""
+        try:
+            self._load_state(ckpt, source)
+        except DataError:
+            raise
+        except (KeyError, IndexError, TypeError, ValueError) as exc:
+            raise DataError(f"{source}: not a usable brave6d checkpoint ({type(exc).__name__}: {exc})") from None
+
+    def _load_state(self, ckpt: dict[str, Any], source: str) -> None:
         if ckpt.get("version") != CHECKPOINT_VERSION:
             raise DataError(f"{source}: checkpoint version {ckpt.get('version')} is not {CHECKPOINT_VERSION}")
         if ckpt["train_views"] != self.data.fingerprint():
@@ -317,21 +333,54 @@ class Trainer:
         return path
 
     def load_latest_checkpoint(self) -> int | None:
-        """Restore the newest readable checkpoint; returns its step (None when there is none)."""
+        """Restore the newest readable checkpoint; returns its step (None when there is none).
+
+        A torn file is skipped for an older one; when every file is unreadable, or one is refused
+        (see :func:`read_checkpoint`), this raises instead of quietly starting from step 0.
+        """
         if self.checkpoint_dir is None:
             return None
-        for path in reversed(list_checkpoints(self.checkpoint_dir)):
+        paths = list_checkpoints(self.checkpoint_dir)
+        for path in reversed(paths):
             try:
-                ckpt = torch.load(path, map_location="cpu", weights_only=False)
-            except Exception as exc:  # noqa: BLE001 - a torn or foreign file: try the previous one
-                log.warning("%s: unreadable checkpoint (%s); trying an older one", path, exc)
+                ckpt = read_checkpoint(path)
+            except UnreadableCheckpoint as exc:
+                log.warning("%s; trying an older one", exc)
                 continue
             self.load_state_dict(ckpt, str(path))
             self.last_checkpoint = path
             log.info("resumed from %s (step %d, %.0f s trained)", path, self.step, self.elapsed)
             return self.step
+        if paths:
+            raise DataError(f"{self.checkpoint_dir}: none of the {len(paths)} checkpoint(s) can be read; "
+                            "start again without --resume")
         log.warning("--resume: no checkpoint in %s; starting from step 0", self.checkpoint_dir)
         return None
+
+
+_UNSUPPORTED_GLOBAL = re.compile(r"Unsupported global: GLOBAL ([\w.]+)")
+
+
+def read_checkpoint(path: Path) -> dict[str, Any]:
+    """Load a checkpoint as tensors and plain values only (``weights_only``): never runs code.
+
+    A file that needs any other object to unpickle (an old format, or one crafted to run code)
+    is refused with a :class:`DataError` naming it; a torn or foreign file raises
+    :class:`UnreadableCheckpoint`.
+    """
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        found = _UNSUPPORTED_GLOBAL.search(str(exc))
+        what = f"it needs {found.group(1)} to load" if found else "it holds more than tensors and plain values"
+        raise DataError(f"{path}: refused to load this checkpoint: {what} (an old format or not written by "
+                        "brave6d; loading it could run code); move it away or train without --resume") from None
+    except Exception as exc:  # noqa: BLE001 - torch raises many types for a torn or foreign file
+        raise UnreadableCheckpoint(f"{path}: unreadable checkpoint ({type(exc).__name__}: "
+                                   f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
+    if not isinstance(ckpt, dict):
+        raise UnreadableCheckpoint(f"{path}: not a brave6d checkpoint (holds a {type(ckpt).__name__})")
+    return ckpt
 
 
 def list_checkpoints(folder: Path) -> list[Path]:
