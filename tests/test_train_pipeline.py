@@ -102,3 +102,71 @@ def test_demo_stage_quick(tmp_path: Path) -> None:
     assert result.figures["steps"] == QUICK.steps
     assert "holdout PSNR" in result.figures and "PSNR@0.45m" in result.figures and "PSNR@0.60m" in result.figures
     assert (scene.splat_dir / "point_cloud.ply").is_file()
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` (relative path -> bytes)."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def kept_aside(splat: Path) -> dict[str, bytes]:
+    """The ``<name>.old-<stamp>`` entries of ``splat`` under their original names (as in :func:`snapshot`)."""
+    out: dict[str, bytes] = {}
+    for path in splat.iterdir():
+        name, sep, _ = path.name.partition(".old-")
+        if sep and path.is_dir():
+            out.update({f"{name}/{k}": v for k, v in snapshot(path).items()})
+        elif sep:
+            out[name] = path.read_bytes()
+    return out
+
+
+def test_a_new_training_never_leaves_the_user_without_the_previous_one(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    from training.trainer import Trainer
+
+    scene = write_scene(tmp_path / "s", CAM, plane_views(CAM, [0.45, 0.6], 4))
+    args = ("--preset", "fast", "--steps", "8", "--device", "cpu", "--init", "depth")  # a checkpoint every 2 steps
+    assert cli.run(parse(str(scene.root), *args)) == 0
+    splat = scene.splat_dir
+    first = snapshot(splat)
+    assert {"checkpoints/ckpt_000008.pt", "point_cloud.ply", "metrics.json", "curves.png"} <= set(first)
+    assert any(k.startswith("holdout/") for k in first)
+
+    # a corrupt frames.jsonl line: stops naming the line, before anything of the training is touched
+    good = scene.frames_path.read_bytes()
+    lines = good.split(b"\n")
+    lines[2] = lines[2][:30]
+    scene.frames_path.write_bytes(b"\n".join(lines))
+    with pytest.raises(BraveError, match=r"frames\.jsonl:3: not a JSON record"):
+        cli.run(parse(str(scene.root), *args))
+    assert snapshot(splat) == first
+    scene.frames_path.write_bytes(good)
+
+    # a failure before the new run's first checkpoint: the previous training stays as it was
+    real_step = Trainer.train_step
+    fail_at = {"step": 1}
+
+    def failing_step(self: Trainer) -> dict[str, float]:
+        if self.step == fail_at["step"]:
+            raise RuntimeError("power cut")
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", failing_step)
+    with pytest.raises(RuntimeError, match="power cut"):
+        cli.run(parse(str(scene.root), *args))
+    assert snapshot(splat) == first
+    assert sorted(p.name for p in splat.iterdir()) == sorted({k.split("/")[0] for k in first})  # no leftovers
+
+    # a failure after it: the previous training is kept aside, byte for byte, and the new one resumes
+    fail_at["step"] = 3
+    with pytest.raises(RuntimeError, match="power cut"):
+        cli.run(parse(str(scene.root), *args))
+    assert kept_aside(splat) == first
+    assert [p.name for p in (splat / "checkpoints").iterdir()] == ["ckpt_000002.pt"]
+    assert not (splat / "point_cloud.ply").exists() and not (splat / "metrics.json").exists()
+    monkeypatch.setattr(Trainer, "train_step", real_step)
+    assert cli.run(parse(str(scene.root), *args, "--resume")) == 0
+    metrics = json.loads((splat / "metrics.json").read_text())
+    assert metrics["resumed_from_step"] == 2 and metrics["steps"] == 8
+    assert kept_aside(splat) == first

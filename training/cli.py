@@ -24,7 +24,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "checkpoints) are scaled with it")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="stop training after this many seconds (default: the preset's)")
-    parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in splat/checkpoints")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from the newest checkpoint in splat/checkpoints; without it a new training "
+                             "starts, and the previous one's outputs are moved aside (splat/<name>.old-<stamp>) "
+                             "once the new one has written its first checkpoint")
     parser.add_argument("--skip-bad-frames", action="store_true",
                         help="leave out missing or corrupt frames (listed in metrics.json) instead of stopping")
     parser.add_argument("--init", choices=["auto", "colmap", "depth", "random"], default="auto",
@@ -48,6 +51,9 @@ def run(args: argparse.Namespace) -> int:
                           skip_bad_frames=args.skip_bad_frames, init_method=args.init)
     print(summary(metrics))
     print(f"\nsplat: {metrics['outputs']['ply']}\nmetrics: {scene.splat_dir / 'metrics.json'}")
+    previous = metrics["outputs"].get("previous_training") or []
+    if previous:
+        print("previous training kept as: " + ", ".join(previous))
     return 0
 
 

@@ -4,18 +4,27 @@ Frames + calibrated poses -> initial points (COLMAP, ``sparse/0``) -> training -
 evaluation -> ``splat/point_cloud.ply`` (Inria layout), ``splat/metrics.json``,
 ``splat/curves.png``, ``splat/holdout/<view>.png`` (render | ground truth) and
 ``splat/checkpoints/``.
+
+Nothing of a previous training is deleted. The inputs are checked first; a new training (not
+``--resume``) then writes its checkpoints to a hidden staging folder, and only once the first one
+is written are the previous outputs (:data:`TRAINING_OUTPUTS`) moved aside to
+``<name>.old-<stamp>`` siblings and the staging folder renamed to ``splat/checkpoints``. A run
+that fails earlier leaves the previous training exactly as it was. ``--resume`` continues the
+training in ``splat/checkpoints`` and rewrites its outputs.
 """
 
 from __future__ import annotations
 
 import logging
 import shutil
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from brave6d.atomic import move_aside
 from brave6d.errors import BraveError
 from brave6d.layout import SceneDir
 from training.colmap_init import ColmapOptions, initial_points
@@ -28,6 +37,53 @@ from training.trainer import Trainer, list_checkpoints, resolve_device
 
 log = logging.getLogger(__name__)
 
+#: What a training run writes into ``splat/``: a new run moves the previous run's aside.
+TRAINING_OUTPUTS = ("checkpoints", "point_cloud.ply", "metrics.json", "curves.png", "holdout")
+
+
+def move_previous_outputs(splat: Path) -> list[Path]:
+    """Move each existing :data:`TRAINING_OUTPUTS` entry of ``splat`` aside; returns the new paths.
+
+    An empty folder is simply removed (nothing to keep).
+    """
+    moved = []
+    for name in TRAINING_OUTPUTS:
+        path = splat / name
+        if path.is_dir() and not any(path.iterdir()):
+            path.rmdir()
+        elif path.exists() or path.is_symlink():
+            moved.append(move_aside(path))
+            log.info("kept the previous training's %s as %s", name, moved[-1])
+    return moved
+
+
+class NewRun:
+    """A training that takes the place of the previous one in ``splat/`` only once it has a checkpoint.
+
+    Its checkpoints go to :attr:`staging`; :meth:`take_place` (called at the first checkpoint, and
+    before the other outputs are written) moves the previous outputs aside and makes the staging
+    folder ``splat/checkpoints``. :meth:`close` removes the staging folder of a run that never
+    took place.
+    """
+
+    def __init__(self, splat: Path) -> None:
+        splat.mkdir(parents=True, exist_ok=True)
+        self.splat = splat
+        self.staging = Path(tempfile.mkdtemp(prefix=".checkpoints.new-", dir=splat))
+        self.moved: list[Path] | None = None  # None until the run took its place
+
+    def take_place(self, trainer: Trainer) -> None:
+        """Move the previous outputs aside and the trainer's checkpoints to ``splat/checkpoints`` (once)."""
+        if self.moved is not None:
+            return
+        self.moved = move_previous_outputs(self.splat)
+        trainer.move_checkpoints(self.splat / "checkpoints")
+
+    def close(self) -> None:
+        """Remove the staging folder of a run that never took its place (the previous one is untouched)."""
+        if self.moved is None:
+            shutil.rmtree(self.staging, ignore_errors=True)
+
 
 def train_scene(
     scene: SceneDir,
@@ -39,21 +95,23 @@ def train_scene(
     colmap: ColmapOptions | None = None,
     show_progress: bool = True,
 ) -> dict[str, Any]:
-    """Train ``scene`` with ``preset`` and write the ``splat/`` outputs; returns the metrics."""
+    """Train ``scene`` with ``preset`` and write the ``splat/`` outputs; returns the metrics.
+
+    See the module docstring for what happens to a previous training.
+    """
     t_start = time.perf_counter()
     dev = resolve_device(device)
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
     splat = scene.splat_dir
     ckpt_dir = splat / "checkpoints"
-    if not resume and list_checkpoints(ckpt_dir):
-        log.info("starting afresh: the checkpoints in %s will be replaced (use --resume to continue)", ckpt_dir)
-        for old in list_checkpoints(ckpt_dir):
-            old.unlink()
-    data = load_scene(scene, preset.downscale, skip_bad_frames)
+    data = load_scene(scene, preset.downscale, skip_bad_frames)  # the inputs, before anything is moved
     log.info("images: %s", data.undistortion)
+    continuing = resume and bool(list_checkpoints(ckpt_dir))
+    if resume and not continuing:
+        log.warning("--resume: no checkpoint in %s; starting a new training", ckpt_dir)
     init_info: dict[str, Any]
-    if resume and list_checkpoints(ckpt_dir):
+    if continuing:
         # the model comes from the checkpoint; a placeholder keeps the constructor simple
         model = GaussianModel.from_points([[0.0, 0.0, 0.0]], sh_degree=preset.sh_degree, device=dev)
         init_info = {"source": "checkpoint"}
@@ -68,12 +126,23 @@ def train_scene(
     def holdout_psnr(trainer: Trainer) -> float:
         return evaluate_holdout(trainer.model, data).psnr
 
-    trainer = Trainer(data, model, preset, ckpt_dir, dev, show_progress=show_progress, eval_callback=holdout_psnr)
-    result = trainer.train(resume=resume)
+    run = None if continuing else NewRun(splat)
+    hook = None if run is None else run.take_place
+    trainer = Trainer(data, model, preset, ckpt_dir if run is None else run.staging, dev,
+                      show_progress=show_progress, eval_callback=holdout_psnr, checkpoint_hook=hook)
+    try:
+        result = trainer.train(resume=continuing)
+        if run is not None:
+            run.take_place(trainer)  # a run without any checkpoint (no steps) still replaces the outputs
+    finally:
+        if run is not None:
+            run.close()
+    if run is not None and run.moved:
+        log.info("the previous training is kept beside the new one: %s", ", ".join(p.name for p in run.moved))
     model = trainer.model
     ply_path = write_ply(splat / "point_cloud.ply", model.to_splat())
     t_eval = time.perf_counter()
-    shutil.rmtree(splat / "holdout", ignore_errors=True)  # no stale views from an earlier split
+    shutil.rmtree(splat / "holdout", ignore_errors=True)  # --resume: no stale views from an earlier split
     holdout = evaluate_holdout(model, data, splat / "holdout")
     t_eval = time.perf_counter() - t_eval
     if result.curve:
@@ -107,7 +176,8 @@ def train_scene(
         "init": init_info,
         "outputs": {"ply": str(ply_path), "curves": str(splat / "curves.png"),
                     "holdout_images": str(splat / "holdout"), "checkpoints": str(ckpt_dir),
-                    "colmap_model": str(scene.sparse_dir / "0")},
+                    "colmap_model": str(scene.sparse_dir / "0"),
+                    "previous_training": [str(p) for p in (run.moved or [])] if run is not None else []},
         "preset_config": preset.to_json(),
         "curve": result.curve,
     }

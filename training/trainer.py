@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import pickle
 import re
 import time
@@ -103,6 +104,7 @@ class Trainer:
         show_progress: bool = True,
         step_callback: Callable[[Trainer, int], None] | None = None,
         eval_callback: Callable[[Trainer], float] | None = None,
+        checkpoint_hook: Callable[[Trainer], None] | None = None,
     ) -> None:
         self.data = data
         self.preset = preset
@@ -115,6 +117,7 @@ class Trainer:
         self.show_progress = show_progress
         self.step_callback = step_callback
         self.eval_callback = eval_callback
+        self.checkpoint_hook = checkpoint_hook  # called after each checkpoint is written
         self.extent = data.scene_extent()
         self.strategy = make_strategy(preset)
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.extent)
@@ -321,7 +324,10 @@ class Trainer:
         self.extent = float(ckpt["extent"])
 
     def save_checkpoint(self) -> Path:
-        """Write ``ckpt_<step>.pt`` atomically (only from a finite state) and prune old ones."""
+        """Write ``ckpt_<step>.pt`` atomically (only from a finite state), prune old ones, call the hook.
+
+        Returns where the checkpoint is once the hook has run (it may move the folder).
+        """
         assert self.checkpoint_dir is not None
         self._check_params("at the checkpoint")
         path = self.checkpoint_dir / f"ckpt_{self.step:06d}.pt"
@@ -330,7 +336,17 @@ class Trainer:
         self.last_checkpoint = path
         for old in list_checkpoints(self.checkpoint_dir)[: -self.preset.keep_checkpoints]:
             old.unlink(missing_ok=True)
-        return path
+        if self.checkpoint_hook is not None:
+            self.checkpoint_hook(self)
+        return self.last_checkpoint
+
+    def move_checkpoints(self, target: Path) -> None:
+        """Rename the checkpoint folder to ``target`` (which must not exist) and keep writing there."""
+        assert self.checkpoint_dir is not None
+        os.rename(self.checkpoint_dir, target)
+        if self.last_checkpoint is not None:
+            self.last_checkpoint = target / self.last_checkpoint.name
+        self.checkpoint_dir = target
 
     def load_latest_checkpoint(self) -> int | None:
         """Restore the newest readable checkpoint; returns its step (None when there is none).
