@@ -145,3 +145,25 @@ def test_unchanged_model_is_reused(plane_scene, monkeypatch: pytest.MonkeyPatch)
     assert again.source == "colmap" and "reused" in again.details
     np.testing.assert_array_equal(again.points, init.points)  # same order: same training
     np.testing.assert_array_equal(again.colors, init.colors)
+
+
+def test_new_image_contents_are_triangulated_again(plane_scene, tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    import shutil
+
+    import training.colmap_init as ci
+    from brave6d.atomic import read_png, write_png
+    from brave6d.layout import SceneDir
+
+    scene = SceneDir(shutil.copytree(plane_scene[0].root, tmp_path / "recaptured"))
+    raw = scene.capture_dir / "rgb" / "000003.png"
+    write_png(raw, 255 - read_png(raw, "rgb"))  # recaptured: same name and pose, other content
+    calls = []
+
+    def counted(*a, **k):  # type: ignore[no-untyped-def]
+        calls.append(1)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(ci, "triangulate", counted)
+    initial_points(scene, load_scene(scene), OPTS, max_points=1000)
+    assert calls == [1]

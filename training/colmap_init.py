@@ -35,6 +35,7 @@ from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError
 from brave6d.layout import SceneDir
 from brave6d.transforms import invert
+from brave6d.undistort import file_sha256
 from training.dataset import TrainingData, View, load_depth_m
 
 log = logging.getLogger(__name__)
@@ -326,11 +327,23 @@ def workspace_box(scene: SceneDir | None, data: TrainingData) -> tuple[NDArray[n
 
 
 # ----------------------------------------------------------------------------- reuse
-def model_stamp(camera: PinholeCamera, images: list[tuple[str, NDArray[np.float64]]], options: ColmapOptions) -> str:
-    """Hash of what a triangulation depends on: camera, image names and poses, options."""
+def model_stamp(camera: PinholeCamera, images: list[tuple[str, NDArray[np.float64]]], options: ColmapOptions,
+                contents: dict[str, str] | None = None) -> str:
+    """Hash of what a triangulation depends on: camera, image names, poses and contents, options."""
     payload = json.dumps({"camera": camera.to_json(), "options": repr(options),
-                          "images": [(n, np.round(T, 12).tolist()) for n, T in images]})
+                          "images": [(n, np.round(T, 12).tolist()) for n, T in images],
+                          "contents": contents or {}}, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()
+
+
+def image_contents(data: TrainingData) -> dict[str, str]:
+    """SHA-256 of each view's image file, by file name (part of the reuse stamp).
+
+    A recapture under the same names and poses (a simulated capture of an edited scene) must not
+    reuse the old triangulation.
+    """
+    return {Path(v.rgb_path).name: file_sha256(Path(v.rgb_path)) for v in data.views
+            if v.rgb_path is not None and Path(v.rgb_path).is_file()}
 
 
 def _reusable_colmap(scene: SceneDir, stamp: str, options: ColmapOptions) -> InitPoints | None:
@@ -378,10 +391,10 @@ def initial_points(
     result: InitPoints | None = None
     notes: dict[str, Any] = {}
     t0 = time.perf_counter()
-    stamp = model_stamp(full, train_images + test_images, options)
+    stamp = model_stamp(full, train_images + test_images, options, image_contents(data))
     reused = _reusable_colmap(scene, stamp, options) if "colmap" in chain and scene is not None else None
     if reused is not None and scene is not None and len(reused) >= options.min_points:
-        log.info("reusing the COLMAP points of %s (same frames, poses and camera)", scene.sparse_dir / "0")
+        log.info("reusing the COLMAP points of %s (same images, poses and camera)", scene.sparse_dir / "0")
         return _drop_far_points(reused, data).subsample(max_points, seed)
     if "colmap" in chain:
         if data.undistorted_root is None:
