@@ -19,6 +19,7 @@
     holdout/          the held-out undistorted RGB images
 
 The folder is built in a hidden sibling and renamed into place (all or nothing).
+A splat with NaN/inf, no Gaussians or none visible is refused (:mod:`serve.splat_check`).
 :func:`load_bundle` recomputes every checksum and refuses a bundle whose files do not match
 its manifest (or that lists a file outside itself); files the manifest does not list are
 ignored (never read).
@@ -52,6 +53,7 @@ from brave6d.errors import BraveError, DataError, NonRigidTransformError
 from brave6d.layout import SceneDir
 from brave6d.transforms import check_rigid
 from serve.geometry import DEFAULT_CAMERA_RADIUS, CollisionWorld, OrientedBox, Workspace
+from serve.splat_check import check_splat, ply_vertex_count
 
 log = logging.getLogger(__name__)
 
@@ -414,8 +416,7 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
         raise BraveError(f"camera radius must be a finite number >= 0, got {camera_radius}")
     splat_src = find_splat_ply(scene)
     splat = read_ply(splat_src)
-    if splat.num_gaussians == 0:
-        raise DataError(f"{splat_src}: the splat holds no Gaussians")
+    check_splat(splat, splat_src)
     instances = read_annotation_instances(scene)
     camera = scene_camera(scene, spec)
     if width is not None or height is not None:
@@ -597,6 +598,15 @@ def load_bundle(root: Path | str, verify: bool = True) -> Bundle:
                                     h.get("image")) for h in read_json(base / HOLDOUT)["views"])
     except (KeyError, TypeError, ValueError, BraveError) as exc:
         raise BundleError(f"{base}: malformed bundle ({type(exc).__name__}: {exc})") from None
+    splat = base / SPLAT
+    if not splat.is_file():
+        raise BundleError(f"{splat}: the bundle has no splat")
+    try:
+        count = ply_vertex_count(splat)
+    except DataError as exc:
+        raise BundleError(str(exc)) from None
+    if count == 0:
+        raise BundleError(f"{splat}: the splat holds no Gaussians; export the bundle again from a trained scene")
     listed = set(manifest.get("files", {}))
     for o in objects:
         if verify and o.model not in listed:
