@@ -19,7 +19,9 @@
     holdout/          the held-out undistorted RGB images
 
 The folder is built in a hidden sibling and renamed into place (all or nothing).
-A splat with NaN/inf, no Gaussians or none visible is refused (:mod:`serve.splat_check`).
+A splat with NaN/inf, no Gaussians or none visible is refused (:mod:`serve.splat_check`), and
+so are a corrupt ``frames.jsonl`` and holdout images that cannot be made (unless left out on
+purpose with ``include_holdout_images=False``).
 :func:`load_bundle` recomputes every checksum and refuses a bundle whose files do not match
 its manifest (or that lists a file outside itself); files the manifest does not list are
 ignored (never read).
@@ -39,6 +41,7 @@ import platform
 import shutil
 import subprocess
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -50,7 +53,7 @@ from numpy.typing import NDArray
 from brave6d.atomic import atomic_write_json, read_json, replace_folder
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError, DataError, NonRigidTransformError
-from brave6d.layout import SceneDir
+from brave6d.layout import FrameRecord, SceneDir
 from brave6d.transforms import check_rigid
 from serve.geometry import DEFAULT_CAMERA_RADIUS, CollisionWorld, OrientedBox, Workspace
 from serve.splat_check import check_splat, ply_vertex_count
@@ -231,15 +234,20 @@ def holdout_frames(scene: SceneDir) -> list[tuple[Any, Matrix4]]:
     Sources, first found wins: ``splat/metrics.json`` (a list under ``holdout``, ``holdout_views``,
     ``test_views`` or ``test``: frame indices, view ids, image names, or dicts with one of
     ``index``/``view_id``/``name``), ``sparse/holdout.txt`` (image names), else the trainer's
-    rule (:func:`training.dataset.holdout_split`). No capture or calibration: no views.
+    rule (:func:`training.dataset.holdout_split`). No capture (``frames.jsonl``) or no hand-eye
+    calibration: no views (with a warning). A corrupt ``frames.jsonl`` or ``handeye.json`` is an
+    error: a bundle silently without its holdout views would be scored on nothing.
     """
     from brave6d.calibration_io import camera_poses
 
+    for needed, what in ((scene.frames_path, "no capture"), (scene.handeye_path, "no hand-eye calibration")):
+        if not needed.is_file():
+            log.warning("%s: %s, so the bundle has no holdout views", needed, what)
+            return []
     try:
         views = camera_poses(scene)
     except DataError as exc:
-        log.warning("no holdout views in the bundle: %s", exc)
-        return []
+        raise DataError(f"{exc}; the bundle's holdout views are read from it: repair it and export again") from None
     if not views:
         return []
     wanted: set[str] | None = None
@@ -450,8 +458,8 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
         undistorted = _undistorted_rgb(scene) if include_holdout_images and frames else None
         for record, world_T_cam in frames:
             image = None
-            src = undistorted(record) if undistorted is not None else None
-            if src is not None and src.is_file():
+            if undistorted is not None:
+                src = _holdout_image(undistorted, record)
                 image = f"holdout/{src.name}"
                 (staging / "holdout").mkdir(exist_ok=True)
                 shutil.copyfile(src, staging / image)
@@ -474,15 +482,30 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
     return ExportResult(target, splat.num_gaussians, len(objects), len(holdout), size, models_from)
 
 
-def _undistorted_rgb(scene: SceneDir) -> Any:
-    """``record -> path`` of the undistorted RGB frames (made once by the kernel's cache), or None."""
+_NO_IMAGES = "repair the capture, or export with --no-holdout-images to leave the images out"
+
+
+def _undistorted_rgb(scene: SceneDir) -> Callable[[FrameRecord], Path]:
+    """``record -> path`` of the undistorted RGB frames (made once by the kernel's cache).
+
+    A capture that cannot be undistorted is an error: holdout views silently without their
+    images would look like a complete bundle. Leaving them out is ``include_holdout_images=False``.
+    """
     from brave6d.undistort import ensure_undistorted
 
     try:
         return ensure_undistorted(scene).rgb_path
     except (DataError, OSError) as exc:
-        log.warning("holdout images left out: cannot undistort the capture (%s)", exc)
-        return None
+        raise DataError(f"cannot make the holdout images: {exc}; {_NO_IMAGES}") from None
+
+
+def _holdout_image(undistorted: Callable[[FrameRecord], Path], record: FrameRecord) -> Path:
+    """The undistorted image of holdout frame ``record``; a missing one is an error, not a gap."""
+    src = undistorted(record)
+    if not src.is_file():
+        raise DataError(f"{src}: the undistorted image of holdout frame {record.index} ({record.view_id}) is "
+                        f"missing; {_NO_IMAGES}")
+    return src
 
 
 def _export_objects(staging: Path, instances: list[dict[str, Any]], bop_models: Path | None,

@@ -42,6 +42,34 @@ def run_cli(*argv: str) -> int:
     return main(["export", *argv])
 
 
+# ----------------------------------------------------------------------------- item 5: capture records, holdout images
+def test_corrupt_frames_log_is_refused_and_keeps_the_previous_bundle(scene: SceneDir) -> None:
+    export_bundle(scene.root)
+    before = snapshot(scene.bundle_dir)
+    lines = scene.frames_path.read_text().splitlines(keepends=True)
+    lines[2] = '{"index": 2, "view_id": "d0_v002", broken\n'
+    scene.frames_path.write_text("".join(lines))
+    with pytest.raises(DataError, match=r"frames\.jsonl:3: not a JSON record"):
+        export_bundle(scene.root)
+    assert snapshot(scene.bundle_dir) == before
+
+
+def test_unreadable_holdout_image_is_an_error_unless_images_are_left_out(scene: SceneDir, tmp_path: Path) -> None:
+    shutil.rmtree(scene.root / "undistorted", ignore_errors=True)
+    (scene.capture_dir / "rgb" / "000005.png").write_bytes(b"not a png")  # frame 5 is the holdout view
+    with pytest.raises(DataError, match=r"000005\.png.*--no-holdout-images"):
+        export_bundle(scene.root, tmp_path / "b")
+    assert not (tmp_path / "b").exists()
+    b = load_bundle(export_bundle(scene.root, tmp_path / "b", include_holdout_images=False).root)
+    assert [(h.index, h.image) for h in b.holdout] == [(5, None)]
+
+
+def test_scene_without_a_capture_exports_without_holdout_views(scene: SceneDir, tmp_path: Path) -> None:
+    scene.frames_path.unlink()
+    b = load_bundle(export_bundle(scene.root, tmp_path / "b").root)
+    assert b.holdout == ()
+
+
 # ----------------------------------------------------------------------------- item 8: broken splats
 def _write_splat(path: Path, splat: object) -> None:
     from training import write_ply
