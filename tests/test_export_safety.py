@@ -42,6 +42,128 @@ def run_cli(*argv: str) -> int:
     return main(["export", *argv])
 
 
+# ----------------------------------------------------------------------------- item 1: what --out may replace
+@pytest.mark.parametrize("force", [False, True])
+def test_out_that_is_the_scene_dir_is_refused_even_with_force(scene: SceneDir, force: bool,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    before = snapshot(scene.root)
+    assert run_cli(str(scene.root), "--out", str(scene.root), *(["--force"] if force else [])) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "is the scene directory" in err
+    assert snapshot(scene.root) == before  # capture, calibration, splat, annotation untouched
+    assert sorted(p.name for p in scene.root.parent.iterdir()) == ["scene"]  # nothing moved aside
+
+
+def test_out_that_contains_the_scene_is_refused_even_with_force(scene: SceneDir) -> None:
+    parent = scene.root.parent
+    before = snapshot(parent)
+    with pytest.raises(BraveError, match="contains the scene directory"):
+        export_bundle(scene.root, parent, force=True)
+    assert snapshot(parent) == before
+    assert sorted(p.name for p in parent.parent.iterdir()) == ["scenes"]
+
+
+@pytest.mark.parametrize("stage", ["capture", "splat", "annotation"])
+def test_out_that_is_a_stage_folder_of_the_scene_is_refused_even_with_force(scene: SceneDir, stage: str) -> None:
+    before = snapshot(scene.root)
+    with pytest.raises(BraveError, match=f"is the scene's {stage}"):
+        export_bundle(scene.root, scene.root / stage, force=True)
+    assert snapshot(scene.root) == before
+    assert sorted(p.name for p in scene.root.iterdir() if stage in p.name) == [stage]
+
+
+def _make_file(out: Path) -> None:
+    out.write_text("my notes\n")
+
+
+def _make_folder(out: Path) -> None:
+    (out / "sub").mkdir(parents=True)
+    (out / "results.csv").write_text("a,b\n1,2\n")
+    (out / "sub" / "image.png").write_bytes(b"\x89PNG not really")
+
+
+def _make_foreign_manifest(out: Path) -> None:
+    out.mkdir()
+    (out / "manifest.json").write_text(json.dumps({"name": "my web app", "files": ["index.html"]}))
+    (out / "index.html").write_text("<html></html>")
+
+
+def _make_bundle_with_extra_file(out: Path, scene: SceneDir) -> None:
+    export_bundle(scene.root, out)
+    (out / "notes.txt").write_text("results of my experiment\n")
+
+
+@pytest.mark.parametrize("kind", ["file", "folder", "foreign manifest", "bundle with an extra file"])
+def test_out_that_is_not_a_bundle_is_refused_then_moved_aside_with_force(scene: SceneDir, tmp_path: Path,
+                                                                       kind: str) -> None:
+    out = tmp_path / "out"
+    if kind == "file":
+        _make_file(out)
+    elif kind == "folder":
+        _make_folder(out)
+    elif kind == "foreign manifest":
+        _make_foreign_manifest(out)
+    else:
+        _make_bundle_with_extra_file(out, scene)
+    before = out.read_bytes() if out.is_file() else snapshot(out)
+    with pytest.raises(BraveError, match="--force") as info:
+        export_bundle(scene.root, out)
+    assert str(out) in str(info.value)
+    assert (out.read_bytes() if out.is_file() else snapshot(out)) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "scenes"]  # no staging left behind
+
+    result = export_bundle(scene.root, out, force=True)
+    verify_manifest(out)
+    assert result.moved_aside is not None and result.moved_aside.parent == tmp_path
+    assert result.moved_aside.name.startswith("out.old-")
+    moved = result.moved_aside
+    assert (moved.read_bytes() if moved.is_file() else snapshot(moved)) == before  # all of it, unchanged
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["out", "scenes", moved.name])
+
+
+def test_out_that_is_a_symlink_is_not_followed(scene: SceneDir, tmp_path: Path) -> None:
+    real = tmp_path / "real"
+    _make_folder(real)
+    link = tmp_path / "out"
+    link.symlink_to(real, target_is_directory=True)
+    before = snapshot(real)
+    with pytest.raises(BraveError, match="symbolic link"):
+        export_bundle(scene.root, link)
+    result = export_bundle(scene.root, link, force=True)
+    assert not link.is_symlink() and link.is_dir()
+    assert result.moved_aside is not None and result.moved_aside.is_symlink()
+    assert snapshot(real) == before
+
+
+def test_absent_empty_and_bundle_outs_are_replaced_without_force(scene: SceneDir, tmp_path: Path) -> None:
+    out = tmp_path / "empty"
+    out.mkdir()
+    assert export_bundle(scene.root, out).moved_aside is None
+    (out / "splat.ply").write_bytes(b"damaged")  # still a bundle (every file listed): replaced
+    result = export_bundle(scene.root, out)
+    assert result.moved_aside is None
+    verify_manifest(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "scenes"]
+    # the default place, <scene>/bundle, twice
+    assert export_bundle(scene.root).root == scene.bundle_dir
+    assert export_bundle(scene.root).moved_aside is None
+    assert not [p for p in scene.root.iterdir() if p.name.startswith((".bundle", "bundle."))]
+
+
+def test_cli_force_reports_where_the_old_folder_went(scene: SceneDir, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    _make_folder(out)
+    assert run_cli(str(scene.root), "--out", str(out)) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "not a bundle" in err and "--force" in err
+    assert run_cli(str(scene.root), "--out", str(out), "--force") == 0
+    printed = capsys.readouterr().out
+    moved = [p for p in tmp_path.iterdir() if p.name.startswith("out.old-")]
+    assert len(moved) == 1 and str(moved[0]) in printed
+    assert (moved[0] / "results.csv").read_text() == "a,b\n1,2\n"
+
+
 # ----------------------------------------------------------------------------- item 5: capture records, holdout images
 def test_corrupt_frames_log_is_refused_and_keeps_the_previous_bundle(scene: SceneDir) -> None:
     export_bundle(scene.root)
