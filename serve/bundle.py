@@ -41,6 +41,7 @@ import datetime as _dt
 import hashlib
 import json
 import logging
+import os
 import platform
 import shutil
 import subprocess
@@ -485,7 +486,8 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
     if not scene.spec_path.is_file():
         raise BraveError(f"{scene.spec_path}: not a scene directory (no scene.yaml)")
     spec = scene.load_spec()
-    target = Path(out) if out is not None else scene.bundle_dir
+    # absolute (not resolved: a symbolic link at --out must stay visible), so that "." has a name and a parent
+    target = Path(os.path.abspath(out)) if out is not None else scene.bundle_dir
     for label, value in (("width", width), ("height", height)):
         if value is not None and not 16 <= value <= 8192:
             raise BraveError(f"render {label} must be in 16..8192, got {value}")

@@ -150,6 +150,17 @@ def test_absent_empty_and_bundle_outs_are_replaced_without_force(scene: SceneDir
     assert not [p for p in scene.root.iterdir() if p.name.startswith((".bundle", "bundle."))]
 
 
+def test_relative_out_names_the_working_directory(scene: SceneDir, tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    out = tmp_path / "here"
+    out.mkdir()
+    monkeypatch.chdir(out)
+    result = export_bundle(scene.root, ".")
+    assert result.root == out and result.moved_aside is None
+    verify_manifest(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["here", "scenes"]
+
+
 def test_cli_force_reports_where_the_old_folder_went(scene: SceneDir, tmp_path: Path,
                                                     capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out"
