@@ -7,6 +7,8 @@ Modules (import them directly; this package imports nothing heavy):
   ``load_bundle(path)`` (refuses a bundle whose checksums do not match).
 - :mod:`serve.geometry`: camera collision sphere vs oriented boxes, workspace, twist integration.
 - :mod:`serve.renderer`: the splat on ``cuda``/``cpu``, one view per call with ``training.rasterize``.
+- :mod:`serve.splat_check`: ``check_splat`` refuses a splat with NaN/inf, no Gaussians or none
+  visible (export and the renderer's loading call it).
 - :mod:`serve.visibility`: visible fraction of each object (Open3D ray casting + splat depth).
 - :mod:`serve.episodes`: episode state machine, refusals, adjustment counting, JSONL logs.
 - :mod:`serve.app`: ``create_app(bundle)``, the FastAPI app (REST + WebSocket + viewer).

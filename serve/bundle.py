@@ -18,7 +18,14 @@
                       image file (``holdout/<name>.png``, undistorted) when present
     holdout/          the held-out undistorted RGB images
 
-The folder is built in a hidden sibling and renamed into place (all or nothing).
+The folder is built in a hidden sibling and renamed into place (all or nothing). Export
+replaces only what it made: an absent or empty folder, or a bundle (every file listed by its
+manifest). Anything else at ``--out`` is refused unless ``force``, and then moved aside to
+``<name>.old-<time>`` (never deleted); the scene directory, its stage folders and their
+ancestors are always refused.
+A splat with NaN/inf, no Gaussians or none visible is refused (:mod:`serve.splat_check`), and
+so are a corrupt ``frames.jsonl`` and holdout images that cannot be made (unless left out on
+purpose with ``include_holdout_images=False``).
 :func:`load_bundle` recomputes every checksum and refuses a bundle whose files do not match
 its manifest (or that lists a file outside itself); files the manifest does not list are
 ignored (never read).
@@ -34,10 +41,11 @@ import datetime as _dt
 import hashlib
 import json
 import logging
+import os
 import platform
 import shutil
 import subprocess
-import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -46,12 +54,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from brave6d.atomic import atomic_write_json, read_json, replace_folder
+from brave6d.atomic import atomic_write_json, move_aside, read_json, staged_folder
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError, DataError, NonRigidTransformError
-from brave6d.layout import SceneDir
+from brave6d.layout import FrameRecord, SceneDir
 from brave6d.transforms import check_rigid
 from serve.geometry import DEFAULT_CAMERA_RADIUS, CollisionWorld, OrientedBox, Workspace
+from serve.splat_check import check_splat, ply_vertex_count
 
 log = logging.getLogger(__name__)
 
@@ -229,15 +238,20 @@ def holdout_frames(scene: SceneDir) -> list[tuple[Any, Matrix4]]:
     Sources, first found wins: ``splat/metrics.json`` (a list under ``holdout``, ``holdout_views``,
     ``test_views`` or ``test``: frame indices, view ids, image names, or dicts with one of
     ``index``/``view_id``/``name``), ``sparse/holdout.txt`` (image names), else the trainer's
-    rule (:func:`training.dataset.holdout_split`). No capture or calibration: no views.
+    rule (:func:`training.dataset.holdout_split`). No capture (``frames.jsonl``) or no hand-eye
+    calibration: no views (with a warning). A corrupt ``frames.jsonl`` or ``handeye.json`` is an
+    error: a bundle silently without its holdout views would be scored on nothing.
     """
     from brave6d.calibration_io import camera_poses
 
+    for needed, what in ((scene.frames_path, "no capture"), (scene.handeye_path, "no hand-eye calibration")):
+        if not needed.is_file():
+            log.warning("%s: %s, so the bundle has no holdout views", needed, what)
+            return []
     try:
         views = camera_poses(scene)
     except DataError as exc:
-        log.warning("no holdout views in the bundle: %s", exc)
-        return []
+        raise DataError(f"{exc}; the bundle's holdout views are read from it: repair it and export again") from None
     if not views:
         return []
     wanted: set[str] | None = None
@@ -367,6 +381,7 @@ class ExportResult:
     holdout_views: int
     bytes: int
     models_from: str  # "bop" or "annotation"
+    moved_aside: Path | None = None  # where ``force`` moved what was at ``root`` (it was not a bundle)
 
 
 def versions() -> dict[str, str]:
@@ -395,18 +410,84 @@ def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+def not_a_bundle(folder: Path) -> str | None:
+    """Why export may not simply replace ``folder``, or None when it may: absent, empty, or a
+    bundle holding nothing but the files its manifest lists (all of which export rewrites)."""
+    if folder.is_symlink():
+        return "is a symbolic link"
+    if not folder.exists():
+        return None
+    if not folder.is_dir():
+        return "is a file, not a bundle folder"
+    if next(folder.iterdir(), None) is None:
+        return None
+    manifest = folder / MANIFEST
+    if not manifest.is_file():
+        return f"is a folder that is not a bundle (no {MANIFEST})"
+    try:
+        data = json.loads(manifest.read_text(encoding="utf-8"))
+        listed = set(data["files"]) if str(data.get("format", "")).startswith("brave6d-bundle") else None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        listed = None
+    if listed is None:
+        return f"is a folder that is not a bundle (its {MANIFEST} is not a brave6d bundle manifest)"
+    extra = sorted(rel for p in folder.rglob("*") if (p.is_file() or p.is_symlink())
+                   and (rel := p.relative_to(folder).as_posix()) not in listed and rel != MANIFEST)
+    if extra:
+        more = f" and {len(extra) - 1} more" if len(extra) > 1 else ""
+        return f"is a bundle folder that also holds files its manifest does not list ({extra[0]}{more})"
+    return None
+
+
+def _protected_folders(scene: SceneDir) -> list[tuple[Path, str]]:
+    """The folders an export must never replace or move aside, even with ``force``: the scene
+    directory and the folders of the stages that made it (the export's own inputs)."""
+    return [(scene.root, "the scene directory"), (scene.capture_dir, "the scene's capture"),
+            (scene.calibration_dir, "the scene's calibration"), (scene.sparse_dir, "the scene's sparse model"),
+            (scene.splat_dir, "the scene's splat"), (scene.annotation_dir, "the scene's annotation")]
+
+
+def check_out(target: Path, scene: SceneDir, force: bool) -> bool:
+    """Refuse an export to ``target`` that would lose data; True when ``target`` must be moved aside.
+
+    The scene directory, its stage folders and anything containing them are refused even with
+    ``force`` (the scene would be renamed away from under its own bundle); anything
+    :func:`not_a_bundle` names is refused unless ``force``.
+    """
+    out = target.resolve()
+    for folder, label in _protected_folders(scene):
+        inside = folder.resolve()
+        if out == inside or out in inside.parents:
+            what = f"is {label}" if out == inside else f"contains {label} ({folder})"
+            raise BraveError(f"{target}: --out {what}; the bundle needs a folder of its own "
+                             f"(default {scene.bundle_dir})")
+    blocker = next((p for p in (target.parent, *target.parent.parents) if p.exists() or p.is_symlink()), None)
+    if blocker is not None and not blocker.is_dir():
+        raise BraveError(f"{blocker}: is a file, so the bundle folder {target} cannot be made there")
+    why = not_a_bundle(target)
+    if why is not None and not force:
+        raise BraveError(f"{target}: {why}; export replaces only a bundle folder: choose another --out, or pass "
+                         f"--force to move it aside (to {target.name}.old-<time>, nothing is deleted)")
+    return why is not None
+
+
 def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, include_holdout_images: bool = True,
                   camera_radius: float = DEFAULT_CAMERA_RADIUS, width: int | None = None, height: int | None = None,
                   near: float = 0.01, far: float = 100.0, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                  depth_alpha_min: float = 0.5) -> ExportResult:
-    """Write the bundle of ``scene_dir`` (default ``<scene>/bundle``) atomically; see the module docstring."""
+                  depth_alpha_min: float = 0.5, force: bool = False) -> ExportResult:
+    """Write the bundle of ``scene_dir`` (default ``<scene>/bundle``) atomically; see the module docstring.
+
+    ``out`` is replaced only if it is absent, empty or a bundle; with ``force`` anything else there
+    is moved aside (:func:`brave6d.atomic.move_aside`) once the new bundle is complete.
+    """
     from training import read_ply
 
     scene = SceneDir(scene_dir)
     if not scene.spec_path.is_file():
         raise BraveError(f"{scene.spec_path}: not a scene directory (no scene.yaml)")
     spec = scene.load_spec()
-    target = Path(out) if out is not None else scene.bundle_dir
+    # absolute (not resolved: a symbolic link at --out must stay visible), so that "." has a name and a parent
+    target = Path(os.path.abspath(out)) if out is not None else scene.bundle_dir
     for label, value in (("width", width), ("height", height)):
         if value is not None and not 16 <= value <= 8192:
             raise BraveError(f"render {label} must be in 16..8192, got {value}")
@@ -414,8 +495,8 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
         raise BraveError(f"camera radius must be a finite number >= 0, got {camera_radius}")
     splat_src = find_splat_ply(scene)
     splat = read_ply(splat_src)
-    if splat.num_gaussians == 0:
-        raise DataError(f"{splat_src}: the splat holds no Gaussians")
+    check_splat(splat, splat_src)
+    check_out(target, scene, force)  # fail fast; checked again just before the swap
     instances = read_annotation_instances(scene)
     camera = scene_camera(scene, spec)
     if width is not None or height is not None:
@@ -423,9 +504,8 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
     bop_models, bop_info = _bop_models(scene)
     frames = holdout_frames(scene)
 
-    target.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
-    try:
+    moved: Path | None = None
+    with staged_folder(target) as staging:
         shutil.copyfile(splat_src, staging / SPLAT)
         objects, models_from = _export_objects(staging, instances, bop_models, bop_info)
         atomic_write_json(staging / OBJECTS, {
@@ -449,8 +529,8 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
         undistorted = _undistorted_rgb(scene) if include_holdout_images and frames else None
         for record, world_T_cam in frames:
             image = None
-            src = undistorted(record) if undistorted is not None else None
-            if src is not None and src.is_file():
+            if undistorted is not None:
+                src = _holdout_image(undistorted, record)
                 image = f"holdout/{src.name}"
                 (staging / "holdout").mkdir(exist_ok=True)
                 shutil.copyfile(src, staging / image)
@@ -463,25 +543,39 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
             "source": {"scene": str(scene.root.resolve()), "splat": str(splat_src.resolve())},
             "gaussians": splat.num_gaussians, "sh_degree": splat.sh_degree,
             "versions": versions(), "files": files})
-        replace_folder(staging, target)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
+        if check_out(target, scene, force):
+            moved = move_aside(target)
+            log.warning("%s was not a bundle: moved aside to %s", target, moved)
     size = sum(v["bytes"] for v in files.values())
     log.info("bundle written to %s (%d Gaussians, %d objects, %d holdout views, %.1f MB)", target,
              splat.num_gaussians, len(objects), len(holdout), size / 1e6)
-    return ExportResult(target, splat.num_gaussians, len(objects), len(holdout), size, models_from)
+    return ExportResult(target, splat.num_gaussians, len(objects), len(holdout), size, models_from, moved)
 
 
-def _undistorted_rgb(scene: SceneDir) -> Any:
-    """``record -> path`` of the undistorted RGB frames (made once by the kernel's cache), or None."""
+_NO_IMAGES = "repair the capture, or export with --no-holdout-images to leave the images out"
+
+
+def _undistorted_rgb(scene: SceneDir) -> Callable[[FrameRecord], Path]:
+    """``record -> path`` of the undistorted RGB frames (made once by the kernel's cache).
+
+    A capture that cannot be undistorted is an error: holdout views silently without their
+    images would look like a complete bundle. Leaving them out is ``include_holdout_images=False``.
+    """
     from brave6d.undistort import ensure_undistorted
 
     try:
         return ensure_undistorted(scene).rgb_path
     except (DataError, OSError) as exc:
-        log.warning("holdout images left out: cannot undistort the capture (%s)", exc)
-        return None
+        raise DataError(f"cannot make the holdout images: {exc}; {_NO_IMAGES}") from None
+
+
+def _holdout_image(undistorted: Callable[[FrameRecord], Path], record: FrameRecord) -> Path:
+    """The undistorted image of holdout frame ``record``; a missing one is an error, not a gap."""
+    src = undistorted(record)
+    if not src.is_file():
+        raise DataError(f"{src}: the undistorted image of holdout frame {record.index} ({record.view_id}) is "
+                        f"missing; {_NO_IMAGES}")
+    return src
 
 
 def _export_objects(staging: Path, instances: list[dict[str, Any]], bop_models: Path | None,
@@ -597,6 +691,15 @@ def load_bundle(root: Path | str, verify: bool = True) -> Bundle:
                                     h.get("image")) for h in read_json(base / HOLDOUT)["views"])
     except (KeyError, TypeError, ValueError, BraveError) as exc:
         raise BundleError(f"{base}: malformed bundle ({type(exc).__name__}: {exc})") from None
+    splat = base / SPLAT
+    if not splat.is_file():
+        raise BundleError(f"{splat}: the bundle has no splat")
+    try:
+        count = ply_vertex_count(splat)
+    except DataError as exc:
+        raise BundleError(str(exc)) from None
+    if count == 0:
+        raise BundleError(f"{splat}: the splat holds no Gaussians; export the bundle again from a trained scene")
     listed = set(manifest.get("files", {}))
     for o in objects:
         if verify and o.model not in listed:

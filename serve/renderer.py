@@ -3,6 +3,8 @@
 * The splat is read once (``training.ply.read_ply``), activated (``sigmoid`` opacity, ``exp``
   scale, normalised ``wxyz`` quaternion, SH ``[N, K, 3]``) and kept on the chosen device
   (``cuda`` or ``cpu``; ``auto`` picks CUDA when torch sees a GPU).
+* A splat with a NaN or inf parameter, no Gaussians, or none visible is refused at load with a
+  message naming the file (:func:`serve.splat_check.check_splat`), never served half-broken.
 * Gaussians whose activated opacity is below 1/255 are dropped at load: the rasterizer skips
   any Gaussian whose alpha ``o * exp(-sigma) <= o`` is below 1/255, so they can never change a
   pixel (lossless).
@@ -21,7 +23,6 @@
 
 from __future__ import annotations
 
-import logging
 import math
 import threading
 import time
@@ -34,11 +35,7 @@ from numpy.typing import NDArray
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError
 from brave6d.transforms import invert
-
-log = logging.getLogger(__name__)
-
-#: The rasterizer skips a Gaussian whose alpha at a pixel is below this (gsplat's 1/255).
-MIN_ALPHA = 1.0 / 255.0
+from serve.splat_check import MIN_ALPHA, activated_opacity, check_splat
 
 
 def resolve_device(device: str) -> str:
@@ -89,14 +86,9 @@ class SplatRenderer:
 
         self.device = resolve_device(device)
         splat = read_ply(splat_path)
-        opac = 1.0 / (1.0 + np.exp(-splat.opacities.astype(np.float64)))
+        check_splat(splat, splat_path)  # NaN/inf, no Gaussians, nothing visible: refused with the file's name
+        opac = activated_opacity(splat)
         keep = opac >= MIN_ALPHA
-        finite = (np.isfinite(splat.means).all(1) & np.isfinite(splat.scales).all(1)
-                  & np.isfinite(splat.quats).all(1) & np.isfinite(splat.opacities)
-                  & np.isfinite(splat.sh0).all((1, 2)) & np.isfinite(splat.shN).all((1, 2)))
-        if not finite.all():
-            log.warning("%s: dropping %d Gaussians with NaN/inf parameters", splat_path, int((~finite).sum()))
-        keep &= finite
         self.n_loaded = splat.num_gaussians
         self.n_pruned = int((~keep).sum())
         dev = torch.device(self.device)
