@@ -36,18 +36,52 @@ def mounting_for_planning(scene: SceneDir) -> tuple[np.ndarray | None, str]:
     return None, "robot.tcp_T_camera_guess from the spec"
 
 
-def make_plan(scene: SceneDir):  # noqa: ANN201 - returns capture.planning.Plan
-    """Plan the scene's capture, save plan.json and the plot, return the plan."""
-    from capture.planning import BoxSet, plan_views, plot_plan, save_plan
+def make_plan(scene: SceneDir, save: bool = True):  # noqa: ANN201 - returns capture.planning.Plan
+    """Plan the scene's capture; with ``save``, write plan.json and the plot. Returns the plan."""
+    from capture.planning import plan_views
 
     spec = scene.load_spec()
     tcp_T_cam, source = mounting_for_planning(scene)
     plan = plan_views(spec, tcp_T_cam)
     plan.meta["tcp_T_cam_source"] = source
-    save_plan(plan, scene.capture.plan_path)
-    plot_plan(plan, scene.capture.plan_plot_path, BoxSet.from_specs(spec.collision_boxes), spec.workspace)
+    if save:
+        save_plan_files(scene, plan)
     log.info("planned %d views (%d dropped) with the %s mounting", len(plan.views), len(plan.dropped), source)
     return plan
+
+
+def save_plan_files(scene: SceneDir, plan) -> None:  # noqa: ANN001 - capture.planning.Plan
+    """Write ``capture/plan.json`` and ``capture/plan.png``."""
+    from capture.planning import BoxSet, plot_plan, save_plan
+
+    spec = scene.load_spec()
+    save_plan(plan, scene.capture.plan_path)
+    plot_plan(plan, scene.capture.plan_plot_path, BoxSet.from_specs(spec.collision_boxes), spec.workspace)
+
+
+def captured_frame_count(scene: SceneDir) -> int:
+    """How many frames ``capture/frames.jsonl`` holds (0 when there is none)."""
+    return len(scene.capture.frames()) if scene.capture.frames_path.exists() else 0
+
+
+def plan_for_capture(scene: SceneDir):  # noqa: ANN201 - returns capture.planning.Plan
+    """The plan to capture (or resume) with: the stored one while frames exist, else a new one (saved)."""
+    from capture.planning import load_plan
+
+    if captured_frame_count(scene) and scene.capture.plan_path.exists():
+        return load_plan(scene.capture.plan_path)
+    return make_plan(scene)
+
+
+def refuse_replanning_under_frames(scene: SceneDir) -> None:
+    """A capture's plan stays while frames exist: frames are named by their index in the plan, so a
+    new plan would mix two plans in one capture and could write over captured images."""
+    from capture.runner import CaptureExistsError
+
+    if count := captured_frame_count(scene):
+        raise CaptureExistsError(
+            f"{scene.capture.frames_path}: a capture with {count} frames exists, so its plan stays as it is; "
+            "capture again with 'brave6d capture run --force' (moves the old capture aside and plans anew)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -55,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     if not scene.spec_path.is_file():
         raise BraveError(f"{scene.root}: not a scene directory (no scene.yaml); create it with 'brave6d init'")
     if args.action == "plan":
+        refuse_replanning_under_frames(scene)
         plan = make_plan(scene)
         print(f"planned {len(plan.views)} views, dropped {len(plan.dropped)}; "
               f"estimated {plan.estimated_time_s:.0f} s (naive ring order: {plan.naive_travel_time_s:.0f} s travel)")
@@ -65,11 +100,17 @@ def run(args: argparse.Namespace) -> int:
     from capture.runner import CaptureOptions, run_capture
 
     spec = scene.load_spec()
-    plan = load_plan(scene.capture.plan_path) if scene.capture.plan_path.exists() else make_plan(scene)
+    # --force plans anew; while old frames are there their plan stays with them (it goes aside with them)
+    replan = args.force or not scene.capture.plan_path.exists()
+    plan = make_plan(scene, save=not captured_frame_count(scene)) if replan else load_plan(scene.capture.plan_path)
     options = CaptureOptions(settle_time_s=spec.capture.settle_time_s, save_depth=spec.capture.depth,
                              resume=args.resume, force=args.force)
-    with open_rig(spec, args.robot, args.camera, supersample=args.supersample) as rig:
-        summary = run_capture(scene.capture, plan.views, rig.robot, rig.camera, options)
+    try:
+        with open_rig(spec, args.robot, args.camera, supersample=args.supersample) as rig:
+            summary = run_capture(scene.capture, plan.views, rig.robot, rig.camera, options)
+    finally:
+        if replan and not scene.capture.plan_path.exists():
+            save_plan_files(scene, plan)
     print(f"captured {summary.written} frames ({summary.resumed_from} kept from before, {summary.total} in all) "
           f"in {summary.wall_seconds:.1f} s wall, {summary.robot_seconds:.1f} s robot time")
     return 0

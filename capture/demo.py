@@ -6,7 +6,7 @@ from typing import TYPE_CHECKING
 
 from brave6d.progress import StageResult
 from capture.backends import open_rig
-from capture.cli import make_plan
+from capture.cli import plan_for_capture
 from capture.runner import CaptureOptions, run_capture
 
 if TYPE_CHECKING:
@@ -17,7 +17,7 @@ def stage_capture(ctx: DemoContext) -> StageResult:
     """Plan (with the calibrated mounting when calibration ran) and capture; resumes a partial run."""
     scene = ctx.scene
     spec = scene.load_spec()
-    plan = make_plan(scene)
+    plan = plan_for_capture(scene)
     options = CaptureOptions(settle_time_s=spec.capture.settle_time_s, save_depth=spec.capture.depth, resume=True)
     with open_rig(spec) as rig:
         summary = run_capture(scene.capture, plan.views, rig.robot, rig.camera, options)

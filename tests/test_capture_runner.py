@@ -124,3 +124,27 @@ def test_killed_capture_resumes_without_loss_or_duplicates(tmp_path: Path, demo_
     assert records[: len(kept)] == kept  # finished frames untouched
     for record in records:
         read_png(scene.capture_dir / record.rgb, "rgb")
+
+
+def test_replanning_is_refused_while_frames_exist_and_force_keeps_a_plan_beside_the_new_frames(
+        tmp_path: Path, demo_spec_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Frames are named by their index in the plan: a new plan under old frames could write over them."""
+    from brave6d.cli import main
+
+    scene = _small_scene(tmp_path, demo_spec_path, views=2)
+    assert main(["capture", "run", str(scene.root)]) == 0
+    plan_before = scene.capture.plan_path.read_bytes()
+    frames_before = scene.capture.frames_path.read_bytes()
+    assert main(["capture", "plan", str(scene.root)]) != 0
+    assert "frames exist" in capsys.readouterr().err
+    assert scene.capture.plan_path.read_bytes() == plan_before
+    assert scene.capture.frames_path.read_bytes() == frames_before
+
+    assert main(["capture", "run", str(scene.root), "--force"]) == 0
+    aside = [p for p in scene.root.iterdir() if p.name.startswith("capture.old-")]
+    assert len(aside) == 1
+    assert (aside[0] / "plan.json").read_bytes() == plan_before  # the old plan went with its frames
+    assert (aside[0] / "frames.jsonl").read_bytes() == frames_before
+    assert scene.capture.plan_path.is_file()  # and the new frames have their plan beside them
+    new_plan = read_json(scene.capture.plan_path)
+    assert [str(v["view_id"]) for v in new_plan["views"]] == [r.view_id for r in scene.frames()]
