@@ -150,6 +150,8 @@ def read_json(path: Path | str) -> Any:
         raise DataError(f"{p}: file not found") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(f"{p}: not valid JSON ({exc})") from None
+    except RecursionError:
+        raise DataError(f"{p}: JSON nested too deeply to read") from None
 
 
 def write_png(path: Path | str, image: NDArray[Any]) -> Path:

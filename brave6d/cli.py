@@ -89,6 +89,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"brave6d {command.name}: interrupted", file=sys.stderr)
         return 130
+    except RecursionError:  # e.g. an input nested thousands deep: one line, not a 3,000-line traceback
+        print(f"brave6d {command.name}: error: an input is nested too deeply to process "
+              "(Python's recursion limit was reached); check the files this command reads", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
