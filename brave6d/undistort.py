@@ -57,12 +57,13 @@ def ensure_undistorted(scene: SceneDir) -> UndistortedFrames:
     if stamp_path.exists() and read_json(stamp_path).get("stamp") == stamp:
         return result
     log.info("undistorting %d frames with the calibrated intrinsics into %s", len(records), root)
+    size, size_of = (raw.width, raw.height), f"the camera in {scene.intrinsics_path}"
     for record in progress(records, total=len(records), desc="undistort", unit="frame"):
-        rgb = read_png(scene.capture_dir / record.rgb, "rgb")
+        rgb = read_png(scene.capture_dir / record.rgb, "rgb", size, size_of)
         write_png(result.rgb_path(record), raw.undistort_image(rgb, cv2.INTER_LINEAR))
         depth_path = result.depth_path(record)
         if depth_path is not None:
-            depth = read_png(scene.capture_dir / str(record.depth), "depth")
+            depth = read_png(scene.capture_dir / str(record.depth), "depth", size, size_of)
             write_png(depth_path, raw.undistort_image(depth, cv2.INTER_NEAREST))
     atomic_write_json(root / "camera.json", {"intrinsics": pinhole.to_json(), "source": str(scene.intrinsics_path)})
     atomic_write_json(stamp_path, {"stamp": stamp})

@@ -1,19 +1,24 @@
 """Bad inputs end in one line naming the file and the field: YAML nested thousands deep or with a
-duplicate key."""
+duplicate key, a captured PNG of the wrong size, NaN/inf anywhere in stored intrinsics."""
 
 from __future__ import annotations
 
+import json
+import math
 import re
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
 from annotation.threedat import ThreeDatError, read_threedat
+from brave6d.atomic import read_png, write_png
 from brave6d.calibration_io import read_camera_json
+from brave6d.camera import PinholeCamera
 from brave6d.cli import main
 from brave6d.errors import DataError, SpecError
 from brave6d.spec import load_scene_spec
@@ -116,3 +121,80 @@ def test_duplicate_key_in_a_threedat_file_names_file_and_line(tmp_path: Path) ->
     lib.write_text("- id: cube\n  id: bar\n")
     with pytest.raises(ThreeDatError, match=r"object_library.yaml:2:3: invalid YAML: duplicate key 'id' \(first at line 1\)"):
         read_threedat(dat)
+
+
+# ----------------------------------------------------------------------------- image size
+def test_read_png_checks_the_size_and_names_the_file(tmp_path: Path) -> None:
+    path = write_png(tmp_path / "f.png", np.zeros((10, 12, 3), np.uint8))
+    assert read_png(path, "rgb", (12, 10)).shape == (10, 12, 3)
+    with pytest.raises(DataError, match=rf"^{re.escape(str(path))}: image is 12x10, the camera in x.json is 64x48$"):
+        read_png(path, "rgb", (64, 48), "the camera in x.json")
+
+
+def test_wrong_size_capture_png_names_the_file_and_the_camera(tmp_path: Path) -> None:
+    """Training on a capture with one frame of the wrong size: the message names that file and the
+    intrinsics it disagrees with; --skip-bad-frames trains without it."""
+    from training.dataset import load_scene
+    from training.synthetic import plane_views, write_scene
+
+    camera = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    scene = write_scene(tmp_path / "scene", camera, plane_views(camera, [0.4, 0.5], 6))
+    bad = scene.capture_dir / "rgb" / "000005.png"
+    write_png(bad, np.zeros((10, 12, 3), np.uint8))
+    with pytest.raises(DataError) as info:
+        load_scene(scene)
+    assert f"{bad}: image is 12x10, the camera in {scene.intrinsics_path} is 64x48" in str(info.value)
+    assert [s.index for s in load_scene(scene, skip_bad_frames=True).skipped] == [5]
+
+
+# ----------------------------------------------------------------------------- NaN intrinsics
+CAMERA = {"width": 64, "height": 48, "K": [[50.0, 0.0, 31.5], [0.0, 50.0, 23.5], [0.0, 0.0, 1.0]],
+          "dist": [0.1, -0.05, 0.001, 0.002, 0.01]}
+NUMBERS = [("width",), ("height",), *((("K", i, j) for i in range(3) for j in range(3))),
+           *((("dist", k) for k in range(5)))]
+
+
+def _field_name(where: tuple) -> str:
+    return where[0] + "".join(f"[{i}]" for i in where[1:])
+
+
+@given(where=st.sampled_from(NUMBERS), bad=st.sampled_from([math.nan, math.inf, -math.inf]))
+def test_nan_or_inf_anywhere_in_intrinsics_names_file_and_field(tmp_path_factory: pytest.TempPathFactory,
+                                                                where: tuple, bad: float) -> None:
+    camera = json.loads(json.dumps(CAMERA))
+    target = camera
+    for step in where[:-1]:
+        target = target[step]
+    target[where[-1]] = bad
+    path = tmp_path_factory.mktemp("cal") / "intrinsics.json"
+    path.write_text(json.dumps({"camera": camera}))
+    with pytest.raises(DataError) as info:
+        read_camera_json(path, "camera")
+    message = str(info.value)
+    assert message.startswith(f"{path}: field 'camera.{_field_name(where)}': ") and "\n" not in message, message
+    assert ("finite" in message) or ("whole number" in message), message
+
+
+def test_valid_intrinsics_still_read(tmp_path: Path) -> None:
+    path = tmp_path / "intrinsics.json"
+    path.write_text(json.dumps({"camera": CAMERA}))
+    camera = read_camera_json(path, "camera")
+    assert (camera.width, camera.height, camera.cx, camera.dist[4]) == (64, 48, 31.5, 0.01)
+
+
+@pytest.mark.parametrize(("edit", "field", "fragment"), [
+    (lambda c: c.pop("K"), "camera.K", "is missing"),
+    (lambda c: c.update(K=[[50.0, 0.0, 31.5], [0.0, 50.0, 23.5]]), "camera.K", "3x3"),
+    (lambda c: c["K"][1].__setitem__(0, 0.5), "camera.K[1][0]", "must be 0"),
+    (lambda c: c["K"][0].__setitem__(0, -5.0), "camera.fx", "positive"),
+    (lambda c: c.update(width=64.5), "camera.width", "whole number"),
+    (lambda c: c.update(dist=[0.1, 0.2]), "camera.dist", "coefficients"),
+    (lambda c: c.update(dist=["a"]), "camera.dist", "numbers"),
+])
+def test_malformed_intrinsics_name_file_and_field(tmp_path: Path, edit, field: str, fragment: str) -> None:
+    camera = json.loads(json.dumps(CAMERA))
+    edit(camera)
+    path = tmp_path / "intrinsics.json"
+    path.write_text(json.dumps({"camera": camera}))
+    with pytest.raises(DataError, match=rf"^{re.escape(str(path))}: field '{re.escape(field)}': .*{fragment}"):
+        read_camera_json(path, "camera")
