@@ -31,12 +31,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError, DataError, NonRigidTransformError
 from brave6d.transforms import check_rigid, orthonormalize, parse_tum_line
+from brave6d.yaml_io import read_yaml
 
 Matrix4 = NDArray[np.float64]
 ThreeDatId = int | str
@@ -243,20 +243,6 @@ def _existing_pose_file(config: ThreeDatConfig, scene_id: str) -> Path | None:
     return None
 
 
-def _load_yaml(path: Path, shown: str) -> Any:
-    if not path.is_file():
-        raise ThreeDatError(f"{shown}: file not found")
-    try:
-        return yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f":{mark.line + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ThreeDatError(f"{shown}{where}: invalid YAML: {problem}") from None
-    except UnicodeDecodeError as exc:
-        raise ThreeDatError(f"{shown}: not UTF-8 text ({exc.reason})") from None
-
-
 def _finite_numbers(values: Any, count: int | None, what: str) -> list[float]:
     """A flat list of finite floats (nested lists are flattened); raises ValueError with ``what``."""
     if not isinstance(values, list | tuple):
@@ -299,8 +285,8 @@ def find_config(dat_dir: Path | str) -> Path:
     candidates = []
     for f in sorted([*p.glob("*.yaml"), *p.glob("*.yml")]):
         try:
-            data = yaml.safe_load(f.read_text(encoding="utf-8"))
-        except (yaml.YAMLError, UnicodeDecodeError):
+            data = read_yaml(f)
+        except DataError:
             continue
         if isinstance(data, dict) and "General" in data:
             candidates.append(f)
@@ -315,7 +301,7 @@ def read_config(path: Path | str) -> ThreeDatConfig:
     """Parse a dataset config (file, or a folder holding one); every required key must be there."""
     cfg_path = find_config(path).resolve()
     shown = cfg_path.name
-    data = _load_yaml(cfg_path, shown)
+    data = read_yaml(cfg_path, shown, ThreeDatError)
     if not isinstance(data, dict) or not isinstance(data.get("General"), dict):
         raise ThreeDatError(f"{shown}: expected a mapping with a 'General:' section")
     general = data["General"]
@@ -353,7 +339,7 @@ def read_library(path: Path | str, root: Path | None = None) -> list[LibraryEntr
     """Parse ``object_library.yaml``; meshes must exist, ids must be unique, scales positive."""
     lib_path = Path(path)
     shown = _show(lib_path, root) if root is not None else str(lib_path)
-    data = _load_yaml(lib_path, shown)
+    data = read_yaml(lib_path, shown, ThreeDatError)
     if not isinstance(data, list) or not data:
         raise ThreeDatError(f"{shown}: expected a non-empty YAML list of objects")
     entries: list[LibraryEntry] = []
@@ -471,7 +457,7 @@ def read_object_poses(path: Path | str, library: Sequence[LibraryEntry], root: P
     """Parse ``poses.yaml``: every id must be in ``library``, every pose rigid."""
     pose_path = Path(path)
     shown = _show(pose_path, root) if root is not None else str(pose_path)
-    data = _load_yaml(pose_path, shown)
+    data = read_yaml(pose_path, shown, ThreeDatError)
     if not isinstance(data, list) or not data:
         raise ThreeDatError(f"{shown}: expected a non-empty YAML list of {{id, pose}} entries")
     known = {e.key: e for e in library}
@@ -502,7 +488,7 @@ def read_camera(path: Path | str, root: Path | None = None) -> ThreeDatCamera:
     """Parse ``camera.yaml`` (image size and the 9-number camera matrix)."""
     cam_path = Path(path)
     shown = _show(cam_path, root) if root is not None else str(cam_path)
-    data = _load_yaml(cam_path, shown)
+    data = read_yaml(cam_path, shown, ThreeDatError)
     if not isinstance(data, dict):
         raise ThreeDatError(f"{shown}: expected a mapping (name, image_width, image_height, camera_matrix)")
     size = []

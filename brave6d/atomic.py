@@ -150,6 +150,8 @@ def read_json(path: Path | str) -> Any:
         raise DataError(f"{p}: file not found") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(f"{p}: not valid JSON ({exc})") from None
+    except RecursionError:
+        raise DataError(f"{p}: JSON nested too deeply to read") from None
 
 
 def write_png(path: Path | str, image: NDArray[Any]) -> Path:
@@ -169,10 +171,13 @@ def write_png(path: Path | str, image: NDArray[Any]) -> Path:
     return atomic_write_bytes(path, buf.tobytes())
 
 
-def read_png(path: Path | str, expect: str = "any") -> NDArray[Any]:
+def read_png(path: Path | str, expect: str = "any", size: tuple[int, int] | None = None,
+             size_of: str = "the camera") -> NDArray[Any]:
     """Read a PNG as RGB uint8 (H, W, 3) or grey uint8/uint16 (H, W); errors name the file.
 
-    ``expect`` is ``"rgb"``, ``"depth"`` (uint16 grey), or ``"any"``.
+    ``expect`` is ``"rgb"``, ``"depth"`` (uint16 grey), or ``"any"``. ``size`` (width, height),
+    when given, must match the image; ``size_of`` says where that size comes from in the message
+    (e.g. ``"the camera in calibration/intrinsics.json"``).
     """
     import cv2
 
@@ -189,6 +194,8 @@ def read_png(path: Path | str, expect: str = "any") -> NDArray[Any]:
         raise DataError(f"{p}: expected an 8-bit RGB image, got {img.dtype} with shape {img.shape}")
     if expect == "depth" and (img.ndim != 2 or img.dtype != np.uint16):
         raise DataError(f"{p}: expected a uint16 depth image in mm, got {img.dtype} with shape {img.shape}")
+    if size is not None and img.shape[:2] != (size[1], size[0]):
+        raise DataError(f"{p}: image is {img.shape[1]}x{img.shape[0]}, {size_of} is {size[0]}x{size[1]}")
     return img
 
 

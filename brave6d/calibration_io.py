@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.atomic import atomic_write_json, read_json
-from brave6d.camera import PinholeCamera
+from brave6d.camera import CameraError, PinholeCamera
 from brave6d.errors import DataError, NonRigidTransformError
 from brave6d.layout import FrameRecord, SceneDir
 from brave6d.transforms import check_rigid
@@ -27,12 +27,17 @@ def write_intrinsics(scene: SceneDir, camera: PinholeCamera, **details: Any) -> 
 
 
 def read_camera_json(path: Path, key: str) -> PinholeCamera:
-    """The :class:`PinholeCamera` stored under ``key`` of the JSON file ``path``; errors name both."""
+    """The :class:`PinholeCamera` stored under ``key`` of the JSON file ``path``; errors name both.
+
+    e.g. ``calibration/intrinsics.json: field 'camera.K[0][2]': must be finite, got nan``.
+    """
     data = read_json(path)
+    if not isinstance(data, dict) or key not in data:
+        raise DataError(f"{path}: field '{key}' is missing")
     try:
         return PinholeCamera.from_json(data[key])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise DataError(f"{path}: field '{key}' is missing or malformed ({exc})") from None
+    except CameraError as exc:
+        raise DataError(f"{path}: field '{'.'.join(filter(None, (key, exc.field)))}': {exc.problem}") from None
 
 
 def read_intrinsics(scene: SceneDir) -> PinholeCamera:

@@ -8,6 +8,7 @@ match what ``cv2.calibrateCamera`` estimated.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -18,6 +19,42 @@ from numpy.typing import ArrayLike, NDArray
 from brave6d.errors import BraveError
 
 _VALID_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
+#: The fixed entries of a zero-skew camera matrix: (row, column) -> value.
+_K_CONSTANTS = {(0, 1): 0.0, (1, 0): 0.0, (2, 0): 0.0, (2, 1): 0.0, (2, 2): 1.0}
+
+
+class CameraError(BraveError, ValueError):
+    """A bad intrinsic value; ``field`` names it (``fx``, ``K[0][2]``, ``dist[3]``, ``width``).
+
+    File readers prefix the file and the key the camera sits under, e.g.
+    ``intrinsics.json: field 'camera.K[0][2]': must be finite, got nan``.
+    """
+
+    def __init__(self, field: str, problem: str) -> None:
+        self.field, self.problem = field, problem
+        super().__init__(f"camera: field '{field}': {problem}" if field else f"camera: {problem}")
+
+
+def _check_finite(name: str, value: float) -> None:
+    """Refuse NaN and inf, naming the field."""
+    if not math.isfinite(value):
+        raise CameraError(name, f"must be finite, got {value}")
+
+
+def _check_size(name: str, value: Any) -> int:
+    """A positive whole number of pixels (an int, or a float without fraction as JSON may hold)."""
+    whole = isinstance(value, numbers.Integral) or (isinstance(value, float) and value.is_integer())
+    if isinstance(value, bool) or not whole or value < 1:
+        raise CameraError(name, f"the image size must be a positive whole number of pixels, got {value!r}")
+    return int(value)
+
+
+def _float_array(name: str, values: ArrayLike) -> NDArray[np.float64]:
+    """``values`` as a float64 array; something that is not numbers raises :class:`CameraError`."""
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CameraError(name, f"must hold numbers only, got {values!r}") from None
 
 
 class Projection(NamedTuple):
@@ -44,15 +81,16 @@ class PinholeCamera:
     dist: tuple[float, ...] = field(default=())
 
     def __post_init__(self) -> None:
-        values = (self.fx, self.fy, self.cx, self.cy, *self.dist)
-        if self.width < 1 or self.height < 1:
-            raise BraveError(f"camera: image size must be positive, got {self.width}x{self.height}")
-        if not all(math.isfinite(v) for v in values):
-            raise BraveError("camera: intrinsics and distortion must be finite")
-        if self.fx <= 0 or self.fy <= 0:
-            raise BraveError(f"camera: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        for name in ("width", "height"):
+            _check_size(name, getattr(self, name))
+        for name, value in (("fx", self.fx), ("fy", self.fy), ("cx", self.cx), ("cy", self.cy),
+                            *((f"dist[{i}]", d) for i, d in enumerate(self.dist))):
+            _check_finite(name, value)
+        for name in ("fx", "fy"):
+            if getattr(self, name) <= 0:
+                raise CameraError(name, f"the focal length must be positive, got {getattr(self, name)}")
         if len(self.dist) not in _VALID_DIST_LENGTHS:
-            raise BraveError(f"camera: distortion needs 4, 5, 8, 12 or 14 coefficients, got {len(self.dist)}")
+            raise CameraError("dist", f"needs 0, 4, 5, 8, 12 or 14 coefficients, got {len(self.dist)}")
         object.__setattr__(self, "dist", tuple(float(d) for d in self.dist))
 
     # ------------------------------------------------------------------ constructors
@@ -66,16 +104,27 @@ class PinholeCamera:
 
     @classmethod
     def from_K(cls, K: ArrayLike, width: int, height: int, dist: ArrayLike = ()) -> PinholeCamera:
-        """From a 3x3 camera matrix (skew must be 0)."""
-        k = np.asarray(K, dtype=np.float64).reshape(3, 3)
-        if abs(k[0, 1]) > 1e-9 or not np.allclose(k[2], (0, 0, 1)):
-            raise BraveError(f"camera: K must be [[fx,0,cx],[0,fy,cy],[0,0,1]], got {k.tolist()}")
-        return cls(int(width), int(height), float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
-                   tuple(np.asarray(dist, float).ravel()))
+        """From a 3x3 camera matrix (skew must be 0); errors name the entry, e.g. ``K[0][2]``."""
+        k = _float_array("K", K)
+        if k.shape != (3, 3):
+            raise CameraError("K", f"must be a 3x3 matrix, got shape {k.shape}")
+        for i, j in zip(*np.nonzero(~np.isfinite(k)), strict=True):
+            _check_finite(f"K[{i}][{j}]", k[i, j])
+        for (i, j), want in _K_CONSTANTS.items():
+            if not np.isclose(k[i, j], want, rtol=1e-5, atol=1e-9):
+                raise CameraError(f"K[{i}][{j}]", f"must be {want:g} (K = [[fx,0,cx],[0,fy,cy],[0,0,1]]), got {k[i, j]}")
+        d = _float_array("dist", dist).ravel()
+        return cls(_check_size("width", width), _check_size("height", height), float(k[0, 0]), float(k[1, 1]),
+                   float(k[0, 2]), float(k[1, 2]), tuple(d))
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> PinholeCamera:
-        """Inverse of :meth:`to_json`."""
+        """Inverse of :meth:`to_json`; a missing or bad value raises :class:`CameraError` naming it."""
+        if not isinstance(data, dict):
+            raise CameraError("", f"must be an object with width, height, K and dist, got {type(data).__name__}")
+        for key in ("width", "height", "K"):
+            if key not in data:
+                raise CameraError(key, "is missing")
         return cls.from_K(data["K"], data["width"], data["height"], data.get("dist", ()))
 
     def to_json(self) -> dict[str, Any]:

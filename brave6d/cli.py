@@ -69,9 +69,9 @@ def _top_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the console script."""
     from brave6d.progress import setup_logging
-    from brave6d.runtime import quiet_openmp
+    from brave6d.runtime import prepare_process
 
-    quiet_openmp()  # before any stage imports torch / numba
+    prepare_process()  # before any stage imports torch / numba
     top = _top_parser()
     ns = top.parse_args(argv)
     command = next(c for c in COMMANDS if c.name == ns.command)
@@ -89,6 +89,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"brave6d {command.name}: interrupted", file=sys.stderr)
         return 130
+    except RecursionError:  # e.g. an input nested thousands deep: one line, not a 3,000-line traceback
+        print(f"brave6d {command.name}: error: an input is nested too deeply to process "
+              "(Python's recursion limit was reached); check the files this command reads", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -6,10 +6,13 @@ here so that no stage needs to know another stage's internals.
 
 from __future__ import annotations
 
+import filecmp
+import hashlib
 import json
 import logging
 import os
 import shutil
+from collections import defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -163,21 +166,23 @@ def init_scene_dir(root: Path | str, spec_file: Path | str) -> SceneDir:
     """Create ``root`` from a spec file: copies the spec and the mesh files it names.
 
     The copied ``scene.yaml`` names the meshes relative to the scene directory, so the folder is
-    self-contained and can be moved to another machine.
+    self-contained and can be moved to another machine. Each mesh lands where
+    :func:`asset_paths` puts it, so two different meshes never share a file.
     """
     spec = load_scene_spec(spec_file)
     scene = SceneDir(root)
     scene.root.mkdir(parents=True, exist_ok=True)
     assets = scene.root / "assets"
+    placed = asset_paths(spec)
     rewritten: dict[str, list[dict]] = {}
     data = spec.model_dump(mode="json", exclude={"source"})
     for key in ("static_meshes", "objects"):
         items = data.get(key, [])
         for item, model in zip(items, getattr(spec, key)):
-            src = spec.resolve(model.mesh)
-            dst = assets / src.name
+            src = spec.resolve(model.mesh).resolve()
+            dst = assets / placed[src]
             _copy_mesh_with_sidecars(src, dst)
-            item["mesh"] = str(dst.relative_to(scene.root))
+            item["mesh"] = dst.relative_to(scene.root).as_posix()
         rewritten[key] = items
     data.update(rewritten)
     import yaml
@@ -187,12 +192,47 @@ def init_scene_dir(root: Path | str, spec_file: Path | str) -> SceneDir:
     return scene
 
 
+def mesh_files(src: Path) -> list[Path]:
+    """The mesh and the files beside it that share its stem (OBJ ``.mtl``, textures), sorted.
+
+    These travel together: an OBJ names its ``.mtl`` and the ``.mtl`` its texture by file name.
+    """
+    return sorted(p for p in src.parent.iterdir() if p.name.startswith(src.stem + ".") and p.is_file())
+
+
+def _content_digest(files: list[Path]) -> str:
+    """SHA-256 over the files' names and contents: equal digests mean interchangeable assets."""
+    digest = hashlib.sha256()
+    for path in files:
+        with path.open("rb") as fh:
+            digest.update(path.name.encode() + b"\0" + hashlib.file_digest(fh, "sha256").digest())
+    return digest.hexdigest()
+
+
+def asset_paths(spec: SceneSpec) -> dict[Path, str]:
+    """Where each mesh file of ``spec`` (resolved absolute path) goes under ``assets/``.
+
+    A mesh keeps its file name (``assets/cube.ply``) unless another mesh with the same stem
+    (compared without case) but other content (its own file or a sidecar differs) is in the
+    spec; then every such mesh goes to ``assets/<stem>-<digest>/<file name>``, ``digest`` being
+    the first 12 hex digits of the SHA-256 of its files. Names depend only on the files, so
+    the same spec always gives the same names, and identical meshes share one.
+    """
+    sources = {spec.resolve(m.mesh).resolve() for m in [*spec.static_meshes, *spec.objects]}
+    digests = {src: _content_digest(mesh_files(src)) for src in sources}
+    variants: dict[str, set[str]] = defaultdict(set)
+    for src, digest in digests.items():
+        variants[src.stem.casefold()].add(digest)
+    return {src: src.name if len(variants[src.stem.casefold()]) == 1 else f"{src.stem}-{digests[src][:12]}/{src.name}"
+            for src in sources}
+
+
 def _copy_mesh_with_sidecars(src: Path, dst: Path) -> None:
-    """Copy a mesh and the files that sit beside it with the same stem (OBJ .mtl, textures)."""
+    """Copy a mesh and its sidecars (:func:`mesh_files`) into ``dst``'s folder, unless already equal."""
     dst.parent.mkdir(parents=True, exist_ok=True)
-    for sibling in src.parent.glob(src.stem + ".*"):
+    for sibling in mesh_files(src):
         target = dst.parent / sibling.name
-        if not target.exists() or target.stat().st_mtime < sibling.stat().st_mtime:
+        if not (target.is_file() and filecmp.cmp(sibling, target, shallow=False)):
             shutil.copy2(sibling, target)
 
 

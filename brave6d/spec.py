@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from brave6d.camera import PinholeCamera
 from brave6d.errors import SpecError
 from brave6d.transforms import make_transform, rpy_deg_to_matrix
+from brave6d.yaml_io import read_yaml
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -383,20 +384,11 @@ def _check_mesh_files(spec: SceneSpec, src: Path) -> None:
 
 
 def load_scene_spec(path: Path | str, check_files: bool = True) -> SceneSpec:
-    """Read and validate a scene spec YAML file."""
+    """Read and validate a scene spec YAML file (duplicate keys and absurd nesting are errors)."""
     p = Path(path)
     if not p.is_file():
         raise SpecError(f"{p}: scene spec not found")
-    try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise SpecError(f"{p}:{where}: invalid YAML: {problem}") from None
-    except UnicodeDecodeError as exc:
-        raise SpecError(f"{p}: not UTF-8 text ({exc.reason})") from None
-    return parse_scene_spec(data, p, check_files=check_files)
+    return parse_scene_spec(read_yaml(p, error=SpecError), p, check_files=check_files)
 
 
 def spec_to_yaml(spec: SceneSpec) -> str:

@@ -110,10 +110,11 @@ def _write_index(root: Path, camera: str, files: dict[str, str]) -> None:
     atomic_write_json(root / _INDEX, {"version": INDEX_VERSION, "camera": camera, "files": files})
 
 
-def _undistort_file(raw: PinholeCamera, job: _Job) -> None:
-    """Write ``job.target`` from its raw source; errors name the frame and the file."""
+def _undistort_file(raw: PinholeCamera, job: _Job, size_of: str) -> None:
+    """Write ``job.target`` from its raw source; errors name the frame and the file (``size_of``: where
+    the expected image size comes from)."""
     try:
-        image = read_png(job.source, job.kind)
+        image = read_png(job.source, job.kind, (raw.width, raw.height), size_of)
     except DataError as exc:
         raise DataError(f"frame {job.record.index} ({job.record.view_id}): {exc}") from None
     interpolation = cv2.INTER_LINEAR if job.kind == "rgb" else cv2.INTER_NEAREST
@@ -152,7 +153,7 @@ def ensure_undistorted(scene: SceneDir) -> UndistortedFrames:
             todo.append((job, digest))
     if todo or set(index) != set(done):
         try:
-            _redo(raw, root, todo, done)
+            _redo(raw, root, todo, done, f"the camera in {scene.intrinsics_path}")
         finally:
             _write_index(root, camera, done)
     if todo or not (root / "camera.json").is_file():
@@ -163,7 +164,7 @@ def ensure_undistorted(scene: SceneDir) -> UndistortedFrames:
     return result
 
 
-def _redo(raw: PinholeCamera, root: Path, todo: list[tuple[_Job, str]], done: dict[str, str]) -> None:
+def _redo(raw: PinholeCamera, root: Path, todo: list[tuple[_Job, str]], done: dict[str, str], size_of: str) -> None:
     """Undistort the out-of-date files, adding each to ``done`` once it is written."""
     frames = len({job.record.index for job, _ in todo})
     if todo:
@@ -171,5 +172,5 @@ def _redo(raw: PinholeCamera, root: Path, todo: list[tuple[_Job, str]], done: di
                  len(todo), frames, root)
     for job, digest in progress(todo, total=len(todo), desc="undistort", unit="file", disable=len(todo) < 2):
         job.target.unlink(missing_ok=True)  # never leave a stale copy behind a failure
-        _undistort_file(raw, job)
+        _undistort_file(raw, job, size_of)
         done[f"{job.target.parent.name}/{job.target.name}"] = digest or file_sha256(job.source)

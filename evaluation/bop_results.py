@@ -239,9 +239,9 @@ def read_models_info(path: Path | str) -> dict[int, dict[str, Any]]:
 
 
 # ----------------------------------------------------------------------------- scenes
-def _depth_loader(path: Path, depth_scale: float) -> Callable[[], NDArray[np.float64]]:
+def _depth_loader(path: Path, depth_scale: float, size: tuple[int, int]) -> Callable[[], NDArray[np.float64]]:
     def load() -> NDArray[np.float64]:
-        return read_png(path, expect="depth").astype(np.float64) * depth_scale
+        return read_png(path, "depth", size, "the scene's image size").astype(np.float64) * depth_scale
 
     return load
 
@@ -303,7 +303,7 @@ def load_scene_gt_instances(
                 f"{d / 'scene_gt_info.json'}: image {im_id} has {len(info[im_id])} entries, scene_gt.json has {len(gt[im_id])}"
             )
         cam = cams[im_id]
-        depth = _depth_loader(d / "depth" / f"{im_id:06d}.png", cam["depth_scale"]) if with_depth else None
+        depth = _depth_loader(d / "depth" / f"{im_id:06d}.png", cam["depth_scale"], size) if with_depth else None
         for g, gi in zip(gt[im_id], info[im_id]):
             out.append(GTInstance(scene_id, im_id, g["obj_id"], g["R"], g["t"], float(gi["visib_fract"]), cam["K"], size, depth))
     return out

@@ -5,9 +5,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-# OpenMP threads sleep while they wait (as the CLI sets it): spinning teams of torch and numba
-# slow each other down several times on a small machine. Must be set before torch loads.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from brave6d.runtime import prepare_process
+
+# As the CLI does: OpenMP threads sleep while they wait (spinning teams of torch and numba slow
+# each other down several times on a small machine) and numba stays off its TBB threading layer
+# (it can hang at exit). Must run before torch / numba load.
+prepare_process()
 
 import matplotlib
 import pytest

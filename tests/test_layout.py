@@ -151,6 +151,43 @@ def test_init_scene_dir_is_self_contained(demo_spec_path: Path, tmp_path: Path) 
     assert SceneDir(scene.root).frames() == []
 
 
+def _spec_with_meshes(tmp_path: Path, demo_spec_path: Path, meshes: list[str]) -> Path:
+    """The demo spec, its objects' meshes replaced by ``meshes`` (relative to ``tmp_path``), written there."""
+    import yaml
+
+    data = yaml.safe_load(demo_spec_path.read_text())
+    data["static_meshes"] = []
+    data["objects"] = [{**obj, "mesh": mesh} for obj, mesh in zip(data["objects"], meshes, strict=False)]
+    spec_file = tmp_path / "scene.yaml"
+    spec_file.write_text(yaml.safe_dump(data, sort_keys=False))
+    return spec_file
+
+
+def test_init_gives_meshes_of_the_same_file_name_their_own_assets(demo_spec_path: Path, tmp_path: Path) -> None:
+    """a/cube.obj, b/cube.obj (other content) and c/cube.obj (same as a) from three folders: every object
+    gets its own mesh and sidecars back, identical meshes share one copy, and names do not depend on the run."""
+    demo = demo_spec_path.parent / "meshes"
+    for folder, stem in (("a", "book"), ("b", "notepad"), ("c", "book")):
+        (tmp_path / folder).mkdir()
+        for ext in (".obj", ".mtl", ".png"):
+            (tmp_path / folder / f"cube{ext}").write_bytes((demo / f"{stem}{ext}").read_bytes())
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "vial.ply").write_bytes((demo / "sample_vial.ply").read_bytes())
+    spec_file = _spec_with_meshes(tmp_path, demo_spec_path, ["a/cube.obj", "b/cube.obj", "c/cube.obj", "d/vial.ply"])
+    scene = init_scene_dir(tmp_path / "scene", spec_file)
+    spec = scene.load_spec()
+    for obj, folder in zip(spec.objects, "abcd", strict=True):
+        source = tmp_path / folder / Path(obj.mesh).name
+        copied = spec.resolve(obj.mesh)
+        for ext in ((".obj", ".mtl", ".png") if source.suffix == ".obj" else (source.suffix,)):
+            assert copied.with_suffix(ext).read_bytes() == source.with_suffix(ext).read_bytes(), (obj.name, ext)
+    meshes = [obj.mesh.as_posix() for obj in spec.objects]
+    assert meshes[0] != meshes[1] and meshes[0] == meshes[2]
+    assert meshes[3] == "assets/vial.ply"  # a mesh whose name no other mesh uses keeps it
+    again = init_scene_dir(tmp_path / "scene2", spec_file).load_spec()
+    assert [obj.mesh.as_posix() for obj in again.objects] == meshes
+
+
 def test_scene_dir_paths_follow_design(tmp_path: Path) -> None:
     scene = SceneDir(tmp_path)
     rel = {p.relative_to(tmp_path).as_posix() for p in (

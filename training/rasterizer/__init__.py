@@ -22,7 +22,11 @@ On shared CPU machines set ``OMP_WAIT_POLICY=PASSIVE`` before torch starts: spin
 OpenMP threads otherwise steal the cores the kernels run on.
 """
 
-from ._api import rasterize
-from ._validation import RasterBackendError, RasterInputError
+from brave6d.runtime import pin_threading_layer
+
+pin_threading_layer()  # before numba loads (library users too): its TBB layer can hang at exit
+
+from ._api import rasterize  # noqa: E402
+from ._validation import RasterBackendError, RasterInputError  # noqa: E402
 
 __all__ = ["RasterBackendError", "RasterInputError", "rasterize"]
