@@ -56,3 +56,28 @@ def test_init_refuses_to_overwrite(tmp_path: Path, demo_spec_path: Path) -> None
     assert brave6d("init", str(demo_spec_path), str(tmp_path / "s")).returncode == 0
     again = brave6d("init", str(demo_spec_path), str(tmp_path / "s"))
     assert again.returncode == 2 and "--force" in again.stderr
+
+
+def test_init_force_keeps_the_previous_spec_and_a_failing_spec_changes_nothing(
+        tmp_path: Path, demo_spec_path: Path) -> None:
+    scene = tmp_path / "s"
+    assert brave6d("init", str(demo_spec_path), str(scene)).returncode == 0
+    first = (scene / "scene.yaml").read_text()
+    assert brave6d("init", str(demo_spec_path), str(scene), "--force").returncode == 0
+    assert not list(scene.glob("scene.yaml.old-*"))  # same spec: nothing to keep
+    data = yaml.safe_load(demo_spec_path.read_text())
+    data["name"] = "renamed_scene"
+    (tmp_path / "meshes").symlink_to(demo_spec_path.parent / "meshes")
+    changed = tmp_path / "changed.yaml"
+    changed.write_text(yaml.safe_dump(data))
+    out = brave6d("init", str(changed), str(scene), "--force")
+    assert out.returncode == 0, out.stderr
+    kept = list(scene.glob("scene.yaml.old-*"))
+    assert len(kept) == 1 and kept[0].read_text() == first and str(kept[0]) in out.stdout
+    assert "renamed_scene" in (scene / "scene.yaml").read_text()
+    data["capture"]["views_per_distance"] = -5
+    changed.write_text(yaml.safe_dump(data))
+    before = (scene / "scene.yaml").read_text()
+    assert brave6d("init", str(changed), str(scene), "--force").returncode == 2
+    assert (scene / "scene.yaml").read_text() == before
+    assert len(list(scene.glob("scene.yaml.old-*"))) == 1
