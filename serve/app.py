@@ -68,6 +68,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from brave6d.errors import BraveError, NonRigidTransformError
 from brave6d.transforms import check_rigid, look_at, make_transform, orthonormalize
 from serve.bundle import Bundle, load_bundle
+from serve.limits import MAX_HEIGHT, MAX_WIDTH, MIN_SIZE
 from serve.episodes import (
     Cancelled,
     EpisodeError,
@@ -83,9 +84,6 @@ log = logging.getLogger(__name__)
 
 VIEWER_DIR = Path(__file__).resolve().parent / "viewer"
 
-MIN_SIZE = 16
-MAX_WIDTH = 1280
-MAX_HEIGHT = 960
 MAX_MOVE_DURATION_S = 10.0
 RIGID_ATOL = 1e-5
 QUAT_NORM_TOL = 1e-3
