@@ -25,8 +25,10 @@ Endpoints (all JSON unless noted; errors are ``{"error": message, "field": where
 
 Poses are ``world_T_cam`` (OpenCV camera axes, metres), given as a 4x4 matrix, as
 ``position`` + ``quaternion_wxyz``, or as ``look_at`` ``{eye, target, up}``. Numbers must be
-finite; a matrix must be rigid (``|R^T R - I| <= 1e-5``, ``det R > 0``, bottom row 0 0 0 1;
-it is then re-orthonormalised); a quaternion must have norm 1 within 1e-3.
+finite and within the bounds of :mod:`serve.limits` (coordinates within 1 km, velocities within
+10 m/s and 2 pi rad/s per component, images within 1280 x 960); a matrix must be rigid
+(``|R^T R - I| <= 1e-5``, ``det R > 0``, bottom row 0 0 0 1; it is then re-orthonormalised);
+a quaternion must have norm 1 within 1e-3.
 
 Observations carry RGB (``png`` or ``jpeg``, base64) and depth (``f32``: base64 of
 little-endian float32, row-major, metres, 0 = no data), the intrinsics ``K``, ``world_T_cam``
@@ -38,7 +40,9 @@ Robustness: request bodies (and WebSocket messages) are limited to ``max_body_by
 (413); each action runs under ``request_timeout_s`` (504; a timed-out action is withdrawn
 before it changes anything); malformed JSON is 400, invalid values 422, unknown episodes 404,
 closed or busy episodes 409, too many open episodes 429; unexpected errors are 500 and the
-server keeps serving.
+server keeps serving. A step (``set_pose``/``move``) is one transaction: its observation,
+counters and log line are computed first and committed together, so a failed request changes
+neither the episode nor its log.
 """
 
 from __future__ import annotations
@@ -68,7 +72,15 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from brave6d.errors import BraveError, NonRigidTransformError
 from brave6d.transforms import check_rigid, look_at, make_transform, orthonormalize
 from serve.bundle import Bundle, load_bundle
-from serve.limits import MAX_HEIGHT, MAX_WIDTH, MIN_SIZE
+from serve.limits import (
+    MAX_ANGULAR_SPEED_RAD_S,
+    MAX_COORD_M,
+    MAX_HEIGHT,
+    MAX_LINEAR_SPEED_M_S,
+    MAX_MOVE_DURATION_S,
+    MAX_WIDTH,
+    MIN_SIZE,
+)
 from serve.episodes import (
     Cancelled,
     EpisodeError,
@@ -84,7 +96,6 @@ log = logging.getLogger(__name__)
 
 VIEWER_DIR = Path(__file__).resolve().parent / "viewer"
 
-MAX_MOVE_DURATION_S = 10.0
 RIGID_ATOL = 1e-5
 QUAT_NORM_TOL = 1e-3
 
@@ -102,9 +113,18 @@ class ServerLimits:
 
 # ----------------------------------------------------------------------------- request models
 Finite = Annotated[float, Field(allow_inf_nan=False)]
-Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
-Quat = Annotated[list[Finite], Field(min_length=4, max_length=4)]
-Row4 = Annotated[list[Finite], Field(min_length=4, max_length=4)]
+Coord = Annotated[float, Field(ge=-MAX_COORD_M, le=MAX_COORD_M, allow_inf_nan=False)]
+Vec3 = Annotated[list[Coord], Field(min_length=3, max_length=3, description=f"metres, |x| <= {MAX_COORD_M:g}")]
+QuatComponent = Annotated[float, Field(ge=-2.0, le=2.0, allow_inf_nan=False)]
+Quat = Annotated[list[QuatComponent], Field(min_length=4, max_length=4)]
+Row4 = Annotated[list[Coord], Field(min_length=4, max_length=4)]
+Speed = Annotated[float, Field(ge=-MAX_LINEAR_SPEED_M_S, le=MAX_LINEAR_SPEED_M_S, allow_inf_nan=False)]
+Linear = Annotated[list[Speed], Field(min_length=3, max_length=3,
+                                      description=f"m/s, |v_i| <= {MAX_LINEAR_SPEED_M_S:g}")]
+Turn = Annotated[float, Field(ge=-MAX_ANGULAR_SPEED_RAD_S, le=MAX_ANGULAR_SPEED_RAD_S, allow_inf_nan=False)]
+Angular = Annotated[list[Turn], Field(min_length=3, max_length=3,
+                                      description=f"rad/s, |w_i| <= {MAX_ANGULAR_SPEED_RAD_S:.4g}")]
+Duration = Annotated[float, Field(gt=0, le=MAX_MOVE_DURATION_S, allow_inf_nan=False)]
 Mat4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
 AgentName = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:+\- ]+$",
                                  description="agent name for the leaderboard (letters, digits, _ . : + - space)")]
@@ -145,6 +165,13 @@ class PoseIn(_Strict):
         return self
 
     def matrix(self) -> np.ndarray:
+        """The rigid ``world_T_cam``; ``ValueError`` with the reason when the input does not make one."""
+        T = self._matrix()
+        if not np.all(np.isfinite(T)):
+            raise ValueError("the pose is not finite (its values are too large or too small)")
+        return T
+
+    def _matrix(self) -> np.ndarray:
         if self.world_T_cam is not None:
             try:
                 T = check_rigid(self.world_T_cam, "world_T_cam", atol=RIGID_ATOL)
@@ -184,7 +211,7 @@ class EstimateIn(_Strict):
 
     obj_id: Annotated[int, Field(ge=0)]
     R: Annotated[list[Finite], Field(min_length=9, max_length=9, description="rotation, 9 values row-major")]
-    t_m: Vec3 = Field(..., description="translation, metres")
+    t_m: Annotated[list[Finite], Field(min_length=3, max_length=3, description="translation, metres")]
     score: Finite = 1.0
 
 
@@ -200,10 +227,9 @@ class SetPoseRequest(ObsOptions):
 
 
 class MoveRequest(ObsOptions):
-    linear: Vec3 = Field([0.0, 0.0, 0.0], description="m/s")
-    angular: Vec3 = Field([0.0, 0.0, 0.0], description="rad/s")
-    duration: Annotated[float, Field(gt=0, le=MAX_MOVE_DURATION_S, allow_inf_nan=False)] = Field(
-        ..., description=f"seconds, (0, {MAX_MOVE_DURATION_S}]")
+    linear: Linear = [0.0, 0.0, 0.0]
+    angular: Angular = [0.0, 0.0, 0.0]
+    duration: Duration = Field(..., description=f"seconds, (0, {MAX_MOVE_DURATION_S:g}]")
     frame: Literal["camera", "world"] = Field("camera", description="see serve.geometry")
 
     @model_validator(mode="after")
@@ -217,9 +243,9 @@ class WsMessage(ObsOptions):
     op: Literal["set_pose", "move", "get", "close"]
     request_id: str | int | None = None
     pose: PoseIn | None = None
-    linear: Vec3 | None = None
-    angular: Vec3 | None = None
-    duration: Annotated[float, Field(gt=0, le=MAX_MOVE_DURATION_S, allow_inf_nan=False)] | None = None
+    linear: Linear | None = None
+    angular: Angular | None = None
+    duration: Duration | None = None
     frame: Literal["camera", "world"] = "camera"
 
 
@@ -322,8 +348,15 @@ def _error(status: int, message: str, field: str | None = None, headers: dict[st
     return JSONResponse({"error": message, "field": field, "status": status}, status_code=status, headers=headers)
 
 
+#: Location parts that name a union member or a validator, not a field (e.g. ``request_id.constrained-int``).
+_NOT_FIELDS = ("function-", "constrained-")
+_UNION_TAGS = frozenset({"str", "int", "float", "bool", "none", "list", "dict"})
+
+
 def _loc(loc: Any) -> str:
-    return ".".join(str(p) for p in loc if not (isinstance(p, str) and ("[" in p or p.startswith("function-"))))
+    """The dotted field path of a pydantic error location (``pose.position.0``)."""
+    return ".".join(str(p) for p in loc
+                    if not (isinstance(p, str) and ("[" in p or p in _UNION_TAGS or p.startswith(_NOT_FIELDS))))
 
 
 def validation_error_body(errors: list[dict[str, Any]]) -> tuple[int, str, str | None]:
@@ -512,7 +545,9 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
     def get_bundle() -> dict[str, Any]:
         return {**bundle.summary(), "device": scene.device,
                 "limits": {"min_size": MIN_SIZE, "max_width": MAX_WIDTH, "max_height": MAX_HEIGHT,
-                           "max_move_duration_s": MAX_MOVE_DURATION_S, "max_body_bytes": limits.max_body_bytes,
+                           "max_move_duration_s": MAX_MOVE_DURATION_S, "max_coord_m": MAX_COORD_M,
+                           "max_linear_speed_m_s": MAX_LINEAR_SPEED_M_S,
+                           "max_angular_speed_rad_s": MAX_ANGULAR_SPEED_RAD_S, "max_body_bytes": limits.max_body_bytes,
                            "request_timeout_s": limits.request_timeout_s, "max_episodes": limits.max_episodes}}
 
     @app.get("/bundle/models/{obj_id}", summary="object model (BOP PLY, mm)", responses=err)

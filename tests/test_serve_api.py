@@ -276,7 +276,7 @@ BAD_MOVES = [
     ({"linear": [0, 0, 0.1], "duration": -1}, "duration"), ({"linear": [0, 0, 0.1], "duration": 11}, "duration"),
     ({"linear": [0, 0], "duration": 1}, "linear"), ({"duration": 1}, "does nothing"),
     ({"linear": [0, 0, 0.1], "duration": 1, "frame": "tool"}, "frame"),
-    ({"linear": [0, 0, 1e6], "duration": 10}, "too long"),
+    ({"linear": [10, 10, 10], "duration": 10}, "too long"), ({"linear": [0, 0, 11], "duration": 1}, "linear.2"),
 ]
 
 

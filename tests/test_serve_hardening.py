@@ -91,6 +91,136 @@ def send(client: TestClient, eid: str, op: str, body: dict[str, Any], websocket:
     return reply.get("status", 200), reply
 
 
+# ----------------------------------------------------------------------------- item 7: magnitudes
+HUGE_ACTIONS = [
+    ("move", {"linear": [1e300, 0, 0], "duration": 1.0}, "linear.0"),
+    ("move", {"angular": [1e308, 0, 0], "duration": 10.0}, "angular.0"),
+    ("move", {"linear": [0, 1e300, 1e300], "duration": 1.0}, "linear.1"),
+    ("set_pose", {"pose": {"look_at": {"eye": [1e308, 0, 0], "target": [-1e308, 0, 0]}}}, "pose.look_at.eye.0"),
+    ("set_pose", {"pose": {"position": [0.3, 0, 5e3], "quaternion_wxyz": [1, 0, 0, 0]}}, "pose.position.2"),
+    ("set_pose", {"pose": {"world_T_cam": [[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}},
+     "pose.world_T_cam.0.3"),
+]
+
+
+@pytest.mark.parametrize("websocket", [False, True], ids=["http", "ws"])
+@pytest.mark.parametrize("op,body,field", HUGE_ACTIONS, ids=[a[2] for a in HUGE_ACTIONS])
+def test_huge_magnitudes_are_422_and_change_nothing(client: TestClient, log_dir: Path, op: str, body: dict,
+                                                    field: str, websocket: bool) -> None:
+    eid = new_episode(client)
+    before = snapshot(client, log_dir, eid)
+    status, reply = send(client, eid, op, body, websocket)
+    assert status == 422, reply
+    assert reply["field"].endswith(field) and field in reply["error"], reply
+    assert snapshot(client, log_dir, eid) == before
+
+
+def test_a_failed_log_write_changes_nothing(scene: SceneServer, tmp_path: Path,
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """The step is one transaction: when the log line cannot be written (disk full), neither the
+    counters nor the pose change, for a refusal as for an accepted move."""
+    manager = EpisodeManager(scene, tmp_path)
+    eid = manager.reset(start=FREE, width=16, height=16).episode_id
+    ep = manager.get(eid)
+
+    def disk_full(self: EpisodeLog, line: str) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(EpisodeLog, "append", disk_full)
+    with pytest.raises(OSError):
+        manager.set_pose(eid, IN_POST)  # refused: would count a refusal
+    with pytest.raises(OSError):
+        manager.move(eid, [0, 0, 0.02], [0, 0, 0], 0.5)  # accepted: would count an adjustment
+    assert (ep.steps, ep.refusals, ep.adjustments) == (0, 0, 0)
+    np.testing.assert_array_equal(ep.world_T_cam, FREE)
+    monkeypatch.undo()
+    manager.set_pose(eid, IN_POST)
+    assert [r["event"] for r in read_episode_log(tmp_path / f"{eid}.jsonl")] == ["reset", "set_pose"]
+    assert (ep.steps, ep.refusals) == (1, 1)
+
+
+def test_the_manager_refuses_non_finite_poses_and_twists(scene: SceneServer, tmp_path: Path) -> None:
+    """Callers that bypass the request models get InvalidAction naming the field, and nothing changes."""
+    manager = EpisodeManager(scene, tmp_path)
+    eid = manager.reset(start=FREE, width=16, height=16).episode_id
+    bad_pose = FREE.copy()
+    bad_pose[0, 3] = np.nan
+    with pytest.raises(InvalidAction) as info:
+        manager.set_pose(eid, bad_pose)
+    assert info.value.field == "pose"
+    for linear, angular, duration, field in [([1e300, 0, 0], [0, 0, 0], 1.0, "linear"),
+                                             ([0, 0, 0], [np.inf, 0, 0], 1.0, "angular"),
+                                             ([0, 0, 0.1], [0, 0, 0], np.nan, "duration")]:
+        with pytest.raises(InvalidAction) as info:
+            manager.move(eid, linear, angular, duration)
+        assert info.value.field == field
+    ep = manager.get(eid)
+    assert (ep.steps, ep.refusals, ep.adjustments) == (0, 0, 0)
+    assert len(read_episode_log(tmp_path / f"{eid}.jsonl")) == 1
+
+
+# hypothesis: any numbers, over HTTP and the WebSocket
+EXTREMES = [0.0, -0.0, 5e-324, -5e-324, 2.2250738585072014e-308, 1e-160, 1e300, -1e300, 1e308, -1e308,
+            1.7976931348623157e308, math.inf, -math.inf, math.nan]
+
+
+def numbers(lo: float, hi: float) -> st.SearchStrategy[float]:
+    """Mostly sensible values in [lo, hi], plus extremes and any float at all."""
+    return st.one_of(st.floats(lo, hi), st.floats(lo, hi), st.sampled_from(EXTREMES), st.floats())
+
+
+def vec(n: st.SearchStrategy[float], size: int = 3) -> st.SearchStrategy[list[float]]:
+    return st.lists(n, min_size=size, max_size=size)
+
+
+MOVES = st.fixed_dictionaries(
+    {"duration": numbers(0.0, 2.0)},
+    optional={"linear": vec(numbers(-0.1, 0.1)), "angular": vec(numbers(-0.5, 0.5)),
+              "frame": st.sampled_from(["camera", "world"])})
+
+
+def _world_T_cam(entry: tuple[int, int, float]) -> dict[str, Any]:
+    T = FREE.tolist()
+    T[entry[0]][entry[1]] = entry[2]
+    return {"world_T_cam": T}
+
+
+POSES = st.one_of(
+    st.builds(lambda p, q: {"position": p, "quaternion_wxyz": q},
+              vec(numbers(0.1, 0.5)), st.one_of(vec(numbers(-1.0, 1.0), 4), st.just([0.0, 1.0, 0.0, 0.0]))),
+    st.builds(lambda e, t, u: {"look_at": {"eye": e, "target": t, **({"up": u} if u is not None else {})}},
+              vec(numbers(0.1, 0.5)), vec(numbers(0.0, 0.5)), st.none() | vec(numbers(-1.0, 1.0))),
+    st.builds(_world_T_cam, st.tuples(st.integers(0, 3), st.integers(0, 3), numbers(-1.0, 1.0))),
+)
+ACTIONS = st.one_of(st.tuples(st.just("move"), MOVES),
+                    st.tuples(st.just("set_pose"), st.builds(lambda p: {"pose": p}, POSES)))
+
+
+@pytest.fixture(scope="module")
+def fuzz_episode(client: TestClient) -> str:
+    """The episode all the examples act on (module scope: fixtures are not made per example)."""
+    return new_episode(client)
+
+
+@given(action=ACTIONS, websocket=st.booleans())
+def test_random_actions_never_500_and_failures_change_nothing(client: TestClient, log_dir: Path, fuzz_episode: str,
+                                                              action: tuple[str, dict], websocket: bool) -> None:
+    eid = fuzz_episode
+    op, body = action
+    before = snapshot(client, log_dir, eid)
+    status, reply = send(client, eid, op, body, websocket)
+    after = snapshot(client, log_dir, eid)
+    event(f"{op} {status}" + (" refused" if status == 200 and not reply["accepted"] else ""))
+    assert status in (200, 422), reply
+    if status == 422:
+        assert isinstance(reply["field"], str) and reply["field"] and reply["error"], reply
+        assert after == before
+    else:
+        assert after[2] == before[2] + 1 and after[4] == before[4] + 1
+    assert after[4] == 1 + after[2]  # the log holds the reset and every counted step
+
+
+
 # ----------------------------------------------------------------------------- item 11: one size cap
 def test_fit_image_size() -> None:
     assert fit_image_size(320, 240) == (320, 240)
