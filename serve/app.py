@@ -125,6 +125,7 @@ Turn = Annotated[float, Field(ge=-MAX_ANGULAR_SPEED_RAD_S, le=MAX_ANGULAR_SPEED_
 Angular = Annotated[list[Turn], Field(min_length=3, max_length=3,
                                       description=f"rad/s, |w_i| <= {MAX_ANGULAR_SPEED_RAD_S:.4g}")]
 Duration = Annotated[float, Field(gt=0, le=MAX_MOVE_DURATION_S, allow_inf_nan=False)]
+RequestId = Annotated[str, Field(max_length=256)] | Annotated[int, Field(ge=-(2**63), lt=2**63)]
 Mat4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
 AgentName = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:+\- ]+$",
                                  description="agent name for the leaderboard (letters, digits, _ . : + - space)")]
@@ -241,7 +242,7 @@ class MoveRequest(ObsOptions):
 
 class WsMessage(ObsOptions):
     op: Literal["set_pose", "move", "get", "close"]
-    request_id: str | int | None = None
+    request_id: RequestId | None = None
     pose: PoseIn | None = None
     linear: Linear | None = None
     angular: Angular | None = None
@@ -341,6 +342,28 @@ def observation_npz(obs: Observation) -> bytes:
              obj_id=np.array([o.obj_id for o in obs.objects], dtype=np.int64),
              visib_fract=np.array([o.visibility.visib_fract if o.visibility else np.nan for o in obs.objects]))
     return buf.getvalue()
+
+
+# ----------------------------------------------------------------------------- WebSocket messages
+def echo_request_id(raw: Any) -> str | int | None:
+    """The ``request_id`` of a WebSocket message when it can be echoed as JSON (a string of at
+    most 256 characters or a 64-bit integer), else None: a NaN or a huge float is not echoed."""
+    rid = raw.get("request_id") if isinstance(raw, dict) else None
+    if isinstance(rid, str) and len(rid) <= 256:
+        return rid
+    if isinstance(rid, int) and not isinstance(rid, bool) and -(2**63) <= rid < 2**63:
+        return rid
+    return None
+
+
+def ws_dump(reply: dict[str, Any]) -> str:
+    """``reply`` as strict JSON text (no NaN/inf); a reply that has none becomes a 500 error object."""
+    try:
+        return json.dumps(reply, allow_nan=False, separators=(",", ":"))
+    except (TypeError, ValueError) as exc:
+        log.error("unserialisable WebSocket reply: %s", exc)
+        return json.dumps({"error": f"internal error: the reply is not valid JSON ({exc})", "field": None,
+                           "status": 500, "request_id": echo_request_id(reply)})
 
 
 # ----------------------------------------------------------------------------- errors
@@ -629,8 +652,12 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
             except (KeyError, RuntimeError):  # a binary frame or a closed socket
                 await websocket.close(code=1003)
                 return
-            reply = await _ws_handle(text, episode_id)
-            await websocket.send_json(reply)
+            try:
+                reply = await _ws_handle(text, episode_id)
+            except Exception as exc:  # keep the socket: answer with the error object
+                log.exception("internal error on the WebSocket of %s", episode_id)
+                reply = {"error": f"internal error: {type(exc).__name__}: {exc}", "field": None, "status": 500}
+            await websocket.send_text(ws_dump(reply))
             if reply.get("action") == "close" and "error" not in reply:
                 await websocket.close()
                 return
@@ -642,13 +669,14 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
         request_id = None
         try:
             raw = json.loads(text)
-            request_id = raw.get("request_id") if isinstance(raw, dict) else None
+            request_id = echo_request_id(raw)
             msg = WsMessage.model_validate(raw)
-        except json.JSONDecodeError as exc:
-            return {"error": f"malformed JSON: {exc}", "field": "message", "status": 400}
-        except ValidationError as exc:
+        except ValidationError as exc:  # (before ValueError: it is one)
             status, m, field = validation_error_body(exc.errors(include_url=False))
             return {"error": m, "field": field, "status": status, "request_id": request_id}
+        except (ValueError, RecursionError) as exc:  # json.JSONDecodeError, too many digits, too deep
+            why = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+            return {"error": f"malformed JSON: {why}", "field": "message", "status": 400}
         try:
             if msg.op == "get":
                 ep = manager.get(episode_id)

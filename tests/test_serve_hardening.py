@@ -221,6 +221,35 @@ def test_random_actions_never_500_and_failures_change_nothing(client: TestClient
 
 
 
+# ----------------------------------------------------------------------------- item 12: WebSocket messages
+def test_deeply_nested_json_gets_the_error_object(client: TestClient) -> None:
+    eid = new_episode(client)
+    with client.websocket_connect(f"{WS_LOCAL}/episodes/{eid}/ws") as ws:
+        ws.send_text("[" * 5000 + "]" * 5000)
+        reply = strict_json(ws.receive_text())
+        assert reply["status"] == 400 and reply["field"] == "message" and "nested" in reply["error"]
+        ws.send_text('{"op": "get", "request_id": ' + "9" * 5000 + "}")  # an integer too long to parse
+        assert strict_json(ws.receive_text())["status"] == 400
+        ws.send_text(json.dumps({"op": "get", "request_id": "still-open"}))
+        assert strict_json(ws.receive_text())["request_id"] == "still-open"
+
+
+@pytest.mark.parametrize("request_id", ["NaN", "Infinity", "-Infinity", "1e400", "1.5", "[1]"])
+def test_request_ids_are_echoed_only_when_valid_json(client: TestClient, request_id: str) -> None:
+    eid = new_episode(client)
+    with client.websocket_connect(f"{WS_LOCAL}/episodes/{eid}/ws") as ws:
+        ws.send_text('{"op": "get", "request_id": ' + request_id + "}")
+        reply = strict_json(ws.receive_text())  # fails on a NaN echoed back
+        assert reply["status"] == 422 and reply["field"] == "request_id" and reply["request_id"] is None, reply
+
+
+def test_http_deeply_nested_json_is_400(client: TestClient) -> None:
+    eid = new_episode(client)
+    r = client.post(f"/episodes/{eid}/set_pose", content=("[" * 5000 + "]" * 5000).encode(),
+                    headers={"content-type": "application/json"})
+    assert r.status_code == 400 and set(r.json()) == {"error", "field", "status"}
+
+
 # ----------------------------------------------------------------------------- item 11: one size cap
 def test_fit_image_size() -> None:
     assert fit_image_size(320, 240) == (320, 240)
