@@ -43,6 +43,11 @@ closed or busy episodes 409, too many open episodes 429; unexpected errors are 5
 server keeps serving. A step (``set_pose``/``move``) is one transaction: its observation,
 counters and log line are computed first and committed together, so a failed request changes
 neither the episode nor its log.
+
+Access: the ``Host`` header must name 127.0.0.1, localhost or [::1] (any port) or one of
+``allowed_hosts`` (else 400: a DNS-rebinding page cannot reach the API); with ``token``, every
+request but the viewer's static files and the docs needs ``Authorization: Bearer <token>`` or
+``?token=<token>`` (else 401).
 """
 
 from __future__ import annotations
@@ -52,8 +57,9 @@ import base64
 import io
 import json
 import logging
+import secrets
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
@@ -67,7 +73,10 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from starlette.datastructures import Headers, QueryParams
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.middleware.trustedhost import TrustedHostMiddleware
+from starlette.websockets import WebSocketClose
 
 from brave6d.errors import BraveError, NonRigidTransformError
 from brave6d.transforms import check_rigid, look_at, make_transform, orthonormalize
@@ -453,11 +462,70 @@ class BodyLimitMiddleware:
         await response(scope, receive, send)
 
 
+# ----------------------------------------------------------------------------- access control
+#: ``Host`` header values always accepted (with any port): this machine's loopback names. Any
+#: other name must be allowed explicitly, so that a DNS-rebinding page cannot reach the API.
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]")
+#: Paths served without the token: the viewer's static files (the page then calls the API with the
+#: token from its own URL) and the API documentation.
+PUBLIC_PATHS = ("/viewer", "/docs", "/redoc", "/openapi.json")
+#: Shortest token accepted (characters).
+MIN_TOKEN_CHARS = 16
+
+
+def check_token(token: str) -> str:
+    """``token`` when it is long enough to be a secret, else :class:`BraveError` saying how to make one."""
+    if len(token) < MIN_TOKEN_CHARS or token != token.strip():
+        raise BraveError(f"the token must have at least {MIN_TOKEN_CHARS} characters and no surrounding spaces "
+                         "(make one with: python -c 'import secrets; print(secrets.token_urlsafe())')")
+    return token
+
+
+def _is_public(path: str) -> bool:
+    return path == "/" or any(path == p or path.startswith(p + "/") for p in PUBLIC_PATHS)
+
+
+class TokenMiddleware:
+    """Require ``token`` on every HTTP request and WebSocket outside :data:`PUBLIC_PATHS`: as
+    ``Authorization: Bearer <token>`` or as the query parameter ``token`` (browsers can set no
+    header on a WebSocket or a beacon). Missing or wrong: 401 (a WebSocket handshake is denied
+    with the same 401 where the server supports it, else closed with 1008)."""
+
+    def __init__(self, app: Any, token: str) -> None:
+        self.app = app
+        self.token = check_token(token).encode()
+
+    def _authorised(self, scope: dict[str, Any]) -> bool:
+        auth = Headers(scope=scope).get("authorization", "")
+        scheme, _, given = auth.partition(" ")
+        if scheme.lower() != "bearer":
+            given = QueryParams(scope.get("query_string", b"").decode("latin-1")).get("token", "")
+        return secrets.compare_digest(given.strip().encode(), self.token)
+
+    async def __call__(self, scope: dict[str, Any], receive: Any, send: Any) -> None:
+        if scope["type"] not in ("http", "websocket") or _is_public(scope["path"]) or self._authorised(scope):
+            await self.app(scope, receive, send)
+            return
+        message = "missing or wrong token: send 'Authorization: Bearer <token>' (or '?token=<token>')"
+        if scope["type"] == "websocket" and "websocket.http.response" not in scope.get("extensions", {}):
+            await WebSocketClose(code=1008, reason=message)(scope, receive, send)
+            return
+        await _error(401, message, "token", {"WWW-Authenticate": "Bearer"})(scope, receive, send)
+
+
 # ----------------------------------------------------------------------------- the app
 def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Path | str | None = None,
                limits: ServerLimits = ServerLimits(), scene: SceneServer | None = None,
-               verify: bool = True, warm_up: bool = True) -> FastAPI:
-    """The FastAPI app serving ``bundle`` (a loaded :class:`Bundle` or a bundle folder, verified)."""
+               verify: bool = True, warm_up: bool = True, allowed_hosts: Sequence[str] = (),
+               token: str | None = None) -> FastAPI:
+    """The FastAPI app serving ``bundle`` (a loaded :class:`Bundle` or a bundle folder, verified).
+
+    Requests must name one of :data:`LOOPBACK_HOSTS` or ``allowed_hosts`` (``"*"``: any;
+    ``"*.example.org"``: its subdomains) in their ``Host`` header, else 400; with ``token``,
+    every request outside :data:`PUBLIC_PATHS` must carry it (see :class:`TokenMiddleware`).
+    """
+    if token is not None:
+        check_token(token)
     if not isinstance(bundle, Bundle):
         bundle = load_bundle(bundle, verify=verify)
     scene = scene if scene is not None else SceneServer(bundle, device)
@@ -493,6 +561,10 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
     app.state.limits = limits
     app.state.executor = executor
     app.add_middleware(BodyLimitMiddleware, limit=limits.max_body_bytes)
+    if token is not None:
+        app.add_middleware(TokenMiddleware, token=token)
+    # outermost: a request for a host name this server does not answer to gets nothing else
+    app.add_middleware(TrustedHostMiddleware, allowed_hosts=[*LOOPBACK_HOSTS, *allowed_hosts], www_redirect=False)
 
     # -------------------------------------------------------------- error handlers
     @app.exception_handler(RequestValidationError)
@@ -555,8 +627,9 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
 
     # -------------------------------------------------------------- routes
     @app.get("/", include_in_schema=False)
-    def root() -> RedirectResponse:
-        return RedirectResponse("/viewer/")
+    def root(request: Request) -> RedirectResponse:
+        query = request.url.query  # keeps ?token=... for the viewer
+        return RedirectResponse("/viewer/" + (f"?{query}" if query else ""))
 
     @app.get("/health", summary="liveness")
     def health() -> dict[str, Any]:

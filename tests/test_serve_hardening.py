@@ -250,6 +250,172 @@ def test_http_deeply_nested_json_is_400(client: TestClient) -> None:
     assert r.status_code == 400 and set(r.json()) == {"error", "field", "status"}
 
 
+# ----------------------------------------------------------------------------- item 9: exposure
+@pytest.mark.parametrize("host", ["evil.example", "evil.example:8765", "127.0.0.1.evil.example", "[::2]:8765"])
+def test_foreign_host_headers_are_refused(client: TestClient, host: str) -> None:
+    r = client.get("/health", headers={"host": host})
+    assert r.status_code == 400, r.text
+    assert client.get("/bundle", headers={"host": host}).status_code == 400
+    with pytest.raises(WebSocketDenialResponse) as info:
+        with client.websocket_connect(f"ws://{host}/episodes/x/ws"):
+            pass
+    assert info.value.status_code == 400
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "127.0.0.1:8765", "localhost:1", "LOCALHOST", "[::1]", "[::1]:8765"])
+def test_loopback_host_headers_are_served(client: TestClient, host: str) -> None:
+    assert client.get("/health", headers={"host": host}).status_code == 200
+
+
+def test_allowed_hosts_extend_the_list(bundle: Bundle, scene: SceneServer) -> None:
+    app = create_app(bundle, scene=scene, warm_up=False, allowed_hosts=["lab-pc.example", "*.cluster.example"])
+    with TestClient(app, base_url=LOCAL) as c:
+        for host, status in [("lab-pc.example:8765", 200), ("gpu3.cluster.example", 200), ("localhost", 200),
+                             ("evil.example", 400)]:
+            assert c.get("/health", headers={"host": host}).status_code == status, host
+
+
+@pytest.fixture(scope="module")
+def token_client(bundle: Bundle, scene: SceneServer) -> TestClient:
+    with TestClient(create_app(bundle, scene=scene, warm_up=False, token=TOKEN), base_url=LOCAL) as c:
+        yield c
+
+
+def test_token_is_required_over_http(token_client: TestClient) -> None:
+    c = token_client
+    for headers, params in [({}, {}), ({"Authorization": "Bearer wrong-token-0123456789"}, {}),
+                            ({"Authorization": f"Basic {TOKEN}"}, {}), ({}, {"token": TOKEN[:-1]})]:
+        r = c.get("/health", headers=headers, params=params)
+        assert r.status_code == 401 and r.json()["field"] == "token" and "token" in r.json()["error"], r.text
+        assert r.headers["www-authenticate"] == "Bearer"
+    assert c.post("/episodes", json={"start": {"world_T_cam": FREE.tolist()}}).status_code == 401
+    assert c.get("/health", headers={"Authorization": f"Bearer {TOKEN}"}).status_code == 200
+    assert c.get("/health", params={"token": TOKEN}).status_code == 200
+    r = c.post("/episodes", json={"start": {"world_T_cam": FREE.tolist()}, "width": 16, "height": 16, **TINY},
+               headers={"Authorization": f"Bearer {TOKEN}"})
+    assert r.status_code == 201
+    # the viewer's static files and the API docs are public; the viewer then sends the token
+    assert c.get("/viewer/").status_code == 200 and c.get("/viewer/viewer.js").status_code == 200
+    assert c.get("/openapi.json").status_code == 200
+    r = c.get("/", params={"token": TOKEN}, follow_redirects=False)
+    assert r.headers["location"] == f"/viewer/?token={TOKEN}"
+
+
+def test_token_is_required_over_the_websocket(token_client: TestClient) -> None:
+    c = token_client
+    r = c.post("/episodes", json={"start": {"world_T_cam": FREE.tolist()}, "width": 16, "height": 16, **TINY},
+               headers={"Authorization": f"Bearer {TOKEN}"})
+    eid = r.json()["episode_id"]
+    for url in [f"{WS_LOCAL}/episodes/{eid}/ws", f"{WS_LOCAL}/episodes/{eid}/ws?token=nope"]:
+        with pytest.raises(WebSocketDenialResponse) as info:
+            with c.websocket_connect(url):
+                pass
+        assert info.value.status_code == 401
+    with c.websocket_connect(f"{WS_LOCAL}/episodes/{eid}/ws?token={TOKEN}") as ws:
+        ws.send_text(json.dumps({"op": "get"}))
+        assert ws.receive_json()["episode_id"] == eid
+    with c.websocket_connect(f"{WS_LOCAL}/episodes/{eid}/ws", headers={"Authorization": f"Bearer {TOKEN}"}) as ws:
+        ws.send_text(json.dumps({"op": "get"}))
+        assert ws.receive_json()["episode_id"] == eid
+
+
+def test_short_tokens_are_refused(bundle: Bundle, scene: SceneServer) -> None:
+    with pytest.raises(BraveError, match="at least 16 characters"):
+        create_app(bundle, scene=scene, warm_up=False, token="1234")
+
+
+def test_cli_refuses_a_remote_bind_without_the_flag(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from brave6d.cli import main
+
+    # (refused before the bundle is read: this one does not even exist)
+    for host in ["0.0.0.0", "::", "192.0.2.7", "lab-pc.example"]:
+        assert main(["serve", str(tmp_path / "no-bundle"), "--host", host, "--port", "0"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "--allow-remote" in err and host in err, err
+
+
+def test_cli_access_settings() -> None:
+    from serve.cli import access_for
+
+    loop = access_for("127.0.0.1", False, None, [], environ={})
+    assert loop.token is None and loop.allowed_hosts == ()
+    assert access_for("127.0.0.1", False, None, [], environ={"BRAVE6D_TOKEN": TOKEN}).token == TOKEN
+    remote = access_for("0.0.0.0", True, None, ["lab-pc.example"], environ={})
+    assert remote.token_generated and len(remote.token or "") >= 16 and remote.allowed_hosts == ("lab-pc.example",)
+    assert access_for("0.0.0.0", True, None, [], environ={}).token != remote.token
+    assert access_for("192.0.2.7", True, TOKEN, [], environ={}).allowed_hosts == ("192.0.2.7",)
+    v6 = access_for("2001:db8::1", True, None, [], environ={"BRAVE6D_TOKEN": TOKEN})
+    assert v6.allowed_hosts == ("[2001:db8::1]",) and v6.token == TOKEN and not v6.token_generated
+    with pytest.raises(BraveError, match="at least 16"):
+        access_for("0.0.0.0", True, "short", [], environ={})
+
+
+VIEWER_HARNESS = r"""
+// Runs serve/viewer/viewer.js in Node with a minimal fake DOM against a live server and prints
+// what the page reached and the Authorization header of each API request it made.
+const [viewerPath, base, search] = process.argv.slice(2);
+const sent = [];
+function fake() {
+  const store = { dataset: {}, style: {}, classList: { add() {}, remove() {} } };
+  return new Proxy(store, {
+    get(t, k) {
+      if (k in t) return t[k];
+      if (k === "getContext") return () => ctx;
+      if (k === "value") return "";
+      return () => fake();
+    },
+    set(t, k, v) { t[k] = v; return true; },
+  });
+}
+const ctx = new Proxy({}, { get: (t, k) => (k === "measureText" ? () => ({ width: 1 }) : () => {}),
+                            set: () => true });
+const elements = {};
+const body = fake();
+globalThis.document = { body, getElementById: (id) => (elements[id] ||= fake()), querySelector: () => fake(),
+                        createElement: () => fake() };
+globalThis.window = { location: { search }, addEventListener() {} };
+Object.defineProperty(globalThis, "navigator", { value: { sendBeacon() { return true; } }, configurable: true });
+globalThis.Image = class { set src(v) { setTimeout(() => this.onload(), 0); } };
+const realFetch = globalThis.fetch;
+globalThis.fetch = (path, init) => {
+  sent.push({ path, auth: (init.headers || {}).Authorization || null });
+  return realFetch(base + path, init);
+};
+require(viewerPath);
+const t0 = Date.now();
+(function poll() {
+  const state = body.dataset.state;
+  if (state === "ready" || state === "error" || Date.now() - t0 > 60000) {
+    console.log(JSON.stringify({ state, frames: Number(body.dataset.frames || 0), sent }));
+    process.exit(0);
+  }
+  setTimeout(poll, 50);
+})();
+"""
+
+
+@pytest.mark.skipif(shutil.which("node") is None, reason="Node.js not installed")
+def test_viewer_sends_the_token(bundle: Bundle, scene: SceneServer, tmp_path: Path) -> None:
+    from serve.app import VIEWER_DIR
+    from serve.runner import ServerThread
+
+    harness = tmp_path / "harness.js"
+    harness.write_text(VIEWER_HARNESS)
+
+    def open_viewer(base: str, search: str) -> dict[str, Any]:
+        out = subprocess.run(["node", str(harness), str(VIEWER_DIR / "viewer.js"), base, search],
+                             capture_output=True, text=True, timeout=120, check=True)
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    app = create_app(bundle, scene=scene, warm_up=False, token=TOKEN, log_dir=tmp_path / "episodes")
+    with ServerThread(app) as server:
+        page = open_viewer(server.url, f"?token={TOKEN}&seed=3&width=64&height=48")
+        assert page["state"] == "ready" and page["frames"] >= 1, page
+        assert {s["path"] for s in page["sent"]} >= {"/bundle", "/episodes"}
+        assert all(s["auth"] == f"Bearer {TOKEN}" for s in page["sent"]), page["sent"]
+        assert open_viewer(server.url, "?seed=3&width=64&height=48")["state"] == "error"
+
+
 # ----------------------------------------------------------------------------- item 11: one size cap
 def test_fit_image_size() -> None:
     assert fit_image_size(320, 240) == (320, 240)
