@@ -5,6 +5,7 @@ Modules (import them directly; this package imports nothing heavy):
 
 - :mod:`serve.bundle`: ``export_bundle(scene_dir)`` -> ``<scene>/bundle`` (checksummed manifest),
   ``load_bundle(path)`` (refuses a bundle whose checksums do not match).
+- :mod:`serve.limits`: the image-size cap and the bounds on poses and twists (one place for all).
 - :mod:`serve.geometry`: camera collision sphere vs oriented boxes, workspace, twist integration.
 - :mod:`serve.renderer`: the splat on ``cuda``/``cpu``, one view per call with ``training.rasterize``.
 - :mod:`serve.splat_check`: ``check_splat`` refuses a splat with NaN/inf, no Gaussians or none

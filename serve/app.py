@@ -25,8 +25,10 @@ Endpoints (all JSON unless noted; errors are ``{"error": message, "field": where
 
 Poses are ``world_T_cam`` (OpenCV camera axes, metres), given as a 4x4 matrix, as
 ``position`` + ``quaternion_wxyz``, or as ``look_at`` ``{eye, target, up}``. Numbers must be
-finite; a matrix must be rigid (``|R^T R - I| <= 1e-5``, ``det R > 0``, bottom row 0 0 0 1;
-it is then re-orthonormalised); a quaternion must have norm 1 within 1e-3.
+finite and within the bounds of :mod:`serve.limits` (coordinates within 1 km, velocities within
+10 m/s and 2 pi rad/s per component, images within 1280 x 960); a matrix must be rigid
+(``|R^T R - I| <= 1e-5``, ``det R > 0``, bottom row 0 0 0 1; it is then re-orthonormalised);
+a quaternion must have norm 1 within 1e-3.
 
 Observations carry RGB (``png`` or ``jpeg``, base64) and depth (``f32``: base64 of
 little-endian float32, row-major, metres, 0 = no data), the intrinsics ``K``, ``world_T_cam``
@@ -38,7 +40,14 @@ Robustness: request bodies (and WebSocket messages) are limited to ``max_body_by
 (413); each action runs under ``request_timeout_s`` (504; a timed-out action is withdrawn
 before it changes anything); malformed JSON is 400, invalid values 422, unknown episodes 404,
 closed or busy episodes 409, too many open episodes 429; unexpected errors are 500 and the
-server keeps serving.
+server keeps serving. A step (``set_pose``/``move``) is one transaction: its observation,
+counters and log line are computed first and committed together, so a failed request changes
+neither the episode nor its log.
+
+Access: the ``Host`` header must name 127.0.0.1, localhost or [::1] (any port) or one of
+``allowed_hosts`` (else 400: a DNS-rebinding page cannot reach the API); with ``token``, every
+request but the viewer's static files and the docs needs ``Authorization: Bearer <token>`` or
+``?token=<token>`` (else 401).
 """
 
 from __future__ import annotations
@@ -48,8 +57,9 @@ import base64
 import io
 import json
 import logging
+import secrets
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
@@ -63,11 +73,23 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from starlette.datastructures import Headers, QueryParams
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.middleware.trustedhost import TrustedHostMiddleware
+from starlette.websockets import WebSocketClose
 
 from brave6d.errors import BraveError, NonRigidTransformError
 from brave6d.transforms import check_rigid, look_at, make_transform, orthonormalize
 from serve.bundle import Bundle, load_bundle
+from serve.limits import (
+    MAX_ANGULAR_SPEED_RAD_S,
+    MAX_COORD_M,
+    MAX_HEIGHT,
+    MAX_LINEAR_SPEED_M_S,
+    MAX_MOVE_DURATION_S,
+    MAX_WIDTH,
+    MIN_SIZE,
+)
 from serve.episodes import (
     Cancelled,
     EpisodeError,
@@ -83,10 +105,6 @@ log = logging.getLogger(__name__)
 
 VIEWER_DIR = Path(__file__).resolve().parent / "viewer"
 
-MIN_SIZE = 16
-MAX_WIDTH = 1280
-MAX_HEIGHT = 960
-MAX_MOVE_DURATION_S = 10.0
 RIGID_ATOL = 1e-5
 QUAT_NORM_TOL = 1e-3
 
@@ -104,9 +122,19 @@ class ServerLimits:
 
 # ----------------------------------------------------------------------------- request models
 Finite = Annotated[float, Field(allow_inf_nan=False)]
-Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
-Quat = Annotated[list[Finite], Field(min_length=4, max_length=4)]
-Row4 = Annotated[list[Finite], Field(min_length=4, max_length=4)]
+Coord = Annotated[float, Field(ge=-MAX_COORD_M, le=MAX_COORD_M, allow_inf_nan=False)]
+Vec3 = Annotated[list[Coord], Field(min_length=3, max_length=3, description=f"metres, |x| <= {MAX_COORD_M:g}")]
+QuatComponent = Annotated[float, Field(ge=-2.0, le=2.0, allow_inf_nan=False)]
+Quat = Annotated[list[QuatComponent], Field(min_length=4, max_length=4)]
+Row4 = Annotated[list[Coord], Field(min_length=4, max_length=4)]
+Speed = Annotated[float, Field(ge=-MAX_LINEAR_SPEED_M_S, le=MAX_LINEAR_SPEED_M_S, allow_inf_nan=False)]
+Linear = Annotated[list[Speed], Field(min_length=3, max_length=3,
+                                      description=f"m/s, |v_i| <= {MAX_LINEAR_SPEED_M_S:g}")]
+Turn = Annotated[float, Field(ge=-MAX_ANGULAR_SPEED_RAD_S, le=MAX_ANGULAR_SPEED_RAD_S, allow_inf_nan=False)]
+Angular = Annotated[list[Turn], Field(min_length=3, max_length=3,
+                                      description=f"rad/s, |w_i| <= {MAX_ANGULAR_SPEED_RAD_S:.4g}")]
+Duration = Annotated[float, Field(gt=0, le=MAX_MOVE_DURATION_S, allow_inf_nan=False)]
+RequestId = Annotated[str, Field(max_length=256)] | Annotated[int, Field(ge=-(2**63), lt=2**63)]
 Mat4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
 AgentName = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:+\- ]+$",
                                  description="agent name for the leaderboard (letters, digits, _ . : + - space)")]
@@ -147,6 +175,13 @@ class PoseIn(_Strict):
         return self
 
     def matrix(self) -> np.ndarray:
+        """The rigid ``world_T_cam``; ``ValueError`` with the reason when the input does not make one."""
+        T = self._matrix()
+        if not np.all(np.isfinite(T)):
+            raise ValueError("the pose is not finite (its values are too large or too small)")
+        return T
+
+    def _matrix(self) -> np.ndarray:
         if self.world_T_cam is not None:
             try:
                 T = check_rigid(self.world_T_cam, "world_T_cam", atol=RIGID_ATOL)
@@ -186,7 +221,7 @@ class EstimateIn(_Strict):
 
     obj_id: Annotated[int, Field(ge=0)]
     R: Annotated[list[Finite], Field(min_length=9, max_length=9, description="rotation, 9 values row-major")]
-    t_m: Vec3 = Field(..., description="translation, metres")
+    t_m: Annotated[list[Finite], Field(min_length=3, max_length=3, description="translation, metres")]
     score: Finite = 1.0
 
 
@@ -202,10 +237,9 @@ class SetPoseRequest(ObsOptions):
 
 
 class MoveRequest(ObsOptions):
-    linear: Vec3 = Field([0.0, 0.0, 0.0], description="m/s")
-    angular: Vec3 = Field([0.0, 0.0, 0.0], description="rad/s")
-    duration: Annotated[float, Field(gt=0, le=MAX_MOVE_DURATION_S, allow_inf_nan=False)] = Field(
-        ..., description=f"seconds, (0, {MAX_MOVE_DURATION_S}]")
+    linear: Linear = [0.0, 0.0, 0.0]
+    angular: Angular = [0.0, 0.0, 0.0]
+    duration: Duration = Field(..., description=f"seconds, (0, {MAX_MOVE_DURATION_S:g}]")
     frame: Literal["camera", "world"] = Field("camera", description="see serve.geometry")
 
     @model_validator(mode="after")
@@ -217,11 +251,11 @@ class MoveRequest(ObsOptions):
 
 class WsMessage(ObsOptions):
     op: Literal["set_pose", "move", "get", "close"]
-    request_id: str | int | None = None
+    request_id: RequestId | None = None
     pose: PoseIn | None = None
-    linear: Vec3 | None = None
-    angular: Vec3 | None = None
-    duration: Annotated[float, Field(gt=0, le=MAX_MOVE_DURATION_S, allow_inf_nan=False)] | None = None
+    linear: Linear | None = None
+    angular: Angular | None = None
+    duration: Duration | None = None
     frame: Literal["camera", "world"] = "camera"
 
 
@@ -319,13 +353,42 @@ def observation_npz(obs: Observation) -> bytes:
     return buf.getvalue()
 
 
+# ----------------------------------------------------------------------------- WebSocket messages
+def echo_request_id(raw: Any) -> str | int | None:
+    """The ``request_id`` of a WebSocket message when it can be echoed as JSON (a string of at
+    most 256 characters or a 64-bit integer), else None: a NaN or a huge float is not echoed."""
+    rid = raw.get("request_id") if isinstance(raw, dict) else None
+    if isinstance(rid, str) and len(rid) <= 256:
+        return rid
+    if isinstance(rid, int) and not isinstance(rid, bool) and -(2**63) <= rid < 2**63:
+        return rid
+    return None
+
+
+def ws_dump(reply: dict[str, Any]) -> str:
+    """``reply`` as strict JSON text (no NaN/inf); a reply that has none becomes a 500 error object."""
+    try:
+        return json.dumps(reply, allow_nan=False, separators=(",", ":"))
+    except (TypeError, ValueError) as exc:
+        log.error("unserialisable WebSocket reply: %s", exc)
+        return json.dumps({"error": f"internal error: the reply is not valid JSON ({exc})", "field": None,
+                           "status": 500, "request_id": echo_request_id(reply)})
+
+
 # ----------------------------------------------------------------------------- errors
 def _error(status: int, message: str, field: str | None = None, headers: dict[str, str] | None = None) -> JSONResponse:
     return JSONResponse({"error": message, "field": field, "status": status}, status_code=status, headers=headers)
 
 
+#: Location parts that name a union member or a validator, not a field (e.g. ``request_id.constrained-int``).
+_NOT_FIELDS = ("function-", "constrained-")
+_UNION_TAGS = frozenset({"str", "int", "float", "bool", "none", "list", "dict"})
+
+
 def _loc(loc: Any) -> str:
-    return ".".join(str(p) for p in loc if not (isinstance(p, str) and ("[" in p or p.startswith("function-"))))
+    """The dotted field path of a pydantic error location (``pose.position.0``)."""
+    return ".".join(str(p) for p in loc
+                    if not (isinstance(p, str) and ("[" in p or p in _UNION_TAGS or p.startswith(_NOT_FIELDS))))
 
 
 def validation_error_body(errors: list[dict[str, Any]]) -> tuple[int, str, str | None]:
@@ -399,11 +462,70 @@ class BodyLimitMiddleware:
         await response(scope, receive, send)
 
 
+# ----------------------------------------------------------------------------- access control
+#: ``Host`` header values always accepted (with any port): this machine's loopback names. Any
+#: other name must be allowed explicitly, so that a DNS-rebinding page cannot reach the API.
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]")
+#: Paths served without the token: the viewer's static files (the page then calls the API with the
+#: token from its own URL) and the API documentation.
+PUBLIC_PATHS = ("/viewer", "/docs", "/redoc", "/openapi.json")
+#: Shortest token accepted (characters).
+MIN_TOKEN_CHARS = 16
+
+
+def check_token(token: str) -> str:
+    """``token`` when it is long enough to be a secret, else :class:`BraveError` saying how to make one."""
+    if len(token) < MIN_TOKEN_CHARS or token != token.strip():
+        raise BraveError(f"the token must have at least {MIN_TOKEN_CHARS} characters and no surrounding spaces "
+                         "(make one with: python -c 'import secrets; print(secrets.token_urlsafe())')")
+    return token
+
+
+def _is_public(path: str) -> bool:
+    return path == "/" or any(path == p or path.startswith(p + "/") for p in PUBLIC_PATHS)
+
+
+class TokenMiddleware:
+    """Require ``token`` on every HTTP request and WebSocket outside :data:`PUBLIC_PATHS`: as
+    ``Authorization: Bearer <token>`` or as the query parameter ``token`` (browsers can set no
+    header on a WebSocket or a beacon). Missing or wrong: 401 (a WebSocket handshake is denied
+    with the same 401 where the server supports it, else closed with 1008)."""
+
+    def __init__(self, app: Any, token: str) -> None:
+        self.app = app
+        self.token = check_token(token).encode()
+
+    def _authorised(self, scope: dict[str, Any]) -> bool:
+        auth = Headers(scope=scope).get("authorization", "")
+        scheme, _, given = auth.partition(" ")
+        if scheme.lower() != "bearer":
+            given = QueryParams(scope.get("query_string", b"").decode("latin-1")).get("token", "")
+        return secrets.compare_digest(given.strip().encode(), self.token)
+
+    async def __call__(self, scope: dict[str, Any], receive: Any, send: Any) -> None:
+        if scope["type"] not in ("http", "websocket") or _is_public(scope["path"]) or self._authorised(scope):
+            await self.app(scope, receive, send)
+            return
+        message = "missing or wrong token: send 'Authorization: Bearer <token>' (or '?token=<token>')"
+        if scope["type"] == "websocket" and "websocket.http.response" not in scope.get("extensions", {}):
+            await WebSocketClose(code=1008, reason=message)(scope, receive, send)
+            return
+        await _error(401, message, "token", {"WWW-Authenticate": "Bearer"})(scope, receive, send)
+
+
 # ----------------------------------------------------------------------------- the app
 def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Path | str | None = None,
                limits: ServerLimits = ServerLimits(), scene: SceneServer | None = None,
-               verify: bool = True, warm_up: bool = True) -> FastAPI:
-    """The FastAPI app serving ``bundle`` (a loaded :class:`Bundle` or a bundle folder, verified)."""
+               verify: bool = True, warm_up: bool = True, allowed_hosts: Sequence[str] = (),
+               token: str | None = None) -> FastAPI:
+    """The FastAPI app serving ``bundle`` (a loaded :class:`Bundle` or a bundle folder, verified).
+
+    Requests must name one of :data:`LOOPBACK_HOSTS` or ``allowed_hosts`` (``"*"``: any;
+    ``"*.example.org"``: its subdomains) in their ``Host`` header, else 400; with ``token``,
+    every request outside :data:`PUBLIC_PATHS` must carry it (see :class:`TokenMiddleware`).
+    """
+    if token is not None:
+        check_token(token)
     if not isinstance(bundle, Bundle):
         bundle = load_bundle(bundle, verify=verify)
     scene = scene if scene is not None else SceneServer(bundle, device)
@@ -439,6 +561,10 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
     app.state.limits = limits
     app.state.executor = executor
     app.add_middleware(BodyLimitMiddleware, limit=limits.max_body_bytes)
+    if token is not None:
+        app.add_middleware(TokenMiddleware, token=token)
+    # outermost: a request for a host name this server does not answer to gets nothing else
+    app.add_middleware(TrustedHostMiddleware, allowed_hosts=[*LOOPBACK_HOSTS, *allowed_hosts], www_redirect=False)
 
     # -------------------------------------------------------------- error handlers
     @app.exception_handler(RequestValidationError)
@@ -501,8 +627,9 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
 
     # -------------------------------------------------------------- routes
     @app.get("/", include_in_schema=False)
-    def root() -> RedirectResponse:
-        return RedirectResponse("/viewer/")
+    def root(request: Request) -> RedirectResponse:
+        query = request.url.query  # keeps ?token=... for the viewer
+        return RedirectResponse("/viewer/" + (f"?{query}" if query else ""))
 
     @app.get("/health", summary="liveness")
     def health() -> dict[str, Any]:
@@ -514,7 +641,9 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
     def get_bundle() -> dict[str, Any]:
         return {**bundle.summary(), "device": scene.device,
                 "limits": {"min_size": MIN_SIZE, "max_width": MAX_WIDTH, "max_height": MAX_HEIGHT,
-                           "max_move_duration_s": MAX_MOVE_DURATION_S, "max_body_bytes": limits.max_body_bytes,
+                           "max_move_duration_s": MAX_MOVE_DURATION_S, "max_coord_m": MAX_COORD_M,
+                           "max_linear_speed_m_s": MAX_LINEAR_SPEED_M_S,
+                           "max_angular_speed_rad_s": MAX_ANGULAR_SPEED_RAD_S, "max_body_bytes": limits.max_body_bytes,
                            "request_timeout_s": limits.request_timeout_s, "max_episodes": limits.max_episodes}}
 
     @app.get("/bundle/models/{obj_id}", summary="object model (BOP PLY, mm)", responses=err)
@@ -596,8 +725,12 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
             except (KeyError, RuntimeError):  # a binary frame or a closed socket
                 await websocket.close(code=1003)
                 return
-            reply = await _ws_handle(text, episode_id)
-            await websocket.send_json(reply)
+            try:
+                reply = await _ws_handle(text, episode_id)
+            except Exception as exc:  # keep the socket: answer with the error object
+                log.exception("internal error on the WebSocket of %s", episode_id)
+                reply = {"error": f"internal error: {type(exc).__name__}: {exc}", "field": None, "status": 500}
+            await websocket.send_text(ws_dump(reply))
             if reply.get("action") == "close" and "error" not in reply:
                 await websocket.close()
                 return
@@ -609,13 +742,14 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
         request_id = None
         try:
             raw = json.loads(text)
-            request_id = raw.get("request_id") if isinstance(raw, dict) else None
+            request_id = echo_request_id(raw)
             msg = WsMessage.model_validate(raw)
-        except json.JSONDecodeError as exc:
-            return {"error": f"malformed JSON: {exc}", "field": "message", "status": 400}
-        except ValidationError as exc:
+        except ValidationError as exc:  # (before ValueError: it is one)
             status, m, field = validation_error_body(exc.errors(include_url=False))
             return {"error": m, "field": field, "status": status, "request_id": request_id}
+        except (ValueError, RecursionError) as exc:  # json.JSONDecodeError, too many digits, too deep
+            why = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+            return {"error": f"malformed JSON: {why}", "field": "message", "status": 400}
         try:
             if msg.op == "get":
                 ep = manager.get(episode_id)

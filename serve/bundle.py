@@ -60,6 +60,7 @@ from brave6d.errors import BraveError, DataError, NonRigidTransformError
 from brave6d.layout import FrameRecord, SceneDir
 from brave6d.transforms import check_rigid
 from serve.geometry import DEFAULT_CAMERA_RADIUS, CollisionWorld, OrientedBox, Workspace
+from serve.limits import MAX_HEIGHT, MAX_WIDTH, fit_image_size, image_size_error
 from serve.splat_check import check_splat, ply_vertex_count
 
 log = logging.getLogger(__name__)
@@ -82,7 +83,12 @@ class BundleError(DataError):
 # ----------------------------------------------------------------------------- typed bundle
 @dataclass(frozen=True)
 class RenderDefaults:
-    """How views are rendered unless a request says otherwise."""
+    """How views are rendered unless a request says otherwise.
+
+    The default size obeys the server's image-size cap (:mod:`serve.limits`) like an explicit
+    request: a larger one (a bundle exported from a large camera, or by an older exporter) is
+    scaled down to fit, same aspect ratio, with a warning.
+    """
 
     width: int
     height: int
@@ -90,6 +96,14 @@ class RenderDefaults:
     far: float = 100.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     depth_alpha_min: float = 0.5  # depth is 0 (no data) where the splat's alpha is below this
+
+    def __post_init__(self) -> None:
+        width, height = fit_image_size(self.width, self.height)
+        if (width, height) != (self.width, self.height):
+            log.warning("render defaults %dx%d exceed the server's image-size cap %dx%d: using %dx%d",
+                        self.width, self.height, MAX_WIDTH, MAX_HEIGHT, width, height)
+            object.__setattr__(self, "width", width)
+            object.__setattr__(self, "height", height)
 
     def to_json(self) -> dict[str, Any]:
         return {"width": self.width, "height": self.height, "near": self.near, "far": self.far,
@@ -488,9 +502,9 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
     spec = scene.load_spec()
     # absolute (not resolved: a symbolic link at --out must stay visible), so that "." has a name and a parent
     target = Path(os.path.abspath(out)) if out is not None else scene.bundle_dir
-    for label, value in (("width", width), ("height", height)):
-        if value is not None and not 16 <= value <= 8192:
-            raise BraveError(f"render {label} must be in 16..8192, got {value}")
+    size_error = image_size_error(width, height)
+    if size_error is not None:
+        raise BraveError(f"render {size_error} (the server's image-size cap)")
     if camera_radius < 0 or not np.isfinite(camera_radius):
         raise BraveError(f"camera radius must be a finite number >= 0, got {camera_radius}")
     splat_src = find_splat_ply(scene)

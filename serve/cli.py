@@ -1,10 +1,21 @@
-"""``brave6d serve BUNDLE``: serve a scene bundle over HTTP + WebSocket (loopback by default)."""
+"""``brave6d serve BUNDLE``: serve a scene bundle over HTTP + WebSocket (loopback by default).
+
+Security defaults: the server binds to 127.0.0.1; a non-loopback ``--host`` is refused unless
+``--allow-remote`` is given, and then a token is required on every request (``--token``, or
+``$BRAVE6D_TOKEN``, or a random one printed at start). Requests must name an allowed host in
+their ``Host`` header (127.0.0.1, localhost, [::1], the bound address, ``--allow-host`` names):
+a web page that rebinds its own DNS name to this machine gets 400.
+"""
 
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import logging
+import os
+import secrets
 import socket
+from dataclasses import dataclass
 from pathlib import Path
 
 from brave6d.errors import BraveError
@@ -16,8 +27,18 @@ log = logging.getLogger(__name__)
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bundle", type=Path, help="bundle folder written by 'brave6d export' (checksums are verified)")
     parser.add_argument("--host", default="127.0.0.1",
-                        help="address to bind (default 127.0.0.1: this machine only; 0.0.0.0 exposes the "
-                             "server to the network, which has no authentication)")
+                        help="address to bind (default 127.0.0.1: this machine only; any other address needs "
+                             "--allow-remote)")
+    parser.add_argument("--allow-remote", action="store_true",
+                        help="allow a --host that is reachable from the network (a token is then required)")
+    parser.add_argument("--token", default=None,
+                        help="require this token on every request ('Authorization: Bearer TOKEN' or '?token=TOKEN'; "
+                             "default: $BRAVE6D_TOKEN, which other users cannot see in the process list; with "
+                             "--allow-remote and no token, a random one is made and printed)")
+    parser.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                        help="also accept requests whose Host header names NAME (repeatable; any port; "
+                             "'*.example.org': its subdomains; '*': any). Always accepted: 127.0.0.1, localhost, "
+                             "[::1] and a specific --host")
     parser.add_argument("--port", type=int, default=8765, help="TCP port (default 8765; 0: any free port)")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                         help="rasterizer device (auto: cuda when torch sees a GPU)")
@@ -32,11 +53,53 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="close episodes idle for this many seconds (default 900)")
 
 
+@dataclass(frozen=True)
+class Access:
+    """Who may use the server: the ``Host`` names allowed besides loopback, and the token (None: none)."""
+
+    allowed_hosts: tuple[str, ...]
+    token: str | None
+    token_generated: bool = False
+
+
+def _host_name(host: str) -> str:
+    """``host`` as it appears in a ``Host`` header (an IPv6 address in brackets)."""
+    return f"[{host}]" if ":" in host and not host.startswith("[") else host
+
+
+def access_for(host: str, allow_remote: bool, token: str | None, allow_hosts: list[str],
+               environ: dict[str, str] | None = None) -> Access:
+    """The access settings of a server bound to ``host``; :class:`BraveError` (one line) when a
+    non-loopback ``host`` lacks ``allow_remote``. The token comes from ``token``, else
+    ``$BRAVE6D_TOKEN``, else (remote only) is made at random."""
+    from serve.app import check_token
+    from serve.client import TOKEN_ENV
+    from serve.runner import is_loopback
+
+    remote = not is_loopback(host)
+    if remote and not allow_remote:
+        raise BraveError(f"--host {host} would expose the server to the network: add --allow-remote to do so "
+                         "(a token is then required), or bind 127.0.0.1")
+    env = os.environ if environ is None else environ
+    token = token if token is not None else (env.get(TOKEN_ENV) or None)
+    generated = token is None and remote
+    if generated:
+        token = secrets.token_urlsafe(24)
+    hosts = list(allow_hosts)
+    try:
+        wildcard = ipaddress.ip_address(host).is_unspecified
+    except ValueError:
+        wildcard = False
+    if remote and not wildcard:
+        hosts.append(_host_name(host))
+    return Access(tuple(hosts), check_token(token) if token is not None else None, generated)
+
+
 def run(args: argparse.Namespace) -> int:
     quiet_openmp()
     import uvicorn
 
-    from serve.app import ServerLimits, create_app
+    from serve.app import LOOPBACK_HOSTS, ServerLimits, create_app
     from serve.bundle import load_bundle
     from serve.runner import is_loopback, uvicorn_config
 
@@ -44,14 +107,17 @@ def run(args: argparse.Namespace) -> int:
         raise BraveError(f"--port must be in 0..65535, got {args.port}")
     if args.max_episodes < 1 or args.request_timeout <= 0 or args.max_body_bytes < 1024:
         raise BraveError("--max-episodes >= 1, --request-timeout > 0 and --max-body-bytes >= 1024 are required")
-    if not is_loopback(args.host):
-        log.warning("binding to %s: the server is reachable from the network and has no authentication",
-                    args.host)
+    access = access_for(args.host, args.allow_remote, args.token, args.allow_host)
+    if not is_loopback(args.host) and not args.allow_host:
+        log.warning("binding to %s: only requests whose Host header names %s are accepted; add --allow-host NAME "
+                    "for each name or address the clients use", args.host,
+                    ", ".join([*LOOPBACK_HOSTS, *access.allowed_hosts]))
     bundle = load_bundle(args.bundle)
     log_dir = args.log_dir if args.log_dir is not None else Path(args.bundle).resolve().parent / "episodes"
     limits = ServerLimits(max_body_bytes=args.max_body_bytes, request_timeout_s=args.request_timeout,
                           max_episodes=args.max_episodes, idle_timeout_s=args.idle_timeout)
-    app = create_app(bundle, device=args.device, log_dir=log_dir, limits=limits)
+    app = create_app(bundle, device=args.device, log_dir=log_dir, limits=limits,
+                     allowed_hosts=access.allowed_hosts, token=access.token)
     sock = socket.socket(socket.AF_INET6 if ":" in args.host else socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
@@ -59,10 +125,13 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise BraveError(f"cannot listen on {args.host}:{args.port}: {exc.strerror}") from None
     port = sock.getsockname()[1]
-    host = f"[{args.host}]" if ":" in args.host else args.host
+    host = _host_name(args.host)
+    viewer = "/viewer/" + ("?token=<token>" if access.token is not None else "")
     print(f"brave6d serve: {bundle.name} ({app.state.scene.renderer.num_gaussians} Gaussians, "
-          f"{app.state.scene.device}) on http://{host}:{port}  viewer: /viewer/  API: /docs  "
+          f"{app.state.scene.device}) on http://{host}:{port}  viewer: {viewer}  API: /docs  "
           f"episode logs: {log_dir}", flush=True)
+    if access.token_generated:
+        print(f"token (send as 'Authorization: Bearer <token>' or '?token=<token>'): {access.token}", flush=True)
     level = "info" if getattr(args, "verbose", 0) else "warning"
     server = uvicorn.Server(uvicorn_config(app, args.host, port, level, args.max_body_bytes))
     server.run(sockets=[sock])

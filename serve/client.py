@@ -13,13 +13,15 @@
 
 Poses are ``world_T_cam`` 4x4 arrays (OpenCV camera axes, metres). A refused action is not an
 error: it returns a :class:`StepResult` with ``accepted == False``. HTTP errors (4xx/5xx) raise
-:class:`ServerError` with the server's message, field and status.
+:class:`ServerError` with the server's message, field and status. A server started with a
+token (``brave6d serve --token``) needs it: ``BraveClient(url, token=...)`` or ``$BRAVE6D_TOKEN``.
 """
 
 from __future__ import annotations
 
 import base64
 import io
+import os
 from dataclasses import dataclass, field
 from typing import Any, Self
 
@@ -29,6 +31,8 @@ from numpy.typing import ArrayLike, NDArray
 from brave6d.errors import BraveError
 
 DEFAULT_URL = "http://127.0.0.1:8765"
+#: Environment variable holding the server's token (the same one ``brave6d serve`` reads).
+TOKEN_ENV = "BRAVE6D_TOKEN"
 
 
 class ServerError(BraveError):
@@ -147,10 +151,14 @@ class BraveClient:
     """Synchronous client of one server; remembers the current episode (``episode_id``)."""
 
     def __init__(self, base_url: str = DEFAULT_URL, timeout: float = 120.0, rgb: str = "png", depth: str = "f32",
-                 transport: Any = None) -> None:
+                 transport: Any = None, token: str | None = None) -> None:
+        """``token``: the server's token (default ``$BRAVE6D_TOKEN``; none when unset)."""
         import httpx
 
+        token = token if token is not None else os.environ.get(TOKEN_ENV) or None
         kwargs: dict[str, Any] = {"base_url": base_url, "timeout": timeout}
+        if token is not None:
+            kwargs["headers"] = {"Authorization": f"Bearer {token}"}
         if transport is not None:
             kwargs["transport"] = transport
         self._http = httpx.Client(**kwargs)

@@ -57,6 +57,7 @@ from brave6d.errors import BraveError
 from brave6d.transforms import invert, look_at, orthonormalize
 from serve.bundle import Bundle, BundleObject, load_model_m
 from serve.geometry import MoveResult, Refusal, integrate_twist
+from serve.limits import MAX_ANGULAR_SPEED_RAD_S, MAX_COORD_M, MAX_LINEAR_SPEED_M_S, MAX_MOVE_DURATION_S
 from serve.renderer import SplatRenderer
 from serve.visibility import Visibility, VisibilityComputer
 
@@ -253,12 +254,22 @@ class EpisodeLog:
             path.parent.mkdir(parents=True, exist_ok=True)
             self._handle = open(path, "a", encoding="utf-8")  # noqa: SIM115 - kept open for the episode
 
-    def write(self, record: dict[str, Any]) -> None:
+    @staticmethod
+    def format(record: dict[str, Any]) -> str:
+        """One JSONL line of ``record``, time-stamped now (``ValueError`` for a value that is not
+        finite: a step formats its record before it changes anything)."""
+        record = {"time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds"), **record}
+        return json.dumps(record, allow_nan=False, default=_json_default) + "\n"
+
+    def append(self, line: str) -> None:
+        """Append a line made by :meth:`format` and flush it."""
         if self._handle is None:
             return
-        record = {"time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds"), **record}
-        self._handle.write(json.dumps(record, allow_nan=False, default=_json_default) + "\n")
+        self._handle.write(line)
         self._handle.flush()
+
+    def write(self, record: dict[str, Any]) -> None:
+        self.append(self.format(record))
 
     def close(self) -> None:
         if self._handle is not None:
@@ -376,6 +387,32 @@ def check_estimate(index: int, obj_id: int, R: Any, t_m: Any, score: float, know
     return SubmittedEstimate(int(obj_id), orthonormalize(rot), t, float(score))
 
 
+def check_pose(world_T_cam: Any, field: str) -> Matrix4:
+    """``world_T_cam`` as a 4x4 array when it is finite with its centre within ``MAX_COORD_M``
+    (the request models check this too; this guards direct callers), else :class:`InvalidAction`."""
+    T = np.array(world_T_cam, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InvalidAction(f"{field}: must be a finite 4x4 matrix", field)
+    if float(np.max(np.abs(T[:3, 3]))) > MAX_COORD_M:
+        raise InvalidAction(f"{field}: the camera centre must lie within {MAX_COORD_M:g} m of the origin", field)
+    return T
+
+
+def check_twist(linear: Any, angular: Any, duration: Any) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """The twist of a ``move`` as arrays when every value is finite and within the limits of
+    :mod:`serve.limits`, else :class:`InvalidAction` naming the field."""
+    out = []
+    for name, values, top in (("linear", linear, MAX_LINEAR_SPEED_M_S), ("angular", angular, MAX_ANGULAR_SPEED_RAD_S)):
+        v = np.asarray(values, dtype=np.float64).reshape(-1)
+        if v.size != 3 or not np.all(np.isfinite(v)) or float(np.max(np.abs(v))) > top:
+            raise InvalidAction(f"{name}: must be 3 finite numbers of magnitude <= {top:.4g}", name)
+        out.append(v)
+    d = float(duration)
+    if not (np.isfinite(d) and 0.0 < d <= MAX_MOVE_DURATION_S):
+        raise InvalidAction(f"duration: must be a finite number in (0, {MAX_MOVE_DURATION_S:g}] seconds", "duration")
+    return out[0], out[1], d
+
+
 def submission_record(ep: Episode, estimates: list[SubmittedEstimate], bundle: Bundle,
                       depth_file: str | None) -> dict[str, Any]:
     """The ``submit`` log record: the estimates and what only the server knows about the final
@@ -400,6 +437,14 @@ def _target_record(obs: Observation) -> dict[str, Any]:
         return {}
     return {"target_cam_T_obj": t.cam_T_obj.tolist(),
             "target_visib_fract": t.visibility.visib_fract if t.visibility else None}
+
+
+def _commit(ticket: Ticket | None, apply: Any) -> None:
+    """Run ``apply`` (the state change of an action) unless its request was withdrawn."""
+    if ticket is not None:
+        ticket.commit(apply)
+    else:
+        apply()
 
 
 class EpisodeManager:
@@ -477,10 +522,10 @@ class EpisodeManager:
         h = height or bundle.render.height
         camera = self.scene.camera_for(w, h)
         if start is not None:
-            refusal = bundle.world.check(start)
+            T0 = check_pose(start, "start")
+            refusal = bundle.world.check(T0)
             if refusal is not None:
                 raise InvalidAction(f"start pose refused: {refusal.message}", "start")
-            T0 = np.array(start, dtype=np.float64)
             used_seed = seed
         else:
             used_seed = seed if seed is not None else secrets.randbits(31)
@@ -497,23 +542,27 @@ class EpisodeManager:
             t0 = time.perf_counter()
             try:
                 obs = self.scene.observe(T0, camera, tgt.gt_id)
-                if ticket is not None:
-                    ticket.commit(lambda: None)
-            except BaseException:
+                timings = {**obs.timings_ms, "step": (time.perf_counter() - t0) * 1000.0}
+                line = ep.log.format({
+                    "event": "reset", "episode_id": eid, "bundle": bundle.name, "agent": agent,
+                    "target": {"gt_id": tgt.gt_id, "obj_id": tgt.obj_id, "name": tgt.name},
+                    "width": w, "height": h, "K": camera.K.tolist(), "seed": used_seed,
+                    "start": "given" if start is not None else "random", "world_T_cam": T0.tolist(),
+                    "timings_ms": timings, **_target_record(obs)})
+
+                def apply() -> None:
+                    ep.log.append(line)
+                    ep.last = obs
+                    ep.render_ms.append(obs.timings_ms["render"])
+
+                _commit(ticket, apply)
+            except BaseException:  # the episode never existed
                 with self._lock:
                     self._episodes.pop(eid, None)
                 ep.log.close()
                 if ep.log.path is not None and ep.log.path.exists():
                     ep.log.path.unlink()
                 raise
-            ep.last = obs
-            ep.render_ms.append(obs.timings_ms["render"])
-            timings = {**obs.timings_ms, "step": (time.perf_counter() - t0) * 1000.0}
-            ep.log.write({"event": "reset", "episode_id": eid, "bundle": bundle.name, "agent": agent,
-                          "target": {"gt_id": tgt.gt_id, "obj_id": tgt.obj_id, "name": tgt.name},
-                          "width": w, "height": h, "K": camera.K.tolist(), "seed": used_seed,
-                          "start": "given" if start is not None else "random", "world_T_cam": T0.tolist(),
-                          "timings_ms": timings, **_target_record(obs)})
             return StepResult(eid, "reset", 0, True, False, None, 0, obs, None, timings)
         finally:
             ep.lock.release()
@@ -522,7 +571,7 @@ class EpisodeManager:
         ep = self.get(episode_id)
         self._acquire(ep)
         try:
-            T = np.array(world_T_cam, dtype=np.float64)
+            T = check_pose(world_T_cam, "pose")
             return self._finish(ep, "set_pose", T, self.scene.bundle.world.check(T), None,
                                 {"world_T_cam": T.tolist()}, ticket)
         finally:
@@ -533,14 +582,13 @@ class EpisodeManager:
         ep = self.get(episode_id)
         self._acquire(ep)
         try:
+            v, w, d = check_twist(linear, angular, duration)
             try:
-                res: MoveResult = integrate_twist(self.scene.bundle.world, ep.world_T_cam, linear, angular,
-                                                  duration, frame)
+                res: MoveResult = integrate_twist(self.scene.bundle.world, ep.world_T_cam, v, w, d, frame)
             except ValueError as exc:
-                raise InvalidAction(str(exc), "duration") from None
+                raise InvalidAction(str(exc), "frame" if "frame" in str(exc) else "duration") from None
             move = {"fraction": res.fraction, "substeps": res.substeps, "path_m": res.path_m}
-            requested = {"linear": list(map(float, linear)), "angular": list(map(float, angular)),
-                         "duration": float(duration), "frame": frame}
+            requested = {"linear": v.tolist(), "angular": w.tolist(), "duration": d, "frame": frame}
             if not res.moved:  # blocked at the first substep: refused
                 return self._finish(ep, "move", ep.world_T_cam, res.refusal, move, requested, ticket)
             return self._finish(ep, "move", res.world_T_cam, None, move, requested, ticket,
@@ -550,43 +598,42 @@ class EpisodeManager:
 
     def _finish(self, ep: Episode, action: str, T: Matrix4, refusal: Refusal | None, move: dict[str, Any] | None,
                 requested: dict[str, Any], ticket: Ticket | None, stopped_by: Refusal | None = None) -> StepResult:
+        """Complete a ``set_pose``/``move`` to ``T`` (or refuse it) as one transaction: the
+        observation, the counters and the log line are all computed first, then the log line is
+        written and the state changed together; a failure before that changes nothing."""
         t0 = time.perf_counter()
         before = ep.world_T_cam
-        if refusal is not None:
-            obs = ep.last
-            assert obs is not None
-
-            def apply() -> None:
-                ep.steps += 1
-                ep.refusals += 1
-                ep.last_active = time.monotonic()
-        else:
-            obs = self.scene.observe(T, ep.camera, ep.target.gt_id)
-
-            def apply() -> None:
-                ep.steps += 1
-                ep.adjustments += 1
-                ep.world_T_cam = T
-                ep.last = obs
-                ep.render_ms.append(obs.timings_ms["render"])
-                ep.last_active = time.monotonic()
-                if stopped_by is not None:
-                    ep.collisions += 1
-        if ticket is not None:
-            ticket.commit(apply)
-        else:
-            apply()
         accepted = refusal is None
+        if accepted:
+            obs = self.scene.observe(T, ep.camera, ep.target.gt_id)
+            after, timings = T, {**obs.timings_ms}
+        else:
+            assert ep.last is not None
+            obs, after = ep.last, before
+            timings = {"render": 0.0, "render_queue": 0.0, "visibility": 0.0, "observe": 0.0}
+        steps, adjustments = ep.steps + 1, ep.adjustments + int(accepted)
         collided = refusal is not None or stopped_by is not None
         reason = refusal or stopped_by
-        timings = ({**obs.timings_ms} if accepted else {"render": 0.0, "render_queue": 0.0, "visibility": 0.0,
-                                                        "observe": 0.0})
         timings["step"] = (time.perf_counter() - t0) * 1000.0
-        ep.log.write({"event": action, "step": ep.steps, "accepted": accepted, "collided": collided,
-                      "refusal": reason.to_json() if reason else None, "requested": requested,
-                      "world_T_cam_before": before.tolist(), "world_T_cam": ep.world_T_cam.tolist(),
-                      "adjustments": ep.adjustments, "move": move, "timings_ms": timings, **_target_record(obs)})
-        return StepResult(ep.id, action, ep.steps, accepted, collided, reason, ep.adjustments, obs, move, timings)
+        line = ep.log.format({"event": action, "step": steps, "accepted": accepted, "collided": collided,
+                              "refusal": reason.to_json() if reason else None, "requested": requested,
+                              "world_T_cam_before": before.tolist(), "world_T_cam": after.tolist(),
+                              "adjustments": adjustments, "move": move, "timings_ms": timings,
+                              **_target_record(obs)})
+
+        def apply() -> None:
+            ep.log.append(line)  # first: a failed write leaves the state as it was
+            ep.steps, ep.adjustments, ep.world_T_cam = steps, adjustments, after
+            if accepted:
+                ep.last = obs
+                ep.render_ms.append(obs.timings_ms["render"])
+                ep.collisions += int(stopped_by is not None)
+            else:
+                ep.refusals += 1
+            ep.last_active = time.monotonic()
+
+        _commit(ticket, apply)
+        return StepResult(ep.id, action, steps, accepted, collided, reason, adjustments, obs, move, timings)
 
     def submit(self, episode_id: str, estimates: list[dict[str, Any]], agent: str | None = None,
                ticket: Ticket | None = None) -> dict[str, Any]:
@@ -601,24 +648,21 @@ class EpisodeManager:
             clean = [check_estimate(i, e.get("obj_id", -1), e.get("R", ()), e.get("t_m", ()), e.get("score", 1.0),
                                     known) for i, e in enumerate(estimates)]
             depth = depth_m_to_mm_u16(ep.last.depth)
+            depth_file = f"{ep.id}{FINAL_DEPTH_SUFFIX}" if ep.log.path is not None else None
+            name = agent if agent is not None else ep.agent
+            line = ep.log.format({**submission_record(ep, clean, self.scene.bundle, depth_file), "agent": name})
             out: dict[str, Any] = {}
 
             def apply() -> None:
-                depth_file = None
-                if ep.log.path is not None:
-                    depth_file = f"{ep.id}{FINAL_DEPTH_SUFFIX}"
+                if ep.log.path is not None and depth_file is not None:
                     write_png(ep.log.path.with_name(depth_file), depth)
-                if agent is not None:
-                    ep.agent = agent
+                ep.log.append(line)
+                ep.agent = name
                 ep.submitted = True
-                ep.log.write(submission_record(ep, clean, self.scene.bundle, depth_file))
                 out.update(self._close(ep, "submitted"))
                 out.update({"submitted": True, "estimates": len(clean), "depth_file": depth_file, "agent": ep.agent})
 
-            if ticket is not None:
-                ticket.commit(apply)
-            else:
-                apply()
+            _commit(ticket, apply)
             return out
         finally:
             ep.lock.release()

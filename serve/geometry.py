@@ -217,10 +217,18 @@ def substep_count(linear: ArrayLike, angular: ArrayLike, duration: float,
 
     For a camera-frame screw the centre's path length is ``|v| t`` (the body velocity's norm
     is the speed of the centre), so the bound holds in both frames.
+
+    Raises ``ValueError`` when the count is not finite (a NaN, or a twist so large that its
+    length overflows), instead of failing to convert it to an integer.
     """
-    dist = float(np.linalg.norm(np.asarray(linear, dtype=np.float64))) * duration
-    angle = float(np.linalg.norm(np.asarray(angular, dtype=np.float64))) * duration
-    return max(1, int(np.ceil(max(dist / max_step_m, angle / max_step_rad))))
+    with np.errstate(over="ignore", invalid="ignore"):
+        dist = float(np.linalg.norm(np.asarray(linear, dtype=np.float64))) * duration
+        angle = float(np.linalg.norm(np.asarray(angular, dtype=np.float64))) * duration
+    need = max(dist / max_step_m, angle / max_step_rad)
+    if not np.isfinite(need) or np.isnan(dist) or np.isnan(angle):
+        raise ValueError(f"the move's length is not a finite number (|linear| t = {dist:g} m, "
+                         f"|angular| t = {angle:g} rad): velocities and duration must be finite and bounded")
+    return max(1, int(np.ceil(need)))
 
 
 @dataclass(frozen=True)

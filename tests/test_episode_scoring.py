@@ -250,7 +250,7 @@ def served(bundle: Bundle, tmp_path_factory: pytest.TempPathFactory):  # type: i
     log_dir = tmp_path_factory.mktemp("estimates_logs")
     app = create_app(bundle, scene=SceneServer(bundle, device="cpu"), log_dir=log_dir,
                      limits=ServerLimits(max_episodes=100), warm_up=False)
-    with TestClient(app) as client:
+    with TestClient(app, base_url="http://localhost") as client:
         yield client, log_dir
 
 

@@ -4,10 +4,13 @@
 // ground-truth poses (cam_T_obj) and the intrinsics K of each observation. Refused moves show
 // a red banner with the server's reason; moves stopped part-way at a collision an orange one.
 // State for tests: document.body.dataset.{frames, refusals, state, lastRefusal}; window.braveViewer.
+// A server started with a token is opened as /viewer/?token=TOKEN: the page sends it with every
+// request (Authorization: Bearer, or ?token= where no header can be set).
 "use strict";
 
 (function () {
   const params = new URLSearchParams(window.location.search);
+  const token = params.get("token");
   const canvas = document.getElementById("view");
   const ctx = canvas.getContext("2d");
   const banner = document.getElementById("banner");
@@ -28,6 +31,7 @@
 
   async function api(method, path, payload) {
     const init = { method, headers: {} };
+    if (token) init.headers["Authorization"] = "Bearer " + token;
     if (payload !== undefined) {
       init.headers["Content-Type"] = "application/json";
       init.body = JSON.stringify(payload);
@@ -274,7 +278,10 @@
     select.addEventListener("change", reset);
     document.getElementById("reset").addEventListener("click", reset);
     window.addEventListener("beforeunload", () => {
-      if (state.episodeId) navigator.sendBeacon("/episodes/" + state.episodeId + "/close");
+      if (state.episodeId) {
+        const query = token ? "?token=" + encodeURIComponent(token) : "";
+        navigator.sendBeacon("/episodes/" + state.episodeId + "/close" + query);
+      }
     });
     await reset();
   }
