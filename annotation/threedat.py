@@ -1,6 +1,42 @@
 """Read 3D-DAT annotation folders (markus-suchi/3D-DAT) into typed, validated objects.
 
-Files, as 3D-DAT's own reader reads them (see docs/REFERENCES.md):
+What 3D-DAT's own reader does (markus-suchi/3D-DAT at 57e1af8, read, not copied), point by point:
+
+* Config, ``v4r_dataset_toolkit/io.py``, ``SceneFileReader.create`` and ``__init__``: only the
+  ``General:`` mapping is read. ``root_dir`` defaults to the folder of the config file; when given
+  it is used as written (a relative one is therefore relative to the working directory of the
+  process). ``annotation_dir`` (default ``annotations``), ``object_library_file`` (default
+  ``objects/objects.yaml``) and ``reconstruction_dir`` (default ``reconstructions``) fall back to
+  their defaults when missing OR empty; ``scenes_dir`` (``scenes``), ``rgb_dir`` (``rgb``),
+  ``depth_dir`` (``depth``) and ``object_pose_file`` (``poses.yaml``) only when the key is
+  missing. ``camera_intrinsics_file`` and ``camera_pose_file`` have no default (the reader fails
+  on the first path it builds). Every path is joined onto ``root_dir`` unless absolute.
+* Scenes, ``get_scene_ids``: the sub-folders of ``<root>/<scenes_dir>``, sorted. Intrinsics,
+  ``get_camera_info_scene``: ``<scene>/<camera_intrinsics_file>``, else the shared one in
+  ``scenes_dir``.
+* Camera poses and views, ``get_camera_poses``: every line of ``<scene>/<camera_pose_file>`` is
+  split on whitespace, its first field (the id) is DROPPED and the other seven are
+  ``tx ty tz qx qy qz qw``. ``get_images_rgb_path`` (with ``get_file_list``) lists the files
+  ending in ``.png``/``.jpg`` anywhere under ``<scene>/<rgb_dir>`` and sorts their paths; the
+  Blender tool (``blender/v4r_blender_utils.py``, ``load_cameras``) then gives camera ``i`` the
+  pose of line ``i`` and the background image ``i`` of that list, as ``get_pointclouds`` does with
+  depth. The ids are never looked at: the pairing is line order with sorted image order (more
+  images than lines: the extra ones are unused; fewer: the tool fails).
+* Object library, ``v4r_dataset_toolkit/objects.py``, ``ObjectLibrary.create`` and ``Object``:
+  a YAML list; ``id`` is required, every other key optional. ``mesh`` is joined onto the library
+  file's folder when present and ``Object`` has no mesh when it is missing or empty; a given mesh
+  must exist (``meshreader.py``, ``MeshReader.__init__`` raises otherwise) but is parsed only
+  when shown. ``scale`` is used as given, and a missing or empty (falsy) one means 1; meshes are
+  scaled about their origin before the pose is applied (``MeshReader.as_o3d``/``as_bpy_mesh``).
+  A later entry with the same id replaces an earlier one.
+* Object poses, ``get_object_poses``: ``<annotation_dir>/<scene>/<object_pose_file>``; a missing
+  file gives NO objects without a word; otherwise a YAML list (``[]``: no objects) of
+  ``{id, pose}`` where a missing pose means the identity and an unknown id fails. The Blender
+  tool (``load_objects``) needs a mesh for every listed object; ``save_pose`` writes ``[]`` when
+  the scene has no objects, ids as strings and ``pose`` as the 16 numbers of Blender's
+  ``matrix_world`` (row-major, float32 precision).
+
+Files, as 3D-DAT lays them out:
 
 * the dataset config (``dataset.yaml``): a ``General:`` mapping with ``scenes_dir``,
   ``camera_intrinsics_file``, ``camera_pose_file``, ``object_library_file``, ``annotation_dir``,
