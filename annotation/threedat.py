@@ -36,12 +36,31 @@ What 3D-DAT's own reader does (markus-suchi/3D-DAT at 57e1af8, read, not copied)
   the scene has no objects, ids as strings and ``pose`` as the 16 numbers of Blender's
   ``matrix_world`` (row-major, float32 precision).
 
+What this reader does with the same folders:
+
+* Config (:func:`read_config`): the same defaults, the same ``root_dir`` (a relative one against
+  the working directory, refused when that is no folder). A null ``scenes_dir``/``rgb_dir``/
+  ``depth_dir``/``object_pose_file`` (3D-DAT fails on it) and an empty ``object_pose_file`` are
+  refused naming the key; a missing ``camera_intrinsics_file``/``camera_pose_file`` too.
+* Views: :func:`rgb_files` lists the images exactly as 3D-DAT does; :mod:`annotation.pairing`
+  pairs line ``i`` with the captured view image ``i`` names, the ids (captured frame index or
+  view id) being the cross-check and the fallback when there are no such images. The camera-pose
+  file itself stays stricter than 3D-DAT where that guards the result (unit quaternions, unique
+  ids, 8 fields), and more lenient where it costs nothing (commas, blank and ``#`` lines).
+* Library (:func:`read_library`): an entry without ``mesh`` is accepted; ``scale`` as in 3D-DAT
+  (:func:`parse_scale`) but refused when negative, infinite or NaN; a repeated id is refused.
+  Only annotated objects become objects of the import (and BOP models, :mod:`annotation.bop`).
+* Poses (:func:`read_object_poses`): ``[]`` is a scene without objects (with a warning). A missing
+  configured pose file is replaced by the other name 3D-DAT uses (``pose.yaml``/``poses.yaml``)
+  with a warning naming both, else refused. Kept stricter: a missing ``pose`` (3D-DAT: identity),
+  non-rigid or NaN poses, an object without mesh, an unknown id (3D-DAT fails too).
+
 Files, as 3D-DAT lays them out:
 
 * the dataset config (``dataset.yaml``): a ``General:`` mapping with ``scenes_dir``,
   ``camera_intrinsics_file``, ``camera_pose_file``, ``object_library_file``, ``annotation_dir``,
-  ``object_pose_file`` (and optional ``rgb_dir``, ``depth_dir``, ``reconstruction_dir``); paths
-  are relative to the config file;
+  ``object_pose_file`` (and optional ``root_dir``, ``rgb_dir``, ``depth_dir``,
+  ``reconstruction_dir``); paths are relative to ``root_dir`` (default: the config's folder);
 * ``object_library.yaml``: a list of ``{id, name, mesh, class, description, color, scale}``;
   ``mesh`` is relative to the library file, ``scale`` converts mesh units to metres. BRAVE-6D adds
   two optional keys that 3D-DAT ignores: ``symmetries_discrete`` (flattened 4x4, model frame,
@@ -61,6 +80,7 @@ The writer of the same format lives in :mod:`annotation.threedat_writer`.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -79,9 +99,15 @@ ThreeDatId = int | str
 
 #: Names 3D-DAT uses for the object pose file (the code writes ``poses.yaml``, the README says ``pose.yaml``).
 POSE_FILE_NAMES = ("poses.yaml", "pose.yaml")
-#: ``General`` keys the importer needs.
-REQUIRED_KEYS = ("scenes_dir", "camera_intrinsics_file", "camera_pose_file", "object_library_file",
-                 "annotation_dir", "object_pose_file")
+#: ``General`` keys without a default in 3D-DAT (``SceneFileReader`` fails without them).
+REQUIRED_KEYS = ("camera_intrinsics_file", "camera_pose_file")
+#: 3D-DAT's defaults used when the key is missing, null or empty (``SceneFileReader.create``).
+DEFAULTS_WHEN_EMPTY = {"annotation_dir": "annotations", "object_library_file": "objects/objects.yaml"}
+#: 3D-DAT's defaults used only when the key is missing (``SceneFileReader.__init__``).
+DEFAULTS_WHEN_MISSING = {"scenes_dir": "scenes", "rgb_dir": "rgb", "depth_dir": "depth",
+                         "object_pose_file": "poses.yaml"}
+#: Image files 3D-DAT pairs with the camera poses (``get_images_rgb_path``; case-sensitive).
+RGB_SUFFIXES = (".png", ".jpg")
 #: Config file names tried, in order, when a folder is given.
 CONFIG_NAMES = ("dataset.yaml", "config.yaml", "dataset.yml", "config.yml")
 #: Tolerance of the rigidity check on annotated poses (Blender stores float32 matrices).
@@ -97,22 +123,23 @@ class ThreeDatError(DataError):
 # ----------------------------------------------------------------------------- types
 @dataclass(frozen=True)
 class ThreeDatConfig:
-    """The ``General`` section of a dataset config, with paths resolved against its folder."""
+    """The ``General`` section of a dataset config, with paths resolved against ``root_dir``."""
 
     path: Path
+    root_dir: Path
     scenes_dir: Path
     camera_intrinsics_file: str
     camera_pose_file: str
     object_library_file: Path
     annotation_dir: Path
     object_pose_file: str
-    rgb_dir: str | None = None
-    depth_dir: str | None = None
+    rgb_dir: str = "rgb"
+    depth_dir: str = "depth"
 
     @property
     def root(self) -> Path:
-        """Folder of the config file (3D-DAT's ``root_dir``)."""
-        return self.path.parent
+        """3D-DAT's ``root_dir``: the config's folder unless ``General: root_dir`` says otherwise."""
+        return self.root_dir
 
     def scene_ids(self) -> list[str]:
         """Scene folders under ``scenes_dir``, sorted (as 3D-DAT lists them)."""
@@ -122,7 +149,7 @@ class ThreeDatConfig:
 
     def annotated_scene_ids(self) -> list[str]:
         """Scenes that have an object pose file (under either name)."""
-        return [s for s in self.scene_ids() if _existing_pose_file(self, s) is not None]
+        return [s for s in self.scene_ids() if _existing_pose_file(self, s)[0] is not None]
 
     def camera_file(self, scene_id: str) -> Path:
         """``camera.yaml`` of the scene, or the shared one in ``scenes_dir`` (3D-DAT's order)."""
@@ -138,14 +165,22 @@ class ThreeDatConfig:
     def camera_pose_path(self, scene_id: str) -> Path:
         return self.scenes_dir / scene_id / self.camera_pose_file
 
-    def pose_path(self, scene_id: str) -> Path:
-        """The object pose file; ``poses.yaml`` and ``pose.yaml`` stand in for each other."""
-        found = _existing_pose_file(self, scene_id)
+    def rgb_path(self, scene_id: str) -> Path:
+        return self.scenes_dir / scene_id / self.rgb_dir
+
+    def pose_path(self, scene_id: str) -> tuple[Path, str | None]:
+        """The object pose file and, when it is not the configured one, a note saying which was used.
+
+        3D-DAT reads only ``object_pose_file`` (a missing one means no objects); here the other
+        name 3D-DAT uses (``poses.yaml``/``pose.yaml``) stands in, and the note says so.
+        """
+        found, note = _existing_pose_file(self, scene_id)
         if found is None:
             named = self.annotation_dir / scene_id / self.object_pose_file
-            raise ThreeDatError(f"{_show(named, self.root)}: object pose file not found "
-                                f"(also tried {' and '.join(POSE_FILE_NAMES)})")
-        return found
+            others = [n for n in POSE_FILE_NAMES if n != self.object_pose_file]
+            raise ThreeDatError(f"{_show(named, self.root)}: object pose file not found (the scene is not "
+                                f"annotated; also looked for {' and '.join(others)} there)")
+        return found, note
 
     def show(self, path: Path) -> str:
         """``path`` relative to the dataset root when it lies inside it (for messages)."""
@@ -162,14 +197,15 @@ class ContinuousSymmetry:
 
 @dataclass(frozen=True)
 class LibraryEntry:
-    """One object of the library. ``mesh`` is an absolute path; ``scale`` maps mesh units to metres.
+    """One object of the library. ``mesh`` is an absolute path (None: the entry has no mesh, which
+    3D-DAT allows for objects that are not annotated); ``scale`` maps mesh units to metres.
 
     ``symmetries_discrete`` are 4x4 model-frame transforms with translation in metres.
     ``entry`` is the 1-based position in the library file (0 when made in code).
     """
 
     id: ThreeDatId
-    mesh: Path
+    mesh: Path | None
     scale: float = 1.0
     name: str = ""
     class_name: str | None = None
@@ -241,6 +277,8 @@ class ThreeDatScene:
     camera: ThreeDatCamera
     camera_poses: tuple[CameraPose, ...]
     files: dict[str, Path] = field(default_factory=dict)
+    rgb_files: tuple[Path, ...] = ()
+    warnings: tuple[str, ...] = ()
 
     def entry(self, object_id: ThreeDatId) -> LibraryEntry:
         key = id_key(object_id)
@@ -270,13 +308,18 @@ def _show(path: Path, root: Path) -> str:
         return str(path)
 
 
-def _existing_pose_file(config: ThreeDatConfig, scene_id: str) -> Path | None:
+def _existing_pose_file(config: ThreeDatConfig, scene_id: str) -> tuple[Path | None, str | None]:
+    """The configured pose file if it exists, else the first other 3D-DAT name that does (with a note)."""
     folder = config.annotation_dir / scene_id
-    names = [config.object_pose_file, *(n for n in POSE_FILE_NAMES if n != config.object_pose_file)]
-    for name in names:
-        if (folder / name).is_file():
-            return folder / name
-    return None
+    configured = folder / config.object_pose_file
+    if configured.is_file():
+        return configured, None
+    for name in POSE_FILE_NAMES:
+        if name != config.object_pose_file and (folder / name).is_file():
+            note = (f"{_show(configured, config.root)} (object_pose_file in {config.path.name}) not found; "
+                    f"read {_show(folder / name, config.root)} instead")
+            return folder / name, note
+    return None, None
 
 
 def _finite_numbers(values: Any, count: int | None, what: str) -> list[float]:
@@ -334,24 +377,19 @@ def find_config(dat_dir: Path | str) -> Path:
 
 
 def read_config(path: Path | str) -> ThreeDatConfig:
-    """Parse a dataset config (file, or a folder holding one); every required key must be there."""
+    """Parse a dataset config (file, or a folder holding one) with 3D-DAT's defaults and ``root_dir``."""
     cfg_path = find_config(path).resolve()
     shown = cfg_path.name
     data = read_yaml(cfg_path, shown, ThreeDatError)
     if not isinstance(data, dict) or not isinstance(data.get("General"), dict):
         raise ThreeDatError(f"{shown}: expected a mapping with a 'General:' section")
     general = data["General"]
-    values: dict[str, str] = {}
-    for key in (*REQUIRED_KEYS, "rgb_dir", "depth_dir"):
-        value = general.get(key)
-        if value is None:
-            if key in REQUIRED_KEYS:
-                raise ThreeDatError(f"{shown}: General: missing key '{key}'")
-            continue
-        if not isinstance(value, str) or not value.strip():
-            raise ThreeDatError(f"{shown}: General: key '{key}' must be a non-empty path, got {value!r}")
-        values[key] = value.strip()
-    root = cfg_path.parent
+    values = {key: _required_key(general, key, shown) for key in REQUIRED_KEYS}
+    for key, default in DEFAULTS_WHEN_EMPTY.items():
+        values[key] = _path_value(general, key, shown) or default
+    for key, default in DEFAULTS_WHEN_MISSING.items():
+        values[key] = _key_with_default(general, key, default, shown)
+    root = _root_dir(general, cfg_path)
 
     def resolve(key: str) -> Path:
         q = Path(values[key]).expanduser()
@@ -359,25 +397,82 @@ def read_config(path: Path | str) -> ThreeDatConfig:
 
     return ThreeDatConfig(
         path=cfg_path,
+        root_dir=root,
         scenes_dir=resolve("scenes_dir"),
         camera_intrinsics_file=values["camera_intrinsics_file"],
         camera_pose_file=values["camera_pose_file"],
         object_library_file=resolve("object_library_file"),
         annotation_dir=resolve("annotation_dir"),
         object_pose_file=values["object_pose_file"],
-        rgb_dir=values.get("rgb_dir"),
-        depth_dir=values.get("depth_dir"),
+        rgb_dir=values["rgb_dir"],
+        depth_dir=values["depth_dir"],
     )
+
+
+def _path_value(general: dict[str, Any], key: str, shown: str) -> str | None:
+    """The key's text, stripped; None when missing, null or empty. Anything but text is an error."""
+    value = general.get(key)
+    if value is None:
+        return None
+    if not isinstance(value, str):
+        raise ThreeDatError(f"{shown}: General: key '{key}' must be a path, got {value!r}")
+    return value.strip() or None
+
+
+def _required_key(general: dict[str, Any], key: str, shown: str) -> str:
+    """A key 3D-DAT has no default for."""
+    if key not in general or general[key] is None:
+        raise ThreeDatError(f"{shown}: General: missing key '{key}' (3D-DAT has no default for it)")
+    value = _path_value(general, key, shown)
+    if value is None:
+        raise ThreeDatError(f"{shown}: General: key '{key}' must be a non-empty file name, got {general[key]!r}")
+    return value
+
+
+def _key_with_default(general: dict[str, Any], key: str, default: str, shown: str) -> str:
+    """3D-DAT's ``dict.get(key, default)``: the default only when the key is missing.
+
+    A null value makes 3D-DAT fail (it joins None onto a path), so it is refused; an empty folder
+    name means the parent folder itself, as in 3D-DAT; an empty file name is refused.
+    """
+    if key not in general:
+        return default
+    if general[key] is None:
+        raise ThreeDatError(f"{shown}: General: key '{key}' is empty (null); leave it out for 3D-DAT's "
+                            f"default {default!r}")
+    value = _path_value(general, key, shown) or ""
+    if not value and key == "object_pose_file":
+        raise ThreeDatError(f"{shown}: General: key '{key}' must be a file name, got {general[key]!r}")
+    return value
+
+
+def _root_dir(general: dict[str, Any], cfg_path: Path) -> Path:
+    """``General: root_dir`` as 3D-DAT uses it: the config's folder when missing or empty, else the
+    path as written (a relative one against the working directory, as 3D-DAT joins it)."""
+    value = _path_value(general, "root_dir", cfg_path.name)
+    if value is None:
+        return cfg_path.parent
+    written = Path(value).expanduser()
+    root = written if written.is_absolute() else Path.cwd() / written
+    if not root.is_dir():
+        where = "" if written.is_absolute() else f" (relative to the working directory {Path.cwd()}, as in 3D-DAT)"
+        raise ThreeDatError(f"{cfg_path.name}: General: root_dir {value!r} is not a folder{where}")
+    return root.resolve()
 
 
 # ----------------------------------------------------------------------------- object library
 def read_library(path: Path | str, root: Path | None = None) -> list[LibraryEntry]:
-    """Parse ``object_library.yaml``; meshes must exist, ids must be unique, scales positive."""
+    """Parse ``object_library.yaml`` (a YAML list, ``[]`` allowed as in 3D-DAT).
+
+    Ids must be unique (3D-DAT would keep the later entry silently). A ``mesh``, when given,
+    must exist; an entry without one is accepted (it cannot be annotated). ``scale``: see
+    :func:`parse_scale`.
+    """
     lib_path = Path(path)
     shown = _show(lib_path, root) if root is not None else str(lib_path)
     data = read_yaml(lib_path, shown, ThreeDatError)
-    if not isinstance(data, list) or not data:
-        raise ThreeDatError(f"{shown}: expected a non-empty YAML list of objects")
+    if not isinstance(data, list):
+        raise ThreeDatError(f"{shown}: expected a YAML list of objects ({{id, mesh, scale, ...}})")
     entries: list[LibraryEntry] = []
     seen: dict[str, int] = {}
     for number, item in enumerate(data, start=1):
@@ -398,17 +493,11 @@ def read_library(path: Path | str, root: Path | None = None) -> list[LibraryEntr
 
 def _library_entry(item: dict[str, Any], oid: ThreeDatId, number: int, where: str, folder: Path,
                    root: Path | None) -> LibraryEntry:
-    mesh = item.get("mesh")
-    if not isinstance(mesh, str) or not mesh.strip():
-        raise ThreeDatError(f"{where}: 'mesh' is missing (a path relative to the library file)")
-    mesh_path = Path(mesh.strip()).expanduser()
-    mesh_path = mesh_path if mesh_path.is_absolute() else folder / mesh_path
-    if not mesh_path.is_file():
-        shown_mesh = _show(mesh_path, root) if root is not None else str(mesh_path)
-        raise ThreeDatError(f"{where}: mesh not found: {shown_mesh}")
-    scale = item.get("scale", 1.0)
-    if isinstance(scale, bool) or not isinstance(scale, int | float) or not math.isfinite(scale) or scale <= 0:
-        raise ThreeDatError(f"{where}: 'scale' must be a positive number (mesh units to metres), got {scale!r}")
+    mesh_path = _mesh_path(item.get("mesh"), where, folder, root)
+    try:
+        scale = parse_scale(item.get("scale"))
+    except ValueError as exc:
+        raise ThreeDatError(f"{where}: {exc}") from None
     color = item.get("color")
     if color is not None:
         try:
@@ -420,7 +509,7 @@ def _library_entry(item: dict[str, Any], oid: ThreeDatId, number: int, where: st
     cls = item.get("class")
     desc = item.get("description")
     return LibraryEntry(
-        id=oid, mesh=mesh_path.resolve(), scale=float(scale),
+        id=oid, mesh=mesh_path, scale=scale,
         name=str(name) if name is not None else id_key(oid),
         class_name=str(cls) if cls is not None else None,
         description=str(desc) if desc is not None else None,
@@ -429,6 +518,39 @@ def _library_entry(item: dict[str, Any], oid: ThreeDatId, number: int, where: st
         symmetries_continuous=_continuous_symmetries(item.get("symmetries_continuous"), where),
         entry=number,
     )
+
+
+def _mesh_path(value: Any, where: str, folder: Path, root: Path | None) -> Path | None:
+    """The entry's mesh, absolute; None when missing or empty (3D-DAT: an object without mesh)."""
+    if value is None or (isinstance(value, str) and not value.strip()):
+        return None
+    if not isinstance(value, str):
+        raise ThreeDatError(f"{where}: 'mesh' must be a path relative to the library file, got {value!r}")
+    mesh_path = Path(value.strip()).expanduser()
+    mesh_path = mesh_path if mesh_path.is_absolute() else folder / mesh_path
+    if not mesh_path.is_file():
+        shown_mesh = _show(mesh_path, root) if root is not None else str(mesh_path)
+        raise ThreeDatError(f"{where}: mesh not found: {shown_mesh}")
+    return mesh_path.resolve()
+
+
+def parse_scale(value: Any) -> float:
+    """A library ``scale`` as 3D-DAT uses it: missing or empty (any false value) means 1; a number,
+    or text that reads as one (Blender converts it with ``float``), must be finite and positive
+    (a negative scale mirrors the mesh). Raises ValueError naming the key."""
+    if not value:
+        return 1.0
+    number: float | None = None
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        number = float(value)
+    elif isinstance(value, str):
+        try:
+            number = float(value.strip())
+        except ValueError:
+            number = None
+    if number is None or not math.isfinite(number) or number <= 0:
+        raise ValueError(f"'scale' must be a positive number (mesh units to metres), got {value!r}")
+    return number
 
 
 def _discrete_symmetries(value: Any, where: str) -> tuple[Matrix4, ...]:
@@ -490,12 +612,13 @@ def parse_pose_matrix(value: Any, name: str) -> Matrix4:
 
 def read_object_poses(path: Path | str, library: Sequence[LibraryEntry], root: Path | None = None,
                       library_name: str = "the object library") -> list[ObjectPose]:
-    """Parse ``poses.yaml``: every id must be in ``library``, every pose rigid."""
+    """Parse ``poses.yaml``: a YAML list (``[]``, what 3D-DAT saves for a scene without objects, is
+    accepted); every id must be in ``library`` with a mesh, every pose rigid."""
     pose_path = Path(path)
     shown = _show(pose_path, root) if root is not None else str(pose_path)
     data = read_yaml(pose_path, shown, ThreeDatError)
-    if not isinstance(data, list) or not data:
-        raise ThreeDatError(f"{shown}: expected a non-empty YAML list of {{id, pose}} entries")
+    if not isinstance(data, list):
+        raise ThreeDatError(f"{shown}: expected a YAML list of {{id, pose}} entries ([] for no objects)")
     known = {e.key: e for e in library}
     poses = []
     for number, item in enumerate(data, start=1):
@@ -507,8 +630,11 @@ def read_object_poses(path: Path | str, library: Sequence[LibraryEntry], root: P
             raise ThreeDatError(f"{where}: 'id' is missing or not a string/integer (got {oid!r})")
         where = f"{where} (id {oid!r})"
         if id_key(oid) not in known:
-            listing = ", ".join(repr(e.id) for e in library[:10]) + (", ..." if len(library) > 10 else "")
+            listing = (", ".join(repr(e.id) for e in library[:10]) + (", ..." if len(library) > 10 else "")) or "none"
             raise ThreeDatError(f"{where}: unknown object id {oid!r} (not in {library_name}; known: {listing})")
+        if known[id_key(oid)].mesh is None:
+            raise ThreeDatError(f"{where}: object {oid!r} has no mesh in {library_name} "
+                                f"(entry {known[id_key(oid)].entry}); an annotated object needs one")
         if "pose" not in item:
             raise ThreeDatError(f"{where}: 'pose' is missing (16 numbers, row-major 4x4)")
         try:
@@ -589,6 +715,17 @@ def read_camera_poses(path: Path | str, root: Path | None = None) -> list[Camera
     return poses
 
 
+# ----------------------------------------------------------------------------- images
+def rgb_files(folder: Path) -> list[Path]:
+    """The images 3D-DAT pairs with the camera-pose lines, in its order: every file under
+    ``folder`` (sub-folders included) whose name ends in ``.png`` or ``.jpg``, sorted by path
+    (none when the folder is missing)."""
+    found = []
+    for parent, _, names in os.walk(folder):
+        found.extend(os.path.join(parent, n) for n in names if n.endswith(RGB_SUFFIXES))
+    return [Path(f) for f in sorted(found)]
+
+
 # ----------------------------------------------------------------------------- everything
 def read_threedat(dat_dir: Path | str, scene_id: str | None = None) -> ThreeDatScene:
     """Read one annotated scene of a 3D-DAT folder (``scene_id`` may be left out when there is one)."""
@@ -606,13 +743,17 @@ def read_threedat(dat_dir: Path | str, scene_id: str | None = None) -> ThreeDatS
     root = config.root
     library = read_library(config.object_library_file, root)
     lib_name = config.show(config.object_library_file)
-    pose_file = config.pose_path(scene_id)
+    pose_file, note = config.pose_path(scene_id)
     objects = read_object_poses(pose_file, library, root, library_name=lib_name)
     cam_file = config.camera_file(scene_id)
     camera = read_camera(cam_file, root)
     traj_file = config.camera_pose_path(scene_id)
     camera_poses = read_camera_poses(traj_file, root)
+    warnings = [note] if note else []
+    if not objects:
+        warnings.append(f"{config.show(pose_file)}: no annotated objects (an empty list)")
     return ThreeDatScene(config=config, scene_id=scene_id, library=tuple(library), objects=tuple(objects),
                          camera=camera, camera_poses=tuple(camera_poses),
                          files={"config": config.path, "library": config.object_library_file,
-                                "poses": pose_file, "camera": cam_file, "camera_poses": traj_file})
+                                "poses": pose_file, "camera": cam_file, "camera_poses": traj_file},
+                         rgb_files=tuple(rgb_files(config.rgb_path(scene_id))), warnings=tuple(warnings))

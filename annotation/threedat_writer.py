@@ -11,6 +11,10 @@ tests use it for round trips. Layout (3D-DAT README)::
     <out>/scenes/<scene>/rgb/, depth/          optional: the (undistorted) images, by frame id
     <out>/annotations/<scene>/poses.yaml       [{id, pose: 16 numbers}] model-to-world
 
+With ``defaults_only`` the config holds only the two keys 3D-DAT has no default for and every
+file sits where 3D-DAT looks by default (``objects/objects.yaml``, ``poses.yaml``). A library
+entry without a mesh is written without the ``mesh`` key.
+
 The folder is built beside ``out`` and renamed into place, so it is complete or absent.
 """
 
@@ -65,6 +69,7 @@ def write_threedat_folder(
     images: Mapping[ThreeDatId, tuple[Path, Path | None]] | None = None,
     pose_file_name: str = "poses.yaml",
     camera_name: str | None = None,
+    defaults_only: bool = False,
 ) -> Path:
     """Write a 3D-DAT folder and return the path of its ``dataset.yaml``.
 
@@ -72,11 +77,14 @@ def write_threedat_folder(
     ``camera_poses``: ``world_T_cam`` per frame id. ``library``: all library entries (default:
     the distinct entries of ``objects``). ``images``: optional (rgb, depth) files per frame id,
     hard-linked (or copied) into ``scenes/<scene>/rgb`` and ``depth``. An existing ``out_dir`` is
-    replaced only when it is a 3D-DAT folder (has ``dataset.yaml``) or empty.
+    replaced only when it is a 3D-DAT folder (has ``dataset.yaml``) or empty. ``defaults_only``:
+    see the module docstring (``pose_file_name`` must then be 3D-DAT's default).
     """
     out = Path(out_dir)
     if not scene_name or _SAFE.search(scene_name):
         raise BraveError(f"3D-DAT scene name {scene_name!r} must be letters, digits, '_', '.', '-'")
+    if defaults_only and pose_file_name != "poses.yaml":
+        raise BraveError("3D-DAT writer: with defaults_only the pose file is 3D-DAT's default 'poses.yaml'")
     if out.exists() and any(out.iterdir()) and not (out / "dataset.yaml").is_file():
         raise BraveError(f"{out}: exists and is not a 3D-DAT folder (no dataset.yaml); refusing to replace it")
     cam = ThreeDatCamera.from_pinhole(camera, camera_name)
@@ -89,15 +97,15 @@ def write_threedat_folder(
         if not id_key(frame_id) or re.search(r"[\s,]", id_key(frame_id)):
             raise BraveError(f"3D-DAT writer: frame id {frame_id!r} must be non-empty without spaces or commas")
 
+    library_file = "objects/objects.yaml" if defaults_only else "objects/object_library.yaml"
     with staged_folder(out) as root:
-        config = {"General": {
-            "scenes_dir": "scenes", "rgb_dir": "rgb", "depth_dir": "depth",
-            "camera_intrinsics_file": "camera.yaml", "camera_pose_file": "groundtruth_handeye.txt",
-            "object_library_file": "objects/object_library.yaml", "annotation_dir": "annotations",
-            "object_pose_file": pose_file_name, "reconstruction_dir": "reconstructions",
-        }}
-        atomic_write_text(root / "dataset.yaml", "---\n" + _dump(config))
-        atomic_write_text(root / "objects" / "object_library.yaml", _dump(
+        general = {"camera_intrinsics_file": "camera.yaml", "camera_pose_file": "groundtruth_handeye.txt"}
+        if not defaults_only:
+            general = {"scenes_dir": "scenes", "rgb_dir": "rgb", "depth_dir": "depth", **general,
+                       "object_library_file": library_file, "annotation_dir": "annotations",
+                       "object_pose_file": pose_file_name, "reconstruction_dir": "reconstructions"}
+        atomic_write_text(root / "dataset.yaml", "---\n" + _dump({"General": general}))
+        atomic_write_text(root / library_file, _dump(
             [_library_item(entry, root / "objects") for entry in entries]))
         scene = root / "scenes" / scene_name
         atomic_write_text(scene / "camera.yaml", _dump(_camera_item(cam)))
@@ -120,21 +128,16 @@ def _library_entries(objects: Sequence[tuple[LibraryEntry, ArrayLike]],
     for entry, _ in objects:
         if entry.key not in entries:
             raise BraveError(f"3D-DAT writer: object {entry.id!r} is not in the library")
+        if entry.mesh is None:
+            raise BraveError(f"3D-DAT writer: object {entry.id!r} has no mesh, so it cannot be annotated")
     return list(entries.values())
 
 
 def _library_item(entry: LibraryEntry, objects_dir: Path) -> dict[str, Any]:
     """Copy the mesh (and same-stem sidecars such as .mtl) and describe the entry."""
-    src = Path(entry.mesh)
-    if not src.is_file():
-        raise BraveError(f"3D-DAT writer: mesh of {entry.id!r} not found: {src}")
-    folder = objects_dir / _safe_name(entry.id)
-    folder.mkdir(parents=True, exist_ok=True)
-    for sibling in src.parent.glob(src.stem + ".*"):
-        if sibling.is_file():
-            shutil.copy2(sibling, folder / sibling.name)
-    item: dict[str, Any] = {"id": entry.id, "name": entry.display_name,
-                            "mesh": f"{folder.name}/{src.name}"}
+    item: dict[str, Any] = {"id": entry.id, "name": entry.display_name}
+    if entry.mesh is not None:
+        item["mesh"] = _copy_mesh(entry, Path(entry.mesh), objects_dir)
     if entry.class_name is not None:
         item["class"] = entry.class_name
     if entry.description is not None:
@@ -148,6 +151,18 @@ def _library_item(entry: LibraryEntry, objects_dir: Path) -> dict[str, Any]:
         item["symmetries_continuous"] = [{"axis": [float(a) for a in s.axis], "offset": [float(o) for o in s.offset]}
                                          for s in entry.symmetries_continuous]
     return item
+
+
+def _copy_mesh(entry: LibraryEntry, src: Path, objects_dir: Path) -> str:
+    """Copy ``src`` and its same-stem sidecars into ``objects/<id>/``; the path 3D-DAT reads."""
+    if not src.is_file():
+        raise BraveError(f"3D-DAT writer: mesh of {entry.id!r} not found: {src}")
+    folder = objects_dir / _safe_name(entry.id)
+    folder.mkdir(parents=True, exist_ok=True)
+    for sibling in src.parent.glob(src.stem + ".*"):
+        if sibling.is_file():
+            shutil.copy2(sibling, folder / sibling.name)
+    return f"{folder.name}/{src.name}"
 
 
 def _camera_item(cam: ThreeDatCamera) -> dict[str, Any]:

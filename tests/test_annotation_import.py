@@ -141,7 +141,7 @@ def test_malformed_input_leaves_the_previous_import_untouched(tmp_path: Path, br
         p.write_text(p.read_text() + "3 0.1 0.2\n")
     elif breakage == "missing config key":
         cfg = dat_dir / "dataset.yaml"
-        cfg.write_text(cfg.read_text().replace("object_library_file", "object_libary_file"))
+        cfg.write_text(cfg.read_text().replace("camera_pose_file", "camera_poses_file"))
     elif breakage == "broken mesh":
         broken = "ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n"
         (dat_dir / "objects" / "bar" / "bar.ply").write_text(broken)

@@ -171,9 +171,8 @@ def test_malformed_handeye_line_names_file_and_line(dat: Path, line: str, fragme
     _expect(dat, "scenes/scene1/groundtruth_handeye.txt:4", fragment)
 
 
-@pytest.mark.parametrize("key", ["scenes_dir", "camera_intrinsics_file", "camera_pose_file", "object_library_file",
-                                 "annotation_dir", "object_pose_file"])
-def test_missing_config_key(dat: Path, key: str) -> None:
+@pytest.mark.parametrize("key", ["camera_intrinsics_file", "camera_pose_file"])
+def test_missing_config_key_without_a_3ddat_default(dat: Path, key: str) -> None:
     _edit_yaml(dat / "dataset.yaml", lambda d: d["General"].pop(key))
     _expect(dat, "dataset.yaml", "General", f"missing key '{key}'")
 
@@ -282,3 +281,104 @@ def test_read_camera_poses_accepts_commas_and_spaces(tmp_path: Path) -> None:
     assert [p.frame_id for p in poses] == ["a", "b", "c"]
     for p in poses:
         np.testing.assert_array_equal(p.world_T_cam[:3, 3], [1, 2, 3])
+
+
+# ----------------------------------------------------------------------------- what 3D-DAT's reader accepts
+def _write_like_3ddat(out: Path, **kwargs) -> Path:
+    """The fixture's scene written the way 3D-DAT lays it out by default (config with only the two
+    keys 3D-DAT has no default for, library at objects/objects.yaml, poses.yaml)."""
+    src = read_threedat(FIXTURE)
+    poses = {int(p.frame_id): p.world_T_cam for p in src.camera_poses}
+    objects = [(src.entry(o.object_id), o.world_T_model) for o in src.objects]
+    return write_threedat_folder(out, "001", objects, src.camera.pinhole(), poses, defaults_only=True, **kwargs)
+
+
+def test_config_without_the_keys_3ddat_has_defaults_for(tmp_path: Path) -> None:
+    cfg = _write_like_3ddat(tmp_path / "dat")
+    assert set(yaml.safe_load(cfg.read_text())["General"]) == {"camera_intrinsics_file", "camera_pose_file"}
+    scene = read_threedat(cfg.parent)
+    root = cfg.parent.resolve()
+    assert scene.config.scenes_dir == root / "scenes" and scene.config.annotation_dir == root / "annotations"
+    assert scene.config.object_library_file == root / "objects" / "objects.yaml"
+    assert scene.config.object_pose_file == "poses.yaml" and scene.config.rgb_dir == "rgb"
+    assert scene.scene_id == "001" and [o.object_id for o in scene.objects] == ["cube", "bar", "cube"]
+    assert scene.warnings == ()
+
+
+@pytest.mark.parametrize("value", [None, ""])
+def test_empty_annotation_dir_and_library_file_mean_3ddat_defaults(dat: Path, value) -> None:
+    (dat / "objects" / "object_library.yaml").rename(dat / "objects" / "objects.yaml")
+    _edit_yaml(dat / "dataset.yaml", lambda d: d["General"].update(annotation_dir=value, object_library_file=value))
+    scene = read_threedat(dat)
+    assert scene.files["library"] == dat.resolve() / "objects" / "objects.yaml"
+    assert scene.files["poses"] == dat.resolve() / "annotations" / "scene1" / "poses.yaml"
+
+
+def test_empty_scenes_dir_is_the_root_and_null_is_refused(tmp_path: Path) -> None:
+    cfg = _write_like_3ddat(tmp_path / "dat")
+    _edit_yaml(cfg, lambda d: d["General"].update(scenes_dir=None))
+    _expect(cfg, "dataset.yaml", "General", "'scenes_dir'", "leave it out")
+    (cfg.parent / "scenes" / "001").rename(cfg.parent / "001")
+    _edit_yaml(cfg, lambda d: d["General"].update(scenes_dir=""))
+    assert read_threedat(cfg).config.scenes_dir == cfg.parent.resolve()
+
+
+def test_root_dir_in_the_config(dat: Path, tmp_path: Path, monkeypatch) -> None:
+    elsewhere = tmp_path / "configs" / "dataset.yaml"
+    elsewhere.parent.mkdir()
+    (dat / "dataset.yaml").rename(elsewhere)
+    _edit_yaml(elsewhere, lambda d: d["General"].update(root_dir=str(dat)))
+    scene = read_threedat(elsewhere)
+    assert scene.config.root == dat.resolve() and len(scene.objects) == 3
+    # a relative root_dir is joined onto the working directory, as 3D-DAT joins it
+    monkeypatch.chdir(tmp_path)
+    _edit_yaml(elsewhere, lambda d: d["General"].update(root_dir="dat"))
+    assert read_threedat(elsewhere).config.scenes_dir == dat.resolve() / "scenes"
+    monkeypatch.chdir(elsewhere.parent)
+    _expect(elsewhere, "dataset.yaml", "root_dir 'dat' is not a folder", "working directory")
+
+
+@pytest.mark.parametrize("value, expected", [(None, 1.0), ("", 1.0), (0, 1.0), ("0.5", 0.5)])
+def test_empty_scale_means_one(dat: Path, value, expected: float) -> None:
+    _edit_yaml(dat / "objects" / "object_library.yaml", lambda d: d[1].update(scale=value))
+    assert read_threedat(dat).library[1].scale == expected
+
+
+def test_library_entries_without_mesh(dat: Path) -> None:
+    lib = dat / "objects" / "object_library.yaml"
+    _edit_yaml(lib, lambda d: d.extend([{"id": "idea", "name": "no mesh yet"}, {"id": "sketch", "mesh": ""}]))
+    scene = read_threedat(dat)
+    assert [(e.id, e.mesh) for e in scene.library[2:]] == [("idea", None), ("sketch", None)]
+    assert len(scene.objects) == 3
+    _edit_yaml(dat / "annotations" / "scene1" / "poses.yaml", lambda d: d[1].update(id="idea"))
+    _expect(dat, "annotations/scene1/poses.yaml", "entry 2", "'idea' has no mesh", "entry 3")
+
+
+def test_empty_pose_list_is_a_scene_without_objects(dat: Path) -> None:
+    pose_file = dat / "annotations" / "scene1" / "poses.yaml"
+    pose_file.write_text("[]\n")  # what 3D-DAT's save_pose writes for a scene without objects
+    scene = read_threedat(dat)
+    assert scene.objects == ()
+    assert scene.warnings == ("annotations/scene1/poses.yaml: no annotated objects (an empty list)",)
+    pose_file.write_text("")  # no YAML list at all: 3D-DAT fails on it too
+    _expect(dat, "annotations/scene1/poses.yaml", "expected a YAML list")
+
+
+def test_missing_configured_pose_file_says_which_file_was_read(dat: Path) -> None:
+    (dat / "annotations" / "scene1" / "poses.yaml").rename(dat / "annotations" / "scene1" / "pose.yaml")
+    scene = read_threedat(dat)
+    assert scene.files["poses"].name == "pose.yaml" and len(scene.objects) == 3
+    assert scene.warnings == ("annotations/scene1/poses.yaml (object_pose_file in dataset.yaml) not found; "
+                              "read annotations/scene1/pose.yaml instead",)
+    (dat / "annotations" / "scene1" / "pose.yaml").unlink()
+    with pytest.raises(ThreeDatError, match=r"annotations/scene1/poses.yaml: object pose file not found"):
+        read_threedat(dat, "scene1")
+
+
+def test_rgb_files_in_3ddat_order(dat: Path) -> None:
+    rgb = dat / "scenes" / "scene1" / "rgb"
+    for name in ["b/000000.png", "000010.jpg", "000002.png", "000003.PNG", "000004.jpeg", "notes.txt", "a/000009.png"]:
+        (rgb / name).parent.mkdir(parents=True, exist_ok=True)
+        (rgb / name).write_bytes(b"")
+    names = [p.relative_to(rgb).as_posix() for p in read_threedat(dat).rgb_files]
+    assert names == ["000002.png", "000010.jpg", "a/000009.png", "b/000000.png"]
