@@ -155,6 +155,43 @@ def pose_residuals(target: Sequence[ArrayLike], source: Sequence[ArrayLike], tar
     return out
 
 
+def estimate_alignment(target: Sequence[ArrayLike], source: Sequence[ArrayLike], frame_ids: Sequence[str],
+                       options: AlignmentOptions = AlignmentOptions()) -> AlignmentReport:
+    """The report :func:`align_camera_poses` checks, without refusing: the identity (not applied)
+    when every view agrees within the skip tolerances or when there are fewer than ``min_frames``
+    views, else the estimated transform (applied) with its residuals."""
+    if not (len(target) == len(source) == len(frame_ids)):
+        raise ValueError("target, source and frame_ids must have the same length")
+    if not frame_ids:
+        raise AlignmentError("no camera pose of the 3D-DAT folder matches a captured view")
+    identity = pose_residuals(target, source, np.eye(4), frame_ids)
+    agree = all(r.translation_mm <= options.skip_mm and r.rotation_deg <= options.skip_deg for r in identity)
+    if agree or len(frame_ids) < options.min_frames:
+        return AlignmentReport(np.eye(4), applied=False, residuals=tuple(identity), options=options)
+    T = rigid_alignment(target, source)
+    return AlignmentReport(T, applied=True, residuals=tuple(pose_residuals(target, source, T, frame_ids)),
+                           options=options)
+
+
+def alignment_problem(report: AlignmentReport) -> str | None:
+    """Why ``report`` is refused (one line), or None when it is accepted."""
+    options = report.options
+    if not report.applied:
+        worst = max(report.residuals, key=lambda r: r.translation_mm)
+        if all(r.translation_mm <= options.skip_mm and r.rotation_deg <= options.skip_deg for r in report.residuals):
+            return None
+        return (f"the 3D-DAT camera poses differ from the captured ones (up to {worst.translation_mm:.2f} mm at "
+                f"frame {worst.frame_id!r}) but only {report.frames} views match; at least {options.min_frames} "
+                "are needed to estimate and check the aligning transform")
+    if report.rms_mm > options.max_rms_mm or report.rms_deg > options.max_rms_deg:
+        worst_views = ", ".join(f"{r.frame_id!r} ({r.translation_mm:.2f} mm, {r.rotation_deg:.3f} deg)"
+                                for r in report.worst(3))
+        return (f"the 3D-DAT camera poses do not match the captured ones up to a rigid transform: residual RMS "
+                f"{report.rms_mm:.2f} mm / {report.rms_deg:.3f} deg over {report.frames} views exceeds "
+                f"{options.max_rms_mm} mm / {options.max_rms_deg} deg; worst frames: {worst_views}")
+    return None
+
+
 def align_camera_poses(target: Sequence[ArrayLike], source: Sequence[ArrayLike], frame_ids: Sequence[str],
                        options: AlignmentOptions = AlignmentOptions()) -> AlignmentReport:
     """Align ``source`` camera poses (3D-DAT world) to ``target`` (robot base) of the same views.
@@ -163,29 +200,10 @@ def align_camera_poses(target: Sequence[ArrayLike], source: Sequence[ArrayLike],
     otherwise estimates the transform and raises :class:`AlignmentError` when the RMS residual
     exceeds the thresholds (or there are fewer than ``min_frames`` views to estimate from).
     """
-    if not (len(target) == len(source) == len(frame_ids)):
-        raise ValueError("target, source and frame_ids must have the same length")
-    if not frame_ids:
-        raise AlignmentError("no camera pose of the 3D-DAT folder matches a captured view")
-    identity = pose_residuals(target, source, np.eye(4), frame_ids)
-    if all(r.translation_mm <= options.skip_mm and r.rotation_deg <= options.skip_deg for r in identity):
-        return AlignmentReport(np.eye(4), applied=False, residuals=tuple(identity), options=options)
-    if len(frame_ids) < options.min_frames:
-        worst = max(identity, key=lambda r: r.translation_mm)
-        raise AlignmentError(
-            f"the 3D-DAT camera poses differ from the captured ones (up to {worst.translation_mm:.2f} mm at "
-            f"frame {worst.frame_id!r}) but only {len(frame_ids)} views match; at least {options.min_frames} are "
-            "needed to estimate and check the aligning transform")
-    T = rigid_alignment(target, source)
-    report = AlignmentReport(T, applied=True, residuals=tuple(pose_residuals(target, source, T, frame_ids)),
-                             options=options)
-    if report.rms_mm > options.max_rms_mm or report.rms_deg > options.max_rms_deg:
-        worst = ", ".join(f"{r.frame_id!r} ({r.translation_mm:.2f} mm, {r.rotation_deg:.3f} deg)"
-                          for r in report.worst(3))
-        raise AlignmentError(
-            f"the 3D-DAT camera poses do not match the captured ones up to a rigid transform: residual RMS "
-            f"{report.rms_mm:.2f} mm / {report.rms_deg:.3f} deg over {report.frames} views exceeds "
-            f"{options.max_rms_mm} mm / {options.max_rms_deg} deg; worst frames: {worst}")
+    report = estimate_alignment(target, source, frame_ids, options)
+    problem = alignment_problem(report)
+    if problem is not None:
+        raise AlignmentError(problem)
     return report
 
 
@@ -196,4 +214,4 @@ def apply_alignment(target_T_source: ArrayLike, poses: Sequence[ArrayLike]) -> l
 
 
 __all__ = ["AlignmentError", "AlignmentOptions", "AlignmentReport", "FrameResidual", "align_camera_poses",
-           "apply_alignment", "pose_residuals", "rigid_alignment"]
+           "alignment_problem", "apply_alignment", "estimate_alignment", "pose_residuals", "rigid_alignment"]

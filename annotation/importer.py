@@ -1,11 +1,14 @@
 """Import a 3D-DAT annotation into ``<scene>/annotation/`` (world = robot base frame, metres).
 
-Steps, all checks before any write: read and validate the 3D-DAT folder; load every library
-mesh; match its camera poses to the captured views (by frame index, else view id, else order)
-and align its world frame to the robot base (:mod:`annotation.alignment`); assign stable BOP
-``obj_id`` values (sorted 3D-DAT ids, the saved map reused so ids never change); then write
-the meshes (content-addressed, never overwritten), then the commit point ``objects.json`` (with
-the alignment report; ``alignment.json`` is a readable copy). A failure at any check writes nothing.
+Steps, all checks before any write: read and validate the 3D-DAT folder; load the mesh of every
+annotated library object; pair its camera poses with the captured views as 3D-DAT pairs them
+with its images, the ids as a cross-check (:mod:`annotation.pairing`), and align its world frame
+to the robot base (:mod:`annotation.alignment`); assign stable BOP ``obj_id`` values to every
+library id (sorted 3D-DAT ids, the saved map reused so ids never change); then write the meshes
+of the annotated objects (content-addressed, never overwritten), then the commit point
+``objects.json`` (with the alignment report; ``alignment.json`` is a readable copy). Library
+objects that are not annotated keep their ``obj_id`` in the id map but are no object of the
+annotation (no mesh copied, no BOP model). A failure at any check writes nothing.
 """
 
 from __future__ import annotations
@@ -19,11 +22,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
-
-from annotation.alignment import AlignmentOptions, AlignmentReport, align_camera_poses, apply_alignment
+from annotation.alignment import AlignmentOptions, AlignmentReport, apply_alignment
 from annotation.models import load_mesh
+from annotation.pairing import pair_and_align
 from annotation.store import (
     AnnotatedInstance,
     AnnotatedObject,
@@ -33,11 +34,11 @@ from annotation.store import (
     read_id_map,
     write_annotation,
 )
-from annotation.threedat import CameraPose, LibraryEntry, ThreeDatScene, ThreeDatId, id_key, id_sort_key, read_threedat
+from annotation.threedat import LibraryEntry, ThreeDatScene, ThreeDatId, id_key, id_sort_key, read_threedat
 from brave6d.atomic import atomic_write_json
 from brave6d.calibration_io import camera_poses, read_intrinsics
 from brave6d.errors import BraveError, DataError
-from brave6d.layout import FrameRecord, SceneDir
+from brave6d.layout import SceneDir
 
 log = logging.getLogger(__name__)
 
@@ -75,56 +76,40 @@ def assign_obj_ids(ids: Sequence[ThreeDatId], previous: dict[str, int]) -> dict[
     return mapping
 
 
-def match_frames(dat_poses: Sequence[CameraPose], captured: Sequence[tuple[FrameRecord, NDArray[np.float64]]]
-                 ) -> tuple[list[tuple[CameraPose, FrameRecord, NDArray[np.float64]]], str]:
-    """Pair 3D-DAT views with captured frames: by frame index when every 3D-DAT id is an integer
-    that names a captured index, else by ``view_id``, else by order when the counts agree."""
-    by_index = {r.index: (r, T) for r, T in captured}
-    by_view = {r.view_id: (r, T) for r, T in captured}
-    if all(p.frame_id.isdigit() and int(p.frame_id) in by_index for p in dat_poses):
-        return [(p, *by_index[int(p.frame_id)]) for p in dat_poses], "frame index"
-    if all(p.frame_id in by_view for p in dat_poses):
-        return [(p, *by_view[p.frame_id]) for p in dat_poses], "view id"
-    if len(dat_poses) == len(captured):
-        ordered = sorted(captured, key=lambda rt: rt[0].index)
-        return [(p, r, T) for p, (r, T) in zip(dat_poses, ordered)], "order"
-    raise DataError(f"the 3D-DAT camera poses ({len(dat_poses)} views, ids like {dat_poses[0].frame_id!r}) match "
-                    f"neither the captured frame indices, nor their view ids, nor their number ({len(captured)})")
-
-
 def import_threedat(dat_dir: Path | str, scene_dir: Path | str, scene_id: str | None = None,
                     options: AlignmentOptions = AlignmentOptions()) -> ImportResult:
     """Import one annotated 3D-DAT scene into ``scene_dir`` (see the module docstring)."""
     dat = read_threedat(dat_dir, scene_id)
     scene = SceneDir(scene_dir)
     lib_name = dat.config.show(dat.config.object_library_file)
-    for entry in dat.library:  # every mesh must load before anything is written
-        load_mesh(entry.mesh, f"{lib_name}: entry {entry.entry} (id {entry.id!r})", colors=False)
+    annotated = annotated_entries(dat)
+    for entry in annotated:  # every annotated object's mesh must load before anything is written
+        load_mesh(_mesh_of(entry), f"{lib_name}: entry {entry.entry} (id {entry.id!r})", colors=False)
 
     captured = camera_poses(scene)
     if not captured:
         raise DataError(f"{scene.frames_path}: no captured frames; capture and calibrate the scene before importing")
-    warnings = _camera_warnings(dat, scene)
-    matches, how = match_frames(dat.camera_poses, captured)
-    if how == "order":
-        warnings.append("3D-DAT frame ids match no captured index or view id; paired by order")
-    report = align_camera_poses([T for _, _, T in matches], [p.world_T_cam for p, _, _ in matches],
-                                [p.frame_id for p, _, _ in matches], options)
+    warnings = [*dat.warnings, *_camera_warnings(dat, scene)]
+    paired = pair_and_align(dat, captured, options)
+    report, how = paired.report, paired.pairing.how
+    warnings += paired.warnings
     log.info("%s (matched by %s)", report.summary(), how)
     world_poses = apply_alignment(report.target_T_source, [o.world_T_model for o in dat.objects])
 
     id_map = assign_obj_ids([e.id for e in dat.library], read_id_map(scene))
-    objects = [_annotated_object(e, id_map[e.key], scene) for e in dat.library]
+    objects = [_annotated_object(e, id_map[e.key], scene) for e in annotated]
     instances = [AnnotatedInstance(obj_id=id_map[id_key(o.object_id)], threedat_id=o.object_id,
                                    world_T_model=T, entry=o.entry) for o, T in zip(dat.objects, world_poses)]
+    pairing = {"matched_by": how, "cross_checked_by": list(paired.pairing.agrees),
+               "paired_views": {p.frame_id: r.index for p, r, _ in paired.pairing.views}}
     source = {"config": str(dat.config.path), "scene_id": dat.scene_id,
               "files": {k: str(v) for k, v in dat.files.items()},
-              "imported_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "matched_by": how, "warnings": warnings}
-    alignment = {"matched_by": how, **report.to_json()}
+              "imported_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **pairing, "warnings": warnings}
+    alignment = {**pairing, **report.to_json()}
     annotation = Annotation(tuple(sorted(objects, key=lambda o: o.obj_id)), tuple(instances), id_map, source,
                             alignment)
 
-    _copy_meshes(dat.library, objects)
+    _copy_meshes(annotated, objects)
     write_annotation(scene, annotation)  # the commit point
     atomic_write_json(alignment_path(scene), alignment)  # a readable copy of the report
     _remove_unused_meshes(scene, objects)
@@ -133,9 +118,22 @@ def import_threedat(dat_dir: Path | str, scene_dir: Path | str, scene_id: str | 
     return ImportResult(annotation, report, how, tuple(warnings))
 
 
+def annotated_entries(dat: ThreeDatScene) -> list[LibraryEntry]:
+    """The library entries with at least one annotated instance, in library order."""
+    used = {id_key(o.object_id) for o in dat.objects}
+    return [e for e in dat.library if e.key in used]
+
+
+def _mesh_of(entry: LibraryEntry) -> Path:
+    if entry.mesh is None:  # read_object_poses refuses instances of mesh-less entries
+        raise DataError(f"library entry {entry.entry} (id {entry.id!r}) has no mesh")
+    return entry.mesh
+
+
 def _mesh_digest(entry: LibraryEntry) -> str:
     h = hashlib.sha256()
-    for sibling in sorted(entry.mesh.parent.glob(entry.mesh.stem + ".*")):
+    mesh = _mesh_of(entry)
+    for sibling in sorted(mesh.parent.glob(mesh.stem + ".*")):
         if sibling.is_file():
             h.update(sibling.name.encode())
             h.update(sibling.read_bytes())
@@ -143,7 +141,7 @@ def _mesh_digest(entry: LibraryEntry) -> str:
 
 
 def _annotated_object(entry: LibraryEntry, obj_id: int, scene: SceneDir) -> AnnotatedObject:
-    target = meshes_dir(scene) / _mesh_digest(entry) / entry.mesh.name
+    target = meshes_dir(scene) / _mesh_digest(entry) / _mesh_of(entry).name
     return AnnotatedObject(
         obj_id=obj_id, threedat_id=entry.id, name=entry.display_name, mesh=target, scale=entry.scale,
         class_name=entry.class_name, description=entry.description,
@@ -159,7 +157,8 @@ def _copy_meshes(library: Sequence[LibraryEntry], objects: Sequence[AnnotatedObj
         staging = folder.with_name(folder.name + ".tmp")
         shutil.rmtree(staging, ignore_errors=True)
         staging.mkdir(parents=True)
-        for sibling in entry.mesh.parent.glob(entry.mesh.stem + ".*"):
+        mesh = _mesh_of(entry)
+        for sibling in mesh.parent.glob(mesh.stem + ".*"):
             if sibling.is_file():
                 shutil.copy2(sibling, staging / sibling.name)
         shutil.rmtree(folder, ignore_errors=True)

@@ -13,14 +13,16 @@ from scipy.spatial.transform import Rotation
 
 from annotation.alignment import AlignmentError
 from annotation.bop import BopExportOptions, export_bop
-from annotation.bop_format import BopLayout, read_scene_camera, read_scene_gt
+from annotation.bop_format import BopLayout, read_models_info, read_scene_camera, read_scene_gt
 from annotation.importer import assign_obj_ids, import_threedat
 from annotation.store import load_annotation
 from annotation.synthetic import make_synthetic_scene
 from annotation.threedat import read_threedat
+from annotation.threedat_writer import write_threedat_folder
 from brave6d.cli import main as cli_main
 from brave6d.errors import BraveError
-from brave6d.transforms import invert, make_transform
+from brave6d.layout import SceneDir
+from brave6d.transforms import invert, look_at, make_transform
 
 FIXTURE = Path(__file__).parent / "fixtures" / "threedat"
 
@@ -113,6 +115,12 @@ def test_obj_ids_are_stable_across_reimports(tmp_path: Path) -> None:
     data = yaml.safe_load(lib.read_text())
     data.append({"id": "anvil", "mesh": "cube/cube.ply", "scale": 0.001})
     lib.write_text(yaml.safe_dump(data))
+    import_threedat(dat_dir, scene.root)
+    annotation = load_annotation(scene)
+    assert annotation.id_map == {"bar": 1, "cube": 2, "anvil": 3}
+    assert [o.obj_id for o in annotation.objects] == [1, 2]  # anvil is not annotated yet: no object
+    poses = dat_dir / "annotations" / "scene1" / "poses.yaml"
+    poses.write_text(poses.read_text() + "- {id: anvil, pose: [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}\n")
     import_threedat(dat_dir, scene.root)
     annotation = load_annotation(scene)
     assert annotation.id_map == {"bar": 1, "cube": 2, "anvil": 3}
@@ -238,3 +246,139 @@ def test_world_poses_are_metres_in_the_base_frame(tmp_path: Path) -> None:
     cams = read_scene_camera(BopLayout.of_scene(scene).scene_camera_path)
     world_T_cam = read_threedat(FIXTURE).camera_poses[2].world_T_cam
     np.testing.assert_allclose(cams[2].cam_T_world(), invert(world_T_cam), atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- folders 3D-DAT accepts
+EYES = [(0.4, 0.0, 0.5), (0.0, 0.4, 0.5), (-0.4, 0.0, 0.5), (0.0, -0.4, 0.5), (0.3, 0.3, 0.4), (-0.3, 0.2, 0.6)]
+BASE_T_DAT = make_transform(Rotation.from_euler("xyz", [4, -7, 100], degrees=True).as_matrix(), [0.2, -0.1, 0.05])
+OBJ_POSE = make_transform(Rotation.from_euler("z", 30, degrees=True).as_matrix(), [0.01, 0.02, 0.0])
+
+
+def _six_views(tmp_path: Path):
+    """A capture of six views (indices 0..5) whose poses are ``BASE_T_DAT @`` the 3D-DAT ones."""
+    dat_poses = {i: look_at(eye, (0.0, 0.0, 0.0)) for i, eye in enumerate(EYES)}
+    camera = read_threedat(FIXTURE).camera.pinhole()
+    scene = make_synthetic_scene(tmp_path / "scene", camera, {i: BASE_T_DAT @ T for i, T in dat_poses.items()},
+                                 tcp_T_cam=TCP_T_CAM)
+    return scene, dat_poses, camera
+
+
+def _subset_folder(tmp_path: Path, views: list[int], first_id: int | None, images: bool = True) -> Path:
+    """A 3D-DAT folder of some captured views with their images, named as captured;
+    ``first_id``: the lines renumbered from it, as a recorder numbers them (None: the capture indices)."""
+    scene, dat_poses, camera = _six_views(tmp_path)
+    cube = read_threedat(FIXTURE).library[0]
+    cfg = write_threedat_folder(
+        tmp_path / "dat", "001", [(cube, OBJ_POSE)], camera, {i: dat_poses[i] for i in views},
+        images={i: (scene.rgb_dir / f"{i:06d}.png", None) for i in views} if images else None)
+    if first_id is not None:
+        gt = cfg.parent / "scenes" / "001" / "groundtruth_handeye.txt"
+        lines = gt.read_text().splitlines()
+        gt.write_text("".join(f"{first_id + n} {line.split(' ', 1)[1]}\n" for n, line in enumerate(lines)))
+    return cfg
+
+
+@pytest.mark.parametrize("first_id, disagreement", [(0, "line 1 with captured frame 0, the rgb images (as 3D-DAT) "
+                                                        "with frame 1"),
+                                                    (1, "line 2 with captured frame 2, the rgb images (as 3D-DAT) "
+                                                        "with frame 3")])
+def test_a_renumbered_subset_of_views_is_paired_by_its_images(tmp_path: Path, first_id: int, disagreement: str) -> None:
+    cfg = _subset_folder(tmp_path, [1, 3, 4], first_id)
+    scene = SceneDir(tmp_path / "scene")
+    result = import_threedat(cfg.parent, scene.root)
+    assert result.matched_by == "rgb files" and result.alignment.applied and result.alignment.rms_mm < 1e-6
+    np.testing.assert_allclose(result.alignment.target_T_source, BASE_T_DAT, atol=1e-9)
+    np.testing.assert_allclose(load_annotation(scene).instances[0].world_T_model, BASE_T_DAT @ OBJ_POSE, atol=1e-9)
+    assert load_annotation(scene).source["paired_views"] == {str(first_id + n): i for n, i in enumerate([1, 3, 4])}
+    # the ids, read as capture indices, are the cross-check: here they disagree, and the user is told
+    assert (f"scenes/001/groundtruth_handeye.txt: the ids as captured frame indices pair {disagreement}; paired by "
+            "the rgb images (as 3D-DAT)") in result.warnings
+
+
+def test_images_and_ids_that_agree_cross_check(tmp_path: Path) -> None:
+    cfg = _subset_folder(tmp_path, [0, 2, 5], None)
+    result = import_threedat(cfg.parent, tmp_path / "scene")
+    assert result.matched_by == "rgb files" and result.warnings == ()
+    assert load_annotation(SceneDir(tmp_path / "scene")).source["cross_checked_by"] == ["frame index"]
+
+
+def test_image_count_other_than_the_pose_count_is_reported(tmp_path: Path) -> None:
+    cfg = _subset_folder(tmp_path, [0, 2, 5], None)
+    rgb = cfg.parent / "scenes" / "001" / "rgb"
+    shutil.copy(tmp_path / "scene" / "capture" / "rgb" / "000004.png", rgb / "000009.png")  # sorts last: unused
+    result = import_threedat(cfg.parent, tmp_path / "scene")
+    assert result.matched_by == "rgb files"
+    assert result.warnings == ("scenes/001/rgb holds 4 images for 3 camera poses: the last 1 (sorted) have no "
+                               "pose, as in 3D-DAT",)
+    for name in ("000009.png", "000005.png"):
+        (rgb / name).unlink()  # now too few images: 3D-DAT cannot open the scene, the ids still pair it
+    result = import_threedat(cfg.parent, tmp_path / "scene")
+    assert result.matched_by == "frame index"
+    assert result.warnings == ("scenes/001/rgb holds 2 images for 3 camera poses (3D-DAT needs one per pose); "
+                               "paired by the ids as captured frame indices",)
+
+
+def test_a_wrong_pairing_is_named_when_nothing_aligns(tmp_path: Path) -> None:
+    cfg = _subset_folder(tmp_path, [1, 3, 4], 0, images=False)
+    scene = SceneDir(tmp_path / "scene")
+    with pytest.raises(AlignmentError) as info:
+        import_threedat(cfg.parent, scene.root)
+    message = str(info.value)
+    for fragment in ["scenes/001/groundtruth_handeye.txt", "paired by line id = captured frame index",
+                     "worst frames", "scenes/001/rgb holds no .png/.jpg images", "A wrong pairing",
+                     "3D-DAT pairs the lines with its sorted rgb images and ignores the ids"]:
+        assert fragment in message, message
+    assert not scene.annotation_dir.exists()
+
+
+def test_images_that_do_not_align_fall_back_to_the_ids_with_a_warning(tmp_path: Path) -> None:
+    """Images named from 1 as in the 3D-DAT README, ids = the capture indices 0..4."""
+    cfg = _subset_folder(tmp_path, [0, 1, 2, 3, 4], None)
+    rgb = cfg.parent / "scenes" / "001" / "rgb"
+    for i in reversed(range(5)):
+        (rgb / f"{i:06d}.png").rename(rgb / f"{i + 1:06d}.png")
+    result = import_threedat(cfg.parent, tmp_path / "scene")
+    assert result.matched_by == "frame index"
+    assert any(w.startswith("scenes/001/groundtruth_handeye.txt: camera poses paired by line order with the "
+                            "sorted images in scenes/001/rgb")
+               and "do not align" in w for w in result.warnings), result.warnings
+
+
+def test_an_empty_pose_list_imports_no_objects(tmp_path: Path) -> None:
+    dat_dir = Path(shutil.copytree(FIXTURE, tmp_path / "dat"))
+    (dat_dir / "annotations" / "scene1" / "poses.yaml").write_text("[]\n")
+    scene = _scene(tmp_path)
+    result = import_threedat(dat_dir, scene.root)
+    assert (result.n_objects, result.n_instances) == (0, 0)
+    assert "annotations/scene1/poses.yaml: no annotated objects (an empty list)" in result.warnings
+    exported = export_bop(scene.root)
+    layout = BopLayout.of_scene(scene)
+    assert exported.instances == 0 and sorted(p.name for p in layout.models_dir.iterdir()) == ["models_info.json"]
+    assert read_scene_gt(layout.scene_gt_path) == {0: [], 1: [], 2: []}
+
+
+def test_library_objects_without_mesh_or_annotation_get_no_bop_model(tmp_path: Path) -> None:
+    dat_dir = Path(shutil.copytree(FIXTURE, tmp_path / "dat"))
+    (dat_dir / "objects" / "anvil").mkdir()
+    (dat_dir / "objects" / "anvil" / "anvil.ply").write_text("ply\nbroken\n")  # never parsed: not annotated
+    lib = dat_dir / "objects" / "object_library.yaml"
+    lib.write_text(lib.read_text() + "- {id: idea, name: no mesh yet}\n- {id: anvil, mesh: anvil/anvil.ply}\n")
+    scene = _scene(tmp_path)
+    import_threedat(dat_dir, scene.root)
+    annotation = load_annotation(scene)
+    assert annotation.id_map == {"anvil": 1, "bar": 2, "cube": 3, "idea": 4}
+    assert [o.threedat_id for o in annotation.objects] == ["bar", "cube"]
+    export_bop(scene.root)
+    layout = BopLayout.of_scene(scene)
+    assert sorted(p.name for p in layout.models_dir.glob("*.ply")) == ["obj_000002.ply", "obj_000003.ply"]
+    assert sorted(read_models_info(layout.models_info_path)) == [2, 3]
+
+
+def test_cli_says_which_pose_file_was_read(tmp_path: Path, capsys) -> None:
+    dat_dir = Path(shutil.copytree(FIXTURE, tmp_path / "dat"))
+    (dat_dir / "annotations" / "scene1" / "poses.yaml").rename(dat_dir / "annotations" / "scene1" / "pose.yaml")
+    scene = _scene(tmp_path)
+    assert _cli(["import-3ddat", str(dat_dir), str(scene.root)]) == 0
+    assert ("warning: annotations/scene1/poses.yaml (object_pose_file in dataset.yaml) not found; "
+            "read annotations/scene1/pose.yaml instead") in capsys.readouterr().out
+    assert load_annotation(scene).source["files"]["poses"].endswith("pose.yaml")
