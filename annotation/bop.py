@@ -15,7 +15,9 @@ hand-eye) and the undistorted pinhole camera (``ensure_undistorted``):
   they survive moving or archiving the dataset; a copy is made across file systems or with
   ``copy_images``);
 * ``camera.json``, ``models/obj_XXXXXX.ply`` (mm, vertex colours when present) and
-  ``models/models_info.json`` (extents, diameter, symmetries from the library).
+  ``models/models_info.json`` (extents, diameter, symmetries from the library), for the
+  annotated objects only: an object without instances (an older ``objects.json`` may list
+  unannotated library objects) gets no model, as it has no ground truth.
 
 The whole folder is written beside ``bop/`` and renamed into place at the end, so a failure
 leaves the previous export (or none) untouched.
@@ -87,9 +89,9 @@ def export_bop(scene_dir: Path | str, options: BopExportOptions = BopExportOptio
         raise DataError(f"{scene.frames_path}: no captured frames to export")
     frames = ensure_undistorted(scene)
     camera = frames.camera
-    models_m = {o.obj_id: _load_model(o) for o in annotation.objects}
-    used = {i.obj_id for i in annotation.instances}
-    renderer = MaskRenderer(camera, {k: v for k, v in models_m.items() if k in used},
+    objects = annotated_objects(annotation)
+    models_m = {o.obj_id: _load_model(o) for o in objects}
+    renderer = MaskRenderer(camera, models_m,
                             [(i.obj_id, i.world_T_model) for i in annotation.instances],
                             _static_meshes(scene) if options.include_static else [])
 
@@ -99,7 +101,7 @@ def export_bop(scene_dir: Path | str, options: BopExportOptions = BopExportOptio
     visib: list[float] = []
     with staged_folder(scene.bop_dir) as root:
         layout = BopLayout(root, options.split, options.scene_id)
-        _write_models(layout, annotation, models_m)
+        _write_models(layout, objects, models_m)
         atomic_write_json(layout.camera_path, {
             "cx": camera.cx, "cy": camera.cy, "depth_scale": 1.0, "fx": camera.fx, "fy": camera.fy,
             "height": camera.height, "width": camera.width})
@@ -133,7 +135,7 @@ def export_bop(scene_dir: Path | str, options: BopExportOptions = BopExportOptio
         atomic_write_text(layout.scene_gt_info_path, dump_bop_json(scene_gt_info))
         atomic_write_json(layout.info_path, {
             "split": options.split, "scene_id": options.scene_id, "image_ids": sorted(scene_gt),
-            "obj_ids": [o.obj_id for o in annotation.objects], "instances": len(annotation.instances),
+            "obj_ids": [o.obj_id for o in objects], "instances": len(annotation.instances),
             "camera": camera.to_json(), "images": "copied" if options.copy_images else "hard-linked",
             "static_occluders": options.include_static, "annotation": str(scene.annotation_dir / "objects.json")})
         os.sync()  # masks are plain writes inside the staging folder: flush once before the commit
@@ -162,6 +164,12 @@ def _gt_entry(cam_T_model: NDArray[np.float64], obj_id: int) -> dict[str, Any]:
             "cam_t_m2c": (cam_T_model[:3, 3] * 1000.0).tolist(), "obj_id": int(obj_id)}
 
 
+def annotated_objects(annotation: Annotation) -> list[AnnotatedObject]:
+    """The objects with at least one instance: the ones that get a BOP model."""
+    used = {i.obj_id for i in annotation.instances}
+    return [o for o in annotation.objects if o.obj_id in used]
+
+
 def _load_model(obj: AnnotatedObject) -> MeshData:
     """The object's mesh in metres (model frame)."""
     return load_mesh(obj.mesh, f"object {obj.obj_id} ({obj.name})").scaled(obj.scale)
@@ -182,10 +190,10 @@ def _static_meshes(scene: SceneDir) -> list[MeshData]:
     return out
 
 
-def _write_models(layout: BopLayout, annotation: Annotation, models_m: dict[int, MeshData]) -> None:
+def _write_models(layout: BopLayout, objects: list[AnnotatedObject], models_m: dict[int, MeshData]) -> None:
     """``models/obj_XXXXXX.ply`` in mm and ``models_info.json`` (symmetry translations in mm)."""
     info: dict[int, Any] = {}
-    for obj in annotation.objects:
+    for obj in objects:
         mesh = models_m[obj.obj_id]
         vertices_mm = mesh.vertices * 1000.0
         write_ply(layout.model_path(obj.obj_id), vertices_mm, mesh.faces, mesh.vertex_colors)

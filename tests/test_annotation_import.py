@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -15,7 +16,7 @@ from annotation.alignment import AlignmentError
 from annotation.bop import BopExportOptions, export_bop
 from annotation.bop_format import BopLayout, read_models_info, read_scene_camera, read_scene_gt
 from annotation.importer import assign_obj_ids, import_threedat
-from annotation.store import load_annotation
+from annotation.store import AnnotatedObject, load_annotation, write_annotation
 from annotation.synthetic import make_synthetic_scene
 from annotation.threedat import read_threedat
 from annotation.threedat_writer import write_threedat_folder
@@ -372,6 +373,22 @@ def test_library_objects_without_mesh_or_annotation_get_no_bop_model(tmp_path: P
     layout = BopLayout.of_scene(scene)
     assert sorted(p.name for p in layout.models_dir.glob("*.ply")) == ["obj_000002.ply", "obj_000003.ply"]
     assert sorted(read_models_info(layout.models_info_path)) == [2, 3]
+
+
+def test_bop_export_writes_models_of_annotated_objects_only(tmp_path: Path) -> None:
+    """An objects.json that lists an object without instances (as imports before this rule wrote)."""
+    scene = _scene(tmp_path)
+    import_threedat(FIXTURE, scene.root)
+    annotation = load_annotation(scene)
+    cube = annotation.object(2)
+    ghost = AnnotatedObject(obj_id=9, threedat_id="ghost", name="ghost", mesh=cube.mesh, scale=cube.scale)
+    write_annotation(scene, dataclasses.replace(annotation, objects=(*annotation.objects, ghost)))
+    assert [o.obj_id for o in load_annotation(scene).objects] == [1, 2, 9]
+    export_bop(scene.root)
+    layout = BopLayout.of_scene(scene)
+    assert sorted(p.name for p in layout.models_dir.glob("*.ply")) == ["obj_000001.ply", "obj_000002.ply"]
+    assert sorted(read_models_info(layout.models_info_path)) == [1, 2]
+    assert json.loads(layout.info_path.read_text())["obj_ids"] == [1, 2]
 
 
 def test_cli_says_which_pose_file_was_read(tmp_path: Path, capsys) -> None:
