@@ -5,6 +5,7 @@ Modules (each with one job; import them directly, this package imports nothing h
 - :mod:`annotation.threedat`: read a 3D-DAT folder into typed objects (errors name file + entry).
 - :mod:`annotation.threedat_writer`: write a 3D-DAT folder (the demo's "human annotator").
 - :mod:`annotation.alignment`: rigid alignment of two sets of camera poses, residuals, refusal.
+- :mod:`annotation.pairing`: 3D-DAT camera-pose lines <-> captured views (3D-DAT's image order).
 - :mod:`annotation.importer`: ``import_threedat(dat_dir, scene_dir)`` -> ``<scene>/annotation/``.
 - :mod:`annotation.store`: ``objects.json`` (obj_id map, world poses, meshes) read/write.
 - :mod:`annotation.models`: meshes, BOP PLY models in mm, ``models_info`` entries.
