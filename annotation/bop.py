@@ -3,8 +3,9 @@
 For every captured view, with the calibrated camera pose (``camera_poses``: robot pose x
 hand-eye) and the undistorted pinhole camera (``ensure_undistorted``):
 
-* ``scene_camera.json``: ``cam_K`` (undistorted), ``depth_scale`` 1.0 (depth PNGs are mm),
-  ``cam_R_w2c``/``cam_t_w2c`` (world = robot base, mm);
+* ``scene_camera.json``: ``cam_K`` (undistorted, in BOP's pixel convention: the project's K
+  with the principal point + 0.5 px, see :func:`annotation.bop_format.bop_cam_K`),
+  ``depth_scale`` 1.0 (depth PNGs are mm), ``cam_R_w2c``/``cam_t_w2c`` (world = robot base, mm);
 * ``scene_gt.json``: every annotated instance, ``cam_T_model = inv(world_T_cam) @ world_T_model``
   with ``cam_t_m2c`` in mm; the instance order (``gt_id``) is the same in every image;
 * ``mask/``, ``mask_visib/`` and ``scene_gt_info.json`` from :mod:`annotation.visibility`
@@ -14,10 +15,10 @@ hand-eye) and the undistorted pinhole camera (``ensure_undistorted``):
 * ``rgb/``, ``depth/``: the undistorted frames, HARD-LINKED (no extra disk, and unlike symlinks
   they survive moving or archiving the dataset; a copy is made across file systems or with
   ``copy_images``);
-* ``camera.json``, ``models/obj_XXXXXX.ply`` (mm, vertex colours when present) and
-  ``models/models_info.json`` (extents, diameter, symmetries from the library), for the
-  annotated objects only: an object without instances (an older ``objects.json`` may list
-  unannotated library objects) gets no model, as it has no ground truth.
+* ``camera.json`` (``cx``, ``cy`` in BOP's pixel convention too), ``models/obj_XXXXXX.ply`` (mm,
+  vertex colours when present) and ``models/models_info.json`` (extents, diameter, symmetries
+  from the library), for the annotated objects only: an object without instances (an older
+  ``objects.json`` may list unannotated library objects) gets no model, as it has no ground truth.
 
 The whole folder is written beside ``bop/`` and renamed into place at the end, so a failure
 leaves the previous export (or none) untouched.
@@ -36,7 +37,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from annotation.bop_format import BopLayout, dump_bop_json
+from annotation.bop_format import BopLayout, bop_cam_K, dump_bop_json
 from annotation.models import MeshData, load_mesh, model_info_mm, write_ply
 from annotation.staging import link_or_copy
 from annotation.store import Annotation, AnnotatedObject, load_annotation
@@ -102,13 +103,14 @@ def export_bop(scene_dir: Path | str, options: BopExportOptions = BopExportOptio
     with staged_folder(scene.bop_dir) as root:
         layout = BopLayout(root, options.split, options.scene_id)
         _write_models(layout, objects, models_m)
+        cam_K = bop_cam_K(camera.K)
         atomic_write_json(layout.camera_path, {
-            "cx": camera.cx, "cy": camera.cy, "depth_scale": 1.0, "fx": camera.fx, "fy": camera.fy,
-            "height": camera.height, "width": camera.width})
+            "cx": float(cam_K[0, 2]), "cy": float(cam_K[1, 2]), "depth_scale": 1.0, "fx": camera.fx,
+            "fy": camera.fy, "height": camera.height, "width": camera.width})
         for record, world_T_cam in progress(views, total=len(views), desc="BOP export", unit="view"):
             im_id = record.index
             cam_T_world = invert(world_T_cam)
-            scene_camera[im_id] = {"cam_K": camera.K.reshape(-1).tolist(), "depth_scale": 1.0,
+            scene_camera[im_id] = {"cam_K": cam_K.reshape(-1).tolist(), "depth_scale": 1.0,
                                    "cam_R_w2c": cam_T_world[:3, :3].reshape(-1).tolist(),
                                    "cam_t_w2c": (cam_T_world[:3, 3] * 1000.0).tolist()}
             scene_gt[im_id] = [_gt_entry(cam_T_world @ i.world_T_model, i.obj_id) for i in annotation.instances]

@@ -13,7 +13,8 @@ A scene exports to ``<scene>/annotation/bop/`` as one BOP dataset with one scene
 
 Image ids are the capture's frame indices; ``gt_id`` is the instance's position in the
 annotation (the same in every image). Readers return metres-free BOP units (mm) unchanged
-except :meth:`GtPose.cam_T_model`, which gives metres.
+except :meth:`GtPose.cam_T_model`, which gives metres, and ``cam_K``, which the files hold in
+BOP's pixel convention and the readers return in the project's (:func:`bop_cam_K`).
 """
 
 from __future__ import annotations
@@ -24,9 +25,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from brave6d.atomic import read_json
+from brave6d.camera import corner_origin_K, opencv_K
 from brave6d.errors import DataError
 from brave6d.layout import SceneDir
 from brave6d.transforms import make_transform
@@ -132,9 +134,27 @@ class GtInfo:
     visib_fract: float
 
 
+def bop_cam_K(K: ArrayLike) -> NDArray[np.float64]:
+    """The project's (OpenCV) ``K`` as BOP's ``cam_K``: the principal point + 0.5 px.
+
+    BOP's ground truth is made and scored with bop_toolkit's renderers, which put pixel
+    ``(u, v)``'s centre at ``(u + 0.5, v + 0.5)`` in ``cam_K``'s coordinates: ``renderer_vispy``'s
+    ``_calc_calib_proj`` (and bop_renderer's ``GPUBuffer::calculateProjectionMatrix``) map
+    ``fx X / Z + cx`` straight to OpenGL window coordinates, where fragments are sampled at
+    half-integers (the vispy image is read back flipped, rows top-down). So the masks,
+    ``visib_fract`` and VSD renders bop_toolkit computes from our files line up with our images
+    only with this shift; :func:`read_scene_camera` (and ``evaluation.bop_results``) undo it.
+    """
+    return corner_origin_K(K)
+
+
 @dataclass(frozen=True)
 class SceneCamera:
-    """One ``scene_camera.json`` entry; ``cam_T_world`` in metres when the pose is present."""
+    """One ``scene_camera.json`` entry; ``cam_T_world`` in metres when the pose is present.
+
+    ``cam_K`` is in the project's OpenCV convention (the file's ``cam_K`` less 0.5 px on the
+    principal point, see :func:`bop_cam_K`).
+    """
 
     cam_K: NDArray[np.float64]
     depth_scale: float
@@ -202,7 +222,7 @@ def read_scene_camera(path: Path | str) -> dict[int, SceneCamera]:
         try:
             R = c.get("cam_R_w2c")
             t = c.get("cam_t_w2c")
-            out[im_id] = SceneCamera(np.asarray(c["cam_K"], dtype=np.float64).reshape(3, 3), float(c["depth_scale"]),
+            out[im_id] = SceneCamera(opencv_K(np.asarray(c["cam_K"], dtype=np.float64)), float(c["depth_scale"]),
                                      None if R is None else np.asarray(R, dtype=np.float64).reshape(3, 3),
                                      None if t is None else np.asarray(t, dtype=np.float64).reshape(3))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:

@@ -3,6 +3,14 @@
 Distortion coefficients follow OpenCV's order ``k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]]``
 (4, 5, 8, 12 or 14 values; depthai reports 14). OpenCV does the distortion maths so that results
 match what ``cv2.calibrateCamera`` estimated.
+
+Pixel convention (the project's K everywhere): OpenCV's, pixel ``(u, v)`` (column, row) is
+centred at the integer coordinates ``(u, v)``, so its ray is ``((u - cx) / fx, (v - cy) / fy, 1)``
+and a centred principal point is ``((W - 1) / 2, (H - 1) / 2)``. OpenCV calibration and OAK
+factory intrinsics are in this convention. COLMAP, gsplat and OpenGL renderers (bop_toolkit's
+among them) centre pixel ``(0, 0)`` at ``(0.5, 0.5)`` instead (corner origin): their K is ours with
+the principal point moved by :data:`CORNER_ORIGIN_OFFSET` (:func:`corner_origin_K`), converted
+once where an image or a K crosses to them.
 """
 
 from __future__ import annotations
@@ -21,6 +29,27 @@ from brave6d.errors import BraveError
 _VALID_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
 #: The fixed entries of a zero-skew camera matrix: (row, column) -> value.
 _K_CONSTANTS = {(0, 1): 0.0, (1, 0): 0.0, (2, 0): 0.0, (2, 1): 0.0, (2, 2): 1.0}
+
+
+#: Corner-origin pixel coordinates minus OpenCV's (px, both axes): pixel (0, 0) is centred at
+#: (0.5, 0.5) in COLMAP, gsplat and OpenGL, at (0, 0) in OpenCV and in this project.
+CORNER_ORIGIN_OFFSET = 0.5
+
+
+def corner_origin_K(K: ArrayLike) -> NDArray[np.float64]:
+    """The project's (OpenCV) 3x3 ``K`` in the corner-origin convention: ``cx, cy`` + 0.5 px."""
+    k = np.array(K, dtype=np.float64).reshape(3, 3)
+    k[0, 2] += CORNER_ORIGIN_OFFSET
+    k[1, 2] += CORNER_ORIGIN_OFFSET
+    return k
+
+
+def opencv_K(corner_K: ArrayLike) -> NDArray[np.float64]:
+    """Inverse of :func:`corner_origin_K`: a corner-origin 3x3 ``K`` in the project's convention."""
+    k = np.array(corner_K, dtype=np.float64).reshape(3, 3)
+    k[0, 2] -= CORNER_ORIGIN_OFFSET
+    k[1, 2] -= CORNER_ORIGIN_OFFSET
+    return k
 
 
 class CameraError(BraveError, ValueError):

@@ -250,7 +250,10 @@ class Perception:
 
 
 def backproject(depth: NDArray[np.floating], K: Array) -> tuple[Array, NDArray[np.int64]]:
-    """Camera-frame points (m) of the valid depth pixels and their pixels (column, row)."""
+    """Camera-frame points (m) of the valid depth pixels and their pixels (column, row).
+
+    ``K`` is the project's (OpenCV): pixel (column, row) is centred at those integer coordinates.
+    """
     d = np.asarray(depth, dtype=np.float64)
     rows, cols = np.nonzero(np.isfinite(d) & (d > 0))
     z = d[rows, cols]

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.atomic import atomic_write_text, read_json, read_png
+from brave6d.camera import opencv_K
 from brave6d.errors import DataError
 from evaluation.recall import Estimate, GTInstance, ObjectModel
 
@@ -168,14 +169,21 @@ def _floats(value: Any, count: int, where: str) -> NDArray[np.float64]:
 
 
 def read_scene_camera(path: Path | str) -> dict[int, dict[str, Any]]:
-    """``scene_camera.json`` -> ``{im_id: {'K': 3x3, 'depth_scale': float, ['R_w2c', 't_w2c']}}``."""
+    """``scene_camera.json`` -> ``{im_id: {'K': 3x3, 'depth_scale': float, ['R_w2c', 't_w2c']}}``.
+
+    ``K`` is in the project's OpenCV convention: ``cam_K`` less 0.5 px on the principal point,
+    because bop_toolkit's renderers, which make and score BOP's ground truth, centre pixel
+    ``(u, v)`` at ``(u + 0.5, v + 0.5)`` in ``cam_K``'s coordinates (see
+    ``annotation.bop_format.bop_cam_K``). The depth renderer here casts OpenCV rays, so with
+    this ``K`` it samples the pixels bop_toolkit's renderer does.
+    """
     p = Path(path)
     out: dict[int, dict[str, Any]] = {}
     for im_id, entry in _int_keys(read_json(p), p).items():
         where = f"{p}: image {im_id}"
         if not isinstance(entry, dict) or "cam_K" not in entry:
             raise DataError(f"{where}: missing 'cam_K'")
-        cam: dict[str, Any] = {"K": _floats(entry["cam_K"], 9, f"{where} cam_K").reshape(3, 3)}
+        cam: dict[str, Any] = {"K": opencv_K(_floats(entry["cam_K"], 9, f"{where} cam_K"))}
         scale = entry.get("depth_scale", 1.0)
         cam["depth_scale"] = float(_floats(scale, 1, f"{where} depth_scale")[0])
         if "cam_R_w2c" in entry and "cam_t_w2c" in entry:

@@ -1,10 +1,17 @@
 """Depth rendering of object meshes for the VSD pose error (CPU ray casting, BOP units).
 
 The renderer casts one ray per pixel through the pixel centre with Open3D's
-``RaycastingScene`` (tensor API). Conventions, as in BOP and the rest of the project:
+``RaycastingScene`` (tensor API). Conventions, as in the rest of the project:
 
-- OpenCV pinhole camera without distortion: pixel ``(u, v)`` (column, row) has its centre at
-  integer coordinates, its ray is ``((u - cx) / fx, (v - cy) / fy, 1)`` in the camera frame.
+- OpenCV pinhole camera without distortion (the project's K): pixel ``(u, v)`` (column, row)
+  has its centre at integer coordinates, its ray is ``((u - cx) / fx, (v - cy) / fy, 1)`` in
+  the camera frame: the rays of the simulator, of the masks and (after its own conversion) of
+  the splat renders that episodes are scored on.
+- Parity with bop_toolkit: its renderers (``renderer_vispy``, bop_renderer; OpenGL) sample
+  pixel ``(u, v)`` at ``(u + 0.5, v + 0.5)`` in the coordinates of a BOP file's ``cam_K``. The BOP
+  readers and the export convert ``cam_K`` to and from the project's K
+  (``evaluation.bop_results.read_scene_camera``, ``annotation.bop_format.bop_cam_K``), so given
+  a BOP dataset this renderer hits exactly the pixels bop_toolkit's renderer draws.
 - The pose ``(R, t)`` maps model points to the camera frame: ``x_cam = R @ x_model + t``.
 - Millimetres: vertices and ``t`` in mm, the returned z-depth in mm; 0 where no surface is hit.
 

@@ -123,13 +123,14 @@ class SplatRenderer:
         view; ``||J||_2 <= ||J||_F = sqrt(fx^2 (1 + tx^2) + fy^2 (1 + ty^2)) / z`` with the
         clamp limits ``tx``, ``ty``. Gaussians whose centre plus that bound (plus one pixel)
         misses the image are dropped, as are centres outside ``(near, far)`` (the rasterizer
-        culls those itself).
+        culls those itself). ``K`` is OpenCV's (pixel centres at integers): the image spans
+        ``[-0.5, width - 0.5]``, the clamp limits are measured from those edges.
         """
         import torch
 
         fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
-        tx = max(cx, width - cx) / fx + 0.3 * (0.5 * width / fx)
-        ty = max(cy, height - cy) / fy + 0.3 * (0.5 * height / fy)
+        tx = max(cx + 0.5, width - 0.5 - cx) / fx + 0.3 * (0.5 * width / fx)
+        ty = max(cy + 0.5, height - 0.5 - cy) / fy + 0.3 * (0.5 * height / fy)
         jf = math.sqrt(fx * fx * (1.0 + tx * tx) + fy * fy * (1.0 + ty * ty))
         R = viewmat[:3, :3]
         t = viewmat[:3, 3]
@@ -141,7 +142,7 @@ class SplatRenderer:
         v = fy * pc[:, 1] / zc + cy
         sig = jf * self.max_scale / zc
         rad = 3.33 * torch.sqrt(sig * sig + 0.3) + 1.0
-        inside = (u + rad > -1.0) & (u - rad < width) & (v + rad > -1.0) & (v - rad < height)
+        inside = (u + rad > -0.5) & (u - rad < width - 0.5) & (v + rad > -0.5) & (v - rad < height - 0.5)
         return torch.nonzero(front & inside, as_tuple=False).squeeze(1)
 
     def render(self, world_T_cam: NDArray[np.float64], camera: PinholeCamera, *, near: float = 0.01,

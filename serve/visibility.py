@@ -7,8 +7,9 @@ Definition (as bop_toolkit's ``scene_gt_info``): ``visib_fract = px_count_visib 
 * ``px_count_visib``: image pixels where the object is the first surface seen.
 
 Silhouettes and depths come from CPU ray casting of the bundle's object models (Open3D
-``RaycastingScene``, one ray per pixel centre ``((u - cx)/fx, (v - cy)/fy, 1)``, so the hit
-distance is the z-depth), cast only inside the projection of each model's bounding box.
+``RaycastingScene``, one ray per pixel centre ``((u - cx)/fx, (v - cy)/fy, 1)``, OpenCV's pixel
+centres at integer coordinates like the project's K, the simulator and the splat renders; the
+hit distance is the z-depth), cast only inside the projection of each model's bounding box.
 A pixel of instance *i* counts as visible when
 
 1. among all object instances, *i* is hit first (exact mutual occlusion of the meshes), and

@@ -108,11 +108,28 @@ def test_masks_match_the_expected_rectangles(exported) -> None:
     assert not (c_visib & ~c_mask).any()
 
 
+def test_cam_K_makes_bop_toolkits_renderer_draw_our_masks(exported) -> None:
+    """bop_toolkit's renderers (OpenGL) map ``fx X / Z + cx`` of ``cam_K`` to window coordinates
+    and sample pixel (u, v) at (u + 0.5, v + 0.5): with the exported cam_K (the OpenCV K + 0.5 px)
+    that coverage rule reproduces our mask of plate A exactly. The old export wrote the OpenCV K
+    unchanged, which shifted bop_toolkit's silhouette one column and row (this test failed)."""
+    _, layout = exported
+    cam_K = np.array(json.loads(layout.scene_camera_path.read_text())["0"]["cam_K"]).reshape(3, 3)
+    np.testing.assert_allclose(cam_K, CAMERA.K + [[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    # plate A's top face (world z = 0, +-0.1 m) seen from DOWN: camera frame x = X, y = -Y, z = 1 m
+    corners = np.array([[x, -y, 1.0] for x in (-0.1, 0.1) for y in (-0.1, 0.1)])
+    uv = (corners @ cam_K.T)[:, :2] / corners[:, 2:]
+    v, u = np.mgrid[0:64, 0:64] + 0.5  # OpenGL fragment centres
+    gl = (u >= uv[:, 0].min()) & (u <= uv[:, 0].max()) & (v >= uv[:, 1].min()) & (v <= uv[:, 1].max())
+    np.testing.assert_array_equal(read_png(layout.mask_path(0, 0)) > 0, gl)
+
+
 def test_layout_files_and_images(exported) -> None:
     scene, layout = exported
     assert layout.root == scene.bop_dir and layout.scene_dir == scene.bop_dir / "test" / "000001"
     cam = json.loads(layout.camera_path.read_text())
-    assert (cam["width"], cam["height"], cam["fx"], cam["cx"], cam["depth_scale"]) == (64, 64, 100.0, 31.5, 1.0)
+    # cx in BOP's pixel convention: CAMERA.cx + 0.5 (see test_cam_K_makes_bop_toolkits_renderer_draw_our_masks)
+    assert (cam["width"], cam["height"], cam["fx"], cam["cx"], cam["depth_scale"]) == (64, 64, 100.0, 32.0, 1.0)
     assert read_png(layout.depth_path(0))[0, 40] == 1000
     assert layout.rgb_path(1).is_file()
     assert (layout.scene_dir / "mask_visib" / "000001_000002.png").is_file()

@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from annotation.bop_format import bop_cam_K
 from brave6d.atomic import write_png
 from brave6d.errors import DataError
 from evaluation.bop_results import (
@@ -24,6 +25,7 @@ from evaluation.bop_results import (
     load_split_gt_instances,
     read_bop_results,
     read_models_info,
+    read_scene_camera,
     write_bop_results,
 )
 from evaluation.recall import Estimate, evaluate_bop19
@@ -149,7 +151,7 @@ def bop_dataset(tmp_path_factory) -> dict:
         "2": {"diameter": math.hypot(24.0, 10.0), "symmetries_discrete": sym},
     }))
     (root / "camera.json").write_text(json.dumps({"width": W, "height": H, "fx": 300.0, "fy": 300.0,
-                                                   "cx": 159.5, "cy": 119.5, "depth_scale": 0.1}))
+                                                   "cx": 160.0, "cy": 120.0, "depth_scale": 0.1}))
     scene = root / "test" / "000003"
     (scene / "depth").mkdir(parents=True)
     ren = DepthRenderer()
@@ -169,7 +171,7 @@ def bop_dataset(tmp_path_factory) -> dict:
         write_png(scene / "depth" / f"{im_id:06d}.png", np.round(depth / 0.1).astype(np.uint16))  # 0.1 mm units
         scene_gt[str(im_id)] = [{"cam_R_m2c": R.reshape(-1).tolist(), "cam_t_m2c": t.tolist(), "obj_id": o} for o, R, t in objs]
         scene_gt_info[str(im_id)] = [{"visib_fract": 0.9, "px_count_visib": 100} for _ in objs]
-        scene_camera[str(im_id)] = {"cam_K": K.reshape(-1).tolist(), "depth_scale": 0.1}
+        scene_camera[str(im_id)] = {"cam_K": bop_cam_K(K).reshape(-1).tolist(), "depth_scale": 0.1}  # BOP's pixels
     scene_gt_info["1"][1]["visib_fract"] = 0.05  # the cube in image 1 is hardly visible: no target
     for name, data in (("scene_gt", scene_gt), ("scene_gt_info", scene_gt_info), ("scene_camera", scene_camera)):
         (scene / f"{name}.json").write_text(json.dumps(data))
@@ -262,3 +264,28 @@ def test_model_reader_errors(bop_dataset, tmp_path):
     (models / "obj_000002.ply").unlink()
     with pytest.raises(DataError, match="obj_000002.ply: model file not found"):
         load_models(models, obj_ids=[2])
+
+
+def test_renders_from_a_bop_cam_K_sample_the_pixels_bop_toolkit_does(tmp_path):
+    """bop_toolkit's renderers (OpenGL; they make and score BOP's ground truth) put
+    ``fx X / Z + cx`` of ``cam_K`` in window coordinates, where pixel (u, v) is sampled at
+    (u + 0.5, v + 0.5). ``read_scene_camera`` converts cam_K to the project's K, so the depth
+    renderer's OpenCV rays hit exactly bop_toolkit's pixels: same silhouette, edges at
+    fractional positions. The old reader passed cam_K through (half a pixel off: this failed)."""
+    cam_K = np.array([[300.0, 0.0, 160.2], [0.0, 310.0, 119.7], [0.0, 0.0, 1.0]])
+    (tmp_path / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": cam_K.reshape(-1).tolist(),
+                                                                   "depth_scale": 1.0}}))
+    K = read_scene_camera(tmp_path / "scene_camera.json")[0]["K"]
+    half = 23.3  # mm: a square facing the camera at 500 mm, edges off the pixel grid
+    square = trimesh.Trimesh([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]],
+                             [[0, 1, 2], [0, 2, 3]], process=False)
+    t = np.array([7.1, -4.9, 500.0])
+    depth = DepthRenderer()
+    depth.add_object(1, square.vertices, square.faces)
+    rendered = depth.render(1, np.eye(3), t, K, W, H) > 0
+    corners = square.vertices + t
+    uv = (corners @ cam_K.T)[:, :2] / corners[:, 2:]
+    v, u = np.mgrid[0:H, 0:W] + 0.5  # OpenGL fragment centres
+    gl = (u >= uv[:, 0].min()) & (u <= uv[:, 0].max()) & (v >= uv[:, 1].min()) & (v <= uv[:, 1].max())
+    assert gl.sum() > 100
+    np.testing.assert_array_equal(rendered, gl)

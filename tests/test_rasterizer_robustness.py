@@ -33,7 +33,8 @@ def _camera(width: int, height: int, f_scale: float = 1.0, angle: float = 0.0):
     c, s = math.cos(angle), math.sin(angle)
     vm[:3, :3] = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
     f = f_scale * max(width, height)
-    K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    # principal point at the image centre; K is OpenCV's (pixel centres at integer coordinates)
+    K = torch.tensor([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
     return vm[None], K[None]
 
 
@@ -85,7 +86,7 @@ def test_empty_input_renders_background():
 
 def test_one_by_one_image():
     means, quats, scales, opac, colors = _one()
-    K = torch.tensor([[[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]]])
+    K = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]])  # the pixel's centre: (0, 0)
     out = render_and_backprop(means, quats, scales, opac, colors, torch.eye(4)[None], K, 1, 1)
     assert_all_finite(*out)
     _rgb, depth, alpha = out[:3]

@@ -95,3 +95,26 @@ def test_distorted_camera_is_refused(splat_path: Path) -> None:
     cam = PinholeCamera(160, 120, 100.0, 100.0, 80.0, 60.0, (0.1, 0.0, 0.0, 0.0))
     with pytest.raises(BraveError, match="undistorted"):
         r.render(np.eye(4), cam)
+
+
+@pytest.mark.parametrize("point", [(0.013, -0.021, 0.0), (-0.0417, 0.0263, 0.011), (0.0, 0.0, -0.02)])
+def test_served_gaussian_is_centred_at_its_opencv_projection(tmp_path: Path, point: tuple[float, ...]) -> None:
+    """The server's image of one small Gaussian is centred (alpha centroid) at the camera's
+    OpenCV projection of its mean, within 0.05 px, as the simulator's images are; the old code
+    served it 0.5 px up and left (K handed unconverted to gsplat's +0.5 pixel centres)."""
+    from training.ply import SplatData, write_ply
+
+    camera = PinholeCamera(160, 120, 150.0, 150.0, 78.3, 61.7)
+    X = np.array([point], np.float32)
+    sigma_m = 0.0025  # about 1.5 px at 0.25 m
+    splat = SplatData(means=X, sh0=np.zeros((1, 1, 3), np.float32), shN=np.zeros((1, 0, 3), np.float32),
+                      opacities=np.array([1.5], np.float32), scales=np.full((1, 3), np.log(sigma_m), np.float32),
+                      quats=np.array([[1.0, 0.0, 0.0, 0.0]], np.float32))
+    path = write_ply(tmp_path / "one.ply", splat)
+    world_T_cam = look_at((0.05, -0.04, 0.25), (0.0, 0.0, 0.0))
+    out = SplatRenderer(path, device="cpu").render(world_T_cam, camera)
+    expected = camera.project((np.linalg.inv(world_T_cam) @ np.append(X[0], 1.0))[None, :3]).uv[0]
+    v, u = np.mgrid[0:camera.height, 0:camera.width]
+    a = out.alpha.astype(np.float64)
+    centroid = np.array([(a * u).sum(), (a * v).sum()]) / a.sum()
+    assert np.abs(centroid - expected).max() < 0.05, centroid - expected

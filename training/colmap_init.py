@@ -5,7 +5,8 @@ triangulate points: SIFT features (CPU), matching of each training image with it
 cameras (by camera centre: cheap and sufficient for a ring capture), then
 ``pycolmap.triangulate_points`` with the poses held fixed (no pose estimation). The model is
 written to ``sparse/0`` (``cameras.bin``, ``images.bin``, ``points3D.bin``; PINHOLE camera of the
-undistorted images, named as in ``undistorted/rgb``) so that Inria's trainer
+undistorted images in COLMAP's pixel convention, see :func:`colmap_pinhole_params`, named as in
+``undistorted/rgb``) so that Inria's trainer
 (``-s SCENE -i undistorted/rgb``), gsplat and nerfstudio can train on the same scene; the
 holdout images are included with their poses and listed in ``sparse/holdout.txt``.
 
@@ -89,12 +90,29 @@ def _rigid(cam_T_world: NDArray[np.float64]):  # type: ignore[no-untyped-def]
     return _pycolmap().Rigid3d(np.ascontiguousarray(cam_T_world[:3, :4], dtype=np.float64))
 
 
-def _colmap_camera(camera: PinholeCamera, camera_id: int = 1):  # type: ignore[no-untyped-def]
-    pc = _pycolmap()
+#: COLMAP's coordinate of a pixel centre minus OpenCV's (px, both axes).
+COLMAP_PIXEL_OFFSET = 0.5
+
+
+def colmap_pinhole_params(camera: PinholeCamera) -> list[float]:
+    """PINHOLE ``[fx, fy, cx, cy]`` of the undistorted ``camera`` in COLMAP's pixel convention.
+
+    COLMAP's camera models put the upper-left image corner at (0, 0), so pixel (0, 0) is
+    centred at (0.5, 0.5) (``src/colmap/sensor/models.h``, header comment; its SIFT keypoints
+    and ``Camera.create``'s default principal point ``(width / 2, height / 2)`` agree). The
+    project's ``K`` is OpenCV's (pixel (0, 0) centred at (0, 0)): the principal point moves by
+    +0.5 px, focal lengths stay (colmap/colmap#2587 and its FAQ, PR #4566). Every camera handed
+    to COLMAP comes from here: the feature database and the ``sparse/0`` model alike.
+    """
     if camera.has_distortion:
         raise BraveError("COLMAP model: the camera must be undistorted (PINHOLE)")
-    return pc.Camera(model="PINHOLE", width=camera.width, height=camera.height,
-                     params=[camera.fx, camera.fy, camera.cx, camera.cy], camera_id=camera_id)
+    return [float(camera.fx), float(camera.fy), float(camera.cx) + COLMAP_PIXEL_OFFSET,
+            float(camera.cy) + COLMAP_PIXEL_OFFSET]
+
+
+def _colmap_camera(camera: PinholeCamera, camera_id: int = 1):  # type: ignore[no-untyped-def]
+    return _pycolmap().Camera(model="PINHOLE", width=camera.width, height=camera.height,
+                              params=colmap_pinhole_params(camera), camera_id=camera_id)
 
 
 def empty_reconstruction(camera: PinholeCamera, images: list[tuple[str, NDArray[np.float64]]]):  # type: ignore[no-untyped-def]
@@ -185,7 +203,7 @@ def triangulate(
     names = [n for n, _ in images]
     pose_of = dict(images)
     reader = pc.ImageReaderOptions(camera_model="PINHOLE",
-                                   camera_params=f"{camera.fx!r},{camera.fy!r},{camera.cx!r},{camera.cy!r}")
+                                   camera_params=",".join(repr(p) for p in colmap_pinhole_params(camera)))
     extraction = pc.FeatureExtractionOptions()
     extraction.num_threads = options.num_threads
     extraction.sift.max_num_features = options.max_features
@@ -329,8 +347,11 @@ def workspace_box(scene: SceneDir | None, data: TrainingData) -> tuple[NDArray[n
 # ----------------------------------------------------------------------------- reuse
 def model_stamp(camera: PinholeCamera, images: list[tuple[str, NDArray[np.float64]]], options: ColmapOptions,
                 contents: dict[str, str] | None = None) -> str:
-    """Hash of what a triangulation depends on: camera, image names, poses and contents, options."""
-    payload = json.dumps({"camera": camera.to_json(), "options": repr(options),
+    """Hash of what a triangulation depends on: camera (and the pixel offset COLMAP was given it
+    with, so models made before that conversion are not reused), image names, poses and
+    contents, options."""
+    payload = json.dumps({"camera": camera.to_json(), "colmap_pixel_offset": COLMAP_PIXEL_OFFSET,
+                          "options": repr(options),
                           "images": [(n, np.round(T, 12).tolist()) for n, T in images],
                           "contents": contents or {}}, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()

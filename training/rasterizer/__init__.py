@@ -11,6 +11,9 @@
   (EWA projection with the Jacobian clamp, eps2d = 0.3 px^2, opacity-aware 3.33 sigma
   boxes, 16 px tiles, depth order, alpha <= 0.999, skip below 1/255, stop before T <= 1e-4,
   SH up to degree 3 shifted by +0.5 and clamped at 0).
+* Intrinsics: ``Ks`` use OpenCV's pixel centres (integer coordinates, the project's ``K``);
+  the principal point is moved +0.5 px into gsplat's convention once, for both backends
+  (``_pixels``).
 * ``auto``: follows the tensors (CUDA tensors -> ``cuda``, CPU tensors -> ``cpu``).
 * ``_torch_reference``: a slow pure-torch implementation, only for tests and benchmarks.
 

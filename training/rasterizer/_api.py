@@ -56,7 +56,10 @@ def rasterize(
             evaluated from the camera centre towards the mean, shifted by +0.5 and clamped
             at 0, like gsplat.
         viewmats: [C, 4, 4] world-to-camera transforms (OpenCV camera axes).
-        Ks: [C, 3, 3] pinhole intrinsics.
+        Ks: [C, 3, 3] pinhole intrinsics in OpenCV's pixel convention (pixel ``(u, v)``
+            centred at integer ``(u, v)``, the project's ``K``); both backends shift the
+            principal point by +0.5 px into gsplat's convention (see ``_pixels``), so a
+            point ``X`` renders centred at ``K @ X`` like in the simulator's images.
         width, height: image size in pixels.
         sh_degree: SH degree to evaluate, or None for plain RGB colours.
         near_plane, far_plane: Gaussians whose camera depth lies outside are culled.
@@ -70,7 +73,8 @@ def rasterize(
         ``(render_colors [C,H,W,3], render_depth [C,H,W,1], render_alphas [C,H,W,1], info)``.
         ``render_depth`` is the expected depth (accumulated depth / alpha).  ``info`` is
         compatible with gsplat 1.5.3's ``DefaultStrategy`` (non-packed): ``means2d`` [C,N,2]
-        (call ``retain_grad`` before backward), ``radii`` [C,N,2] int32, ``depths``,
+        (gsplat's pixel coordinates, OpenCV's + 0.5; call ``retain_grad`` before backward),
+        ``radii`` [C,N,2] int32, ``depths``,
         ``conics``, ``width``, ``height``, ``n_cameras``, ``gaussian_ids`` (None), plus
         ``visible`` [C,N] bool.
 

@@ -14,6 +14,9 @@ Rules (applied identically before every backend, so all backends agree):
   backends (radius 0, zero gradient), as are Gaussians whose projection is degenerate.
 * Opacities are used as given (already activated, like gsplat): alpha is capped at
   ``ALPHA_MAX`` and skipped below ``ALPHA_THRESHOLD``.
+* ``Ks`` arrive in the project's OpenCV convention (pixel centres at integer coordinates) and
+  leave in gsplat's (centres at +0.5): the principal point moves by +0.5 px here, once, for
+  every backend (see ``_pixels``).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from torch import Tensor
 from brave6d.errors import BraveError
 
 from ._constants import QUAT_MIN_SQNORM, SCALE_MAX, SCALE_MIN
+from ._pixels import gsplat_intrinsics
 
 MAX_SH_DEGREE = 3
 
@@ -50,7 +54,7 @@ class RasterInputs:
     opacities: Tensor  # [N]
     colors: Tensor  # [N, 3], [C, N, 3], [N, K, 3] or [C, N, K, 3]
     viewmats: Tensor  # [C, 4, 4]
-    Ks: Tensor  # [C, 3, 3]
+    Ks: Tensor  # [C, 3, 3], gsplat's pixel convention (the caller's OpenCV K, cx and cy + 0.5)
     backgrounds: Tensor | None  # [C, 3] or None
     width: int
     height: int
@@ -264,7 +268,7 @@ def prepare_inputs(
         opacities=opacities,
         colors=colors,
         viewmats=viewmats,
-        Ks=Ks,
+        Ks=gsplat_intrinsics(Ks),
         backgrounds=backgrounds,
         width=int(width),
         height=int(height),
