@@ -4,9 +4,10 @@
 
 1. per view: skip it with a reason when the board is missing, has too few or collinear
    corners, or solvePnP fails or fits badly; else ``cam_T_board`` by IPPE + Levenberg-Marquardt;
-2. :func:`~calibration.conditioning.check_handeye_conditioning` on the usable views (clear
-   error naming the cause: too few / duplicated poses, pure translations, small rotation
-   span, near-parallel rotation axes, robot and camera motions that disagree);
+2. :func:`~calibration.closed_form.handeye_motions`, the gate shared with
+   :func:`~calibration.closed_form.solve_closed_form`: the conditioning check on the usable
+   views (clear error naming the cause: too few / duplicated poses, pure translations, small
+   rotation span, near-parallel rotation axes, robot and camera motions that disagree);
 3. every closed-form solver of :mod:`calibration.closed_form`; for each, the best-fitting
    board pose and its residuals;
 4. the joint refinement of :mod:`calibration.refine` from the closed-form solution with the
@@ -34,7 +35,7 @@ from scipy.spatial.transform import Rotation
 from brave6d.errors import BraveError, DegenerateGeometryError
 from brave6d.transforms import check_rigid, make_transform
 from calibration.board import CharucoDetection
-from calibration.closed_form import CLOSED_FORM_METHODS, PairMode, motion_pairs
+from calibration.closed_form import CLOSED_FORM_METHODS, PairMode, handeye_motions
 from calibration.conditioning import ConditioningThresholds, check_handeye_conditioning
 from calibration.handeye_result import (
     FitSummary,
@@ -254,10 +255,10 @@ def calibrate_handeye(
             f"{opts.conditioning.min_poses} needed (skipped: {reasons})"
         )
     names = [r.name for r in reports if r.used]
-    conditioning = check_handeye_conditioning(list(data.G), list(data.C), opts.conditioning, names)
+    A, B, conditioning = handeye_motions(list(data.G), list(data.C), opts.pairs, opts.conditioning, names)
 
     t_start = time.perf_counter()
-    rows = _closed_form_rows(data, K_arr, dist_arr, opts)
+    rows = _closed_form_rows(A, B, data, K_arr, dist_arr, opts)
     good = [r for r in rows if r.tcp_T_cam is not None and r.base_T_board is not None and r.residuals is not None]
     if not good:
         raise DegenerateGeometryError(
@@ -345,9 +346,11 @@ def calibrate_handeye(
     )
 
 
-def _closed_form_rows(data: CornerData, K: Array, dist: Array, opts: HandEyeOptions) -> list[MethodResult]:
-    """Every closed-form method with its best board pose and residuals (or its failure)."""
-    A, B = motion_pairs(data.G, data.C, opts.pairs)
+def _closed_form_rows(
+    A: Array, B: Array, data: CornerData, K: Array, dist: Array, opts: HandEyeOptions
+) -> list[MethodResult]:
+    """Every closed-form method on the checked motions ``A, B`` (:func:`handeye_motions`) with
+    its best board pose and residuals (or its failure)."""
     rows: list[MethodResult] = []
     for method in opts.methods:
         t0 = time.perf_counter()

@@ -11,9 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from brave6d.errors import DegenerateGeometryError
+from brave6d.errors import DegenerateGeometryError, NonRigidTransformError
 from brave6d.transforms import invert, make_transform, rotation_distance
 from calibration.closed_form import CLOSED_FORM_METHODS, motion_pairs, solve_closed_form
+from calibration.conditioning import ConditioningThresholds
 from calibration.synthetic import perturb_pose
 
 OPENCV = {"tsai": cv2.CALIB_HAND_EYE_TSAI, "park": cv2.CALIB_HAND_EYE_PARK, "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS}
@@ -60,8 +61,8 @@ def test_closed_form_recovers_truth_on_clean_data(method: str, rpy) -> None:
 def test_closed_form_property_clean(rotvec, t, seed, n) -> None:
     X = make_transform(Rotation.from_rotvec(rotvec).as_matrix(), t)
     G, C = _poses(X, n, np.random.default_rng(seed))
-    for method in CLOSED_FORM_METHODS:
-        mm, deg = _err(solve_closed_form(G, C, method), X)
+    for method in CLOSED_FORM_METHODS:  # accuracy on clean data, not conditioning: only the necessary checks
+        mm, deg = _err(solve_closed_form(G, C, method, thresholds=ConditioningThresholds.relaxed()), X)
         assert mm < 1e-5 and deg < 1e-5, method
 
 
@@ -101,9 +102,12 @@ def test_consecutive_pairs_use_only_neighbours() -> None:
 def test_closed_form_needs_two_motions() -> None:
     X = np.eye(4)
     G, C = _poses(X, 2, np.random.default_rng(0))
-    for method in CLOSED_FORM_METHODS:
-        with pytest.raises(DegenerateGeometryError, match="at least 2"):
+    A, B = motion_pairs(G, C)
+    for method, solver in CLOSED_FORM_METHODS.items():
+        with pytest.raises(DegenerateGeometryError, match="too few poses"):
             solve_closed_form(G, C, method, pairs="consecutive")
+        with pytest.raises(DegenerateGeometryError, match="at least 2"):
+            solver(A, B)
     with pytest.raises(ValueError, match="unknown hand-eye method"):
         solve_closed_form(G, C, "horaud")
 
@@ -115,3 +119,63 @@ def test_motion_pairs_satisfy_axxb() -> None:
     assert len(A) == 10
     for a, b in zip(A, B, strict=True):
         assert a @ X == pytest.approx(X @ b, abs=1e-12)
+
+
+# ----------------------------------------------------------------------------- degenerate motions
+def _noisy(T: np.ndarray, mm: float, deg: float, rng: np.random.Generator) -> np.ndarray:
+    """``T`` times a random rigid error (rotation vector deg, translation mm, per axis)."""
+    E = make_transform(Rotation.from_rotvec(np.radians(rng.normal(0.0, deg, 3))).as_matrix(), rng.normal(0.0, mm, 3) / 1000)
+    return T @ E
+
+
+def _pairs_of(X: np.ndarray, turns: list[np.ndarray], rng: np.random.Generator, noise_mm: float = 0.0):
+    """Robot and board poses of cameras ``G0 @ turn`` (TCP moved by ``turn``), measured with noise."""
+    G0 = make_transform(Rotation.from_euler("xyz", [170, 5, 30], degrees=True).as_matrix(), [0.45, -0.05, 0.5])
+    G, C = [], []
+    for turn in turns:
+        g = G0 @ turn
+        G.append(_noisy(g, noise_mm, noise_mm / 10, rng))
+        C.append(_noisy(invert(g @ X) @ BOARD, noise_mm, noise_mm / 10, rng))
+    return G, C
+
+
+def _degenerate(case: str, noise_mm: float):
+    rng = np.random.default_rng(11)
+    X = make_transform(Rotation.from_euler("xyz", [1.5, -2, 91], degrees=True).as_matrix(), [0.032, -0.061, 0.047])
+    shifts = rng.normal(0.0, 0.06, (8, 3))
+    if case == "pure translations":
+        turns = [make_transform(np.eye(3), d) for d in shifts]
+    elif case == "one rotation axis":
+        axis = np.array([0.2, 0.9, 0.4]) / np.linalg.norm([0.2, 0.9, 0.4])
+        turns = [make_transform(Rotation.from_rotvec(math.radians(a) * axis).as_matrix(), d)
+                 for a, d in zip(np.linspace(-40, 40, 8), shifts, strict=True)]
+    elif case == "identical poses":
+        turns = [np.eye(4)] * 6
+    else:
+        raise AssertionError(case)
+    return (X, *_pairs_of(X, turns, rng, noise_mm))
+
+
+@pytest.mark.parametrize("noise_mm", [0.0, 0.1])
+@pytest.mark.parametrize(("case", "cause"), [
+    ("pure translations", r"pure translations: .*largest rotation between two poses 0\.\d\d deg < 1 deg"),
+    ("one rotation axis", r"near-parallel rotation axes: .* 0\.\d deg < 10 deg"),
+    ("identical poses", r"duplicated poses: views 0 and 1"),
+])
+@pytest.mark.parametrize("method", sorted(CLOSED_FORM_METHODS))
+def test_degenerate_motions_raise_the_named_error(method: str, case: str, cause: str, noise_mm: float) -> None:
+    """The answers were 1e17 mm (pure translations), 30-270 mm off (one axis), 120 mm off
+    (identical poses), returned without a word; OpenCV's calibrateHandEye does the same."""
+    _, G, C = _degenerate(case, noise_mm)
+    with pytest.raises(DegenerateGeometryError, match=cause):
+        solve_closed_form(G, C, method)
+
+
+@pytest.mark.parametrize("method", sorted(CLOSED_FORM_METHODS))
+@pytest.mark.parametrize("which", ["base_T_tcp", "cam_T_board"])
+def test_nan_input_is_named(method: str, which: str) -> None:
+    X = make_transform(Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix(), [0.01, 0.02, 0.03])
+    G, C = _poses(X, 6, np.random.default_rng(3))
+    (G if which == "base_T_tcp" else C)[2] = np.full((4, 4), np.nan)
+    with pytest.raises(NonRigidTransformError, match=f"{which} of view 2: contains NaN or inf"):
+        solve_closed_form(G, C, method)
