@@ -179,3 +179,71 @@ def test_nan_input_is_named(method: str, which: str) -> None:
     (G if which == "base_T_tcp" else C)[2] = np.full((4, 4), np.nan)
     with pytest.raises(NonRigidTransformError, match=f"{which} of view 2: contains NaN or inf"):
         solve_closed_form(G, C, method)
+
+
+def _first_order_bounds(X: np.ndarray, G, C, rotation_error: float) -> tuple[float, float, float]:
+    """What the conditioning allows: ``(rotation rad, translation m, sigma_min(R_A - I) / sqrt(P))``.
+
+    ``A X = X B`` is solved as two linear least-squares problems, rotation ``alpha = R_X beta``
+    (log-map axes) then translation ``(R_A - I) t_X = R_X t_B - t_A``. A least-squares solution
+    moves from the truth by at most ``|r| / sigma_min(J)`` to first order, ``r`` the residual of
+    the truth on the noisy data and ``J`` the system's matrix. The translation's right-hand side
+    also carries the rotation's own error times the lever arms ``|t_B|``.
+    """
+    A, B = motion_pairs(G, C)
+    alpha = Rotation.from_matrix(A[:, :3, :3]).as_rotvec()
+    beta = Rotation.from_matrix(B[:, :3, :3]).as_rotvec()
+    R, t = X[:3, :3], X[:3, 3]
+    J_rot = np.concatenate([np.cross(a, np.eye(3)) for a in alpha])  # d(alpha - R beta)/d(small turn of R)
+    r_rot = (alpha - beta @ R.T).ravel()
+    M = (A[:, :3, :3] - np.eye(3)).reshape(-1, 3)
+    r_t = M @ t - (B[:, :3, 3] @ R.T - A[:, :3, 3]).ravel()
+    s_rot = np.linalg.svd(J_rot, compute_uv=False)[-1]
+    s_t = np.linalg.svd(M, compute_uv=False)[-1]
+    rot = np.linalg.norm(r_rot) / s_rot
+    trans = (np.linalg.norm(r_t) + rotation_error * np.linalg.norm(B[:, :3, 3])) / s_t
+    return float(rot), float(trans), float(s_t / math.sqrt(len(A)))
+
+
+_CAUSES = ("near-parallel rotation axes", "rotation span too small", "pure translations", "duplicated poses")
+
+
+@given(
+    n=st.integers(3, 12),
+    cone_deg=st.sampled_from([0.0, 0.01, 0.5, 2.0, 5.0, 10.0, 20.0, 45.0]) | st.floats(0.0, 45.0),
+    max_turn_deg=st.sampled_from([1e-3, 0.05, 0.5, 2.0, 10.0, 30.0, 60.0]) | st.floats(1e-4, 60.0),
+    noise_mm=st.sampled_from([0.0, 0.02, 0.1]),
+    seed=st.integers(0, 2**32 - 1),
+)
+@settings(max_examples=60, deadline=None)
+def test_near_degenerate_motions_raise_or_stay_within_their_conditioning(n, cone_deg, max_turn_deg, noise_mm, seed):
+    """Near-parallel rotation axes (a cone around one axis) and tiny rotations, with pose noise
+    (robot and board, ``noise_mm`` and ``noise_mm / 10`` deg per axis): each solver raises the
+    named error or returns a finite answer within 3x the first-order bound of the conditioning,
+    and an accepted pose set is conditioned as the check promises: the translation system's
+    smallest singular value per pair is at least (2 / pi) x the weakest rotation of 3 deg, so
+    the motion noise is amplified at most ~30x."""
+    rng = np.random.default_rng(seed)
+    X = make_transform(Rotation.random(random_state=seed).as_matrix(), rng.normal(0.0, 0.05, 3))
+    a0 = rng.normal(size=3)
+    a0 /= np.linalg.norm(a0)
+    turns = []
+    for _ in range(n):
+        perp = np.cross(a0, rng.normal(size=3))
+        axis = Rotation.from_rotvec(math.radians(rng.uniform(0.0, cone_deg)) * perp / np.linalg.norm(perp)).apply(a0)
+        R = Rotation.from_rotvec(math.radians(rng.uniform(-max_turn_deg, max_turn_deg)) * axis).as_matrix()
+        turns.append(make_transform(R, rng.normal(0.0, 0.08, 3)))
+    G, C = _pairs_of(X, turns, rng, noise_mm)
+    for method in CLOSED_FORM_METHODS:
+        try:
+            Y = solve_closed_form(G, C, method)
+        except DegenerateGeometryError as exc:
+            assert any(str(exc).startswith(c) for c in _CAUSES), str(exc)
+            continue
+        assert np.all(np.isfinite(Y)), method
+        rot_err = rotation_distance(Y, X)
+        trans_err = float(np.linalg.norm(Y[:3, 3] - X[:3, 3]))
+        rot_tol, trans_tol, weakest = _first_order_bounds(X, G, C, rot_err)
+        assert weakest >= 0.6 * math.radians(3.0), (method, weakest)  # what the accepted conditioning guarantees
+        assert rot_err <= 3.0 * rot_tol + 1e-9, (method, rot_err, rot_tol)
+        assert trans_err <= 3.0 * trans_tol + 1e-9, (method, trans_err, trans_tol)
