@@ -21,6 +21,14 @@ uses only neighbouring views, e.g. for very long sequences).
 
 Motion pairs rotating by more than ``max_rotation_deg`` (default 170) are left out: near 180
 deg the quaternion sign of a motion is ambiguous under noise.
+
+Degenerate inputs are refused before any solver runs: :func:`handeye_motions` (used by
+:func:`solve_closed_form` and :func:`~calibration.handeye.calibrate_handeye`) runs
+:func:`~calibration.conditioning.check_handeye_conditioning` on the poses, which raises
+:class:`DegenerateGeometryError` naming the cause (too few or duplicated poses, pure
+translations, small rotation span, a single rotation axis, robot and camera motions that
+disagree) or :class:`NonRigidTransformError` naming the view (NaN/inf, scaled matrices). The
+per-method solvers (``solve_tsai`` ...) take motions and assume they passed that check.
 """
 
 from __future__ import annotations
@@ -34,9 +42,11 @@ from scipy.spatial.transform import Rotation
 
 from brave6d.errors import DegenerateGeometryError
 from brave6d.transforms import invert, make_transform
+from calibration.conditioning import ConditioningReport, ConditioningThresholds, check_handeye_conditioning
 
 __all__ = [
     "CLOSED_FORM_METHODS",
+    "handeye_motions",
     "motion_pairs",
     "solve_closed_form",
     "solve_daniilidis",
@@ -82,6 +92,21 @@ def motion_pairs(
     angle = np.degrees(Rotation.from_matrix(A[:, :3, :3]).magnitude()) if len(A) else np.zeros(0)
     keep = angle <= max_rotation_deg
     return A[keep], B[keep]
+
+
+def handeye_motions(
+    base_T_tcp: Sequence[ArrayLike],
+    cam_T_board: Sequence[ArrayLike],
+    pairs: PairMode = "all",
+    thresholds: ConditioningThresholds | None = None,
+    names: Sequence[str] | None = None,
+) -> tuple[Array, Array, ConditioningReport]:
+    """``(A, B, report)``: the motions of :func:`motion_pairs` for poses that pass
+    :func:`~calibration.conditioning.check_handeye_conditioning`, which raises naming the cause
+    otherwise. The one gate between poses and every closed-form solver."""
+    report = check_handeye_conditioning(base_T_tcp, cam_T_board, thresholds, names)
+    A, B = motion_pairs(base_T_tcp, cam_T_board, pairs)
+    return A, B, report
 
 
 def _check_count(A: Array, name: str) -> None:
@@ -228,11 +253,18 @@ def solve_closed_form(
     cam_T_board: Sequence[ArrayLike],
     method: str = "park",
     pairs: PairMode = "all",
+    thresholds: ConditioningThresholds | None = None,
 ) -> Array:
-    """``tcp_T_cam`` by one closed-form method (``"tsai"``, ``"park"`` or ``"daniilidis"``)."""
+    """``tcp_T_cam`` by one closed-form method (``"tsai"``, ``"park"`` or ``"daniilidis"``).
+
+    Raises :class:`DegenerateGeometryError` naming the cause when the poses cannot determine
+    ``tcp_T_cam`` (the checks of :func:`~calibration.conditioning.check_handeye_conditioning`
+    with ``thresholds``, the same as :func:`~calibration.handeye.calibrate_handeye`), and
+    :class:`NonRigidTransformError` naming the view for a NaN or non-rigid pose.
+    """
     if method not in CLOSED_FORM_METHODS:
         raise ValueError(f"unknown hand-eye method {method!r}; choose from {sorted(CLOSED_FORM_METHODS)}")
-    A, B = motion_pairs(base_T_tcp, cam_T_board, pairs)
+    A, B, _ = handeye_motions(base_T_tcp, cam_T_board, pairs, thresholds)
     X = CLOSED_FORM_METHODS[method](A, B)
     if not np.all(np.isfinite(X)):
         raise DegenerateGeometryError(f"{method}: the closed-form solution is not finite (degenerate motions)")

@@ -6,6 +6,11 @@ determines ``X = tcp_T_cam`` only if the motions rotate about at least two non-p
 * pure translations leave the rotation of ``X`` undetermined;
 * rotations about one axis leave the translation of ``X`` along that axis undetermined;
 * small rotations amplify measurement noise (roughly as 1 / rotation span);
+* motions whose axes spread only a little (or spread only through small rotations) leave one
+  direction weakly determined: the noise of the motions reaches the translation of ``X``
+  along it, and its rotation about it, amplified by ``1 / weakest rotation`` (rad), where the
+  weakest rotation is the RMS over view pairs of the rotation perpendicular to that direction
+  (:func:`weakest_rotation`);
 * duplicated poses add no information and usually mean a capture or bookkeeping error.
 
 :func:`check_handeye_conditioning` raises :class:`DegenerateGeometryError` naming the cause,
@@ -22,15 +27,21 @@ pure_translation_deg       1.0         all relative rotations below: pure transl
 min_rotation_span_deg      15.0        largest rotation between two poses must reach this
 axis_min_rotation_deg      5.0         motions rotating less do not define an axis
 min_axis_angle_deg         10.0        largest angle between two motion axes must reach this
+min_weakest_rotation_deg   3.0         RMS rotation about the worst direction must reach this
 max_angle_mismatch_deg     3.0         median |angle(A) - angle(B)| (robot vs camera motion)
 recommended_poses          10          fewer: warning
 recommended_span_deg       30.0        smaller span: warning
 recommended_axis_angle_deg 30.0        smaller axis spread: warning
+recommended_weakest_deg    10.0        smaller weakest rotation: warning
 =========================  ==========  ===================================================
+
+With the defaults, a pose set that passes amplifies the motion noise into ``tcp_T_cam`` by at
+most about 20x (1 / 3 deg in rad); the plans of :mod:`calibration.plan` reach 30-40 deg.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -42,7 +53,13 @@ from scipy.spatial.transform import Rotation
 from brave6d.errors import DegenerateGeometryError
 from brave6d.transforms import check_rigid
 
-__all__ = ["ConditioningReport", "ConditioningThresholds", "check_handeye_conditioning", "relative_motions"]
+__all__ = [
+    "ConditioningReport",
+    "ConditioningThresholds",
+    "check_handeye_conditioning",
+    "relative_motions",
+    "weakest_rotation",
+]
 
 _MAX_AXES = 1500  # pairwise axis comparison is O(n^2): keep the largest-rotation motions
 
@@ -58,17 +75,19 @@ class ConditioningThresholds:
     min_rotation_span_deg: float = 15.0
     axis_min_rotation_deg: float = 5.0
     min_axis_angle_deg: float = 10.0
+    min_weakest_rotation_deg: float = 3.0
     max_angle_mismatch_deg: float = 3.0
     recommended_poses: int = 10
     recommended_span_deg: float = 30.0
     recommended_axis_angle_deg: float = 30.0
+    recommended_weakest_deg: float = 10.0
 
     @staticmethod
     def relaxed() -> ConditioningThresholds:
         """Only the mathematically necessary checks (for studies that measure bad geometry)."""
         return ConditioningThresholds(
             pure_translation_deg=0.05, min_rotation_span_deg=0.1, axis_min_rotation_deg=0.05,
-            min_axis_angle_deg=0.5, max_angle_mismatch_deg=180.0, duplicate_translation_m=0.0,
+            min_axis_angle_deg=0.5, min_weakest_rotation_deg=0.05, max_angle_mismatch_deg=180.0, duplicate_translation_m=0.0,
             duplicate_rotation_deg=0.0,
         )
 
@@ -82,6 +101,7 @@ class ConditioningReport:
     max_axis_angle_deg: float
     median_angle_mismatch_deg: float | None
     warnings: tuple[str, ...] = field(default_factory=tuple)
+    weakest_rotation_deg: float | None = None
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -94,6 +114,7 @@ class ConditioningReport:
             int(data["n_poses"]), float(data["rotation_span_deg"]), float(data["max_axis_angle_deg"]),
             None if data.get("median_angle_mismatch_deg") is None else float(data["median_angle_mismatch_deg"]),
             tuple(data.get("warnings", ())),
+            None if data.get("weakest_rotation_deg") is None else float(data["weakest_rotation_deg"]),
         )
 
 
@@ -114,6 +135,20 @@ def relative_motions(
     else:
         rel = np.einsum("pba,pbc->pac", R[j], R[i])  # R_j^T R_i
     return np.stack([i, j], axis=1), rel
+
+
+def weakest_rotation(rotvecs: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+    """``(angle rad, unit direction u)``: the direction that the motions (rotation vectors, (P, 3))
+    turn least, i.e. the one they mostly rotate about, and the RMS over motions of their rotation
+    perpendicular to it, ``sqrt(min_u sum_p |r_p x u|^2 / P)``. Zero for pure translations or a
+    single axis; to first order the smallest singular value (over sqrt(P)) of the linear systems
+    of ``A X = X B``, so ``1 / angle`` is how much they amplify the motions' noise."""
+    r = np.asarray(rotvecs, dtype=np.float64).reshape(-1, 3)
+    if not len(r):
+        return 0.0, np.array([0.0, 0.0, 1.0])
+    S = np.sum(r * r) * np.eye(3) - r.T @ r
+    ev, evec = np.linalg.eigh(S)
+    return float(np.sqrt(max(ev[0], 0.0) / len(r))), evec[:, 0]
 
 
 def _max_axis_angle_deg(axes: NDArray[np.float64]) -> float:
@@ -183,6 +218,15 @@ def check_handeye_conditioning(
             f"{axis_angle:.1f} deg < {th.min_axis_angle_deg:g} deg (rotations about a single axis leave the "
             "camera offset along that axis undetermined); add rotations about a second, different axis"
         )
+    weak_rad, weak_dir = weakest_rotation(Rotation.from_matrix(rel).as_rotvec())
+    weak = math.degrees(weak_rad)
+    if weak < th.min_weakest_rotation_deg:
+        raise DegenerateGeometryError(
+            f"near-parallel rotation axes: the robot motions turn the direction {np.round(weak_dir, 2).tolist()} "
+            f"(TCP frame) by only {weak:.2f} deg (RMS over view pairs) < {th.min_weakest_rotation_deg:g} deg, nearly "
+            "all rotations are about it, so the camera offset along it is poorly determined (noise amplified "
+            f"{1.0 / max(weak_rad, 1e-12):.0f}x); add rotations about an axis perpendicular to it"
+        )
 
     mismatch: float | None = None
     warnings: list[str] = []
@@ -215,4 +259,9 @@ def check_handeye_conditioning(
         warnings.append(
             f"rotation axes spread only {axis_angle:.1f} deg (recommended {th.recommended_axis_angle_deg:g} deg+)"
         )
-    return ConditioningReport(n, span, axis_angle, mismatch, tuple(warnings))
+    if weak < th.recommended_weakest_deg:
+        warnings.append(
+            f"the motions turn the direction {np.round(weak_dir, 2).tolist()} (TCP frame) by only {weak:.1f} deg "
+            f"(RMS; recommended {th.recommended_weakest_deg:g} deg+): rotate more about axes perpendicular to it"
+        )
+    return ConditioningReport(n, span, axis_angle, mismatch, tuple(warnings), weak)

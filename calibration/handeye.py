@@ -4,13 +4,16 @@
 
 1. per view: skip it with a reason when the board is missing, has too few or collinear
    corners, or solvePnP fails or fits badly; else ``cam_T_board`` by IPPE + Levenberg-Marquardt;
-2. :func:`~calibration.conditioning.check_handeye_conditioning` on the usable views (clear
-   error naming the cause: too few / duplicated poses, pure translations, small rotation
-   span, near-parallel rotation axes, robot and camera motions that disagree);
+2. :func:`~calibration.closed_form.handeye_motions`, the gate shared with
+   :func:`~calibration.closed_form.solve_closed_form`: the conditioning check on the usable
+   views (clear error naming the cause: too few / duplicated poses, pure translations, small
+   rotation span, near-parallel rotation axes, robot and camera motions that disagree);
 3. every closed-form solver of :mod:`calibration.closed_form`; for each, the best-fitting
    board pose and its residuals;
 4. the joint refinement of :mod:`calibration.refine` from the closed-form solution with the
-   lowest reprojection RMS;
+   lowest reprojection RMS, with the robot's pose noise re-estimated from its corrections (the
+   configured sigmas are starting values; a robot 10x noisier than configured no longer makes
+   the answer worse than the closed forms, nor its 1-sigma too small);
 5. residuals in px, mm and deg, a 1-sigma uncertainty, per-view reports. A result whose
    uncertainty exceeds ``max_sigma_mm``/``max_sigma_deg`` raises instead of being returned.
 
@@ -34,7 +37,7 @@ from scipy.spatial.transform import Rotation
 from brave6d.errors import BraveError, DegenerateGeometryError
 from brave6d.transforms import check_rigid, make_transform
 from calibration.board import CharucoDetection
-from calibration.closed_form import CLOSED_FORM_METHODS, PairMode, motion_pairs
+from calibration.closed_form import CLOSED_FORM_METHODS, PairMode, handeye_motions
 from calibration.conditioning import ConditioningThresholds, check_handeye_conditioning
 from calibration.handeye_result import (
     FitSummary,
@@ -84,6 +87,10 @@ class HandEyeOptions:
     ``loss``/``f_scale_px``: robust loss of scipy's ``least_squares`` and its scale in pixels.
     ``robot_sigma_mm``/``robot_sigma_deg``/``pixel_sigma_px``: noise model of the refinement
     (:mod:`calibration.refine`; robot sigmas None = robot poses taken as exact).
+    ``estimate_robot_noise``: the robot sigmas are starting values, re-estimated from the
+    refinement's robot pose corrections (a robot 10x less accurate than configured would
+    otherwise bend the result and shrink its 1-sigma); a warning names an estimate more than
+    2x off the configured value. False keeps them fixed.
     ``min_corners``: fewer corners in a view -> view skipped. ``max_pnp_rms_px``: a view whose
     own PnP fit is worse is skipped (wrong detection or wrong intrinsics).
     ``max_sigma_mm``/``max_sigma_deg``: a result whose 1-sigma uncertainty (norm over the axes)
@@ -103,6 +110,7 @@ class HandEyeOptions:
     robot_sigma_mm: float | None = 0.1
     robot_sigma_deg: float | None = 0.01
     pixel_sigma_px: float | None = None
+    estimate_robot_noise: bool = True
     min_corners: int = 6
     max_pnp_rms_px: float = 5.0
     conditioning: ConditioningThresholds = field(default_factory=ConditioningThresholds)
@@ -120,6 +128,7 @@ class HandEyeOptions:
             robot_sigma_mm=self.robot_sigma_mm if robot else None,
             robot_sigma_deg=self.robot_sigma_deg if robot else None,
             pixel_sigma_px=self.pixel_sigma_px, max_nfev=self.max_nfev, intrinsics_std=intrinsics_std,
+            estimate_robot_sigma=self.estimate_robot_noise,
         )
 
 
@@ -254,10 +263,10 @@ def calibrate_handeye(
             f"{opts.conditioning.min_poses} needed (skipped: {reasons})"
         )
     names = [r.name for r in reports if r.used]
-    conditioning = check_handeye_conditioning(list(data.G), list(data.C), opts.conditioning, names)
+    A, B, conditioning = handeye_motions(list(data.G), list(data.C), opts.pairs, opts.conditioning, names)
 
     t_start = time.perf_counter()
-    rows = _closed_form_rows(data, K_arr, dist_arr, opts)
+    rows = _closed_form_rows(A, B, data, K_arr, dist_arr, opts)
     good = [r for r in rows if r.tcp_T_cam is not None and r.base_T_board is not None and r.residuals is not None]
     if not good:
         raise DegenerateGeometryError(
@@ -298,7 +307,7 @@ def calibrate_handeye(
 
     warnings = list(conditioning.warnings)
     robot = settings.models_robot
-    corr_sigma = _correction_sigmas(ref.corrections, settings) if robot else np.zeros(len(kept))
+    corr_sigma = _correction_sigmas(ref) if robot else np.zeros(len(kept))
     corr_mm = 1000.0 * np.linalg.norm(ref.corrections[:, 3:], axis=1)
     corr_deg = np.degrees(np.linalg.norm(ref.corrections[:, :3], axis=1))
     final: dict[int, ViewReport] = {r.index: r for r in skipped}
@@ -325,18 +334,17 @@ def calibrate_handeye(
             k, base.name, True, reason, base.n_corners, rms, mean_w,
             float(corr_mm[j]) if robot else None, float(corr_deg[j]) if robot else None, tuple(float(x) for x in e),
         )
-    if robot and len(corr_sigma) and float(np.median(corr_sigma)) > 2.0:
-        warnings.append(
-            f"the typical robot pose correction is {float(np.median(corr_sigma)):.1f} sigma of the robot error model "
-            f"({opts.robot_sigma_mm} mm / {opts.robot_sigma_deg} deg): the robot is less accurate than assumed; "
-            "set robot_sigma_mm / robot_sigma_deg to its real accuracy"
-        )
+    if robot:
+        warnings += _robot_noise_warnings(ref, corr_sigma, opts)
+    estimated = robot and opts.estimate_robot_noise
     fit = FitSummary(
         fit_rms_px=float(np.sqrt(np.mean(ref.fit_errors_px**2))), pixel_sigma_px=ref.pixel_sigma_px,
-        robot_sigma_mm=opts.robot_sigma_mm if robot else None, robot_sigma_deg=opts.robot_sigma_deg if robot else None,
+        robot_sigma_mm=ref.robot_sigma_mm if robot else None, robot_sigma_deg=ref.robot_sigma_deg if robot else None,
         robot_correction_rms_mm=float(np.sqrt(np.mean(corr_mm**2))) if robot else None,
         robot_correction_rms_deg=float(np.sqrt(np.mean(corr_deg**2))) if robot else None,
         iterations=ref.nfev,
+        robot_sigma_configured_mm=opts.robot_sigma_mm if estimated else None,
+        robot_sigma_configured_deg=opts.robot_sigma_deg if estimated else None,
     )
     return HandEyeResult(
         method=method_name, tcp_T_cam=X, base_T_board=W, residuals=residuals, fit=fit, uncertainty=unc,
@@ -345,9 +353,11 @@ def calibrate_handeye(
     )
 
 
-def _closed_form_rows(data: CornerData, K: Array, dist: Array, opts: HandEyeOptions) -> list[MethodResult]:
-    """Every closed-form method with its best board pose and residuals (or its failure)."""
-    A, B = motion_pairs(data.G, data.C, opts.pairs)
+def _closed_form_rows(
+    A: Array, B: Array, data: CornerData, K: Array, dist: Array, opts: HandEyeOptions
+) -> list[MethodResult]:
+    """Every closed-form method on the checked motions ``A, B`` (:func:`handeye_motions`) with
+    its best board pose and residuals (or its failure)."""
     rows: list[MethodResult] = []
     for method in opts.methods:
         t0 = time.perf_counter()
@@ -372,11 +382,31 @@ def _rejudge(row: MethodResult, data: CornerData, K: Array, dist: Array, opts: H
     return replace(row, base_T_board=W, residuals=evaluate(row.tcp_T_cam, W, data, K, dist))
 
 
-def _correction_sigmas(corrections: Array, settings: RefineSettings) -> Array:
-    """Per view: RMS over the 6 components of the robot pose correction in units of its sigma."""
-    assert settings.robot_sigma_deg is not None and settings.robot_sigma_mm is not None
-    scale = np.r_[[1.0 / math.radians(settings.robot_sigma_deg)] * 3, [1.0 / (settings.robot_sigma_mm * 1e-3)] * 3]
-    return np.sqrt(np.mean((corrections * scale) ** 2, axis=1))
+def _correction_sigmas(ref: Refinement) -> Array:
+    """Per view: RMS over the 6 components of the robot pose correction in units of the sigma of
+    the refinement's robot error model."""
+    assert ref.robot_sigma_deg is not None and ref.robot_sigma_mm is not None
+    scale = np.r_[[1.0 / math.radians(ref.robot_sigma_deg)] * 3, [1.0 / (ref.robot_sigma_mm * 1e-3)] * 3]
+    return np.sqrt(np.mean((ref.corrections * scale) ** 2, axis=1))
+
+
+def _robot_noise_warnings(ref: Refinement, corr_sigma: Array, opts: HandEyeOptions) -> list[str]:
+    """A warning when the robot is (estimated to be, or its corrections say it is) much less or
+    more accurate than configured."""
+    assert ref.robot_sigma_mm and ref.robot_sigma_deg and opts.robot_sigma_mm and opts.robot_sigma_deg
+    configured = f"{opts.robot_sigma_mm:g} mm / {opts.robot_sigma_deg:g} deg"
+    advice = "set robot_sigma_mm / robot_sigma_deg to its real accuracy"
+    if opts.estimate_robot_noise:
+        ratios = (ref.robot_sigma_mm / opts.robot_sigma_mm, ref.robot_sigma_deg / opts.robot_sigma_deg)
+        if max(max(ratios), 1.0 / min(ratios)) <= 2.0:
+            return []
+        return [f"robot pose noise estimated from the refinement's corrections is {ref.robot_sigma_mm:.3g} mm / "
+                f"{ref.robot_sigma_deg:.3g} deg per axis ({ratios[0]:.2g}x / {ratios[1]:.2g}x the configured "
+                f"{configured}); the refinement used the estimate; {advice}"]
+    if len(corr_sigma) and float(np.median(corr_sigma)) > 2.0:
+        return [f"the typical robot pose correction is {float(np.median(corr_sigma)):.1f} sigma of the robot error "
+                f"model ({configured}): the robot is less accurate than assumed; {advice}"]
+    return []
 
 
 def _refine_dropping_outliers(
@@ -386,7 +416,8 @@ def _refine_dropping_outliers(
     """Refine; while the worst view needs a robot pose correction far beyond the error model
     (``max_correction_sigma`` and 3x the median view), drop it with a reason and refine again.
     Such a view's image and robot pose disagree (wrong pose/image pairing, robot moved, bad
-    detection); with its own free pose it would carry no information anyway."""
+    detection); with its own free pose it would carry no information anyway. The error model is
+    the refinement's own (estimated robot noise); each new refinement starts from it."""
     kept = list(range(data.n_views))
     dropped: dict[int, str] = {}
     max_drop = int(opts.max_outlier_fraction * data.n_views)
@@ -395,7 +426,8 @@ def _refine_dropping_outliers(
         ref = refine_handeye(X0, W0, sub, K, dist, settings)
         if not settings.models_robot or len(dropped) >= max_drop:
             return ref, kept, dropped
-        c = _correction_sigmas(ref.corrections, settings)
+        settings = replace(settings, robot_sigma_mm=ref.robot_sigma_mm, robot_sigma_deg=ref.robot_sigma_deg)
+        c = _correction_sigmas(ref)
         worst = int(np.argmax(c))
         if c[worst] <= opts.max_correction_sigma or c[worst] <= 3.0 * float(np.median(c)):
             return ref, kept, dropped

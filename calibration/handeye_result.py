@@ -132,7 +132,9 @@ class FitSummary:
     ``fit_rms_px``: reprojection RMS of the refinement's model (with the estimated robot pose
     corrections when ``robot_sigma_mm``/``robot_sigma_deg`` are set); ``pixel_sigma_px``: corner
     noise used to weight pixels against the robot error model (estimated from the residuals
-    unless given); ``robot_correction_rms_mm``/``_deg``: RMS of the estimated per-view robot
+    unless given); ``robot_sigma_mm``/``_deg``: the robot error model of the final fit (estimated
+    from the corrections when ``robot_sigma_configured_mm``/``_deg``, the configured starting
+    values, are set); ``robot_correction_rms_mm``/``_deg``: RMS of the estimated per-view robot
     pose corrections; ``iterations``: function evaluations of ``least_squares``.
     """
 
@@ -143,6 +145,8 @@ class FitSummary:
     robot_correction_rms_mm: float | None
     robot_correction_rms_deg: float | None
     iterations: int
+    robot_sigma_configured_mm: float | None = None
+    robot_sigma_configured_deg: float | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -153,6 +157,7 @@ class FitSummary:
             float(d["fit_rms_px"]), float(d["pixel_sigma_px"]), _opt_float(d.get("robot_sigma_mm")),
             _opt_float(d.get("robot_sigma_deg")), _opt_float(d.get("robot_correction_rms_mm")),
             _opt_float(d.get("robot_correction_rms_deg")), int(d["iterations"]),
+            _opt_float(d.get("robot_sigma_configured_mm")), _opt_float(d.get("robot_sigma_configured_deg")),
         )
 
 

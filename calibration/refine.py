@@ -16,7 +16,16 @@ axis, the spec's default robot pose error) each view also gets a TCP pose correc
 a noisy robot. Pixel residuals are whitened by the corner noise ``pixel_sigma_px``, estimated
 from the per-view PnP residuals (which robot errors cannot reach) unless given, and priors by
 the robot sigmas; the robust loss applies to both, so a view whose image and robot pose
-disagree grows a large correction instead of bending ``tcp_T_cam``. The Jacobian is sparse
+disagree grows a large correction instead of bending ``tcp_T_cam``.
+
+The configured robot sigmas are only a starting point (``estimate_robot_sigma``, default on):
+a robot that is really 10x less accurate than configured would have its errors pressed into
+``tcp_T_cam`` (and genuine views dropped as outliers, and a 1-sigma far too small). After each
+solve the rotation and translation sigmas are re-estimated from the corrections, a robust
+variance-component estimate (Foerstner): per view, the squared whitened corrections over their
+redundancy ``1 - h`` (``h`` the diagonal of the hat matrix), median over views, made consistent
+for chi-square with 3 degrees of freedom; the solve is repeated until they change by less than
+10%. The pixel noise needs no such step: it comes from the per-view PnP fits. The Jacobian is sparse
 (a view's corners depend on the 12 shared unknowns and its own 6), with exact trust-region
 steps up to 31 views and LSMR steps beyond. With the robot sigmas set to None the model is
 the plain 12-unknown one.
@@ -31,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -63,6 +72,10 @@ __all__ = [
 Array = NDArray[np.float64]
 _FD_STEP = 1e-7  # forward-difference step (rad, m)
 _DENSE_MAX_UNKNOWNS = 200  # up to 31 views with the robot model: exact steps; more views: LSMR
+_NOISE_ITERATIONS = 8  # most solves of the robot noise estimate (it converges in 2-4)
+_NOISE_TOLERANCE = 1.1  # stop when both sigmas change by less than this factor
+_NOISE_RANGE = 100.0  # the estimate stays within this factor of the configured sigmas
+_CHI2_3_MEDIAN = 2.365973884375338 / 3.0  # median of chi-square(3) / 3
 
 
 @dataclass(frozen=True)
@@ -220,6 +233,8 @@ class RefineSettings:
     ``intrinsics_std``: 1-sigma of the intrinsics (``fx, fy, cx, cy, k1, ...`` as in
     :attr:`~calibration.intrinsics.IntrinsicsResult.std`); their effect is added to the
     uncertainty of ``tcp_T_cam`` (a principal point error of 1 px turns the camera by 1/f rad).
+    ``estimate_robot_sigma``: the robot sigmas are starting values, re-estimated from the
+    corrections (see the module docstring); False keeps them fixed.
     """
 
     loss: str = "soft_l1"
@@ -229,6 +244,7 @@ class RefineSettings:
     pixel_sigma_px: float | None = None
     max_nfev: int = 100
     intrinsics_std: Mapping[str, float] | None = None
+    estimate_robot_sigma: bool = True
 
     @property
     def models_robot(self) -> bool:
@@ -239,7 +255,9 @@ class RefineSettings:
 class Refinement:
     """Output of :func:`refine_handeye`. ``corrections``: (V, 6) estimated TCP pose corrections
     (rotation vector rad, translation m, TCP frame; zeros without the robot model);
-    ``fit_errors_px`` (M,) and ``weights`` (M,) per corner, with those corrections applied."""
+    ``fit_errors_px`` (M,) and ``weights`` (M,) per corner, with those corrections applied;
+    ``robot_sigma_mm``/``robot_sigma_deg``: the robot error model of the final solve (estimated
+    when ``estimate_robot_sigma``; None without the robot model)."""
 
     tcp_T_cam: Array
     base_T_board: Array
@@ -249,6 +267,8 @@ class Refinement:
     pixel_sigma_px: float
     uncertainty: Uncertainty
     nfev: int
+    robot_sigma_mm: float | None = None
+    robot_sigma_deg: float | None = None
 
 
 #: Floor of the estimated pixel noise (noise-free synthetic data would otherwise give 0).
@@ -341,17 +361,18 @@ class _Problem:
         return np.concatenate([self.row_view, np.repeat(np.arange(self.V), 6)]) if self.robot else self.row_view
 
 
-def _inverse_rows(J: sparse.csr_matrix, w: Array, problem: _Problem) -> tuple[Array, Array]:
-    """``(S^-1, R)``: the inverse of the 12 x 12 Schur complement of ``H = J^T W J`` for the shared
-    unknowns and the first 12 rows ``R`` of ``H^-1``, eliminating the per-view corrections
-    (block-diagonal 6 x 6) exactly; raises when ``(tcp_T_cam, base_T_board)`` is undetermined."""
+def _schur(J: sparse.csr_matrix, w: Array, problem: _Problem) -> tuple[Array, Array | None, Array | None]:
+    """``(S^-1, BD, D^-1)`` of ``H = J^T W J``: the inverse of the 12 x 12 Schur complement for the
+    shared unknowns, eliminating the per-view corrections (block-diagonal ``D``, 6 x 6 per view)
+    exactly, with ``BD = B D^-1`` per view ((V, 12, 6); None without the robot model); raises when
+    ``(tcp_T_cam, base_T_board)`` is undetermined."""
     H = (J.T @ sparse.diags(w) @ J).toarray()
     A = H[:12, :12]
+    BD = D_inv = None
     if problem.robot:
         V = problem.V
         idx = 12 + np.arange(6 * V).reshape(V, 6)
-        D = H[idx[:, :, None], idx[:, None, :]]  # (V, 6, 6)
-        D_inv = np.linalg.inv(D)
+        D_inv = np.linalg.inv(H[idx[:, :, None], idx[:, None, :]])  # (V, 6, 6)
         B = H[:12, 12:].reshape(12, V, 6).transpose(1, 0, 2)  # (V, 12, 6)
         BD = np.einsum("vij,vjk->vik", B, D_inv)
         S = A - np.einsum("vik,vlk->il", BD, B)
@@ -366,11 +387,56 @@ def _inverse_rows(J: sparse.csr_matrix, w: Array, problem: _Problem) -> tuple[Ar
             "hand-eye refinement is rank deficient: the views do not determine tcp_T_cam and the board pose "
             "together (rotations about a single axis?); add poses rotated about different axes"
         )
-    S_inv = np.linalg.inv(Ss) * np.outer(scale, scale)
-    if not problem.robot:
+    return np.linalg.inv(Ss) * np.outer(scale, scale), BD, D_inv
+
+
+def _inverse_rows(J: sparse.csr_matrix, w: Array, problem: _Problem) -> tuple[Array, Array]:
+    """``(S^-1, R)``: the inverse of the Schur complement (:func:`_schur`) and the first 12 rows
+    ``R`` of ``H^-1``."""
+    S_inv, BD, _ = _schur(J, w, problem)
+    if BD is None:
         return S_inv, S_inv
     R = np.concatenate([S_inv, -np.einsum("ij,vjk->ivk", S_inv, BD).reshape(12, -1)], axis=1)
     return S_inv, R
+
+
+def _robot_variance_factors(problem: _Problem, p: Array, s: RefineSettings) -> tuple[float, float]:
+    """Robust variance factors ``(rotation, translation)`` of the robot pose priors at ``p``: how
+    much larger (> 1) or smaller the robot's real noise variance is than the one modelled.
+
+    Per view and group (3 rotation or 3 translation priors): squared whitened correction over
+    its redundancy ``1 - h`` (``h`` the hat-matrix diagonal, ``w s^2 (H^-1)_kk`` for a prior row
+    ``s x_k``), then the median over views divided by the median of chi-square(3) / 3.
+    """
+    J = problem.jacobian(p)
+    r = problem.residuals(p)
+    w = loss_weights(r, s.loss, s.f_scale_px / problem.sigma)
+    S_inv, BD, D_inv = _schur(J, w, problem)
+    assert BD is not None and D_inv is not None
+    h_inv = np.einsum("vkk->vk", D_inv) + np.einsum("vik,il,vlk->vk", BD, S_inv, BD)  # diag of H^-1, corrections
+    V = problem.V
+    scale2 = problem.prior_scale.reshape(V, 6) ** 2
+    prior_w = w[2 * problem.M:].reshape(V, 6)
+    redundancy = np.clip(1.0 - prior_w * scale2 * h_inv, 1e-3, 1.0)
+    r2 = r[2 * problem.M:].reshape(V, 6) ** 2
+    factors = []
+    for group in (slice(0, 3), slice(3, 6)):
+        ratio = r2[:, group].sum(axis=1) / redundancy[:, group].sum(axis=1)
+        factors.append(float(np.median(ratio)) / _CHI2_3_MEDIAN)
+    return factors[0], factors[1]
+
+
+def _rescaled_robot_sigmas(s: RefineSettings, factors: tuple[float, float], configured: RefineSettings
+                           ) -> RefineSettings:
+    """``s`` with its robot sigmas multiplied by ``sqrt(factors)``, kept within ``_NOISE_RANGE``
+    of the configured ones."""
+    assert s.robot_sigma_deg and s.robot_sigma_mm and configured.robot_sigma_deg and configured.robot_sigma_mm
+
+    def rescale(sigma: float, factor: float, start: float) -> float:
+        return float(np.clip(sigma * math.sqrt(max(factor, 0.0)), start / _NOISE_RANGE, start * _NOISE_RANGE))
+
+    return replace(s, robot_sigma_deg=rescale(s.robot_sigma_deg, factors[0], configured.robot_sigma_deg),
+                   robot_sigma_mm=rescale(s.robot_sigma_mm, factors[1], configured.robot_sigma_mm))
 
 
 #: Names of the OpenCV distortion coefficients, in order.
@@ -427,11 +493,47 @@ def _uncertainty(problem: _Problem, p: Array, s: RefineSettings) -> tuple[Uncert
     return unc, w[: 2 * problem.M].reshape(-1, 2).mean(axis=1)
 
 
+def _solve(problem: _Problem, p0: Array, s: RefineSettings) -> tuple[Array, int]:
+    """``least_squares`` from ``p0``: ``(solution, function evaluations)``."""
+    f_scale = s.f_scale_px / problem.sigma
+    if problem.n <= _DENSE_MAX_UNKNOWNS:  # exact trust-region steps: converges in few iterations
+        def jac(q: Array) -> Array:
+            return problem.jacobian(q).toarray()
+
+        sol = least_squares(problem.residuals, p0, jac=jac, loss=s.loss, f_scale=f_scale, x_scale="jac",
+                            max_nfev=s.max_nfev, method="trf", tr_solver="exact")
+    else:  # many views: sparse steps (LSMR)
+        sol = least_squares(problem.residuals, p0, jac=problem.jacobian, loss=s.loss, f_scale=f_scale, x_scale="jac",
+                            max_nfev=s.max_nfev, method="trf", tr_solver="lsmr")
+    return sol.x, int(sol.nfev)
+
+
+def _settle_robot_noise(problem: _Problem, p: Array, configured: RefineSettings
+                        ) -> tuple[_Problem, Array, RefineSettings, int]:
+    """Re-estimate the robot sigmas from the corrections of the solution ``p`` and solve again
+    (warm start: the unknowns keep their meaning) until they change by less than 10%:
+    ``(problem, solution, settings with the final sigmas, extra function evaluations)``."""
+    current, nfev = configured, 0
+    for _ in range(_NOISE_ITERATIONS - 1):
+        nxt = _rescaled_robot_sigmas(current, _robot_variance_factors(problem, p, current), configured)
+        assert nxt.robot_sigma_mm and nxt.robot_sigma_deg and current.robot_sigma_mm and current.robot_sigma_deg
+        change = max(nxt.robot_sigma_mm / current.robot_sigma_mm, current.robot_sigma_mm / nxt.robot_sigma_mm,
+                     nxt.robot_sigma_deg / current.robot_sigma_deg, current.robot_sigma_deg / nxt.robot_sigma_deg)
+        if change < _NOISE_TOLERANCE:
+            break
+        current = nxt
+        problem = _Problem(problem.X0, problem.W0, problem.data, problem.K, problem.dist, current, problem.sigma)
+        p, more = _solve(problem, p, current)
+        nfev += more
+    return problem, p, current, nfev
+
+
 def refine_handeye(
     tcp_T_cam0: Array, base_T_board0: Array, data: CornerData, K: Array, dist: Array,
     settings: RefineSettings | None = None,
 ) -> Refinement:
-    """Joint robust refinement of ``tcp_T_cam`` and ``base_T_board`` (see the module docstring).
+    """Joint robust refinement of ``tcp_T_cam`` and ``base_T_board`` (see the module docstring),
+    with the robot sigmas re-estimated from the corrections when ``settings.estimate_robot_sigma``.
 
     Raises :class:`DegenerateGeometryError` when the problem is rank deficient at the solution.
     """
@@ -439,17 +541,10 @@ def refine_handeye(
     loss_weights(np.zeros(1), s.loss, 1.0)  # validates the loss name
     sigma = max(float(s.pixel_sigma_px), MIN_PIXEL_SIGMA_PX) if s.pixel_sigma_px else pixel_noise_from_pnp(data, K, dist)
     problem = _Problem(tcp_T_cam0, base_T_board0, data, K, dist, s, sigma)
-    if problem.n <= _DENSE_MAX_UNKNOWNS:  # exact trust-region steps: converges in few iterations
-        def jac(q: Array) -> Array:
-            return problem.jacobian(q).toarray()
-
-        sol = least_squares(problem.residuals, np.zeros(problem.n), jac=jac, loss=s.loss, f_scale=s.f_scale_px / sigma,
-                            x_scale="jac", max_nfev=s.max_nfev, method="trf", tr_solver="exact")
-    else:  # many views: sparse steps (LSMR)
-        sol = least_squares(problem.residuals, np.zeros(problem.n), jac=problem.jacobian, loss=s.loss,
-                            f_scale=s.f_scale_px / sigma, x_scale="jac", max_nfev=s.max_nfev, method="trf",
-                            tr_solver="lsmr")
-    p = sol.x
+    p, nfev = _solve(problem, np.zeros(problem.n), s)
+    if problem.robot and s.estimate_robot_sigma:
+        problem, p, s, more = _settle_robot_noise(problem, p, s)
+        nfev += more
     X, W, D = problem.unpack(p)
     if not (np.all(np.isfinite(X)) and np.all(np.isfinite(W))):
         raise DegenerateGeometryError("hand-eye refinement diverged (non-finite result)")
@@ -457,7 +552,9 @@ def refine_handeye(
     fit = problem.pixel_residuals(p).reshape(-1, 2)
     return Refinement(
         tcp_T_cam=X, base_T_board=W, corrections=D, fit_errors_px=np.linalg.norm(fit, axis=1), weights=weights,
-        pixel_sigma_px=sigma, uncertainty=unc, nfev=int(sol.nfev),
+        pixel_sigma_px=sigma, uncertainty=unc, nfev=nfev,
+        robot_sigma_mm=s.robot_sigma_mm if problem.robot else None,
+        robot_sigma_deg=s.robot_sigma_deg if problem.robot else None,
     )
 
 

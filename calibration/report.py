@@ -99,9 +99,12 @@ def handeye_markdown(result: HandEyeResult, truth_tcp_T_cam: ArrayLike | None = 
     ]
     if result.fit is not None:
         f = result.fit
-        robot = (f"robot error model {f.robot_sigma_mm} mm / {f.robot_sigma_deg} deg per axis, estimated corrections "
-                 f"RMS {_f(f.robot_correction_rms_mm)} mm / {_f(f.robot_correction_rms_deg, 4)} deg"
-                 if f.robot_sigma_mm else "robot poses taken as exact")
+        source = (f" (estimated from the corrections; configured {f.robot_sigma_configured_mm:g} mm / "
+                  f"{f.robot_sigma_configured_deg:g} deg)"
+                  if f.robot_sigma_configured_mm is not None and f.robot_sigma_configured_deg is not None else "")
+        robot = (f"robot error model {f.robot_sigma_mm:.3g} mm / {f.robot_sigma_deg:.3g} deg per axis{source}, "
+                 f"estimated corrections RMS {_f(f.robot_correction_rms_mm)} mm / {_f(f.robot_correction_rms_deg, 4)} deg"
+                 if f.robot_sigma_mm and f.robot_sigma_deg else "robot poses taken as exact")
         lines.append(f"- refinement: fit RMS {f.fit_rms_px:.3f} px, pixel noise {f.pixel_sigma_px:.3f} px, {robot}; "
                      f"{f.iterations} function evaluations")
     c = result.conditioning

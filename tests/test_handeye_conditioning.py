@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -43,6 +45,7 @@ def test_a_good_plan_passes_without_warnings() -> None:
     report = check_handeye_conditioning(*plan_pairs(poses, W))
     assert report.n_poses == 20
     assert report.rotation_span_deg > 45 and report.max_axis_angle_deg > 60
+    assert report.weakest_rotation_deg is not None and report.weakest_rotation_deg > 25
     assert report.median_angle_mismatch_deg == pytest.approx(0.0, abs=1e-9)
     assert report.warnings == ()
 
@@ -69,6 +72,22 @@ def test_rotations_about_a_single_axis() -> None:
     G, C = _pairs(_rotated([0.3, 0.9, 0.1] / np.linalg.norm([0.3, 0.9, 0.1]), [-30, -15, 0, 10, 20, 35], offsets))
     with pytest.raises(DegenerateGeometryError, match=r"near-parallel rotation axes.*0\.0 deg < 10 deg"):
         check_handeye_conditioning(G, C)
+
+
+def test_one_dominant_axis_with_a_small_second_rotation() -> None:
+    """Axes 15 deg apart and a 60 deg span pass the axis and span checks, but one 8 deg turn
+    about the second axis leaves the direction of the first turned by ~1 deg (RMS): the
+    camera offset along it would carry 50x the noise. It used to pass without a warning."""
+    first = np.array([1.0, 0.0, 0.0])
+    second = np.array([math.cos(math.radians(15)), math.sin(math.radians(15)), 0.0])
+    offsets = np.random.default_rng(2).normal(0, 0.03, (8, 3))
+    G, C = _pairs(_rotated(first, [-30, -20, -10, 0, 10, 20, 30], offsets[:7]) + _rotated(second, [8], offsets[7:]))
+    with pytest.raises(DegenerateGeometryError, match=r"near-parallel rotation axes: the robot motions turn the "
+                       r"direction .* by only 1\.\d\d deg \(RMS over view pairs\) < 3 deg"):
+        check_handeye_conditioning(G, C)
+    relaxed = check_handeye_conditioning(G, C, ConditioningThresholds(min_weakest_rotation_deg=0.5))
+    assert relaxed.weakest_rotation_deg == pytest.approx(1.0, abs=0.1)
+    assert any("by only 1.0 deg (RMS; recommended 10 deg+)" in w for w in relaxed.warnings)
 
 
 def test_small_rotation_span_names_span_and_threshold() -> None:
