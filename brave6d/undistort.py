@@ -24,7 +24,7 @@ from typing import Any
 
 import cv2
 
-from brave6d.atomic import atomic_write_json, read_json, read_png, write_png
+from brave6d.atomic import atomic_write_json, file_sha256, read_json, read_png, write_png
 from brave6d.calibration_io import read_intrinsics
 from brave6d.camera import PinholeCamera
 from brave6d.errors import DataError
@@ -61,17 +61,6 @@ class _Job:
     source: Path
     target: Path
     kind: str  # "rgb" (bilinear) or "depth" (nearest)
-
-
-def file_sha256(path: Path) -> str:
-    """SHA-256 of a file's bytes; a missing or unreadable file raises :class:`DataError` naming it."""
-    try:
-        with open(path, "rb") as handle:
-            return hashlib.file_digest(handle, "sha256").hexdigest()
-    except FileNotFoundError:
-        raise DataError(f"{path}: image not found") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read ({exc.strerror})") from None
 
 
 def camera_key(camera: PinholeCamera) -> str:

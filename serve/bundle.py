@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from brave6d.atomic import atomic_write_json, move_aside, read_json, staged_folder
+from brave6d.atomic import atomic_write_json, file_sha256, move_aside, read_json, staged_folder
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError, DataError, NonRigidTransformError
 from brave6d.layout import FrameRecord, SceneDir
@@ -416,14 +416,6 @@ def versions() -> dict[str, str]:
     return out
 
 
-def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while block := handle.read(chunk):
-            h.update(block)
-    return h.hexdigest()
-
-
 def not_a_bundle(folder: Path) -> str | None:
     """Why export may not simply replace ``folder``, or None when it may: absent, empty, or a
     bundle holding nothing but the files its manifest lists (all of which export rewrites)."""
@@ -633,7 +625,7 @@ def _file_table(root: Path) -> dict[str, dict[str, Any]]:
         rel = path.relative_to(root).as_posix()
         if rel == MANIFEST:
             continue
-        table[rel] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
+        table[rel] = {"sha256": file_sha256(path), "bytes": path.stat().st_size}
     return table
 
 
@@ -669,7 +661,7 @@ def verify_manifest(root: Path | str) -> dict[str, Any]:
         if "bytes" in entry and size != entry["bytes"]:
             raise BundleError(f"{p}: size {size} bytes does not match the manifest ({entry['bytes']}); "
                               "the bundle was modified or is incomplete")
-        digest = sha256_file(p)
+        digest = file_sha256(p)
         if digest != entry["sha256"]:
             raise BundleError(f"{p}: sha256 {digest[:12]}... does not match the manifest "
                               f"({str(entry['sha256'])[:12]}...); the bundle was modified or is corrupt")

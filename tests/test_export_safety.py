@@ -12,9 +12,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from brave6d.atomic import file_sha256
 from brave6d.errors import BraveError, DataError
 from brave6d.layout import SceneDir
-from serve.bundle import BundleError, export_bundle, load_bundle, sha256_file, verify_manifest
+from serve.bundle import BundleError, export_bundle, load_bundle, verify_manifest
 from serve.synthetic import make_synthetic_scene, synthetic_splat
 
 
@@ -231,7 +232,7 @@ def _resign_splat(bundle: Path) -> None:
     """Record the new checksum of the bundle's splat in its manifest (a bundle made by hand or an older export)."""
     path = bundle / "splat.ply"
     manifest = json.loads((bundle / "manifest.json").read_text())
-    manifest["files"]["splat.ply"] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
+    manifest["files"]["splat.ply"] = {"sha256": file_sha256(path), "bytes": path.stat().st_size}
     (bundle / "manifest.json").write_text(json.dumps(manifest))
 
 

@@ -31,12 +31,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from brave6d.atomic import atomic_write_json, atomic_write_text, read_json
-from brave6d.camera import PinholeCamera
+from brave6d.atomic import atomic_write_json, atomic_write_text, file_sha256, read_json
+from brave6d.camera import CORNER_ORIGIN_OFFSET, PinholeCamera
 from brave6d.errors import BraveError
 from brave6d.layout import SceneDir
 from brave6d.transforms import invert
-from brave6d.undistort import file_sha256
 from training.dataset import TrainingData, View, load_depth_m
 
 log = logging.getLogger(__name__)
@@ -90,8 +89,8 @@ def _rigid(cam_T_world: NDArray[np.float64]):  # type: ignore[no-untyped-def]
     return _pycolmap().Rigid3d(np.ascontiguousarray(cam_T_world[:3, :4], dtype=np.float64))
 
 
-#: COLMAP's coordinate of a pixel centre minus OpenCV's (px, both axes).
-COLMAP_PIXEL_OFFSET = 0.5
+#: COLMAP's coordinate of a pixel centre minus OpenCV's (px, both axes): the corner-origin offset.
+COLMAP_PIXEL_OFFSET = CORNER_ORIGIN_OFFSET
 
 
 def colmap_pinhole_params(camera: PinholeCamera) -> list[float]:

@@ -22,8 +22,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-#: gsplat's coordinate of a pixel centre minus OpenCV's (px, both axes).
-GSPLAT_PIXEL_OFFSET = 0.5
+from brave6d.camera import CORNER_ORIGIN_OFFSET
+
+#: gsplat's coordinate of a pixel centre minus OpenCV's (px, both axes): the corner-origin offset.
+GSPLAT_PIXEL_OFFSET = CORNER_ORIGIN_OFFSET
 
 
 def gsplat_intrinsics(Ks: Tensor) -> Tensor:
