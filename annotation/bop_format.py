@@ -143,7 +143,7 @@ def bop_cam_K(K: ArrayLike) -> NDArray[np.float64]:
     ``fx X / Z + cx`` straight to OpenGL window coordinates, where fragments are sampled at
     half-integers (the vispy image is read back flipped, rows top-down). So the masks,
     ``visib_fract`` and VSD renders bop_toolkit computes from our files line up with our images
-    only with this shift; :func:`read_scene_camera` (and ``evaluation.bop_results``) undo it.
+    only with this shift; :func:`read_scene_camera` (and ``evaluation.metrics.bop_results``) undo it.
     """
     return corner_origin_K(K)
 

@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from evaluation.baseline import ACTIVE_AGENT, STATIC_AGENT
+from evaluation.agents.baseline import ACTIVE_AGENT, STATIC_AGENT
 from evaluation.demo import EPISODES_PER_OBJECT, run_baselines
 
 DEFAULT_BUNDLE = ROOT / "runs" / "demo" / "scene" / "bundle"

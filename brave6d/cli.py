@@ -35,7 +35,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("export", "serve.export_cli", "write the scene bundle that the render server loads"),
     Command("serve", "serve.cli", "serve a bundle to active-vision agents (HTTP + WebSocket, browser viewer)"),
     Command("evaluate", "evaluation.cli", "score agent episodes (BOP Average Recall, adjustments) and print a leaderboard"),
-    Command("report", "evaluation.report_cli", "write the accuracy-vs-time report from real measurements"),
+    Command("report", "evaluation.report.cli", "write the accuracy-vs-time report from real measurements"),
     Command("demo", "brave6d.demo", "run the whole pipeline on the embedded demo scene"),
 )
 

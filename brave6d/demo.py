@@ -72,7 +72,7 @@ STAGES: tuple[DemoStage, ...] = (
     DemoStage("export", "serve.demo:stage_export", "write the scene bundle"),
     DemoStage("serve", "serve.demo:stage_serve", "serve the bundle on loopback and run one scripted episode"),
     DemoStage("evaluate", "evaluation.demo:stage_evaluate", "run the active and static baselines on every object and score them"),
-    DemoStage("report", "evaluation.report:stage_report", "write the accuracy-vs-time report"),
+    DemoStage("report", "evaluation.report.build:stage_report", "write the accuracy-vs-time report"),
 )
 
 

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from brave6d.errors import DataError
-from evaluation.episodes import EpisodeRecord
+from evaluation.metrics.episodes import EpisodeRecord
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -63,8 +63,8 @@ def default_out(log_paths: Sequence[Path]) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from evaluation.episodes import models_from_bundle, read_episodes, score_episodes, write_leaderboard
-    from evaluation.recall import EvalConfig
+    from evaluation.metrics.episodes import models_from_bundle, read_episodes, score_episodes, write_leaderboard
+    from evaluation.metrics.recall import EvalConfig
     from serve.bundle import load_bundle
 
     paths = list(args.episode_logs)

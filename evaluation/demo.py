@@ -1,10 +1,10 @@
 """The demo's evaluation stage: both baselines on every demo object, scored like any agent.
 
 ``stage_evaluate`` serves the scene's bundle on a loopback port in a background thread (as the
-serve stage does), runs the static and the active baseline (:mod:`evaluation.baseline`) on
+serve stage does), runs the static and the active baseline (:mod:`evaluation.agents.baseline`) on
 every object instance, :data:`EPISODES_PER_OBJECT` episodes each (both variants from the same
 seeded starts), scores the episode logs
-with :mod:`evaluation.episodes` and writes, under ``<workdir>/evaluation/``:
+with :mod:`evaluation.metrics.episodes` and writes, under ``<workdir>/evaluation/``:
 
 * ``episodes/`` the episode logs and final depth images (cleared first);
 * ``leaderboard.csv``/``.json``, ``episodes.csv``, ``per_object.csv`` (as ``brave6d evaluate``);
@@ -24,8 +24,8 @@ from brave6d.errors import BraveError
 if TYPE_CHECKING:
     from brave6d.demo import DemoContext
     from brave6d.progress import StageResult
-    from evaluation.baseline import BaselineConfig, EpisodeOutcome
-    from evaluation.episodes import Leaderboard
+    from evaluation.agents.baseline import BaselineConfig, EpisodeOutcome
+    from evaluation.metrics.episodes import Leaderboard
 
 log = logging.getLogger(__name__)
 
@@ -63,8 +63,8 @@ def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: i
     """Serve ``bundle_dir`` on loopback, run the static then the active baseline on every object,
     ``episodes_per_object`` times from seeded random starts (seed ``seed + gt_id + 1000 r`` for
     repeat ``r``: both variants start alike), score the logs; writes nothing but the logs."""
-    from evaluation.baseline import BaselineAgent, BaselineConfig, static_config
-    from evaluation.episodes import models_from_bundle, read_episodes, score_episodes
+    from evaluation.agents.baseline import BaselineAgent, BaselineConfig, static_config
+    from evaluation.metrics.episodes import models_from_bundle, read_episodes, score_episodes
     from serve.app import create_app
     from serve.bundle import load_bundle
     from serve.client import BraveClient
@@ -118,8 +118,8 @@ def stage_evaluate(ctx: DemoContext) -> StageResult:
     """Demo stage: run and score both baselines on every demo object (see the module docstring)."""
     from brave6d.atomic import atomic_write_json
     from brave6d.progress import StageResult
-    from evaluation.baseline import ACTIVE_AGENT, STATIC_AGENT
-    from evaluation.episodes import write_leaderboard
+    from evaluation.agents.baseline import ACTIVE_AGENT, STATIC_AGENT
+    from evaluation.metrics.episodes import write_leaderboard
 
     bundle_dir = ctx.scene.bundle_dir
     if not (bundle_dir / "manifest.json").is_file():

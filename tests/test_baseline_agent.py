@@ -1,4 +1,4 @@
-"""The weight-free baseline agent (evaluation.baseline): perception and registration on ray-cast
+"""The weight-free baseline agent (evaluation.agents.baseline): perception and registration on ray-cast
 views with a known answer, then both variants end to end against a live server on 127.0.0.1
 (the demo's evaluation stage on the synthetic bundle), the client and Gym-style submission."""
 
@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from brave6d.errors import BraveError
 from brave6d.transforms import invert, look_at, make_transform
-from evaluation.baseline import (
+from evaluation.agents.baseline import (
     BaselineAgent,
     BaselineConfig,
     Cluster,
@@ -34,9 +34,9 @@ from evaluation.baseline import (
     static_config,
     view_weights,
 )
-from evaluation.bop_metrics import identity_symmetries, mssd
-from evaluation.episodes import read_episodes
-from evaluation.renderer import render_depth
+from evaluation.metrics.bop_metrics import identity_symmetries, mssd
+from evaluation.metrics.episodes import read_episodes
+from evaluation.metrics.depth_renderer import render_depth
 from serve.app import create_app
 from serve.bundle import Bundle, load_bundle
 from serve.client import BraveClient, PoseEstimate
@@ -244,7 +244,7 @@ def test_a_view_no_pose_explains_well_votes_less() -> None:
     ball = trimesh.creation.icosphere(2, 30.0)
     ball_T = make_transform(np.eye(3), world_T_obj[:3, 3] + np.array([0.0, 0.0, 0.03]))
     trail.append(_observation(np.asarray(ball.vertices), np.asarray(ball.faces), model, world_T_obj, 165.0, ball_T))
-    from evaluation.baseline import _register, _view_scene, _voxel_size
+    from evaluation.agents.baseline import _register, _view_scene, _voxel_size
 
     voxel = _voxel_size(model, BaselineConfig())
     own = [_register(model, *_view_scene(p.cluster, p.plane, p.min_height, o.depth, o.K, voxel),

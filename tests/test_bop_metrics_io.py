@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from annotation.bop_format import bop_cam_K
 from brave6d.atomic import write_png
 from brave6d.errors import DataError
-from evaluation.bop_results import (
+from evaluation.metrics.bop_results import (
     RESULTS_HEADER,
     check_times,
     format_results_csv,
@@ -28,8 +28,8 @@ from evaluation.bop_results import (
     read_scene_camera,
     write_bop_results,
 )
-from evaluation.recall import Estimate, evaluate_bop19
-from evaluation.renderer import DepthRenderer
+from evaluation.metrics.recall import Estimate, evaluate_bop19
+from evaluation.metrics.depth_renderer import DepthRenderer
 
 W, H = 320, 240
 K = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])

@@ -1,4 +1,4 @@
-"""Episode scoring (evaluation.episodes, brave6d evaluate) on hand-made logs written by the
+"""Episode scoring (evaluation.metrics.episodes, brave6d evaluate) on hand-made logs written by the
 server's own record writer, and the estimates endpoint (POST /episodes/{id}/estimates)."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from brave6d.atomic import depth_m_to_mm_u16, read_png, write_png
 from brave6d.camera import PinholeCamera
 from brave6d.errors import DataError
 from brave6d.transforms import look_at, make_transform
-from evaluation.episodes import (
+from evaluation.metrics.episodes import (
     episode_to_bop,
     models_from_bundle,
     read_episode,
@@ -28,8 +28,8 @@ from evaluation.episodes import (
     score_episodes,
     write_leaderboard,
 )
-from evaluation.recall import ObjectModel, evaluate_bop19
-from evaluation.renderer import render_depth
+from evaluation.metrics.recall import ObjectModel, evaluate_bop19
+from evaluation.metrics.depth_renderer import render_depth
 from serve.app import ServerLimits, create_app
 from serve.bundle import Bundle, BundleObject, load_bundle
 from serve.episodes import (

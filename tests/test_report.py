@@ -14,16 +14,16 @@ import pytest
 from PIL import Image
 
 from brave6d.atomic import atomic_write_json, read_json
-from evaluation.measurements import Measurement, MeasurementStore, run_sweep
-from evaluation.report import FIGURES, ReportSettings, build_report, compose, measure_all, stage_report
-from evaluation.report import measurement_store, write_report
-from evaluation.report_baseline import by_agent, collect_baseline, episodes_of, render_baseline
-from evaluation.report_common import fmt, median, quantile
-from evaluation.report_handeye import HandEyeSweep
-from evaluation.report_latency import LatencySweep, render_latency
-from evaluation.report_plots import finite_pairs, new_figure, plot_line
-from evaluation.report_training import collect_training, render_training
-from evaluation.report_views import ViewsSweep, render_views
+from evaluation.report.measurements import Measurement, MeasurementStore, run_sweep
+from evaluation.report.build import FIGURES, ReportSettings, build_report, compose, measure_all, stage_report
+from evaluation.report.build import measurement_store, write_report
+from evaluation.report.sections.baseline import by_agent, collect_baseline, episodes_of, render_baseline
+from evaluation.report.common import fmt, median, quantile
+from evaluation.report.sections.handeye import HandEyeSweep
+from evaluation.report.sections.latency import LatencySweep, render_latency
+from evaluation.report.plots import finite_pairs, new_figure, plot_line
+from evaluation.report.sections.training import collect_training, render_training
+from evaluation.report.sections.views import ViewsSweep, render_views
 
 MACHINE = {"cpu": "Test CPU", "cores": 2, "gpu": None, "device": "cpu", "torch": "2.13.0", "torch_threads": 2}
 

@@ -22,10 +22,10 @@ from brave6d.atomic import read_json
 from brave6d.errors import DataError
 from brave6d.layout import SceneDir
 from brave6d.progress import format_table
-from evaluation.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info
-from evaluation.report_common import Section, first_reaching, fmt, nan_note, num, provenance, settings_line
-from evaluation.report_common import unavailable
-from evaluation.report_plots import compact_xticks, legend, new_figure, plot_line, save_figure
+from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info
+from evaluation.report.common import Section, first_reaching, fmt, nan_note, num, provenance, settings_line
+from evaluation.report.common import unavailable
+from evaluation.report.plots import compact_xticks, legend, new_figure, plot_line, save_figure
 
 NAME = "training"
 TITLE = "1. Training: holdout quality against time, steps and Gaussians"

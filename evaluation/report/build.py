@@ -4,13 +4,13 @@
 ``<workdir>/scene`` and writes ``<workdir>/report/report.md`` with ``training.png``,
 ``handeye.png``, ``latency.png``, ``views.png`` and ``baseline.png`` beside it:
 
-1. holdout PSNR/SSIM against training time, steps and Gaussians (:mod:`evaluation.report_training`);
-2. hand-eye error against calibration poses and solve time (:mod:`evaluation.report_handeye`);
-3. render latency against resolution and Gaussians (:mod:`evaluation.report_latency`);
-4. holdout PSNR against views per distance level and their robot time (:mod:`evaluation.report_views`);
-5. baseline AR against adjustments (:mod:`evaluation.report_baseline`).
+1. holdout PSNR/SSIM against training time, steps and Gaussians (:mod:`evaluation.report.sections.training`);
+2. hand-eye error against calibration poses and solve time (:mod:`evaluation.report.sections.handeye`);
+3. render latency against resolution and Gaussians (:mod:`evaluation.report.sections.latency`);
+4. holdout PSNR against views per distance level and their robot time (:mod:`evaluation.report.sections.views`);
+5. baseline AR against adjustments (:mod:`evaluation.report.sections.baseline`).
 
-Measurements are cached under ``report/measurements/`` (:mod:`evaluation.measurements`);
+Measurements are cached under ``report/measurements/`` (:mod:`evaluation.report.measurements`);
 :func:`write_report` renders the page from that folder alone. A section whose input is missing,
 or whose measurement fails, says so on the page; the other sections are still written. The
 page ends with "How to choose settings", one derived sentence per section.
@@ -33,12 +33,12 @@ from brave6d.atomic import atomic_write_text
 from brave6d.layout import SceneDir
 from brave6d.errors import BraveError
 from brave6d.progress import StageResult, Stopwatch
-from evaluation.measurements import Measurement, MeasurementStore, describe_machine
-from evaluation import report_baseline, report_handeye, report_latency, report_training, report_views
-from evaluation.report_common import Section
-from evaluation.report_handeye import HandEyeSweep
-from evaluation.report_latency import LatencySweep
-from evaluation.report_views import ViewsSweep
+from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine
+from evaluation.report.sections import baseline as report_baseline, handeye as report_handeye, latency as report_latency, training as report_training, views as report_views
+from evaluation.report.common import Section
+from evaluation.report.sections.handeye import HandEyeSweep
+from evaluation.report.sections.latency import LatencySweep
+from evaluation.report.sections.views import ViewsSweep
 
 if TYPE_CHECKING:
     from brave6d.demo import DemoContext

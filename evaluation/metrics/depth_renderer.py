@@ -10,7 +10,7 @@ The renderer casts one ray per pixel through the pixel centre with Open3D's
 - Parity with bop_toolkit: its renderers (``renderer_vispy``, bop_renderer; OpenGL) sample
   pixel ``(u, v)`` at ``(u + 0.5, v + 0.5)`` in the coordinates of a BOP file's ``cam_K``. The BOP
   readers and the export convert ``cam_K`` to and from the project's K
-  (``evaluation.bop_results.read_scene_camera``, ``annotation.bop_format.bop_cam_K``), so given
+  (``evaluation.metrics.bop_results.read_scene_camera``, ``annotation.bop_format.bop_cam_K``), so given
   a BOP dataset this renderer hits exactly the pixels bop_toolkit's renderer draws.
 - The pose ``(R, t)`` maps model points to the camera frame: ``x_cam = R @ x_model + t``.
 - Millimetres: vertices and ``t`` in mm, the returned z-depth in mm; 0 where no surface is hit.

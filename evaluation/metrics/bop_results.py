@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from brave6d.atomic import atomic_write_text, read_json, read_png
 from brave6d.camera import opencv_K
 from brave6d.errors import DataError
-from evaluation.recall import Estimate, GTInstance, ObjectModel
+from evaluation.metrics.recall import Estimate, GTInstance, ObjectModel
 
 RESULTS_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 #: Largest ``|R^T R - I|`` accepted for a rotation read from a results CSV (values are often

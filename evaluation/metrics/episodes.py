@@ -35,8 +35,8 @@ from numpy.typing import NDArray
 
 from brave6d.atomic import read_png
 from brave6d.errors import DataError
-from evaluation.recall import METRICS, BopScores, EvalConfig, Estimate, GTInstance, ObjectModel, evaluate_bop19
-from evaluation.renderer import DepthRenderer
+from evaluation.metrics.recall import METRICS, BopScores, EvalConfig, Estimate, GTInstance, ObjectModel, evaluate_bop19
+from evaluation.metrics.depth_renderer import DepthRenderer
 from serve.client import ObjectGT
 
 UNKNOWN_AGENT = "unknown"
@@ -279,7 +279,7 @@ def episode_to_bop(episode: EpisodeRecord, scene_id: int, im_id: int, visib_gt_m
 
 def models_from_bundle(bundle: Any, obj_ids: Iterable[int] | None = None) -> dict[int, ObjectModel]:
     """BOP object models (mm, faces, diameter, symmetries) of a loaded ``serve.bundle.Bundle``."""
-    from evaluation.bop_results import load_ply_mesh
+    from evaluation.metrics.bop_results import load_ply_mesh
 
     wanted = None if obj_ids is None else {int(i) for i in obj_ids}
     out: dict[int, ObjectModel] = {}

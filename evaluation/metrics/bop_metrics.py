@@ -272,7 +272,7 @@ def depth_to_distance(depth_mm: ArrayLike, K: ArrayLike) -> NDArray[np.float64]:
 
     Pixel centres are at integer coordinates (as bop_toolkit's ``depth_im_to_dist_im_fast``), with
     ``K`` the project's (OpenCV) K. bop_toolkit applies that formula to a BOP ``cam_K``, which its
-    own renderer reads with pixel centres at +0.5 (see ``evaluation.renderer``); the difference
+    own renderer reads with pixel centres at +0.5 (see ``evaluation.metrics.depth_renderer``); the difference
     scales the test and the rendered distances alike by at most 0.25 / fx (0.04 % at fx = 600 px).
     Non-finite or negative depth is treated as missing (0).
     """

@@ -33,7 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from brave6d.errors import DataError
 from brave6d.progress import format_table, progress
-from evaluation.bop_metrics import (
+from evaluation.metrics.bop_metrics import (
     MAX_SYM_DISC_STEP,
     MSPD_REFERENCE_WIDTH,
     MSPD_THRESHOLDS,
@@ -48,7 +48,7 @@ from evaluation.bop_metrics import (
     symmetry_transformations,
     vsd_from_depths,
 )
-from evaluation.renderer import DepthRenderer
+from evaluation.metrics.depth_renderer import DepthRenderer
 
 log = logging.getLogger(__name__)
 

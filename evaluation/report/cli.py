@@ -1,6 +1,6 @@
 """``brave6d report [--workdir DIR]``: the accuracy-vs-time report of a demo work directory.
 
-Registered in ``brave6d/cli.py`` as ``Command("report", "evaluation.report_cli", ...)``.
+Registered in ``brave6d/cli.py`` as ``Command("report", "evaluation.report.cli", ...)``.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from brave6d.runtime import quiet_openmp
 
     quiet_openmp()  # before torch / numba load: spinning OpenMP threads distort the timings
-    from evaluation.report import ReportSettings, build_report
+    from evaluation.report.build import ReportSettings, build_report
 
     scene_dir = args.workdir / "scene"
     if not scene_dir.is_dir() and not args.no_measure:

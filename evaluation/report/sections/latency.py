@@ -20,10 +20,10 @@ import numpy as np
 
 from brave6d.layout import SceneDir
 from brave6d.progress import format_table
-from evaluation.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info, run_sweep
-from evaluation.report_common import Section, calibrated_capture, fmt, median, nan_note, num, provenance, quantile
-from evaluation.report_common import settings_line, unavailable
-from evaluation.report_plots import legend, log_axes, new_figure, plot_line, save_figure
+from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info, run_sweep
+from evaluation.report.common import Section, calibrated_capture, fmt, median, nan_note, num, provenance, quantile
+from evaluation.report.common import settings_line, unavailable
+from evaluation.report.plots import legend, log_axes, new_figure, plot_line, save_figure
 
 NAME = "latency"
 TITLE = "3. Rendering: latency against resolution and number of Gaussians"

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from brave6d.layout import FrameRecord, SceneDir
-from evaluation.measurements import Measurement, describe_machine
+from evaluation.report.measurements import Measurement, describe_machine
 
 
 @dataclass

@@ -19,9 +19,9 @@ from typing import Any
 from brave6d.atomic import read_json
 from brave6d.errors import DataError
 from brave6d.progress import format_table
-from evaluation.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info
-from evaluation.report_common import Section, finite, fmt, nan_note, num, provenance, unavailable
-from evaluation.report_plots import legend, new_figure, plot_line, save_figure
+from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info
+from evaluation.report.common import Section, finite, fmt, nan_note, num, provenance, unavailable
+from evaluation.report.plots import legend, new_figure, plot_line, save_figure
 
 NAME = "baseline"
 TITLE = "5. Baseline agents: Average Recall against adjustments"

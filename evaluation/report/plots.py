@@ -18,7 +18,7 @@ from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from brave6d.atomic import atomic_write  # noqa: E402
-from evaluation.report_common import num  # noqa: E402
+from evaluation.report.common import num  # noqa: E402
 
 DPI = 110
 

@@ -22,10 +22,10 @@ import numpy as np
 
 from brave6d.layout import SceneDir
 from brave6d.progress import format_table
-from evaluation.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info, run_sweep
-from evaluation.report_common import Section, fmt, median, nan_note, num, provenance, quantile, seconds_per_frame
-from evaluation.report_common import settings_line, unavailable
-from evaluation.report_plots import legend, new_figure, plot_band, plot_line, save_figure
+from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info, run_sweep
+from evaluation.report.common import Section, fmt, median, nan_note, num, provenance, quantile, seconds_per_frame
+from evaluation.report.common import settings_line, unavailable
+from evaluation.report.plots import legend, new_figure, plot_band, plot_line, save_figure
 
 NAME = "handeye"
 TITLE = "2. Hand-eye calibration: error against poses and solve time"

@@ -600,7 +600,7 @@ def _ransac(model: ModelCloud, scene_pcd: Any, voxel: float, config: BaselineCon
 # ----------------------------------------------------------------------------- the agent
 @dataclass
 class EpisodeOutcome:
-    """What one baseline episode did (the scores come from the logs, see evaluation.episodes)."""
+    """What one baseline episode did (the scores come from the logs, see evaluation.metrics.episodes)."""
 
     episode_id: str
     agent: str

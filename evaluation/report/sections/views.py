@@ -25,10 +25,10 @@ import numpy as np
 
 from brave6d.layout import SceneDir
 from brave6d.progress import format_table
-from evaluation.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info, run_sweep
-from evaluation.report_common import Section, calibrated_capture, fmt, nan_note, num, provenance
-from evaluation.report_common import seconds_per_frame, settings_line, unavailable
-from evaluation.report_plots import legend, new_figure, plot_line, save_figure
+from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info, run_sweep
+from evaluation.report.common import Section, calibrated_capture, fmt, nan_note, num, provenance
+from evaluation.report.common import seconds_per_frame, settings_line, unavailable
+from evaluation.report.plots import legend, new_figure, plot_line, save_figure
 
 NAME = "views"
 TITLE = "4. Capture: holdout quality against views per distance level"
