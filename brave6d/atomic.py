@@ -15,12 +15,14 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.errors import DataError
+
+T = TypeVar("T")
 
 
 def atomic_write(path: Path | str, write: Callable[[BinaryIO], None]) -> Path:
@@ -164,6 +166,16 @@ def read_json(path: Path | str) -> Any:
         raise DataError(f"{p}: not valid JSON ({exc})") from None
     except RecursionError:
         raise DataError(f"{p}: JSON nested too deeply to read") from None
+
+
+def read_json_as(path: Path | str, parse: Callable[[Any], T]) -> T:
+    """Read a JSON file and build an object from it with ``parse``; a :class:`DataError` that
+    ``parse`` raises (naming the field) is raised again with the file's path in front."""
+    data = read_json(path)
+    try:
+        return parse(data)
+    except DataError as exc:
+        raise DataError(f"{path}: {exc}") from None
 
 
 def write_png(path: Path | str, image: NDArray[Any]) -> Path:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from brave6d.atomic import atomic_write_json, read_json
+from brave6d.atomic import atomic_write_json, read_json_as
 from brave6d.errors import DataError
 from brave6d.transforms import check_rigid, rotation_distance, translation_distance
 from calibration.conditioning import ConditioningReport
@@ -324,8 +324,4 @@ class HandEyeResult:
     @staticmethod
     def load(path: Path | str) -> HandEyeResult:
         """Read a file written by :meth:`save`; errors name the file."""
-        data = read_json(path)
-        try:
-            return HandEyeResult.from_json(data)
-        except DataError as exc:
-            raise DataError(f"{path}: {exc}") from None
+        return read_json_as(path, HandEyeResult.from_json)

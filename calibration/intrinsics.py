@@ -34,8 +34,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from brave6d.atomic import atomic_write_json, read_json
-from brave6d.camera import PinholeCamera
+from brave6d.atomic import atomic_write_json, read_json_as
+from brave6d.camera import CameraError, PinholeCamera
 from brave6d.errors import DataError, DegenerateGeometryError
 from calibration.board import CharucoDetection
 
@@ -123,7 +123,7 @@ class IntrinsicsResult:
         """JSON form; ``camera`` is :meth:`PinholeCamera.to_json` (what ``brave6d.calibration_io`` reads)."""
         return {
             "schema": SCHEMA,
-            "camera": {"width": self.width, "height": self.height, "K": self.K.tolist(), "dist": self.dist.tolist()},
+            "camera": self.camera().to_json(),
             "source": self.source,
             "distortion_model": self.distortion_model,
             "rms_px": self.rms_px,
@@ -141,17 +141,15 @@ class IntrinsicsResult:
             got = d.get("schema") if isinstance(d, dict) else type(d).__name__
             raise DataError(f"intrinsics: expected schema {SCHEMA!r}, got {got!r}")
         try:
-            cam = d["camera"]
-            K = np.asarray(cam["K"], dtype=np.float64).reshape(3, 3)
-            dist = np.asarray(cam["dist"], dtype=np.float64).reshape(-1)
-            if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist))):
-                raise ValueError("K or dist is not finite")
+            cam = PinholeCamera.from_json(d["camera"])  # the kernel owns the camera's JSON form
             return IntrinsicsResult(
-                str(d["source"]), int(cam["width"]), int(cam["height"]), K, dist, str(d["distortion_model"]),
+                str(d["source"]), cam.width, cam.height, cam.K, cam.dist_array, str(d["distortion_model"]),
                 float(d["rms_px"]), tuple(IntrinsicsView.from_json(v) for v in d["views"]),
                 {str(k): float(v) for k, v in d.get("std", {}).items()}, int(d["rounds"]),
                 tuple(str(w) for w in d.get("warnings", ())), tuple(str(n) for n in d.get("notes", ())),
             )
+        except CameraError as exc:
+            raise DataError(f"intrinsics: field 'camera.{exc.field}': {exc.problem}") from None
         except (KeyError, TypeError, ValueError) as exc:
             raise DataError(f"intrinsics: missing or malformed field ({type(exc).__name__}: {exc})") from None
 
@@ -162,11 +160,7 @@ class IntrinsicsResult:
     @staticmethod
     def load(path: Path | str) -> IntrinsicsResult:
         """Read a file written by :meth:`save`; errors name the file."""
-        data = read_json(path)
-        try:
-            return IntrinsicsResult.from_json(data)
-        except DataError as exc:
-            raise DataError(f"{path}: {exc}") from None
+        return read_json_as(path, IntrinsicsResult.from_json)
 
 
 # ----------------------------------------------------------------------------- helpers
