@@ -40,17 +40,22 @@ from brave6d.progress import StageResult, Stopwatch
 from evaluation.report.common import RenderedSection
 from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine
 from evaluation.report.protocol import MeasureInputs, Section
-from evaluation.report.sections import SECTIONS, page_order
+from evaluation.report import sections as registry
 
 if TYPE_CHECKING:
     from brave6d.demo import DemoContext
 
 log = logging.getLogger(__name__)
 
-#: Measurement names, in the order they are measured (the registry's order).
-MEASUREMENTS = tuple(s.name for s in SECTIONS)
-#: The plots the sections write (removed before each rendering, so none outlives its data).
-FIGURES = tuple(s.figure for s in page_order())
+
+def measurement_names() -> tuple[str, ...]:
+    """The sections' measurement names, in the order they are measured (the registry's order)."""
+    return tuple(s.name for s in registry.SECTIONS)
+
+
+def figure_names() -> tuple[str, ...]:
+    """The plots the sections write (removed before each rendering, so none outlives its data)."""
+    return tuple(s.figure for s in registry.page_order())
 
 
 @dataclass(frozen=True)
@@ -73,7 +78,7 @@ class ReportSettings:
         ``device`` and ``benchmark_json`` go to every section whose settings have a field of that name.
         """
         common = {"device": device, "benchmark_json": benchmark_json}
-        return ReportSettings({s.name: with_common(s.settings(quick), common) for s in SECTIONS})
+        return ReportSettings({s.name: with_common(s.settings(quick), common) for s in registry.SECTIONS})
 
 
 def with_common(settings: Any, values: Mapping[str, Any]) -> Any:
@@ -108,7 +113,7 @@ def measure_all(workdir: Path, settings: ReportSettings, refresh: bool = False,
     inputs = MeasureInputs(Path(workdir), SceneDir(Path(workdir) / "scene"), measurement_store(workdir, refresh))
     results: dict[str, Measurement] = {}
     seconds: dict[str, float] = {}
-    for section in SECTIONS:
+    for section in registry.SECTIONS:
         name = section.name
         if only and name not in only:
             continue
@@ -132,7 +137,7 @@ def render_sections(measurements: Mapping[str, Measurement | None], out_dir: Pat
     section that says so instead of stopping the page.
     """
     sections = []
-    for section in page_order():
+    for section in registry.page_order():
         try:
             sections.append(section.render(measurements, out_dir))
         except Exception as exc:  # noqa: BLE001 - one unreadable measurement must not cost the whole page
@@ -147,8 +152,8 @@ def write_report(workdir: Path, seconds: dict[str, float] | None = None) -> Repo
     """Render ``report/report.md`` and its PNGs from the cached measurements only (no measuring)."""
     out = report_dir(workdir)
     store = measurement_store(workdir)
-    measurements = {name: store.load(name) for name in MEASUREMENTS}
-    for name in FIGURES:  # a section that lost its data must not keep an old plot
+    measurements = {name: store.load(name) for name in measurement_names()}
+    for name in figure_names():  # a section that lost its data must not keep an old plot
         (out / name).unlink(missing_ok=True)
     sections = render_sections(measurements, out)
     page = compose(Path(workdir), sections, measurements, seconds or {})
@@ -174,7 +179,7 @@ def compose(workdir: Path, sections: list[RenderedSection], measurements: Mappin
         f"- Written {now}; "
         + (f"this run measured for {sum(seconds.values()):.0f} s; " if seconds else "from cached measurements; ")
         + f"the sweeps' points took {spent:.0f} s in all (cached in `report/measurements/`).",
-        "- Sections: " + ", ".join(f"{name} {_status(measurements.get(name))}" for name in MEASUREMENTS),
+        "- Sections: " + ", ".join(f"{name} {_status(measurements.get(name))}" for name in measurement_names()),
         "",
     ]
     advice = [s.advice for s in sections if s.advice]
@@ -215,8 +220,8 @@ def stage_report(ctx: DemoContext) -> StageResult:
     if done.returncode != 0:
         raise BraveError(f"the report failed (exit status {done.returncode}; see the messages above): {' '.join(cmd)}")
     store = measurement_store(ctx.workdir)
-    statuses = {name: (m.status if (m := store.load(name)) is not None else "absent") for name in MEASUREMENTS}
-    plots = sum((report_dir(ctx.workdir) / name).is_file() for name in FIGURES)
+    statuses = {name: (m.status if (m := store.load(name)) is not None else "absent") for name in measurement_names()}
+    plots = sum((report_dir(ctx.workdir) / name).is_file() for name in figure_names())
     missing = [k for k, v in statuses.items() if v != "complete"]
     return StageResult("report", figures={
         "report": str(report_dir(ctx.workdir) / "report.md"), "plots": plots, "seconds": round(watch.seconds, 1),
