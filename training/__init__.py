@@ -3,7 +3,7 @@
 Public API (imported lazily, so `import training` stays cheap: no torch / numba import).
 Other stages (serve, evaluation) import only these names:
 
-- training: ``train`` (in memory: loaded views + preset -> :class:`TrainedSplat`), ``train_scene``
+- training: ``train`` (in memory: loaded views + preset -> ``TrainedSplat``, with a ``HoldoutPoint`` per scoring), ``train_scene``
   (``brave6d train``: a scene directory -> ``splat/`` outputs, through ``train``), ``load_scene``
   (a scene's views, undistorted, with the holdout split), ``holdout_split``, ``evaluate_holdout``;
 - settings: ``Preset``, ``get_preset``, ``resolve_device`` (``auto``/``cpu``/``cuda`` -> torch device);
@@ -14,7 +14,7 @@ Other stages (serve, evaluation) import only these names:
 from importlib import import_module
 from typing import Any
 
-__all__ = ["SH_C0", "GaussianModel", "Preset", "SplatData", "TrainedSplat", "evaluate_holdout", "get_preset",
+__all__ = ["SH_C0", "GaussianModel", "HoldoutPoint", "Preset", "SplatData", "TrainedSplat", "evaluate_holdout", "get_preset",
            "holdout_split", "load_scene", "rasterize", "read_ply", "resolve_device", "sh_degree_for", "train",
            "train_scene", "write_ply"]
 
@@ -22,6 +22,7 @@ _LAZY = {
     "rasterize": ".rasterizer",
     "train": ".training_run",
     "TrainedSplat": ".training_run",
+    "HoldoutPoint": ".training_run",
     "train_scene": ".pipeline",
     "GaussianModel": ".model",
     "read_ply": ".ply",

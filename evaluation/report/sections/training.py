@@ -28,6 +28,7 @@ from evaluation.report.measurements import Measurement, MeasurementStore, descri
 from evaluation.report.common import RenderedSection, first_reaching, fmt, nan_note, num, provenance, settings_line
 from evaluation.report.common import unavailable
 from evaluation.report.protocol import MeasureInputs
+from evaluation.report.sections.views import NAME as VIEWS
 from evaluation.report.plots import compact_xticks, legend, new_figure, plot_line, save_figure
 
 NAME = "training"
@@ -227,7 +228,7 @@ class TrainingSection:
         return collect_training(inputs.scene, inputs.store, settings.benchmark_json)
 
     def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
-        return render_training(measurements.get(NAME), measurements.get("views"), out_dir)
+        return render_training(measurements.get(NAME), measurements.get(VIEWS), out_dir)
 
 
 SECTION = TrainingSection()

@@ -20,7 +20,7 @@ from collections import defaultdict
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,6 +31,9 @@ from evaluation.report.common import RenderedSection, calibrated_capture, fmt, n
 from evaluation.report.common import seconds_per_frame, settings_line, unavailable
 from evaluation.report.protocol import MeasureInputs
 from evaluation.report.plots import legend, new_figure, plot_line, save_figure
+
+if TYPE_CHECKING:
+    from training import Preset
 
 NAME = "views"
 PAGE = 4
@@ -97,7 +100,7 @@ def measure_views(scene: SceneDir, store: MeasurementStore, sweep: ViewsSweep) -
     return run_sweep(store, m, items, train, desc="report: trainings on view subsets", unit="run")
 
 
-def scene_preset(scene: SceneDir, sweep: ViewsSweep) -> tuple[Any, str]:
+def scene_preset(scene: SceneDir, sweep: ViewsSweep) -> tuple[Preset, str]:
     """The preset the scene was trained with (else ``fast``), scaled to the sweep's step budget."""
     from brave6d.atomic import read_json
     from brave6d.errors import DataError
@@ -120,7 +123,7 @@ def scene_preset(scene: SceneDir, sweep: ViewsSweep) -> tuple[Any, str]:
                                eval_every=max(1, sweep.steps // max(sweep.evaluations, 1))), source
 
 
-def train_subset(data: Any, preset: Any, device: Any) -> dict[str, Any]:
+def train_subset(data: Any, preset: Preset, device: Any) -> dict[str, Any]:
     """Train on ``data.train`` from its own depth points; holdout curve and final scores."""
     from training import evaluate_holdout, train
 
