@@ -21,3 +21,15 @@ Modules (import them directly; this package imports nothing heavy):
 - :mod:`serve.synthetic`: a small synthetic scene and bundle for tests and benchmarks.
 - ``serve/viewer/``: the static browser viewer served at ``/viewer/``.
 """
+
+from importlib import import_module
+from typing import Any
+
+#: The public names, imported lazily (``import serve`` stays cheap: no torch, no FastAPI).
+_LAZY = {"SplatRenderer": ".renderer"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(import_module(_LAZY[name], __name__), name)
+    raise AttributeError(f"module 'serve' has no attribute {name!r}")

@@ -1,8 +1,9 @@
 """Render one view of a bundle's Gaussians with :func:`training.rasterize` (forward only).
 
-* The splat is read once (``training.ply.read_ply``), activated (``sigmoid`` opacity, ``exp``
+* The splat is read once (``training.read_ply``; or handed over in memory with
+  :meth:`SplatRenderer.from_splat`), activated (``sigmoid`` opacity, ``exp``
   scale, normalised ``wxyz`` quaternion, SH ``[N, K, 3]``) and kept on the chosen device
-  (``cuda`` or ``cpu``; ``auto`` picks CUDA when torch sees a GPU).
+  (``cuda`` or ``cpu``; ``auto`` picks CUDA when torch sees a GPU: ``training.resolve_device``).
 * A splat with a NaN or inf parameter, no Gaussians, or none visible is refused at load with a
   message naming the file (:func:`serve.splat_check.check_splat`), never served half-broken.
 * Gaussians whose activated opacity is below 1/255 are dropped at load: the rasterizer skips
@@ -28,6 +29,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,18 +39,8 @@ from brave6d.errors import BraveError
 from brave6d.transforms import invert
 from serve.splat_check import MIN_ALPHA, activated_opacity, check_splat
 
-
-def resolve_device(device: str) -> str:
-    """``auto`` -> ``cuda`` when torch sees a GPU, else ``cpu``; ``cuda`` without a GPU is an error."""
-    import torch
-
-    if device not in ("auto", "cpu", "cuda"):
-        raise BraveError(f"device must be auto, cpu or cuda, got {device!r}")
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cuda" and not torch.cuda.is_available():
-        raise BraveError("device 'cuda' requested but torch sees no GPU (use --device cpu or auto)")
-    return device
+if TYPE_CHECKING:
+    from training import SplatData
 
 
 def effective_sh_degree(shN: NDArray[np.float32]) -> int:
@@ -80,18 +72,30 @@ class SplatRenderer:
     """The Gaussians of one splat PLY, ready to render (see the module docstring)."""
 
     def __init__(self, splat_path: Path | str, device: str = "auto", cull: bool = True) -> None:
-        import torch
-
         from training import read_ply
 
-        self.device = resolve_device(device)
-        splat = read_ply(splat_path)
-        check_splat(splat, splat_path)  # NaN/inf, no Gaussians, nothing visible: refused with the file's name
+        self._load(read_ply(splat_path), splat_path, device, cull)
+
+    @classmethod
+    def from_splat(cls, splat: SplatData, device: str = "auto", cull: bool = True,
+                   source: str = "in-memory splat") -> SplatRenderer:
+        """A renderer of ``splat`` as it is in memory (no PLY file); ``source`` names it in errors."""
+        renderer = cls.__new__(cls)
+        renderer._load(splat, source, device, cull)
+        return renderer
+
+    def _load(self, splat: SplatData, source: Path | str, device: str, cull: bool) -> None:
+        import torch
+
+        from training import resolve_device
+
+        dev = resolve_device(device)
+        self.device = dev.type
+        check_splat(splat, source)  # NaN/inf, no Gaussians, nothing visible: refused with the source's name
         opac = activated_opacity(splat)
         keep = opac >= MIN_ALPHA
         self.n_loaded = splat.num_gaussians
         self.n_pruned = int((~keep).sum())
-        dev = torch.device(self.device)
         f32 = torch.float32
         quats = splat.quats[keep].astype(np.float64)
         norm = np.linalg.norm(quats, axis=1, keepdims=True)
@@ -109,6 +113,9 @@ class SplatRenderer:
         self.cull = cull
         self.lock = threading.Lock()
         self.renders = 0
+
+    #: The lowest SH degree that represents a splat's ``shN`` exactly (what the renderer evaluates).
+    effective_sh_degree = staticmethod(effective_sh_degree)
 
     @property
     def num_gaussians(self) -> int:

@@ -15,15 +15,16 @@ from PIL import Image
 
 from brave6d.atomic import atomic_write_json, read_json
 from evaluation.report.measurements import Measurement, MeasurementStore, run_sweep
-from evaluation.report.build import FIGURES, ReportSettings, build_report, compose, measure_all, stage_report
+from evaluation.report.build import ReportSettings, build_report, compose, figure_names, measure_all, stage_report
 from evaluation.report.build import measurement_store, write_report
 from evaluation.report.sections.baseline import by_agent, collect_baseline, episodes_of, render_baseline
-from evaluation.report.common import fmt, median, quantile
+from evaluation.report.common import RenderedSection, fmt, median, quantile
 from evaluation.report.sections.handeye import HandEyeSweep
 from evaluation.report.sections.latency import LatencySweep, render_latency
 from evaluation.report.plots import finite_pairs, new_figure, plot_line
 from evaluation.report.sections.training import collect_training, render_training
 from evaluation.report.sections.views import ViewsSweep, render_views
+from evaluation.report.protocol import MeasureInputs
 
 MACHINE = {"cpu": "Test CPU", "cores": 2, "gpu": None, "device": "cpu", "torch": "2.13.0", "torch_threads": 2}
 
@@ -146,7 +147,7 @@ def test_missing_inputs_give_section_notes(tmp_path: Path) -> None:
     assert "board_capture/frames.jsonl` (run the calibration stage)" in md
     assert "evaluation/baseline.json` (run the evaluation stage)" in md
     assert "splat/metrics.json` (run the training stage)" in md
-    assert not any((tmp_path / "report" / f).exists() for f in FIGURES)
+    assert not any((tmp_path / "report" / f).exists() for f in figure_names())
     assert "No section has enough measurements" in md
 
 
@@ -191,6 +192,58 @@ def test_training_section_reads_metrics_and_the_benchmark_json(tmp_path: Path) -
     assert "hit its time budget after 100 of 200 planned steps, so the full schedule needs about 0.3 min" \
         in section.advice
     _valid_png(tmp_path / "out" / "training.png")
+
+
+# ----------------------------------------------------------------------------- the section registry
+class ExtraSection:
+    """A sixth section, known to the report only through the registry."""
+
+    name, page, title, figure = "extra", 6, "6. Extra: a registered section", "extra.png"
+
+    def settings(self, quick: bool) -> dict:
+        return {"quick": quick}
+
+    def measure(self, inputs: MeasureInputs, settings: dict) -> Measurement:
+        m = Measurement(name=self.name, settings=dict(settings), machine=MACHINE, status="complete",
+                        points=[{"answer": 42}], summary={"scene": inputs.scene.root.name})
+        inputs.store.save(m)
+        return m
+
+    def render(self, measurements: dict, out_dir: Path) -> RenderedSection:
+        m = measurements.get(self.name)
+        answer = m.points[0]["answer"] if m is not None else "none"
+        return RenderedSection(self.title, f"The answer is {answer}.", advice="**Extra:** registered once.")
+
+
+def test_a_section_added_to_the_registry_is_measured_and_on_the_page(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    from evaluation.report import sections
+
+    monkeypatch.setattr(sections, "SECTIONS", (*sections.SECTIONS, ExtraSection()))
+    fabricate(tmp_path)
+    measured, _ = measure_all(tmp_path, ReportSettings.for_mode(quick=True), only=("extra",))
+    assert list(measured) == ["extra"] and measured["extra"].settings == {"quick": True}
+    md = write_report(tmp_path).markdown.read_text()
+    assert md.count("\n## ") == 7 and md.index("## 5. Baseline") < md.index("## 6. Extra") < md.index("## How to")
+    assert "The answer is 42." in md and "**Extra:** registered once." in md
+    assert "extra (complete)" in md.splitlines()[6]  # the header's list of sections
+
+
+def test_report_settings_reach_every_section_generically() -> None:
+    from evaluation.report import sections
+
+    quick = ReportSettings.for_mode(True, "cpu", Path("bench.json"))
+    full = ReportSettings.for_mode(False)
+    by_name = {s.name: s for s in sections.SECTIONS}
+    assert quick.for_section(by_name["latency"]).device == "cpu" and quick.for_section(by_name["views"]).device == "cpu"
+    assert full.for_section(by_name["views"]).device == "auto"
+    assert quick.for_section(by_name["training"]).benchmark_json == Path("bench.json")
+    assert quick.for_section(by_name["handeye"]) == HandEyeSweep(sizes=(3, 5, 8, 12), repeats=3)
+    assert full.for_section(by_name["handeye"]) == HandEyeSweep()
+    assert quick.for_section(by_name["views"]).steps < full.for_section(by_name["views"]).steps
+    assert ReportSettings().for_section(by_name["latency"]) == LatencySweep()  # not named: the full defaults
+    assert [s.page for s in sections.page_order()] == [1, 2, 3, 4, 5]
+    assert all(s.title.startswith(f"{s.page}. ") for s in sections.SECTIONS)
 
 
 # ----------------------------------------------------------------------------- cache and resume
@@ -289,18 +342,17 @@ def _plane_scene(root: Path) -> None:
                                                             g["scales"], g["quats"]))
 
 
-def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: Path,
-                                               monkeypatch: pytest.MonkeyPatch) -> None:
+def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: Path) -> None:
     from brave6d.layout import init_scene_dir
 
     init_scene_dir(tmp_path / "hand" / "scene", demo_spec_path)
     _board_capture(tmp_path / "hand" / "scene")
-    settings = ReportSettings(
-        handeye=HandEyeSweep(sizes=(3, 5), repeats=2),
-        latency=LatencySweep(fractions=(0.5, 1.0), scales=(0.5, 1.0), repeats=1, views=1, device="cpu"),
-        views=ViewsSweep(fractions=(0.5, 1.0), steps=4, evaluations=2, max_gaussians=500, downscale=None,
-                         device="cpu"),
-    )
+    settings = ReportSettings({
+        "handeye": HandEyeSweep(sizes=(3, 5), repeats=2),
+        "latency": LatencySweep(fractions=(0.5, 1.0), scales=(0.5, 1.0), repeats=1, views=1, device="cpu"),
+        "views": ViewsSweep(fractions=(0.5, 1.0), steps=4, evaluations=2, max_gaussians=500, downscale=None,
+                            device="cpu"),
+    })
     measured, _ = measure_all(tmp_path / "hand", settings, only=("handeye",))
     he = measured["handeye"]
     assert he.status == "complete" and he.summary["n_usable"] == 8 and he.summary["robot_s_per_pose"] == 2.5
@@ -325,19 +377,16 @@ def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: P
     for name in ("training.png", "latency.png", "views.png"):
         _valid_png(tmp_path / "plane" / "report" / name)
 
-    def must_not_run(*args: object, **kwargs: object) -> None:
-        raise AssertionError("a cached measurement was measured again")
+    # measured again, a measurement file would be replaced (atomic write: a new file, a new time stamp)
+    def identities(workdir: Path) -> dict[str, tuple[int, int]]:
+        folder = workdir / "report" / "measurements"
+        return {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in folder.glob("*.json")}
 
-    import calibration
-    import training.dataset
-    import training.ply
-
-    monkeypatch.setattr(training.dataset, "load_scene", must_not_run)
-    monkeypatch.setattr(training.ply, "read_ply", must_not_run)
-    monkeypatch.setattr(calibration, "calibrate_handeye", must_not_run)
+    before = identities(tmp_path / "plane"), identities(tmp_path / "hand")
     again, _ = measure_all(tmp_path / "plane", settings, only=("latency", "views"))
     assert again["latency"].points == lat.points and again["views"].points == views.points
     assert measure_all(tmp_path / "hand", settings, only=("handeye",))[0]["handeye"].points == he.points
+    assert (identities(tmp_path / "plane"), identities(tmp_path / "hand")) == before
 
 
 def test_baseline_leaderboard_agent_figures_win_over_episode_means(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""The server's renderer: lossless culling and SH trimming, depth conventions, device choice."""
+"""The server's renderer: lossless culling and SH trimming, depth conventions, device choice, in-memory splats."""
 
 from __future__ import annotations
 
@@ -10,7 +10,10 @@ import pytest
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError
 from brave6d.transforms import look_at
-from serve.renderer import SplatRenderer, effective_sh_degree, resolve_device
+from brave6d.errors import DataError
+from serve import SplatRenderer
+from serve.renderer import effective_sh_degree
+from training import read_ply, resolve_device
 from serve.synthetic import synthetic_splat
 
 CAMERA = PinholeCamera.from_hfov(160, 120, 70.0)
@@ -81,13 +84,16 @@ def test_depth_and_background(splat_path: Path) -> None:
 def test_device_choice() -> None:
     import torch
 
-    assert resolve_device("cpu") == "cpu"
-    assert resolve_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
-    with pytest.raises(BraveError):
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto") == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(BraveError, match="'tpu'"):
         resolve_device("tpu")
     if not torch.cuda.is_available():
-        with pytest.raises(BraveError, match="no GPU"):
+        with pytest.raises(BraveError, match="no CUDA GPU"):
             resolve_device("cuda")
+        with pytest.raises(BraveError, match="no CUDA GPU"):
+            SplatRenderer.from_splat(synthetic_splat(10, seed=1), device="cuda")
+    assert SplatRenderer.from_splat(synthetic_splat(10, seed=1), device="cpu").device == "cpu"
 
 
 def test_distorted_camera_is_refused(splat_path: Path) -> None:
@@ -118,3 +124,25 @@ def test_served_gaussian_is_centred_at_its_opencv_projection(tmp_path: Path, poi
     a = out.alpha.astype(np.float64)
     centroid = np.array([(a * u).sum(), (a * v).sum()]) / a.sum()
     assert np.abs(centroid - expected).max() < 0.05, centroid - expected
+
+
+def test_from_splat_renders_the_pixels_of_the_same_splat_loaded_from_its_ply(splat_path: Path) -> None:
+    """The report renders subsets from memory: the same pixels, depth and counts as the server's PLY path."""
+    from_file = SplatRenderer(splat_path, device="cpu")
+    in_memory = SplatRenderer.from_splat(read_ply(splat_path), device="cpu")
+    assert (in_memory.n_loaded, in_memory.n_pruned, in_memory.sh_degree) == \
+        (from_file.n_loaded, from_file.n_pruned, from_file.sh_degree)
+    for eye in ((0.25, -0.15, 0.30), (0.9, 0.5, 0.6)):
+        T = look_at(eye, (0.46, 0.0, 0.01))
+        a, b = in_memory.render(T, CAMERA), from_file.render(T, CAMERA)
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_array_equal(a.alpha, b.alpha)
+        assert a.gaussians_drawn == b.gaussians_drawn
+
+
+def test_from_splat_refuses_a_broken_splat_naming_its_source() -> None:
+    splat = synthetic_splat(50, seed=2)
+    splat.means[7, 1] = np.nan
+    with pytest.raises(DataError, match="subset of scene A.*NaN"):
+        SplatRenderer.from_splat(splat, device="cpu", source="subset of scene A")

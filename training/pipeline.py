@@ -16,6 +16,7 @@ training in ``splat/checkpoints`` and rewrites its outputs.
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import tempfile
 import time
@@ -27,13 +28,14 @@ import torch
 from brave6d.atomic import move_aside
 from brave6d.errors import BraveError
 from brave6d.layout import SceneDir
-from training.colmap_init import ColmapOptions, initial_points
+from training.colmap_init import ColmapOptions
 from training.dataset import load_scene
+from training.device import resolve_device
 from training.evaluate import evaluate_holdout, peak_memory_mb, plot_curves, write_metrics
-from training.model import GaussianModel
 from training.ply import write_ply
 from training.presets import Preset
-from training.trainer import Trainer, list_checkpoints, resolve_device
+from training.trainer import Trainer, list_checkpoints
+from training.training_run import train
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +81,13 @@ class NewRun:
         self.moved = move_previous_outputs(self.splat)
         trainer.move_checkpoints(self.splat / "checkpoints")
 
+    def finish(self) -> None:
+        """Take the previous run's place after training, if no checkpoint did so already."""
+        if self.moved is not None:
+            return
+        self.moved = move_previous_outputs(self.splat)
+        os.rename(self.staging, self.splat / "checkpoints")
+
     def close(self) -> None:
         """Remove the staging folder of a run that never took its place (the previous one is untouched)."""
         if self.moved is None:
@@ -106,40 +115,26 @@ def train_scene(
     splat = scene.splat_dir
     ckpt_dir = splat / "checkpoints"
     data = load_scene(scene, preset.downscale, skip_bad_frames)  # the inputs, before anything is moved
+    t_loaded = time.perf_counter()
     log.info("images: %s", data.undistortion)
     continuing = resume and bool(list_checkpoints(ckpt_dir))
     if resume and not continuing:
         log.warning("--resume: no checkpoint in %s; starting a new training", ckpt_dir)
-    init_info: dict[str, Any]
-    if continuing:
-        # the model comes from the checkpoint; a placeholder keeps the constructor simple
-        model = GaussianModel.from_points([[0.0, 0.0, 0.0]], sh_degree=preset.sh_degree, device=dev)
-        init_info = {"source": "checkpoint"}
-    else:
-        init = initial_points(scene, data, colmap or ColmapOptions(), preset.max_init_points, preset.seed, init_method)
-        log.info("initial points: %d from %s", len(init), init.source)
-        model = GaussianModel.from_points(init.points, init.colors, preset.sh_degree, preset.init_opacity,
-                                          preset.init_scale, device=dev)
-        init_info = {"source": init.source, "points": len(init), **init.details}
-    t_init = time.perf_counter() - t_start
-
-    def holdout_psnr(trainer: Trainer) -> float:
-        return evaluate_holdout(trainer.model, data).psnr
-
     run = None if continuing else NewRun(splat)
-    hook = None if run is None else run.take_place
-    trainer = Trainer(data, model, preset, ckpt_dir if run is None else run.staging, dev,
-                      show_progress=show_progress, eval_callback=holdout_psnr, checkpoint_hook=hook)
     try:
-        result = trainer.train(resume=continuing)
+        trained = train(data, preset, dev, scene=scene, init_method=init_method, colmap=colmap,
+                        checkpoint_dir=ckpt_dir if run is None else run.staging, resume=continuing,
+                        checkpoint_hook=None if run is None else run.take_place, show_progress=show_progress)
         if run is not None:
-            run.take_place(trainer)  # a run without any checkpoint (no steps) still replaces the outputs
+            run.finish()  # a run without any checkpoint (no steps) still replaces the outputs
     finally:
         if run is not None:
             run.close()
     if run is not None and run.moved:
         log.info("the previous training is kept beside the new one: %s", ", ".join(p.name for p in run.moved))
-    model = trainer.model
+    t_init = t_loaded - t_start + trained.init_seconds
+    result = trained.result
+    model = trained.model
     ply_path = write_ply(splat / "point_cloud.ply", model.to_splat())
     t_eval = time.perf_counter()
     shutil.rmtree(splat / "holdout", ignore_errors=True)  # --resume: no stale views from an earlier split
@@ -173,7 +168,7 @@ def train_scene(
                    "height": data.camera.height, "downscale": data.downscale,
                    "metrics_resolution": f"{data.camera.width}x{data.camera.height}"},
         "poses": "base_T_tcp (robot) @ tcp_T_cam (calibrated, calibration/handeye.json)",
-        "init": init_info,
+        "init": trained.init,
         "outputs": {"ply": str(ply_path), "curves": str(splat / "curves.png"),
                     "holdout_images": str(splat / "holdout"), "checkpoints": str(ckpt_dir),
                     "colmap_model": str(scene.sparse_dir / "0"),

@@ -37,6 +37,7 @@ from brave6d.atomic import atomic_write
 from brave6d.errors import BraveError, DataError
 from brave6d.progress import progress_bar
 from training.dataset import TrainingData, image_tensor
+from training.device import resolve_device  # noqa: F401 - also importable from here
 from training.losses import fill_invalid, photometric_loss, psnr
 from training.model import PARAM_NAMES, GaussianModel
 from training.presets import Preset
@@ -68,17 +69,6 @@ class TrainResult:
     resumed_from: int | None = None
     checkpoints: list[str] = field(default_factory=list)
     train_cpu_seconds: float = 0.0  # process CPU time of the steps (wall time x busy threads)
-
-
-def resolve_device(device: str) -> torch.device:
-    """``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is an error."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device == "cuda" and not torch.cuda.is_available():
-        raise BraveError("--device cuda: no CUDA GPU is available here (use --device cpu or auto)")
-    if device not in ("cpu", "cuda"):
-        raise BraveError(f"--device must be auto, cpu or cuda, got {device!r}")
-    return torch.device(device)
 
 
 def means_lr(step: int, preset: Preset, extent: float) -> float:

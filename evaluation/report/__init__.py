@@ -1,1 +1,31 @@
-"""(filled in by the restructuring of issue #18)"""
+"""``brave6d report``: the accuracy-vs-time page, from cached measurements of the demo scene.
+
+Public API (imported lazily, so importing the package loads neither matplotlib nor torch):
+``build_report`` (measure what is not cached, then write the page), ``write_report`` (the page
+from the cache alone), ``ReportSettings``; for writing a section: the ``Section`` protocol,
+``MeasureInputs``, ``RenderedSection``, ``Measurement`` and ``MeasurementStore``. The sections
+themselves are registered in :mod:`evaluation.report.sections` (see docs/ARCHITECTURE.md).
+"""
+
+from importlib import import_module
+from typing import Any
+
+__all__ = ["Measurement", "MeasurementStore", "MeasureInputs", "RenderedSection", "ReportSettings", "Section",
+           "build_report", "write_report"]
+
+_LAZY = {
+    "build_report": ".build",
+    "write_report": ".build",
+    "ReportSettings": ".build",
+    "Section": ".protocol",
+    "MeasureInputs": ".protocol",
+    "RenderedSection": ".common",
+    "Measurement": ".measurements",
+    "MeasurementStore": ".measurements",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(import_module(_LAZY[name], __name__), name)
+    raise AttributeError(f"module 'evaluation.report' has no attribute {name!r}")

@@ -10,6 +10,9 @@
 4. holdout PSNR against views per distance level and their robot time (:mod:`evaluation.report.sections.views`);
 5. baseline AR against adjustments (:mod:`evaluation.report.sections.baseline`).
 
+The sections are known only through the registry :data:`evaluation.report.sections.SECTIONS`
+(each a :class:`~evaluation.report.protocol.Section`), so this module never names one.
+
 Measurements are cached under ``report/measurements/`` (:mod:`evaluation.report.measurements`);
 :func:`write_report` renders the page from that folder alone. A section whose input is missing,
 or whose measurement fails, says so on the page; the other sections are still written. The
@@ -18,62 +21,72 @@ page ends with "How to choose settings", one derived sentence per section.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import logging
 import os
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from brave6d.atomic import atomic_write_text
-from brave6d.layout import SceneDir
 from brave6d.errors import BraveError
+from brave6d.layout import SceneDir
 from brave6d.progress import StageResult, Stopwatch
+from evaluation.report.common import RenderedSection
 from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine
-from evaluation.report.sections import baseline as report_baseline, handeye as report_handeye, latency as report_latency, training as report_training, views as report_views
-from evaluation.report.common import Section
-from evaluation.report.sections.handeye import HandEyeSweep
-from evaluation.report.sections.latency import LatencySweep
-from evaluation.report.sections.views import ViewsSweep
+from evaluation.report.protocol import MeasureInputs, Section
+from evaluation.report import sections as registry
 
 if TYPE_CHECKING:
     from brave6d.demo import DemoContext
 
 log = logging.getLogger(__name__)
 
-#: Measurement names, in the order they are measured (cheap first; ``training`` reads files only).
-MEASUREMENTS = ("handeye", "latency", "views", "training", "baseline")
-#: The plots the sections write (removed before each rendering, so none outlives its data).
-FIGURES = ("training.png", "handeye.png", "latency.png", "views.png", "baseline.png")
+
+def measurement_names() -> tuple[str, ...]:
+    """The sections' measurement names, in the order they are measured (the registry's order)."""
+    return tuple(s.name for s in registry.SECTIONS)
+
+
+def figure_names() -> tuple[str, ...]:
+    """The plots the sections write (removed before each rendering, so none outlives its data)."""
+    return tuple(s.figure for s in registry.page_order())
 
 
 @dataclass(frozen=True)
 class ReportSettings:
-    """The sweeps of one report run; :meth:`for_mode` gives the quick (CI) and full variants."""
+    """Each section's settings by name (a section not named uses its full defaults);
+    :meth:`for_mode` gives the quick (CI) and full variants."""
 
-    handeye: HandEyeSweep = field(default_factory=HandEyeSweep)
-    latency: LatencySweep = field(default_factory=LatencySweep)
-    views: ViewsSweep = field(default_factory=ViewsSweep)
-    benchmark_json: Path | None = None
+    sections: Mapping[str, Any] = field(default_factory=dict)
+
+    def for_section(self, section: Section) -> Any:
+        """The settings ``section`` measures with."""
+        if section.name in self.sections:
+            return self.sections[section.name]
+        return section.settings(quick=False)
 
     @staticmethod
     def for_mode(quick: bool, device: str = "auto", benchmark_json: Path | None = None) -> ReportSettings:
-        """Quick: a miniature sweep of every section (well under 2 minutes on 2 cores); full: the demo's."""
-        if quick:
-            return ReportSettings(
-                handeye=HandEyeSweep(sizes=(3, 5, 8, 12), repeats=3),
-                latency=LatencySweep(fractions=(1 / 8, 1 / 4, 1 / 2, 1.0), scales=(0.25, 0.5), repeats=3, views=2,
-                                     device=device),
-                views=ViewsSweep(fractions=(0.25, 0.5, 1.0), steps=40, evaluations=4, max_gaussians=4000,
-                                 device=device),
-                benchmark_json=benchmark_json,
-            )
-        return ReportSettings(latency=LatencySweep(device=device), views=ViewsSweep(device=device),
-                              benchmark_json=benchmark_json)
+        """Quick: a miniature sweep of every section (well under 2 minutes on 2 cores); full: the demo's.
+
+        ``device`` and ``benchmark_json`` go to every section whose settings have a field of that name.
+        """
+        common = {"device": device, "benchmark_json": benchmark_json}
+        return ReportSettings({s.name: with_common(s.settings(quick), common) for s in registry.SECTIONS})
+
+
+def with_common(settings: Any, values: Mapping[str, Any]) -> Any:
+    """``settings`` (a dataclass, or None) with the fields of ``values`` it has replaced."""
+    if settings is None or not dataclasses.is_dataclass(settings):
+        return settings
+    names = {f.name for f in dataclasses.fields(settings)}
+    return dataclasses.replace(settings, **{k: v for k, v in values.items() if k in names})
 
 
 @dataclass
@@ -97,55 +110,41 @@ def measurement_store(workdir: Path, refresh: bool = False) -> MeasurementStore:
 def measure_all(workdir: Path, settings: ReportSettings, refresh: bool = False,
                 only: tuple[str, ...] | None = None) -> tuple[dict[str, Measurement], dict[str, float]]:
     """Measure (or reuse) every section's data; a failing section is recorded, not raised."""
-    scene = SceneDir(Path(workdir) / "scene")
-    store = measurement_store(workdir, refresh)
-    steps: dict[str, Callable[[], Measurement]] = {
-        "handeye": lambda: report_handeye.measure_handeye(scene, store, settings.handeye),
-        "latency": lambda: report_latency.measure_latency(scene, store, settings.latency),
-        "views": lambda: report_views.measure_views(scene, store, settings.views),
-        "training": lambda: report_training.collect_training(scene, store, settings.benchmark_json),
-        "baseline": lambda: report_baseline.collect_baseline(Path(workdir), store),
-    }
+    inputs = MeasureInputs(Path(workdir), SceneDir(Path(workdir) / "scene"), measurement_store(workdir, refresh))
     results: dict[str, Measurement] = {}
     seconds: dict[str, float] = {}
-    for name in MEASUREMENTS:
+    for section in registry.SECTIONS:
+        name = section.name
         if only and name not in only:
             continue
         t0 = time.perf_counter()
         try:
-            results[name] = steps[name]()
+            results[name] = section.measure(inputs, settings.for_section(section))
         except KeyboardInterrupt:
             raise
         except Exception as exc:  # noqa: BLE001 - one broken section must not cost the whole page
             log.warning("report: measuring %s failed: %s", name, exc, exc_info=True)
-            results[name] = store.failed(name, f"{type(exc).__name__}: {exc}")
+            results[name] = inputs.store.failed(name, f"{type(exc).__name__}: {exc}")
         seconds[name] = time.perf_counter() - t0
         log.info("report: %s %s in %.1f s", name, results[name].status, seconds[name])
     return results, seconds
 
 
-def render_sections(measurements: dict[str, Measurement | None], out_dir: Path) -> list[Section]:
-    """The five sections, in page order, from measurements (any of them may be None).
+def render_sections(measurements: Mapping[str, Measurement | None], out_dir: Path) -> list[RenderedSection]:
+    """Every section, in page order, from measurements (any of them may be None).
 
     A measurement file that cannot be rendered (edited by hand, from an older version) gives a
     section that says so instead of stopping the page.
     """
-    get = measurements.get
-    renders: list[tuple[str, Callable[[], Section]]] = [
-        (report_training.TITLE, lambda: report_training.render_training(get("training"), get("views"), out_dir)),
-        (report_handeye.TITLE, lambda: report_handeye.render_handeye(get("handeye"), out_dir)),
-        (report_latency.TITLE, lambda: report_latency.render_latency(get("latency"), out_dir)),
-        (report_views.TITLE, lambda: report_views.render_views(get("views"), out_dir)),
-        (report_baseline.TITLE, lambda: report_baseline.render_baseline(get("baseline"), out_dir)),
-    ]
     sections = []
-    for title, render in renders:
+    for section in registry.page_order():
         try:
-            sections.append(render())
+            sections.append(section.render(measurements, out_dir))
         except Exception as exc:  # noqa: BLE001 - one unreadable measurement must not cost the whole page
-            log.warning("report: rendering %r failed: %s", title, exc, exc_info=True)
-            sections.append(Section(title, f"> **Not available.** The cached measurement could not be rendered "
-                                           f"({type(exc).__name__}: {exc}); run `brave6d report --refresh`.\n"))
+            log.warning("report: rendering %r failed: %s", section.title, exc, exc_info=True)
+            sections.append(RenderedSection(section.title, f"> **Not available.** The cached measurement could not "
+                                                           f"be rendered ({type(exc).__name__}: {exc}); run "
+                                                           "`brave6d report --refresh`.\n"))
     return sections
 
 
@@ -153,8 +152,8 @@ def write_report(workdir: Path, seconds: dict[str, float] | None = None) -> Repo
     """Render ``report/report.md`` and its PNGs from the cached measurements only (no measuring)."""
     out = report_dir(workdir)
     store = measurement_store(workdir)
-    measurements = {name: store.load(name) for name in MEASUREMENTS}
-    for name in FIGURES:  # a section that lost its data must not keep an old plot
+    measurements = {name: store.load(name) for name in measurement_names()}
+    for name in figure_names():  # a section that lost its data must not keep an old plot
         (out / name).unlink(missing_ok=True)
     sections = render_sections(measurements, out)
     page = compose(Path(workdir), sections, measurements, seconds or {})
@@ -163,7 +162,7 @@ def write_report(workdir: Path, seconds: dict[str, float] | None = None) -> Repo
     return ReportResult(md, [f for s in sections for f in s.figures], seconds or {}, statuses)
 
 
-def compose(workdir: Path, sections: list[Section], measurements: dict[str, Measurement | None],
+def compose(workdir: Path, sections: list[RenderedSection], measurements: Mapping[str, Measurement | None],
             seconds: dict[str, float]) -> str:
     """The whole page: header (machine, scene, time spent), the sections, how to choose settings."""
     machines = {describe_machine(m.machine, with_load=False)
@@ -180,7 +179,7 @@ def compose(workdir: Path, sections: list[Section], measurements: dict[str, Meas
         f"- Written {now}; "
         + (f"this run measured for {sum(seconds.values()):.0f} s; " if seconds else "from cached measurements; ")
         + f"the sweeps' points took {spent:.0f} s in all (cached in `report/measurements/`).",
-        "- Sections: " + ", ".join(f"{name} {_status(measurements.get(name))}" for name in MEASUREMENTS),
+        "- Sections: " + ", ".join(f"{name} {_status(measurements.get(name))}" for name in measurement_names()),
         "",
     ]
     advice = [s.advice for s in sections if s.advice]
@@ -221,8 +220,8 @@ def stage_report(ctx: DemoContext) -> StageResult:
     if done.returncode != 0:
         raise BraveError(f"the report failed (exit status {done.returncode}; see the messages above): {' '.join(cmd)}")
     store = measurement_store(ctx.workdir)
-    statuses = {name: (m.status if (m := store.load(name)) is not None else "absent") for name in MEASUREMENTS}
-    plots = sum((report_dir(ctx.workdir) / name).is_file() for name in FIGURES)
+    statuses = {name: (m.status if (m := store.load(name)) is not None else "absent") for name in measurement_names()}
+    plots = sum((report_dir(ctx.workdir) / name).is_file() for name in figure_names())
     missing = [k for k, v in statuses.items() if v != "complete"]
     return StageResult("report", figures={
         "report": str(report_dir(ctx.workdir) / "report.md"), "plots": plots, "seconds": round(watch.seconds, 1),

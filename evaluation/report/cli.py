@@ -10,24 +10,27 @@ from pathlib import Path
 
 from brave6d.errors import BraveError
 
-SECTIONS = ("training", "handeye", "latency", "views", "baseline")
-
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    from evaluation.report.sections import names
+
+    sections = names()
     parser.add_argument("--workdir", type=Path, default=Path("runs/demo"),
                         help="the demo's work directory, holding scene/ (default: runs/demo)")
     parser.add_argument("--mode", choices=["auto", "quick", "full"], default="auto",
                         help="sweep sizes: quick (CI's miniature, < 2 min) or full (several minutes); auto: quick "
                              "when the scene was made by 'brave6d demo --quick' (default: %(default)s)")
     parser.add_argument("--refresh", action="store_true", help="measure again instead of reusing cached measurements")
-    parser.add_argument("--only", nargs="+", choices=SECTIONS, metavar="SECTION",
-                        help=f"measure only these ({', '.join(SECTIONS)}); the others come from the cache")
+    parser.add_argument("--only", nargs="+", choices=sections, metavar="SECTION",
+                        help=f"measure only these ({', '.join(sections)}); the others come from the cache")
     parser.add_argument("--no-measure", action="store_true",
                         help="only write the page from the cached measurements in <workdir>/report/measurements")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
-                        help="where to train and render (default: %(default)s)")
+                        help="where to train and render: every section with a device setting "
+                             "(default: %(default)s)")
     parser.add_argument("--benchmark-json", type=Path, default=None,
-                        help="output of benchmarks/training.py --json (default: scene/splat/benchmark_training.json)")
+                        help="output of benchmarks/training.py --json, for the training section "
+                             "(default: scene/splat/benchmark_training.json)")
 
 
 def run(args: argparse.Namespace) -> int:

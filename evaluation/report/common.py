@@ -1,4 +1,4 @@
-"""What every report section shares: the :class:`Section` it renders to, number formatting,
+"""What every report section shares: the :class:`RenderedSection` it renders to, number formatting,
 the "diminishing returns" rule behind its advice, and the notes for missing inputs and NaN."""
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from evaluation.report.measurements import Measurement, describe_machine
 
 
 @dataclass
-class Section:
-    """One section of the report: Markdown body, the PNGs it links, one sentence of advice."""
+class RenderedSection:
+    """One section of the page: Markdown body, the PNGs it links, one sentence of advice."""
 
     title: str
     body: str
@@ -82,7 +82,7 @@ def calibrated_capture(scene: SceneDir) -> list[tuple[Path, str]]:
             (scene.handeye_path, "calibration")]
 
 
-def unavailable(title: str, m: Measurement | None, what: str) -> Section:
+def unavailable(title: str, m: Measurement | None, what: str) -> RenderedSection:
     """The section text when its measurement is missing or failed: says what and why."""
     if m is None:
         reason = "nothing measured yet (run `brave6d report` without `--no-measure`)"
@@ -92,7 +92,7 @@ def unavailable(title: str, m: Measurement | None, what: str) -> Section:
         reason = f"measuring failed: {m.note}"
     else:
         reason = "no points measured yet"
-    return Section(title, f"> **Not available.** {what}: {reason}.\n")
+    return RenderedSection(title, f"> **Not available.** {what}: {reason}.\n")
 
 
 def provenance(m: Measurement) -> str:

@@ -1,1 +1,28 @@
-"""(filled in by the restructuring of issue #18)"""
+"""The report's sections, registered once.
+
+Each module here defines one section behind the :class:`~evaluation.report.protocol.Section`
+protocol as its ``SECTION``; :data:`SECTIONS` lists them in measuring order (cheap first),
+:func:`page_order` in the order of the page. Adding a section is one module here and its name
+in :data:`MODULES`; nothing else changes (see docs/ARCHITECTURE.md).
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+
+from evaluation.report.protocol import Section
+
+#: Section modules in measuring order; each defines ``SECTION``.
+MODULES = ("handeye", "latency", "views", "training", "baseline")
+
+SECTIONS: tuple[Section, ...] = tuple(import_module(f"{__name__}.{module}").SECTION for module in MODULES)
+
+
+def page_order() -> list[Section]:
+    """The sections in the order of the page (by their ``page`` number)."""
+    return sorted(SECTIONS, key=lambda s: s.page)
+
+
+def names() -> tuple[str, ...]:
+    """The sections' measurement names in page order (the ``--only`` choices)."""
+    return tuple(s.name for s in page_order())

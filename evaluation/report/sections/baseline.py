@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -20,11 +21,14 @@ from brave6d.atomic import read_json
 from brave6d.errors import DataError
 from brave6d.progress import format_table
 from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info
-from evaluation.report.common import Section, finite, fmt, nan_note, num, provenance, unavailable
+from evaluation.report.common import RenderedSection, finite, fmt, nan_note, num, provenance, unavailable
+from evaluation.report.protocol import MeasureInputs
 from evaluation.report.plots import legend, new_figure, plot_line, save_figure
 
 NAME = "baseline"
-TITLE = "5. Baseline agents: Average Recall against adjustments"
+PAGE = 5
+TITLE = f"{PAGE}. Baseline agents: Average Recall against adjustments"
+FIGURE = "baseline.png"
 
 AGENT_KEYS = ("agent", "agent_name", "name")
 AR_KEYS = ("ar", "AR", "average_recall", "score")
@@ -124,7 +128,7 @@ def by_agent(points: list[dict[str, Any]], from_file: list[dict[str, Any]] | Non
     return rows
 
 
-def render_baseline(m: Measurement | None, out_dir: Path) -> Section:
+def render_baseline(m: Measurement | None, out_dir: Path) -> RenderedSection:
     """Section 5 from its measurement: scatter of episodes, agent means, table, advice."""
     if m is None or not m.usable or not m.points:
         return unavailable(TITLE, m, "Baseline episodes")
@@ -145,7 +149,7 @@ def render_baseline(m: Measurement | None, out_dir: Path) -> Section:
     ax.set_xlabel("camera position adjustments per episode")
     ax.set_ylabel("BOP Average Recall")
     legend(ax)
-    png = save_figure(fig, out_dir / "baseline.png", "Baseline agents: Average Recall against adjustments",
+    png = save_figure(fig, out_dir / FIGURE, "Baseline agents: Average Recall against adjustments",
                       describe_machine(m.machine), f"source: {m.settings.get('source')}")
     table = [(r["agent"], r["episodes"], fmt(r["ar"], 3), fmt(r["adjustments"], 1), fmt(r["wall_s"], 1)) for r in rows]
     ar_text = ("AR is the leaderboard's, pooled over each agent's episodes" if pooled
@@ -156,7 +160,7 @@ def render_baseline(m: Measurement | None, out_dir: Path) -> Section:
             + format_table(["agent", "episodes", "AR", "mean adjustments", "wall s"], table)
             + ("" if not incomplete else f"\n\n> {incomplete} episodes lack AR or adjustments in the file.")
             + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted episode values"))
-    return Section(TITLE, body, advice_baseline(rows), [png])
+    return RenderedSection(TITLE, body, advice_baseline(rows), [png])
 
 
 def advice_baseline(rows: list[dict[str, Any]]) -> str:
@@ -176,3 +180,22 @@ def advice_baseline(rows: list[dict[str, Any]]) -> str:
                 f"{fmt(gain / extra, 3)} AR per adjustment).")
     return (f"{head} and scores {fmt(-gain, 3)} less AR ({fmt(lo['ar'], 3)} -> {fmt(hi['ar'], 3)}): on this scene "
             "the extra moves did not pay.")
+
+
+class BaselineSection:
+    """Section 5 behind the :class:`~evaluation.report.protocol.Section` protocol (no settings:
+    it reads ``<workdir>/evaluation/baseline.json``)."""
+
+    name, page, title, figure = NAME, PAGE, TITLE, FIGURE
+
+    def settings(self, quick: bool) -> None:
+        return None
+
+    def measure(self, inputs: MeasureInputs, settings: None) -> Measurement:
+        return collect_baseline(inputs.workdir, inputs.store)
+
+    def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
+        return render_baseline(measurements.get(NAME), out_dir)
+
+
+SECTION = BaselineSection()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -23,12 +24,15 @@ import numpy as np
 from brave6d.layout import SceneDir
 from brave6d.progress import format_table
 from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info, run_sweep
-from evaluation.report.common import Section, fmt, median, nan_note, num, provenance, quantile, seconds_per_frame
+from evaluation.report.common import RenderedSection, fmt, median, nan_note, num, provenance, quantile, seconds_per_frame
 from evaluation.report.common import settings_line, unavailable
+from evaluation.report.protocol import MeasureInputs
 from evaluation.report.plots import legend, new_figure, plot_band, plot_line, save_figure
 
 NAME = "handeye"
-TITLE = "2. Hand-eye calibration: error against poses and solve time"
+PAGE = 2
+TITLE = f"{PAGE}. Hand-eye calibration: error against poses and solve time"
+FIGURE = "handeye.png"
 #: Closed-form method drawn beside the refinement (the cheapest answer the calibration computes).
 CLOSED_FORM = "park"
 #: The advice asks for a hand-eye error that moves image points by at most this many pixels.
@@ -140,7 +144,7 @@ def by_size(m: Measurement) -> list[dict[str, Any]]:
     return rows
 
 
-def render_handeye(m: Measurement | None, out_dir: Path) -> Section:
+def render_handeye(m: Measurement | None, out_dir: Path) -> RenderedSection:
     """Section 2 from its measurement: plot, table, advice (or a note saying what is missing)."""
     if m is None or not m.usable:
         return unavailable(TITLE, m, "Hand-eye sweep")
@@ -165,7 +169,7 @@ def render_handeye(m: Measurement | None, out_dir: Path) -> Section:
         ax.set_ylabel(label)
         legend(ax)
     ax_t.set_yscale("log")
-    png = save_figure(fig, out_dir / "handeye.png", "Hand-eye error and solve time against the number of poses "
+    png = save_figure(fig, out_dir / FIGURE, "Hand-eye error and solve time against the number of poses "
                       f"(error vs {'truth' if s.get('has_truth') else 'all-pose solution'}; band: inter-quartile)",
                       describe_machine(m.machine), settings_line(m) + f"; truth: {s.get('truth')}")
     table = [(r["n"], f"{r['trials'] - r['failed']}/{r['trials']}", r["accepted"], fmt(r["mm"][0], 3),
@@ -180,7 +184,7 @@ def render_handeye(m: Measurement | None, out_dir: Path) -> Section:
             + format_table(["poses", "solved", "within default sigma limits", "median mm", "IQR mm", "median deg",
                             f"{CLOSED_FORM} mm", "solve s", "robot s"], table)
             + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted hand-eye values"))
-    return Section(TITLE, body, advice_handeye(rows, s), [png])
+    return RenderedSection(TITLE, body, advice_handeye(rows, s), [png])
 
 
 def pixel_budget(summary: dict[str, Any], px: float = HALF_PIXEL) -> tuple[float, float]:
@@ -225,3 +229,22 @@ def advice_handeye(rows: list[dict[str, Any]], summary: dict[str, Any]) -> str:
     extra = largest["n"] - enough["n"]
     cost = f"{fmt(extra * per_pose, 0)} s more robot time" if math.isfinite(per_pose) else f"{extra} more poses"
     return (text + f"{tail}, i.e. {fmt(enough['mm'][0] / largest['mm'][0], 1)}x less translation error for {cost}.")
+
+
+class HandEyeSection:
+    """Section 2 behind the :class:`~evaluation.report.protocol.Section` protocol."""
+
+    name, page, title, figure = NAME, PAGE, TITLE, FIGURE
+
+    def settings(self, quick: bool) -> HandEyeSweep:
+        """The demo's sweep; quick: four subset sizes, three draws each."""
+        return HandEyeSweep(sizes=(3, 5, 8, 12), repeats=3) if quick else HandEyeSweep()
+
+    def measure(self, inputs: MeasureInputs, settings: HandEyeSweep) -> Measurement:
+        return measure_handeye(inputs.scene, inputs.store, settings)
+
+    def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
+        return render_handeye(measurements.get(NAME), out_dir)
+
+
+SECTION = HandEyeSection()

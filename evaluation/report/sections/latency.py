@@ -1,9 +1,9 @@
 """Report section 3: render latency against image resolution and number of Gaussians.
 
 The scene's trained splat (``splat/point_cloud.ply``, else the bundle's) is subsampled at
-random to several counts; each subset is written to a temporary PLY and rendered by the
-render server's own :class:`serve.renderer.SplatRenderer` (load-time pruning, per-view
-culling, forward rasterization) from a few captured camera poses at several resolutions of
+random to several counts; each subset is handed in memory to the render server's own
+:class:`serve.SplatRenderer` (``from_splat``: load-time pruning, per-view culling, forward
+rasterization) and rendered from a few captured camera poses at several resolutions of
 the calibrated (undistorted) camera. A warm-up render precedes each count; the report gives
 the median ``render_ms`` (the rasterizer call, as the server reports it).
 """
@@ -11,7 +11,7 @@ the median ``render_ms`` (the rasterizer call, as the server reports it).
 from __future__ import annotations
 
 import math
-import tempfile
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -21,12 +21,15 @@ import numpy as np
 from brave6d.layout import SceneDir
 from brave6d.progress import format_table
 from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info, run_sweep
-from evaluation.report.common import Section, calibrated_capture, fmt, median, nan_note, num, provenance, quantile
+from evaluation.report.common import RenderedSection, calibrated_capture, fmt, median, nan_note, num, provenance, quantile
 from evaluation.report.common import settings_line, unavailable
+from evaluation.report.protocol import MeasureInputs
 from evaluation.report.plots import legend, log_axes, new_figure, plot_line, save_figure
 
 NAME = "latency"
-TITLE = "3. Rendering: latency against resolution and number of Gaussians"
+PAGE = 3
+TITLE = f"{PAGE}. Rendering: latency against resolution and number of Gaussians"
+FIGURE = "latency.png"
 #: Frame-time targets the advice is phrased against (interactive viewing, agent steps).
 TARGETS_MS = (33.3, 100.0)
 
@@ -63,10 +66,10 @@ def measure_latency(scene: SceneDir, store: MeasurementStore, sweep: LatencySwee
     if (absent := store.require(NAME, calibrated_capture(scene))) is not None:
         return absent
     from brave6d.calibration_io import camera_poses, read_intrinsics
-    from serve.renderer import SplatRenderer, effective_sh_degree, resolve_device
-    from training.ply import SplatData, read_ply, write_ply
+    from serve import SplatRenderer
+    from training import SplatData, read_ply, resolve_device
 
-    device = resolve_device(sweep.device)
+    device = str(resolve_device(sweep.device))
     key = {"splat": file_stamp(ply), "frames": file_stamp(scene.frames_path),
            "intrinsics": file_stamp(scene.intrinsics_path), "handeye": file_stamp(scene.handeye_path),
            "sweep": asdict(sweep), "device": device}
@@ -82,19 +85,18 @@ def measure_latency(scene: SceneDir, store: MeasurementStore, sweep: LatencySwee
     sizes = sorted({(max(16, round(camera.width * s)), max(16, round(camera.height * s))) for s in sweep.scales})
     settings = {"splat": ply.name, "gaussians": counts, "sizes": [f"{w}x{h}" for w, h in sizes],
                 "repeats": sweep.repeats, "views": len(poses), "device": device,
-                "sh_degree": effective_sh_degree(splat.shN)}
+                "sh_degree": SplatRenderer.effective_sh_degree(splat.shN)}
     m = store.resume(NAME, key, settings, machine_info(device))
     m.summary.update({"splat": str(ply), "n_total": n_total, "capture_size": [camera.width, camera.height]})
     current: dict[str, Any] = {}
-    tmp = tempfile.TemporaryDirectory(prefix="brave6d-report-latency-")
 
     def renderer_for(n: int) -> Any:
         if current.get("n") != n:
             keep = np.sort(np.random.default_rng(sweep.seed).choice(n_total, n, replace=False))
-            path = Path(tmp.name) / f"splat_{n}.ply"
-            write_ply(path, SplatData(splat.means[keep], splat.sh0[keep], splat.shN[keep], splat.opacities[keep],
-                                      splat.scales[keep], splat.quats[keep]))
-            current.update(n=n, renderer=SplatRenderer(path, device=device))
+            subset = SplatData(splat.means[keep], splat.sh0[keep], splat.shN[keep], splat.opacities[keep],
+                               splat.scales[keep], splat.quats[keep])
+            current.update(n=n, renderer=SplatRenderer.from_splat(subset, device=device,
+                                                                  source=f"{ply} ({n} of its Gaussians)"))
             current["renderer"].warm_up(camera, poses[0])
         return current["renderer"]
 
@@ -109,12 +111,11 @@ def measure_latency(scene: SceneDir, store: MeasurementStore, sweep: LatencySwee
                 "drawn": median([o.gaussians_drawn for o in outs]), "samples": len(outs)}
 
     items = [(f"g{n}-{w}x{h}", (n, (w, h))) for n in counts for (w, h) in sizes]
-    with tmp:
-        return run_sweep(store, m, items, render, desc="report: render latency", unit="cell")
+    return run_sweep(store, m, items, render, desc="report: render latency", unit="cell")
 
 
 # ----------------------------------------------------------------------------- rendering
-def render_latency(m: Measurement | None, out_dir: Path) -> Section:
+def render_latency(m: Measurement | None, out_dir: Path) -> RenderedSection:
     """Section 3 from its measurement: plot, table, advice (or a note saying what is missing)."""
     if m is None or not m.usable:
         return unavailable(TITLE, m, "Render latency sweep")
@@ -139,7 +140,7 @@ def render_latency(m: Measurement | None, out_dir: Path) -> Section:
         for target in TARGETS_MS:
             ax.axhline(target, color="0.5", lw=0.8, ls=":")
         legend(ax)
-    png = save_figure(fig, out_dir / "latency.png", "Render latency (serve renderer, forward only) against Gaussians "
+    png = save_figure(fig, out_dir / FIGURE, "Render latency (serve renderer, forward only) against Gaussians "
                       "and resolution; dotted: 33 ms and 100 ms", describe_machine(m.machine), settings_line(m))
     table = [(f"{n:,}", *(fmt(ms(n, w, h), 1) for w, h in sizes)) for n in counts]
     n_total = num(m.summary.get("n_total"))
@@ -150,7 +151,7 @@ def render_latency(m: Measurement | None, out_dir: Path) -> Section:
             f"![render latency]({png.name})\n\n"
             + format_table(["Gaussians", *(f"{w}x{h}" for w, h in sizes)], table)
             + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "latency cells"))
-    return Section(TITLE, body, advice_latency(counts, sizes, ms, scaling_exponents(m.points)), [png])
+    return RenderedSection(TITLE, body, advice_latency(counts, sizes, ms, scaling_exponents(m.points)), [png])
 
 
 def scaling_exponents(points: list[dict[str, Any]]) -> tuple[float, float] | None:
@@ -197,3 +198,24 @@ def advice_latency(counts: list[int], sizes: list[tuple[int, int]], ms: Any,
                  f"{100 * (1 - 0.5 ** b):.0f} %, halving the pixels {100 * (1 - 0.5 ** c):.0f} %, so {cheaper} "
                  "is the cheaper way to a target frame time.")
     return text
+
+
+class LatencySection:
+    """Section 3 behind the :class:`~evaluation.report.protocol.Section` protocol."""
+
+    name, page, title, figure = NAME, PAGE, TITLE, FIGURE
+
+    def settings(self, quick: bool) -> LatencySweep:
+        """The demo's sweep; quick: four Gaussian counts at two small image sizes."""
+        if quick:
+            return LatencySweep(fractions=(1 / 8, 1 / 4, 1 / 2, 1.0), scales=(0.25, 0.5), repeats=3, views=2)
+        return LatencySweep()
+
+    def measure(self, inputs: MeasureInputs, settings: LatencySweep) -> Measurement:
+        return measure_latency(inputs.scene, inputs.store, settings)
+
+    def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
+        return render_latency(measurements.get(NAME), out_dir)
+
+
+SECTION = LatencySection()

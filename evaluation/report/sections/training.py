@@ -15,6 +15,8 @@ page can be rebuilt from ``report/measurements`` alone.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,12 +25,16 @@ from brave6d.errors import DataError
 from brave6d.layout import SceneDir
 from brave6d.progress import format_table
 from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info
-from evaluation.report.common import Section, first_reaching, fmt, nan_note, num, provenance, settings_line
+from evaluation.report.common import RenderedSection, first_reaching, fmt, nan_note, num, provenance, settings_line
 from evaluation.report.common import unavailable
+from evaluation.report.protocol import MeasureInputs
+from evaluation.report.sections.views import NAME as VIEWS
 from evaluation.report.plots import compact_xticks, legend, new_figure, plot_line, save_figure
 
 NAME = "training"
-TITLE = "1. Training: holdout quality against time, steps and Gaussians"
+PAGE = 1
+TITLE = f"{PAGE}. Training: holdout quality against time, steps and Gaussians"
+FIGURE = "training.png"
 PSNR_TOLERANCE_DB = 0.5
 
 
@@ -106,7 +112,7 @@ def curves(training: Measurement | None, views: Measurement | None) -> list[tupl
     return out
 
 
-def render_training(training: Measurement | None, views: Measurement | None, out_dir: Path) -> Section:
+def render_training(training: Measurement | None, views: Measurement | None, out_dir: Path) -> RenderedSection:
     """Section 1 from the ``training`` and ``views`` measurements (either may be missing)."""
     sources = curves(training, views)
     if not sources:
@@ -137,7 +143,7 @@ def render_training(training: Measurement | None, views: Measurement | None, out
     assert provenance_of is not None
     footer = settings_line(provenance_of) + ("" if views is None or not views.usable else
                                              f"; report run: {settings_line(views, ['preset', 'steps', 'image'])}")
-    png = save_figure(fig, out_dir / "training.png", "Holdout quality against training time, steps and Gaussians",
+    png = save_figure(fig, out_dir / FIGURE, "Holdout quality against training time, steps and Gaussians",
                       describe_machine(provenance_of.machine), footer)
     body = [f"![holdout quality against training time]({png.name})"]
     if training is not None and training.usable:
@@ -155,7 +161,7 @@ def render_training(training: Measurement | None, views: Measurement | None, out
                  p.get("gaussians"), fmt(p.get("psnr")), fmt(p.get("ssim"), 4)) for p in pts]
         body.append(f"**{label}:**\n\n" + format_table(["step", "train s", "Gaussians", "PSNR [dB]", "SSIM"], rows))
     body.append(provenance(provenance_of) + "\n" + nan_note(dropped, "plotted training values"))
-    return Section(TITLE, "\n\n".join(body), advice_training(sources, training), [png])
+    return RenderedSection(TITLE, "\n\n".join(body), advice_training(sources, training), [png])
 
 
 def _scene_text(m: Measurement) -> str:
@@ -199,3 +205,30 @@ def advice_training(sources: list[tuple[str, list[dict[str, Any]], str]], traini
                      f"schedule needs about {fmt(planned * per_step / 60.0, 1)} min of training on this machine")
         text += "."
     return text.strip()
+
+
+@dataclass(frozen=True)
+class TrainingSources:
+    """Where the section reads from besides ``splat/metrics.json``: the benchmark JSON
+    (None: :func:`default_benchmark_json`)."""
+
+    benchmark_json: Path | None = None
+
+
+class TrainingSection:
+    """Section 1 behind the :class:`~evaluation.report.protocol.Section` protocol (it also draws
+    section 4's run on all views)."""
+
+    name, page, title, figure = NAME, PAGE, TITLE, FIGURE
+
+    def settings(self, quick: bool) -> TrainingSources:
+        return TrainingSources()
+
+    def measure(self, inputs: MeasureInputs, settings: TrainingSources) -> Measurement:
+        return collect_training(inputs.scene, inputs.store, settings.benchmark_json)
+
+    def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
+        return render_training(measurements.get(NAME), measurements.get(VIEWS), out_dir)
+
+
+SECTION = TrainingSection()

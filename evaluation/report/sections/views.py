@@ -2,8 +2,8 @@
 
 Short trainings with one step budget on subsets of the training views of every ring (evenly
 spaced in capture order), the holdout fixed (the training stage's 10 % per level). Nothing
-is written into the scene: the trainer runs without checkpoints and the model stays in
-memory. Every run starts from points back-projected from its *own* depth frames (random
+is written into the scene: :func:`training.train` runs without checkpoints and the model
+stays in memory. Every run starts from points back-projected from its *own* depth frames (random
 points without depth), so that a sparser capture does not borrow geometry from views it
 would not have. The preset is the one the scene was trained with (``splat/metrics.json``),
 scaled to the step budget. The holdout is scored at several steps of every run, so the run
@@ -17,21 +17,28 @@ import dataclasses
 import math
 import time
 from collections import defaultdict
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from brave6d.layout import SceneDir
 from brave6d.progress import format_table
 from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info, run_sweep
-from evaluation.report.common import Section, calibrated_capture, fmt, nan_note, num, provenance
+from evaluation.report.common import RenderedSection, calibrated_capture, fmt, nan_note, num, provenance
 from evaluation.report.common import seconds_per_frame, settings_line, unavailable
+from evaluation.report.protocol import MeasureInputs
 from evaluation.report.plots import legend, new_figure, plot_line, save_figure
 
+if TYPE_CHECKING:
+    from training import Preset
+
 NAME = "views"
-TITLE = "4. Capture: holdout quality against views per distance level"
+PAGE = 4
+TITLE = f"{PAGE}. Capture: holdout quality against views per distance level"
+FIGURE = "views.png"
 #: A gain below this many dB is "diminishing returns" in the advice.
 PSNR_TOLERANCE_DB = 0.5
 
@@ -55,8 +62,7 @@ def measure_views(scene: SceneDir, store: MeasurementStore, sweep: ViewsSweep) -
     """Run (or resume) the subset trainings; see the module docstring."""
     if (absent := store.require(NAME, calibrated_capture(scene))) is not None:
         return absent
-    from training.dataset import load_scene
-    from training.trainer import resolve_device
+    from training import load_scene, resolve_device
 
     preset, preset_source = scene_preset(scene, sweep)
     device = resolve_device(sweep.device)
@@ -94,11 +100,11 @@ def measure_views(scene: SceneDir, store: MeasurementStore, sweep: ViewsSweep) -
     return run_sweep(store, m, items, train, desc="report: trainings on view subsets", unit="run")
 
 
-def scene_preset(scene: SceneDir, sweep: ViewsSweep) -> tuple[Any, str]:
+def scene_preset(scene: SceneDir, sweep: ViewsSweep) -> tuple[Preset, str]:
     """The preset the scene was trained with (else ``fast``), scaled to the sweep's step budget."""
     from brave6d.atomic import read_json
     from brave6d.errors import DataError
-    from training.presets import Preset, get_preset
+    from training import Preset, get_preset
 
     preset, source = get_preset("fast"), "the fast preset: no splat/metrics.json"
     try:
@@ -117,37 +123,22 @@ def scene_preset(scene: SceneDir, sweep: ViewsSweep) -> tuple[Any, str]:
                                eval_every=max(1, sweep.steps // max(sweep.evaluations, 1))), source
 
 
-def train_subset(data: Any, preset: Any, device: Any) -> dict[str, Any]:
+def train_subset(data: Any, preset: Preset, device: Any) -> dict[str, Any]:
     """Train on ``data.train`` from its own depth points; holdout curve and final scores."""
-    from training.colmap_init import initial_points
-    from training.evaluate import evaluate_holdout
-    from training.model import GaussianModel
-    from training.trainer import Trainer, set_seed
+    from training import evaluate_holdout, train
 
-    set_seed(preset.seed)
-    t0 = time.perf_counter()
-    init = initial_points(None, data, max_points=preset.max_init_points, seed=preset.seed, method="depth")
-    model = GaussianModel.from_points(init.points, init.colors, preset.sh_degree, preset.init_opacity,
-                                      preset.init_scale, device=device)
-    init_s = time.perf_counter() - t0
-    curve: list[dict[str, Any]] = []
-    eval_s = 0.0
-
-    def evaluate(trainer: Any) -> float:
-        nonlocal eval_s
+    run = train(data, preset, device, init_method="depth")
+    curve = [{"step": p.step, "time_s": p.time_s, "gaussians": p.gaussians, "psnr": p.psnr, "ssim": p.ssim}
+             for p in run.holdout_curve]
+    eval_s = sum(p.eval_s for p in run.holdout_curve)
+    if not curve or curve[-1]["step"] != run.steps:  # the schedule did not score the last step
         t = time.perf_counter()
-        h = evaluate_holdout(trainer.model, data)
+        h = evaluate_holdout(run.model, data)
         eval_s += time.perf_counter() - t
-        curve.append({"step": trainer.step, "time_s": trainer.elapsed, "gaussians": trainer.model.num_gaussians,
+        curve.append({"step": run.steps, "time_s": run.result.train_seconds, "gaussians": run.num_gaussians,
                       "psnr": h.psnr, "ssim": h.ssim})
-        return h.psnr
-
-    trainer = Trainer(data, model, preset, None, device, show_progress=False, eval_callback=evaluate)
-    result = trainer.train()
-    if not curve or curve[-1]["step"] != result.steps:
-        evaluate(trainer)
-    return {"steps": result.steps, "train_s": result.train_seconds, "init_s": init_s, "eval_s": eval_s,
-            "init": {"source": init.source, "points": len(init)}, "gaussians": result.num_gaussians,
+    return {"steps": run.steps, "train_s": run.result.train_seconds, "init_s": run.init_seconds, "eval_s": eval_s,
+            "init": {"source": run.init["source"], "points": run.init["points"]}, "gaussians": run.num_gaussians,
             "psnr": curve[-1]["psnr"], "ssim": curve[-1]["ssim"], "curve": curve}
 
 
@@ -166,7 +157,7 @@ def capture_seconds(point: dict[str, Any], levels: dict[str, Any]) -> float:
     return sum(k * s for k, s in zip(point.get("views_per_level", []), per_view))
 
 
-def render_views(m: Measurement | None, out_dir: Path) -> Section:
+def render_views(m: Measurement | None, out_dir: Path) -> RenderedSection:
     """Section 4 from its measurement: plot, table, advice (or a note saying what is missing)."""
     if m is None or not m.usable:
         return unavailable(TITLE, m, "Views-per-level sweep")
@@ -191,7 +182,7 @@ def render_views(m: Measurement | None, out_dir: Path) -> Section:
         ax.set_ylabel("holdout PSNR [dB]")
     for ax in (ax_v, ax_s, ax_t, ax_c):
         legend(ax)
-    png = save_figure(fig, out_dir / "views.png", "Holdout quality against training views per distance level "
+    png = save_figure(fig, out_dir / FIGURE, "Holdout quality against training views per distance level "
                       "(same step budget, fixed holdout)", describe_machine(m.machine), settings_line(m))
     table = [(per_level_text(p), p.get("n_train"), fmt(c * 60.0, 0), fmt(p.get("psnr")), fmt(p.get("ssim"), 4),
               p.get("gaussians"), fmt(p.get("train_s"), 1)) for p, c in zip(pts, capture_min)]
@@ -204,7 +195,7 @@ def render_views(m: Measurement | None, out_dir: Path) -> Section:
             + format_table(["views per level", "train views", "robot s", "PSNR [dB]", "SSIM", "Gaussians",
                             "train s"], table)
             + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted view-sweep values"))
-    return Section(TITLE, body, advice_views(pts, capture_min), [png])
+    return RenderedSection(TITLE, body, advice_views(pts, capture_min), [png])
 
 
 def per_level_text(point: dict[str, Any]) -> str:
@@ -231,3 +222,24 @@ def advice_views(pts: list[dict[str, Any]], capture_min: list[float]) -> str:
     return (f"**Views per ring:** {per_level_text(p)} training views per level come within {PSNR_TOLERANCE_DB} dB "
             f"of {per_level_text(best)} ({fmt(p.get('psnr'))} vs {fmt(best.get('psnr'))} dB after "
             f"{p.get('steps', '?')} steps){saved}{caveat}.")
+
+
+class ViewsSection:
+    """Section 4 behind the :class:`~evaluation.report.protocol.Section` protocol."""
+
+    name, page, title, figure = NAME, PAGE, TITLE, FIGURE
+
+    def settings(self, quick: bool) -> ViewsSweep:
+        """The demo's sweep; quick: three subsets, 40 steps, at most 4000 Gaussians."""
+        if quick:
+            return ViewsSweep(fractions=(0.25, 0.5, 1.0), steps=40, evaluations=4, max_gaussians=4000)
+        return ViewsSweep()
+
+    def measure(self, inputs: MeasureInputs, settings: ViewsSweep) -> Measurement:
+        return measure_views(inputs.scene, inputs.store, settings)
+
+    def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
+        return render_views(measurements.get(NAME), out_dir)
+
+
+SECTION = ViewsSection()
