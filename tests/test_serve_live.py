@@ -17,7 +17,7 @@ from brave6d.transforms import look_at
 from serve.app import ServerLimits, create_app
 from serve.bundle import Bundle, load_bundle
 from serve.client import BraveClient, ServerError
-from serve.episodes import SceneServer, read_episode_log
+from serve import SceneServer, read_episode_log
 from serve.gym_env import BraveEnv
 from serve.runner import ServerThread
 from serve.synthetic import make_synthetic_bundle
