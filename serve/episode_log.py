@@ -194,9 +194,11 @@ class EpisodeLog:
 # ----------------------------------------------------------------------------- reading
 def _first_error(exc: ValidationError) -> str:
     err = exc.errors(include_url=False)[0]
-    loc = ".".join(str(p) for p in err.get("loc", ()))
+    parts = list(err.get("loc", ()))[1:]  # the first part is the record's event (the union's tag)
+    loc = ".".join(str(p) for p in parts)
     more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-    return f"field '{loc}': {err.get('msg', 'invalid')}{more}" if loc else f"{err.get('msg', 'invalid')}{more}"
+    msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")
+    return f"field '{loc}': {msg}{more}" if loc else f"{msg}{more}"
 
 
 def read_episode_log(path: Path | str) -> list[ResetRecord | ActionRecord | SubmitRecord | CloseRecord]:
@@ -213,7 +215,7 @@ def read_episode_log(path: Path | str) -> list[ResetRecord | ActionRecord | Subm
         raise DataError(f"{p}: episode log not found") from None
     except UnicodeDecodeError as exc:
         raise DataError(f"{p}: not a UTF-8 text file ({exc})") from None
-    records: list[ResetRecord | ActionRecord | SubmitRecord | CloseRecord] = []
+    raws: list[tuple[int, dict[str, Any]]] = []
     for n, line in enumerate(lines, start=1):
         if not line.strip():
             continue
@@ -225,13 +227,15 @@ def read_episode_log(path: Path | str) -> list[ResetRecord | ActionRecord | Subm
             raise DataError(f"{p}:{n}: not valid JSON ({exc.msg})") from None
         if not isinstance(raw, dict):
             raise DataError(f"{p}:{n}: a record must be a JSON object")
-        if not records:
-            _check_header(raw, p, n)
+        raws.append((n, raw))
+    if raws:
+        _check_header(raws[0][1], p, raws[0][0])
+    records: list[ResetRecord | ActionRecord | SubmitRecord | CloseRecord] = []
+    for n, raw in raws:
         try:
             records.append(_RECORD.validate_python(raw))
         except ValidationError as exc:
-            event = raw.get("event")
-            raise DataError(f"{p}:{n}: '{event}' record does not match the episode log schema "
+            raise DataError(f"{p}:{n}: '{raw.get('event')}' record does not match the episode log schema "
                             f"(version {LOG_FORMAT_VERSION}): {_first_error(exc)}") from None
     if not records:
         raise DataError(f"{p}: empty episode log")

@@ -33,7 +33,8 @@ def matrix_type(rows: int, cols: int, flat: bool = False) -> Any:
         except (TypeError, ValueError):
             raise ValueError(f"must be a {rows}x{cols} matrix of numbers") from None
         if arr.size != rows * cols:
-            raise ValueError(f"must be a {rows}x{cols} matrix ({rows * cols} numbers), got {arr.size}")
+            what = f"{rows} numbers" if cols == 1 else f"a {rows}x{cols} matrix ({rows * cols} numbers)"
+            raise ValueError(f"must be {what}, got {arr.size}")
         if not np.all(np.isfinite(arr)):
             raise ValueError("must be finite (NaN and inf are refused)")
         return arr.reshape(rows) if cols == 1 else arr.reshape(rows, cols)
