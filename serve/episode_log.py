@@ -53,14 +53,7 @@ class _Record(WireModel):
     time: str = Field(default_factory=_now)
 
 
-class _TargetTruth(_Record):
-    """The target's ground truth in the record's view (absent when the view has no target)."""
-
-    target_cam_T_obj: Matrix4 | None = None
-    target_visib_fract: Finite | None = None
-
-
-class ResetRecord(_TargetTruth):
+class ResetRecord(_Record):
     event: Literal["reset"] = "reset"
     format_version: int = LOG_FORMAT_VERSION
     episode_id: str
@@ -74,9 +67,12 @@ class ResetRecord(_TargetTruth):
     start: Literal["given", "random"]
     world_T_cam: Matrix4
     timings_ms: dict[str, float]
+    #: the target's ground truth in this view (None when the view has no target)
+    target_cam_T_obj: Matrix4 | None = None
+    target_visib_fract: Finite | None = None
 
 
-class ActionRecord(_TargetTruth):
+class ActionRecord(_Record):
     """A ``set_pose`` or ``move``: accepted (the camera moved; ``collided`` when a move stopped
     part-way) or refused (the camera stayed; ``refusal`` says why)."""
 
@@ -91,6 +87,8 @@ class ActionRecord(_TargetTruth):
     adjustments: int
     move: dict[str, Any] | None
     timings_ms: dict[str, float]
+    target_cam_T_obj: Matrix4 | None = None
+    target_visib_fract: Finite | None = None
 
 
 class LoggedEstimate(WireModel):
