@@ -14,7 +14,7 @@ camera), the current camera pose ``world_T_cam`` and counters. Actions:
   episode. The log then holds everything scoring needs that only the server knows: the final
   view's pose, ``K``, image size, every object's ground-truth ``cam_T_obj`` and visible
   fraction, and the final depth image (``<episode_id>_final_depth.png``, uint16 mm, beside the
-  log). See :func:`submission_record`.
+  log). See :func:`submission_record`. Observations leave the server as :mod:`serve.schema` models.
 
 **Refusal** (AI2-THOR semantics): an action whose destination (``set_pose``) or first substep
 (``move``) is in collision or outside the workspace is refused with the reason; the camera
@@ -25,10 +25,10 @@ plus the reason) and the camera stays at the last free pose, as habitat does.
 **Position adjustments**: every accepted ``set_pose`` or ``move`` counts one; the start pose
 of ``reset`` does not.
 
-Each episode is appended, one JSON record per action, to ``<log_dir>/<episode_id>.jsonl``
-(reset, every action with the poses before/after, refusal, adjustments, timings, the target's
-pose in the camera frame and visible fraction; submit with the estimates and the final view's
-ground truth; close with the totals). Every action holds the
+Each episode is appended, one JSON record per action, to ``<log_dir>/<episode_id>.jsonl`` in the
+versioned schema of :mod:`serve.episode_log` (reset, every action with the poses before/after,
+refusal, adjustments, timings, the target's pose in the camera frame and visible fraction; submit
+with the estimates and the final view's ground truth; close with the totals). Every action holds the
 episode's lock, so concurrent requests on one episode run one after the other; different
 episodes run concurrently (renders share one device lock in the renderer).
 """
