@@ -11,6 +11,7 @@ name is used). Other stages import only these names:
   project): ``BopLayout``, ``read_scene_camera``, ``read_scene_gt``, ``read_scene_gt_info``,
   ``read_models_info``, ``model_file``, ``dataset_image_size``, ``bop_cam_K``, ``dump_bop_json``,
   ``SceneCamera``, ``GtPose``, ``GtInfo``;
+- models: ``model_diameter`` (largest point distance, the BOP ``diameter``);
 - checks and test scenes: ``mask_iou_against_sim_truth``, ``make_synthetic_scene``.
 
 The modules behind them, one job each: ``threedat`` (read a 3D-DAT folder), ``threedat_writer``
@@ -34,7 +35,7 @@ _LAZY = {
     "read_scene_gt_info": ".bop_format", "read_models_info": ".bop_format", "model_file": ".bop_format",
     "dataset_image_size": ".bop_format", "bop_cam_K": ".bop_format", "dump_bop_json": ".bop_format",
     "SceneCamera": ".bop_format", "GtPose": ".bop_format", "GtInfo": ".bop_format",
-    "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".synthetic",
+    "model_diameter": ".models", "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".synthetic",
 }
 
 __all__ = sorted(_LAZY)

@@ -357,21 +357,10 @@ def _convert_mesh_to_mm(mesh: Path, scale: float, out: Path) -> NDArray[np.float
 
 
 def model_diameter(points: NDArray[np.float64]) -> float:
-    """Largest distance between two points (over the convex hull's vertices)."""
-    from scipy.spatial import ConvexHull
-    from scipy.spatial.distance import cdist
+    """Largest distance between two points (the annotation stage's one implementation)."""
+    from annotation import model_diameter as diameter
 
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(pts) < 2:
-        return 0.0
-    try:
-        pts = pts[ConvexHull(pts).vertices]
-    except Exception:  # noqa: BLE001, S110 - flat / degenerate point set (QhullError): use every point
-        pass
-    best = 0.0
-    for start in range(0, len(pts), 2048):
-        best = max(best, float(cdist(pts[start:start + 2048], pts[start:]).max()))
-    return best
+    return diameter(points)
 
 
 def _bop_models(scene: SceneDir) -> tuple[Path | None, dict[int, dict[str, Any]]]:
