@@ -1,18 +1,47 @@
-"""Annotation stage: 3D-DAT import and BOP ground-truth export.
+"""Annotation stage: 3D-DAT import and BOP ground-truth export; the owner of the BOP dataset format.
 
-Modules (each with one job; import them directly, this package imports nothing heavy):
+Public API (imported lazily, so ``import annotation`` stays cheap: no Open3D or trimesh until a
+name is used). Other stages import only these names:
 
-- :mod:`annotation.threedat`: read a 3D-DAT folder into typed objects (errors name file + entry).
-- :mod:`annotation.threedat_writer`: write a 3D-DAT folder (the demo's "human annotator").
-- :mod:`annotation.alignment`: rigid alignment of two sets of camera poses, residuals, refusal.
-- :mod:`annotation.pairing`: 3D-DAT camera-pose lines <-> captured views (3D-DAT's image order).
-- :mod:`annotation.importer`: ``import_threedat(dat_dir, scene_dir)`` -> ``<scene>/annotation/``.
-- :mod:`annotation.store`: ``objects.json`` (obj_id map, world poses, meshes) read/write.
-- :mod:`annotation.models`: meshes, BOP PLY models in mm, ``models_info`` entries.
-- :mod:`annotation.visibility`: object masks by ray casting (Open3D).
-- :mod:`annotation.bop`: ``export_bop(scene_dir)`` -> ``<scene>/annotation/bop/``.
-- :mod:`annotation.bop_format`: BOP layout and typed readers (for evaluation).
-- :mod:`annotation.validation`: mask IoU against the simulator's object-id buffers (tests).
-- :mod:`annotation.cli`: ``brave6d annotate import-3ddat | export-bop``.
-- :mod:`annotation.demo`: the demo's 3D-DAT writer and pipeline stage.
+- 3D-DAT import: ``import_threedat``, ``import_summary``, ``ImportResult``, ``read_threedat``,
+  ``write_threedat_folder``, ``ThreeDatError``, ``AlignmentOptions``, ``AlignmentError``;
+- the scene's annotation (``objects.json``): ``load_annotation``, ``Annotation``;
+- BOP export: ``export_bop``, ``export_summary``, ``BopExportOptions``, ``BopExportResult``;
+- the BOP dataset format (:mod:`annotation.bop_format`, the one reader of BOP files in the
+  project): ``BopLayout``, ``read_scene_camera``, ``read_scene_gt``, ``read_scene_gt_info``,
+  ``read_models_info``, ``model_file``, ``dataset_image_size``, ``bop_cam_K``, ``dump_bop_json``,
+  ``SceneCamera``, ``GtPose``, ``GtInfo``;
+- models: ``model_diameter`` (largest point distance, the BOP ``diameter``);
+- checks and test scenes: ``mask_iou_against_sim_truth``, ``make_synthetic_scene``.
+
+The modules behind them, one job each: ``threedat`` (read a 3D-DAT folder), ``threedat_writer``
+(write one: the demo's "human annotator"), ``alignment`` (rigid alignment of camera poses),
+``pairing`` (3D-DAT camera lines <-> captured views), ``importer``, ``store`` (``objects.json``),
+``models`` (meshes, BOP PLY models in mm, ``models_info`` entries), ``visibility`` (masks by ray
+casting), ``bop`` (the export), ``bop_format``, ``staging`` (hard links), ``validation`` (mask IoU
+against the simulator), ``cli`` (``brave6d annotate``), ``demo``, ``synthetic``.
 """
+
+from importlib import import_module
+from typing import Any
+
+_LAZY = {
+    "import_threedat": ".importer", "import_summary": ".importer", "ImportResult": ".importer",
+    "read_threedat": ".threedat", "ThreeDatError": ".threedat", "write_threedat_folder": ".threedat_writer",
+    "AlignmentOptions": ".alignment", "AlignmentError": ".alignment",
+    "load_annotation": ".store", "Annotation": ".store",
+    "export_bop": ".bop", "export_summary": ".bop", "BopExportOptions": ".bop", "BopExportResult": ".bop",
+    "BopLayout": ".bop_format", "read_scene_camera": ".bop_format", "read_scene_gt": ".bop_format",
+    "read_scene_gt_info": ".bop_format", "read_models_info": ".bop_format", "model_file": ".bop_format",
+    "dataset_image_size": ".bop_format", "bop_cam_K": ".bop_format", "dump_bop_json": ".bop_format",
+    "SceneCamera": ".bop_format", "GtPose": ".bop_format", "GtInfo": ".bop_format",
+    "model_diameter": ".models", "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".synthetic",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(import_module(_LAZY[name], __name__), name)
+    raise AttributeError(f"module 'annotation' has no attribute {name!r}")

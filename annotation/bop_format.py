@@ -1,4 +1,6 @@
-"""The BOP dataset layout and typed readers of its JSON files (thodan/bop_toolkit conventions).
+"""The BOP dataset format, owned here for the whole project: the layout and the typed, validated
+readers of its JSON files (thodan/bop_toolkit conventions). The export writes these files and
+evaluation and serve read them only through :mod:`annotation`'s public API.
 
 A scene exports to ``<scene>/annotation/bop/`` as one BOP dataset with one scene::
 
@@ -77,7 +79,7 @@ class BopLayout:
         return self.models_dir / "models_info.json"
 
     def model_path(self, obj_id: int) -> Path:
-        return self.models_dir / f"obj_{obj_id:06d}.ply"
+        return model_file(self.models_dir, obj_id)
 
     @property
     def scene_dir(self) -> Path:
@@ -124,14 +126,17 @@ class GtPose:
 
 @dataclass(frozen=True)
 class GtInfo:
-    """One ``scene_gt_info.json`` entry (bboxes ``[x, y, w, h]`` with ``w = x_max - x_min``, BOP style)."""
+    """One ``scene_gt_info.json`` entry (bboxes ``[x, y, w, h]`` with ``w = x_max - x_min``, BOP style).
 
-    bbox_obj: tuple[int, int, int, int]
-    bbox_visib: tuple[int, int, int, int]
-    px_count_all: int
-    px_count_valid: int
-    px_count_visib: int
+    Only ``visib_fract`` is required (scoring needs nothing else); the export writes every field.
+    """
+
     visib_fract: float
+    bbox_obj: tuple[int, int, int, int] | None = None
+    bbox_visib: tuple[int, int, int, int] | None = None
+    px_count_all: int | None = None
+    px_count_valid: int | None = None
+    px_count_visib: int | None = None
 
 
 def bop_cam_K(K: ArrayLike) -> NDArray[np.float64]:
@@ -143,7 +148,7 @@ def bop_cam_K(K: ArrayLike) -> NDArray[np.float64]:
     ``fx X / Z + cx`` straight to OpenGL window coordinates, where fragments are sampled at
     half-integers (the vispy image is read back flipped, rows top-down). So the masks,
     ``visib_fract`` and VSD renders bop_toolkit computes from our files line up with our images
-    only with this shift; :func:`read_scene_camera` (and ``evaluation.metrics.bop_results``) undo it.
+    only with this shift; :func:`read_scene_camera` undoes it.
     """
     return corner_origin_K(K)
 
@@ -175,60 +180,127 @@ def dump_bop_json(data: dict[Any, Any]) -> str:
     return "{\n" + body + "\n}\n" if keys else "{}\n"
 
 
-def _per_image(path: Path) -> dict[int, Any]:
-    data = read_json(path)
+def _int_keys(data: Any, path: Path, what: str = "id") -> dict[int, Any]:
     if not isinstance(data, dict):
-        raise DataError(f"{path}: expected a JSON object keyed by image id")
+        raise DataError(f"{path}: expected a JSON object keyed by {what}, got {type(data).__name__}")
+    out: dict[int, Any] = {}
+    for k, v in data.items():
+        try:
+            out[int(k)] = v
+        except (TypeError, ValueError):
+            raise DataError(f"{path}: key {k!r} is not an integer {what}") from None
+    return out
+
+
+def _floats(value: Any, count: int, where: str) -> NDArray[np.float64]:
     try:
-        return {int(k): v for k, v in data.items()}
-    except ValueError as exc:
-        raise DataError(f"{path}: keys must be integer image ids ({exc})") from None
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise DataError(f"{where}: expected {count} numbers, got {value!r}") from None
+    if arr.size != count or not np.all(np.isfinite(arr)):
+        raise DataError(f"{where}: expected {count} finite numbers, got {value!r}")
+    return arr
+
+
+def read_scene_camera(path: Path | str) -> dict[int, SceneCamera]:
+    """``scene_camera.json`` -> ``{im_id: SceneCamera}`` (``cam_K`` in the project's convention,
+    ``depth_scale`` 1 when absent, the world pose when both ``cam_R_w2c`` and ``cam_t_w2c`` are given)."""
+    p = Path(path)
+    out: dict[int, SceneCamera] = {}
+    for im_id, entry in _int_keys(read_json(p), p, "image id").items():
+        where = f"{p}: image {im_id}"
+        if not isinstance(entry, dict) or "cam_K" not in entry:
+            raise DataError(f"{where}: missing 'cam_K'")
+        K = opencv_K(_floats(entry["cam_K"], 9, f"{where} cam_K"))
+        scale = float(_floats(entry.get("depth_scale", 1.0), 1, f"{where} depth_scale")[0])
+        R = t = None
+        if "cam_R_w2c" in entry and "cam_t_w2c" in entry:
+            R = _floats(entry["cam_R_w2c"], 9, f"{where} cam_R_w2c").reshape(3, 3)
+            t = _floats(entry["cam_t_w2c"], 3, f"{where} cam_t_w2c")
+        out[im_id] = SceneCamera(K, scale, R, t)
+    return out
 
 
 def read_scene_gt(path: Path | str) -> dict[int, list[GtPose]]:
+    """``scene_gt.json`` -> ``{im_id: [GtPose, ...]}`` (mm), in ``gt_id`` order."""
     p = Path(path)
     out: dict[int, list[GtPose]] = {}
-    for im_id, items in _per_image(p).items():
-        try:
-            out[im_id] = [GtPose(int(g["obj_id"]), np.asarray(g["cam_R_m2c"], dtype=np.float64).reshape(3, 3),
-                                 np.asarray(g["cam_t_m2c"], dtype=np.float64).reshape(3)) for g in items]
-        except (KeyError, TypeError, ValueError) as exc:
-            raise DataError(f"{p}: image {im_id}: malformed entry ({exc})") from None
+    for im_id, entries in _int_keys(read_json(p), p, "image id").items():
+        if not isinstance(entries, list):
+            raise DataError(f"{p}: image {im_id}: expected a list of GT poses")
+        gts = []
+        for gt_id, entry in enumerate(entries):
+            where = f"{p}: image {im_id} instance {gt_id}"
+            if not isinstance(entry, dict) or not {"cam_R_m2c", "cam_t_m2c", "obj_id"} <= set(entry):
+                raise DataError(f"{where}: needs cam_R_m2c, cam_t_m2c and obj_id")
+            try:
+                obj_id = int(entry["obj_id"])
+            except (TypeError, ValueError):
+                raise DataError(f"{where}: obj_id must be an integer, got {entry['obj_id']!r}") from None
+            gts.append(GtPose(obj_id, _floats(entry["cam_R_m2c"], 9, f"{where} cam_R_m2c").reshape(3, 3),
+                              _floats(entry["cam_t_m2c"], 3, f"{where} cam_t_m2c")))
+        out[im_id] = gts
     return out
 
 
 def read_scene_gt_info(path: Path | str) -> dict[int, list[GtInfo]]:
+    """``scene_gt_info.json`` -> ``{im_id: [GtInfo, ...]}`` (every entry needs ``visib_fract``)."""
     p = Path(path)
     out: dict[int, list[GtInfo]] = {}
-    for im_id, items in _per_image(p).items():
-        try:
-            out[im_id] = [GtInfo(_bbox(g["bbox_obj"]), _bbox(g["bbox_visib"]), int(g["px_count_all"]),
-                                 int(g["px_count_valid"]), int(g["px_count_visib"]), float(g["visib_fract"]))
-                          for g in items]
-        except (KeyError, TypeError, ValueError) as exc:
-            raise DataError(f"{p}: image {im_id}: malformed entry ({exc})") from None
+    for im_id, entries in _int_keys(read_json(p), p, "image id").items():
+        if not isinstance(entries, list):
+            raise DataError(f"{p}: image {im_id}: expected a list of GT info entries")
+        infos = []
+        for gt_id, g in enumerate(entries):
+            where = f"{p}: image {im_id} instance {gt_id}"
+            if not isinstance(g, dict) or "visib_fract" not in g:
+                raise DataError(f"{where}: missing 'visib_fract'")
+            visib = float(_floats(g["visib_fract"], 1, f"{where} visib_fract")[0])
+            try:
+                infos.append(GtInfo(visib, _bbox(g.get("bbox_obj")), _bbox(g.get("bbox_visib")),
+                                    _count(g.get("px_count_all")), _count(g.get("px_count_valid")),
+                                    _count(g.get("px_count_visib"))))
+            except (TypeError, ValueError) as exc:
+                raise DataError(f"{where}: malformed entry ({exc})") from None
+        out[im_id] = infos
     return out
 
 
-def _bbox(values: Any) -> tuple[int, int, int, int]:
+def _bbox(values: Any) -> tuple[int, int, int, int] | None:
+    if values is None:
+        return None
     x, y, w, h = (int(v) for v in values)
     return (x, y, w, h)
 
 
-def read_scene_camera(path: Path | str) -> dict[int, SceneCamera]:
-    p = Path(path)
-    out: dict[int, SceneCamera] = {}
-    for im_id, c in _per_image(p).items():
-        try:
-            R = c.get("cam_R_w2c")
-            t = c.get("cam_t_w2c")
-            out[im_id] = SceneCamera(opencv_K(np.asarray(c["cam_K"], dtype=np.float64)), float(c["depth_scale"]),
-                                     None if R is None else np.asarray(R, dtype=np.float64).reshape(3, 3),
-                                     None if t is None else np.asarray(t, dtype=np.float64).reshape(3))
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            raise DataError(f"{p}: image {im_id}: malformed entry ({exc})") from None
-    return out
+def _count(value: Any) -> int | None:
+    return None if value is None else int(value)
 
 
 def read_models_info(path: Path | str) -> dict[int, dict[str, Any]]:
-    return _per_image(Path(path))
+    """``models_info.json`` -> ``{obj_id: entry}`` (entries as stored); every entry needs a positive ``diameter``."""
+    p = Path(path)
+    out = _int_keys(read_json(p), p, "object id")
+    for obj_id, entry in out.items():
+        if not isinstance(entry, dict) or "diameter" not in entry:
+            raise DataError(f"{p}: object {obj_id}: missing 'diameter'")
+        d = _floats(entry["diameter"], 1, f"{p}: object {obj_id} diameter")[0]
+        if d <= 0:
+            raise DataError(f"{p}: object {obj_id}: diameter must be positive, got {d}")
+    return out
+
+
+def model_file(models_dir: Path | str, obj_id: int) -> Path:
+    """``obj_{obj_id:06d}.ply`` in a BOP models folder (millimetres)."""
+    return Path(models_dir) / f"obj_{obj_id:06d}.ply"
+
+
+def dataset_image_size(root: Path | str) -> tuple[int, int] | None:
+    """``(width, height)`` from a BOP dataset's ``camera.json``, or None when it does not say."""
+    path = Path(root) / "camera.json"
+    if not path.is_file():
+        return None
+    data = read_json(path)
+    if isinstance(data, dict) and "width" in data and "height" in data:
+        return int(data["width"]), int(data["height"])
+    return None

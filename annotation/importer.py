@@ -35,7 +35,7 @@ from annotation.store import (
     write_annotation,
 )
 from annotation.threedat import LibraryEntry, ThreeDatScene, ThreeDatId, id_key, id_sort_key, read_threedat
-from brave6d.atomic import atomic_write_json
+from brave6d.atomic import atomic_write_json, staged_folder
 from brave6d.calibration_io import camera_poses, read_intrinsics
 from brave6d.errors import BraveError, DataError
 from brave6d.layout import SceneDir
@@ -154,15 +154,11 @@ def _copy_meshes(library: Sequence[LibraryEntry], objects: Sequence[AnnotatedObj
         folder = obj.mesh.parent
         if obj.mesh.is_file():
             continue  # same content already there (the folder name is its digest)
-        staging = folder.with_name(folder.name + ".tmp")
-        shutil.rmtree(staging, ignore_errors=True)
-        staging.mkdir(parents=True)
         mesh = _mesh_of(entry)
-        for sibling in mesh.parent.glob(mesh.stem + ".*"):
-            if sibling.is_file():
-                shutil.copy2(sibling, staging / sibling.name)
-        shutil.rmtree(folder, ignore_errors=True)
-        staging.rename(folder)
+        with staged_folder(folder) as staging:  # whole or absent, like every folder the project writes
+            for sibling in mesh.parent.glob(mesh.stem + ".*"):
+                if sibling.is_file():
+                    shutil.copy2(sibling, staging / sibling.name)
 
 
 def _remove_unused_meshes(scene: SceneDir, objects: Sequence[AnnotatedObject]) -> None:

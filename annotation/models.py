@@ -104,6 +104,10 @@ def diameter(points: ArrayLike, chunk: int = 2048) -> float:
     return best
 
 
+#: The public name of :func:`diameter` (``annotation.model_diameter``).
+model_diameter = diameter
+
+
 def write_ply(path: Path | str, vertices: ArrayLike, faces: ArrayLike, vertex_colors: ArrayLike | None = None,
               comment: str = "BRAVE-6D BOP model (millimetres)") -> Path:
     """Binary little-endian PLY with x y z nx ny nz [red green blue] and triangle faces (atomic)."""

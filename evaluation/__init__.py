@@ -1,15 +1,29 @@
-"""evaluation stage: BOP19 pose metrics and Average Recall, BOP results files, depth rendering.
+"""Evaluation stage: metrics and episode scoring, agents, and the accuracy-vs-time report.
 
-- :mod:`evaluation.metrics.bop_metrics`: VSD, MSSD, MSPD pose errors and symmetry sets (BOP units, mm).
-- :mod:`evaluation.metrics.recall`: :func:`~evaluation.metrics.recall.evaluate_bop19` and its input/output dataclasses.
-- :mod:`evaluation.metrics.bop_results`: results CSV read/write, BOP scene and model folder readers.
-- :mod:`evaluation.metrics.depth_renderer`: CPU z-depth rendering of object meshes for VSD (Open3D ray casting).
-- :mod:`evaluation.metrics.episodes`: score the render server's episode logs (AR, adjustments, wall time).
-- :mod:`evaluation.agents.baseline`: the weight-free active and static baseline agents.
-- :mod:`evaluation.cli`: ``brave6d evaluate EPISODE_LOGS`` (leaderboard table, CSV, JSON).
-- :mod:`evaluation.demo`: the demo's evaluation stage (both baselines on every object).
-- :mod:`evaluation.report` and ``evaluation.report_*``: ``brave6d report``, the accuracy-vs-time page.
+Three subpackages, each with its own public API in its ``__init__``:
 
-Modules are imported explicitly (``from evaluation.metrics.recall import evaluate_bop19``) so that
-importing the package stays cheap.
+- :mod:`evaluation.metrics`: BOP19 metrics and Average Recall, BOP results files, episode-log
+  scoring and the leaderboard;
+- :mod:`evaluation.agents`: the agents that play episodes through ``serve``'s client;
+- :mod:`evaluation.report`: ``brave6d report``, the accuracy-vs-time page.
+
+Plus ``evaluation.cli`` (``brave6d evaluate EPISODE_LOGS``) and ``evaluation.demo`` (the demo's
+evaluation stage). The names most callers need are re-exported here, lazily (importing the package
+stays cheap): ``evaluate_bop19``, ``EvalConfig``, ``read_episodes``, ``score_episodes``,
+``models_from_bundle``, ``write_leaderboard``, ``Leaderboard``, ``read_bop_results``,
+``write_bop_results``.
 """
+
+from importlib import import_module
+from typing import Any
+
+_FROM_METRICS = ("evaluate_bop19", "EvalConfig", "read_episodes", "score_episodes", "models_from_bundle",
+                 "write_leaderboard", "Leaderboard", "read_bop_results", "write_bop_results")
+
+__all__ = sorted(_FROM_METRICS)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _FROM_METRICS:
+        return getattr(import_module(".metrics", __name__), name)
+    raise AttributeError(f"module 'evaluation' has no attribute {name!r}")

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from brave6d.errors import DataError
-from evaluation.metrics.episodes import EpisodeRecord
+from evaluation.metrics import EpisodeRecord
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -63,9 +63,8 @@ def default_out(log_paths: Sequence[Path]) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from evaluation.metrics.episodes import models_from_bundle, read_episodes, score_episodes, write_leaderboard
-    from evaluation.metrics.recall import EvalConfig
-    from serve.bundle import load_bundle
+    from evaluation.metrics import EvalConfig, models_from_bundle, read_episodes, score_episodes, write_leaderboard
+    from serve import load_bundle
 
     paths = list(args.episode_logs)
     episodes = read_episodes(paths)

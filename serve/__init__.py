@@ -1,32 +1,51 @@
-"""Serve stage: scene bundles, the render server, its Python client, a Gymnasium-style environment
-and a browser viewer.
+"""Serve stage: scene bundles, the render server, its Python client and wire/log schemas, a
+Gymnasium-style environment and a browser viewer.
 
-Modules (import them directly; this package imports nothing heavy):
+Public API (imported lazily, so ``import serve`` stays cheap: no torch, FastAPI or pydantic until
+a name is used). Other stages import only these names:
 
-- :mod:`serve.bundle`: ``export_bundle(scene_dir)`` -> ``<scene>/bundle`` (checksummed manifest),
-  ``load_bundle(path)`` (refuses a bundle whose checksums do not match).
-- :mod:`serve.limits`: the image-size cap and the bounds on poses and twists (one place for all).
-- :mod:`serve.geometry`: camera collision sphere vs oriented boxes, workspace, twist integration.
-- :mod:`serve.renderer`: the splat on ``cuda``/``cpu``, one view per call with ``training.rasterize``.
-- :mod:`serve.splat_check`: ``check_splat`` refuses a splat with NaN/inf, no Gaussians or none
-  visible (export and the renderer's loading call it).
-- :mod:`serve.visibility`: visible fraction of each object (Open3D ray casting + splat depth).
-- :mod:`serve.episodes`: episode state machine, refusals, adjustment counting, JSONL logs.
-- :mod:`serve.app`: ``create_app(bundle)``, the FastAPI app (REST + WebSocket + viewer).
-- :mod:`serve.client`: ``BraveClient`` (httpx), observations as NumPy arrays.
-- :mod:`serve.gym_env`: ``BraveEnv`` (``reset``/``step`` like Gymnasium).
-- :mod:`serve.runner`: uvicorn in the foreground or a background thread (``ServerThread``).
-- :mod:`serve.cli`, :mod:`serve.export_cli`: ``brave6d serve BUNDLE``, ``brave6d export SCENE_DIR``.
-- :mod:`serve.demo`: the demo's ``stage_export`` and ``stage_serve``.
-- :mod:`serve.synthetic`: a small synthetic scene and bundle for tests and benchmarks.
-- ``serve/viewer/``: the static browser viewer served at ``/viewer/``.
+- bundles: ``export_bundle``, ``load_bundle``, ``Bundle``, ``BundleObject``, ``BundleError``,
+  ``find_splat_ply``, ``SPLAT`` (the splat's file name inside a bundle);
+- the server: ``create_app``, ``ServerLimits``, ``ServerThread`` (uvicorn in a background thread),
+  ``SceneServer``, ``SplatRenderer``;
+- the client: ``BraveClient``, ``PoseEstimate``, ``ServerError``, ``Observation``, ``StepResult``,
+  ``decode_observation``, and ``BraveEnv`` (Gymnasium-style);
+- the wire schema (:mod:`serve.schema`): ``ObservationMessage``, ``StepMessage``, ``ObjectState``,
+  ``EncodedImage``, ``TargetRef``, ``ErrorMessage``;
+- the episode log (:mod:`serve.episode_log`, versioned): ``read_episode_log``, ``EpisodeLog``,
+  ``ResetRecord``, ``ActionRecord``, ``SubmitRecord``, ``CloseRecord``, ``LoggedEstimate``,
+  ``FinalView``, ``LOG_FORMAT_VERSION``, ``FINAL_DEPTH_SUFFIX``;
+- test scenes: ``make_synthetic_bundle``, ``make_synthetic_scene``.
+
+The modules behind them, one job each: ``bundle`` (export + verified load), ``limits`` (image-size
+cap, pose and twist bounds), ``geometry`` (collisions, twist integration), ``renderer`` (the splat
+on cuda/cpu), ``splat_check``, ``visibility`` (visible fractions), ``episodes`` (the episode state
+machine), ``schema`` (wire models), ``episode_log`` (log schema, writer, reader), ``app``
+(FastAPI: REST + WebSocket + viewer), ``client``, ``gym_env``, ``runner`` (uvicorn), ``cli`` and
+``export_cli`` (``brave6d serve``/``export``), ``demo``, ``synthetic``; ``serve/viewer/`` is the
+static browser viewer served at ``/viewer/``.
 """
 
 from importlib import import_module
 from typing import Any
 
-#: The public names, imported lazily (``import serve`` stays cheap: no torch, no FastAPI).
-_LAZY = {"SplatRenderer": ".renderer"}
+_LAZY = {
+    "export_bundle": ".bundle", "load_bundle": ".bundle", "Bundle": ".bundle", "BundleObject": ".bundle",
+    "BundleError": ".bundle", "find_splat_ply": ".bundle", "SPLAT": ".bundle",
+    "create_app": ".app", "ServerLimits": ".app", "ServerThread": ".runner", "SceneServer": ".episodes",
+    "SplatRenderer": ".renderer",
+    "BraveClient": ".client", "PoseEstimate": ".client", "ServerError": ".client", "Observation": ".client",
+    "StepResult": ".client", "decode_observation": ".client", "BraveEnv": ".gym_env",
+    "ObservationMessage": ".schema", "StepMessage": ".schema", "ObjectState": ".schema",
+    "EncodedImage": ".schema", "TargetRef": ".schema", "ErrorMessage": ".schema",
+    "read_episode_log": ".episode_log", "EpisodeLog": ".episode_log", "ResetRecord": ".episode_log",
+    "ActionRecord": ".episode_log", "SubmitRecord": ".episode_log", "CloseRecord": ".episode_log",
+    "LoggedEstimate": ".episode_log", "FinalView": ".episode_log", "LOG_FORMAT_VERSION": ".episode_log",
+    "FINAL_DEPTH_SUFFIX": ".episode_log",
+    "make_synthetic_bundle": ".synthetic", "make_synthetic_scene": ".synthetic",
+}
+
+__all__ = sorted(_LAZY)
 
 
 def __getattr__(name: str) -> Any:

@@ -91,15 +91,16 @@ from serve.limits import (
     MIN_SIZE,
 )
 from serve.episodes import (
+    ActionResult,
     Cancelled,
     EpisodeError,
     EpisodeManager,
     EpisodeNotFound,
-    Observation,
+    RenderedView,
     SceneServer,
-    StepResult,
     Ticket,
 )
+from serve.schema import EncodedImage, ErrorMessage, ObservationMessage, StepMessage
 
 log = logging.getLogger(__name__)
 
@@ -259,97 +260,48 @@ class WsMessage(ObsOptions):
     frame: Literal["camera", "world"] = "camera"
 
 
-# ----------------------------------------------------------------------------- response models (docs)
-class ErrorOut(BaseModel):
-    error: str
-    field: str | None = None
-    status: int
-
-
-class ObjectOut(BaseModel):
-    gt_id: int
-    obj_id: int
-    name: str
-    is_target: bool
-    cam_T_obj: list[list[float]]
-    px_count_all: int | None
-    px_count_visib: int | None
-    visib_fract: float | None
-    bbox_obj: list[int] | None
-    bbox_visib: list[int] | None
-
-
-class ImageOut(BaseModel):
-    encoding: str
-    data: str
-    shape: list[int]
-
-
-class ObservationOut(BaseModel):
-    width: int
-    height: int
-    K: list[list[float]]
-    world_T_cam: list[list[float]]
-    rgb: ImageOut | None
-    depth: ImageOut | None
-    objects: list[ObjectOut]
-
-
-class StepOut(BaseModel):
-    episode_id: str
-    action: str
-    step: int
-    accepted: bool
-    collided: bool
-    refusal: dict[str, Any] | None
-    adjustments: int
-    move: dict[str, Any] | None
-    target: dict[str, Any]
-    observation: ObservationOut
-    timings_ms: dict[str, float]
-
-
 # ----------------------------------------------------------------------------- encoding
-def encode_observation(obs: Observation, rgb: str = "png", depth: str = "f32") -> tuple[dict[str, Any], float]:
-    """JSON-ready observation and the milliseconds spent encoding."""
+def encode_observation(obs: RenderedView, rgb: str = "png", depth: str = "f32") -> tuple[ObservationMessage, float]:
+    """The wire observation of a rendered view and the milliseconds spent encoding."""
     t0 = time.perf_counter()
-    out: dict[str, Any] = {"width": obs.camera.width, "height": obs.camera.height, "K": obs.camera.K.tolist(),
-                           "world_T_cam": obs.world_T_cam.tolist(), "rgb": None, "depth": None,
-                           "objects": [o.to_json() for o in obs.objects]}
+    rgb_image = depth_image = None
     if rgb != "none":
         bgr = np.ascontiguousarray(obs.rgb[:, :, ::-1])
         ok, buf = (cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1]) if rgb == "png"
                    else cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 90]))
         if not ok:
             raise RuntimeError("image encoding failed")
-        out["rgb"] = {"encoding": rgb, "data": base64.b64encode(buf.tobytes()).decode("ascii"),
-                      "shape": list(obs.rgb.shape)}
+        rgb_image = EncodedImage(encoding=rgb, data=base64.b64encode(buf.tobytes()).decode("ascii"),
+                                 shape=list(obs.rgb.shape))
     if depth == "f32":
         d = np.ascontiguousarray(obs.depth, dtype="<f4")
-        out["depth"] = {"encoding": "f32", "data": base64.b64encode(d.tobytes()).decode("ascii"),
-                        "shape": list(d.shape)}
+        depth_image = EncodedImage(encoding="f32", data=base64.b64encode(d.tobytes()).decode("ascii"),
+                                   shape=list(d.shape))
+    out = ObservationMessage(width=obs.camera.width, height=obs.camera.height, K=obs.camera.K,
+                             world_T_cam=obs.world_T_cam, rgb=rgb_image, depth=depth_image, objects=list(obs.objects))
     return out, (time.perf_counter() - t0) * 1000.0
 
 
-def step_json(result: StepResult, opts: ObsOptions, t_start: float) -> dict[str, Any]:
+def step_json(result: ActionResult, opts: ObsOptions, t_start: float) -> dict[str, Any]:
+    """The JSON body of a step reply (a :class:`serve.schema.StepMessage`)."""
     obs, enc_ms = encode_observation(result.observation, opts.rgb, opts.depth)
     target = result.observation.target()
     timings = {**result.timings_ms, "encode": enc_ms, "total": (time.perf_counter() - t_start) * 1000.0}
-    return {"episode_id": result.episode_id, "action": result.action, "step": result.step,
-            "accepted": result.accepted, "collided": result.collided,
-            "refusal": result.refusal.to_json() if result.refusal else None,
-            "adjustments": result.adjustments, "move": result.move,
-            "target": {"gt_id": target.gt_id, "obj_id": target.obj_id, "name": target.name} if target else {},
-            "observation": obs, "timings_ms": timings}
+    return StepMessage(
+        episode_id=result.episode_id, action=result.action, step=result.step, accepted=result.accepted,
+        collided=result.collided, refusal=result.refusal.to_json() if result.refusal else None,
+        adjustments=result.adjustments, move=result.move,
+        target={"gt_id": target.gt_id, "obj_id": target.obj_id, "name": target.name} if target else {},
+        observation=obs, timings_ms=timings).model_dump()
 
 
-def observation_npz(obs: Observation) -> bytes:
+def observation_npz(obs: RenderedView) -> bytes:
     buf = io.BytesIO()
     np.savez(buf, rgb=obs.rgb, depth=obs.depth.astype(np.float32), K=obs.camera.K, world_T_cam=obs.world_T_cam,
              cam_T_obj=np.stack([o.cam_T_obj for o in obs.objects]) if obs.objects else np.zeros((0, 4, 4)),
              gt_id=np.array([o.gt_id for o in obs.objects], dtype=np.int64),
              obj_id=np.array([o.obj_id for o in obs.objects], dtype=np.int64),
-             visib_fract=np.array([o.visibility.visib_fract if o.visibility else np.nan for o in obs.objects]))
+             visib_fract=np.array([o.visib_fract if o.visib_fract is not None else np.nan for o in obs.objects]))
     return buf.getvalue()
 
 
@@ -615,15 +567,15 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
             super().__init__(f"the request took longer than {limits.request_timeout_s:g} s and was withdrawn "
                              "(nothing changed); the server is overloaded or the image is too large")
 
-    def respond(result: StepResult, opts: ObsOptions, t0: float, status: int = 200) -> JSONResponse:
+    def respond(result: ActionResult, opts: ObsOptions, t0: float, status: int = 200) -> JSONResponse:
         body = step_json(result, opts, t0)
         return JSONResponse(body, status_code=status, headers={
             "X-Render-Ms": f"{result.timings_ms.get('render', 0.0):.2f}",
             "Server-Timing": f"render;dur={result.timings_ms.get('render', 0.0):.2f}, "
                              f"total;dur={body['timings_ms']['total']:.2f}"})
 
-    err = {400: {"model": ErrorOut}, 404: {"model": ErrorOut}, 409: {"model": ErrorOut},
-           413: {"model": ErrorOut}, 422: {"model": ErrorOut}, 429: {"model": ErrorOut}, 504: {"model": ErrorOut}}
+    err = {400: {"model": ErrorMessage}, 404: {"model": ErrorMessage}, 409: {"model": ErrorMessage},
+           413: {"model": ErrorMessage}, 422: {"model": ErrorMessage}, 429: {"model": ErrorMessage}, 504: {"model": ErrorMessage}}
 
     # -------------------------------------------------------------- routes
     @app.get("/", include_in_schema=False)
@@ -655,7 +607,7 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
         raise EpisodeNotFound(f"no object with obj_id {obj_id} (known: {sorted({o.obj_id for o in bundle.objects})})",
                               "obj_id")
 
-    @app.post("/episodes", status_code=201, response_model=StepOut, responses=err, summary="reset: start an episode")
+    @app.post("/episodes", status_code=201, response_model=StepMessage, responses=err, summary="reset: start an episode")
     async def reset(req: ResetRequest) -> JSONResponse:
         t0 = time.perf_counter()
         start = req.start.matrix() if req.start is not None else None
@@ -671,7 +623,7 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
     def get_episode(episode_id: str) -> dict[str, Any]:
         return manager.get(episode_id).state()
 
-    @app.post("/episodes/{episode_id}/set_pose", response_model=StepOut, responses=err,
+    @app.post("/episodes/{episode_id}/set_pose", response_model=StepMessage, responses=err,
               summary="teleport the camera to an absolute pose")
     async def set_pose(episode_id: str, req: SetPoseRequest) -> JSONResponse:
         t0 = time.perf_counter()
@@ -679,7 +631,7 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
         result = await run_action(manager.set_pose, episode_id, req.pose.matrix())
         return respond(result, req, t0)
 
-    @app.post("/episodes/{episode_id}/move", response_model=StepOut, responses=err,
+    @app.post("/episodes/{episode_id}/move", response_model=StepMessage, responses=err,
               summary="move with a constant twist, stopping at the first collision")
     async def move(episode_id: str, req: MoveRequest) -> JSONResponse:
         t0 = time.perf_counter()

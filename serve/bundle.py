@@ -357,33 +357,21 @@ def _convert_mesh_to_mm(mesh: Path, scale: float, out: Path) -> NDArray[np.float
 
 
 def model_diameter(points: NDArray[np.float64]) -> float:
-    """Largest distance between two points (over the convex hull's vertices)."""
-    from scipy.spatial import ConvexHull
-    from scipy.spatial.distance import cdist
+    """Largest distance between two points (the annotation stage's one implementation)."""
+    from annotation import model_diameter as diameter
 
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(pts) < 2:
-        return 0.0
-    try:
-        pts = pts[ConvexHull(pts).vertices]
-    except Exception:  # noqa: BLE001, S110 - flat / degenerate point set (QhullError): use every point
-        pass
-    best = 0.0
-    for start in range(0, len(pts), 2048):
-        best = max(best, float(cdist(pts[start:start + 2048], pts[start:]).max()))
-    return best
+    return diameter(points)
 
 
 def _bop_models(scene: SceneDir) -> tuple[Path | None, dict[int, dict[str, Any]]]:
     """``(models folder, models_info)`` of the scene's BOP export, or ``(None, {})``."""
+    from annotation import read_models_info
+
     models = scene.bop_dir / "models"
     info_path = models / "models_info.json"
     if not info_path.is_file():
         return None, {}
-    try:
-        return models, {int(k): v for k, v in read_json(info_path).items()}
-    except (ValueError, AttributeError) as exc:
-        raise DataError(f"{info_path}: malformed ({exc})") from None
+    return models, read_models_info(info_path)
 
 
 # ----------------------------------------------------------------------------- export
@@ -586,6 +574,8 @@ def _holdout_image(undistorted: Callable[[FrameRecord], Path], record: FrameReco
 
 def _export_objects(staging: Path, instances: list[dict[str, Any]], bop_models: Path | None,
                     bop_info: dict[int, dict[str, Any]]) -> tuple[list[BundleObject], str]:
+    from annotation import model_file
+
     models_dir = staging / "models"
     models_dir.mkdir()
     done: dict[int, tuple[str, float, list, list]] = {}
@@ -595,7 +585,7 @@ def _export_objects(staging: Path, instances: list[dict[str, Any]], bop_models: 
         obj_id = inst["obj_id"]
         if obj_id not in done:
             rel = f"models/obj_{obj_id:06d}.ply"
-            bop_file = bop_models / f"obj_{obj_id:06d}.ply" if bop_models is not None else None
+            bop_file = model_file(bop_models, obj_id) if bop_models is not None else None
             if bop_file is not None and bop_file.is_file() and obj_id in bop_info:
                 shutil.copyfile(bop_file, staging / rel)
                 info = bop_info[obj_id]

@@ -22,13 +22,18 @@ from __future__ import annotations
 import base64
 import io
 import os
-from dataclasses import dataclass, field
-from typing import Any, Self
+from dataclasses import dataclass
+from typing import Any, Self, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from pydantic import ValidationError
+
 from brave6d.errors import BraveError
+from serve.schema import ObjectState, ObservationMessage, StepMessage
+
+M = TypeVar("M", ObservationMessage, StepMessage)
 
 DEFAULT_URL = "http://127.0.0.1:8765"
 #: Environment variable holding the server's token (the same one ``brave6d serve`` reads).
@@ -46,56 +51,85 @@ class ServerError(BraveError):
 
 
 @dataclass(frozen=True)
-class ObjectGT:
-    """Ground truth of one object instance in one view (``cam_T_obj`` in metres)."""
-
-    gt_id: int
-    obj_id: int
-    name: str
-    is_target: bool
-    cam_T_obj: NDArray[np.float64]
-    visib_fract: float | None
-    px_count_visib: int | None
-    px_count_all: int | None
-    bbox_visib: list[int] | None
-
-    @property
-    def cam_R_m2c(self) -> NDArray[np.float64]:
-        return self.cam_T_obj[:3, :3]
-
-    @property
-    def cam_t_m2c_mm(self) -> NDArray[np.float64]:
-        """BOP's translation (millimetres)."""
-        return self.cam_T_obj[:3, 3] * 1000.0
-
-
-@dataclass(frozen=True)
 class Observation:
-    width: int
-    height: int
-    K: NDArray[np.float64]
-    world_T_cam: NDArray[np.float64]
+    """A view as the client sees it: the wire :class:`serve.schema.ObservationMessage` (sizes, ``K``,
+    ``world_T_cam`` and objects, matrices as arrays) plus its decoded images (``rgb`` (H, W, 3) uint8,
+    ``depth`` (H, W) float32 metres, 0 = no data; None when not requested)."""
+
+    message: ObservationMessage
     rgb: NDArray[np.uint8] | None
     depth: NDArray[np.float32] | None
-    objects: list[ObjectGT]
 
-    def target(self) -> ObjectGT | None:
-        return next((o for o in self.objects if o.is_target), None)
+    @property
+    def width(self) -> int:
+        return self.message.width
+
+    @property
+    def height(self) -> int:
+        return self.message.height
+
+    @property
+    def K(self) -> NDArray[np.float64]:
+        return self.message.K
+
+    @property
+    def world_T_cam(self) -> NDArray[np.float64]:
+        return self.message.world_T_cam
+
+    @property
+    def objects(self) -> list[ObjectState]:
+        return self.message.objects
+
+    def target(self) -> ObjectState | None:
+        return self.message.target()
 
 
 @dataclass(frozen=True)
 class StepResult:
-    episode_id: str
-    action: str
-    step: int
-    accepted: bool
-    collided: bool
-    refusal: dict[str, Any] | None
-    adjustments: int
+    """A step reply: the wire :class:`serve.schema.StepMessage` with its observation decoded."""
+
+    message: StepMessage
     observation: Observation
-    move: dict[str, Any] | None = None
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    target: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def episode_id(self) -> str:
+        return self.message.episode_id
+
+    @property
+    def action(self) -> str:
+        return self.message.action
+
+    @property
+    def step(self) -> int:
+        return self.message.step
+
+    @property
+    def accepted(self) -> bool:
+        return self.message.accepted
+
+    @property
+    def collided(self) -> bool:
+        return self.message.collided
+
+    @property
+    def refusal(self) -> dict[str, Any] | None:
+        return self.message.refusal
+
+    @property
+    def adjustments(self) -> int:
+        return self.message.adjustments
+
+    @property
+    def move(self) -> dict[str, Any] | None:
+        return self.message.move
+
+    @property
+    def timings_ms(self) -> dict[str, float]:
+        return self.message.timings_ms
+
+    @property
+    def target(self) -> dict[str, Any]:
+        return self.message.target
 
 
 @dataclass(frozen=True)
@@ -113,31 +147,35 @@ class PoseEstimate:
                 "score": float(self.score)}
 
 
-def decode_observation(data: dict[str, Any]) -> Observation:
-    """An observation from the server's JSON."""
+def decode_observation(data: dict[str, Any] | ObservationMessage) -> Observation:
+    """An observation from the server's JSON (validated against :class:`serve.schema.ObservationMessage`)."""
+    message = data if isinstance(data, ObservationMessage) else _validated(ObservationMessage, data)
     rgb = None
-    if data.get("rgb"):
+    if message.rgb is not None:
         import cv2
 
-        buf = np.frombuffer(base64.b64decode(data["rgb"]["data"]), dtype=np.uint8)
+        buf = np.frombuffer(base64.b64decode(message.rgb.data), dtype=np.uint8)
         bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR)
         rgb = np.ascontiguousarray(bgr[:, :, ::-1])
     depth = None
-    if data.get("depth"):
-        h, w = data["depth"]["shape"]
-        depth = np.frombuffer(base64.b64decode(data["depth"]["data"]), dtype="<f4").reshape(h, w).astype(np.float32)
-    objects = [ObjectGT(int(o["gt_id"]), int(o["obj_id"]), str(o["name"]), bool(o["is_target"]),
-                        np.asarray(o["cam_T_obj"], dtype=np.float64), o.get("visib_fract"), o.get("px_count_visib"),
-                        o.get("px_count_all"), o.get("bbox_visib")) for o in data["objects"]]
-    return Observation(int(data["width"]), int(data["height"]), np.asarray(data["K"], dtype=np.float64),
-                       np.asarray(data["world_T_cam"], dtype=np.float64), rgb, depth, objects)
+    if message.depth is not None:
+        h, w = message.depth.shape
+        depth = np.frombuffer(base64.b64decode(message.depth.data), dtype="<f4").reshape(h, w).astype(np.float32)
+    return Observation(message, rgb, depth)
 
 
 def decode_step(data: dict[str, Any]) -> StepResult:
-    return StepResult(data["episode_id"], data["action"], int(data["step"]), bool(data["accepted"]),
-                      bool(data["collided"]), data.get("refusal"), int(data["adjustments"]),
-                      decode_observation(data["observation"]), data.get("move"), data.get("timings_ms", {}),
-                      data.get("target", {}))
+    """A step reply from the server's JSON (validated against :class:`serve.schema.StepMessage`)."""
+    message = _validated(StepMessage, data)
+    return StepResult(message, decode_observation(message.observation))
+
+
+def _validated(model: type[M], data: dict[str, Any]) -> M:
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise BraveError(f"the server's reply does not match {model.__name__} (client and server versions "
+                         f"differ?): {exc}") from None
 
 
 def pose_json(pose: ArrayLike | dict[str, Any]) -> dict[str, Any]:

@@ -14,7 +14,7 @@ camera), the current camera pose ``world_T_cam`` and counters. Actions:
   episode. The log then holds everything scoring needs that only the server knows: the final
   view's pose, ``K``, image size, every object's ground-truth ``cam_T_obj`` and visible
   fraction, and the final depth image (``<episode_id>_final_depth.png``, uint16 mm, beside the
-  log). See :func:`submission_record`.
+  log). See :func:`submission_record`. Observations leave the server as :mod:`serve.schema` models.
 
 **Refusal** (AI2-THOR semantics): an action whose destination (``set_pose``) or first substep
 (``move``) is in collision or outside the workspace is refused with the reason; the camera
@@ -25,18 +25,16 @@ plus the reason) and the camera stays at the last free pose, as habitat does.
 **Position adjustments**: every accepted ``set_pose`` or ``move`` counts one; the start pose
 of ``reset`` does not.
 
-Each episode is appended, one JSON record per action, to ``<log_dir>/<episode_id>.jsonl``
-(reset, every action with the poses before/after, refusal, adjustments, timings, the target's
-pose in the camera frame and visible fraction; submit with the estimates and the final view's
-ground truth; close with the totals). Every action holds the
+Each episode is appended, one JSON record per action, to ``<log_dir>/<episode_id>.jsonl`` in the
+versioned schema of :mod:`serve.episode_log` (reset, every action with the poses before/after,
+refusal, adjustments, timings, the target's pose in the camera frame and visible fraction; submit
+with the estimates and the final view's ground truth; close with the totals). Every action holds the
 episode's lock, so concurrent requests on one episode run one after the other; different
 episodes run concurrently (renders share one device lock in the renderer).
 """
 
 from __future__ import annotations
 
-import datetime as _dt
-import json
 import logging
 import math
 import os
@@ -56,9 +54,20 @@ from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError
 from brave6d.transforms import invert, look_at, orthonormalize
 from serve.bundle import Bundle, BundleObject, load_model_m
+from serve.episode_log import (
+    FINAL_DEPTH_SUFFIX,
+    ActionRecord,
+    CloseRecord,
+    EpisodeLog,
+    FinalView,
+    LoggedEstimate,
+    ResetRecord,
+    SubmitRecord,
+)
 from serve.geometry import MoveResult, Refusal, integrate_twist
 from serve.limits import MAX_ANGULAR_SPEED_RAD_S, MAX_COORD_M, MAX_LINEAR_SPEED_M_S, MAX_MOVE_DURATION_S
 from serve.renderer import SplatRenderer
+from serve.schema import ObjectState, TargetRef
 from serve.visibility import Visibility, VisibilityComputer
 
 log = logging.getLogger(__name__)
@@ -127,42 +136,34 @@ class Ticket:
             return True
 
 
-# ----------------------------------------------------------------------------- observations
-@dataclass(frozen=True)
-class ObjectObservation:
-    gt_id: int
-    obj_id: int
-    name: str
-    cam_T_obj: Matrix4
-    visibility: Visibility | None
-    is_target: bool
-
-    def to_json(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"gt_id": self.gt_id, "obj_id": self.obj_id, "name": self.name,
-                             "is_target": self.is_target, "cam_T_obj": self.cam_T_obj.tolist()}
-        if self.visibility is not None:
-            d.update(self.visibility.to_json())
-        else:
-            d.update({"px_count_all": None, "px_count_visib": None, "visib_fract": None,
-                      "bbox_obj": None, "bbox_visib": None})
-        return d
+# ----------------------------------------------------------------------------- views
+def object_state(obj: BundleObject, cam_T_obj: Matrix4, visibility: Visibility | None, is_target: bool) -> ObjectState:
+    """The wire/log record of one object in one view (visibility fields None when not computed)."""
+    vis = visibility.to_json() if visibility is not None else {}
+    return ObjectState(gt_id=obj.gt_id, obj_id=obj.obj_id, name=obj.name, is_target=is_target,
+                       cam_T_obj=cam_T_obj, **vis)
 
 
 @dataclass(frozen=True)
-class Observation:
+class RenderedView:
+    """What the server rendered for one pose: the raw images (RGB uint8, depth float32 metres),
+    the camera, and every object's ground truth (:class:`serve.schema.ObjectState`)."""
+
     rgb: NDArray[np.uint8]
     depth: NDArray[np.float32]
     camera: PinholeCamera
     world_T_cam: Matrix4
-    objects: tuple[ObjectObservation, ...]
+    objects: tuple[ObjectState, ...]
     timings_ms: dict[str, float]
 
-    def target(self) -> ObjectObservation | None:
+    def target(self) -> ObjectState | None:
         return next((o for o in self.objects if o.is_target), None)
 
 
 @dataclass
-class StepResult:
+class ActionResult:
+    """The outcome of ``reset``/``set_pose``/``move`` (the app encodes it as a :class:`serve.schema.StepMessage`)."""
+
     episode_id: str
     action: str
     step: int
@@ -170,7 +171,7 @@ class StepResult:
     collided: bool
     refusal: Refusal | None
     adjustments: int
-    observation: Observation
+    observation: RenderedView
     move: dict[str, Any] | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -205,7 +206,7 @@ class SceneServer:
             return cam
         return cam.scaled(width, height)
 
-    def observe(self, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None) -> Observation:
+    def observe(self, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None) -> RenderedView:
         r = self.bundle.render
         t0 = time.perf_counter()
         out = self.renderer.render(world_T_cam, camera, near=r.near, far=r.far, background=r.background,
@@ -216,11 +217,11 @@ class SceneServer:
             vis = list(self.visibility.compute(world_T_cam, camera, out.depth))
         t2 = time.perf_counter()
         cam_T_world = invert(world_T_cam)
-        objects = tuple(ObjectObservation(o.gt_id, o.obj_id, o.name, cam_T_world @ o.world_T_obj, v,
-                                          o.gt_id == target_gt_id) for o, v in zip(self.bundle.objects, vis))
+        objects = tuple(object_state(o, cam_T_world @ o.world_T_obj, v, o.gt_id == target_gt_id)
+                        for o, v in zip(self.bundle.objects, vis))
         timings = {"render": out.render_ms, "render_queue": out.queue_ms, "visibility": (t2 - t1) * 1000.0,
                    "observe": (t2 - t0) * 1000.0}
-        return Observation(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), objects, timings)
+        return RenderedView(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), objects, timings)
 
     def random_start(self, target: BundleObject, rng: np.random.Generator, tries: int = 500) -> Matrix4:
         """A free pose on a spherical cap around the target, looking at its model centre."""
@@ -243,64 +244,6 @@ class SceneServer:
                             "(check the collision boxes and the workspace)", "start")
 
 
-# ----------------------------------------------------------------------------- episode log
-class EpisodeLog:
-    """Append-only JSONL log of one episode (one flushed line per record; fsync on close)."""
-
-    def __init__(self, path: Path | None) -> None:
-        self.path = path
-        self._handle = None
-        if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            self._handle = open(path, "a", encoding="utf-8")  # noqa: SIM115 - kept open for the episode
-
-    @staticmethod
-    def format(record: dict[str, Any]) -> str:
-        """One JSONL line of ``record``, time-stamped now (``ValueError`` for a value that is not
-        finite: a step formats its record before it changes anything)."""
-        record = {"time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds"), **record}
-        return json.dumps(record, allow_nan=False, default=_json_default) + "\n"
-
-    def append(self, line: str) -> None:
-        """Append a line made by :meth:`format` and flush it."""
-        if self._handle is None:
-            return
-        self._handle.write(line)
-        self._handle.flush()
-
-    def write(self, record: dict[str, Any]) -> None:
-        self.append(self.format(record))
-
-    def close(self) -> None:
-        if self._handle is not None:
-            try:
-                os.fsync(self._handle.fileno())
-            except OSError:
-                pass
-            self._handle.close()
-            self._handle = None
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    raise TypeError(f"cannot serialise {type(obj).__name__}")
-
-
-def read_episode_log(path: Path | str) -> list[dict[str, Any]]:
-    """The records of an episode log (a partial last line is ignored)."""
-    records = []
-    for line in Path(path).read_text(encoding="utf-8").splitlines():
-        if line.strip():
-            try:
-                records.append(json.loads(line))
-            except json.JSONDecodeError:
-                break
-    return records
-
-
 # ----------------------------------------------------------------------------- episodes
 @dataclass
 class Episode:
@@ -320,7 +263,7 @@ class Episode:
     closed: bool = False
     close_reason: str | None = None
     submitted: bool = False
-    last: Observation | None = None
+    last: RenderedView | None = None
     render_ms: list[float] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -344,26 +287,9 @@ class Episode:
 
 #: Largest ``|R^T R - I|`` accepted for a submitted rotation (then re-orthonormalised).
 ESTIMATE_ROTATION_ATOL = 1e-3
-#: File name (beside the log) of the depth image of the view an episode's estimates refer to.
-FINAL_DEPTH_SUFFIX = "_final_depth.png"
 
 
-@dataclass(frozen=True)
-class SubmittedEstimate:
-    """One pose estimate handed in by an agent: ``cam_T_obj`` of ``obj_id`` in the camera frame of
-    the view current at submission (``R`` 3x3, ``t_m`` metres), with a confidence ``score``."""
-
-    obj_id: int
-    R: NDArray[np.float64]
-    t_m: NDArray[np.float64]
-    score: float = 1.0
-
-    def to_json(self) -> dict[str, Any]:
-        return {"obj_id": self.obj_id, "R": self.R.reshape(-1).tolist(), "t_m": self.t_m.tolist(),
-                "score": self.score}
-
-
-def check_estimate(index: int, obj_id: int, R: Any, t_m: Any, score: float, known: set[int]) -> SubmittedEstimate:
+def check_estimate(index: int, obj_id: int, R: Any, t_m: Any, score: float, known: set[int]) -> LoggedEstimate:
     """A validated (finite, rotation orthonormal within ``ESTIMATE_ROTATION_ATOL`` with det > 0,
     known ``obj_id``) and re-orthonormalised estimate; else :class:`InvalidAction` naming the field."""
     where = f"estimates.{index}"
@@ -384,7 +310,7 @@ def check_estimate(index: int, obj_id: int, R: Any, t_m: Any, score: float, know
     if err > ESTIMATE_ROTATION_ATOL or det <= 0:
         raise InvalidAction(f"{where}.R: not a rotation (must be orthonormal with det +1: max |R^T R - I| = "
                             f"{err:.3g}, det = {det:.3g})", f"{where}.R")
-    return SubmittedEstimate(int(obj_id), orthonormalize(rot), t, float(score))
+    return LoggedEstimate(obj_id=int(obj_id), R=orthonormalize(rot), t_m=t, score=float(score))
 
 
 def check_pose(world_T_cam: Any, field: str) -> Matrix4:
@@ -413,30 +339,31 @@ def check_twist(linear: Any, angular: Any, duration: Any) -> tuple[NDArray[np.fl
     return out[0], out[1], d
 
 
-def submission_record(ep: Episode, estimates: list[SubmittedEstimate], bundle: Bundle,
-                      depth_file: str | None) -> dict[str, Any]:
+def submission_record(ep: Episode, estimates: list[LoggedEstimate], bundle: Bundle, depth_file: str | None,
+                      agent: str | None) -> SubmitRecord:
     """The ``submit`` log record: the estimates and what only the server knows about the final
     view (pose, ``K``, image size, depth file, every object's ground truth in that camera frame)."""
     obs = ep.last
     assert obs is not None
-    return {"event": "submit", "episode_id": ep.id, "agent": ep.agent, "bundle": bundle.name,
-            "bundle_root": str(bundle.root.resolve()),
-            "target": {"gt_id": ep.target.gt_id, "obj_id": ep.target.obj_id, "name": ep.target.name},
-            "estimates": [e.to_json() for e in estimates],
-            "final_view": {"world_T_cam": obs.world_T_cam.tolist(), "K": obs.camera.K.tolist(),
-                           "width": obs.camera.width, "height": obs.camera.height,
-                           "depth_file": depth_file, "depth_unit": "mm"},
-            "objects": [o.to_json() for o in obs.objects],
-            "adjustments": ep.adjustments, "steps": ep.steps, "refusals": ep.refusals,
-            "collisions": ep.collisions, "elapsed_s": time.monotonic() - ep.created}
+    return SubmitRecord(
+        episode_id=ep.id, agent=agent, bundle=bundle.name, bundle_root=str(bundle.root.resolve()),
+        target=_target_ref(ep.target), estimates=estimates,
+        final_view=FinalView(world_T_cam=obs.world_T_cam, K=obs.camera.K, width=obs.camera.width,
+                             height=obs.camera.height, depth_file=depth_file),
+        objects=list(obs.objects), adjustments=ep.adjustments, steps=ep.steps, refusals=ep.refusals,
+        collisions=ep.collisions, elapsed_s=time.monotonic() - ep.created)
 
 
-def _target_record(obs: Observation) -> dict[str, Any]:
+def _target_ref(obj: BundleObject) -> TargetRef:
+    return TargetRef(gt_id=obj.gt_id, obj_id=obj.obj_id, name=obj.name)
+
+
+def _target_truth(obs: RenderedView) -> dict[str, Any]:
+    """The target's ground truth in ``obs`` for the log (nothing when the view has no target)."""
     t = obs.target()
     if t is None:
         return {}
-    return {"target_cam_T_obj": t.cam_T_obj.tolist(),
-            "target_visib_fract": t.visibility.visib_fract if t.visibility else None}
+    return {"target_cam_T_obj": t.cam_T_obj, "target_visib_fract": t.visib_fract}
 
 
 def _commit(ticket: Ticket | None, apply: Any) -> None:
@@ -506,7 +433,7 @@ class EpisodeManager:
     # -------------------------------------------------------------- actions
     def reset(self, *, target: int | str | None = None, width: int | None = None, height: int | None = None,
               start: Matrix4 | None = None, seed: int | None = None, agent: str | None = None,
-              ticket: Ticket | None = None) -> StepResult:
+              ticket: Ticket | None = None) -> ActionResult:
         self._expire()
         bundle = self.scene.bundle
         if not bundle.objects:
@@ -543,12 +470,10 @@ class EpisodeManager:
             try:
                 obs = self.scene.observe(T0, camera, tgt.gt_id)
                 timings = {**obs.timings_ms, "step": (time.perf_counter() - t0) * 1000.0}
-                line = ep.log.format({
-                    "event": "reset", "episode_id": eid, "bundle": bundle.name, "agent": agent,
-                    "target": {"gt_id": tgt.gt_id, "obj_id": tgt.obj_id, "name": tgt.name},
-                    "width": w, "height": h, "K": camera.K.tolist(), "seed": used_seed,
-                    "start": "given" if start is not None else "random", "world_T_cam": T0.tolist(),
-                    "timings_ms": timings, **_target_record(obs)})
+                line = ep.log.format(ResetRecord(
+                    episode_id=eid, bundle=bundle.name, agent=agent, target=_target_ref(tgt), width=w, height=h,
+                    K=camera.K, seed=used_seed, start="given" if start is not None else "random", world_T_cam=T0,
+                    timings_ms=timings, **_target_truth(obs)))
 
                 def apply() -> None:
                     ep.log.append(line)
@@ -563,11 +488,11 @@ class EpisodeManager:
                 if ep.log.path is not None and ep.log.path.exists():
                     ep.log.path.unlink()
                 raise
-            return StepResult(eid, "reset", 0, True, False, None, 0, obs, None, timings)
+            return ActionResult(eid, "reset", 0, True, False, None, 0, obs, None, timings)
         finally:
             ep.lock.release()
 
-    def set_pose(self, episode_id: str, world_T_cam: Matrix4, ticket: Ticket | None = None) -> StepResult:
+    def set_pose(self, episode_id: str, world_T_cam: Matrix4, ticket: Ticket | None = None) -> ActionResult:
         ep = self.get(episode_id)
         self._acquire(ep)
         try:
@@ -578,7 +503,7 @@ class EpisodeManager:
             ep.lock.release()
 
     def move(self, episode_id: str, linear: Any, angular: Any, duration: float, frame: str = "camera",
-             ticket: Ticket | None = None) -> StepResult:
+             ticket: Ticket | None = None) -> ActionResult:
         ep = self.get(episode_id)
         self._acquire(ep)
         try:
@@ -597,7 +522,7 @@ class EpisodeManager:
             ep.lock.release()
 
     def _finish(self, ep: Episode, action: str, T: Matrix4, refusal: Refusal | None, move: dict[str, Any] | None,
-                requested: dict[str, Any], ticket: Ticket | None, stopped_by: Refusal | None = None) -> StepResult:
+                requested: dict[str, Any], ticket: Ticket | None, stopped_by: Refusal | None = None) -> ActionResult:
         """Complete a ``set_pose``/``move`` to ``T`` (or refuse it) as one transaction: the
         observation, the counters and the log line are all computed first, then the log line is
         written and the state changed together; a failure before that changes nothing."""
@@ -615,11 +540,10 @@ class EpisodeManager:
         collided = refusal is not None or stopped_by is not None
         reason = refusal or stopped_by
         timings["step"] = (time.perf_counter() - t0) * 1000.0
-        line = ep.log.format({"event": action, "step": steps, "accepted": accepted, "collided": collided,
-                              "refusal": reason.to_json() if reason else None, "requested": requested,
-                              "world_T_cam_before": before.tolist(), "world_T_cam": after.tolist(),
-                              "adjustments": adjustments, "move": move, "timings_ms": timings,
-                              **_target_record(obs)})
+        line = ep.log.format(ActionRecord(
+            event=action, step=steps, accepted=accepted, collided=collided,
+            refusal=reason.to_json() if reason else None, requested=requested, world_T_cam_before=before,
+            world_T_cam=after, adjustments=adjustments, move=move, timings_ms=timings, **_target_truth(obs)))
 
         def apply() -> None:
             ep.log.append(line)  # first: a failed write leaves the state as it was
@@ -633,7 +557,7 @@ class EpisodeManager:
             ep.last_active = time.monotonic()
 
         _commit(ticket, apply)
-        return StepResult(ep.id, action, steps, accepted, collided, reason, adjustments, obs, move, timings)
+        return ActionResult(ep.id, action, steps, accepted, collided, reason, adjustments, obs, move, timings)
 
     def submit(self, episode_id: str, estimates: list[dict[str, Any]], agent: str | None = None,
                ticket: Ticket | None = None) -> dict[str, Any]:
@@ -650,7 +574,7 @@ class EpisodeManager:
             depth = depth_m_to_mm_u16(ep.last.depth)
             depth_file = f"{ep.id}{FINAL_DEPTH_SUFFIX}" if ep.log.path is not None else None
             name = agent if agent is not None else ep.agent
-            line = ep.log.format({**submission_record(ep, clean, self.scene.bundle, depth_file), "agent": name})
+            line = ep.log.format(submission_record(ep, clean, self.scene.bundle, depth_file, name))
             out: dict[str, Any] = {}
 
             def apply() -> None:
@@ -679,7 +603,7 @@ class EpisodeManager:
         summary = ep.summary()
         ep.closed = True
         ep.close_reason = reason
-        ep.log.write({"event": "close", "reason": reason, **summary})
+        ep.log.write(CloseRecord(reason=reason, **summary))
         ep.log.close()
         ep.last = None  # free the images (closed episodes are kept for GET /episodes/{id})
         return {"episode_id": ep.id, "closed": True, "reason": reason, **summary}

@@ -241,7 +241,7 @@ def make_synthetic_bundle(root: Path | str, n_gaussians: int = 20_000, sh_degree
 
     scene = make_synthetic_scene(root, n_gaussians, sh_degree, n_views, width, height, seed, volume_fraction)
     if bop:
-        from annotation.bop import export_bop
+        from annotation import export_bop
 
         export_bop(scene.root)
     return export_bundle(scene.root).root

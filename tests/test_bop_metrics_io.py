@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from annotation.bop_format import bop_cam_K
+from annotation import bop_cam_K, read_models_info, read_scene_camera
 from brave6d.atomic import write_png
 from brave6d.errors import DataError
 from evaluation.metrics.bop_results import (
@@ -24,8 +24,6 @@ from evaluation.metrics.bop_results import (
     load_scene_gt_instances,
     load_split_gt_instances,
     read_bop_results,
-    read_models_info,
-    read_scene_camera,
     write_bop_results,
 )
 from evaluation.metrics.recall import Estimate, evaluate_bop19
@@ -275,7 +273,7 @@ def test_renders_from_a_bop_cam_K_sample_the_pixels_bop_toolkit_does(tmp_path):
     cam_K = np.array([[300.0, 0.0, 160.2], [0.0, 310.0, 119.7], [0.0, 0.0, 1.0]])
     (tmp_path / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": cam_K.reshape(-1).tolist(),
                                                                    "depth_scale": 1.0}}))
-    K = read_scene_camera(tmp_path / "scene_camera.json")[0]["K"]
+    K = read_scene_camera(tmp_path / "scene_camera.json")[0].cam_K
     half = 23.3  # mm: a square facing the camera at 500 mm, edges off the pixel grid
     square = trimesh.Trimesh([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]],
                              [[0, 1, 2], [0, 2, 3]], process=False)

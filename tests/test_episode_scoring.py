@@ -7,7 +7,6 @@ import argparse
 import json
 import math
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -30,20 +29,23 @@ from evaluation.metrics.episodes import (
 )
 from evaluation.metrics.recall import ObjectModel, evaluate_bop19
 from evaluation.metrics.depth_renderer import render_depth
-from serve.app import ServerLimits, create_app
-from serve.bundle import Bundle, BundleObject, load_bundle
-from serve.episodes import (
-    Episode,
+from serve import (
+    Bundle,
     EpisodeLog,
-    ObjectObservation,
-    Observation,
+    FinalView,
+    LoggedEstimate,
+    ObjectState,
+    ResetRecord,
     SceneServer,
-    SubmittedEstimate,
+    ServerLimits,
+    SubmitRecord,
+    TargetRef,
+    create_app,
+    load_bundle,
+    make_synthetic_bundle,
     read_episode_log,
-    submission_record,
 )
-from serve.synthetic import cube_mesh_mm, make_synthetic_bundle
-from serve.visibility import Visibility
+from serve.synthetic import cube_mesh_mm
 
 CAMERA = PinholeCamera.from_hfov(96, 72, 60.0)
 #: cube_red (obj_id 1) 0.25 m in front of the camera, turned about its vertical axis
@@ -75,30 +77,32 @@ def write_episode(folder: Path, eid: str, agent: str | None, estimates: list[np.
                   gt: np.ndarray = GT, adjustments: int = 0, bundle_name: str = "synthetic_tabletop",
                   started: str = "2026-01-01T00:00:00.000+00:00") -> Path:
     """A reset (+ submit with ``estimates``, cam_T_obj 4x4 of obj 1; None: no submission) log,
-    the submit record made by the server's own :func:`submission_record`."""
+    written through the server's log schema (:mod:`serve.episode_log`)."""
     folder.mkdir(parents=True, exist_ok=True)
-    target = BundleObject(0, 1, "cube_red", np.eye(4), "models/obj_000001.ply", 34.64)
-    other = ObjectObservation(1, 2, "cube_blue", make_transform(np.eye(3), [0.2, 0.0, 0.5]),
-                              Visibility(10, 0, 0.0, None, None), False)
+    target = TargetRef(gt_id=0, obj_id=1, name="cube_red")
     depth = depth_of(gt)
-    vis = Visibility(int(np.count_nonzero(depth)), int(np.count_nonzero(depth)), 1.0, None, None)
-    obs = Observation(np.zeros((CAMERA.height, CAMERA.width, 3), np.uint8), depth, CAMERA, np.eye(4),
-                      (ObjectObservation(0, 1, "cube_red", gt, vis, True), other), {})
-    ep = Episode(eid, target, CAMERA, np.eye(4), 7, EpisodeLog(None), agent, adjustments=adjustments)
-    ep.last = obs
-    reset = {"time": started, "event": "reset", "episode_id": eid, "bundle": bundle_name, "agent": agent,
-             "target": {"gt_id": 0, "obj_id": 1, "name": "cube_red"}, "width": CAMERA.width, "height": CAMERA.height,
-             "K": CAMERA.K.tolist(), "seed": 7, "world_T_cam": np.eye(4).tolist(), "target_cam_T_obj": gt.tolist(),
-             "target_visib_fract": 1.0}
-    lines = [json.dumps(reset)]
+    px = int(np.count_nonzero(depth))
+    objects = [ObjectState(gt_id=0, obj_id=1, name="cube_red", is_target=True, cam_T_obj=gt, px_count_all=px,
+                           px_count_visib=px, visib_fract=1.0),
+               ObjectState(gt_id=1, obj_id=2, name="cube_blue", is_target=False,
+                           cam_T_obj=make_transform(np.eye(3), [0.2, 0.0, 0.5]), px_count_all=10, px_count_visib=0,
+                           visib_fract=0.0)]
+    reset = ResetRecord(time=started, episode_id=eid, bundle=bundle_name, agent=agent, target=target,
+                        width=CAMERA.width, height=CAMERA.height, K=CAMERA.K, seed=7, start="random",
+                        world_T_cam=np.eye(4), timings_ms={}, target_cam_T_obj=gt, target_visib_fract=1.0)
+    lines = [EpisodeLog.format(reset)]
     if estimates is not None:
         depth_file = f"{eid}_final_depth.png"
         write_png(folder / depth_file, depth_m_to_mm_u16(depth))
-        ests = [SubmittedEstimate(1, T[:3, :3], T[:3, 3], 0.9) for T in estimates]
-        record = submission_record(ep, ests, SimpleNamespace(name=bundle_name, root=folder), depth_file)
-        lines.append(json.dumps({"time": started, **record}))
+        submit = SubmitRecord(
+            time=started, episode_id=eid, agent=agent, bundle=bundle_name, bundle_root=str(folder.resolve()),
+            target=target, estimates=[LoggedEstimate(obj_id=1, R=T[:3, :3], t_m=T[:3, 3], score=0.9) for T in estimates],
+            final_view=FinalView(world_T_cam=np.eye(4), K=CAMERA.K, width=CAMERA.width, height=CAMERA.height,
+                                 depth_file=depth_file),
+            objects=objects, adjustments=adjustments, steps=adjustments, refusals=0, collisions=0, elapsed_s=1.5)
+        lines.append(EpisodeLog.format(submit))
     path = folder / f"{eid}.jsonl"
-    path.write_text("\n".join(lines) + "\n")
+    path.write_text("".join(lines))
     return path
 
 
@@ -208,7 +212,9 @@ def test_bundle_found_from_the_logs(tmp_path: Path, bundle: Bundle) -> None:
 
 @pytest.mark.parametrize("text, match", [
     ('{"event": "move"}\n', "first record must be a 'reset'"),
-    ('{"event": "reset", "episode_id": "x"}\n', "field 'target' is missing"),
+    ('{"event": "reset", "episode_id": "x"}\n', r":1: 'reset' record does not match .* field 'bundle'"),
+    ('{"event": "reset", "format_version": 2}\n', r":1: episode log format version 2 is not supported"),
+    ('{"event": "reset", "format_version": "1"}\n', r":1: episode log format version '1' is not supported"),
     ('{"event": "reset"}\nnot json\n{"event": "close"}\n', r":2: not valid JSON"),
 ])
 def test_malformed_logs_name_file_and_field(tmp_path: Path, text: str, match: str) -> None:
@@ -277,13 +283,13 @@ def test_submission_is_logged_with_the_final_view(served, bundle: Bundle) -> Non
     assert reply["submitted"] and reply["closed"] and reply["estimates"] == 1 and reply["adjustments"] == 1
     assert reply["depth_file"] == f"{eid}_final_depth.png" and reply["agent"] == "oracle-1"
     records = read_episode_log(log_dir / f"{eid}.jsonl")
-    assert [r["event"] for r in records] == ["reset", "move", "submit", "close"]
+    assert [r.event for r in records] == ["reset", "move", "submit", "close"]
     sub = records[2]
-    assert sub["final_view"]["width"] == 160 and sub["final_view"]["height"] == 120
-    np.testing.assert_allclose(sub["final_view"]["K"], obs["K"])
-    np.testing.assert_allclose(sub["final_view"]["world_T_cam"], obs["world_T_cam"])
-    assert [o["gt_id"] for o in sub["objects"]] == [o.gt_id for o in bundle.objects]
-    assert all("visib_fract" in o and "cam_T_obj" in o for o in sub["objects"])
+    assert sub.final_view.width == 160 and sub.final_view.height == 120
+    np.testing.assert_allclose(sub.final_view.K, obs["K"])
+    np.testing.assert_allclose(sub.final_view.world_T_cam, obs["world_T_cam"])
+    assert [o.gt_id for o in sub.objects] == [o.gt_id for o in bundle.objects]
+    assert all(o.visib_fract is not None for o in sub.objects)
     depth = read_png(log_dir / reply["depth_file"], expect="depth")
     d_obs = np.frombuffer(__import__("base64").b64decode(obs["depth"]["data"]), "<f4").reshape(120, 160)
     np.testing.assert_array_equal(depth, depth_m_to_mm_u16(d_obs))

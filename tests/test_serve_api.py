@@ -16,7 +16,7 @@ from brave6d.transforms import check_rigid, invert, look_at
 from serve.app import ServerLimits, create_app
 from serve.bundle import Bundle, load_bundle
 from serve.client import decode_observation
-from serve.episodes import SceneServer, read_episode_log
+from serve import SceneServer, read_episode_log
 from serve.synthetic import make_synthetic_bundle
 
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01))
@@ -443,13 +443,15 @@ def test_episode_log(client: TestClient, log_dir: Path) -> None:
     client.post(f"/episodes/{eid}/move", json={"linear": [0, 0, 0.02], "duration": 0.5})
     client.post(f"/episodes/{eid}/close")
     records = read_episode_log(log_dir / f"{eid}.jsonl")
-    assert [r["event"] for r in records] == ["reset", "set_pose", "move", "close"]
+    assert [r.event for r in records] == ["reset", "set_pose", "move", "close"]
     reset_rec, refused, moved, closed = records
-    assert reset_rec["target"]["name"] == "cube_red" and reset_rec["width"] == 320
-    np.testing.assert_allclose(reset_rec["world_T_cam"], FREE)
-    assert refused["accepted"] is False and refused["refusal"]["box"] == "post"
-    assert refused["world_T_cam"] == refused["world_T_cam_before"] and refused["adjustments"] == 0
-    assert moved["accepted"] and moved["adjustments"] == 1 and moved["timings_ms"]["render"] > 0
-    assert moved["world_T_cam"] != moved["world_T_cam_before"] and "target_cam_T_obj" in moved
-    assert closed["adjustments"] == 1 and closed["refusals"] == 1 and closed["steps"] == 2
-    assert all("time" in r for r in records)
+    assert reset_rec.format_version == 1
+    assert reset_rec.target.name == "cube_red" and reset_rec.width == 320
+    np.testing.assert_allclose(reset_rec.world_T_cam, FREE)
+    assert refused.accepted is False and refused.refusal["box"] == "post"
+    np.testing.assert_array_equal(refused.world_T_cam, refused.world_T_cam_before)
+    assert refused.adjustments == 0
+    assert moved.accepted and moved.adjustments == 1 and moved.timings_ms["render"] > 0
+    assert not np.array_equal(moved.world_T_cam, moved.world_T_cam_before) and moved.target_cam_T_obj is not None
+    assert closed.adjustments == 1 and closed.refusals == 1 and closed.steps == 2
+    assert all(r.time.startswith("20") for r in records)

@@ -23,7 +23,8 @@ from brave6d.errors import BraveError
 from brave6d.transforms import look_at
 from serve.app import ServerLimits, create_app
 from serve.bundle import Bundle, BundleError, export_bundle, load_bundle
-from serve.episodes import EpisodeLog, EpisodeManager, InvalidAction, SceneServer, read_episode_log
+from serve import EpisodeLog, SceneServer, read_episode_log
+from serve.episodes import EpisodeManager, InvalidAction
 from serve.limits import MAX_HEIGHT, MAX_WIDTH, fit_image_size
 from serve.synthetic import make_synthetic_bundle, make_synthetic_scene
 
@@ -135,7 +136,7 @@ def test_a_failed_log_write_changes_nothing(scene: SceneServer, tmp_path: Path,
     np.testing.assert_array_equal(ep.world_T_cam, FREE)
     monkeypatch.undo()
     manager.set_pose(eid, IN_POST)
-    assert [r["event"] for r in read_episode_log(tmp_path / f"{eid}.jsonl")] == ["reset", "set_pose"]
+    assert [r.event for r in read_episode_log(tmp_path / f"{eid}.jsonl")] == ["reset", "set_pose"]
     assert (ep.steps, ep.refusals) == (1, 1)
 
 

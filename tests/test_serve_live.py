@@ -17,7 +17,7 @@ from brave6d.transforms import look_at
 from serve.app import ServerLimits, create_app
 from serve.bundle import Bundle, load_bundle
 from serve.client import BraveClient, ServerError
-from serve.episodes import SceneServer, read_episode_log
+from serve import SceneServer, read_episode_log
 from serve.gym_env import BraveEnv
 from serve.runner import ServerThread
 from serve.synthetic import make_synthetic_bundle
@@ -185,7 +185,11 @@ def test_load_test_small(server: ServerThread) -> None:
     spec.loader.exec_module(module)
     result = module.run_load_test(server.url, clients=4, requests=12, width=96, height=72, max_seconds=120)
     assert result["errors"] == 0, result["error_messages"]
-    assert result["requests"] == 4 * 12 and result["latency_ms"]["p99"] > 0
+    assert result["requests"] == 4 * 12
+    lat = result["latency_ms"]
+    # percentiles in order, and no request took longer than the whole run
+    assert lat["p50"] <= lat["p90"] <= lat["p99"] <= lat["max"] <= result["wall_s"] * 1000.0
+    assert result["throughput_rps"] == pytest.approx(result["requests"] / result["wall_s"])
 
 
 def test_demo_stages_run_one_agent_episode(scene_dir: Path, tmp_path: Path) -> None:
@@ -201,7 +205,7 @@ def test_demo_stages_run_one_agent_episode(scene_dir: Path, tmp_path: Path) -> N
     assert served.figures["adjustments"] >= 1 and served.figures["refusals"] == 1
     logs = list((tmp_path / "episodes").glob("*.jsonl"))
     assert len(logs) == 1
-    events = [r["event"] for r in read_episode_log(logs[0])]
+    events = [r.event for r in read_episode_log(logs[0])]
     assert events[0] == "reset" and events[-1] == "close" and "set_pose" in events
 
 
@@ -229,4 +233,4 @@ def test_scene_server_without_open3d_still_serves_poses(bundle: Bundle, monkeypa
     scene = SceneServer(bundle, device="cpu")
     assert scene.visibility is None
     obs = scene.observe(FREE, bundle.camera.scaled(64, 48), 0)
-    assert obs.objects[0].visibility is None and obs.objects[0].to_json()["visib_fract"] is None
+    assert obs.objects[0].visib_fract is None and obs.objects[0].px_count_all is None

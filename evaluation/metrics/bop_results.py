@@ -1,4 +1,6 @@
-"""BOP files on the evaluation side: results CSV (read/write) and ground-truth scene readers.
+"""BOP files on the evaluation side: the results CSV (read/write, owned here) and the ground truth
+of BOP scene and model folders as scoring inputs (the dataset files themselves are parsed by
+:mod:`annotation`, the owner of the BOP dataset format).
 
 BOP units: millimetres (``cam_t_m2c``, model vertices, ``t`` of the results), depth images in
 units of ``depth_scale`` mm. Formats (bop_toolkit ``docs/bop_datasets_format.md`` and
@@ -27,8 +29,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from brave6d.atomic import atomic_write_text, read_json, read_png
-from brave6d.camera import opencv_K
+from annotation import dataset_image_size, model_file, read_models_info, read_scene_camera, read_scene_gt, read_scene_gt_info
+from brave6d.atomic import atomic_write_text, read_png
 from brave6d.errors import DataError
 from evaluation.metrics.recall import Estimate, GTInstance, ObjectModel
 
@@ -145,107 +147,6 @@ def check_times(estimates: Iterable[Estimate], tolerance_s: float = 0.001) -> No
         times.setdefault(key, e.time)
 
 
-# ----------------------------------------------------------------------------- JSON helpers
-def _int_keys(data: Any, path: Path) -> dict[int, Any]:
-    if not isinstance(data, dict):
-        raise DataError(f"{path}: expected a JSON object keyed by id, got {type(data).__name__}")
-    out: dict[int, Any] = {}
-    for k, v in data.items():
-        try:
-            out[int(k)] = v
-        except (TypeError, ValueError):
-            raise DataError(f"{path}: key {k!r} is not an integer id") from None
-    return out
-
-
-def _floats(value: Any, count: int, where: str) -> NDArray[np.float64]:
-    try:
-        arr = np.asarray(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise DataError(f"{where}: expected {count} numbers, got {value!r}") from None
-    if arr.size != count or not np.all(np.isfinite(arr)):
-        raise DataError(f"{where}: expected {count} finite numbers, got {value!r}")
-    return arr
-
-
-def read_scene_camera(path: Path | str) -> dict[int, dict[str, Any]]:
-    """``scene_camera.json`` -> ``{im_id: {'K': 3x3, 'depth_scale': float, ['R_w2c', 't_w2c']}}``.
-
-    ``K`` is in the project's OpenCV convention: ``cam_K`` less 0.5 px on the principal point,
-    because bop_toolkit's renderers, which make and score BOP's ground truth, centre pixel
-    ``(u, v)`` at ``(u + 0.5, v + 0.5)`` in ``cam_K``'s coordinates (see
-    ``annotation.bop_format.bop_cam_K``). The depth renderer here casts OpenCV rays, so with
-    this ``K`` it samples the pixels bop_toolkit's renderer does.
-    """
-    p = Path(path)
-    out: dict[int, dict[str, Any]] = {}
-    for im_id, entry in _int_keys(read_json(p), p).items():
-        where = f"{p}: image {im_id}"
-        if not isinstance(entry, dict) or "cam_K" not in entry:
-            raise DataError(f"{where}: missing 'cam_K'")
-        cam: dict[str, Any] = {"K": opencv_K(_floats(entry["cam_K"], 9, f"{where} cam_K"))}
-        scale = entry.get("depth_scale", 1.0)
-        cam["depth_scale"] = float(_floats(scale, 1, f"{where} depth_scale")[0])
-        if "cam_R_w2c" in entry and "cam_t_w2c" in entry:
-            cam["R_w2c"] = _floats(entry["cam_R_w2c"], 9, f"{where} cam_R_w2c").reshape(3, 3)
-            cam["t_w2c"] = _floats(entry["cam_t_w2c"], 3, f"{where} cam_t_w2c")
-        out[im_id] = cam
-    return out
-
-
-def read_scene_gt(path: Path | str) -> dict[int, list[dict[str, Any]]]:
-    """``scene_gt.json`` -> ``{im_id: [{'obj_id': int, 'R': 3x3, 't': (3,) mm}, ...]}``."""
-    p = Path(path)
-    out: dict[int, list[dict[str, Any]]] = {}
-    for im_id, entries in _int_keys(read_json(p), p).items():
-        if not isinstance(entries, list):
-            raise DataError(f"{p}: image {im_id}: expected a list of GT poses")
-        gts = []
-        for gt_id, entry in enumerate(entries):
-            where = f"{p}: image {im_id} instance {gt_id}"
-            if not isinstance(entry, dict) or not {"cam_R_m2c", "cam_t_m2c", "obj_id"} <= set(entry):
-                raise DataError(f"{where}: needs cam_R_m2c, cam_t_m2c and obj_id")
-            try:
-                obj_id = int(entry["obj_id"])
-            except (TypeError, ValueError):
-                raise DataError(f"{where}: obj_id must be an integer, got {entry['obj_id']!r}") from None
-            gts.append({
-                "obj_id": obj_id,
-                "R": _floats(entry["cam_R_m2c"], 9, f"{where} cam_R_m2c").reshape(3, 3),
-                "t": _floats(entry["cam_t_m2c"], 3, f"{where} cam_t_m2c"),
-            })
-        out[im_id] = gts
-    return out
-
-
-def read_scene_gt_info(path: Path | str) -> dict[int, list[dict[str, Any]]]:
-    """``scene_gt_info.json`` -> ``{im_id: [{'visib_fract': float, ...}, ...]}`` (as stored)."""
-    p = Path(path)
-    out: dict[int, list[dict[str, Any]]] = {}
-    for im_id, entries in _int_keys(read_json(p), p).items():
-        if not isinstance(entries, list):
-            raise DataError(f"{p}: image {im_id}: expected a list of GT info entries")
-        for gt_id, entry in enumerate(entries):
-            if not isinstance(entry, dict) or "visib_fract" not in entry:
-                raise DataError(f"{p}: image {im_id} instance {gt_id}: missing 'visib_fract'")
-            _floats(entry["visib_fract"], 1, f"{p}: image {im_id} instance {gt_id} visib_fract")
-        out[im_id] = entries
-    return out
-
-
-def read_models_info(path: Path | str) -> dict[int, dict[str, Any]]:
-    """``models_info.json`` -> ``{obj_id: entry}``; every entry must have a positive diameter."""
-    p = Path(path)
-    out = _int_keys(read_json(p), p)
-    for obj_id, entry in out.items():
-        if not isinstance(entry, dict) or "diameter" not in entry:
-            raise DataError(f"{p}: object {obj_id}: missing 'diameter'")
-        d = _floats(entry["diameter"], 1, f"{p}: object {obj_id} diameter")[0]
-        if d <= 0:
-            raise DataError(f"{p}: object {obj_id}: diameter must be positive, got {d}")
-    return out
-
-
 # ----------------------------------------------------------------------------- scenes
 def _depth_loader(path: Path, depth_scale: float, size: tuple[int, int]) -> Callable[[], NDArray[np.float64]]:
     def load() -> NDArray[np.float64]:
@@ -255,11 +156,9 @@ def _depth_loader(path: Path, depth_scale: float, size: tuple[int, int]) -> Call
 
 
 def _image_size_of(scene_dir: Path, im_ids: Sequence[int]) -> tuple[int, int] | None:
-    cam_json = scene_dir.parent.parent / "camera.json"
-    if cam_json.is_file():
-        data = read_json(cam_json)
-        if isinstance(data, dict) and "width" in data and "height" in data:
-            return int(data["width"]), int(data["height"])
+    size = dataset_image_size(scene_dir.parent.parent)
+    if size is not None:
+        return size
     import cv2
 
     for im_id in im_ids[:1]:
@@ -311,9 +210,10 @@ def load_scene_gt_instances(
                 f"{d / 'scene_gt_info.json'}: image {im_id} has {len(info[im_id])} entries, scene_gt.json has {len(gt[im_id])}"
             )
         cam = cams[im_id]
-        depth = _depth_loader(d / "depth" / f"{im_id:06d}.png", cam["depth_scale"], size) if with_depth else None
+        depth = _depth_loader(d / "depth" / f"{im_id:06d}.png", cam.depth_scale, size) if with_depth else None
         for g, gi in zip(gt[im_id], info[im_id]):
-            out.append(GTInstance(scene_id, im_id, g["obj_id"], g["R"], g["t"], float(gi["visib_fract"]), cam["K"], size, depth))
+            out.append(GTInstance(scene_id, im_id, g.obj_id, g.cam_R_m2c, g.cam_t_m2c, gi.visib_fract, cam.cam_K, size,
+                                  depth))
     return out
 
 
@@ -364,7 +264,7 @@ def load_models(
     for obj_id in ids:
         if obj_id not in info:
             raise DataError(f"{d / 'models_info.json'}: no entry for object {obj_id}")
-        vertices, faces = load_ply_mesh(d / f"obj_{obj_id:06d}.ply")
+        vertices, faces = load_ply_mesh(model_file(d, obj_id))
         try:
             out[obj_id] = ObjectModel.from_models_info(obj_id, vertices, info[obj_id], faces)
         except DataError as exc:

@@ -1,7 +1,8 @@
 """Episode scoring: render-server episode logs -> BOP Average Recall and adjustments per agent.
 
 Each episode is one BOP "image": its final view (the view current when the agent submitted) with
-the ground truth the server logged at that moment (``serve.episodes.submission_record``). Image
+the ground truth the server logged at that moment (the log's ``submit`` record, read through
+``serve.read_episode_log``: the log schema is serve's, versioned). Image
 ids are deterministic: agents sorted by name get ``scene_id`` 1, 2, ...; within an agent the
 episodes sorted by (start time, episode id) get ``im_id`` 0, 1, ...
 
@@ -23,7 +24,6 @@ summed exactly: recall is matched targets / targets, so per-episode true-positiv
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -37,32 +37,30 @@ from brave6d.atomic import read_png
 from brave6d.errors import DataError
 from evaluation.metrics.recall import METRICS, BopScores, EvalConfig, Estimate, GTInstance, ObjectModel, evaluate_bop19
 from evaluation.metrics.depth_renderer import DepthRenderer
-from serve.client import ObjectGT
+from serve import (
+    ActionRecord,
+    CloseRecord,
+    LoggedEstimate,
+    ObjectState,
+    ResetRecord,
+    SubmitRecord,
+    read_episode_log,
+)
 
 UNKNOWN_AGENT = "unknown"
 
 
 # ----------------------------------------------------------------------------- reading logs
 @dataclass(frozen=True)
-class LoggedEstimate:
-    """One submitted estimate (``R`` 3x3, ``t_m`` metres, camera frame of the final view)."""
-
-    obj_id: int
-    R: NDArray[np.float64]
-    t_m: NDArray[np.float64]
-    score: float
-
-
-@dataclass(frozen=True)
 class EpisodeRecord:
-    """What scoring needs from one episode log."""
+    """What scoring needs from one episode log (read through serve's versioned log schema)."""
 
     episode_id: str
     path: Path
     agent: str
     bundle: str | None
     bundle_root: str | None
-    target: ObjectGT
+    target: ObjectState
     submitted: bool
     adjustments: int
     steps: int
@@ -73,7 +71,7 @@ class EpisodeRecord:
     K: NDArray[np.float64]
     width: int
     height: int
-    objects: tuple[ObjectGT, ...]
+    objects: tuple[ObjectState, ...]
     estimates: tuple[LoggedEstimate, ...]
     depth_path: Path | None
 
@@ -94,78 +92,6 @@ def find_episode_logs(paths: Iterable[Path | str]) -> list[Path]:
     return list(dict.fromkeys(out))
 
 
-def _read_records(path: Path) -> list[dict[str, Any]]:
-    records = []
-    lines = path.read_text(encoding="utf-8").splitlines()
-    for n, line in enumerate(lines, start=1):
-        if not line.strip():
-            continue
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError as exc:
-            if n == len(lines):  # a partial last line: the server was stopped mid-write
-                break
-            raise DataError(f"{path}:{n}: not valid JSON ({exc.msg})") from None
-        if not isinstance(rec, dict):
-            raise DataError(f"{path}:{n}: a record must be a JSON object")
-        records.append(rec)
-    return records
-
-
-def _get(rec: dict[str, Any], key: str, where: str) -> Any:
-    if key not in rec:
-        raise DataError(f"{where}: field '{key}' is missing")
-    return rec[key]
-
-
-def _matrix(value: Any, shape: tuple[int, ...], where: str) -> NDArray[np.float64]:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise DataError(f"{where}: must be numbers of shape {shape}") from None
-    if arr.size != int(np.prod(shape)) or not np.all(np.isfinite(arr)):
-        raise DataError(f"{where}: must be {int(np.prod(shape))} finite numbers, got {arr.size}")
-    return arr.reshape(shape)
-
-
-def _fraction(value: Any, where: str) -> float | None:
-    if value is None:
-        return None
-    v = float(value)
-    if not math.isfinite(v):
-        raise DataError(f"{where}: must be finite or null, got {value}")
-    return v
-
-
-def _objects(raw: Any, target_gt_id: int, where: str) -> tuple[ObjectGT, ...]:
-    if not isinstance(raw, list):
-        raise DataError(f"{where}: field 'objects' must be a list")
-    out = []
-    for i, o in enumerate(raw):
-        w = f"{where}: objects[{i}]"
-        gt_id = int(_get(o, "gt_id", w))
-        out.append(ObjectGT(gt_id, int(_get(o, "obj_id", w)), str(o.get("name", "")),
-                            bool(o.get("is_target", gt_id == target_gt_id)),
-                            _matrix(_get(o, "cam_T_obj", w), (4, 4), f"{w}.cam_T_obj"),
-                            _fraction(o.get("visib_fract"), f"{w}.visib_fract"), o.get("px_count_visib"),
-                            o.get("px_count_all"), o.get("bbox_visib")))
-    return tuple(out)
-
-
-def _estimates(raw: Any, where: str) -> tuple[LoggedEstimate, ...]:
-    if not isinstance(raw, list):
-        raise DataError(f"{where}: field 'estimates' must be a list")
-    out = []
-    for i, e in enumerate(raw):
-        w = f"{where}: estimates[{i}]"
-        score = float(e.get("score", 1.0))
-        if not math.isfinite(score):
-            raise DataError(f"{w}.score: must be finite")
-        out.append(LoggedEstimate(int(_get(e, "obj_id", w)), _matrix(_get(e, "R", w), (3, 3), f"{w}.R"),
-                                  _matrix(_get(e, "t_m", w), (3,), f"{w}.t_m"), score))
-    return tuple(out)
-
-
 def _seconds_between(a: str | None, b: str | None) -> float | None:
     try:
         t0 = _dt.datetime.fromisoformat(str(a))
@@ -178,51 +104,40 @@ def _seconds_between(a: str | None, b: str | None) -> float | None:
 def read_episode(path: Path | str) -> EpisodeRecord:
     """One episode log (JSONL written by the render server) -> :class:`EpisodeRecord`."""
     p = Path(path)
-    records = _read_records(p)
-    if not records or records[0].get("event") != "reset":
-        raise DataError(f"{p}: not an episode log (the first record must be a 'reset' event)")
+    records = read_episode_log(p)
     reset = records[0]
-    where = f"{p}: reset"
-    tgt = _get(reset, "target", where)
-    target_gt_id = int(_get(tgt, "gt_id", f"{where}.target"))
-    submit = next((r for r in records if r.get("event") == "submit"), None)
-    agent = str((submit or {}).get("agent") or reset.get("agent") or UNKNOWN_AGENT)
-    common = {"episode_id": str(_get(reset, "episode_id", where)), "path": p, "agent": agent,
-              "bundle": reset.get("bundle"), "started": str(reset.get("time", "")),
-              "seed": reset.get("seed")}
+    assert isinstance(reset, ResetRecord)  # read_episode_log refuses a log that does not start with one
+    target_gt_id = reset.target.gt_id
+    submit = next((r for r in records if isinstance(r, SubmitRecord)), None)
+    agent = str((submit.agent if submit is not None else None) or reset.agent or UNKNOWN_AGENT)
+    common = {"episode_id": reset.episode_id, "path": p, "agent": agent, "bundle": reset.bundle,
+              "started": reset.time, "seed": reset.seed}
     if submit is not None:
-        w = f"{p}: submit"
-        view = _get(submit, "final_view", w)
-        objects = _objects(_get(submit, "objects", w), target_gt_id, w)
-        target = next((o for o in objects if o.gt_id == target_gt_id), None)
+        view = submit.final_view
+        target = next((o for o in submit.objects if o.gt_id == target_gt_id), None)
         if target is None:
-            raise DataError(f"{w}: the target (gt_id {target_gt_id}) is not among 'objects'")
-        depth_file = view.get("depth_file")
-        elapsed = submit.get("elapsed_s")
-        wall = float(elapsed) if elapsed is not None else _seconds_between(reset.get("time"), submit.get("time"))
+            raise DataError(f"{p}: submit: the target (gt_id {target_gt_id}) is not among 'objects'")
+        wall = submit.elapsed_s if submit.elapsed_s is not None else _seconds_between(reset.time, submit.time)
         return EpisodeRecord(
-            **common, bundle_root=submit.get("bundle_root"), target=target, submitted=True,
-            adjustments=int(_get(submit, "adjustments", w)), steps=int(submit.get("steps", 0)),
-            refusals=int(submit.get("refusals", 0)), wall_time_s=wall,
-            K=_matrix(_get(view, "K", f"{w}.final_view"), (3, 3), f"{w}.final_view.K"),
-            width=int(_get(view, "width", f"{w}.final_view")), height=int(_get(view, "height", f"{w}.final_view")),
-            objects=objects, estimates=_estimates(_get(submit, "estimates", w), w),
-            depth_path=p.with_name(str(depth_file)) if depth_file else None)
+            **common, bundle_root=submit.bundle_root, target=target, submitted=True,
+            adjustments=submit.adjustments, steps=submit.steps, refusals=submit.refusals, wall_time_s=wall,
+            K=view.K, width=view.width, height=view.height, objects=tuple(submit.objects),
+            estimates=tuple(submit.estimates),
+            depth_path=p.with_name(view.depth_file) if view.depth_file else None)
     # No submission: the target counts with no estimate, at the last logged pose.
-    last = next((r for r in reversed(records) if "target_cam_T_obj" in r), reset)
-    if "target_cam_T_obj" not in last:
-        raise DataError(f"{where}: field 'target_cam_T_obj' is missing (needed to score an unsubmitted episode)")
-    target = ObjectGT(target_gt_id, int(_get(tgt, "obj_id", f"{where}.target")), str(tgt.get("name", "")), True,
-                      _matrix(last["target_cam_T_obj"], (4, 4), f"{p}: target_cam_T_obj"),
-                      _fraction(last.get("target_visib_fract"), f"{p}: target_visib_fract"), None, None, None)
-    adjustments = max((int(r.get("adjustments", 0)) for r in records), default=0)
+    last = next((r for r in reversed(records)
+                 if isinstance(r, (ResetRecord, ActionRecord)) and r.target_cam_T_obj is not None), None)
+    if last is None:
+        raise DataError(f"{p}: reset: field 'target_cam_T_obj' is missing (needed to score an unsubmitted episode)")
+    target = ObjectState(gt_id=target_gt_id, obj_id=reset.target.obj_id, name=reset.target.name, is_target=True,
+                         cam_T_obj=last.target_cam_T_obj, visib_fract=last.target_visib_fract)
+    actions = [r for r in records if isinstance(r, ActionRecord)]
+    adjustments = max((r.adjustments for r in records if isinstance(r, (ActionRecord, CloseRecord))), default=0)
     return EpisodeRecord(
-        **common, bundle_root=None, target=target, submitted=False, adjustments=adjustments,
-        steps=sum(1 for r in records if r.get("event") in ("set_pose", "move")),
-        refusals=sum(1 for r in records if r.get("refusal") and not r.get("accepted", True)),
-        wall_time_s=_seconds_between(reset.get("time"), records[-1].get("time")),
-        K=_matrix(_get(reset, "K", where), (3, 3), f"{where}.K"), width=int(_get(reset, "width", where)),
-        height=int(_get(reset, "height", where)), objects=(target,), estimates=(), depth_path=None)
+        **common, bundle_root=None, target=target, submitted=False, adjustments=max(adjustments, 0),
+        steps=len(actions), refusals=sum(1 for r in actions if r.refusal and not r.accepted),
+        wall_time_s=_seconds_between(reset.time, records[-1].time),
+        K=reset.K, width=reset.width, height=reset.height, objects=(target,), estimates=(), depth_path=None)
 
 
 def read_episodes(paths: Iterable[Path | str]) -> list[EpisodeRecord]:

@@ -48,7 +48,7 @@ class LatencySweep:
 
 def find_splat(scene: SceneDir) -> Path | None:
     """The trained splat the server would load: ``splat/point_cloud.ply``, else ``bundle/splat.ply``."""
-    from serve.bundle import SPLAT, find_splat_ply
+    from serve import SPLAT, find_splat_ply
 
     try:
         return find_splat_ply(scene)
