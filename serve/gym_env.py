@@ -1,4 +1,4 @@
-"""A Gymnasium-style environment over the render server (no dependency on gymnasium).
+"""A Gymnasium environment over the render server.
 
     from serve.gym_env import BraveEnv
 
@@ -33,9 +33,7 @@ previous step, as a fraction of the image area (``px_count_visib`` difference / 
 ``accepted``, ``collided``, ``refusal``, ``adjustments`` (position adjustments, the benchmark's
 cost), ``objects``, ``target``, ``timings_ms`` and ``episode_id``.
 
-When ``gymnasium`` is installed the class derives from ``gymnasium.Env`` and the spaces are
-``gymnasium.spaces``; otherwise small stand-ins with ``shape``, ``low``, ``high``, ``sample``
-and ``contains`` are used.
+The class is a ``gymnasium.Env`` and its spaces are ``gymnasium.spaces`` (``Box``, ``Dict``).
 """
 
 from __future__ import annotations
@@ -43,70 +41,17 @@ from __future__ import annotations
 import logging
 from typing import Any, ClassVar
 
+import gymnasium as gym
 import httpx
 import numpy as np
+from gymnasium import spaces
 from numpy.typing import NDArray
 
 from serve.client import BraveClient, Observation, PoseEstimate, ServerError, StepResult
 
 log = logging.getLogger(__name__)
 
-try:  # optional
-    import gymnasium as _gym
-
-    _EnvBase: Any = _gym.Env
-except ImportError:  # pragma: no cover - gymnasium is not a dependency
-    _gym = None
-    _EnvBase = object
-
-
-class Box:
-    """Minimal stand-in for ``gymnasium.spaces.Box``."""
-
-    def __init__(self, low: Any, high: Any, shape: tuple[int, ...], dtype: Any = np.float32, seed: int | None = None) -> None:
-        self.shape = tuple(shape)
-        self.dtype = np.dtype(dtype)
-        self.low = np.broadcast_to(np.asarray(low, dtype=self.dtype), self.shape)
-        self.high = np.broadcast_to(np.asarray(high, dtype=self.dtype), self.shape)
-        self._rng = np.random.default_rng(seed)
-
-    def seed(self, seed: int | None = None) -> None:
-        self._rng = np.random.default_rng(seed)
-
-    def sample(self) -> NDArray[Any]:
-        lo = np.where(np.isfinite(self.low), self.low, -1.0)
-        hi = np.where(np.isfinite(self.high), self.high, 1.0)
-        return self._rng.uniform(lo, hi).astype(self.dtype)
-
-    def contains(self, x: Any) -> bool:
-        a = np.asarray(x)
-        return a.shape == self.shape and bool(np.all(a >= self.low) and np.all(a <= self.high))
-
-    def __repr__(self) -> str:
-        return f"Box({self.shape}, {self.dtype})"
-
-
-class DictSpace(dict):
-    """Minimal stand-in for ``gymnasium.spaces.Dict``."""
-
-    @property
-    def spaces(self) -> dict[str, Any]:
-        return dict(self)
-
-    def sample(self) -> dict[str, Any]:
-        return {k: v.sample() for k, v in self.items()}
-
-    def contains(self, x: Any) -> bool:
-        return isinstance(x, dict) and all(k in x and v.contains(x[k]) for k, v in self.items())
-
-
-def _box(low: Any, high: Any, shape: tuple[int, ...], dtype: Any) -> Any:
-    if _gym is not None:
-        return _gym.spaces.Box(low=low, high=high, shape=shape, dtype=dtype)
-    return Box(low, high, shape, dtype)
-
-
-class BraveEnv(_EnvBase):  # type: ignore[misc]
+class BraveEnv(gym.Env):  # type: ignore[misc]
     """See the module docstring."""
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"]}
@@ -125,14 +70,13 @@ class BraveEnv(_EnvBase):  # type: ignore[misc]
         self.max_linear, self.max_angular = float(max_linear), float(max_angular)
         self.frame = frame
         self.render_mode = render_mode
-        self.action_space = _box(-1.0, 1.0, (6,), np.float32)
-        spaces = {
-            "rgb": _box(0, 255, (self.height, self.width, 3), np.uint8),
-            "depth": _box(0.0, np.inf, (self.height, self.width), np.float32),
-            "K": _box(-np.inf, np.inf, (3, 3), np.float64),
-            "world_T_cam": _box(-np.inf, np.inf, (4, 4), np.float64),
-        }
-        self.observation_space = _gym.spaces.Dict(spaces) if _gym is not None else DictSpace(spaces)
+        self.action_space = spaces.Box(-1.0, 1.0, (6,), np.float32)
+        self.observation_space = spaces.Dict({
+            "rgb": spaces.Box(0, 255, (self.height, self.width, 3), np.uint8),
+            "depth": spaces.Box(0.0, np.inf, (self.height, self.width), np.float32),
+            "K": spaces.Box(-np.inf, np.inf, (3, 3), np.float64),
+            "world_T_cam": spaces.Box(-np.inf, np.inf, (4, 4), np.float64),
+        })
         self._steps = 0
         self._last: Observation | None = None
         self._done = True
@@ -161,15 +105,14 @@ class BraveEnv(_EnvBase):  # type: ignore[misc]
               ) -> tuple[dict[str, NDArray[Any]], dict[str, Any]]:
         """Start a new episode. ``options``: ``target``, ``start`` (4x4 world_T_cam or pose dict),
         ``width``, ``height``. ``seed`` seeds the random start pose (and ``action_space.sample``)."""
-        if _gym is not None:
-            super().reset(seed=seed)
+        super().reset(seed=seed)
         opts = dict(options or {})
         if self.client.episode_id is not None and not self._done:
             try:
                 self.client.close()
             except (ServerError, httpx.HTTPError) as exc:  # the old episode may have expired
                 log.debug("closing the previous episode failed: %s", exc)
-        if seed is not None and hasattr(self.action_space, "seed"):
+        if seed is not None:
             self.action_space.seed(seed)
         step = self.client.reset(target=opts.get("target", self.target), width=opts.get("width", self.width),
                                  height=opts.get("height", self.height), start=opts.get("start"), seed=seed,

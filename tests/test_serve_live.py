@@ -10,6 +10,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import httpx
+import gymnasium
 import numpy as np
 import pytest
 
@@ -18,7 +19,7 @@ from serve.app import ServerLimits, create_app
 from serve.bundle import Bundle, load_bundle
 from serve.client import BraveClient, ServerError
 from serve import SceneServer, read_episode_log
-from serve.gym_env import BraveEnv
+from serve import BraveEnv
 from serve.runner import ServerThread
 from serve.synthetic import make_synthetic_bundle
 
@@ -84,6 +85,8 @@ def test_gym_style_environment(server: ServerThread) -> None:
     env = BraveEnv(server.url, target="cube_red", width=160, height=120, max_steps=4, step_duration=0.5)
     obs, info = env.reset(seed=3)
     assert set(obs) == {"rgb", "depth", "K", "world_T_cam"}
+    assert isinstance(env, gymnasium.Env) and isinstance(env.observation_space, gymnasium.spaces.Dict)
+    assert env.observation_space.contains(obs)  # dtypes and shapes are what the space promises
     assert env.observation_space["rgb"].shape == (120, 160, 3) and obs["rgb"].shape == (120, 160, 3)
     assert env.action_space.shape == (6,) and env.action_space.contains(env.action_space.sample())
     assert info["target"]["name"] == "cube_red" and info["adjustments"] == 0
