@@ -18,9 +18,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from importlib import import_module
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from brave6d.errors import BraveError
+
+if TYPE_CHECKING:
+    from evaluation.agents.protocol import Agent
 
 ACTIVE_AGENT = "baseline-active"
 STATIC_AGENT = "baseline-static"
@@ -50,14 +53,14 @@ _LAZY = {
 }
 
 
-def _static_baseline(client: Any) -> Any:
+def _static_baseline(client: Any) -> Agent:
     from evaluation.agents.baseline import BaselineAgent
     from evaluation.agents.static import StaticPolicy
 
     return BaselineAgent(client, StaticPolicy(), STATIC_AGENT)
 
 
-def _active_baseline(client: Any) -> Any:
+def _active_baseline(client: Any) -> Agent:
     from evaluation.agents.active import ActivePolicy
     from evaluation.agents.baseline import BaselineAgent
 
@@ -66,13 +69,13 @@ def _active_baseline(client: Any) -> Any:
 
 #: Agent name (as the episode logs and leaderboards show it) -> factory ``(client) -> Agent``,
 #: in the order the demo runs them on each start.
-POLICIES: dict[str, Callable[[Any], Any]] = {
+POLICIES: dict[str, Callable[[Any], Agent]] = {
     STATIC_AGENT: _static_baseline,
     ACTIVE_AGENT: _active_baseline,
 }
 
 
-def make_agent(name: str, client: Any) -> Any:
+def make_agent(name: str, client: Any) -> Agent:
     """The registered agent ``name`` playing through ``client`` (``serve``'s ``BraveClient``)."""
     factory = POLICIES.get(name)
     if factory is None:
