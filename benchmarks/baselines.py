@@ -1,10 +1,11 @@
-"""Active against static baseline: BOP AR over several seed sets of the same bundle.
+"""The registered agents (active against static baseline): BOP AR over several seed sets of one bundle.
 
-One seed set is what the demo's evaluation stage runs (both variants from the same seeded
-random starts, ``EPISODES_PER_OBJECT`` per object, seeds ``offset + gt_id + 1000 r``); with
-one set the AR of four objects swings by several hundredths between seeds, so this script runs
-several sets side by side and prints each set's AR for both agents, their difference, and the
-pooled figures. The episode logs of each set go to ``<out>/set_<offset>/``.
+One seed set is what the demo's evaluation stage runs (every registered agent from the same
+seeded random starts, ``EPISODES_PER_OBJECT`` per object, seeds ``offset + gt_id + 1000 r``);
+with one set the AR of four objects swings by several hundredths between seeds, so this script
+runs several sets side by side and prints each set's AR for every agent, the active baseline's
+margin over the static one, and the pooled figures. The episode logs of each set go to
+``<out>/set_<offset>/``.
 
     python benchmarks/baselines.py [--bundle DIR] [--offsets 0 50000 90000 130000] [--json out.json]
 
@@ -28,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from evaluation.agents.baseline import ACTIVE_AGENT, STATIC_AGENT
+from evaluation.agents import ACTIVE_AGENT, POLICIES, STATIC_AGENT
 from evaluation.demo import EPISODES_PER_OBJECT, run_baselines
 
 DEFAULT_BUNDLE = ROOT / "runs" / "demo" / "scene" / "bundle"
@@ -46,29 +47,35 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.bundle / "manifest.json").is_file():
         ap.error(f"{args.bundle}: no bundle (run `bash scripts/demo.sh` first, or pass --bundle)")
     out_root = args.out or Path(tempfile.mkdtemp(prefix="brave6d_baselines_"))
+    names = list(POLICIES)
     rows = []
-    print(f"{'seed offset':>11} | {'static AR':>9} | {'active AR':>9} | {'active - static':>15} | "
-          f"{'adjustments':>11} | {'seconds':>7}", flush=True)
+    print(f"{'seed offset':>11} | " + " | ".join(f"{name:>15}" for name in names) +
+          f" | {'active - static':>15} | {'adjustments':>11} | {'seconds':>7}", flush=True)
     for offset in args.offsets:
         t0 = time.perf_counter()
         run = run_baselines(args.bundle, out_root / f"set_{offset}", device="cpu", seed=offset,
                             episodes_per_object=args.episodes)
         agents = {a.agent: a for a in run.board.agents}
         static, active = agents[STATIC_AGENT], agents[ACTIVE_AGENT]
-        row = {"offset": offset, "episodes": static.episodes, "static_ar": static.ar, "active_ar": active.ar,
-               "active_adjustments": active.mean_adjustments, "seconds": time.perf_counter() - t0}
+        row = {"offset": offset, "episodes": static.episodes, "ar": {name: agents[name].ar for name in names},
+               "static_ar": static.ar, "active_ar": active.ar, "active_adjustments": active.mean_adjustments,
+               "seconds": time.perf_counter() - t0}
         rows.append(row)
-        print(f"{offset:>11} | {static.ar:9.3f} | {active.ar:9.3f} | {active.ar - static.ar:+15.3f} | "
-              f"{active.mean_adjustments:11.2f} | {row['seconds']:7.0f}", flush=True)
+        print(f"{offset:>11} | " + " | ".join(f"{row['ar'][name]:15.3f}" for name in names) +
+              f" | {active.ar - static.ar:+15.3f} | {active.mean_adjustments:11.2f} | {row['seconds']:7.0f}",
+              flush=True)
     n = sum(r["episodes"] for r in rows)
     pooled = {k: sum(r[k] * r["episodes"] for r in rows) / n for k in ("static_ar", "active_ar")}
+    pooled_ar = {name: sum(r["ar"][name] * r["episodes"] for r in rows) / n for name in names}
     wins = sum(r["active_ar"] > r["static_ar"] for r in rows)
-    print(f"pooled over {n} episodes per agent: static {pooled['static_ar']:.3f}, active {pooled['active_ar']:.3f} "
-          f"({pooled['active_ar'] - pooled['static_ar']:+.3f}); active higher in {wins} of {len(rows)} sets")
+    print(f"pooled over {n} episodes per agent: " + ", ".join(f"{name} {ar:.3f}" for name, ar in pooled_ar.items()) +
+          f" (active - static {pooled['active_ar'] - pooled['static_ar']:+.3f}); active higher in {wins} of "
+          f"{len(rows)} sets")
     print(f"episode logs: {out_root}")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"bundle": str(args.bundle), "sets": rows, "pooled": pooled}, indent=2) + "\n")
+        result = {"bundle": str(args.bundle), "sets": rows, "pooled": pooled, "pooled_ar": pooled_ar}
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
     return 0
 
 

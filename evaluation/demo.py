@@ -1,9 +1,9 @@
 """The demo's evaluation stage: both baselines on every demo object, scored like any agent.
 
 ``stage_evaluate`` serves the scene's bundle on a loopback port in a background thread (as the
-serve stage does), runs the static and the active baseline (:mod:`evaluation.agents.baseline`) on
-every object instance, :data:`EPISODES_PER_OBJECT` episodes each (both variants from the same
-seeded starts), scores the episode logs
+serve stage does), runs every registered agent (:data:`evaluation.agents.POLICIES`: the static and
+the active baseline) on every object instance, :data:`EPISODES_PER_OBJECT` episodes each (all
+agents from the same seeded starts), scores the episode logs
 with :mod:`evaluation.metrics.episodes` and writes, under ``<workdir>/evaluation/``:
 
 * ``episodes/`` the episode logs and final depth images (cleared first);
@@ -15,6 +15,7 @@ with :mod:`evaluation.metrics.episodes` and writes, under ``<workdir>/evaluation
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -24,7 +25,7 @@ from brave6d.errors import BraveError
 if TYPE_CHECKING:
     from brave6d.demo import DemoContext
     from brave6d.progress import StageResult
-    from evaluation.agents.baseline import BaselineConfig, EpisodeOutcome
+    from evaluation.agents import EpisodeOutcome
     from evaluation.metrics.episodes import Leaderboard
 
 log = logging.getLogger(__name__)
@@ -39,7 +40,7 @@ EPISODES_PER_OBJECT = 6
 
 @dataclass
 class BaselineRun:
-    """The outcomes of the baseline episodes and their leaderboard."""
+    """The outcomes of the agents' episodes and their leaderboard."""
 
     outcomes: list[EpisodeOutcome]
     board: Leaderboard
@@ -59,11 +60,12 @@ def clear_logs(folder: Path) -> None:
 
 def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: int = 0,
                   width: int = IMAGE_WIDTH, episodes_per_object: int = 1,
-                  config: BaselineConfig | None = None) -> BaselineRun:
-    """Serve ``bundle_dir`` on loopback, run the static then the active baseline on every object,
-    ``episodes_per_object`` times from seeded random starts (seed ``seed + gt_id + 1000 r`` for
-    repeat ``r``: both variants start alike), score the logs; writes nothing but the logs."""
-    from evaluation.agents.baseline import BaselineAgent, BaselineConfig, static_config
+                  agents: Sequence[str] | None = None) -> BaselineRun:
+    """Serve ``bundle_dir`` on loopback, run the registered ``agents`` (default: all, in registry
+    order) on every object, ``episodes_per_object`` times from seeded random starts (seed
+    ``seed + gt_id + 1000 r`` for repeat ``r``: every agent starts alike), score the logs; writes
+    nothing but the logs."""
+    from evaluation.agents import POLICIES, make_agent, run_episode
     from evaluation.metrics.episodes import models_from_bundle, read_episodes, score_episodes
     from serve.app import create_app
     from serve.bundle import load_bundle
@@ -77,15 +79,14 @@ def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: i
     clear_logs(logs)
     height = max(16, round(width * bundle.render.height / bundle.render.width))
     app = create_app(bundle, device=device, log_dir=logs)
-    active = config or BaselineConfig()
     outcomes = []
     with ServerThread(app) as server, BraveClient(server.url) as client:
-        agent = BaselineAgent(client, active)
+        players = [make_agent(name, client) for name in (agents if agents is not None else POLICIES)]
         for repeat in range(episodes_per_object):
             for obj in bundle.objects:
-                for variant in (static_config(active), active):
-                    outcomes.append(agent.run_episode(obj.gt_id, seed=seed + obj.gt_id + 1000 * repeat, width=width,
-                                                      height=height, config=variant))
+                for agent in players:
+                    outcomes.append(run_episode(client, agent, obj.gt_id, seed=seed + obj.gt_id + 1000 * repeat,
+                                                width=width, height=height))
     episodes = read_episodes([logs])
     board = score_episodes(episodes, models_from_bundle(bundle, {o.obj_id for o in bundle.objects}))
     return BaselineRun(outcomes, board, width, height, bundle.name)
@@ -100,25 +101,24 @@ def baseline_summary(run: BaselineRun) -> dict[str, Any]:
     episodes = []
     for s in run.board.episodes:
         row = s.to_json()
-        out = by_id.get(row["episode_id"])
-        reg = out.registration if out is not None else None
+        notes = by_id[row["episode_id"]].notes if row["episode_id"] in by_id else {}
         episodes.append({
             "agent": row["agent"], "variant": "active" if row["agent"].endswith("active") else "static",
             "object": row["target"], "gt_id": row["target_gt_id"], "obj_id": row["obj_id"], "seed": row["seed"],
             "episode_id": row["episode_id"], "ar": row["ar"], "ar_vsd": row["ar_vsd"], "ar_mssd": row["ar_mssd"],
             "ar_mspd": row["ar_mspd"], "adjustments": row["adjustments"], "wall_time_s": row["wall_time_s"],
-            "target_distance_m": row["target_distance_m"], "found": bool(out.found) if out is not None else None,
-            "registration_method": reg.method if reg is not None else None,
-            "registration_score": reg.score if reg is not None else None})
+            "target_distance_m": row["target_distance_m"], "found": notes.get("found"),
+            "registration_method": notes.get("registration_method"),
+            "registration_score": notes.get("registration_score")})
     return {"format": BASELINE_FORMAT, "bundle": run.bundle, "image_size": [run.width, run.height],
             "metrics": list(run.board.config.metrics), "agents": agents, "episodes": episodes}
 
 
 def stage_evaluate(ctx: DemoContext) -> StageResult:
-    """Demo stage: run and score both baselines on every demo object (see the module docstring)."""
+    """Demo stage: run and score the registered agents on every demo object (see the module docstring)."""
     from brave6d.atomic import atomic_write_json
     from brave6d.progress import StageResult
-    from evaluation.agents.baseline import ACTIVE_AGENT, STATIC_AGENT
+    from evaluation.agents import ACTIVE_AGENT, STATIC_AGENT
     from evaluation.metrics.episodes import write_leaderboard
 
     bundle_dir = ctx.scene.bundle_dir
