@@ -72,7 +72,7 @@ def test_sparse_model_loads_with_pycolmap_and_keeps_the_calibrated_centres(plane
         np.testing.assert_allclose(R_cw, v.base_T_cam[:3, :3].T, atol=1e-9)
     assert rec.num_points3D() >= len(init)
     holdout = (scene.sparse_dir / "holdout.txt").read_text().split()
-    assert holdout == [v.rgb_path.name for v in data.test]
+    assert holdout and holdout == [v.rgb_path.name for v in data.test]
     # held-out images contributed no observations
     assert all(by_name[n].num_points3D == 0 for n in holdout)
 

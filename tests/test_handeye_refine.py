@@ -103,7 +103,7 @@ def test_plain_model_without_robot_error_is_available() -> None:
     opts = HandEyeOptions(robot_sigma_mm=None, robot_sigma_deg=None)
     res = calibrate_handeye(ds.views, ds.object_points, ds.K, options=opts)
     assert "robot poses exact" in res.method
-    assert all(v.robot_correction_mm is None for v in res.views)
+    assert res.views and all(v.robot_correction_mm is None for v in res.views)
     mm, deg = res.errors_against(ds.tcp_T_cam)["refined"]
     assert mm < 0.8 and deg < 0.08
 
