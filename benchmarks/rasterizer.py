@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     import numba
 
     from training.rasterizer import rasterize
-    from training.rasterizer._torch_reference import rasterize_reference
+    from training.rasterizer.reference import rasterize_reference
 
     report: dict = {
         "machine": {

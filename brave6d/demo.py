@@ -1,7 +1,7 @@
 """``brave6d demo``: run every pipeline stage, in order, on the embedded demo scene.
 
 Each stage is a function ``stage(ctx) -> StageResult`` living in its own package and named
-here as ``"module:function"``, so this module imports no stage until it runs (DESIGN.md
+here as ``"module:function"``, so this module imports no stage until it runs (docs/ARCHITECTURE.md,
 layering). The demo prints one line per stage and a summary table at the end.
 """
 

@@ -71,7 +71,7 @@ class CaptureLayout:
 
 @dataclass(frozen=True)
 class SceneDir:
-    """Paths of one scene directory (see DESIGN.md, "Data flow")."""
+    """Paths of one scene directory (the scene-directory contract in docs/ARCHITECTURE.md)."""
 
     root: Path
 

@@ -31,6 +31,7 @@ DIST_TRUE = np.array([-0.08, 0.03, 0.0, 0.0, 0.0])
 SIZE = (640, 480)
 
 
+@pytest.mark.slow
 def test_rendered_capture_calibrates_to_the_truth(tmp_path) -> None:
     rng = np.random.default_rng(0)
     # The plan uses a rough mounting guess; the robot then reaches the poses with the true mounting.

@@ -56,6 +56,7 @@ def test_calibration_recovers_the_intrinsics(detections) -> None:
     assert res.K[1, 2] == pytest.approx(K_TRUE[1, 2], abs=2.0)
     assert res.dist[0] == pytest.approx(DIST_TRUE[0], abs=0.02)
     assert res.rms_px < 0.2
+    assert len(res.views) == len(detections)
     assert all(v.used and v.rms_px is not None and v.rms_px < 0.3 for v in res.views)
     assert set(res.std) >= {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"}
     assert res.std["fx"] < 2.0

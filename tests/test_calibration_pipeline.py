@@ -45,7 +45,8 @@ def one_error_line(err: str) -> str:
 
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory: pytest.TempPathFactory, demo_spec_path: Path) -> SceneDir:
-    """A demo scene directory after ``brave6d calibrate all`` (small camera, 10 board views)."""
+    """A demo scene directory after ``brave6d calibrate all`` (small camera, 10 board views); its
+    tests are marked slow, so `-m "not slow"` never builds it."""
     scene = init_scene_dir(tmp_path_factory.mktemp("cal") / "scene", demo_spec_path)
     spec = scene.load_spec()
     write_spec(scene, spec.model_copy(update={"camera": spec.camera.model_copy(update={"width": 480, "height": 300})}))
@@ -59,6 +60,7 @@ def copy_scene(scene: SceneDir, dst: Path) -> SceneDir:
 
 
 # ----------------------------------------------------------------------------- the full pipeline
+@pytest.mark.slow
 def test_all_writes_what_later_stages_read(calibrated: SceneDir) -> None:
     spec = calibrated.load_spec()
     camera = read_intrinsics(calibrated)
@@ -88,6 +90,7 @@ def test_all_writes_what_later_stages_read(calibrated: SceneDir) -> None:
     assert len(plan.views) == VIEWS and len(calibrated.board_capture.frames()) == VIEWS
 
 
+@pytest.mark.slow
 def test_rerun_refuses_without_resume_or_force(calibrated: SceneDir, capsys: pytest.CaptureFixture[str]) -> None:
     before = calibrated.handeye_path.stat().st_mtime_ns
     for action in ("all", "capture"):
@@ -99,6 +102,7 @@ def test_rerun_refuses_without_resume_or_force(calibrated: SceneDir, capsys: pyt
     assert calibrated.handeye_path.stat().st_mtime_ns == before
 
 
+@pytest.mark.slow
 def test_resume_of_a_complete_capture_recalibrates_only(calibrated: SceneDir, tmp_path: Path,
                                                         capsys: pytest.CaptureFixture[str]) -> None:
     scene = copy_scene(calibrated, tmp_path / "scene")
@@ -109,6 +113,7 @@ def test_resume_of_a_complete_capture_recalibrates_only(calibrated: SceneDir, tm
     assert np.allclose(read_handeye(scene), read_handeye(calibrated), atol=1e-7)
 
 
+@pytest.mark.slow
 def test_interrupted_capture_resumes_with_its_plan(calibrated: SceneDir, tmp_path: Path,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
     scene = copy_scene(calibrated, tmp_path / "scene")
@@ -120,6 +125,7 @@ def test_interrupted_capture_resumes_with_its_plan(calibrated: SceneDir, tmp_pat
                                                                  BoardPlan.load(scene.board_capture.plan_path).views]
 
 
+@pytest.mark.slow
 def test_factory_intrinsics_keep_the_capture_camera(calibrated: SceneDir, tmp_path: Path,
                                                     capsys: pytest.CaptureFixture[str]) -> None:
     scene = copy_scene(calibrated, tmp_path / "scene")
@@ -130,6 +136,7 @@ def test_factory_intrinsics_keep_the_capture_camera(calibrated: SceneDir, tmp_pa
     assert json.loads(scene.intrinsics_path.read_text())["rms_px"] < 0.3  # the simulator's camera is the truth
 
 
+@pytest.mark.slow
 def test_conditioning_failure_is_one_line(calibrated: SceneDir, tmp_path: Path,
                                           capsys: pytest.CaptureFixture[str]) -> None:
     scene = copy_scene(calibrated, tmp_path / "scene")
@@ -149,6 +156,7 @@ def test_conditioning_failure_is_one_line(calibrated: SceneDir, tmp_path: Path,
     assert "pure translations" in line or "robot and camera motions disagree" in line
 
 
+@pytest.mark.slow
 def test_demo_stage_reuses_results_newer_than_the_frames(calibrated: SceneDir, tmp_path: Path,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     import calibration.demo as demo
@@ -198,6 +206,7 @@ def test_board_not_visible_names_the_cause(tmp_path: Path, demo_spec_path: Path,
     assert rc == 2 and "detected in none of the 4 board frames" in line and "000000.png" in line
 
 
+@pytest.mark.slow
 def test_too_few_detections_names_the_frames(calibrated: SceneDir, tmp_path: Path, demo_spec_path: Path,
                                              capsys: pytest.CaptureFixture[str]) -> None:
     scene = init_scene_dir(tmp_path / "scene", demo_spec_path)

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 from brave6d.cli import COMMANDS
@@ -52,12 +53,14 @@ def test_spec_command_accepts_demo(demo_spec_path: Path) -> None:
     assert "is valid" in out.stdout and "hex_nut" in out.stdout
 
 
+@pytest.mark.slow
 def test_init_refuses_to_overwrite(tmp_path: Path, demo_spec_path: Path) -> None:
     assert brave6d("init", str(demo_spec_path), str(tmp_path / "s")).returncode == 0
     again = brave6d("init", str(demo_spec_path), str(tmp_path / "s"))
     assert again.returncode == 2 and "--force" in again.stderr
 
 
+@pytest.mark.slow
 def test_init_force_keeps_the_previous_spec_and_a_failing_spec_changes_nothing(
         tmp_path: Path, demo_spec_path: Path) -> None:
     scene = tmp_path / "s"

@@ -28,7 +28,8 @@ OPTS = ColmapOptions(max_features=2048, neighbours=5, min_points=200)
 
 @pytest.fixture(scope="module")
 def plane_scene(tmp_path_factory: pytest.TempPathFactory):
-    """A textured plane z = 0 seen by 2 rings x 8 cameras; COLMAP run once for the module."""
+    """A textured plane z = 0 seen by 2 rings x 8 cameras; COLMAP run once for the module (its
+    tests are marked slow, so `-m "not slow"` never builds it)."""
     root = tmp_path_factory.mktemp("colmap") / "scene"
     tcp_T_cam = np.eye(4)
     tcp_T_cam[:3, 3] = [0.0, -0.05, 0.02]
@@ -38,6 +39,7 @@ def plane_scene(tmp_path_factory: pytest.TempPathFactory):
     return scene, data, init
 
 
+@pytest.mark.slow
 def test_triangulated_points_lie_on_the_plane(plane_scene) -> None:
     _, _, init = plane_scene
     assert init.source == "colmap"
@@ -54,6 +56,7 @@ def _centre(image: pycolmap.Image) -> np.ndarray:
     return np.asarray(image.projection_center())
 
 
+@pytest.mark.slow
 def test_sparse_model_loads_with_pycolmap_and_keeps_the_calibrated_centres(plane_scene) -> None:
     scene, data, init = plane_scene
     model = scene.sparse_dir / "0"
@@ -72,11 +75,12 @@ def test_sparse_model_loads_with_pycolmap_and_keeps_the_calibrated_centres(plane
         np.testing.assert_allclose(R_cw, v.base_T_cam[:3, :3].T, atol=1e-9)
     assert rec.num_points3D() >= len(init)
     holdout = (scene.sparse_dir / "holdout.txt").read_text().split()
-    assert holdout == [v.rgb_path.name for v in data.test]
+    assert holdout and holdout == [v.rgb_path.name for v in data.test]
     # held-out images contributed no observations
     assert all(by_name[n].num_points3D == 0 for n in holdout)
 
 
+@pytest.mark.slow
 def test_sparse_model_is_classic_colmap_binary(plane_scene) -> None:
     """Readers of other 3DGS tools (Inria's read_extrinsics_binary) parse the classic layout."""
     scene, data, _ = plane_scene
@@ -94,6 +98,7 @@ def test_sparse_model_is_classic_colmap_binary(plane_scene) -> None:
     assert abs(qw * qw + qx * qx + qy * qy + qz * qz - 1) < 1e-9
 
 
+@pytest.mark.slow
 def test_colmap_camera_projects_where_opencv_does_plus_half_a_pixel(plane_scene) -> None:
     """COLMAP's pixel (0, 0) is centred at (0.5, 0.5), OpenCV's (the project's K) at (0, 0):
     pycolmap's model of the exported camera (the one the features were triangulated with)
@@ -110,6 +115,7 @@ def test_colmap_camera_projects_where_opencv_does_plus_half_a_pixel(plane_scene)
     np.testing.assert_allclose(default.params[2:], colmap_pinhole_params(centred)[2:])
 
 
+@pytest.mark.slow
 def test_triangulation_of_opencv_images_is_not_biased(plane_scene) -> None:
     """The plane's images are OpenCV-convention warps (texel and pixel centres at integers):
     with the camera converted for COLMAP, the points lie on the plane (median 0.3 mm, mean
@@ -159,6 +165,7 @@ def test_voxel_downsample_and_random_points() -> None:
     assert r.points.shape == (50, 3) and np.all((r.points >= 0) & (r.points <= 2))
 
 
+@pytest.mark.slow
 def test_unchanged_model_is_reused(plane_scene, monkeypatch: pytest.MonkeyPatch) -> None:
     import training.colmap_init as ci
 
@@ -174,6 +181,7 @@ def test_unchanged_model_is_reused(plane_scene, monkeypatch: pytest.MonkeyPatch)
     np.testing.assert_array_equal(again.colors, init.colors)
 
 
+@pytest.mark.slow
 def test_new_image_contents_are_triangulated_again(plane_scene, tmp_path: Path,
                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     import shutil

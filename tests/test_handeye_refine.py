@@ -58,6 +58,7 @@ def test_noise_free_data_gives_the_truth_for_every_method() -> None:
     assert res.uncertainty is not None and res.uncertainty.translation_sigma_norm_mm < 1e-3
 
 
+@pytest.mark.slow
 def test_refinement_beats_every_closed_form_method_under_noise() -> None:
     """Pixel noise 0.2 px and the robot pose error of the spec's default (0.1 mm, 0.01 deg)."""
     refined, best_closed = [], []
@@ -88,6 +89,7 @@ def test_demo_like_capture_meets_the_acceptance_bound(seed: int) -> None:
     assert res.fit is not None and res.fit.pixel_sigma_px == pytest.approx(0.15, rel=0.2)
 
 
+@pytest.mark.slow
 def test_lens_distortion_is_used_in_the_model() -> None:
     dist = np.array([-0.15, 0.08, 0.0005, -0.0003, 0.0])
     ds = make_handeye_dataset(15, 35, seed=3, pixel_noise_px=0.1, dist=dist)
@@ -103,7 +105,7 @@ def test_plain_model_without_robot_error_is_available() -> None:
     opts = HandEyeOptions(robot_sigma_mm=None, robot_sigma_deg=None)
     res = calibrate_handeye(ds.views, ds.object_points, ds.K, options=opts)
     assert "robot poses exact" in res.method
-    assert all(v.robot_correction_mm is None for v in res.views)
+    assert res.views and all(v.robot_correction_mm is None for v in res.views)
     mm, deg = res.errors_against(ds.tcp_T_cam)["refined"]
     assert mm < 0.8 and deg < 0.08
 
@@ -388,6 +390,7 @@ def test_both_public_solvers_refuse_a_degenerate_capture_alike(case: str, cause:
         assert cause in str(closed.value) and cause in str(full.value), (str(closed.value), str(full.value))
 
 
+@pytest.mark.slow
 def test_robot_ten_times_noisier_than_configured_does_not_make_the_answer_worse() -> None:
     """Robot pose error 1 mm / 0.1 deg per axis, configured 0.1 mm / 0.01 deg (the defaults),
     0.5 px corner noise, 20 views, 36 captures. Before, the refinement took the robot poses as

@@ -177,6 +177,7 @@ def _numeric_solutions(kin: URKinematics, T: np.ndarray, starts: int = 40) -> li
     return found
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("model", MODELS)
 def test_solution_count_matches_numerical_search(model: str) -> None:
     kin = KIN[model]

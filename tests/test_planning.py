@@ -321,7 +321,7 @@ def test_explicit_configuration_drops_views_of_other_configurations() -> None:
     plan = plan_views(_spec(), options=PlannerOptions(configuration=cfg))
     assert plan.configuration == cfg
     kin = URKinematics("ur5e")
-    assert all(kin.branch_of(v.joints) == cfg for v in plan.views)
+    assert plan.views and all(kin.branch_of(v.joints) == cfg for v in plan.views)
     other = [d for d in plan.dropped if d.reason.startswith("reachable only in another arm configuration")]
     assert other and all("the plan keeps (shoulder +, elbow +, wrist +)" in d.reason for d in other)
     assert len(auto.views) >= len(plan.views)
@@ -345,7 +345,7 @@ def test_drops_name_their_reason() -> None:
     plan = plan_views(_spec(workspace={"min": [-1, -1, 0.0], "max": [1.5, 1, 0.2]}))
     high = [d for d in plan.dropped if "workspace" in d.reason]
     assert high and all("above the workspace maximum" in d.reason for d in high)
-    assert all(v.base_T_cam[2, 3] <= 0.2 for v in plan.views)
+    assert plan.views and all(v.base_T_cam[2, 3] <= 0.2 for v in plan.views)
     # a target out of reach: everything dropped as unreachable
     far = plan_views(_spec(capture__target=[1.8, 0.0, 0.0], workspace={"min": [-3, -3, -1], "max": [3, 3, 3]},
                            collision_boxes=[]))

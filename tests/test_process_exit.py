@@ -91,6 +91,7 @@ def test_pin_threading_layer_keeps_tbb_out(requested: str | None, layer: str | N
     assert ("replaced by 'omp'" in done.stderr) == (layer != requested), done.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("requested", [None, "tbb"])
 def test_rasterizer_on_worker_thread_exits(tmp_path: Path, requested: str | None) -> None:
     """`from training import rasterize` pins a threading layer that cannot hang, even over an explicit 'tbb'."""
@@ -127,6 +128,7 @@ def bundle_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return make_synthetic_bundle(tmp_path_factory.mktemp("exit_scene"), n_gaussians=2000)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_serve_exits_on_signal_after_rendering(bundle_dir: Path, tmp_path: Path, sig: signal.Signals) -> None:
     """`brave6d serve` renders on its worker threads; on SIGTERM / Ctrl-C it stops promptly without a traceback.

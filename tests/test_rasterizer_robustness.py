@@ -16,8 +16,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from training.rasterizer import RasterInputError, rasterize
-from training.rasterizer._constants import SCALE_MAX
-from training.rasterizer._torch_reference import rasterize_reference
+from training.rasterizer.constants import SCALE_MAX
+from training.rasterizer.reference import rasterize_reference
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
 

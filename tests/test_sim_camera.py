@@ -367,6 +367,7 @@ def test_render_other_camera_model(tmp_path: Path) -> None:
     assert np.allclose(result.depth_m, 0.995, atol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (REPO / "data" / "demo" / "scene.yaml").is_file(), reason="demo scene not present")
 def test_demo_scene_renders() -> None:
     spec = load_scene_spec(REPO / "data" / "demo" / "scene.yaml")

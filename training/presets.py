@@ -1,7 +1,7 @@
 """Training presets: the hyperparameters of one training run, as a typed, frozen dataclass.
 
 ``default`` follows the Inria reference (30k steps, learning rates, densification schedule;
-see REFERENCES.md). ``quality`` trains longer (50k steps, densifying until 25k). ``fast`` is
+see docs/ARCHITECTURE.md). ``quality`` trains longer (50k steps, densifying until 25k). ``fast`` is
 tuned for the CPU demo (2 cores, no GPU): half-resolution images (320x200 for the demo), 3000
 steps, densification from step 300 to 1800 every 150 steps without opacity reset (a reset needs
 thousands of steps to recover), SH degree 2, at most 150k Gaussians and a 14-minute budget.

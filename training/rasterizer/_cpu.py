@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import _cpu_kernels as K
-from ._constants import TILE_SIZE
+from . import kernels as K
+from .constants import TILE_SIZE
 from ._validation import RasterInputError, RasterInputs
 
 _MAX_ISECTS = 2**31 - 1  # intersection indices are int32 in the kernels

@@ -11,7 +11,7 @@ gsplat (1.5.3) puts the centre of pixel ``(u, v)`` at ``(u + 0.5, v + 0.5)`` ins
 * ``_rasterize_to_pixels``: ``pixel_coords = (pixel_ids_x, pixel_ids_y) + 0.5``;
 * ``gsplat/cuda/csrc/RasterizeToPixels3DGSFwd.cu``: ``px = (float)j + 0.5f; py = (float)i + 0.5f``.
 
-The compiled CPU kernels (``_cpu_kernels``) copy those conventions (pixel centre ``x + 0.5``), so
+The compiled CPU kernels (``kernels``) copy those conventions (pixel centre ``x + 0.5``), so
 both backends need the same shift: an OpenCV principal point ``c`` is gsplat's ``c + 0.5``
 (focal lengths are unchanged). :func:`gsplat_intrinsics` applies it once, in
 ``_validation.prepare_inputs``, for every backend and the torch reference alike.

@@ -30,7 +30,7 @@ from torch import Tensor
 
 from brave6d.errors import BraveError
 
-from ._constants import QUAT_MIN_SQNORM, SCALE_MAX, SCALE_MIN
+from .constants import QUAT_MIN_SQNORM, SCALE_MAX, SCALE_MIN
 from ._pixels import gsplat_intrinsics
 
 MAX_SH_DEGREE = 3

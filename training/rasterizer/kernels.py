@@ -38,7 +38,7 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from ._constants import (
+from .constants import (
     ALPHA_MAX,
     ALPHA_THRESHOLD,
     DEPTH_ALPHA_EPS,

@@ -15,7 +15,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ._constants import (
+from .constants import (
     ALPHA_MAX,
     ALPHA_THRESHOLD,
     DEPTH_ALPHA_EPS,
