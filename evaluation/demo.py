@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from brave6d.demo import DemoContext
     from brave6d.progress import StageResult
     from evaluation.agents import EpisodeOutcome
-    from evaluation.metrics.episodes import Leaderboard
+    from evaluation.metrics import Leaderboard
 
 log = logging.getLogger(__name__)
 
@@ -66,11 +66,8 @@ def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: i
     ``seed + gt_id + 1000 r`` for repeat ``r``: every agent starts alike), score the logs; writes
     nothing but the logs."""
     from evaluation.agents import POLICIES, make_agent, run_episode
-    from evaluation.metrics.episodes import models_from_bundle, read_episodes, score_episodes
-    from serve.app import create_app
-    from serve.bundle import load_bundle
-    from serve.client import BraveClient
-    from serve.runner import ServerThread
+    from evaluation.metrics import models_from_bundle, read_episodes, score_episodes
+    from serve import BraveClient, ServerThread, create_app, load_bundle
 
     bundle = load_bundle(bundle_dir)
     if not bundle.objects:
@@ -119,7 +116,7 @@ def stage_evaluate(ctx: DemoContext) -> StageResult:
     from brave6d.atomic import atomic_write_json
     from brave6d.progress import StageResult
     from evaluation.agents import ACTIVE_AGENT, STATIC_AGENT
-    from evaluation.metrics.episodes import write_leaderboard
+    from evaluation.metrics import write_leaderboard
 
     bundle_dir = ctx.scene.bundle_dir
     if not (bundle_dir / "manifest.json").is_file():

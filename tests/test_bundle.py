@@ -148,6 +148,7 @@ def test_export_cli(scene: SceneDir, tmp_path: Path, capsys: pytest.CaptureFixtu
 
 
 # ----------------------------------------------------------------------------- BOP consistency
+@pytest.mark.slow
 def test_ground_truth_equals_the_bop_export(tmp_path: Path) -> None:
     """For every exported BOP view, the server's cam_T_obj equals scene_gt's entry (same camera pose)."""
     pytest.importorskip("open3d")

@@ -215,6 +215,7 @@ class ExtraSection:
         return RenderedSection(self.title, f"The answer is {answer}.", advice="**Extra:** registered once.")
 
 
+@pytest.mark.slow
 def test_a_section_added_to_the_registry_is_measured_and_on_the_page(tmp_path: Path,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     from evaluation.report import sections
@@ -342,6 +343,7 @@ def _plane_scene(root: Path) -> None:
                                                             g["scales"], g["quats"]))
 
 
+@pytest.mark.slow
 def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: Path) -> None:
     from brave6d.layout import init_scene_dir
 

@@ -355,6 +355,7 @@ class SlowRenderer:
         return self.inner.render(*args, **kwargs)
 
 
+@pytest.mark.slow
 def test_timed_out_actions_are_withdrawn(bundle: Bundle, scene: SceneServer) -> None:
     slow = SceneServer(bundle, renderer=SlowRenderer(scene.renderer, 0.0))
     limits = ServerLimits(request_timeout_s=1.0)

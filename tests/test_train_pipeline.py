@@ -90,6 +90,7 @@ def test_cuda_without_gpu_is_a_clear_error(trained: SceneDir) -> None:
         cli.run(parse(str(trained.root), "--device", "cuda", "--steps", "1"))
 
 
+@pytest.mark.slow
 def test_demo_stage_quick(tmp_path: Path) -> None:
     from types import SimpleNamespace
 

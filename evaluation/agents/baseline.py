@@ -88,7 +88,7 @@ class BaselineAgent:
 
     def submit(self) -> Submission:
         """Register the target in the final view (fusing every view that saw it) and estimate."""
-        from serve.client import PoseEstimate
+        from serve import PoseEstimate
 
         episode, final = self._episode, self._final
         if episode is None or final is None:
