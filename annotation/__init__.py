@@ -22,8 +22,7 @@ casting), ``bop`` (the export), ``bop_format``, ``staging`` (hard links), ``vali
 against the simulator), ``cli`` (``brave6d annotate``), ``demo``, ``synthetic``.
 """
 
-from importlib import import_module
-from typing import Any
+from brave6d.lazy import lazy_exports
 
 _LAZY = {
     "import_threedat": ".importer", "import_summary": ".importer", "ImportResult": ".importer",
@@ -41,7 +40,4 @@ _LAZY = {
 __all__ = sorted(_LAZY)
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module 'annotation' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

@@ -14,16 +14,12 @@ stays cheap): ``evaluate_bop19``, ``EvalConfig``, ``read_episodes``, ``score_epi
 ``write_bop_results``.
 """
 
-from importlib import import_module
-from typing import Any
+from brave6d.lazy import lazy_exports
 
-_FROM_METRICS = ("evaluate_bop19", "EvalConfig", "read_episodes", "score_episodes", "models_from_bundle",
-                 "write_leaderboard", "Leaderboard", "read_bop_results", "write_bop_results")
+_LAZY = {name: ".metrics" for name in (
+    "evaluate_bop19", "EvalConfig", "read_episodes", "score_episodes", "models_from_bundle",
+    "write_leaderboard", "Leaderboard", "read_bop_results", "write_bop_results")}
 
-__all__ = sorted(_FROM_METRICS)
+__all__ = sorted(_LAZY)
 
-
-def __getattr__(name: str) -> Any:
-    if name in _FROM_METRICS:
-        return getattr(import_module(".metrics", __name__), name)
-    raise AttributeError(f"module 'evaluation' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

@@ -26,8 +26,7 @@ machine), ``schema`` (wire models), ``episode_log`` (log schema, writer, reader)
 static browser viewer served at ``/viewer/``.
 """
 
-from importlib import import_module
-from typing import Any
+from brave6d.lazy import lazy_exports
 
 _LAZY = {
     "export_bundle": ".bundle", "load_bundle": ".bundle", "Bundle": ".bundle", "BundleObject": ".bundle",
@@ -48,7 +47,4 @@ _LAZY = {
 __all__ = sorted(_LAZY)
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module 'serve' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

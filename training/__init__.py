@@ -11,8 +11,7 @@ Other stages (serve, evaluation) import only these names:
   ``sh_degree_for``.
 """
 
-from importlib import import_module
-from typing import Any
+from brave6d.lazy import lazy_exports
 
 __all__ = ["SH_C0", "GaussianModel", "HoldoutPoint", "Preset", "SplatData", "TrainedSplat", "evaluate_holdout", "get_preset",
            "holdout_split", "load_scene", "rasterize", "read_ply", "resolve_device", "sh_degree_for", "train",
@@ -39,7 +38,4 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module 'training' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

@@ -17,10 +17,10 @@ for the baseline), and one line in :data:`POLICIES`.
 from __future__ import annotations
 
 from collections.abc import Callable
-from importlib import import_module
 from typing import TYPE_CHECKING, Any
 
 from brave6d.errors import BraveError
+from brave6d.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from evaluation.agents.protocol import Agent
@@ -83,7 +83,4 @@ def make_agent(name: str, client: Any) -> Agent:
     return factory(client)
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module 'evaluation.agents' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

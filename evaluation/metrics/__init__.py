@@ -19,8 +19,7 @@ Modules: ``bop_metrics`` (VSD/MSSD/MSPD, symmetries), ``recall`` (matching and A
 (episode logs -> leaderboard; the log schema is serve's).
 """
 
-from importlib import import_module
-from typing import Any
+from brave6d.lazy import lazy_exports
 
 _LAZY = {
     "evaluate_bop19": ".recall", "EvalConfig": ".recall", "Estimate": ".recall", "GTInstance": ".recall",
@@ -40,7 +39,4 @@ _LAZY = {
 __all__ = sorted(_LAZY)
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module 'evaluation.metrics' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

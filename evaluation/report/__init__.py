@@ -7,8 +7,7 @@ from the cache alone), ``ReportSettings``; for writing a section: the ``Section`
 themselves are registered in :mod:`evaluation.report.sections` (see docs/ARCHITECTURE.md).
 """
 
-from importlib import import_module
-from typing import Any
+from brave6d.lazy import lazy_exports
 
 __all__ = ["Measurement", "MeasurementStore", "MeasureInputs", "RenderedSection", "ReportSettings", "Section",
            "build_report", "write_report"]
@@ -25,7 +24,4 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module 'evaluation.report' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
