@@ -5,7 +5,9 @@ name is used). Other stages import only these names:
 
 - 3D-DAT import: ``import_threedat``, ``import_summary``, ``ImportResult``, ``read_threedat``,
   ``write_threedat_folder``, ``ThreeDatError``, ``AlignmentOptions``, ``AlignmentError``;
-- the scene's annotation (``objects.json``): ``load_annotation``, ``Annotation``;
+- the scene's annotation (``objects.json``, one reader and one writer for every stage):
+  ``load_annotation``, ``write_annotation``, ``Annotation``, ``AnnotatedObject``, ``AnnotatedInstance``,
+  ``ContinuousSymmetry``;
 - BOP export: ``export_bop``, ``export_summary``, ``BopExportOptions``, ``BopExportResult``;
 - the BOP dataset format (:mod:`annotation.bop_format`, the one reader of BOP files in the
   project): ``BopLayout``, ``read_scene_camera``, ``read_scene_gt``, ``read_scene_gt_info``,
@@ -28,7 +30,8 @@ _LAZY = {
     "import_threedat": ".importer", "import_summary": ".importer", "ImportResult": ".importer",
     "read_threedat": ".threedat", "ThreeDatError": ".threedat", "write_threedat_folder": ".threedat_writer",
     "AlignmentOptions": ".alignment", "AlignmentError": ".alignment",
-    "load_annotation": ".store", "Annotation": ".store",
+    "load_annotation": ".store", "write_annotation": ".store", "Annotation": ".store",
+    "AnnotatedObject": ".store", "AnnotatedInstance": ".store", "ContinuousSymmetry": ".threedat",
     "export_bop": ".bop", "export_summary": ".bop", "BopExportOptions": ".bop", "BopExportResult": ".bop",
     "BopLayout": ".bop_format", "read_scene_camera": ".bop_format", "read_scene_gt": ".bop_format",
     "read_scene_gt_info": ".bop_format", "read_models_info": ".bop_format", "model_file": ".bop_format",

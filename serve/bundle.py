@@ -222,27 +222,18 @@ def read_annotation_instances(scene: SceneDir) -> list[dict[str, Any]]:
     units to metres), ``symmetries_discrete`` (flattened 4x4, metres) and
     ``symmetries_continuous`` ({axis, offset (metres)}).
     """
-    path = scene.annotation_dir / "objects.json"
-    if not path.is_file():
-        raise BraveError(f"{path}: no imported annotation; run 'brave6d annotate import-3ddat DAT_DIR "
-                         f"{scene.root}' first")
-    data = read_json(path)
-    try:
-        models = {int(o["obj_id"]): o for o in data["objects"]}
-        out = []
-        for n, inst in enumerate(data["instances"]):
-            obj = models[int(inst["obj_id"])]
-            mesh = Path(obj["mesh"])
-            out.append({
-                "obj_id": int(inst["obj_id"]), "name": str(obj["name"]), "class": obj.get("class"),
-                "world_T_obj": check_rigid(inst["world_T_model"], f"{path}: instances[{n}].world_T_model"),
-                "mesh": mesh if mesh.is_absolute() else (scene.annotation_dir / mesh).resolve(),
-                "scale": float(obj.get("scale", 1.0)),
-                "symmetries_discrete": [list(map(float, m)) for m in obj.get("symmetries_discrete", [])],
-                "symmetries_continuous": list(obj.get("symmetries_continuous", [])),
-            })
-    except (KeyError, TypeError, ValueError, NonRigidTransformError) as exc:
-        raise DataError(f"{path}: malformed annotation ({type(exc).__name__}: {exc})") from None
+    from annotation import load_annotation  # the owner of objects.json
+
+    annotation = load_annotation(scene)
+    out = []
+    for inst in annotation.instances:
+        obj = annotation.object(inst.obj_id)
+        out.append({
+            "obj_id": inst.obj_id, "name": obj.name, "class": obj.class_name, "world_T_obj": inst.world_T_model,
+            "mesh": obj.mesh, "scale": obj.scale,
+            "symmetries_discrete": [np.asarray(m, dtype=np.float64).reshape(-1).tolist() for m in obj.symmetries_discrete],
+            "symmetries_continuous": [{"axis": list(c.axis), "offset": list(c.offset)} for c in obj.symmetries_continuous],
+        })
     return out
 
 

@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from brave6d.atomic import atomic_write_json, write_png
+from brave6d.atomic import write_png
+from brave6d.calibration_io import write_handeye, write_intrinsics
 from brave6d.camera import PinholeCamera
 from brave6d.layout import FrameLog, FrameRecord, SceneDir
 from brave6d.transforms import look_at, make_transform, rpy_deg_to_matrix
@@ -204,8 +205,8 @@ def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree:
     scene.spec_path.write_text(yaml.safe_dump(spec, sort_keys=False), encoding="utf-8")
     scene.load_spec()  # validates
     camera = PinholeCamera.from_hfov(width, height, 70.0)
-    atomic_write_json(scene.intrinsics_path, {"camera": camera.to_json(), "method": "synthetic"})
-    atomic_write_json(scene.handeye_path, {"tcp_T_cam": np.eye(4).tolist(), "method": "synthetic"})
+    write_intrinsics(scene, camera, method="synthetic")
+    write_handeye(scene, np.eye(4), method="synthetic")
     frames = FrameLog(scene.frames_path)
     if scene.frames_path.exists():
         scene.frames_path.unlink()
@@ -216,19 +217,17 @@ def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree:
         frames.append(FrameRecord(index=k, view_id=f"d0_v{k:03d}", distance_level=0, distance_m=0.3, rgb=rgb,
                                   depth=None, base_T_tcp=T.tolist(), joints=[0.0] * 6, timestamp=float(k)))
     write_ply(scene.splat_dir / "point_cloud.ply", synthetic_splat(n_gaussians, sh_degree, seed, volume_fraction))
+    from annotation import AnnotatedInstance, AnnotatedObject, Annotation, write_annotation
+
     ann = scene.annotation_dir
     objects, instances, id_map = [], [], {}
     for obj_id, name in enumerate(CUBE_POSES, start=1):
         write_mesh_ply(ann / "meshes" / f"{name}.ply", v, f)
-        objects.append({"obj_id": obj_id, "threedat_id": name, "name": name, "class": "toys_office",
-                        "description": "20 mm cube", "mesh": f"meshes/{name}.ply", "scale": 0.001,
-                        "symmetries_discrete": [], "symmetries_continuous": []})
-        instances.append({"obj_id": obj_id, "threedat_id": name, "entry": 0,
-                          "world_T_model": world_T_cube(name).tolist()})
+        objects.append(AnnotatedObject(obj_id, name, name, ann / "meshes" / f"{name}.ply", 0.001,
+                                       class_name="toys_office", description="20 mm cube"))
+        instances.append(AnnotatedInstance(obj_id, name, world_T_cube(name), entry=0))
         id_map[name] = obj_id
-    atomic_write_json(ann / "objects.json", {
-        "format": "brave6d-annotation/1", "frame": "world = robot base frame; metres", "source": {"synthetic": True},
-        "id_map": id_map, "objects": objects, "instances": instances, "alignment": {}})
+    write_annotation(scene, Annotation(tuple(objects), tuple(instances), id_map, {"synthetic": True}, {}))
     return scene
 
 
