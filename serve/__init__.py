@@ -1,5 +1,5 @@
 """Serve stage: scene bundles, the render server, its Python client and wire/log schemas, a
-Gymnasium-style environment and a browser viewer.
+Gymnasium environment and a browser viewer.
 
 Public API (imported lazily, so ``import serve`` stays cheap: no torch, FastAPI or pydantic until
 a name is used). Other stages import only these names:
@@ -9,7 +9,7 @@ a name is used). Other stages import only these names:
 - the server: ``create_app``, ``ServerLimits``, ``ServerThread`` (uvicorn in a background thread),
   ``SceneServer``, ``SplatRenderer``;
 - the client: ``BraveClient``, ``PoseEstimate``, ``ServerError``, ``Observation``, ``StepResult``,
-  ``decode_observation``, and ``BraveEnv`` (Gymnasium-style);
+  ``decode_observation``, and ``BraveEnv`` (a ``gymnasium.Env``);
 - the wire schema (:mod:`serve.schema`): ``ObservationMessage``, ``StepMessage``, ``ObjectState``,
   ``EncodedImage``, ``TargetRef``, ``ErrorMessage``;
 - the episode log (:mod:`serve.episode_log`, versioned): ``read_episode_log``, ``EpisodeLog``,
