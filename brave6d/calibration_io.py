@@ -21,9 +21,14 @@ from brave6d.layout import FrameRecord, SceneDir
 from brave6d.transforms import check_rigid
 
 
-def write_intrinsics(scene: SceneDir, camera: PinholeCamera, **details: Any) -> None:
+def write_intrinsics(scene: SceneDir, camera: PinholeCamera, **details: Any) -> Path:
     """Write ``calibration/intrinsics.json`` (``details``: RMS, per-view errors, method, ...)."""
-    atomic_write_json(scene.intrinsics_path, {"camera": camera.to_json(), **details})
+    return write_intrinsics_file(scene.intrinsics_path, camera, **details)
+
+
+def write_intrinsics_file(path: Path | str, camera: PinholeCamera, **details: Any) -> Path:
+    """The intrinsics file's one writer: ``{"camera": PinholeCamera.to_json(), **details}``, atomically."""
+    return atomic_write_json(path, {"camera": camera.to_json(), **details})
 
 
 def read_camera_json(path: Path, key: str) -> PinholeCamera:
@@ -45,10 +50,15 @@ def read_intrinsics(scene: SceneDir) -> PinholeCamera:
     return read_camera_json(scene.intrinsics_path, "camera")
 
 
-def write_handeye(scene: SceneDir, tcp_T_cam: NDArray[np.float64], **details: Any) -> None:
+def write_handeye(scene: SceneDir, tcp_T_cam: NDArray[np.float64], **details: Any) -> Path:
     """Write ``calibration/handeye.json`` (``details``: method, residuals, uncertainty, ...)."""
+    return write_handeye_file(scene.handeye_path, tcp_T_cam, **details)
+
+
+def write_handeye_file(path: Path | str, tcp_T_cam: NDArray[np.float64], **details: Any) -> Path:
+    """The hand-eye file's one writer: ``{"tcp_T_cam": 4x4 (checked rigid), **details}``, atomically."""
     T = check_rigid(tcp_T_cam, "tcp_T_cam")
-    atomic_write_json(scene.handeye_path, {"tcp_T_cam": T.tolist(), **details})
+    return atomic_write_json(path, {"tcp_T_cam": T.tolist(), **details})
 
 
 def read_handeye(scene: SceneDir) -> NDArray[np.float64]:

@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from brave6d.atomic import atomic_write_json, read_json_as
+from brave6d.atomic import read_json_as
+from brave6d.calibration_io import write_handeye_file
 from brave6d.errors import DataError
 from brave6d.transforms import check_rigid, rotation_distance, translation_distance
 from calibration.conditioning import ConditioningReport
@@ -317,9 +318,11 @@ class HandEyeResult:
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise DataError(f"hand-eye result: missing or malformed field ({type(exc).__name__}: {exc})") from None
 
-    def save(self, path: Path | str) -> Path:
-        """Write :meth:`to_json` atomically (e.g. to ``calibration/handeye.json``)."""
-        return atomic_write_json(path, self.to_json())
+    def save(self, path: Path | str, **extra: Any) -> Path:
+        """Write :meth:`to_json` (plus ``extra`` keys) through the hand-eye file's one writer."""
+        details = {**self.to_json(), **extra}
+        details.pop("tcp_T_cam")
+        return write_handeye_file(path, self.tcp_T_cam, **details)
 
     @staticmethod
     def load(path: Path | str) -> HandEyeResult:

@@ -34,7 +34,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from brave6d.atomic import atomic_write_json, read_json_as
+from brave6d.atomic import read_json_as
+from brave6d.calibration_io import write_intrinsics_file
 from brave6d.camera import CameraError, PinholeCamera
 from brave6d.errors import DataError, DegenerateGeometryError
 from calibration.board import CharucoDetection
@@ -153,9 +154,11 @@ class IntrinsicsResult:
         except (KeyError, TypeError, ValueError) as exc:
             raise DataError(f"intrinsics: missing or malformed field ({type(exc).__name__}: {exc})") from None
 
-    def save(self, path: Path | str) -> Path:
-        """Write :meth:`to_json` atomically (e.g. to ``calibration/intrinsics.json``)."""
-        return atomic_write_json(path, self.to_json())
+    def save(self, path: Path | str, **extra: Any) -> Path:
+        """Write :meth:`to_json` (plus ``extra`` keys) through the intrinsics file's one writer."""
+        details = {**self.to_json(), **extra}
+        details.pop("camera")
+        return write_intrinsics_file(path, self.camera(), **details)
 
     @staticmethod
     def load(path: Path | str) -> IntrinsicsResult:

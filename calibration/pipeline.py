@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.atomic import read_png
-from brave6d.calibration_io import read_camera_json, write_handeye, write_intrinsics
+from brave6d.calibration_io import read_camera_json
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError, DataError
 from brave6d.layout import CaptureLayout, FrameRecord, SceneDir
@@ -180,11 +180,10 @@ def calibrate_scene_intrinsics(scene: SceneDir, spec: SceneSpec, frames: BoardFr
             result = calibrate_intrinsics_auto(frames.detections, obj, size, names=frames.names)
         else:
             result = calibrate_intrinsics(frames.detections, obj, size, distortion=distortion, names=frames.names)
-    details = result.to_json()
-    details.pop("camera")
+    extra: dict[str, Any] = {}
     if simulation_truth(scene, spec) is not None:
-        details["simulation_check"] = _intrinsics_check(result, _true_camera(spec))
-    write_intrinsics(scene, result.camera(), **details)
+        extra["simulation_check"] = _intrinsics_check(result, _true_camera(spec))
+    result.save(scene.intrinsics_path, **extra)
     return result
 
 
@@ -203,9 +202,7 @@ def calibrate_scene_handeye(scene: SceneDir, spec: SceneSpec, frames: BoardFrame
     with _located(frames.layout.root):
         result = calibrate_handeye(views, board_corner_points(spec.board), intrinsics.K, intrinsics.dist,
                                    intrinsics_std=intrinsics.std or None)
-    details = result.to_json()
-    details.pop("tcp_T_cam")
-    details["intrinsics_source"] = intrinsics.source
+    details: dict[str, Any] = {"intrinsics_source": intrinsics.source}
     truth = simulation_truth(scene, spec)
     if truth is not None:
         details["simulation_check"] = {
@@ -213,7 +210,7 @@ def calibrate_scene_handeye(scene: SceneDir, spec: SceneSpec, frames: BoardFrame
             "errors": {m: {"translation_mm": e[0], "rotation_deg": e[1]}
                        for m, e in result.errors_against(truth).items()},
         }
-    write_handeye(scene, result.tcp_T_cam, **details)
+    result.save(scene.handeye_path, **details)
     return result
 
 
