@@ -8,8 +8,8 @@ with :mod:`evaluation.metrics.episodes` and writes, under ``<workdir>/evaluation
 
 * ``episodes/`` the episode logs and final depth images (cleared first);
 * ``leaderboard.csv``/``.json``, ``episodes.csv``, ``per_object.csv`` (as ``brave6d evaluate``);
-* ``baseline.json`` (``brave6d-baseline/1``): per agent and per episode AR and adjustments,
-  what the accuracy-vs-time report plots (see :func:`baseline_summary`).
+* ``baseline.json``: the agent-run summary (per agent and per episode AR and adjustments, what
+  the accuracy-vs-time report plots), written through :func:`evaluation.metrics.write_agent_runs`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from brave6d.errors import BraveError
 
@@ -26,11 +26,10 @@ if TYPE_CHECKING:
     from brave6d.demo import DemoContext
     from brave6d.progress import StageResult
     from evaluation.agents import EpisodeOutcome
-    from evaluation.metrics import Leaderboard
+    from evaluation.metrics import AgentRuns, Leaderboard
 
 log = logging.getLogger(__name__)
 
-BASELINE_FORMAT = "brave6d-baseline/1"
 #: Image size of the baseline episodes (the agent's pixel thresholds were chosen at this width).
 IMAGE_WIDTH = 320
 #: Episodes per object and variant in the full demo (seeded random starts; one in ``--quick``):
@@ -89,34 +88,19 @@ def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: i
     return BaselineRun(outcomes, board, width, height, bundle.name)
 
 
-def baseline_summary(run: BaselineRun) -> dict[str, Any]:
-    """``baseline.json``: ``agents`` (a list, best AR first: agent, episodes, AR, AR per metric,
-    mean adjustments, mean wall time) and ``episodes`` (per episode: agent, variant, object,
-    seed, AR, AR per metric, adjustments, wall time, how the registration went)."""
-    by_id = {o.episode_id: o for o in run.outcomes}
-    agents = [{k: v for k, v in a.to_json().items() if k != "per_object"} for a in run.board.agents]
-    episodes = []
-    for s in run.board.episodes:
-        row = s.to_json()
-        notes = by_id[row["episode_id"]].notes if row["episode_id"] in by_id else {}
-        episodes.append({
-            "agent": row["agent"], "variant": "active" if row["agent"].endswith("active") else "static",
-            "object": row["target"], "gt_id": row["target_gt_id"], "obj_id": row["obj_id"], "seed": row["seed"],
-            "episode_id": row["episode_id"], "ar": row["ar"], "ar_vsd": row["ar_vsd"], "ar_mssd": row["ar_mssd"],
-            "ar_mspd": row["ar_mspd"], "adjustments": row["adjustments"], "wall_time_s": row["wall_time_s"],
-            "target_distance_m": row["target_distance_m"], "found": notes.get("found"),
-            "registration_method": notes.get("registration_method"),
-            "registration_score": notes.get("registration_score")})
-    return {"format": BASELINE_FORMAT, "bundle": run.bundle, "image_size": [run.width, run.height],
-            "metrics": list(run.board.config.metrics), "agents": agents, "episodes": episodes}
+def agent_runs_of(run: BaselineRun) -> AgentRuns:
+    """The agent-run summary of ``run``: its leaderboard with each episode's registration notes."""
+    from evaluation.metrics import agent_runs_from_board
+
+    return agent_runs_from_board(run.board, {o.episode_id: o.notes for o in run.outcomes}, run.bundle,
+                                 (run.width, run.height))
 
 
 def stage_evaluate(ctx: DemoContext) -> StageResult:
     """Demo stage: run and score the registered agents on every demo object (see the module docstring)."""
-    from brave6d.atomic import atomic_write_json
     from brave6d.progress import StageResult
     from evaluation.agents import ACTIVE_AGENT, STATIC_AGENT
-    from evaluation.metrics import write_leaderboard
+    from evaluation.metrics import agent_runs_path, write_agent_runs, write_leaderboard
 
     bundle_dir = ctx.scene.bundle_dir
     if not (bundle_dir / "manifest.json").is_file():
@@ -125,7 +109,7 @@ def stage_evaluate(ctx: DemoContext) -> StageResult:
     run = run_baselines(bundle_dir, out, device=ctx.device,
                         episodes_per_object=1 if ctx.quick else EPISODES_PER_OBJECT)
     write_leaderboard(run.board, out)
-    atomic_write_json(out / "baseline.json", baseline_summary(run))
+    write_agent_runs(agent_runs_path(ctx.workdir), agent_runs_of(run))
     log.info("baseline leaderboard:\n%s\n%s", run.board.table(), run.board.object_table())
     scores = {a.agent: a for a in run.board.agents}
     active, static = scores.get(ACTIVE_AGENT), scores.get(STATIC_AGENT)

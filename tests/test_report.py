@@ -17,7 +17,7 @@ from brave6d.atomic import atomic_write_json, read_json
 from evaluation.report.measurements import Measurement, MeasurementStore, run_sweep
 from evaluation.report.build import ReportSettings, build_report, compose, figure_names, measure_all, stage_report
 from evaluation.report.build import measurement_store, write_report
-from evaluation.report.sections.baseline import by_agent, collect_baseline, episodes_of, render_baseline
+from evaluation.report.sections.baseline import by_agent, collect_baseline, render_baseline
 from evaluation.report.common import RenderedSection, fmt, median, quantile
 from evaluation.report.sections.handeye import HandEyeSweep
 from evaluation.report.sections.latency import LatencySweep, render_latency
@@ -77,7 +77,7 @@ def fabricate(workdir: Path, nan: bool = False) -> MeasurementStore:
             {"agent": "active", "ar": 0.8, "adjustments": 6, "wall_s": 12.0, "object": "b"},
             {"agent": "static", "ar": 0.3, "adjustments": 0, "wall_s": 2.0, "object": "a"},
             {"agent": "static", "ar": 0.5 if not nan else None, "adjustments": 0, "wall_s": 2.0, "object": "b"}]
-    _save(store, "baseline", base, {"episodes": 4, "incomplete_episodes": int(nan)}, {"source": "/x/baseline.json"})
+    _save(store, "baseline", base, {"episodes": 4}, {"source": "/x/baseline.json"})
     return store
 
 
@@ -128,7 +128,7 @@ def test_nan_values_are_named_not_plotted_silently(tmp_path: Path) -> None:
     views = render_views(store.load("views"), out).body
     assert "2 plotted view-sweep values had no finite value" in views and re.search(r"\| 5/5 .*\| n/a +\|", views)
     baseline = render_baseline(store.load("baseline"), out).body
-    assert "1 episodes lack AR or adjustments" in baseline and "1 plotted episode values had no finite" in baseline
+    assert "1 plotted episode values had no finite" in baseline
     fig, (ax,) = new_figure(1)
     dropped = plot_line(ax, [1, 2, 3, 4], [1.0, float("nan"), None, 2.0], "series")
     assert dropped == 2 and ax.get_legend_handles_labels()[1] == ["series (2 NaN not drawn)"]
@@ -284,25 +284,67 @@ def test_nan_in_a_point_is_stored_as_null(tmp_path: Path) -> None:
 
 
 # ----------------------------------------------------------------------------- baseline reader
-@pytest.mark.parametrize("data", [
-    [{"agent": "a", "AR": 0.5, "n_adjustments": 3}, {"agent_name": "b", "average_recall": 0.2, "adjustments": 0}],
-    {"episodes": [{"agent": "a", "ar": 0.5, "adjustments": 3}, {"name": "b", "score": 0.2, "adjustments": 0}]},
-    {"a": [{"ar": 0.5, "position_adjustments": 3}], "b": {"episodes": [{"ar": 0.2, "adjustments": 0}]}},
-])
-def test_baseline_file_shapes(tmp_path: Path, data: object) -> None:
-    atomic_write_json(tmp_path / "evaluation" / "baseline.json", data)
+def _agent_runs_file(workdir: Path) -> Path:
+    """An agent-run summary whose leaderboard AR (pooled) differs from the mean of the episodes' ARs."""
+    from evaluation.metrics import AgentRuns, agent_runs_path, write_agent_runs
+
+    def episode(agent: str, obj: str, ar: float, adjustments: int, wall: float | None) -> dict:
+        return {"agent": agent, "variant": agent, "object": obj, "gt_id": 0, "obj_id": 1, "seed": 0,
+                "episode_id": f"{agent}-{obj}", "ar": ar, "ar_vsd": ar, "ar_mssd": ar, "ar_mspd": ar,
+                "adjustments": adjustments, "wall_time_s": wall, "target_distance_m": 0.3, "found": True,
+                "registration_method": "resting", "registration_score": 0.7}
+
+    def agent(name: str, ar: float, adjustments: float, wall: float | None) -> dict:
+        return {"agent": name, "episodes": 2, "submitted": 2, "n_targets": 2, "ar": ar, "ar_vsd": ar, "ar_mssd": ar,
+                "ar_mspd": ar, "mean_adjustments": adjustments, "mean_wall_time_s": wall}
+
+    runs = AgentRuns.model_validate({
+        "bundle": "b", "image_size": [320, 200], "metrics": ["vsd", "mssd", "mspd"],
+        "agents": [agent("active", 0.7, 5.0, 4.0), agent("static", 0.25, 0.0, None)],
+        "episodes": [episode("active", "nut", 0.5, 4, 3.0), episode("active", "cup", 1.0, 6, 5.0),
+                     episode("static", "nut", 0.2, 0, 1.0), episode("static", "cup", 0.4, 0, None)]})
+    return write_agent_runs(agent_runs_path(workdir), runs)
+
+
+def test_baseline_section_shows_the_files_agent_rows(tmp_path: Path) -> None:
+    _agent_runs_file(tmp_path)
     m = collect_baseline(tmp_path, MeasurementStore(tmp_path / "m"))
-    assert m.status == "complete"
-    assert sorted((p["agent"], p["ar"], p["adjustments"]) for p in m.points) == [("a", 0.5, 3.0), ("b", 0.2, 0.0)]
+    assert m.status == "complete" and m.summary["episodes"] == 4
+    assert [(p["agent"], p["object"], p["ar"], p["adjustments"]) for p in m.points] == [
+        ("active", "nut", 0.5, 4.0), ("active", "cup", 1.0, 6.0),
+        ("static", "nut", 0.2, 0.0), ("static", "cup", 0.4, 0.0)]
+    rows = {r["agent"]: r for r in by_agent(m.points, m.summary["agents"])}
+    assert rows["active"]["ar"] == 0.7 and rows["active"]["adjustments"] == 5.0  # pooled AR, not the 0.75 mean
+    assert rows["static"]["ar"] == 0.25 and rows["static"]["wall_s"] == 1.0  # no mean wall time in the file: episodes'
+    section = render_baseline(m, tmp_path / "report")
+    assert re.search(r"\| active +\| 2 +\| 0\.700 +\| 5\.0 +\| 4\.0 +\|", section.body)
+    assert re.search(r"\| static +\| 2 +\| 0\.250 +\| 0\.0 +\| 1\.0 +\|", section.body)
+    assert "AR is the leaderboard's" in section.body and "1 plotted episode values had no finite" not in section.body
+    assert "0.450 more AR (0.250 -> 0.700: 0.090 AR per adjustment)" in section.advice
 
 
-def test_baseline_file_broken_or_odd(tmp_path: Path) -> None:
-    assert episodes_of("nonsense") == [] and episodes_of({"meta": 1}) == []
+@pytest.mark.parametrize(("change", "field"), [
+    (lambda raw: raw.update(format="brave6d-baseline/2"), "format"),
+    (lambda raw: raw["episodes"][2].pop("adjustments"), "episodes[2].adjustments"),
+    (lambda raw: raw["agents"][0].update(ar="n/a"), "agents[0].ar"),
+])
+def test_baseline_section_notes_a_malformed_file(tmp_path: Path, change: object, field: str) -> None:
+    path = _agent_runs_file(tmp_path)
+    raw = json.loads(path.read_text())
+    change(raw)  # type: ignore[operator]
+    path.write_text(json.dumps(raw))
+    m = collect_baseline(tmp_path, MeasurementStore(tmp_path / "m"))
+    assert m.status == "failed" and m.note.startswith(f"{path}: field '{field}'")
+    body = render_baseline(m, tmp_path / "report").body
+    assert body.startswith("> **Not available.** Baseline episodes: measuring failed: ") and f"'{field}'" in body
+
+
+def test_baseline_file_not_json(tmp_path: Path) -> None:
     path = tmp_path / "evaluation" / "baseline.json"
     path.parent.mkdir()
     path.write_text("{not json")
     m = collect_baseline(tmp_path, MeasurementStore(tmp_path / "m"))
-    assert m.status == "failed" and "not valid JSON" in m.note
+    assert m.status == "failed" and m.note.startswith(f"{path}: not valid JSON")
 
 
 # ----------------------------------------------------------------------------- real, miniature sweeps
@@ -389,18 +431,3 @@ def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: P
     assert again["latency"].points == lat.points and again["views"].points == views.points
     assert measure_all(tmp_path / "hand", settings, only=("handeye",))[0]["handeye"].points == he.points
     assert (identities(tmp_path / "plane"), identities(tmp_path / "hand")) == before
-
-
-def test_baseline_leaderboard_agent_figures_win_over_episode_means(tmp_path: Path) -> None:
-    episodes = [{"agent": "active", "ar": 0.5, "adjustments": 4, "wall_time_s": 3.0, "target": "nut"},
-                {"agent": "active", "ar": 1.0, "adjustments": 6, "wall_time_s": 5.0, "target": "cup"},
-                {"agent": "static", "ar": 0.2, "adjustments": 0, "wall_time_s": 1.0, "target": "nut"}]
-    board = {"format": "brave6d-leaderboard/1", "episodes": episodes,
-             "agents": [{"agent": "active", "episodes": 2, "ar": 0.7, "mean_adjustments": 5.0,
-                         "mean_wall_time_s": 4.0}]}
-    atomic_write_json(tmp_path / "evaluation" / "baseline.json", board)
-    m = collect_baseline(tmp_path, MeasurementStore(tmp_path / "m"))
-    rows = {r["agent"]: r for r in by_agent(m.points, m.summary["agents"])}
-    assert rows["active"]["ar"] == 0.7 and rows["active"]["adjustments"] == 5.0  # pooled AR, not the 0.75 mean
-    assert rows["static"]["ar"] == 0.2 and rows["static"]["wall_s"] == 1.0
-    assert [p["object"] for p in m.points] == ["nut", "cup", "nut"]

@@ -12,11 +12,14 @@ Public API (imported lazily: ``import evaluation.metrics`` loads neither Open3D 
   ``load_models``, ``load_ply_mesh`` (the dataset's JSON files are parsed by ``annotation``);
 - episode scoring: ``read_episodes``, ``read_episode``, ``find_episode_logs``, ``score_episodes``,
   ``episode_to_bop``, ``models_from_bundle``, ``write_leaderboard``, ``EpisodeRecord``,
-  ``Leaderboard``, ``AgentScore``, ``EpisodeScore``.
+  ``Leaderboard``, ``AgentScore``, ``EpisodeScore``;
+- the agent-run summary (``<workdir>/evaluation/baseline.json``): ``AgentRuns``, ``AgentRunsRow``,
+  ``AgentRunsEpisode``, ``AGENT_RUNS_FORMAT``, ``agent_runs_from_board``, ``agent_runs_path``,
+  ``read_agent_runs``, ``write_agent_runs``.
 
 Modules: ``bop_metrics`` (VSD/MSSD/MSPD, symmetries), ``recall`` (matching and AR),
 ``depth_renderer``, ``bop_results`` (results CSV, BOP folders as scoring inputs), ``episodes``
-(episode logs -> leaderboard; the log schema is serve's).
+(episode logs -> leaderboard; the log schema is serve's), ``agent_runs`` (the agent-run summary file).
 """
 
 from brave6d.lazy import lazy_exports
@@ -34,6 +37,9 @@ _LAZY = {
     "score_episodes": ".episodes", "episode_to_bop": ".episodes", "models_from_bundle": ".episodes",
     "write_leaderboard": ".episodes", "EpisodeRecord": ".episodes", "Leaderboard": ".episodes",
     "AgentScore": ".episodes", "EpisodeScore": ".episodes",
+    "AgentRuns": ".agent_runs", "AgentRunsRow": ".agent_runs", "AgentRunsEpisode": ".agent_runs",
+    "AGENT_RUNS_FORMAT": ".agent_runs", "agent_runs_from_board": ".agent_runs", "agent_runs_path": ".agent_runs",
+    "read_agent_runs": ".agent_runs", "write_agent_runs": ".agent_runs",
 }
 
 __all__ = sorted(_LAZY)

@@ -1,12 +1,10 @@
 """Report section 5: baseline Average Recall against camera adjustments.
 
-Reads ``<workdir>/evaluation/baseline.json`` written by the evaluation stage. Its schema is
-not fixed yet, so the reader is lenient: a list of episodes, or ``{"episodes": [...]}``
-(also ``results``/``runs``), or ``{agent: [episodes]}``; per episode the agent under
-``agent``/``agent_name``/``name``, AR under ``ar``/``AR``/``average_recall``/``score``, the
-adjustments under ``adjustments``/``n_adjustments``/``position_adjustments``, and optionally
-the wall time and the object. Episodes without AR or adjustments are counted and named in
-the section, never guessed.
+Reads the agent-run summary ``<workdir>/evaluation/baseline.json`` through its schema
+(:func:`evaluation.metrics.read_agent_runs`): one point per episode (agent, AR, adjustments, wall
+time, object) and the file's leaderboard rows, whose pooled AR and means the table shows. A
+missing file, or one that does not match the schema, becomes a section note naming the file (and
+the field), never an exception.
 """
 
 from __future__ import annotations
@@ -17,9 +15,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from brave6d.atomic import read_json
 from brave6d.errors import DataError
 from brave6d.progress import format_table
+from evaluation.metrics import AgentRuns, agent_runs_path, read_agent_runs
 from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info
 from evaluation.report.common import RenderedSection, finite, fmt, nan_note, num, provenance, unavailable
 from evaluation.report.protocol import MeasureInputs
@@ -30,82 +28,31 @@ PAGE = 5
 TITLE = f"{PAGE}. Baseline agents: Average Recall against adjustments"
 FIGURE = "baseline.png"
 
-AGENT_KEYS = ("agent", "agent_name", "name")
-AR_KEYS = ("ar", "AR", "average_recall", "score")
-ADJ_KEYS = ("adjustments", "n_adjustments", "position_adjustments")
-TIME_KEYS = ("wall_time_s", "wall_s", "seconds", "time_s", "duration_s")
-OBJECT_KEYS = ("object", "target", "obj_name", "obj_id")
-
-
-def baseline_path(workdir: Path) -> Path:
-    return Path(workdir) / "evaluation" / "baseline.json"
-
 
 def collect_baseline(workdir: Path, store: MeasurementStore) -> Measurement:
-    """Normalise ``baseline.json`` into the ``baseline`` measurement (missing file: a note)."""
-    path = baseline_path(workdir)
+    """The ``baseline`` measurement of the agent-run summary (missing or malformed file: a note)."""
+    path = agent_runs_path(workdir)
     if (absent := store.require(NAME, [(path, "evaluation")])) is not None:
         return absent
     try:
-        data = read_json(path)
+        runs = read_agent_runs(path)
     except DataError as exc:
         return store.failed(NAME, str(exc))
     # reading is cheap: always collect afresh (the cached copy serves write_report)
     m = Measurement(name=NAME, key={"baseline": file_stamp(path)}, settings={"source": str(path)},
                     machine=machine_info("cpu"))
-    episodes = episodes_of(data)
-    m.points, skipped = [], 0
-    for e in episodes:
-        point = {"agent": str(_first(e, AGENT_KEYS) or "unnamed"), "ar": num(_first(e, AR_KEYS)),
-                 "adjustments": num(_first(e, ADJ_KEYS)), "wall_s": num(_first(e, TIME_KEYS)),
-                 "object": _first(e, OBJECT_KEYS)}
-        if not (math.isfinite(point["ar"]) and math.isfinite(point["adjustments"])):
-            skipped += 1
-        m.points.append(point)
-    m.summary = {"episodes": len(episodes), "incomplete_episodes": skipped,
-                 "top_level": type(data).__name__, "agents": agents_of(data)}
+    m.points = [{"agent": e.agent, "ar": e.ar, "adjustments": float(e.adjustments), "wall_s": num(e.wall_time_s),
+                 "object": e.object} for e in runs.episodes]
+    m.summary = {"episodes": len(runs.episodes), "agents": agent_rows(runs)}
     m.status = "complete"
     store.save(m)
     return m
 
 
-def episodes_of(data: Any) -> list[dict[str, Any]]:
-    """The episode dicts of a baseline file in any of the accepted shapes (see the module doc)."""
-    if isinstance(data, list):
-        return [e for e in data if isinstance(e, dict)]
-    if not isinstance(data, dict):
-        return []
-    for key in ("episodes", "results", "runs"):
-        if isinstance(data.get(key), list):
-            return episodes_of(data[key])
-    out: list[dict[str, Any]] = []
-    for agent, value in data.items():
-        inner = value.get("episodes") if isinstance(value, dict) else value
-        if isinstance(inner, list):
-            out += [{"agent": agent, **e} for e in inner if isinstance(e, dict)]
-    return out
-
-
-def agents_of(data: Any) -> list[dict[str, Any]]:
-    """Agent-level figures of a leaderboard-like file (``{"agents": [...]}``), else an empty list."""
-    rows = data.get("agents") if isinstance(data, dict) else None
-    if not isinstance(rows, list):
-        return []
-    out = []
-    for r in rows:
-        if isinstance(r, dict) and _first(r, AGENT_KEYS) is not None:
-            out.append({"agent": str(_first(r, AGENT_KEYS)), "ar": num(_first(r, AR_KEYS)),
-                        "adjustments": num(_first(r, ("mean_adjustments", *ADJ_KEYS))),
-                        "wall_s": num(_first(r, ("mean_wall_time_s", *TIME_KEYS))),
-                        "episodes": _first(r, ("episodes",))})
-    return out
-
-
-def _first(entry: dict[str, Any], keys: tuple[str, ...]) -> Any:
-    for k in keys:
-        if entry.get(k) is not None:
-            return entry[k]
-    return None
+def agent_rows(runs: AgentRuns) -> list[dict[str, Any]]:
+    """The file's leaderboard rows as the section's agent figures (AR, mean adjustments, mean wall time)."""
+    return [{"agent": a.agent, "ar": a.ar, "adjustments": a.mean_adjustments, "wall_s": num(a.mean_wall_time_s),
+             "episodes": a.episodes} for a in runs.agents]
 
 
 # ----------------------------------------------------------------------------- rendering
@@ -154,11 +101,9 @@ def render_baseline(m: Measurement | None, out_dir: Path) -> RenderedSection:
     table = [(r["agent"], r["episodes"], fmt(r["ar"], 3), fmt(r["adjustments"], 1), fmt(r["wall_s"], 1)) for r in rows]
     ar_text = ("AR is the leaderboard's, pooled over each agent's episodes" if pooled
                else "AR is the mean over each agent's episodes")
-    incomplete = int(num(m.summary.get("incomplete_episodes")) or 0)
     body = (f"From `{m.settings.get('source')}` ({m.summary.get('episodes')} episodes; {ar_text}).\n\n"
             f"![AR against adjustments]({png.name})\n\n"
             + format_table(["agent", "episodes", "AR", "mean adjustments", "wall s"], table)
-            + ("" if not incomplete else f"\n\n> {incomplete} episodes lack AR or adjustments in the file.")
             + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted episode values"))
     return RenderedSection(TITLE, body, advice_baseline(rows), [png])
 
@@ -184,7 +129,7 @@ def advice_baseline(rows: list[dict[str, Any]]) -> str:
 
 class BaselineSection:
     """Section 5 behind the :class:`~evaluation.report.protocol.Section` protocol (no settings:
-    it reads ``<workdir>/evaluation/baseline.json``)."""
+    it reads the agent-run summary)."""
 
     name, page, title, figure = NAME, PAGE, TITLE, FIGURE
 
