@@ -22,7 +22,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from brave6d.atomic import atomic_write_text
-from brave6d.errors import DataError, NonRigidTransformError
+from brave6d.errors import DataError, NonRigidTransformError, validation_error_field
 from brave6d.spec import SceneSpec, load_scene_spec, spec_to_yaml
 from brave6d.transforms import check_rigid
 
@@ -306,9 +306,8 @@ class FrameLog:
             except (json.JSONDecodeError, UnicodeDecodeError) as exc:
                 raise DataError(f"{self.path}:{number}: not a JSON record ({exc})") from None
             except ValidationError as exc:
-                err = exc.errors(include_url=False)[0]
-                where = ".".join(str(p) for p in err["loc"])
-                raise DataError(f"{self.path}:{number}: field '{where}': {err['msg']}") from None
+                where, msg = validation_error_field(exc.errors(include_url=False), dotted=True)
+                raise DataError(f"{self.path}:{number}: field '{where}': {msg}") from None
 
     def append(self, record: FrameRecord) -> None:
         """Append one record durably (single write + fsync)."""

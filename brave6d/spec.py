@@ -17,7 +17,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from brave6d.camera import PinholeCamera
-from brave6d.errors import SpecError
+from brave6d.errors import SpecError, validation_error_field
 from brave6d.transforms import make_transform, rpy_deg_to_matrix
 from brave6d.yaml_io import read_yaml
 
@@ -340,26 +340,6 @@ class SceneSpec(_Strict):
 
 
 # ----------------------------------------------------------------------------- loading
-def _format_location(loc: tuple[Any, ...]) -> str:
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        else:
-            out += ("." if out else "") + str(part)
-    return out or "<root>"
-
-
-def _first_error(exc: ValidationError) -> tuple[str, str]:
-    """(field path, message) of the most specific error pydantic reported."""
-    errors = exc.errors(include_url=False)
-    err = errors[0]
-    loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and ("[" in p or p in {"function-after"})))
-    msg = err["msg"].removeprefix("Value error, ")
-    extra = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
-    return _format_location(loc), msg + extra
-
-
 def parse_scene_spec(data: Any, source: Path | str = "<memory>", check_files: bool = True) -> SceneSpec:
     """Validate a parsed YAML mapping into a :class:`SceneSpec` (errors name ``source`` and the field)."""
     src = Path(source)
@@ -368,7 +348,8 @@ def parse_scene_spec(data: Any, source: Path | str = "<memory>", check_files: bo
     try:
         spec = SceneSpec.model_validate({**data, "source": None if str(source) == "<memory>" else src.resolve()})
     except ValidationError as exc:
-        field_path, msg = _first_error(exc)
+        field_path, msg = validation_error_field(exc.errors(include_url=False))
+        field_path = field_path or "<root>"
         raise SpecError(f"{src}: field '{field_path}': {msg}") from None
     if check_files:
         _check_mesh_files(spec, src)

@@ -78,7 +78,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.websockets import WebSocketClose
 
-from brave6d.errors import BraveError, NonRigidTransformError
+from brave6d.errors import BraveError, NonRigidTransformError, validation_error_field
 from brave6d.transforms import check_rigid, look_at, make_transform, orthonormalize
 from serve.bundle import Bundle, load_bundle
 from serve.limits import (
@@ -332,17 +332,6 @@ def _error(status: int, message: str, field: str | None = None, headers: dict[st
     return JSONResponse({"error": message, "field": field, "status": status}, status_code=status, headers=headers)
 
 
-#: Location parts that name a union member or a validator, not a field (e.g. ``request_id.constrained-int``).
-_NOT_FIELDS = ("function-", "constrained-")
-_UNION_TAGS = frozenset({"str", "int", "float", "bool", "none", "list", "dict"})
-
-
-def _loc(loc: Any) -> str:
-    """The dotted field path of a pydantic error location (``pose.position.0``)."""
-    return ".".join(str(p) for p in loc
-                    if not (isinstance(p, str) and ("[" in p or p in _UNION_TAGS or p.startswith(_NOT_FIELDS))))
-
-
 def validation_error_body(errors: list[dict[str, Any]]) -> tuple[int, str, str | None]:
     """(status, message, field) of pydantic/FastAPI validation errors (malformed JSON -> 400)."""
     if not errors:
@@ -353,12 +342,11 @@ def validation_error_body(errors: list[dict[str, Any]]) -> tuple[int, str, str |
         return 400, f"malformed JSON: {ctx.get('error', err.get('msg'))}", "body"
     if err.get("type") == "missing" and tuple(err.get("loc", ())) == ("body",):
         return 400, "malformed JSON: the request needs a JSON object body", "body"
-    msg = str(err.get("msg", "invalid value")).removeprefix("Value error, ")
+    field, msg = validation_error_field(errors, dotted=True)
     if err.get("type") in ("finite_number",):
-        msg = "must be a finite number (NaN and inf are refused)"
-    field = _loc(err.get("loc", ()))
-    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
-    return 422, f"{field}: {msg}{more}" if field else msg + more, field or None
+        more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+        msg = "must be a finite number (NaN and inf are refused)" + more
+    return 422, f"{field}: {msg}" if field else msg, field or None
 
 
 class BodyLimitMiddleware:

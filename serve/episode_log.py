@@ -27,7 +27,7 @@ from typing import IO, Annotated, Any, Literal
 
 from pydantic import Field, TypeAdapter, ValidationError
 
-from brave6d.errors import DataError
+from brave6d.errors import DataError, validation_error_field
 from serve.schema import Finite, Matrix3, Matrix4, ObjectState, TargetRef, Vector3, WireModel, matrix_type
 
 #: A rotation as an array, written as 9 numbers row-major (as the log has always held it).
@@ -191,12 +191,8 @@ class EpisodeLog:
 
 # ----------------------------------------------------------------------------- reading
 def _first_error(exc: ValidationError) -> str:
-    err = exc.errors(include_url=False)[0]
-    parts = list(err.get("loc", ()))[1:]  # the first part is the record's event (the union's tag)
-    loc = ".".join(str(p) for p in parts)
-    more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-    msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")
-    return f"field '{loc}': {msg}{more}" if loc else f"{msg}{more}"
+    loc, msg = validation_error_field(exc.errors(include_url=False), dotted=True, skip=1)  # skip the record's tag
+    return f"field '{loc}': {msg}" if loc else msg
 
 
 def read_episode_log(path: Path | str) -> list[ResetRecord | ActionRecord | SubmitRecord | CloseRecord]:

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from brave6d.atomic import atomic_write_json, read_json
-from brave6d.errors import DataError
+from brave6d.errors import DataError, validation_error_field
 
 if TYPE_CHECKING:
     from evaluation.metrics.episodes import Leaderboard
@@ -136,9 +136,5 @@ def read_agent_runs(path: Path | str) -> AgentRuns:
 
 def _first_error(exc: ValidationError) -> str:
     """``field 'episodes[3].ar': message`` of the first error pydantic reported."""
-    err = exc.errors(include_url=False)[0]
-    loc = ""
-    for part in err.get("loc", ()):
-        loc += f"[{part}]" if isinstance(part, int) else ("." if loc else "") + str(part)
-    more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-    return f"field '{loc or '<root>'}': {err.get('msg', 'invalid')}{more}"
+    loc, msg = validation_error_field(exc.errors(include_url=False))
+    return f"field '{loc or '<root>'}': {msg}"
