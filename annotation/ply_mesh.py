@@ -16,7 +16,7 @@ Writing: binary little-endian, ``x y z [nx ny nz]`` float32, ``[red green blue]`
 
 from __future__ import annotations
 
-import io
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,6 +28,8 @@ from brave6d.atomic import atomic_write_bytes
 from brave6d.errors import DataError
 
 _FACE_LISTS = ("vertex_indices", "vertex_index")
+#: plyfile memory-maps a binary face element whose lists all have this length (fast on big models).
+_TRIANGLE_LISTS = {"face": {name: 3 for name in _FACE_LISTS}}
 
 
 @dataclass(frozen=True)
@@ -48,22 +50,22 @@ class MeshData:
 def read_ply_mesh(source: Path | str | bytes, name: str | None = None) -> MeshData:
     """Read a mesh PLY from a path or from the file's bytes; errors are :class:`DataError` naming
     ``name`` (default: the path, or ``<PLY bytes>``)."""
-    from plyfile import PlyData
-
     if isinstance(source, bytes):
         label = name or "<PLY bytes>"
-        stream: Any = io.BytesIO(source)
-    else:
-        path = Path(source)
-        label = name or str(path)
-        if not path.is_file():
-            raise DataError(f"{label}: mesh file not found")
-        stream = str(path)
+        with tempfile.NamedTemporaryFile(suffix=".ply") as handle:  # a real file, so plyfile can memory-map it
+            handle.write(source)
+            handle.flush()
+            return read_ply_mesh(handle.name, label)
+    path = Path(source)
+    label = name or str(path)
+    if not path.is_file():
+        raise DataError(f"{label}: mesh file not found")
     try:
-        ply = PlyData.read(stream, mmap=False)
+        ply = _read_plydata(path)
         vertex = ply["vertex"].data
         vertices = np.stack([np.asarray(vertex[axis], dtype=np.float64) for axis in "xyz"], axis=1)
         faces = _triangles(ply["face"].data if "face" in ply else None)
+        colors = _vertex_colors(vertex)
     except DataError as exc:
         raise DataError(f"{label}: {exc}") from None
     except Exception as exc:  # noqa: BLE001 - plyfile raises many types on broken files
@@ -74,7 +76,17 @@ def read_ply_mesh(source: Path | str | bytes, name: str | None = None) -> MeshDa
         raise DataError(f"{label}: vertices contain NaN or inf")
     if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise DataError(f"{label}: a face refers to a vertex outside 0..{len(vertices) - 1}")
-    return MeshData(vertices, faces, _vertex_colors(vertex), label)
+    return MeshData(vertices, faces, colors, label)
+
+
+def _read_plydata(path: Path) -> Any:
+    """The parsed file: memory-mapped when every face is a triangle, else read row by row."""
+    from plyfile import PlyData, PlyElementParseError
+
+    try:
+        return PlyData.read(str(path), mmap="c", known_list_len=_TRIANGLE_LISTS)
+    except PlyElementParseError:  # a face that is not a triangle (or a broken file): the general reader
+        return PlyData.read(str(path), mmap=False)
 
 
 def _triangles(face: NDArray[Any] | None) -> NDArray[np.int64]:
@@ -86,6 +98,8 @@ def _triangles(face: NDArray[Any] | None) -> NDArray[np.int64]:
     if list_name is None:
         raise DataError(f"the face element has no {' or '.join(_FACE_LISTS)} list")
     polygons = face[list_name]
+    if polygons.dtype != object:  # memory-mapped fixed-length triangles, shape (F, 3)
+        return np.array(polygons, dtype=np.int64).reshape(-1, 3)
     lengths = np.fromiter((len(p) for p in polygons), dtype=np.int64, count=len(polygons))
     if np.any(lengths < 3):
         raise DataError("a face has fewer than three vertices")
@@ -103,7 +117,7 @@ def _vertex_colors(vertex: NDArray[Any]) -> NDArray[np.uint8] | None:
     names = vertex.dtype.names or ()
     if not all(c in names and vertex.dtype[c] == np.uint8 for c in ("red", "green", "blue")):
         return None
-    return np.stack([np.asarray(vertex[c], dtype=np.uint8) for c in ("red", "green", "blue")], axis=1)
+    return np.stack([np.array(vertex[c], dtype=np.uint8) for c in ("red", "green", "blue")], axis=1)
 
 
 def write_ply_mesh(path: Path | str, vertices: ArrayLike, faces: ArrayLike, normals: ArrayLike | None = None,
