@@ -13,15 +13,18 @@ name is used). Other stages import only these names:
   project): ``BopLayout``, ``read_scene_camera``, ``read_scene_gt``, ``read_scene_gt_info``,
   ``read_models_info``, ``model_file``, ``dataset_image_size``, ``bop_cam_K``, ``dump_bop_json``,
   ``SceneCamera``, ``GtPose``, ``GtInfo``;
-- models: ``model_diameter`` (largest point distance, the BOP ``diameter``);
+- meshes: ``read_ply_mesh``, ``write_ply_mesh``, ``MeshData`` (:mod:`annotation.ply_mesh`, the one
+  reader and writer of mesh PLY files), ``load_mesh`` (any mesh format, PLY through that reader),
+  ``model_diameter`` (largest point distance, the BOP ``diameter``);
 - checks and test scenes: ``mask_iou_against_sim_truth``, ``make_synthetic_scene``.
 
 The modules behind them, one job each: ``threedat`` (read a 3D-DAT folder), ``threedat_writer``
 (write one: the demo's "human annotator"), ``alignment`` (rigid alignment of camera poses),
 ``pairing`` (3D-DAT camera lines <-> captured views), ``importer``, ``store`` (``objects.json``),
-``models`` (meshes, BOP PLY models in mm, ``models_info`` entries), ``visibility`` (masks by ray
-casting), ``bop`` (the export), ``bop_format``, ``staging`` (hard links), ``validation`` (mask IoU
-against the simulator), ``cli`` (``brave6d annotate``), ``demo``, ``synthetic``.
+``ply_mesh`` (mesh PLY files), ``models`` (meshes, BOP PLY models in mm, ``models_info``
+entries), ``visibility`` (masks by ray casting), ``bop`` (the export), ``bop_format``, ``staging``
+(hard links), ``validation`` (mask IoU against the simulator), ``cli`` (``brave6d annotate``),
+``demo``, ``synthetic``.
 """
 
 from brave6d.lazy import lazy_exports
@@ -37,6 +40,7 @@ _LAZY = {
     "read_scene_gt_info": ".bop_format", "read_models_info": ".bop_format", "model_file": ".bop_format",
     "dataset_image_size": ".bop_format", "bop_cam_K": ".bop_format", "dump_bop_json": ".bop_format",
     "SceneCamera": ".bop_format", "GtPose": ".bop_format", "GtInfo": ".bop_format",
+    "read_ply_mesh": ".ply_mesh", "write_ply_mesh": ".ply_mesh", "MeshData": ".ply_mesh", "load_mesh": ".models",
     "model_diameter": ".models", "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".synthetic",
 }
 

@@ -1,4 +1,5 @@
-"""Object meshes for BOP: load (any trimesh format), write PLY in millimetres, models_info entries.
+"""Object meshes for BOP: load (PLY through :mod:`annotation.ply_mesh`, other formats through
+trimesh), write the BOP model PLY in millimetres, models_info entries.
 
 BOP models are triangle meshes in millimetres (``models/obj_XXXXXX.ply``) with per-vertex
 normals and, when the source has them, vertex colours. ``models_info.json`` holds per object
@@ -10,7 +11,6 @@ the symmetries (discrete: flattened 4x4 with translation in mm; continuous: ``{a
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,33 +20,25 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import ConvexHull
 from scipy.spatial.distance import cdist
 
-from brave6d.atomic import atomic_write_bytes
+from annotation.ply_mesh import MeshData, read_ply_mesh, write_ply_mesh
 from brave6d.errors import DataError
-
-
-@dataclass(frozen=True)
-class MeshData:
-    """Triangles in the file's units: ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64, optional
-    ``vertex_colors`` (V, 3) uint8 sRGB."""
-
-    vertices: NDArray[np.float64]
-    faces: NDArray[np.int64]
-    vertex_colors: NDArray[np.uint8] | None = None
-    source: str = "<memory>"
-
-    def scaled(self, factor: float) -> MeshData:
-        return MeshData(self.vertices * float(factor), self.faces, self.vertex_colors, self.source)
 
 
 def load_mesh(path: Path | str, what: str = "", colors: bool = True) -> MeshData:
     """Load a mesh file as one triangle mesh (pieces concatenated); errors name ``what`` and the file.
 
-    ``colors``: keep vertex colours (textures are sampled at the vertices); off for occluders.
+    ``colors``: keep vertex colours (for non-PLY formats textures are sampled at the vertices);
+    off for occluders.
     """
     p = Path(path)
     prefix = f"{what}: " if what else ""
     if not p.is_file():
         raise DataError(f"{prefix}mesh not found: {p}")
+    if p.suffix.lower() == ".ply":
+        ply = read_ply_mesh(p, f"{prefix}{p}")
+        if len(ply.faces) == 0:
+            raise DataError(f"{prefix}{p}: the file holds no triangles")
+        return MeshData(ply.vertices, ply.faces, ply.vertex_colors if colors else None, str(p))
     try:
         mesh = trimesh.load(str(p), force="mesh", process=False)
     except Exception as exc:  # trimesh raises many exception types on broken files
@@ -110,26 +102,10 @@ model_diameter = diameter
 
 def write_ply(path: Path | str, vertices: ArrayLike, faces: ArrayLike, vertex_colors: ArrayLike | None = None,
               comment: str = "BRAVE-6D BOP model (millimetres)") -> Path:
-    """Binary little-endian PLY with x y z nx ny nz [red green blue] and triangle faces (atomic)."""
+    """The BOP model PLY: x y z, area-weighted normals, [red green blue], triangles (atomic)."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    n = vertex_normals(v, f)
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
-    if vertex_colors is not None:
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    vert = np.empty(len(v), dtype=fields)
-    vert["x"], vert["y"], vert["z"] = v[:, 0], v[:, 1], v[:, 2]
-    vert["nx"], vert["ny"], vert["nz"] = n[:, 0], n[:, 1], n[:, 2]
-    if vertex_colors is not None:
-        c = np.asarray(vertex_colors, dtype=np.uint8).reshape(len(v), 3)
-        vert["red"], vert["green"], vert["blue"] = c[:, 0], c[:, 1], c[:, 2]
-    face = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    face["n"] = 3
-    face["i"] = f
-    props = "".join(f"property {'float' if t == '<f4' else 'uchar'} {name}\n" for name, t in fields)
-    header = (f"ply\nformat binary_little_endian 1.0\ncomment {comment}\nelement vertex {len(v)}\n{props}"
-              f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n")
-    return atomic_write_bytes(path, header.encode("ascii") + vert.tobytes() + face.tobytes())
+    return write_ply_mesh(path, v, f, vertex_normals(v, f), vertex_colors, comment)
 
 
 def model_info_mm(vertices_mm: ArrayLike, symmetries_discrete: Sequence[ArrayLike] = (),

@@ -303,47 +303,21 @@ def scene_camera(scene: SceneDir, spec: Any) -> PinholeCamera:
 
 
 # ----------------------------------------------------------------------------- models
-def _read_ply_mesh(path: Path) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    """Vertices and triangles of a PLY mesh (plyfile; any vertex properties beyond x y z ignored)."""
-    from plyfile import PlyData
-
-    try:
-        ply = PlyData.read(str(path))
-        v = ply["vertex"].data
-        verts = np.stack([np.asarray(v[a], dtype=np.float64) for a in ("x", "y", "z")], axis=1)
-        faces_raw = ply["face"].data
-        name = "vertex_indices" if "vertex_indices" in faces_raw.dtype.names else "vertex_index"
-        faces = np.stack([np.asarray(f, dtype=np.int64)[:3] for f in faces_raw[name]]) if len(faces_raw) else \
-            np.zeros((0, 3), np.int64)
-    except Exception as exc:  # noqa: BLE001 - plyfile raises many types on broken files
-        raise DataError(f"{path}: cannot read the PLY mesh ({type(exc).__name__}: {exc})") from None
-    return verts, faces
-
-
 def load_model_m(path: Path) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    """A bundle model (BOP PLY in mm) in metres."""
-    v, f = _read_ply_mesh(path)
-    return v / 1000.0, f
+    """A bundle model (BOP PLY in mm) in metres: vertices and triangles."""
+    from annotation import read_ply_mesh
+
+    mesh = read_ply_mesh(path)
+    return mesh.vertices / 1000.0, mesh.faces
 
 
 def _convert_mesh_to_mm(mesh: Path, scale: float, out: Path) -> NDArray[np.float64]:
-    """Write ``mesh`` (any trimesh format) scaled to millimetres as a binary PLY; returns vertices (mm)."""
-    import trimesh
-    from plyfile import PlyData, PlyElement
+    """Write ``mesh`` (any mesh format) scaled to millimetres as the bundle's model PLY; returns vertices (mm)."""
+    from annotation import load_mesh, write_ply_mesh
 
-    try:
-        tm = trimesh.load(str(mesh), force="mesh", process=False)
-    except Exception as exc:  # noqa: BLE001 - trimesh raises many types on broken files
-        raise DataError(f"{mesh}: cannot load mesh ({type(exc).__name__}: {exc})") from None
-    v = np.asarray(tm.vertices, dtype=np.float64) * scale * 1000.0
-    f = np.asarray(tm.faces, dtype=np.int32)
-    vert = np.empty(len(v), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
-    vert["x"], vert["y"], vert["z"] = v[:, 0], v[:, 1], v[:, 2]
-    face = np.empty(len(f), dtype=[("vertex_indices", "<i4", (3,))])
-    face["vertex_indices"] = f
-    out.parent.mkdir(parents=True, exist_ok=True)
-    PlyData([PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face")], text=False,
-            comments=["BRAVE-6D bundle model (millimetres)"]).write(str(out))
+    source = load_mesh(mesh, colors=False)
+    v = source.vertices * scale * 1000.0
+    write_ply_mesh(out, v, source.faces, comment="BRAVE-6D bundle model (millimetres)")
     return v
 
 

@@ -68,17 +68,6 @@ def cube_mesh_mm(size: float = CUBE_MM) -> tuple[NDArray[np.float64], NDArray[np
     return v, np.asarray(faces, dtype=np.int64)
 
 
-def write_mesh_ply(path: Path, vertices: NDArray[np.float64], faces: NDArray[np.int64]) -> None:
-    from plyfile import PlyData, PlyElement
-
-    vert = np.empty(len(vertices), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
-    vert["x"], vert["y"], vert["z"] = vertices.T
-    face = np.empty(len(faces), dtype=[("vertex_indices", "<i4", (3,))])
-    face["vertex_indices"] = faces
-    path.parent.mkdir(parents=True, exist_ok=True)
-    PlyData([PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face")], text=False).write(str(path))
-
-
 def world_T_cube(name: str) -> NDArray[np.float64]:
     xyz, rpy = CUBE_POSES[name]
     return make_transform(rpy_deg_to_matrix(rpy), xyz)
@@ -191,13 +180,14 @@ def ring_poses(n_views: int, distance: float = 0.3, elevation_deg: float = 50.0)
 def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree: int = 0, n_views: int = 10,
                          width: int = 320, height: int = 240, seed: int = 0, volume_fraction: float = 0.0) -> SceneDir:
     """Write the synthetic scene directory (see the module docstring); returns it."""
+    from annotation import write_ply_mesh
     from training import write_ply
 
     scene = SceneDir(root)
     scene.root.mkdir(parents=True, exist_ok=True)
     v, f = cube_mesh_mm()
     for name in CUBE_POSES:
-        write_mesh_ply(scene.root / "meshes" / f"{name}.ply", v, f)
+        write_ply_mesh(scene.root / "meshes" / f"{name}.ply", v, f)
     spec = json.loads(json.dumps(SPEC))
     spec["camera"].update({"width": width, "height": height})
     import yaml
@@ -222,7 +212,7 @@ def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree:
     ann = scene.annotation_dir
     objects, instances, id_map = [], [], {}
     for obj_id, name in enumerate(CUBE_POSES, start=1):
-        write_mesh_ply(ann / "meshes" / f"{name}.ply", v, f)
+        write_ply_mesh(ann / "meshes" / f"{name}.ply", v, f)
         objects.append(AnnotatedObject(obj_id, name, name, ann / "meshes" / f"{name}.ply", 0.001,
                                        class_name="toys_office", description="20 mm cube"))
         instances.append(AnnotatedInstance(obj_id, name, world_T_cube(name), entry=0))

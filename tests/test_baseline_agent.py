@@ -18,6 +18,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from annotation import write_ply_mesh
 from brave6d.transforms import invert, look_at, make_transform
 from evaluation.agents import (
     ACTIVE_AGENT,
@@ -46,7 +47,7 @@ from serve.bundle import Bundle, load_bundle
 from serve.client import BraveClient, PoseEstimate
 from serve.gym_env import BraveEnv
 from serve.runner import ServerThread
-from serve.synthetic import cube_mesh_mm, make_synthetic_bundle, write_mesh_ply
+from serve.synthetic import cube_mesh_mm, make_synthetic_bundle
 
 pytestmark = pytest.mark.slow
 
@@ -147,7 +148,7 @@ def test_model_sample_is_on_the_surface_with_outward_normals(tmp_path: Path) -> 
     flipped = sample_model(1, v, f[:, ::-1], 34.64, 1000, seed=3)  # inward winding is repaired
     np.testing.assert_array_equal(flipped.normals, m.normals)
     np.testing.assert_array_equal(sample_model(1, v, f, 34.64, 1000, seed=3).points, m.points)
-    write_mesh_ply(tmp_path / "cube.ply", v, f)
+    write_ply_mesh(tmp_path / "cube.ply", v, f)
     verts, faces = read_model_ply((tmp_path / "cube.ply").read_bytes())
     np.testing.assert_allclose(verts, v)
     np.testing.assert_array_equal(faces, f)

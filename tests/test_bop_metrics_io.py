@@ -260,7 +260,7 @@ def test_model_reader_errors(bop_dataset, tmp_path):
     with pytest.raises(DataError, match=r"models_info\.json.*symmetries_discrete"):
         load_models(models)
     (models / "obj_000002.ply").unlink()
-    with pytest.raises(DataError, match="obj_000002.ply: model file not found"):
+    with pytest.raises(DataError, match="obj_000002.ply: mesh file not found"):
         load_models(models, obj_ids=[2])
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,14 +77,7 @@ def sample_model(obj_id: int, vertices_mm: Array, faces: NDArray[np.int64] | Non
 def read_model_ply(data: bytes) -> tuple[Array, NDArray[np.int64] | None]:
     """Vertices (mm) and triangles (None for a point cloud) of a PLY file's bytes (what
     ``GET /bundle/models/{id}`` sends)."""
-    import trimesh
+    from annotation import read_ply_mesh
 
-    try:
-        geom = trimesh.load(io.BytesIO(data), file_type="ply", process=False)
-    except Exception as exc:  # noqa: BLE001 - trimesh raises many types on broken files
-        raise BraveError(f"cannot read the object model PLY ({type(exc).__name__}: {exc})") from None
-    verts = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
-    if len(verts) == 0:
-        raise BraveError("the object model PLY has no vertices")
-    faces = getattr(geom, "faces", None)
-    return verts, (np.asarray(faces, dtype=np.int64) if faces is not None and len(faces) else None)
+    mesh = read_ply_mesh(data, "the object model PLY")
+    return mesh.vertices, (mesh.faces if len(mesh.faces) else None)

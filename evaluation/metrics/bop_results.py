@@ -233,22 +233,11 @@ def load_split_gt_instances(split_dir: Path | str, image_size: tuple[int, int] |
 
 # ----------------------------------------------------------------------------- models
 def load_ply_mesh(path: Path | str) -> tuple[NDArray[np.float64], NDArray[np.int64] | None]:
-    """Vertices (N, 3) and triangle faces (M, 3) (None for a point cloud) of a PLY, unchanged."""
-    import trimesh
+    """Vertices (N, 3) and triangle faces (M, 3) (None for a point cloud) of a model PLY, unchanged."""
+    from annotation import read_ply_mesh
 
-    p = Path(path)
-    if not p.is_file():
-        raise DataError(f"{p}: model file not found")
-    try:
-        geom = trimesh.load(str(p), process=False)
-    except Exception as exc:  # trimesh raises many types for corrupt files
-        raise DataError(f"{p}: cannot read PLY ({exc})") from None
-    vertices = np.asarray(getattr(geom, "vertices", np.empty((0, 3))), dtype=np.float64)
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
-        raise DataError(f"{p}: no vertices")
-    faces = getattr(geom, "faces", None)
-    faces_arr = None if faces is None or len(faces) == 0 else np.asarray(faces, dtype=np.int64)
-    return vertices, faces_arr
+    mesh = read_ply_mesh(path)
+    return mesh.vertices, (mesh.faces if len(mesh.faces) else None)
 
 
 def load_models(
