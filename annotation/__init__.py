@@ -37,6 +37,7 @@ _LAZY = {
     "read_scene_gt_info": ".bop_format", "read_models_info": ".bop_format", "model_file": ".bop_format",
     "dataset_image_size": ".bop_format", "bop_cam_K": ".bop_format", "dump_bop_json": ".bop_format",
     "SceneCamera": ".bop_format", "GtPose": ".bop_format", "GtInfo": ".bop_format",
+    "SilhouetteCaster": ".visibility", "Silhouette": ".visibility", "bbox_xywh": ".visibility",
     "model_diameter": ".models", "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".synthetic",
 }
 
