@@ -117,9 +117,12 @@ def test_splat_depth_occludes_beyond_the_tolerance_only() -> None:
 
 
 def test_served_visibility_is_the_same_from_many_threads() -> None:
-    vc = VisibilityComputer([MODELS[k] for k, _ in INSTANCES], [T for _, T in INSTANCES])
+    """Server worker threads share one computer, from its first call on (Open3D builds a scene's
+    acceleration structure on the first cast)."""
+    models, poses_obj = [MODELS[k] for k, _ in INSTANCES], [T for _, T in INSTANCES]
+    vc = VisibilityComputer(models, poses_obj)
     poses = [look_at((0.05 * k - 0.2, 0.03 * k - 0.1, -0.3), (0.0, 0.0, 1.0)) for k in range(8)]
-    expected = [[v.to_json() for v in vc.compute(T, CAMERA)] for T in poses]
+    expected = [[v.to_json() for v in VisibilityComputer(models, poses_obj).compute(T, CAMERA)] for T in poses]
     assert len({str(e) for e in expected}) > 1  # the poses differ, so a mix-up would show
     got: dict[int, list] = {}
 
