@@ -16,6 +16,8 @@ name is used). Other stages import only these names:
 - meshes: ``read_ply_mesh``, ``write_ply_mesh``, ``MeshData`` (:mod:`annotation.ply_mesh`, the one
   reader and writer of mesh PLY files), ``load_mesh`` (any mesh format, PLY through that reader),
   ``model_diameter`` (largest point distance, the BOP ``diameter``);
+- silhouettes by ray casting (BOP masks and the server's visible fractions): ``SilhouetteCaster``,
+  ``Silhouette``, ``bbox_xywh``;
 - checks and test scenes: ``mask_iou_against_sim_truth``, ``make_synthetic_scene``.
 
 The modules behind them, one job each: ``threedat`` (read a 3D-DAT folder), ``threedat_writer``
@@ -41,6 +43,7 @@ _LAZY = {
     "dataset_image_size": ".bop_format", "bop_cam_K": ".bop_format", "dump_bop_json": ".bop_format",
     "SceneCamera": ".bop_format", "GtPose": ".bop_format", "GtInfo": ".bop_format",
     "read_ply_mesh": ".ply_mesh", "write_ply_mesh": ".ply_mesh", "MeshData": ".ply_mesh", "load_mesh": ".models",
+    "SilhouetteCaster": ".visibility", "Silhouette": ".visibility", "bbox_xywh": ".visibility",
     "model_diameter": ".models", "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".synthetic",
 }
 

@@ -16,7 +16,7 @@ from annotation.models import diameter, load_mesh, model_info_mm, write_ply
 from annotation.threedat import ContinuousSymmetry, LibraryEntry
 from annotation.threedat_writer import write_threedat_folder
 from annotation.synthetic import make_synthetic_scene
-from annotation.visibility import bbox_xywh
+from annotation import bbox_xywh
 from brave6d.atomic import read_png
 from brave6d.camera import PinholeCamera
 from brave6d.transforms import make_transform
