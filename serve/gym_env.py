@@ -1,6 +1,6 @@
 """A Gymnasium environment over the render server.
 
-    from serve.gym_env import BraveEnv
+    from serve import BraveEnv
 
     env = BraveEnv("http://127.0.0.1:8765", target="hex_nut", width=320, height=240)
     obs, info = env.reset(seed=0)
