@@ -86,7 +86,9 @@ def test_quick_demo_runs_every_stage(tmp_path: Path) -> None:
     assert final_m < start_m  # it approached the target
 
     evaluate = fig["evaluate"]
-    assert int(evaluate["episodes"]) == 2 * n_objects  # active and static, one episode per object
+    from evaluation.agents import POLICIES
+
+    assert int(evaluate["episodes"]) == len(POLICIES) * n_objects  # every registered agent, one episode per object
     assert 0.2 < float(evaluate["AR active"]) <= 1.0 and 0.2 < float(evaluate["AR static"]) <= 1.0
     assert float(evaluate["mean adjustments"]) > 0  # the active agent moved the camera
 

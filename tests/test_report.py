@@ -25,6 +25,9 @@ from evaluation.report.plots import finite_pairs, new_figure, plot_line
 from evaluation.report.sections.training import collect_training, render_training
 from evaluation.report.sections.views import ViewsSweep, render_views
 from evaluation.report.protocol import MeasureInputs
+from evaluation.report.sections import SECTIONS, page_order
+
+N_SECTIONS = len(SECTIONS)  # every count below follows the registry, so adding a section changes none
 
 MACHINE = {"cpu": "Test CPU", "cores": 2, "gpu": None, "device": "cpu", "torch": "2.13.0", "torch_threads": 2}
 
@@ -93,13 +96,13 @@ def test_report_from_fabricated_measurements(tmp_path: Path) -> None:
     fabricate(tmp_path)
     result = write_report(tmp_path)
     md = result.markdown.read_text()
-    assert [p.name for p in result.figures] == ["training.png", "handeye.png", "latency.png", "views.png",
-                                                "baseline.png"]
+    assert [p.name for p in result.figures] == [s.figure for s in page_order()]
+    assert {"training.png", "handeye.png", "latency.png", "views.png", "baseline.png"} <= {p.name for p in result.figures}
     for png in result.figures:
         w, h = _valid_png(png)
         assert w > 400 and h > 250
         assert f"]({png.name})" in md
-    assert md.count("\n## ") == 6 and "## How to choose settings" in md
+    assert md.count("\n## ") == N_SECTIONS + 1 and "## How to choose settings" in md
     # numbers on the page are those of the JSON
     he = read_json(tmp_path / "report" / "measurements" / "handeye.json")["points"]
     mm6 = [p["methods"]["refined"]["mm"] for p in he if p["n"] == 6]
@@ -141,9 +144,9 @@ def test_missing_inputs_give_section_notes(tmp_path: Path) -> None:
     (tmp_path / "scene").mkdir()
     stage = stage_report(SimpleNamespace(workdir=tmp_path, quick=True, device="cpu"))  # the demo's last stage
     assert stage.status == "ok" and stage.figures["plots"] == 0
-    assert stage.figures["incomplete"] == "handeye+latency+views+training+baseline"
+    assert stage.figures["incomplete"] == "+".join(s.name for s in SECTIONS)  # measuring order
     md = (tmp_path / "report" / "report.md").read_text()
-    assert md.count("**Not available.**") == 5
+    assert md.count("**Not available.**") == N_SECTIONS
     assert "board_capture/frames.jsonl` (run the calibration stage)" in md
     assert "evaluation/baseline.json` (run the evaluation stage)" in md
     assert "splat/metrics.json` (run the training stage)" in md
@@ -153,7 +156,7 @@ def test_missing_inputs_give_section_notes(tmp_path: Path) -> None:
 
 def test_page_renders_from_nothing_from_a_broken_file_and_from_a_partial_sweep(tmp_path: Path) -> None:
     md = write_report(tmp_path).markdown.read_text()
-    assert md.count("nothing measured yet") == 5
+    assert md.count("nothing measured yet") == N_SECTIONS
     store = measurement_store(tmp_path)
     _save(store, "latency", [{"id": "x", "median_ms": 3.0}], {})  # hand-edited: no gaussians/width/height
     md = write_report(tmp_path).markdown.read_text()
@@ -196,9 +199,10 @@ def test_training_section_reads_metrics_and_the_benchmark_json(tmp_path: Path) -
 
 # ----------------------------------------------------------------------------- the section registry
 class ExtraSection:
-    """A sixth section, known to the report only through the registry."""
+    """One more section, known to the report only through the registry (on the next free page)."""
 
-    name, page, title, figure = "extra", 6, "6. Extra: a registered section", "extra.png"
+    name, page, figure = "extra", N_SECTIONS + 1, "extra.png"
+    title = f"{N_SECTIONS + 1}. Extra: a registered section"
 
     def settings(self, quick: bool) -> dict:
         return {"quick": quick}
@@ -225,7 +229,9 @@ def test_a_section_added_to_the_registry_is_measured_and_on_the_page(tmp_path: P
     measured, _ = measure_all(tmp_path, ReportSettings.for_mode(quick=True), only=("extra",))
     assert list(measured) == ["extra"] and measured["extra"].settings == {"quick": True}
     md = write_report(tmp_path).markdown.read_text()
-    assert md.count("\n## ") == 7 and md.index("## 5. Baseline") < md.index("## 6. Extra") < md.index("## How to")
+    last = max(SECTIONS, key=lambda s: s.page).title  # the registry before the patch
+    assert md.count("\n## ") == N_SECTIONS + 2
+    assert md.index(f"## {last}") < md.index(f"## {ExtraSection.title}") < md.index("## How to")
     assert "The answer is 42." in md and "**Extra:** registered once." in md
     assert "extra (complete)" in md.splitlines()[6]  # the header's list of sections
 
@@ -243,7 +249,7 @@ def test_report_settings_reach_every_section_generically() -> None:
     assert full.for_section(by_name["handeye"]) == HandEyeSweep()
     assert quick.for_section(by_name["views"]).steps < full.for_section(by_name["views"]).steps
     assert ReportSettings().for_section(by_name["latency"]) == LatencySweep()  # not named: the full defaults
-    assert [s.page for s in sections.page_order()] == [1, 2, 3, 4, 5]
+    assert [s.page for s in sections.page_order()] == list(range(1, N_SECTIONS + 1))
     assert all(s.title.startswith(f"{s.page}. ") for s in sections.SECTIONS)
 
 

@@ -11,7 +11,7 @@ Public API (imported lazily, so ``import evaluation.agents`` stays cheap: no Ope
   :func:`register_views`, :func:`sample_model`, :func:`read_model_ply` and their options.
 
 A new agent: a module in this package implementing :class:`Agent` (or a new :class:`CameraPolicy`
-for the baseline), and one line in :data:`POLICIES`.
+for the baseline), a factory and its entry in :data:`POLICIES` (docs/ARCHITECTURE.md, section 6).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Each module here defines one section behind the :class:`~evaluation.report.protocol.Section`
 protocol as its ``SECTION``; :data:`SECTIONS` lists them in measuring order (cheap first),
 :func:`page_order` in the order of the page. Adding a section is one module here and its name
-in :data:`MODULES`; nothing else changes (see docs/ARCHITECTURE.md).
+in :data:`MODULES`; nothing else in the report changes (docs/ARCHITECTURE.md, section 6).
 """
 
 from __future__ import annotations
