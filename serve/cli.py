@@ -14,6 +14,7 @@ import ipaddress
 import logging
 import os
 import secrets
+import signal
 import socket
 from dataclasses import dataclass
 from pathlib import Path
@@ -134,5 +135,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"token (send as 'Authorization: Bearer <token>' or '?token=<token>'): {access.token}", flush=True)
     level = "info" if getattr(args, "verbose", 0) else "warning"
     server = uvicorn.Server(uvicorn_config(app, args.host, port, level, args.max_body_bytes))
-    server.run(sockets=[sock])
+    # uvicorn shuts down gracefully on Ctrl-C, then raises the signal again with the handler it
+    # found. With Python's default handler that goes through asyncio's Runner, which turns it into
+    # a task cancellation and, once in a CI run, into a normal return (exit status 0); a handler
+    # that raises KeyboardInterrupt itself makes the CLI's one-line "interrupted", status 130, certain.
+    previous = signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
+    try:
+        server.run(sockets=[sock])
+    finally:
+        signal.signal(signal.SIGINT, previous)
     return 0
+
+
+def _raise_keyboard_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
