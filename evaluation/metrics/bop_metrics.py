@@ -424,5 +424,6 @@ def overlapping_sphere_projections(radius: float, p1: ArrayLike, p2: ArrayLike) 
     b = np.asarray(p2, dtype=np.float64).reshape(3)
     if a[2] == 0 or b[2] == 0 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
         return False
-    proj_dist = float(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2]))
-    return proj_dist < radius * (1.0 / a[2] + 1.0 / b[2])
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # a depth near 0: inf, compared as such
+        proj_dist = float(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2]))
+        return bool(proj_dist < radius * (1.0 / a[2] + 1.0 / b[2]))
