@@ -1,0 +1,31 @@
+"""Dataset releases: ``brave6d release build`` packages a dataset work directory as BOP-style zips
+plus one render-server bundle per scene, checksums, a manifest and a dataset card;
+``brave6d release verify`` checks a release folder completely.
+
+Public API (imported lazily: ``import dataset.release`` loads no torch):
+
+- ``build_release``, ``ReleaseResult``; ``verify_release``, ``VerifyReport``; ``ReleaseError``;
+- ``load_release_source``, ``ReleaseSource``, ``SceneSource``, ``LibraryObject`` (what a release is
+  built from: the one reader of ``WORKDIR/dataset.yaml`` in this package);
+- the release's files: ``read_sha256sums``, ``read_targets``, ``read_holdout``, ``read_manifest``.
+
+The modules behind them, one job each: ``source`` (dataset.yaml -> scenes and library),
+``collect`` (read and check each scene's BOP export, bundle, holdout and statistics), ``zips``
+(streamed, reproducible zips), ``formats`` (file names, SHA256SUMS, targets, holdout.json),
+``manifest`` (manifest.json), ``card`` (the dataset card), ``build``, ``verify``, ``cli``.
+"""
+
+from brave6d.lazy import lazy_exports
+
+_LAZY = {
+    "build_release": ".build", "ReleaseResult": ".build", "verify_release": ".verify", "VerifyReport": ".verify",
+    "ReleaseError": ".source", "load_release_source": ".source", "ReleaseSource": ".source",
+    "SceneSource": ".source", "LibraryObject": ".source",
+    "read_sha256sums": ".formats", "read_targets": ".formats", "read_holdout": ".formats",
+    "read_manifest": ".manifest",
+}
+
+__all__ = sorted(_LAZY)
+
+
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
