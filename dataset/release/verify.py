@@ -70,7 +70,7 @@ def verify_release(root: Path | str) -> VerifyReport:
         for s in progress(scenes, desc="bundles", unit="bundle"):
             _check_bundle(base / bundle_zip(name, s["scene_id"]), s, library, tmp)
     return VerifyReport(base, len(sums) + 1, sum((base / n).stat().st_size for n in sums), len(scenes),
-                        sum(len(g) for g in gts.values()), len(scenes))
+                        sum(len(g) for k, g in gts.items() if k > 0), len(scenes))
 
 
 def _check_sums(base: Path) -> dict[str, str]:
