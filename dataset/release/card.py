@@ -20,7 +20,9 @@ def _db(value: float | None) -> str:
 
 
 def _mb(n: int | None) -> str:
-    return "this file" if n is None else f"{n / 1e6:.1f} MB"
+    if n is None:
+        return "this file"
+    return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.1f} kB"
 
 
 def render_card(source: ReleaseSource, scenes: list[SceneRelease], models: dict[int, ReleaseModel],
