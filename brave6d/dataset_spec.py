@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from brave6d.errors import SpecError, validation_error_field
 from brave6d.spec import Category, ObjectSpec, PositiveFloat, SceneSpec, SymmetrySpec, parse_scene_spec
@@ -83,15 +83,21 @@ class DatasetSpec(_Strict):
 
     source: Path | None = Field(default=None, exclude=True, description="file this spec was read from")
 
-    @model_validator(mode="after")
-    def _unique(self) -> DatasetSpec:
-        if self.name in (".", ".."):
-            raise ValueError(f"name {self.name!r} is not a usable folder name")
-        names = [o.name for o in self.objects]
+    @field_validator("name")
+    @classmethod
+    def _folder_name(cls, value: str) -> str:
+        if value in (".", ".."):
+            raise ValueError(f"{value!r} is not a usable folder name")
+        return value
+
+    @field_validator("objects")
+    @classmethod
+    def _unique(cls, value: list[LibraryObject]) -> list[LibraryObject]:
+        names = [o.name for o in value]
         dupes = sorted({n for n in names if names.count(n) > 1})
         if dupes:
-            raise ValueError(f"objects: duplicate names {dupes} (one library entry per object)")
-        return self
+            raise ValueError(f"duplicate names {dupes} (one library entry per object)")
+        return value
 
     @property
     def base_dir(self) -> Path:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 from brave6d.errors import BraveError
@@ -48,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         gpus_per_task=args.gpus_per_task, cpus_per_task=args.cpus_per_task, mem_gb=args.mem_gb,
         array_parallelism=args.array_parallelism, account=args.account, qos=args.qos)
     if options.executor == "local" and args.array_parallelism is None:
-        options = type(options)(**{**options.__dict__, "array_parallelism": 1})  # one scene at a time here
+        options = dataclasses.replace(options, array_parallelism=1)  # one scene at a time on this machine
     summary = run_dataset(args.dataset, args.workdir, quick=args.quick, device=args.device, options=options,
                           scenes=args.scenes)
     print()

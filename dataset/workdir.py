@@ -31,10 +31,15 @@ def scene_dir(workdir: Path, name: str) -> SceneDir:
 
 
 def scene_spec_for_run(scene: DatasetScene, quick: bool) -> SceneSpec:
-    """The spec a scene directory is made from (``quick``: the miniature capture)."""
-    if not quick:
-        return scene.spec
-    return scene.spec.model_copy(update={"capture": scene.spec.capture.model_copy(update=QUICK_CAPTURE)})
+    """The spec a scene directory is made from: every mesh an absolute path, so it can be written
+    anywhere (``quick``: the miniature capture)."""
+    spec = scene.spec
+    update: dict[str, object] = {
+        key: [m.model_copy(update={"mesh": spec.resolve(m.mesh).resolve()}) for m in getattr(spec, key)]
+        for key in ("static_meshes", "objects")}
+    if quick:
+        update["capture"] = spec.capture.model_copy(update=QUICK_CAPTURE)
+    return spec.model_copy(update=update)
 
 
 def init_scene(workdir: Path, scene: DatasetScene, quick: bool) -> str:
