@@ -132,3 +132,15 @@ def test_quick_demo_dataset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFix
     assert table.count("done") >= 2 * len(SCENE_STAGES) and "demo_broken" in table
     summary = read_summary(work)
     assert [r["scene"] for r in summary["scenes"]] == [*good, "demo_broken"]
+
+
+def test_the_public_api_resolves_and_stays_light() -> None:
+    import subprocess
+    import sys
+
+    import dataset
+
+    assert all(hasattr(dataset, n) for n in dataset.__all__)
+    code = "import sys, dataset; print(','.join(m for m in ('torch', 'submitit', 'open3d') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "", out.stdout + out.stderr
