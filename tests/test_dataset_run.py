@@ -123,7 +123,8 @@ def test_quick_demo_dataset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFix
     assert cli_main(argv) == 1
     rerun = time.perf_counter() - t0
     assert {n: {s: r["at"] for s, r in read_scene_status(work, n).stages.items()} for n in good} == stamps
-    print(f"\nquick demo dataset (2 scenes + 1 broken): first run {first:.1f} s, re-run {rerun:.1f} s")
+    with capsys.disabled():
+        print(f"\nquick demo dataset (2 scenes + 1 broken): first run {first:.1f} s, re-run {rerun:.1f} s")
     assert rerun < first / 3
 
     capsys.readouterr()
