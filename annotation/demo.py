@@ -61,7 +61,7 @@ def stage_annotation(ctx: DemoContext) -> StageResult:
 
     dat_dir = ctx.workdir / "threedat"
     write_demo_threedat(ctx.scene.root, dat_dir)
-    imported = import_threedat(dat_dir, ctx.scene.root)
+    imported = import_threedat(dat_dir, ctx.scene.root, obj_ids=ctx.obj_ids)  # None: the scene's own ids
     exported = export_bop(ctx.scene.root)
     figures = {
         "objects": imported.n_objects,

@@ -4,7 +4,8 @@ Steps, all checks before any write: read and validate the 3D-DAT folder; load th
 annotated library object; pair its camera poses with the captured views as 3D-DAT pairs them
 with its images, the ids as a cross-check (:mod:`annotation.pairing`), and align its world frame
 to the robot base (:mod:`annotation.alignment`); assign stable BOP ``obj_id`` values to every
-library id (sorted 3D-DAT ids, the saved map reused so ids never change); then write the meshes
+library id (sorted 3D-DAT ids, the saved map reused so ids never change; or, for a scene of a
+dataset, the explicit ``obj_ids`` map of the dataset's object library); then write the meshes
 of the annotated objects (content-addressed, never overwritten), then the commit point
 ``objects.json`` (with the alignment report; ``alignment.json`` is a readable copy). Library
 objects that are not annotated keep their ``obj_id`` in the id map but are no object of the
@@ -17,7 +18,7 @@ import hashlib
 import logging
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -76,9 +77,29 @@ def assign_obj_ids(ids: Sequence[ThreeDatId], previous: dict[str, int]) -> dict[
     return mapping
 
 
+def explicit_obj_ids(ids: Sequence[ThreeDatId], obj_ids: Mapping[str, int], where: str) -> dict[str, int]:
+    """The id map given by ``obj_ids`` (3D-DAT id -> obj_id, e.g. a dataset's object library) for
+    the library ``ids``: every id must be in it, with distinct positive obj_ids."""
+    missing = [id_key(i) for i in ids if id_key(i) not in obj_ids]
+    if missing:
+        raise DataError(f"{where}: library ids {missing} have no obj_id in the given map "
+                        f"(it has {sorted(obj_ids)})")
+    mapping = {id_key(i): obj_ids[id_key(i)] for i in ids}
+    if not all(isinstance(v, int) and v > 0 for v in mapping.values()):
+        raise DataError(f"{where}: the given obj_ids must be positive integers, got {mapping}")
+    if len(set(mapping.values())) != len(mapping):
+        raise DataError(f"{where}: the given map gives two library ids the same obj_id ({mapping})")
+    return mapping
+
+
 def import_threedat(dat_dir: Path | str, scene_dir: Path | str, scene_id: str | None = None,
-                    options: AlignmentOptions = AlignmentOptions()) -> ImportResult:
-    """Import one annotated 3D-DAT scene into ``scene_dir`` (see the module docstring)."""
+                    options: AlignmentOptions = AlignmentOptions(),
+                    obj_ids: Mapping[str, int] | None = None) -> ImportResult:
+    """Import one annotated 3D-DAT scene into ``scene_dir`` (see the module docstring).
+
+    ``obj_ids`` (3D-DAT id -> BOP obj_id) fixes the ids, e.g. a dataset's library ids so that an
+    object has one obj_id in every scene; without it ids are assigned and kept per scene.
+    """
     dat = read_threedat(dat_dir, scene_id)
     scene = SceneDir(scene_dir)
     lib_name = dat.config.show(dat.config.object_library_file)
@@ -96,7 +117,14 @@ def import_threedat(dat_dir: Path | str, scene_dir: Path | str, scene_id: str | 
     log.info("%s (matched by %s)", report.summary(), how)
     world_poses = apply_alignment(report.target_T_source, [o.world_T_model for o in dat.objects])
 
-    id_map = assign_obj_ids([e.id for e in dat.library], read_id_map(scene))
+    if obj_ids is None:
+        id_map = assign_obj_ids([e.id for e in dat.library], read_id_map(scene))
+    else:
+        id_map = explicit_obj_ids([e.id for e in dat.library], obj_ids, lib_name)
+        previous = read_id_map(scene)
+        changed = sorted(k for k, v in id_map.items() if previous.get(k, v) != v)
+        if changed:
+            log.warning("%s: obj_ids of %s change to the given map's", scene.root, changed)
     objects = [_annotated_object(e, id_map[e.key], scene) for e in annotated]
     instances = [AnnotatedInstance(obj_id=id_map[id_key(o.object_id)], threedat_id=o.object_id,
                                    world_T_model=T, entry=o.entry) for o, T in zip(dat.objects, world_poses)]

@@ -37,6 +37,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("release", "dataset.release.cli", "build a dataset release (BOP zips, bundles, checksums, card) or verify one"),
     Command("evaluate", "evaluation.cli", "score agent episodes (BOP Average Recall, adjustments) and print a leaderboard"),
     Command("report", "evaluation.report.cli", "write the accuracy-vs-time report from real measurements"),
+    Command("dataset", "dataset.cli", "run every stage of every scene of a dataset (local or Slurm); show its status"),
     Command("demo", "brave6d.demo", "run the whole pipeline on the embedded demo scene"),
 )
 

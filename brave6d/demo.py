@@ -36,6 +36,10 @@ class DemoContext:
     quick: bool = False
     device: str = "auto"
     results: list[StageResult] = field(default_factory=list)
+    #: object name -> BOP obj_id fixed by a dataset's library (None: the scene numbers its own)
+    obj_ids: dict[str, int] | None = None
+    #: continue a training from its checkpoints (``brave6d dataset run`` after a preemption)
+    resume: bool = False
 
 
 @dataclass(frozen=True)

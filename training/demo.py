@@ -23,7 +23,8 @@ def stage_train(ctx: Any) -> StageResult:
 
     require_capture(ctx.scene)
     colmap = ColmapOptions(max_features=1024) if ctx.quick else ColmapOptions()
-    m = train_scene(ctx.scene, demo_preset(ctx.quick), device=ctx.device, colmap=colmap)
+    m = train_scene(ctx.scene, demo_preset(ctx.quick), device=ctx.device, colmap=colmap,
+                    resume=getattr(ctx, "resume", False))
     hold = m["holdout"]
     figures: dict[str, Any] = {
         "holdout PSNR": round(hold["psnr"], 2),

@@ -1,0 +1,96 @@
+"""One scene's job: run its remaining stages in order, recording each in the scene's status.
+
+:class:`SceneJob` is what submitit runs (in a child process or on a Slurm node). It is a
+``submitit.helpers.Checkpointable``: when Slurm preempts it or its time runs out, submitit
+requeues the same job, which skips the stages recorded ``done`` and continues the training from
+its checkpoints (``DemoContext.resume``). A failing stage is recorded with its error and ends
+the job (later stages need its outputs); the job returns a :class:`SceneOutcome`, it never
+raises for a stage's failure, so one scene never stops another.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import submitit
+
+from brave6d.errors import BraveError
+from brave6d.progress import Stopwatch
+from dataset.status import mark, read_scene_status
+
+log = logging.getLogger(__name__)
+
+#: The stages a job runs, in order (named as in ``brave6d.demo.STAGES``, whose functions run them).
+JOB_STAGES = ("calibrate", "capture", "annotate", "train", "export")
+
+
+@dataclass(frozen=True)
+class SceneOutcome:
+    """How a scene's job ended: the failed stage and its error, or ``None`` for both."""
+
+    scene: str
+    failed_stage: str | None = None
+    error: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.failed_stage is None
+
+
+class SceneJob(submitit.helpers.Checkpointable):
+    """Run the pending stages of one scene of a dataset work directory (module docstring)."""
+
+    def __init__(self, workdir: Path, scene: str, scene_id: int, obj_ids: dict[str, int],
+                 quick: bool = False, device: str = "auto") -> None:
+        self.workdir, self.scene, self.scene_id = Path(workdir), scene, scene_id
+        self.obj_ids, self.quick, self.device = dict(obj_ids), quick, device
+
+    def __call__(self) -> SceneOutcome:
+        from brave6d.runtime import prepare_process
+
+        prepare_process()  # before any stage loads torch / numba, as the CLI does
+        from brave6d.demo import STAGES, DemoContext
+        from brave6d.layout import SceneDir
+
+        status = read_scene_status(self.workdir, self.scene, self.scene_id)
+        if not status.done("init"):
+            return SceneOutcome(self.scene, "init", "the scene directory was not initialised")
+        scene_dir = SceneDir(self.workdir / "scenes" / self.scene)
+        stages = {s.name: s for s in STAGES}
+        ctx = DemoContext(workdir=self.workdir / "work" / self.scene, scene=scene_dir, spec=scene_dir.load_spec(),
+                          quick=self.quick, device=self.device, obj_ids=self.obj_ids, resume=True)
+        ctx.workdir.mkdir(parents=True, exist_ok=True)
+        for name in JOB_STAGES:
+            if status.done(name):
+                continue
+            mark(self.workdir, status, name, "running")
+            with Stopwatch() as watch:
+                try:
+                    result = stages[name].resolve()(ctx)
+                except Exception as exc:  # noqa: BLE001 - recorded and reported; the other scenes go on
+                    error = str(exc) if isinstance(exc, BraveError) else f"{type(exc).__name__}: {exc}"
+                    if not isinstance(exc, BraveError):
+                        log.error("%s / %s:\n%s", self.scene, name, traceback.format_exc())
+                    mark(self.workdir, status, name, "failed", seconds=round(watch.seconds, 1),
+                         error=error.splitlines()[0] if error else type(exc).__name__)
+                    return SceneOutcome(self.scene, name, error)
+            mark(self.workdir, status, name, "done", seconds=round(watch.seconds, 1),
+                 figures=_plain(result.figures))
+        return SceneOutcome(self.scene)
+
+
+def _plain(figures: dict[str, Any]) -> dict[str, Any]:
+    """Figures as JSON values (numpy scalars to Python, NaN/inf to text)."""
+    out: dict[str, Any] = {}
+    for key, value in figures.items():
+        if hasattr(value, "item"):
+            value = value.item()
+        if isinstance(value, float) and not math.isfinite(value):
+            value = str(value)
+        out[str(key)] = value if isinstance(value, (int, float, str, bool)) or value is None else str(value)
+    return out

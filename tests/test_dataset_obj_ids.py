@@ -1,0 +1,50 @@
+"""A dataset's library fixes the BOP obj_ids of a scene's import (annotation.import_threedat(obj_ids=...))."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from annotation import (
+    BopLayout,
+    export_bop,
+    import_threedat,
+    load_annotation,
+    make_synthetic_scene,
+    read_scene_gt,
+    read_threedat,
+)
+from brave6d.errors import DataError
+
+FIXTURE = Path(__file__).parent / "fixtures" / "threedat"
+
+
+def _scene(tmp_path: Path):
+    dat = read_threedat(FIXTURE)
+    poses = {int(p.frame_id): p.world_T_cam for p in dat.camera_poses}
+    return make_synthetic_scene(tmp_path / "scene", dat.camera.pinhole(), poses)
+
+
+def test_explicit_obj_ids_reach_the_bop_export(tmp_path: Path) -> None:
+    scene = _scene(tmp_path)
+    import_threedat(FIXTURE, scene.root)  # on its own: sorted ids, bar = 1, cube = 2
+    assert load_annotation(scene).id_map == {"bar": 1, "cube": 2}
+    import_threedat(FIXTURE, scene.root, obj_ids={"cube": 5, "bar": 9, "unused": 1})
+    annotation = load_annotation(scene)
+    assert annotation.id_map == {"bar": 9, "cube": 5}
+    assert sorted(o.obj_id for o in annotation.objects) == [5, 9]
+    export_bop(scene.root)
+    gt = read_scene_gt(BopLayout.of_scene(scene).scene_gt_path)
+    assert {g.obj_id for poses in gt.values() for g in poses} == {5, 9}
+
+
+@pytest.mark.parametrize(("obj_ids", "problem"), [({"cube": 1}, r"library ids \['bar'\] have no obj_id"),
+                                                  ({"cube": 1, "bar": 1}, "the same obj_id"),
+                                                  ({"cube": 0, "bar": 1}, "positive integers")])
+def test_an_incomplete_or_ambiguous_map_is_refused_before_writing(tmp_path: Path, obj_ids: dict[str, int],
+                                                                   problem: str) -> None:
+    scene = _scene(tmp_path)
+    with pytest.raises(DataError, match=problem):
+        import_threedat(FIXTURE, scene.root, obj_ids=obj_ids)
+    assert not scene.annotation_dir.exists()
