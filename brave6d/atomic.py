@@ -31,6 +31,7 @@ def atomic_write(path: Path | str, write: Callable[[BinaryIO], None]) -> Path:
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; a colleague must read what open() would let them
         with os.fdopen(fd, "wb") as handle:
             write(handle)
             handle.flush()
@@ -44,6 +45,17 @@ def atomic_write(path: Path | str, write: Callable[[BinaryIO], None]) -> Path:
         raise
     _fsync_dir(target.parent)
     return target
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it (``os.umask`` would, racing other threads)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    return 0o022
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -89,6 +101,7 @@ def staged_folder(target: Path | str) -> Iterator[Path]:
     final.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.parent))
     try:
+        staging.chmod(0o777 & ~_umask())  # mkdtemp makes 0700; the folder gets os.mkdir's permissions
         yield staging
         replace_folder(staging, final)
     except BaseException:

@@ -33,3 +33,20 @@ def test_staged_folder_replaces_only_on_success(tmp_path: Path) -> None:
             raise RuntimeError("writer failed")
     assert (target / "a.txt").read_text() == "first"
     assert [p.name for p in tmp_path.iterdir()] == ["bop"]  # no staging folder left behind
+
+
+def test_atomic_files_and_staged_folders_get_the_permissions_open_and_mkdir_give(tmp_path: Path) -> None:
+    """mkstemp/mkdtemp make 0600/0700; written data must be as readable as a plain open()/mkdir()."""
+    import stat
+
+    from brave6d.atomic import atomic_write_text, staged_folder
+
+    plain_file, plain_dir = tmp_path / "plain.txt", tmp_path / "plain_dir"
+    plain_file.write_text("x")
+    plain_dir.mkdir()
+    atomic = atomic_write_text(tmp_path / "atomic.txt", "x")
+    with staged_folder(tmp_path / "staged") as staging:
+        (staging / "f").write_text("x")
+    mode = lambda p: stat.S_IMODE(p.stat().st_mode)  # noqa: E731
+    assert mode(atomic) == mode(plain_file)
+    assert mode(tmp_path / "staged") == mode(plain_dir)
