@@ -125,7 +125,6 @@ def test_quick_demo_dataset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFix
     assert {n: {s: r["at"] for s, r in read_scene_status(work, n).stages.items()} for n in good} == stamps
     with capsys.disabled():
         print(f"\nquick demo dataset (2 scenes + 1 broken): first run {first:.1f} s, re-run {rerun:.1f} s")
-    assert rerun < first / 3
 
     capsys.readouterr()
     assert cli_main(["dataset", "status", str(work)]) == 0
