@@ -51,15 +51,28 @@ def _make_scene(root: Path, n_views: int, depth: bool, psnr: float | None) -> No
 
 
 def _write_dataset(workdir: Path, objects: list[str]) -> None:
-    specs = workdir / "specs"
-    specs.mkdir(parents=True, exist_ok=True)
+    """A dataset.yaml as `brave6d dataset run` leaves it: valid for brave6d.dataset_spec, each scene
+    entry pointing at its scene directory's scene.yaml (named after the folder), a library whose
+    meshes are the scenes' (plus objects no scene uses)."""
+    meshes = workdir / "meshes"
+    meshes.mkdir(parents=True, exist_ok=True)
     for name in ("scene_a", "scene_b"):
-        (specs / f"{name}.yaml").write_text(f"name: {name}\n")
+        spec_file = workdir / "scenes" / name / "scene.yaml"
+        spec = yaml.safe_load(spec_file.read_text())
+        spec["name"] = name
+        spec_file.write_text(yaml.safe_dump(spec, sort_keys=False))
+    cube = workdir / "scenes" / "scene_a" / "meshes" / "cube_red.ply"
+    library = []
+    for n in objects:
+        in_scene = workdir / "scenes" / "scene_a" / "meshes" / f"{n}.ply"
+        if not in_scene.is_file():  # an object of the library that no scene shows
+            shutil.copyfile(cube, meshes / f"{n}.ply")
+        mesh = in_scene if in_scene.is_file() else meshes / f"{n}.ply"
+        library.append({"name": n, "category": "toys_office", "mesh": str(mesh.relative_to(workdir)), "scale": 0.001})
     dataset = {"name": NAME, "version": "1.0", "license": "CC-BY-4.0", "citation": CITATION,
                "description": "Two synthetic tabletop scenes sharing two cubes.",
-               "objects": [{"name": n, "category": "toys_office", "mesh": f"meshes/{n}.ply", "scale": 0.001}
-                           for n in objects],
-               "scenes": [{"spec": "specs/scene_a.yaml"}, {"spec": "specs/scene_b.yaml"}]}
+               "objects": library,
+               "scenes": [{"spec": "scenes/scene_a/scene.yaml"}, {"spec": "scenes/scene_b/scene.yaml"}]}
     (workdir / "dataset.yaml").write_text(yaml.safe_dump(dataset, sort_keys=False))
 
 
