@@ -42,12 +42,9 @@ import hashlib
 import json
 import logging
 import os
-import platform
 import shutil
-import subprocess
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +56,7 @@ from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError, DataError, NonRigidTransformError
 from brave6d.layout import FrameRecord, SceneDir
 from brave6d.transforms import check_rigid
+from brave6d.provenance import software_versions
 from serve.geometry import DEFAULT_CAMERA_RADIUS, CollisionWorld, OrientedBox, Workspace
 from serve.limits import MAX_HEIGHT, MAX_WIDTH, fit_image_size, image_size_error
 from serve.splat_check import check_splat, ply_vertex_count
@@ -352,21 +350,8 @@ class ExportResult:
 
 
 def versions() -> dict[str, str]:
-    """Versions of what makes and reads a bundle (from package metadata: imports nothing heavy)."""
-    out: dict[str, str] = {"python": platform.python_version()}
-    for pkg in ("brave6d", "torch", "numpy", "scipy", "plyfile", "open3d", "fastapi"):
-        try:
-            out[pkg] = version(pkg)
-        except PackageNotFoundError:
-            out[pkg] = "not installed"
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
-                                capture_output=True, text=True, timeout=5, check=False)
-        if commit.returncode == 0:
-            out["git_commit"] = commit.stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return out
+    """Versions of what makes and reads a bundle (``brave6d.provenance``)."""
+    return software_versions(("brave6d", "torch", "numpy", "scipy", "plyfile", "open3d", "fastapi"))
 
 
 def not_a_bundle(folder: Path) -> str | None:

@@ -9,13 +9,11 @@ every file, the object library (with which objects have a model) and, per scene,
 from __future__ import annotations
 
 import datetime as _dt
-import platform
-import subprocess
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 from brave6d.atomic import read_json
+from brave6d.provenance import software_versions
 from dataset.release.collect import ReleaseModel, SceneRelease
 from dataset.release.formats import FORMAT, bundle_zip
 from dataset.release.source import ReleaseError, ReleaseSource
@@ -25,21 +23,8 @@ PACKAGES = ("brave6d", "numpy", "torch", "scipy", "plyfile", "opencv-contrib-pyt
 
 
 def versions() -> dict[str, str]:
-    """Versions of python and the packages that make a release (package metadata: imports nothing)."""
-    out = {"python": platform.python_version()}
-    for pkg in PACKAGES:
-        try:
-            out[pkg] = version(pkg)
-        except PackageNotFoundError:
-            out[pkg] = "not installed"
-    try:
-        res = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
-                             capture_output=True, text=True, timeout=5, check=False)
-        if res.returncode == 0:
-            out["git_commit"] = res.stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return out
+    """Versions of python and the packages that make a release (``brave6d.provenance``)."""
+    return software_versions(PACKAGES)
 
 
 def scene_entry(s: SceneRelease, release_name: str) -> dict[str, Any]:
