@@ -55,8 +55,8 @@ from brave6d.atomic import atomic_write_json, file_sha256, move_aside, read_json
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError, DataError, NonRigidTransformError
 from brave6d.layout import FrameRecord, SceneDir
-from brave6d.transforms import check_rigid
 from brave6d.provenance import software_versions
+from brave6d.transforms import check_rigid
 from serve.geometry import DEFAULT_CAMERA_RADIUS, CollisionWorld, OrientedBox, Workspace
 from serve.limits import MAX_HEIGHT, MAX_WIDTH, fit_image_size, image_size_error
 from serve.splat_check import check_splat, ply_vertex_count
