@@ -117,11 +117,10 @@ def test_iou_drops_when_the_buffer_is_wrong(sim_scene) -> None:
 
 
 def test_demo_stage_runs_on_a_captured_scene(sim_scene, tmp_path: Path) -> None:
-    from types import SimpleNamespace
-
     from annotation.demo import stage_annotation
+    from brave6d.demo import DemoContext
 
     scene, _ = sim_scene
-    result = stage_annotation(SimpleNamespace(workdir=tmp_path, scene=scene))
+    result = stage_annotation(DemoContext(workdir=tmp_path, scene=scene, spec=scene.load_spec()))
     assert result.name == "annotation" and result.figures["views"] == 3 and result.figures["instances"] == 2
     assert (tmp_path / "threedat" / "dataset.yaml").is_file()
