@@ -41,7 +41,7 @@ _LAZY = {
     "BopLayout": ".bop_format", "read_scene_camera": ".bop_format", "read_scene_gt": ".bop_format",
     "read_scene_gt_info": ".bop_format", "read_models_info": ".bop_format", "model_file": ".bop_format",
     "dataset_image_size": ".bop_format", "bop_cam_K": ".bop_format", "dump_bop_json": ".bop_format",
-    "SceneCamera": ".bop_format", "GtPose": ".bop_format", "GtInfo": ".bop_format",
+    "SceneCamera": ".bop_format", "BOP19_MIN_VISIB_FRACT": ".bop_format", "GtPose": ".bop_format", "GtInfo": ".bop_format",
     "read_ply_mesh": ".ply_mesh", "write_ply_mesh": ".ply_mesh", "MeshData": ".ply_mesh", "load_mesh": ".models",
     "SilhouetteCaster": ".visibility", "Silhouette": ".visibility", "bbox_xywh": ".visibility",
     "model_diameter": ".models", "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".synthetic",

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from annotation.bop_format import BopLayout, bop_cam_K, dump_bop_json
+from annotation.bop_format import BOP19_MIN_VISIB_FRACT, BopLayout, bop_cam_K, dump_bop_json
 from annotation.models import MeshData, load_mesh, model_info_mm, write_ply
 from annotation.staging import link_or_copy
 from annotation.store import Annotation, AnnotatedObject, load_annotation
@@ -53,7 +53,6 @@ from brave6d.undistort import ensure_undistorted
 log = logging.getLogger(__name__)
 
 #: BOP targets are instances with at least this visible fraction.
-MIN_VISIB_FRACT = 0.1
 _EMPTY_BBOX = [-1, -1, -1, -1]
 
 
@@ -75,7 +74,7 @@ class BopExportResult:
     layout: BopLayout
     images: int
     instances: int
-    targets: int  # (image, instance) pairs with visib_fract >= MIN_VISIB_FRACT
+    targets: int  # (image, instance) pairs with visib_fract >= BOP19_MIN_VISIB_FRACT
     mean_visib_fract: float
 
 
@@ -142,7 +141,7 @@ def export_bop(scene_dir: Path | str, options: BopExportOptions = BopExportOptio
             "static_occluders": options.include_static, "annotation": str(scene.annotation_dir / "objects.json")})
         os.sync()  # masks are plain writes inside the staging folder: flush once before the commit
     result_layout = layout.moved_to(scene.bop_dir)
-    targets = sum(1 for v in visib if v >= MIN_VISIB_FRACT)
+    targets = sum(1 for v in visib if v >= BOP19_MIN_VISIB_FRACT)
     return BopExportResult(result_layout, len(views), len(annotation.instances), targets,
                            float(np.mean(visib)) if visib else 0.0)
 

@@ -38,6 +38,10 @@ from brave6d.transforms import make_transform
 EXPORT_INFO = "brave6d_export.json"
 
 
+#: BOP19 targets are the GT instances with at least this visible fraction (``test_targets_bop19.json``).
+BOP19_MIN_VISIB_FRACT = 0.1
+
+
 @dataclass(frozen=True)
 class BopLayout:
     """Paths of a one-scene BOP dataset rooted at ``root``."""

@@ -24,6 +24,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from brave6d.atomic import file_sha256
 from brave6d.errors import SpecError, validation_error_field
 from brave6d.spec import Category, ObjectSpec, PositiveFloat, SceneSpec, SymmetrySpec, parse_scene_spec
 from brave6d.yaml_io import read_yaml
@@ -219,7 +220,7 @@ def _check_same(dataset: DatasetSpec, lib: LibraryObject, scene: SceneSpec, obj:
                 where: str) -> None:
     if name == "mesh":
         a, b = dataset.resolve(lib.mesh).resolve(), scene.resolve(obj.mesh).resolve()
-        if a == b or _file_digest(a) == _file_digest(b):
+        if a == b or file_sha256(a) == file_sha256(b):
             return
         raise SpecError(f"{where}: {obj.mesh} is not the library's mesh for {obj.name!r} ({a}); "
                         "leave 'mesh' out to take the library's")
@@ -230,18 +231,13 @@ def _check_same(dataset: DatasetSpec, lib: LibraryObject, scene: SceneSpec, obj:
                         f"(library: {shown!r}); leave it out to take the library's")
 
 
-def _file_digest(path: Path) -> str:
-    with path.open("rb") as fh:
-        return hashlib.file_digest(fh, "sha256").hexdigest()
-
-
 def scene_fingerprint(spec: SceneSpec, obj_ids: dict[str, int]) -> str:
     """A digest of what a scene directory is made from: the merged spec (meshes by content) and
     the obj_ids. Equal fingerprints mean a finished stage of that scene is still valid."""
     data = spec.model_dump(mode="json", exclude={"source"})
     for key in ("static_meshes", "objects"):
         for item, model in zip(data.get(key, []), getattr(spec, key)):
-            item["mesh"] = _file_digest(spec.resolve(model.mesh).resolve())
+            item["mesh"] = file_sha256(spec.resolve(model.mesh).resolve())
     text = json.dumps({"spec": data, "obj_ids": obj_ids}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 

@@ -22,6 +22,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from annotation import BOP19_MIN_VISIB_FRACT
 from brave6d.atomic import atomic_write_text, read_json
 from dataset.release.source import ReleaseError
 
@@ -36,8 +37,8 @@ TARGETS = "test_targets_bop19.json"
 TARGETS_HOLDOUT = "test_targets_bop19_holdout.json"
 HOLDOUT = "holdout.json"
 SCENE_JSONS = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json")
-#: BOP19 targets: instances with at least this visible fraction.
-MIN_VISIB_FRACT = 0.1
+#: BOP19 targets: instances with at least this visible fraction (the BOP format's owner defines it).
+MIN_VISIB_FRACT = BOP19_MIN_VISIB_FRACT
 _SUM_LINE = re.compile(r"^([0-9a-f]{64}) [ *](.+)$")
 
 
