@@ -3,6 +3,7 @@ and how to load it with bop_toolkit and serve it."""
 
 from __future__ import annotations
 
+from brave6d.progress import format_table
 from dataset.release.collect import ReleaseModel, SceneRelease
 from dataset.release.formats import (TARGETS, TARGETS_HOLDOUT, base_zip, bundle_folder, bundle_zip, models_zip,
                                      test_zip)
@@ -10,9 +11,8 @@ from dataset.release.source import ReleaseSource
 
 
 def _table(headers: list[str], rows: list[list[object]]) -> str:
-    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
-    lines += ["| " + " | ".join("" if c is None else str(c) for c in row) + " |" for row in rows]
-    return "\n".join(lines)
+    """A Markdown table (``brave6d.progress.format_table``) of the cells as written; None is blank."""
+    return format_table(headers, [["" if c is None else str(c) for c in row] for row in rows])
 
 
 def _db(value: float | None) -> str:
