@@ -7,7 +7,10 @@ a name is used). Other stages import only these names:
 - bundles: ``export_bundle``, ``load_bundle``, ``Bundle``, ``BundleObject``, ``BundleError``,
   ``find_splat_ply``, ``SPLAT`` (the splat's file name inside a bundle);
 - the server: ``create_app``, ``ServerLimits``, ``ServerThread`` (uvicorn in a background thread),
-  ``SceneServer``, ``SplatRenderer``;
+  ``SceneServer``, ``SplatRenderer``, ``EpisodeManager`` (episodes without HTTP);
+- the scenes of a server (:mod:`serve.catalog`): ``open_scenes`` (a bundle or a release),
+  ``SceneCatalog`` (lazy loading within a memory bound), ``SceneSource``, ``SceneObject``,
+  ``bundle_scene_source``, ``estimate_scene_bytes``, ``SceneCacheFull``;
 - the client: ``BraveClient``, ``PoseEstimate``, ``ServerError``, ``Observation``, ``StepResult``,
   ``decode_observation``, and ``BraveEnv`` (a ``gymnasium.Env``);
 - the wire schema (:mod:`serve.schema`): ``ObservationMessage``, ``StepMessage``, ``ObjectState``,
@@ -19,7 +22,7 @@ a name is used). Other stages import only these names:
 
 The modules behind them, one job each: ``bundle`` (export + verified load), ``limits`` (image-size
 cap, pose and twist bounds), ``geometry`` (collisions, twist integration), ``renderer`` (the splat
-on cuda/cpu), ``splat_check``, ``visibility`` (visible fractions), ``episodes`` (the episode state
+on cuda/cpu), ``catalog`` (the scenes of a server), ``splat_check``, ``visibility`` (visible fractions), ``episodes`` (the episode state
 machine), ``schema`` (wire models), ``episode_log`` (log schema, writer, reader), ``app``
 (FastAPI: REST + WebSocket + viewer), ``client``, ``gym_env``, ``runner`` (uvicorn), ``cli`` and
 ``export_cli`` (``brave6d serve``/``export``), ``demo``, ``synthetic``; ``serve/viewer/`` is the
@@ -32,7 +35,9 @@ _LAZY = {
     "export_bundle": ".bundle", "load_bundle": ".bundle", "Bundle": ".bundle", "BundleObject": ".bundle",
     "BundleError": ".bundle", "find_splat_ply": ".bundle", "SPLAT": ".bundle",
     "create_app": ".app", "ServerLimits": ".app", "ServerThread": ".runner", "SceneServer": ".episodes",
-    "SplatRenderer": ".renderer",
+    "SplatRenderer": ".renderer", "EpisodeManager": ".episodes",
+    "open_scenes": ".catalog", "SceneCatalog": ".catalog", "SceneSource": ".catalog", "SceneObject": ".catalog",
+    "bundle_scene_source": ".catalog", "estimate_scene_bytes": ".catalog", "SceneCacheFull": ".catalog",
     "BraveClient": ".client", "PoseEstimate": ".client", "ServerError": ".client", "Observation": ".client",
     "StepResult": ".client", "decode_observation": ".client", "BraveEnv": ".gym_env",
     "ObservationMessage": ".schema", "StepMessage": ".schema", "ObjectState": ".schema",

@@ -90,6 +90,7 @@ from serve.limits import (
     MAX_WIDTH,
     MIN_SIZE,
 )
+from serve.catalog import SceneCatalog, warm_scene
 from serve.episodes import (
     ActionResult,
     Cancelled,
@@ -209,6 +210,8 @@ class ObsOptions(_Strict):
 
 
 class ResetRequest(ObsOptions):
+    scene: Annotated[str, Field(max_length=128)] | Annotated[int, Field(ge=0, lt=2**31)] | None = Field(
+        None, description="scene name or BOP scene_id (GET /scenes); may be omitted when the server has one scene")
     target: int | str | None = Field(None, description="target instance: gt_id (int) or object name")
     width: Width | None = None
     height: Height | None = None
@@ -454,11 +457,12 @@ class TokenMiddleware:
 
 
 # ----------------------------------------------------------------------------- the app
-def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Path | str | None = None,
+def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "auto", log_dir: Path | str | None = None,
                limits: ServerLimits = ServerLimits(), scene: SceneServer | None = None,
                verify: bool = True, warm_up: bool = True, allowed_hosts: Sequence[str] = (),
                token: str | None = None) -> FastAPI:
-    """The FastAPI app serving ``bundle`` (a loaded :class:`Bundle` or a bundle folder, verified).
+    """The FastAPI app serving ``bundle``: a loaded :class:`Bundle` or a bundle folder (verified,
+    loaded now), or a :class:`serve.catalog.SceneCatalog` of several scenes (loaded on first use).
 
     Requests must name one of :data:`LOOPBACK_HOSTS` or ``allowed_hosts`` (``"*"``: any;
     ``"*.example.org"``: its subdomains) in their ``Host`` header, else 400; with ``token``,
@@ -466,18 +470,17 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
     """
     if token is not None:
         check_token(token)
-    if not isinstance(bundle, Bundle):
-        bundle = load_bundle(bundle, verify=verify)
-    scene = scene if scene is not None else SceneServer(bundle, device)
-    if warm_up:
-        from serve.renderer import lookat_default
-
-        try:
-            scene.renderer.warm_up(bundle.camera, lookat_default(bundle.start, bundle.objects[0].world_T_obj[:3, 3]
-                                                                 if bundle.objects else np.zeros(3)))
-        except BraveError:
-            pass
-    manager = EpisodeManager(scene, log_dir, max_episodes=limits.max_episodes,
+    if isinstance(bundle, SceneCatalog):
+        catalog = bundle
+    else:
+        if not isinstance(bundle, Bundle):
+            bundle = load_bundle(bundle, verify=verify)
+        scene = scene if scene is not None else SceneServer(bundle, device)
+        if warm_up:
+            warm_scene(scene)
+        catalog = SceneCatalog.of_scene(scene)
+    single = catalog.sources[0].name if len(catalog.sources) == 1 else None
+    manager = EpisodeManager(catalog, log_dir, max_episodes=limits.max_episodes,
                              idle_timeout_s=limits.idle_timeout_s, lock_timeout_s=limits.request_timeout_s)
     executor = ThreadPoolExecutor(max_workers=limits.workers, thread_name_prefix="brave6d-serve")
 
@@ -496,8 +499,9 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
                     "errors are {error, field, status}. See serve/app.py.",
     )
     app.state.manager = manager
-    app.state.scene = scene
-    app.state.bundle = bundle
+    app.state.scenes = catalog
+    app.state.scene = scene if not isinstance(bundle, SceneCatalog) else None
+    app.state.bundle = bundle if isinstance(bundle, Bundle) else None
     app.state.limits = limits
     app.state.executor = executor
     app.add_middleware(BodyLimitMiddleware, limit=limits.max_body_bytes)
@@ -573,13 +577,22 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
 
     @app.get("/health", summary="liveness")
     def health() -> dict[str, Any]:
-        return {"status": "ok", "bundle": bundle.name, "device": scene.device,
-                "gaussians": scene.renderer.num_gaussians, "episodes_open": manager.open_count(),
-                "renders": scene.renderer.renders}
+        loaded = catalog.loaded_scenes()
+        return {"status": "ok", "bundle": single, "scenes": len(catalog.sources),
+                "loaded_scenes": [s.bundle.name for s in loaded], "device": catalog.device_name(),
+                "gaussians": sum(s.renderer.num_gaussians for s in loaded), "episodes_open": manager.open_count(),
+                "renders": sum(s.renderer.renders for s in loaded)}
 
-    @app.get("/bundle", summary="what the bundle holds (objects, intrinsics, collision boxes, ...)")
-    def get_bundle() -> dict[str, Any]:
-        return {**bundle.summary(), "device": scene.device,
+    @app.get("/scenes", summary="the scenes this server serves (loaded or not), and its memory bound")
+    def get_scenes() -> dict[str, Any]:
+        return catalog.describe()
+
+    @app.get("/bundle", summary="what a scene's bundle holds (objects, intrinsics, collision boxes, ...)",
+             responses=err)
+    async def get_bundle(scene: str | None = None) -> dict[str, Any]:
+        loop = asyncio.get_running_loop()
+        b = await loop.run_in_executor(executor, catalog.bundle, scene)  # a release's scene may be unpacked first
+        return {**b.summary(), "scene_id": catalog.source(scene).scene_id, "device": catalog.device_name(),
                 "limits": {"min_size": MIN_SIZE, "max_width": MAX_WIDTH, "max_height": MAX_HEIGHT,
                            "max_move_duration_s": MAX_MOVE_DURATION_S, "max_coord_m": MAX_COORD_M,
                            "max_linear_speed_m_s": MAX_LINEAR_SPEED_M_S,
@@ -587,19 +600,21 @@ def create_app(bundle: Bundle | Path | str, *, device: str = "auto", log_dir: Pa
                            "request_timeout_s": limits.request_timeout_s, "max_episodes": limits.max_episodes}}
 
     @app.get("/bundle/models/{obj_id}", summary="object model (BOP PLY, mm)", responses=err)
-    def get_model(obj_id: int) -> FileResponse:
-        for o in bundle.objects:
+    async def get_model(obj_id: int, scene: str | None = None) -> FileResponse:
+        loop = asyncio.get_running_loop()
+        b = await loop.run_in_executor(executor, catalog.bundle, scene)
+        for o in b.objects:
             if o.obj_id == obj_id:
-                return FileResponse(bundle.model_path(o), media_type="application/octet-stream",
+                return FileResponse(b.model_path(o), media_type="application/octet-stream",
                                     filename=Path(o.model).name)
-        raise EpisodeNotFound(f"no object with obj_id {obj_id} (known: {sorted({o.obj_id for o in bundle.objects})})",
+        raise EpisodeNotFound(f"no object with obj_id {obj_id} (known: {sorted({o.obj_id for o in b.objects})})",
                               "obj_id")
 
     @app.post("/episodes", status_code=201, response_model=StepMessage, responses=err, summary="reset: start an episode")
     async def reset(req: ResetRequest) -> JSONResponse:
         t0 = time.perf_counter()
         start = req.start.matrix() if req.start is not None else None
-        result = await run_action(manager.reset, target=req.target, width=req.width, height=req.height,
+        result = await run_action(manager.reset, scene=req.scene, target=req.target, width=req.width, height=req.height,
                                   start=start, seed=req.seed, agent=req.agent)
         return respond(result, req, t0, 201)
 

@@ -228,20 +228,28 @@ class BraveClient:
     def health(self) -> dict[str, Any]:
         return self._request("GET", "/health").json()
 
-    def bundle(self) -> dict[str, Any]:
-        return self._request("GET", "/bundle").json()
+    def scenes(self) -> dict[str, Any]:
+        """The scenes the server serves (``GET /scenes``: names, scene ids, objects, loaded or not)."""
+        return self._request("GET", "/scenes").json()
 
-    def model(self, obj_id: int) -> bytes:
+    def bundle(self, scene: str | int | None = None) -> dict[str, Any]:
+        """A scene's bundle description (``scene`` may be omitted when the server has one)."""
+        params = {"scene": str(scene)} if scene is not None else None
+        return self._request("GET", "/bundle", params=params).json()
+
+    def model(self, obj_id: int, scene: str | int | None = None) -> bytes:
         """The object's model file (BOP PLY, mm)."""
-        return self._request("GET", f"/bundle/models/{obj_id}").content
+        params = {"scene": str(scene)} if scene is not None else None
+        return self._request("GET", f"/bundle/models/{obj_id}", params=params).content
 
     def reset(self, target: int | str | None = None, width: int | None = None, height: int | None = None,
               start: ArrayLike | dict[str, Any] | None = None, seed: int | None = None,
-              agent: str | None = None) -> StepResult:
-        """Start an episode; ``agent`` names the agent on the leaderboard."""
+              agent: str | None = None, scene: str | int | None = None) -> StepResult:
+        """Start an episode on ``scene`` (name or scene_id; may be omitted when the server has one)
+        at ``target``; ``agent`` names the agent on the leaderboard."""
         body: dict[str, Any] = {**self._opts()}
-        for key, value in (("target", target), ("width", width), ("height", height), ("seed", seed),
-                           ("agent", agent)):
+        for key, value in (("scene", scene), ("target", target), ("width", width), ("height", height),
+                           ("seed", seed), ("agent", agent)):
             if value is not None:
                 body[key] = value
         if start is not None:

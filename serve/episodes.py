@@ -248,6 +248,8 @@ class SceneServer:
 @dataclass
 class Episode:
     id: str
+    scene: SceneServer | None  # None once closed (a closed episode does not keep its scene loaded)
+    scene_name: str
     target: BundleObject
     camera: PinholeCamera
     world_T_cam: Matrix4
@@ -268,8 +270,8 @@ class Episode:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def state(self) -> dict[str, Any]:
-        return {"episode_id": self.id, "closed": self.closed, "close_reason": self.close_reason,
-                "target": {"gt_id": self.target.gt_id, "obj_id": self.target.obj_id, "name": self.target.name},
+        return {"episode_id": self.id, "scene": self.scene_name, "closed": self.closed,
+                "close_reason": self.close_reason, "target": {"gt_id": self.target.gt_id, "obj_id": self.target.obj_id, "name": self.target.name},
                 "width": self.camera.width, "height": self.camera.height, "K": self.camera.K.tolist(),
                 "world_T_cam": self.world_T_cam.tolist(), "adjustments": self.adjustments,
                 "steps": self.steps, "refusals": self.refusals, "collisions": self.collisions,
@@ -375,11 +377,15 @@ def _commit(ticket: Ticket | None, apply: Any) -> None:
 
 
 class EpisodeManager:
-    """Creates, runs and expires episodes (thread-safe)."""
+    """Creates, runs and expires episodes (thread-safe) on the scenes of a
+    :class:`serve.catalog.SceneCatalog` (or on one loaded :class:`SceneServer`). An open episode
+    keeps its scene loaded; closing it lets the catalog evict the scene when room is needed."""
 
-    def __init__(self, scene: SceneServer, log_dir: Path | str | None = None, max_episodes: int = 32,
+    def __init__(self, scenes: Any, log_dir: Path | str | None = None, max_episodes: int = 32,
                  idle_timeout_s: float = 900.0, keep_closed: int = 256, lock_timeout_s: float = 30.0) -> None:
-        self.scene = scene
+        from serve.catalog import SceneCatalog
+
+        self.scenes: SceneCatalog = scenes if isinstance(scenes, SceneCatalog) else SceneCatalog.of_scene(scenes)
         self.log_dir = Path(log_dir) if log_dir is not None else None
         self.max_episodes = max_episodes
         self.idle_timeout_s = idle_timeout_s
@@ -412,7 +418,7 @@ class EpisodeManager:
     def list(self) -> list[dict[str, Any]]:
         self._expire()
         with self._lock:
-            return [{"episode_id": e.id, "closed": e.closed, "steps": e.steps, "adjustments": e.adjustments,
+            return [{"episode_id": e.id, "scene": e.scene_name, "closed": e.closed, "steps": e.steps, "adjustments": e.adjustments,
                      "target": e.target.name} for e in self._episodes.values()]
 
     def get(self, episode_id: str) -> Episode:
@@ -423,6 +429,11 @@ class EpisodeManager:
                                   "episode_id")
         return ep
 
+    @staticmethod
+    def _scene(ep: Episode) -> SceneServer:
+        assert ep.scene is not None  # only closed episodes have none, and _acquire refuses them
+        return ep.scene
+
     def _acquire(self, ep: Episode) -> None:
         if not ep.lock.acquire(timeout=self.lock_timeout_s):
             raise EpisodeBusy(f"episode {ep.id} is busy with another request")
@@ -431,11 +442,26 @@ class EpisodeManager:
             raise EpisodeClosed(f"episode {ep.id} is closed ({ep.close_reason}); reset a new one", "episode_id")
 
     # -------------------------------------------------------------- actions
-    def reset(self, *, target: int | str | None = None, width: int | None = None, height: int | None = None,
-              start: Matrix4 | None = None, seed: int | None = None, agent: str | None = None,
-              ticket: Ticket | None = None) -> ActionResult:
+    def reset(self, *, scene: str | int | None = None, target: int | str | None = None, width: int | None = None,
+              height: int | None = None, start: Matrix4 | None = None, seed: int | None = None,
+              agent: str | None = None, ticket: Ticket | None = None) -> ActionResult:
+        """Start an episode on ``scene`` (a name or BOP scene_id; None: the only scene) at target
+        ``target``; the scene is loaded first when needed (see :class:`serve.catalog.SceneCatalog`)."""
         self._expire()
-        bundle = self.scene.bundle
+        self.scenes.source(scene)  # an unknown scene is refused before anything is loaded
+        with self._lock:
+            if sum(1 for e in self._episodes.values() if not e.closed) >= self.max_episodes:
+                raise TooManyEpisodes(f"too many open episodes ({self.max_episodes}); close one first")
+        server = self.scenes.acquire(scene)
+        try:
+            return self._reset(server, target, width, height, start, seed, agent, ticket)
+        except BaseException:
+            self.scenes.release(server)
+            raise
+
+    def _reset(self, server: SceneServer, target: int | str | None, width: int | None, height: int | None,
+               start: Matrix4 | None, seed: int | None, agent: str | None, ticket: Ticket | None) -> ActionResult:
+        bundle = server.bundle
         if not bundle.objects:
             raise InvalidAction("the bundle has no objects to target", "target")
         if target is None:
@@ -447,7 +473,7 @@ class EpisodeManager:
                 raise InvalidAction(str(exc.args[0]), "target") from None
         w = width or bundle.render.width
         h = height or bundle.render.height
-        camera = self.scene.camera_for(w, h)
+        camera = server.camera_for(w, h)
         if start is not None:
             T0 = check_pose(start, "start")
             refusal = bundle.world.check(T0)
@@ -456,19 +482,19 @@ class EpisodeManager:
             used_seed = seed
         else:
             used_seed = seed if seed is not None else secrets.randbits(31)
-            T0 = self.scene.random_start(tgt, np.random.default_rng(used_seed))
+            T0 = server.random_start(tgt, np.random.default_rng(used_seed))
         with self._lock:
             if sum(1 for e in self._episodes.values() if not e.closed) >= self.max_episodes:
                 raise TooManyEpisodes(f"too many open episodes ({self.max_episodes}); close one first")
             eid = secrets.token_hex(8)
-            ep = Episode(eid, tgt, camera, T0, used_seed,
+            ep = Episode(eid, server, bundle.name, tgt, camera, T0, used_seed,
                          EpisodeLog(self.log_dir / f"{eid}.jsonl" if self.log_dir else None), agent)
             self._episodes[eid] = ep  # reserve the slot
         ep.lock.acquire()
         try:
             t0 = time.perf_counter()
             try:
-                obs = self.scene.observe(T0, camera, tgt.gt_id)
+                obs = server.observe(T0, camera, tgt.gt_id)
                 timings = {**obs.timings_ms, "step": (time.perf_counter() - t0) * 1000.0}
                 line = ep.log.format(ResetRecord(
                     episode_id=eid, bundle=bundle.name, agent=agent, target=_target_ref(tgt), width=w, height=h,
@@ -497,7 +523,7 @@ class EpisodeManager:
         self._acquire(ep)
         try:
             T = check_pose(world_T_cam, "pose")
-            return self._finish(ep, "set_pose", T, self.scene.bundle.world.check(T), None,
+            return self._finish(ep, "set_pose", T, self._scene(ep).bundle.world.check(T), None,
                                 {"world_T_cam": T.tolist()}, ticket)
         finally:
             ep.lock.release()
@@ -509,7 +535,7 @@ class EpisodeManager:
         try:
             v, w, d = check_twist(linear, angular, duration)
             try:
-                res: MoveResult = integrate_twist(self.scene.bundle.world, ep.world_T_cam, v, w, d, frame)
+                res: MoveResult = integrate_twist(self._scene(ep).bundle.world, ep.world_T_cam, v, w, d, frame)
             except ValueError as exc:
                 raise InvalidAction(str(exc), "frame" if "frame" in str(exc) else "duration") from None
             move = {"fraction": res.fraction, "substeps": res.substeps, "path_m": res.path_m}
@@ -530,7 +556,7 @@ class EpisodeManager:
         before = ep.world_T_cam
         accepted = refusal is None
         if accepted:
-            obs = self.scene.observe(T, ep.camera, ep.target.gt_id)
+            obs = self._scene(ep).observe(T, ep.camera, ep.target.gt_id)
             after, timings = T, {**obs.timings_ms}
         else:
             assert ep.last is not None
@@ -568,13 +594,14 @@ class EpisodeManager:
         try:
             if ep.last is None:
                 raise InvalidAction("the episode has no observation to refer the estimates to", "episode_id")
-            known = {o.obj_id for o in self.scene.bundle.objects}
+            scene = self._scene(ep)
+            known = {o.obj_id for o in scene.bundle.objects}
             clean = [check_estimate(i, e.get("obj_id", -1), e.get("R", ()), e.get("t_m", ()), e.get("score", 1.0),
                                     known) for i, e in enumerate(estimates)]
             depth = depth_m_to_mm_u16(ep.last.depth)
             depth_file = f"{ep.id}{FINAL_DEPTH_SUFFIX}" if ep.log.path is not None else None
             name = agent if agent is not None else ep.agent
-            line = ep.log.format(submission_record(ep, clean, self.scene.bundle, depth_file, name))
+            line = ep.log.format(submission_record(ep, clean, scene.bundle, depth_file, name))
             out: dict[str, Any] = {}
 
             def apply() -> None:
@@ -606,6 +633,9 @@ class EpisodeManager:
         ep.log.write(CloseRecord(reason=reason, **summary))
         ep.log.close()
         ep.last = None  # free the images (closed episodes are kept for GET /episodes/{id})
+        if ep.scene is not None:
+            self.scenes.release(ep.scene)
+            ep.scene = None
         return {"episode_id": ep.id, "closed": True, "reason": reason, **summary}
 
     def close_all(self, reason: str = "server shutdown") -> None:
