@@ -579,7 +579,7 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
     def health() -> dict[str, Any]:
         loaded = catalog.loaded_scenes()
         return {"status": "ok", "bundle": single, "scenes": len(catalog.sources),
-                "loaded_scenes": [s.bundle.name for s in loaded], "device": catalog.device_name(),
+                "loaded_scenes": catalog.loaded_names(), "device": catalog.device_name(),
                 "gaussians": sum(s.renderer.num_gaussians for s in loaded), "episodes_open": manager.open_count(),
                 "renders": sum(s.renderer.renders for s in loaded)}
 

@@ -263,10 +263,7 @@ class SceneCatalog:
             known = self._bundles.get(src.name)
         if known is not None:
             return known
-        folder = src.locate()
-        bundle = load_bundle(folder)
-        if bundle.name != src.name:
-            raise BraveError(f"{folder}: the bundle is scene {bundle.name!r}, expected {src.name!r}")
+        bundle = load_bundle(src.locate())  # its own name may differ: the source's name is the scene's
         with self._cond:
             return self._bundles.setdefault(src.name, bundle)
 

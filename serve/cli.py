@@ -1,4 +1,9 @@
-"""``brave6d serve BUNDLE``: serve a scene bundle over HTTP + WebSocket (loopback by default).
+"""``brave6d serve BUNDLE_OR_RELEASE``: serve a scene bundle, or every scene of a dataset release,
+over HTTP + WebSocket (loopback by default).
+
+A release's scenes are listed at ``GET /scenes`` and loaded when an episode first needs one
+(``POST /episodes`` names the scene), within ``--max-loaded-scenes`` and ``--max-memory-mb``
+(default: half the machine's memory); see :mod:`serve.catalog`.
 
 Security defaults: the server binds to 127.0.0.1; a non-loopback ``--host`` is refused unless
 ``--allow-remote`` is given, and then a token is required on every request (``--token``, or
@@ -26,7 +31,18 @@ log = logging.getLogger(__name__)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("bundle", type=Path, help="bundle folder written by 'brave6d export' (checksums are verified)")
+    parser.add_argument("bundle", type=Path, metavar="BUNDLE_OR_RELEASE",
+                        help="a bundle folder written by 'brave6d export', or a release (the folder 'brave6d release "
+                             "build' wrote, or the unzipped dataset): every scene of it is served (checksums are "
+                             "verified)")
+    parser.add_argument("--cache-dir", type=Path, default=None,
+                        help="where a release's bundle zips are unpacked on first use (default: $BRAVE6D_CACHE, "
+                             "else ~/.cache/brave6d)")
+    parser.add_argument("--max-loaded-scenes", type=int, default=None,
+                        help="scenes kept in memory at most (default: as many as --max-memory-mb allows)")
+    parser.add_argument("--max-memory-mb", type=float, default=None,
+                        help="estimated memory the loaded scenes may take (default: half the machine's memory); "
+                             "scenes no open episode uses are unloaded, least recently used first")
     parser.add_argument("--host", default="127.0.0.1",
                         help="address to bind (default 127.0.0.1: this machine only; any other address needs "
                              "--allow-remote)")
@@ -101,11 +117,15 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from serve.app import LOOPBACK_HOSTS, ServerLimits, create_app
-    from serve.bundle import load_bundle
+    from serve.catalog import open_scenes
     from serve.runner import is_loopback, uvicorn_config
 
     if not 0 <= args.port <= 65535:
         raise BraveError(f"--port must be in 0..65535, got {args.port}")
+    if args.max_loaded_scenes is not None and args.max_loaded_scenes < 1:
+        raise BraveError(f"--max-loaded-scenes must be at least 1, got {args.max_loaded_scenes}")
+    if args.max_memory_mb is not None and not args.max_memory_mb > 0:
+        raise BraveError(f"--max-memory-mb must be positive, got {args.max_memory_mb}")
     if args.max_episodes < 1 or args.request_timeout <= 0 or args.max_body_bytes < 1024:
         raise BraveError("--max-episodes >= 1, --request-timeout > 0 and --max-body-bytes >= 1024 are required")
     access = access_for(args.host, args.allow_remote, args.token, args.allow_host)
@@ -113,11 +133,15 @@ def run(args: argparse.Namespace) -> int:
         log.warning("binding to %s: only requests whose Host header names %s are accepted; add --allow-host NAME "
                     "for each name or address the clients use", args.host,
                     ", ".join([*LOOPBACK_HOSTS, *access.allowed_hosts]))
-    bundle = load_bundle(args.bundle)
+    budget = args.max_memory_mb if args.max_memory_mb is not None else default_memory_budget_mb()
+    scenes = open_scenes(args.bundle, device=args.device, cache_dir=args.cache_dir,
+                         max_loaded=args.max_loaded_scenes, max_memory_mb=budget)
+    if len(scenes.sources) == 1:  # one scene: load it now, so the first episode is as fast as the rest
+        scenes.release(scenes.acquire(None))
     log_dir = args.log_dir if args.log_dir is not None else Path(args.bundle).resolve().parent / "episodes"
     limits = ServerLimits(max_body_bytes=args.max_body_bytes, request_timeout_s=args.request_timeout,
                           max_episodes=args.max_episodes, idle_timeout_s=args.idle_timeout)
-    app = create_app(bundle, device=args.device, log_dir=log_dir, limits=limits,
+    app = create_app(scenes, device=args.device, log_dir=log_dir, limits=limits,
                      allowed_hosts=access.allowed_hosts, token=access.token)
     sock = socket.socket(socket.AF_INET6 if ":" in args.host else socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -128,8 +152,12 @@ def run(args: argparse.Namespace) -> int:
     port = sock.getsockname()[1]
     host = _host_name(args.host)
     viewer = "/viewer/" + ("?token=<token>" if access.token is not None else "")
-    print(f"brave6d serve: {bundle.name} ({app.state.scene.renderer.num_gaussians} Gaussians, "
-          f"{app.state.scene.device}) on http://{host}:{port}  viewer: {viewer}  API: /docs  "
+    loaded = scenes.loaded_scenes()
+    what = (f"{loaded[0].bundle.name} ({loaded[0].renderer.num_gaussians} Gaussians, {loaded[0].device})" if loaded
+            else f"{len(scenes.sources)} scenes ({', '.join(scenes.names())}; loaded on first use, at most "
+                 f"{budget:.0f} MB{f' / {args.max_loaded_scenes} scenes' if args.max_loaded_scenes else ''}: "
+                 f"GET /scenes)")
+    print(f"brave6d serve: {what} on http://{host}:{port}  viewer: {viewer}  API: /docs  "
           f"episode logs: {log_dir}", flush=True)
     if access.token_generated:
         print(f"token (send as 'Authorization: Bearer <token>' or '?token=<token>'): {access.token}", flush=True)
@@ -145,6 +173,14 @@ def run(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGINT, previous)
     return 0
+
+
+def default_memory_budget_mb() -> float:
+    """Half of this machine's physical memory, in MB (4096 where it cannot be read)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2 / 2**20
+    except (ValueError, OSError, AttributeError):
+        return 4096.0
 
 
 def _raise_keyboard_interrupt(signum: int, frame: object) -> None:

@@ -12,7 +12,9 @@ by scoring (``evaluation.metrics``) through :func:`read_episode_log`.
 
 Version 1 is the format the server has written since the first release; logs written before
 the version field existed carry no ``format_version`` and are exactly version 1, so they are
-read as version 1. Any other version is refused with the file and line. A line that does not
+read as version 1. Version 2 adds the served scene to ``reset`` (``scene``: its name on the
+server, ``scene_id``: its BOP scene id in a release, else null), since one server may serve
+every scene of a release; a version-1 log reads with both null. Any other version is refused with the file and line. A line that does not
 match the schema is an error naming the file, the line and the field; a partial last line (the
 server stopped mid-write) is ignored.
 """
@@ -34,9 +36,9 @@ from serve.schema import Finite, Matrix3, Matrix4, ObjectState, TargetRef, Vecto
 Rotation9 = matrix_type(3, 3, flat=True)
 
 #: The version every new log is written in (the ``format_version`` of its ``reset`` record).
-LOG_FORMAT_VERSION = 1
+LOG_FORMAT_VERSION = 2
 #: The versions :func:`read_episode_log` reads.
-READABLE_VERSIONS = (1,)
+READABLE_VERSIONS = (1, 2)
 #: File name (beside the log) of the depth image of the view an episode's estimates refer to.
 FINAL_DEPTH_SUFFIX = "_final_depth.png"
 
@@ -60,6 +62,9 @@ class ResetRecord(_Record):
     bundle: str | None
     agent: str | None
     target: TargetRef
+    #: the scene's name on the server and its BOP scene_id (version 2; None in version-1 logs)
+    scene: str | None = None
+    scene_id: int | None = None
     width: int
     height: int
     K: Matrix3

@@ -448,19 +448,21 @@ class EpisodeManager:
         """Start an episode on ``scene`` (a name or BOP scene_id; None: the only scene) at target
         ``target``; the scene is loaded first when needed (see :class:`serve.catalog.SceneCatalog`)."""
         self._expire()
-        self.scenes.source(scene)  # an unknown scene is refused before anything is loaded
+        source = self.scenes.source(scene)  # an unknown scene is refused before anything is loaded
         with self._lock:
             if sum(1 for e in self._episodes.values() if not e.closed) >= self.max_episodes:
                 raise TooManyEpisodes(f"too many open episodes ({self.max_episodes}); close one first")
         server = self.scenes.acquire(scene)
         try:
-            return self._reset(server, target, width, height, start, seed, agent, ticket)
+            return self._reset(server, source.name, source.scene_id, target, width, height, start, seed, agent,
+                               ticket)
         except BaseException:
             self.scenes.release(server)
             raise
 
-    def _reset(self, server: SceneServer, target: int | str | None, width: int | None, height: int | None,
-               start: Matrix4 | None, seed: int | None, agent: str | None, ticket: Ticket | None) -> ActionResult:
+    def _reset(self, server: SceneServer, scene_name: str, scene_id: int | None, target: int | str | None,
+               width: int | None, height: int | None, start: Matrix4 | None, seed: int | None, agent: str | None,
+               ticket: Ticket | None) -> ActionResult:
         bundle = server.bundle
         if not bundle.objects:
             raise InvalidAction("the bundle has no objects to target", "target")
@@ -487,7 +489,7 @@ class EpisodeManager:
             if sum(1 for e in self._episodes.values() if not e.closed) >= self.max_episodes:
                 raise TooManyEpisodes(f"too many open episodes ({self.max_episodes}); close one first")
             eid = secrets.token_hex(8)
-            ep = Episode(eid, server, bundle.name, tgt, camera, T0, used_seed,
+            ep = Episode(eid, server, scene_name, tgt, camera, T0, used_seed,
                          EpisodeLog(self.log_dir / f"{eid}.jsonl" if self.log_dir else None), agent)
             self._episodes[eid] = ep  # reserve the slot
         ep.lock.acquire()
@@ -497,7 +499,8 @@ class EpisodeManager:
                 obs = server.observe(T0, camera, tgt.gt_id)
                 timings = {**obs.timings_ms, "step": (time.perf_counter() - t0) * 1000.0}
                 line = ep.log.format(ResetRecord(
-                    episode_id=eid, bundle=bundle.name, agent=agent, target=_target_ref(tgt), width=w, height=h,
+                    episode_id=eid, bundle=bundle.name, agent=agent, target=_target_ref(tgt), scene=scene_name,
+                    scene_id=scene_id, width=w, height=h,
                     K=camera.K, seed=used_seed, start="given" if start is not None else "random", world_T_cam=T0,
                     timings_ms=timings, **_target_truth(obs)))
 

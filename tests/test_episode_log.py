@@ -34,7 +34,7 @@ def records() -> list[ResetRecord | ActionRecord | SubmitRecord | CloseRecord]:
     obj = ObjectState(gt_id=0, obj_id=3, name="nut", is_target=True, cam_T_obj=OBJ, px_count_all=120,
                       px_count_visib=60, visib_fract=0.5, bbox_obj=[1, 2, 3, 4], bbox_visib=[1, 2, 3, 2])
     return [
-        ResetRecord(episode_id="e1", bundle="b", agent="me", target=TARGET, width=320, height=240, K=K, seed=4,
+        ResetRecord(episode_id="e1", bundle="b", agent="me", target=TARGET, scene="tabletop", scene_id=1, width=320, height=240, K=K, seed=4,
                     start="random", world_T_cam=POSE, timings_ms={"render": 1.5}, target_cam_T_obj=OBJ,
                     target_visib_fract=0.5),
         ActionRecord(event="move", step=1, accepted=False, collided=True,
@@ -76,7 +76,18 @@ def test_log_keeps_the_version_one_layout(tmp_path: Path) -> None:
     line = json.loads(EpisodeLog.format(records()[2]))
     assert line["estimates"][0]["R"] == OBJ[:3, :3].reshape(-1).tolist()
     assert line["final_view"]["world_T_cam"] == POSE.tolist() and line["event"] == "submit"
-    assert json.loads(EpisodeLog.format(records()[0]))["format_version"] == 1
+    assert json.loads(EpisodeLog.format(records()[0]))["format_version"] == LOG_FORMAT_VERSION == 2
+
+
+def test_version_one_log_reads_without_a_scene(tmp_path: Path) -> None:
+    """Version 2 only added the served scene to ``reset``: a version-1 log reads with it null."""
+    lines = [EpisodeLog.format(r) for r in records()]
+    head = json.loads(lines[0])
+    head["format_version"] = 1
+    del head["scene"], head["scene_id"]
+    back = read_episode_log(write(tmp_path / "v1.jsonl", [json.dumps(head) + "\n", *lines[1:]]))
+    assert back[0].format_version == 1 and back[0].scene is None and back[0].scene_id is None
+    assert back[0].target == records()[0].target
 
 
 def test_unversioned_log_reads_as_version_one(tmp_path: Path) -> None:
@@ -88,7 +99,7 @@ def test_unversioned_log_reads_as_version_one(tmp_path: Path) -> None:
     assert [r.model_dump(mode="json") for r in old] == [r.model_dump(mode="json") for r in new]
 
 
-@pytest.mark.parametrize("version", [0, 2, "1", True])
+@pytest.mark.parametrize("version", [0, 3, "1", True])
 def test_unknown_version_names_file_and_line(tmp_path: Path, version: object) -> None:
     lines = [EpisodeLog.format(r) for r in records()]
     head = {**json.loads(lines[0]), "format_version": version}

@@ -75,7 +75,7 @@ def depth_of(cam_T_obj: np.ndarray) -> np.ndarray:
 
 def write_episode(folder: Path, eid: str, agent: str | None, estimates: list[np.ndarray] | None,
                   gt: np.ndarray = GT, adjustments: int = 0, bundle_name: str = "synthetic_tabletop",
-                  started: str = "2026-01-01T00:00:00.000+00:00") -> Path:
+                  started: str = "2026-01-01T00:00:00.000+00:00", scene: str | None = None) -> Path:
     """A reset (+ submit with ``estimates``, cam_T_obj 4x4 of obj 1; None: no submission) log,
     written through the server's log schema (:mod:`serve.episode_log`)."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -87,7 +87,7 @@ def write_episode(folder: Path, eid: str, agent: str | None, estimates: list[np.
                ObjectState(gt_id=1, obj_id=2, name="cube_blue", is_target=False,
                            cam_T_obj=make_transform(np.eye(3), [0.2, 0.0, 0.5]), px_count_all=10, px_count_visib=0,
                            visib_fract=0.0)]
-    reset = ResetRecord(time=started, episode_id=eid, bundle=bundle_name, agent=agent, target=target,
+    reset = ResetRecord(time=started, episode_id=eid, bundle=bundle_name, agent=agent, target=target, scene=scene,
                         width=CAMERA.width, height=CAMERA.height, K=CAMERA.K, seed=7, start="random",
                         world_T_cam=np.eye(4), timings_ms={}, target_cam_T_obj=gt, target_visib_fract=1.0)
     lines = [EpisodeLog.format(reset)]
@@ -175,10 +175,33 @@ def test_agents_ranked_and_aggregated_exactly(tmp_path: Path, models: dict[int, 
         assert alpha.ar_per_metric[m] == pytest.approx(direct.metrics[m].ar, abs=1e-12)
     assert [s.im_id for s in board.episodes if s.episode.agent == "alpha"] == [0, 1, 2]  # by start time
     written = write_leaderboard(board, tmp_path / "out")
-    assert {p.name for p in written} == {"leaderboard.csv", "leaderboard.json", "episodes.csv", "per_object.csv"}
+    assert {p.name for p in written} == {"leaderboard.csv", "leaderboard.json", "episodes.csv", "per_object.csv",
+                                         "per_scene.csv", "per_category.csv"}
     assert (tmp_path / "out" / "leaderboard.csv").read_text().splitlines()[0].startswith("agent,episodes,submitted")
     data = json.loads((tmp_path / "out" / "leaderboard.json").read_text())
     assert data["agents"][0]["agent"] == "alpha" and len(data["episodes"]) == 5
+
+
+def test_scores_per_scene_and_category_are_exact(tmp_path: Path, models: dict[int, ObjectModel]) -> None:
+    """Scenes and categories group the same exact true-positive sums as the agent's AR."""
+    miss = GT @ make_transform(np.eye(3), [0.3, 0.0, 0.0])
+    write_episode(tmp_path, "s0", "alpha", [GT], scene="bench")
+    write_episode(tmp_path, "s1", "alpha", [GT], scene="bench", started="2026-01-01T00:00:01.000+00:00")
+    write_episode(tmp_path, "s2", "alpha", [miss], scene="shelf", started="2026-01-01T00:00:02.000+00:00")
+    write_episode(tmp_path, "s3", "alpha", [miss], bundle_name="old_bundle")  # a version-1 style log: no scene
+    board = score_episodes(read_episodes([tmp_path]), models, categories={1: "toys_office"})
+    by_scene = {g.group: g for g in board.scenes}
+    assert set(by_scene) == {"bench", "shelf", "old_bundle"}
+    assert by_scene["bench"].ar == pytest.approx(1.0) and by_scene["bench"].episodes == 2
+    assert by_scene["shelf"].ar == pytest.approx(0.0) and by_scene["old_bundle"].ar == pytest.approx(0.0)
+    overall = board.agents[0]
+    assert overall.ar == pytest.approx(sum(g.n_targets * g.ar for g in board.scenes) / overall.n_targets)
+    [category] = board.categories
+    assert category.group == "toys_office" and category.n_targets == 4
+    assert category.ar == pytest.approx(overall.ar) and category.ar_per_metric == pytest.approx(overall.ar_per_metric)
+    uncategorised = score_episodes(read_episodes([tmp_path]), models).categories
+    assert [g.group for g in uncategorised] == ["uncategorised"]
+    assert "| bench" in board.group_table("scene") and "toys_office" in board.group_table("category")
 
 
 def test_cli_prints_leaderboard_and_writes_files(tmp_path: Path, bundle: Bundle,
@@ -201,19 +224,19 @@ def test_cli_prints_leaderboard_and_writes_files(tmp_path: Path, bundle: Bundle,
 
 
 def test_bundle_found_from_the_logs(tmp_path: Path, bundle: Bundle) -> None:
-    from evaluation.cli import resolve_bundle
+    from evaluation.cli import resolve_bundles
 
     write_episode(tmp_path, "r0", "a", [GT])
     eps = read_episodes([tmp_path])
-    assert resolve_bundle(eps, [tmp_path], bundle.root) == bundle.root
+    assert resolve_bundles(eps, [tmp_path], bundle.root) == [bundle.root]
     with pytest.raises(DataError, match="--bundle"):
-        resolve_bundle(eps, [tmp_path], None)  # the recorded root (tmp_path) holds no bundle
+        resolve_bundles(eps, [tmp_path], None)  # the recorded root (tmp_path) holds no bundle
 
 
 @pytest.mark.parametrize("text, match", [
     ('{"event": "move"}\n', "first record must be a 'reset'"),
     ('{"event": "reset", "episode_id": "x"}\n', r":1: 'reset' record does not match .* field 'bundle'"),
-    ('{"event": "reset", "format_version": 2}\n', r":1: episode log format version 2 is not supported"),
+    ('{"event": "reset", "format_version": 3}\n', r":1: episode log format version 3 is not supported"),
     ('{"event": "reset", "format_version": "1"}\n', r":1: episode log format version '1' is not supported"),
     ('{"event": "reset"}\nnot json\n{"event": "close"}\n', r":2: not valid JSON"),
 ])

@@ -446,7 +446,7 @@ def test_episode_log(client: TestClient, log_dir: Path) -> None:
     records = read_episode_log(log_dir / f"{eid}.jsonl")
     assert [r.event for r in records] == ["reset", "set_pose", "move", "close"]
     reset_rec, refused, moved, closed = records
-    assert reset_rec.format_version == 1
+    assert reset_rec.format_version == 2 and reset_rec.scene == "synthetic_tabletop" and reset_rec.scene_id is None
     assert reset_rec.target.name == "cube_red" and reset_rec.width == 320
     np.testing.assert_allclose(reset_rec.world_T_cam, FREE)
     assert refused.accepted is False and refused.refusal["box"] == "post"

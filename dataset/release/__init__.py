@@ -7,12 +7,15 @@ Public API (imported lazily: ``import dataset.release`` loads no torch):
 - ``build_release``, ``ReleaseResult``; ``verify_release``, ``VerifyReport``; ``ReleaseError``;
 - ``load_release_source``, ``ReleaseSource``, ``SceneSource``, ``LibraryObject`` (what a release is
   built from: the one reader of ``WORKDIR/dataset.yaml`` in this package);
-- the release's files: ``read_sha256sums``, ``read_targets``, ``read_holdout``, ``read_manifest``.
+- the release's files: ``read_sha256sums``, ``read_targets``, ``read_holdout``, ``read_manifest``;
+- serving a release: ``release_scene_sources`` (one ``serve.SceneSource`` per scene; bundle zips are
+  unpacked into a cache on first use), ``default_cache_dir``.
 
 The modules behind them, one job each: ``source`` (dataset.yaml -> scenes and library),
 ``collect`` (read and check each scene's BOP export, bundle, holdout and statistics), ``zips``
 (streamed, reproducible zips), ``formats`` (file names, SHA256SUMS, targets, holdout.json),
-``manifest`` (manifest.json), ``card`` (the dataset card), ``build``, ``verify``, ``cli``.
+``manifest`` (manifest.json), ``card`` (the dataset card), ``build``, ``verify``, ``serving`` (the
+scenes of a release for ``brave6d serve``), ``cli``.
 """
 
 from brave6d.lazy import lazy_exports
@@ -22,7 +25,7 @@ _LAZY = {
     "ReleaseError": ".source", "load_release_source": ".source", "ReleaseSource": ".source",
     "SceneSource": ".source", "LibraryObject": ".source",
     "read_sha256sums": ".formats", "read_targets": ".formats", "read_holdout": ".formats",
-    "read_manifest": ".manifest",
+    "read_manifest": ".manifest", "release_scene_sources": ".serving", "default_cache_dir": ".serving",
 }
 
 __all__ = sorted(_LAZY)

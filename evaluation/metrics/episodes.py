@@ -19,6 +19,9 @@ Targets (documented choices):
 
 Agent AR is BOP's AR over the agent's episodes (one call of :func:`evaluate_bop19` per episode,
 summed exactly: recall is matched targets / targets, so per-episode true-positive counts add up).
+The same exact sums give each agent's AR per scene (episodes of one served scene: the log's
+``scene``, else its bundle's name) and per object category (the targets whose object belongs to
+the category, from the ``categories`` map ``obj_id -> category`` the bundles give).
 """
 
 from __future__ import annotations
@@ -48,6 +51,8 @@ from serve import (
 )
 
 UNKNOWN_AGENT = "unknown"
+UNKNOWN_SCENE = "unknown"
+UNKNOWN_CATEGORY = "uncategorised"
 
 
 # ----------------------------------------------------------------------------- reading logs
@@ -60,6 +65,8 @@ class EpisodeRecord:
     agent: str
     bundle: str | None
     bundle_root: str | None
+    scene: str  # the served scene's name (version-1 logs: the bundle's name)
+    scene_id: int | None
     target: ObjectState
     submitted: bool
     adjustments: int
@@ -111,6 +118,7 @@ def read_episode(path: Path | str) -> EpisodeRecord:
     submit = next((r for r in records if isinstance(r, SubmitRecord)), None)
     agent = str((submit.agent if submit is not None else None) or reset.agent or UNKNOWN_AGENT)
     common = {"episode_id": reset.episode_id, "path": p, "agent": agent, "bundle": reset.bundle,
+              "scene": reset.scene or reset.bundle or UNKNOWN_SCENE, "scene_id": reset.scene_id,
               "started": reset.time, "seed": reset.seed}
     if submit is not None:
         view = submit.final_view
@@ -219,7 +227,8 @@ class EpisodeScore:
 
     def to_json(self) -> dict[str, Any]:
         e = self.episode
-        return {"agent": e.agent, "episode_id": e.episode_id, "log": e.path.name, "scene_id": self.scene_id,
+        return {"agent": e.agent, "episode_id": e.episode_id, "log": e.path.name, "scene": e.scene,
+                "served_scene_id": e.scene_id, "scene_id": self.scene_id,
                 "im_id": self.im_id, "target": e.target.name, "target_gt_id": e.target.gt_id,
                 "obj_id": e.target.obj_id, "seed": e.seed, "submitted": e.submitted, "estimates": len(e.estimates),
                 "n_targets": self.scores.n_targets, "ar": self.scores.ar, "ar_vsd": self.scores.ar_vsd,
@@ -251,14 +260,45 @@ class AgentScore:
                 "per_object": [self.per_object[k] for k in sorted(self.per_object)]}
 
 
+@dataclass(frozen=True)
+class GroupScore:
+    """An agent's exact BOP AR over one group of its targets: a scene's, or an object category's."""
+
+    agent: str
+    group: str
+    episodes: int
+    n_targets: int
+    ar: float
+    ar_per_metric: dict[str, float]
+    mean_adjustments: float
+
+    def to_json(self, key: str) -> dict[str, Any]:
+        return {"agent": self.agent, key: self.group, "episodes": self.episodes, "n_targets": self.n_targets,
+                "ar": self.ar, **{f"ar_{m}": self.ar_per_metric.get(m) for m in METRICS},
+                "mean_adjustments": self.mean_adjustments}
+
+
 @dataclass
 class Leaderboard:
-    """Agents ranked by AR (then name), with every episode's scores."""
+    """Agents ranked by AR (then name), with every episode's scores, and each agent's AR per
+    served scene and per object category."""
 
     agents: list[AgentScore]
     episodes: list[EpisodeScore]
     config: EvalConfig
     all_objects: bool = False
+    scenes: list[GroupScore] = field(default_factory=list)
+    categories: list[GroupScore] = field(default_factory=list)
+
+    def group_table(self, kind: str) -> str:
+        """The per-scene (``kind="scene"``) or per-category (``"category"``) table."""
+        from brave6d.progress import format_table
+
+        groups = self.scenes if kind == "scene" else self.categories
+        rows = [[g.agent, g.group, g.episodes, g.n_targets, g.ar, *(_cell(g.ar_per_metric.get(m)) for m in METRICS),
+                 g.mean_adjustments] for g in groups]
+        return format_table(["agent", kind, "episodes", "targets", "AR", "AR_VSD", "AR_MSSD", "AR_MSPD",
+                             "mean adjustments"], rows)
 
     def table(self) -> str:
         from brave6d.progress import format_table
@@ -281,7 +321,10 @@ class Leaderboard:
         return {"format": "brave6d-leaderboard/1", "metrics": list(self.config.metrics),
                 "targets": "every visible instance" if self.all_objects else "the episode's target",
                 "visib_gt_min": self.config.visib_gt_min,
-                "agents": [a.to_json() for a in self.agents], "episodes": [e.to_json() for e in self.episodes]}
+                "agents": [a.to_json() for a in self.agents],
+                "per_scene": [g.to_json("scene") for g in self.scenes],
+                "per_category": [g.to_json("category") for g in self.categories],
+                "episodes": [e.to_json() for e in self.episodes]}
 
 
 def _cell(value: float | None) -> Any:
@@ -301,11 +344,7 @@ def _mean_or_none(values: Sequence[float | None]) -> float | None:
 def _agent_score(agent: str, scored: Sequence[EpisodeScore], metrics: Sequence[str]) -> AgentScore:
     """Exact BOP AR over the agent's episodes from per-episode true-positive counts."""
     n_targets = sum(s.scores.n_targets for s in scored)
-    per_metric = {}
-    for m in metrics:
-        counts = [np.asarray(s.scores.metrics[m].tp_counts, dtype=np.float64) for s in scored]
-        tp = np.sum(counts, axis=0) if counts else np.zeros(1)
-        per_metric[m] = float(np.mean(tp / n_targets)) if n_targets > 0 else 0.0
+    per_metric = _exact_ar(scored, metrics)
     per_object: dict[int, dict[str, Any]] = {}
     for obj_id in sorted({o for s in scored for o in s.scores.per_object}):
         mine = [s for s in scored if obj_id in s.scores.per_object]
@@ -324,10 +363,52 @@ def _agent_score(agent: str, scored: Sequence[EpisodeScore], metrics: Sequence[s
                       _mean_or_none([s.episode.wall_time_s for s in scored]), per_object)
 
 
+def _exact_ar(scored: Sequence[EpisodeScore], metrics: Sequence[str]) -> dict[str, float]:
+    """AR per metric over ``scored`` from the per-episode true-positive counts (exact, not an average of ARs)."""
+    n_targets = sum(s.scores.n_targets for s in scored)
+    out = {}
+    for m in metrics:
+        counts = [np.asarray(s.scores.metrics[m].tp_counts, dtype=np.float64) for s in scored]
+        tp = np.sum(counts, axis=0) if counts else np.zeros(1)
+        out[m] = float(np.mean(tp / n_targets)) if n_targets > 0 else 0.0
+    return out
+
+
+def _scene_scores(agent: str, scored: Sequence[EpisodeScore], metrics: Sequence[str]) -> list[GroupScore]:
+    out = []
+    for scene in sorted({s.episode.scene for s in scored}):
+        mine = [s for s in scored if s.episode.scene == scene]
+        per_metric = _exact_ar(mine, metrics)
+        out.append(GroupScore(agent, scene, len(mine), sum(s.scores.n_targets for s in mine),
+                              float(np.mean(list(per_metric.values()))), per_metric,
+                              float(np.mean([s.episode.adjustments for s in mine]))))
+    return out
+
+
+def _category_scores(agent: str, scored: Sequence[EpisodeScore], metrics: Sequence[str],
+                     categories: Mapping[int, str]) -> list[GroupScore]:
+    """Per category: the targets of its objects (per-object recalls weighted by their target counts,
+    which is exact: every object's recall is its true positives over its targets)."""
+    def category(obj_id: int) -> str:
+        return categories.get(obj_id) or UNKNOWN_CATEGORY
+
+    out = []
+    for cat in sorted({category(o) for s in scored for o in s.scores.per_object}):
+        objs = [o for s in scored for k, o in s.scores.per_object.items() if category(k) == cat]
+        per_metric = {m: _weighted([(o.n_targets, o.ar_per_metric[m]) for o in objs]) for m in metrics}
+        mine = [s for s in scored if category(s.episode.target.obj_id) == cat]
+        out.append(GroupScore(agent, cat, len(mine), sum(o.n_targets for o in objs),
+                              float(np.mean(list(per_metric.values()))), per_metric,
+                              float(np.mean([s.episode.adjustments for s in mine])) if mine else 0.0))
+    return out
+
+
 def score_episodes(episodes: Sequence[EpisodeRecord], models: Mapping[int, ObjectModel],
                    config: EvalConfig | None = None, all_objects: bool = False,
-                   renderer: DepthRenderer | None = None) -> Leaderboard:
-    """BOP AR per episode and per agent (see the module docstring); ``models`` in mm."""
+                   renderer: DepthRenderer | None = None, categories: Mapping[int, str] | None = None) -> Leaderboard:
+    """BOP AR per episode and per agent, and each agent's AR per scene and per object category
+    (``categories``: ``obj_id -> category``; objects not in it count as uncategorised); see the
+    module docstring. ``models`` in mm."""
     cfg = config or EvalConfig()
     ids = assign_image_ids(episodes)
     ren = renderer if renderer is not None else (DepthRenderer() if "vsd" in cfg.metrics else None)
@@ -346,14 +427,20 @@ def score_episodes(episodes: Sequence[EpisodeRecord], models: Mapping[int, Objec
         if not all(math.isfinite(v) for v in (a.ar, *a.ar_per_metric.values())):
             raise DataError(f"agent {a.agent}: a score is not finite (this is a bug)")
     agents.sort(key=lambda a: (-a.ar, a.agent))
-    return Leaderboard(agents, scored, cfg, all_objects)
+    scenes, cats = [], []
+    for a in agents:
+        mine = [s for s in scored if s.episode.agent == a.agent]
+        scenes += _scene_scores(a.agent, mine, cfg.metrics)
+        cats += _category_scores(a.agent, mine, cfg.metrics, categories or {})
+    return Leaderboard(agents, scored, cfg, all_objects, scenes, cats)
 
 
 # ----------------------------------------------------------------------------- files
 LEADERBOARD_COLUMNS = ("agent", "episodes", "submitted", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd",
                        "mean_adjustments", "mean_wall_time_s")
-EPISODE_COLUMNS = ("agent", "episode_id", "scene_id", "im_id", "target", "obj_id", "seed", "submitted", "estimates",
+EPISODE_COLUMNS = ("agent", "episode_id", "scene", "served_scene_id", "scene_id", "im_id", "target", "obj_id", "seed", "submitted", "estimates",
                    "ar", "ar_vsd", "ar_mssd", "ar_mspd", "adjustments", "wall_time_s", "target_distance_m")
+GROUP_COLUMNS = ("episodes", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd", "mean_adjustments")
 OBJECT_COLUMNS = ("agent", "obj_id", "name", "episodes", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd",
                   "mean_adjustments")
 
@@ -371,7 +458,8 @@ def _csv_text(columns: Sequence[str], rows: Iterable[Mapping[str, Any]]) -> str:
 
 
 def write_leaderboard(board: Leaderboard, out_dir: Path | str) -> list[Path]:
-    """Write ``leaderboard.csv``/``.json``, ``episodes.csv`` and ``per_object.csv`` (atomic)."""
+    """Write ``leaderboard.csv``/``.json``, ``episodes.csv``, ``per_object.csv``, ``per_scene.csv`` and
+    ``per_category.csv`` (atomic)."""
     from brave6d.atomic import atomic_write_json, atomic_write_text
 
     out = Path(out_dir)
@@ -382,4 +470,8 @@ def write_leaderboard(board: Leaderboard, out_dir: Path | str) -> list[Path]:
         atomic_write_json(out / "leaderboard.json", board.to_json()),
         atomic_write_text(out / "episodes.csv", _csv_text(EPISODE_COLUMNS, (e.to_json() for e in board.episodes))),
         atomic_write_text(out / "per_object.csv", _csv_text(OBJECT_COLUMNS, objects)),
+        atomic_write_text(out / "per_scene.csv", _csv_text(("agent", "scene", *GROUP_COLUMNS),
+                                                          (g.to_json("scene") for g in board.scenes))),
+        atomic_write_text(out / "per_category.csv", _csv_text(("agent", "category", *GROUP_COLUMNS),
+                                                             (g.to_json("category") for g in board.categories))),
     ]
