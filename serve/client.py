@@ -203,6 +203,7 @@ class BraveClient:
         self.rgb = rgb
         self.depth = depth
         self.episode_id: str | None = None
+        self.scene: str | int | None = None  # the scene of the last reset (None: the server's only scene)
 
     # -------------------------------------------------------------- plumbing
     def _request(self, method: str, path: str, **kwargs: Any) -> Any:
@@ -256,6 +257,7 @@ class BraveClient:
             body["start"] = pose_json(start)
         step = decode_step(self._request("POST", "/episodes", json=body).json())
         self.episode_id = step.episode_id
+        self.scene = scene
         return step
 
     def set_pose(self, world_T_cam: ArrayLike | dict[str, Any], episode_id: str | None = None) -> StepResult:

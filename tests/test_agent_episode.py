@@ -73,7 +73,8 @@ def test_run_episode_drives_an_agent_from_reset_to_submission() -> None:
     client, agent = ScriptedClient(refuse={1}), ScriptedAgent(moves=3)
     outcome = run_episode(client, agent, "hex_nut", seed=11, width=64, height=48)
     assert [name for name, _ in client.calls] == ["reset", "set_pose", "set_pose", "set_pose", "submit"]
-    assert client.calls[0][1] == {"target": "hex_nut", "width": 64, "height": 48, "seed": 11, "agent": "scripted"}
+    assert client.calls[0][1] == {"target": "hex_nut", "width": 64, "height": 48, "seed": 11, "agent": "scripted",
+                                  "scene": None}
     assert [float(pose[0, 3]) for name, pose in client.calls if name == "set_pose"] == [0.0, 1.0, 2.0]
     assert agent.seen == [("reset", True), ("set_pose", True), ("set_pose", False), ("set_pose", True)]
     assert client.calls[-1][1] == (["estimate"], "scripted")

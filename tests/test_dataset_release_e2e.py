@@ -1,5 +1,7 @@
 """The dataset as the unit of work, end to end: the quick demo dataset through `brave6d dataset run
---executor local`, `brave6d release build` and `brave6d release verify` (what CI runs)."""
+--executor local`, `brave6d release build` and `brave6d release verify` (what CI runs), then the
+release served from one server (every scene, loaded on first use), a baseline agent on each scene,
+and the leaderboard per scene and per category."""
 
 from __future__ import annotations
 
@@ -43,6 +45,9 @@ def test_demo_dataset_runs_releases_and_verifies(tmp_path: Path, capsys: pytest.
     shared = {o.name for o in dataset.scenes[0].spec.objects} & {o.name for o in dataset.scenes[1].spec.objects}
     assert shared and {library[n] for n in shared} <= set(read_models_info(unpacked / "models" / "models_info.json"))
 
+    # one server serves every scene of the release; the leaderboard scores across scenes
+    _serve_and_score(out, tmp_path, [s.name for s in dataset.scenes], capsys)
+
     # one altered byte anywhere is caught, naming the file
     victim = out / f"{name}_test_all.zip"
     data = bytearray(victim.read_bytes())
@@ -51,3 +56,26 @@ def test_demo_dataset_runs_releases_and_verifies(tmp_path: Path, capsys: pytest.
     capsys.readouterr()
     assert cli_main(["release", "verify", str(out)]) == 2
     assert victim.name in capsys.readouterr().err
+
+
+def _serve_and_score(release: Path, tmp_path: Path, scenes: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    from evaluation.agents import STATIC_AGENT, make_agent, run_episode
+    from serve import BraveClient, ServerThread, create_app, open_scenes
+
+    logs = tmp_path / "logs"
+    catalog = open_scenes(release, device="cpu", cache_dir=tmp_path / "cache", max_loaded=1)
+    with ServerThread(create_app(catalog, log_dir=logs)) as server, BraveClient(server.url) as client:
+        listed = client.scenes()["scenes"]
+        assert [s["name"] for s in listed] == scenes and not any(s["loaded"] for s in listed)
+        assert {o["category"] for s in listed for o in s["objects"]} >= {"industry", "laboratory"}
+        agent = make_agent(STATIC_AGENT, client)
+        for name in scenes:
+            target = client.bundle(name)["objects"][0]["gt_id"]
+            run_episode(client, agent, target, seed=1, width=160, height=120, scene=name)
+        assert client.health()["loaded_scenes"] == [scenes[-1]]  # max_loaded=1: the first was unloaded
+    capsys.readouterr()
+    assert cli_main(["evaluate", str(logs), "--out", str(tmp_path / "board")]) == 0
+    assert f"2 episodes on 2 scene(s) ({', '.join(sorted(scenes))})" in capsys.readouterr().out
+    rows = (tmp_path / "board" / "per_scene.csv").read_text().splitlines()
+    assert sorted(r.split(",")[1] for r in rows[1:]) == sorted(scenes)
+    assert len((tmp_path / "board" / "per_category.csv").read_text().splitlines()) >= 2

@@ -284,3 +284,74 @@ def test_public_api_resolves_and_import_is_cheap() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=Path(__file__).resolve().parent.parent, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "", out.stdout + out.stderr
+
+
+# ----------------------------------------------------------------------------- serving a release
+def _episode(manager: object, scene: str | int, shift_m: float) -> str:
+    """An episode on ``scene`` whose estimate is the target's true pose shifted by ``shift_m``."""
+    r = manager.reset(scene=scene, seed=3, width=160, height=120)  # type: ignore[attr-defined]
+    target = r.observation.target()
+    T = target.cam_T_obj.copy()
+    T[0, 3] += shift_m
+    manager.submit(r.episode_id, [{"obj_id": target.obj_id, "R": T[:3, :3].reshape(-1).tolist(),  # type: ignore[attr-defined]
+                                   "t_m": T[:3, 3].tolist(), "score": 1.0}], "agent")
+    return r.episode_id
+
+
+def test_serve_every_scene_of_a_release(release: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from serve import EpisodeManager, open_scenes
+
+    cache = tmp_path / "cache"
+    catalog = open_scenes(release, device="cpu", cache_dir=cache, warm_up=False)
+    assert catalog.names() == ["scene_a", "scene_b"] and [s.scene_id for s in catalog.sources] == [1, 2]
+    assert {o.category for s in catalog.sources for o in s.objects} == {"toys_office"}
+    assert not list(cache.rglob("splat.ply"))  # nothing unpacked before a scene is used
+    manager = EpisodeManager(catalog, tmp_path / "logs")
+    _episode(manager, "scene_b", 0.0)
+    assert [p.parent.name for p in cache.rglob("splat.ply")] == ["000002"]  # only the scene used
+    _episode(manager, 1, 0.05)
+    splat = next(p for p in cache.rglob("splat.ply") if p.parent.name == "000001")
+    stamp = splat.stat().st_mtime_ns
+    again = open_scenes(release, device="cpu", cache_dir=cache, warm_up=False)
+    again.bundle("scene_a")
+    assert splat.stat().st_mtime_ns == stamp  # the unpacked bundle is reused, not unpacked again
+
+    assert main(["evaluate", str(tmp_path / "logs"), "--out", str(tmp_path / "board")]) == 0
+    assert "2 episodes on 2 scene(s) (scene_a, scene_b)" in capsys.readouterr().out
+    rows = (tmp_path / "board" / "per_scene.csv").read_text().splitlines()
+    ar = {r.split(",")[1]: float(r.split(",")[4]) for r in rows[1:]}
+    assert set(ar) == {"scene_a", "scene_b"} and ar["scene_b"] > ar["scene_a"]  # the 5 cm miss scores less
+    assert (tmp_path / "board" / "per_category.csv").read_text().splitlines()[1].startswith("agent,toys_office,2,")
+
+
+def test_serving_refuses_an_altered_bundle_zip(copy: Path, tmp_path: Path) -> None:
+    from serve import EpisodeManager, open_scenes
+
+    zip_path = copy / f"{NAME}_bundle_000001.zip"
+    data = bytearray(zip_path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    zip_path.write_bytes(bytes(data))
+    manager = EpisodeManager(open_scenes(copy, device="cpu", cache_dir=tmp_path / "cache", warm_up=False), None)
+    with pytest.raises(ReleaseError, match=rf"{NAME}_bundle_000001\.zip: sha256 .* does not match SHA256SUMS"):
+        manager.reset(scene="scene_a", seed=0)
+    assert manager.reset(scene="scene_b", seed=0).accepted  # the other scene still serves
+    assert [p.parent.name for p in (tmp_path / "cache").rglob("splat.ply")] == ["000002"]  # nothing half-unpacked
+
+
+def test_serve_the_unzipped_release(release: Path, tmp_path: Path) -> None:
+    """The layout BOP users make: unzip the base zip, then the others into the folder it made."""
+    from serve import EpisodeManager, open_scenes
+
+    with zipfile.ZipFile(release / f"{NAME}_base.zip") as zf:
+        zf.extractall(tmp_path)
+    for z in sorted(release.glob("*.zip")):
+        if z.name != f"{NAME}_base.zip":
+            with zipfile.ZipFile(z) as zf:
+                zf.extractall(tmp_path / NAME)
+    catalog = open_scenes(tmp_path / NAME, device="cpu", warm_up=False)
+    assert catalog.names() == ["scene_a", "scene_b"]
+    assert catalog.source("scene_b").locate() == tmp_path / NAME / "bundles" / "000002"
+    assert EpisodeManager(catalog, None).reset(scene="scene_b", seed=0).accepted
+    shutil.rmtree(tmp_path / NAME / "bundles" / "000001")
+    with pytest.raises(ReleaseError, match=rf"bundles/000001: the bundle of scene 'scene_a' is missing"):
+        open_scenes(tmp_path / NAME)

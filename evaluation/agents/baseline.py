@@ -53,7 +53,7 @@ class BaselineAgent:
         self.name = name
         self.options = options
         self._models: dict[int, ModelCloud] = {}
-        self._bundle: dict[str, Any] | None = None
+        self._bundles: dict[str | int | None, dict[str, Any]] = {}
         self._episode: EpisodeState | None = None
         self._plan: PolicyPlan | None = None
         self._next_pose: Array | None = None
@@ -61,10 +61,11 @@ class BaselineAgent:
 
     @property
     def bundle_info(self) -> dict[str, Any]:
-        """``GET /bundle`` (fetched once)."""
-        if self._bundle is None:
-            self._bundle = self.client.bundle()
-        return self._bundle
+        """``GET /bundle`` of the current episode's scene (fetched once per scene)."""
+        scene = getattr(self.client, "scene", None)
+        if scene not in self._bundles:
+            self._bundles[scene] = self.client.bundle(scene) if scene is not None else self.client.bundle()
+        return self._bundles[scene]
 
     def model(self, obj_id: int) -> ModelCloud:
         """The target's model cloud from the server (``GET /bundle`` diameter, model PLY)."""
@@ -72,7 +73,9 @@ class BaselineAgent:
             info = next((o for o in self.bundle_info["objects"] if int(o["obj_id"]) == obj_id), None)
             if info is None:
                 raise BraveError(f"the server knows no object with obj_id {obj_id}")
-            verts, faces = read_model_ply(self.client.model(obj_id))
+            scene = getattr(self.client, "scene", None)  # a dataset keeps one model per obj_id across scenes
+            verts, faces = read_model_ply(self.client.model(obj_id, scene) if scene is not None
+                                          else self.client.model(obj_id))
             self._models[obj_id] = sample_model(obj_id, verts, faces, float(info["diameter_mm"]),
                                                 self.options.model.points, self.options.model.seed)
         return self._models[obj_id]

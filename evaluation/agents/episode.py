@@ -27,12 +27,13 @@ class EpisodeOutcome:
     submission: dict[str, Any] = field(default_factory=dict)  # the server's reply to the submission
 
 
-def run_episode(client: Any, agent: Agent, target: int | str, *, seed: int, width: int, height: int) -> EpisodeOutcome:
+def run_episode(client: Any, agent: Agent, target: int | str, *, seed: int, width: int, height: int,
+                scene: str | int | None = None) -> EpisodeOutcome:
     """Reset an episode on ``client`` (``serve``'s ``BraveClient``) for ``target`` (gt_id or
-    name) from the seeded random start, let ``agent`` observe and move until it decides to
-    submit, and submit its estimates under its name."""
+    name) of ``scene`` (None: the server's only scene) from the seeded random start, let
+    ``agent`` observe and move until it decides to submit, and submit its estimates under its name."""
     t0 = time.perf_counter()
-    step = client.reset(target=target, width=width, height=height, seed=seed, agent=agent.name)
+    step = client.reset(target=target, width=width, height=height, seed=seed, agent=agent.name, scene=scene)
     episode_id, info = step.episode_id, step.target
     agent.observe(step)
     refused = 0
