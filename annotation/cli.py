@@ -17,6 +17,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     imp.add_argument("dat_dir", type=Path, help="3D-DAT folder (or its dataset config file)")
     imp.add_argument("scene_dir", type=Path, help="captured and calibrated scene directory")
     imp.add_argument("--scene", default=None, help="3D-DAT scene id (needed when the folder holds several)")
+    imp.add_argument("--dataset", type=Path, default=None, metavar="DATASET.yaml",
+                     help="take the obj_ids from this dataset's object library (3D-DAT object ids = library names), "
+                          "so that an object keeps one obj_id in every scene of the dataset")
     defaults = AlignmentOptions()
     imp.add_argument("--max-rms-mm", type=float, default=defaults.max_rms_mm,
                      help="refuse when the camera-pose alignment residual RMS exceeds this "
@@ -39,7 +42,12 @@ def run(args: argparse.Namespace) -> int:
         from annotation.importer import import_threedat, import_summary
 
         options = AlignmentOptions(max_rms_mm=args.max_rms_mm, max_rms_deg=args.max_rms_deg)
-        result = import_threedat(args.dat_dir, args.scene_dir, args.scene, options)
+        obj_ids = None
+        if args.dataset is not None:
+            from brave6d.dataset_spec import load_dataset_spec
+
+            obj_ids = load_dataset_spec(args.dataset).spec.obj_ids()
+        result = import_threedat(args.dat_dir, args.scene_dir, args.scene, options, obj_ids=obj_ids)
         print(result.alignment.summary())
         for warning in result.warnings:
             print(f"warning: {warning}")

@@ -48,3 +48,28 @@ def test_an_incomplete_or_ambiguous_map_is_refused_before_writing(tmp_path: Path
     with pytest.raises(DataError, match=problem):
         import_threedat(FIXTURE, scene.root, obj_ids=obj_ids)
     assert not scene.annotation_dir.exists()
+
+
+def test_cli_takes_the_obj_ids_from_a_dataset_library(tmp_path: Path) -> None:
+    """``brave6d annotate import-3ddat DAT SCENE --dataset DATASET.yaml``: ids = library positions."""
+    import yaml
+
+    from brave6d.cli import main
+
+    meshes = Path(__file__).resolve().parent.parent / "data" / "demo" / "meshes"
+    scene_spec = {"name": "s", "capture": {"target": [0.45, 0, 0]},
+                  "workspace": {"min": [0, -0.5, 0], "max": [0.9, 0.5, 0.9]},
+                  "objects": [{"name": "cube", "pose": {"xyz": [0.45, 0, 0]}}]}
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(scene_spec))
+    library = [{"name": n, "category": "industry", "mesh": str(meshes / "hex_nut.ply"), "scale": 0.001}
+               for n in ("unused", "cube", "bar")]
+    dataset = tmp_path / "dataset.yaml"
+    dataset.write_text(yaml.safe_dump({"name": "ds", "version": "1", "license": "CC-BY-4.0", "citation": "@misc{x}",
+                                       "objects": library, "scenes": [{"spec": "s.yaml"}]}))
+    scene = _scene(tmp_path)
+    assert main(["annotate", "import-3ddat", str(FIXTURE), str(scene.root), "--dataset", str(dataset)]) == 0
+    assert load_annotation(scene).id_map == {"cube": 2, "bar": 3}
+    other = _scene(tmp_path / "other")
+    demo = Path(__file__).resolve().parent.parent / "data" / "demo_dataset" / "dataset.yaml"
+    assert main(["annotate", "import-3ddat", str(FIXTURE), str(other.root), "--dataset", str(demo)]) == 2
+    assert not other.annotation_dir.exists()  # a library without the fixture's objects: refused, nothing written
