@@ -15,7 +15,8 @@ Public API (imported lazily; ``import dataset`` loads no stage, torch or submiti
 The dataset spec itself (``dataset.yaml``) is read by :mod:`brave6d.dataset_spec`
 (``load_dataset_spec``), the shared core, so that every package can read it.
 Modules: ``status``, ``workdir``, ``job``, ``executor``, ``runner``, ``cli`` (``brave6d dataset``).
-The release of a dataset is the subpackage ``dataset.release``.
+The release of a dataset is the subpackage ``dataset.release``; ``release_scene_sources`` (the
+scenes of a release for the render server) is re-exported here for other stages.
 """
 
 from brave6d.lazy import lazy_exports
@@ -27,6 +28,7 @@ _LAZY = {
     "prepare_workdir": ".workdir", "scene_dir": ".workdir",
     "read_scene_status": ".status", "SceneStatus": ".status", "read_summary": ".status",
     "status_table": ".status", "SCENE_STAGES": ".status",
+    "release_scene_sources": ".release.serving",
 }
 
 __all__ = sorted(_LAZY)

@@ -340,7 +340,7 @@ def open_scenes(path: Path | str, *, device: str = "auto", cache_dir: Path | str
                 warm_up: bool = True) -> SceneCatalog:
     """The scenes of ``path``: a bundle folder (one scene), or a dataset release (every scene: a
     release folder of zips, its bundles unpacked into ``cache_dir`` on first use, or an unzipped
-    release); see :func:`dataset.release.release_scene_sources`."""
+    release); see :func:`dataset.release_scene_sources`."""
     root = Path(path)
     if not root.exists():
         raise BraveError(f"{root}: no such bundle or release")
@@ -348,7 +348,7 @@ def open_scenes(path: Path | str, *, device: str = "auto", cache_dir: Path | str
     if (root / MANIFEST).is_file() and (root / SPLAT).is_file():
         sources = [bundle_scene_source(root)]
     else:
-        from dataset.release import release_scene_sources
+        from dataset import release_scene_sources
 
         sources = release_scene_sources(root, cache_dir=cache_dir)
     return SceneCatalog(sources, device=device, max_loaded=max_loaded, memory_budget_bytes=budget, warm_up=warm_up)

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-STAGES = ("capture", "calibration", "annotation", "training", "serve", "evaluation")
-PACKAGES = (*STAGES, "evaluation.metrics", "evaluation.agents", "evaluation.report")
+STAGES = ("capture", "calibration", "annotation", "training", "serve", "evaluation", "dataset")
+PACKAGES = (*STAGES, "evaluation.metrics", "evaluation.agents", "evaluation.report", "dataset.release")
 HEAVY = ("torch", "open3d", "fastapi", "trimesh", "numba", "pycolmap", "matplotlib")
 
 
