@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-STAGES = ("capture", "calibration", "annotation", "training", "serve", "evaluation")
+STAGES = ("capture", "calibration", "annotation", "training", "serve", "evaluation", "synth")
 PACKAGES = (*STAGES, "evaluation.metrics", "evaluation.agents", "evaluation.report")
 HEAVY = ("torch", "open3d", "fastapi", "trimesh", "numba", "pycolmap", "matplotlib")
 
