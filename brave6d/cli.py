@@ -32,6 +32,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("capture", "capture.cli", "plan capture views and capture them with a robot and a camera"),
     Command("annotate", "annotation.cli", "import 3D-DAT object poses and export BOP ground truth"),
     Command("train", "training.cli", "train a 3D Gaussian Splatting scene and evaluate it on held-out views"),
+    Command("synth", "synth.cli", "render a synthetic training split (BOP train_pbr) of a dataset's or scene's objects"),
     Command("export", "serve.export_cli", "write the scene bundle that the render server loads"),
     Command("serve", "serve.cli", "serve a bundle to active-vision agents (HTTP + WebSocket, browser viewer)"),
     Command("release", "dataset.release.cli", "build a dataset release (BOP zips, bundles, checksums, card) or verify one"),

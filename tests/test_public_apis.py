@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-STAGES = ("capture", "calibration", "annotation", "training", "serve", "evaluation", "dataset", "ros_interface")
+STAGES = ("capture", "calibration", "annotation", "training", "serve", "evaluation", "dataset", "ros_interface",
+          "synth")
 PACKAGES = (*STAGES, "evaluation.metrics", "evaluation.agents", "evaluation.report", "dataset.release")
 HEAVY = ("torch", "open3d", "fastapi", "trimesh", "numba", "pycolmap", "matplotlib")
 

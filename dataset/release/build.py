@@ -22,9 +22,10 @@ from dataset.release.collect import ReleaseModel, SceneRelease, collect_models, 
 from dataset.release.formats import (CAMERA, CARD, DATASET_INFO, HOLDOUT, MANIFEST, SCENE_JSONS, SPLIT, SUMS,
                                      TARGETS, TARGETS_HOLDOUT, base_zip, bop19_targets, bundle_folder, bundle_zip,
                                      dump_targets, holdout_json, models_zip, scene_folder, test_zip,
-                                     write_sha256sums)
+                                     train_pbr_zip, write_sha256sums)
 from dataset.release.manifest import library_entries, make_manifest, scene_entry
 from dataset.release.source import ReleaseError, ReleaseSource, load_release_source
+from dataset.release.train_pbr import synthetic_split, train_pbr_files
 from dataset.release.zips import write_zip
 
 log = logging.getLogger(__name__)
@@ -62,6 +63,9 @@ def build_release(workdir: Path | str, out: Path | str, *, force: bool = False) 
                   [(m.path, f"models/{m.path.name}") for _, m in sorted(models.items())],
                   [("models/models_info.json", dump_bop_json({k: m.info for k, m in models.items()}))],
                   desc="models")
+        split = synthetic_split(source.workdir)  # WORKDIR/synth/train_pbr from `brave6d synth`, when there is one
+        if split is not None:
+            write_zip(stage / train_pbr_zip(source.name), train_pbr_files(split, models), desc="train_pbr split")
         for s in scenes:
             name = bundle_zip(source.name, s.source.scene_id)
             root = s.bundle_root

@@ -6,7 +6,7 @@ from __future__ import annotations
 from brave6d.progress import format_table
 from dataset.release.collect import ReleaseModel, SceneRelease
 from dataset.release.formats import (TARGETS, TARGETS_HOLDOUT, base_zip, bundle_folder, bundle_zip, models_zip,
-                                     test_zip)
+                                     test_zip, train_pbr_zip)
 from dataset.release.source import ReleaseSource
 
 
@@ -35,6 +35,9 @@ def render_card(source: ReleaseSource, scenes: list[SceneRelease], models: dict[
               _mb(sizes.get(models_zip(n)))],
              [f"`{test_zip(n)}`", "`test/XXXXXX/`: rgb, depth, mask, mask_visib, scene_camera.json, scene_gt.json, "
               "scene_gt_info.json, holdout.json", _mb(sizes.get(test_zip(n)))]]
+    if train_pbr_zip(n) in sizes:  # the synthetic training split (brave6d synth), when the dataset has one
+        files.append([f"`{train_pbr_zip(n)}`", "`train_pbr/XXXXXX/`: synthetic training images (rgb, depth, mask, "
+                      "mask_visib, scene_camera.json, scene_gt.json, scene_gt_info.json)", _mb(sizes[train_pbr_zip(n)])])
     files += [[f"`{bundle_zip(n, s.source.scene_id)}`", f"`{bundle_folder(s.source.scene_id)}/`: render-server "
                f"bundle of scene {s.source.name}", _mb(sizes.get(bundle_zip(n, s.source.scene_id)))] for s in scenes]
     objects = [[o.obj_id, o.name, o.category, f"{models[o.obj_id].info['diameter']:.1f}" if o.obj_id in models

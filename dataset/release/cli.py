@@ -41,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
 
         report = verify_release(args.out)
         print(f"{report.root}: OK ({report.files} files, {report.bytes / 1e6:.1f} MB, {report.scenes} scenes, "
-              f"{report.images} images, {report.bundles} bundles)")
+              f"{report.images} images, {report.bundles} bundles"
+              + (f", {report.train_pbr_images} synthetic training images)" if report.train_pbr_images else ")"))
         return 0
     raise AssertionError(f"unknown action {args.action!r}")

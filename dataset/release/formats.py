@@ -10,6 +10,7 @@ folder it makes)::
     <name>_test_all.zip       test/XXXXXX/{rgb,depth,mask,mask_visib}/, scene_camera.json,
                               scene_gt.json, scene_gt_info.json, holdout.json
     <name>_bundle_XXXXXX.zip  bundles/XXXXXX/ (the scene's render-server bundle)
+    <name>_train_pbr.zip      train_pbr/XXXXXX/ (the synthetic training split; only when the dataset has one)
     manifest.json, README.md, SHA256SUMS
 """
 
@@ -149,3 +150,16 @@ def _read(path: Path, shown: str) -> Any:
         raise
     except Exception as exc:  # DataError names the (temporary) path: name the release member instead
         raise ReleaseError(str(exc).replace(str(path), shown)) from None
+
+
+# ----------------------------------------------------------------------------- the synthetic training split
+#: The BOP split name of the synthetic training images (``brave6d synth``).
+TRAIN_PBR = "train_pbr"
+#: Where a dataset work directory holds its synthetic split: ``WORKDIR/synth/train_pbr/`` (written by
+#: ``brave6d synth WORKDIR/dataset.yaml WORKDIR/synth --images N``).
+SYNTH_DIR = "synth"
+
+
+def train_pbr_zip(name: str) -> str:
+    """``<name>_train_pbr.zip``: ``train_pbr/XXXXXX/`` folders (BOP's PBR layout)."""
+    return f"{name}_train_pbr.zip"

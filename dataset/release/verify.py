@@ -4,7 +4,8 @@ In order: every file's checksum against ``SHA256SUMS`` (and no file left out of 
 every zip's CRCs, every JSON file inside against its reader (annotation's BOP readers, the
 release's own), every image and mask that ``scene_gt``/``scene_camera`` reference, object ids
 (the same name has the same ``obj_id`` in every scene, in ``models_info`` and in the library),
-the targets, and that each scene's bundle loads (``serve.load_bundle`` verifies its manifest).
+the targets, that each scene's bundle loads (``serve.load_bundle`` verifies its manifest) and, when
+the release has one, the synthetic training split (:mod:`dataset.release.train_pbr`).
 """
 
 from __future__ import annotations
@@ -22,9 +23,10 @@ from brave6d.errors import DataError
 from brave6d.progress import progress
 from dataset.release.formats import (CAMERA, DATASET_INFO, HOLDOUT, MANIFEST, SUMS, TARGETS, TARGETS_HOLDOUT,
                                      base_zip, bundle_folder, bundle_zip, models_zip, read_holdout,
-                                     read_sha256sums, read_targets, scene_folder, test_zip)
+                                     read_sha256sums, read_targets, scene_folder, test_zip, train_pbr_zip)
 from dataset.release.manifest import read_manifest
 from dataset.release.source import ReleaseError
+from dataset.release.train_pbr import check_train_pbr_zip
 
 T = TypeVar("T")
 
@@ -39,6 +41,7 @@ class VerifyReport:
     scenes: int
     images: int
     bundles: int
+    train_pbr_images: int = 0  # images of the synthetic training split (0: the release has none)
 
 
 def verify_release(root: Path | str) -> VerifyReport:
@@ -69,8 +72,10 @@ def verify_release(root: Path | str) -> VerifyReport:
                 zf.close()
         for s in progress(scenes, desc="bundles", unit="bundle"):
             _check_bundle(base / bundle_zip(name, s["scene_id"]), s, library, tmp)
+    pbr = train_pbr_zip(name)
+    pbr_images = check_train_pbr_zip(base / pbr, models) if pbr in sums else 0
     return VerifyReport(base, len(sums) + 1, sum((base / n).stat().st_size for n in sums), len(scenes),
-                        sum(len(g) for k, g in gts.items() if k > 0), len(scenes))
+                        sum(len(g) for k, g in gts.items() if k > 0), len(scenes), pbr_images)
 
 
 def _check_sums(base: Path) -> dict[str, str]:
