@@ -34,6 +34,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("train", "training.cli", "train a 3D Gaussian Splatting scene and evaluate it on held-out views"),
     Command("export", "serve.export_cli", "write the scene bundle that the render server loads"),
     Command("serve", "serve.cli", "serve a bundle to active-vision agents (HTTP + WebSocket, browser viewer)"),
+    Command("ros2", "ros_interface.ros2.cli", "serve episodes to ROS 2 agents as ROS 2 topics over DDS (loopback by default)"),
     Command("release", "dataset.release.cli", "build a dataset release (BOP zips, bundles, checksums, card) or verify one"),
     Command("evaluate", "evaluation.cli", "score agent episodes (BOP Average Recall, adjustments) and print a leaderboard"),
     Command("report", "evaluation.report.cli", "write the accuracy-vs-time report from real measurements"),

@@ -17,6 +17,7 @@ domain bound to one network interface (loopback by default).
 from __future__ import annotations
 
 import ipaddress
+import threading
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -114,18 +115,38 @@ def check_interface(interface: str, allow_remote: bool) -> str:
     return interface
 
 
+#: Cyclone domains configured by this process: a domain id is configured once per process (Cyclone
+#: refuses a second configuration), and the ``Domain`` object must outlive its participants.
+_DOMAINS: dict[int, tuple[str, Any]] = {}
+_DOMAINS_LOCK = threading.Lock()
+
+
+def _configured_domain(domain_id: int, config: str) -> Any:
+    from cyclonedds.domain import Domain
+
+    with _DOMAINS_LOCK:
+        if domain_id in _DOMAINS:
+            known, domain = _DOMAINS[domain_id]
+            if known != config:
+                raise BraveError(f"DDS domain {domain_id} is already configured in this process with another "
+                                 "interface or peers")
+            return domain
+        domain = Domain(domain_id, config)
+        _DOMAINS[domain_id] = (config, domain)
+        return domain
+
+
 class DdsDomain:
     """One DDS domain participant on a configured interface, with typed readers and writers of
     ROS 2 topics. Writers and readers are created on first use and kept (one per topic)."""
 
     def __init__(self, domain_id: int = 0, interface: str = "127.0.0.1", *, allow_remote: bool = False,
                  peers: tuple[str, ...] = ()) -> None:
-        from cyclonedds.domain import Domain, DomainParticipant
+        from cyclonedds.domain import DomainParticipant
 
         self.domain_id = check_domain_id(domain_id)
         self.interface = check_interface(interface, allow_remote)
-        # The Domain object holds the configuration; it must outlive the participant.
-        self._domain = Domain(self.domain_id, cyclone_config(interface, peers))
+        self._domain = _configured_domain(self.domain_id, cyclone_config(interface, peers))
         self.participant = DomainParticipant(self.domain_id)
         self._topics: dict[str, Any] = {}
         self._writers: dict[str, Any] = {}
@@ -182,7 +203,9 @@ class DdsDomain:
         self._topics.clear()
         participant, self.participant = self.participant, None
         if participant is not None:
-            del participant
+            # Deleting a participant deletes its readers and writers in Cyclone; the Python
+            # wrappers only do it when garbage collected (listener threads may hold references).
+            participant.__del__()
 
     def __enter__(self) -> "DdsDomain":
         return self
