@@ -173,6 +173,12 @@ class Ros2Agent:
         self._writers[topic].write(m.String(json.dumps({**body, "id": request_id})))
         return request_id
 
+    def send_json(self, topic: str, body: dict[str, Any]) -> dict[str, Any]:
+        """Publish a JSON command on ``topic`` (reset, submit_json, close) and return its answer."""
+        if topic not in ("reset", "submit_json", "close"):
+            raise AgentError(f"{topic}: not a JSON command topic (reset, submit_json, close)")
+        return self._await(topic, self._json_command(topic, body))
+
     def reset(self, scene: str | int | None = None, target: int | str | None = None, seed: int | None = None,
               start: Any = None) -> Observation:
         body: dict[str, Any] = {k: v for k, v in (("scene", scene), ("target", target), ("seed", seed))
