@@ -98,6 +98,8 @@ class BridgeStep:
                 "adjustments": self.adjustments, "stamp_ns": self.stamp_ns, "move": self.move,
                 "target": None if tgt is None else {"name": tgt.name, "obj_id": tgt.obj_id, "gt_id": tgt.gt_id,
                                                      "frame": tgt.frame},
+                "objects": [{"name": o.name, "obj_id": o.obj_id, "gt_id": o.gt_id, "frame": o.frame,
+                             "is_target": o.is_target, "visib_fract": o.visib_fract} for o in self.objects],
                 "world_T_cam": self.world_T_cam.tolist()}
 
 
