@@ -23,7 +23,7 @@ from brave6d.transforms import look_at, make_transform  # noqa: E402
 from ros_interface import EpisodeScorer, Estimate, gt_frame, matrix_to_pose, pose_to_matrix  # noqa: E402
 from ros_interface.ros2.agent import AgentError, Ros2Agent  # noqa: E402
 from ros_interface.ros2.dds import DdsDomain  # noqa: E402
-from ros_interface.ros2.node import DEFAULT_TWIST_DURATION_S  # noqa: E402
+from ros_interface.ros2.defaults import DEFAULT_TWIST_DURATION_S  # noqa: E402
 from serve import load_bundle, make_synthetic_bundle  # noqa: E402
 from serve.app import ServerLimits, create_app  # noqa: E402
 from serve.client import decode_step  # noqa: E402

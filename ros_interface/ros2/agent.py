@@ -79,9 +79,9 @@ class Ros2Agent:
         ]
         self._writers = {
             "reset": dds.writer(n("reset"), m.String, DEFAULT),
-            "cmd_pose": dds.writer(n("cmd_pose"), m.PoseStamped, DEFAULT),
+            "set_pose": dds.writer(n("set_pose"), m.PoseStamped, DEFAULT),
             "cmd_twist": dds.writer(n("cmd_twist"), m.TwistStamped, DEFAULT),
-            "submit": dds.writer(n("submit"), m.PoseEstimateArray, DEFAULT),
+            "submit": dds.writer(n("submit"), m.ObjectEstimateArray, DEFAULT),
             "submit_json": dds.writer(n("submit_json"), m.String, DEFAULT),
             "close": dds.writer(n("close"), m.String, DEFAULT),
         }
@@ -191,8 +191,8 @@ class Ros2Agent:
     def set_pose(self, world_T_cam: Any) -> Observation:
         header, rid = self._stamp_id()
         header.frame_id = FRAME_WORLD
-        self._writers["cmd_pose"].write(m.PoseStamped(header=header, pose=convert.pose_to_msg(world_T_cam)))
-        return self._observation(self._await("cmd_pose", rid))
+        self._writers["set_pose"].write(m.PoseStamped(header=header, pose=convert.pose_to_msg(world_T_cam)))
+        return self._observation(self._await("set_pose", rid))
 
     def twist(self, linear: Any, angular: Any, frame: str = FRAME_CAMERA_OPTICAL) -> Observation:
         """One ``cmd_twist`` (applied for the node's twist duration)."""

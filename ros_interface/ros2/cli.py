@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    from ros_interface.ros2.node import DEFAULT_NAMESPACE, DEFAULT_TWIST_DURATION_S
+    from ros_interface.ros2.defaults import DEFAULT_NAMESPACE, DEFAULT_TWIST_DURATION_S
 
     parser.add_argument("scenes", type=Path, metavar="BUNDLE_OR_RELEASE",
                         help="a bundle folder ('brave6d export') or a dataset release ('brave6d release build')")
@@ -45,6 +45,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto", help="rasterizer device")
     parser.add_argument("--log-dir", type=Path, default=None,
                         help="where episode logs (JSONL) go (default: 'episodes' beside the bundle)")
+    parser.add_argument("--scene", default=None, help="the scene a reset uses when it names none (a release's scene)")
+    parser.add_argument("--idle-timeout", type=float, default=900.0,
+                        help="close an episode idle for this many seconds (default 900)")
     parser.add_argument("--agent", default="ros2", help="agent name written in the episode logs (default ros2)")
 
 
@@ -66,6 +69,10 @@ def domain_id_from(value: int | None, environ: dict[str, str] | None = None) -> 
 
 def run(args: argparse.Namespace) -> int:
     quiet_openmp()
+    try:
+        import cyclonedds  # noqa: F401
+    except ImportError:
+        raise BraveError("brave6d ros2 needs Cyclone DDS for Python: pip install cyclonedds==11.0.1") from None
     from ros_interface.bridge import EpisodeBridge
     from ros_interface.ros2.dds import DdsDomain, check_interface
     from ros_interface.ros2.node import Ros2Node
@@ -73,14 +80,15 @@ def run(args: argparse.Namespace) -> int:
 
     domain_id = domain_id_from(args.domain_id)
     check_interface(args.interface, args.allow_remote)
-    if args.twist_duration <= 0:
+    if not args.twist_duration > 0:
         raise BraveError(f"--twist-duration must be > 0 seconds, got {args.twist_duration}")
     scenes = open_scenes(args.scenes, device=args.device)
     log_dir = args.log_dir if args.log_dir is not None else Path(args.scenes).resolve().parent / "episodes"
-    manager = EpisodeManager(scenes, log_dir, max_episodes=4)
+    manager = EpisodeManager(scenes, log_dir, max_episodes=4, idle_timeout_s=args.idle_timeout)
     bridge = EpisodeBridge(manager, agent=args.agent, width=args.width, height=args.height)
     dds = DdsDomain(domain_id, args.interface, allow_remote=args.allow_remote, peers=tuple(args.peer))
-    node = Ros2Node(bridge, dds, namespace=args.namespace, twist_duration_s=args.twist_duration).start()
+    node = Ros2Node(bridge, dds, namespace=args.namespace, twist_duration_s=args.twist_duration,
+                    default_scene=args.scene).start()
     print(f"brave6d ros2: {', '.join(map(str, scenes.names()))} on DDS domain {domain_id} ({args.interface}), "
           f"topics under {node.namespace}/ and /tf; episode logs: {log_dir}", flush=True)
     stop = threading.Event()

@@ -98,7 +98,7 @@ def twist_from_msg(msg: m.TwistStamped, topic: str) -> tuple[list[float], list[f
     return [lin.x, lin.y, lin.z], [ang.x, ang.y, ang.z], TWIST_FRAMES[frame]
 
 
-def estimates_from_msg(msg: m.PoseEstimateArray, topic: str) -> list[Estimate]:
+def estimates_from_msg(msg: m.ObjectEstimateArray, topic: str) -> list[Estimate]:
     """Estimates in the camera optical frame of the current view (the header's frame; empty = that)."""
     frame = msg.header.frame_id.lstrip("/")
     if frame not in ("", FRAME_CAMERA_OPTICAL):
@@ -108,9 +108,9 @@ def estimates_from_msg(msg: m.PoseEstimateArray, topic: str) -> list[Estimate]:
             for i, e in enumerate(msg.estimates)]
 
 
-def estimates_to_msg(estimates: list[Estimate], stamp_ns: int = 0) -> m.PoseEstimateArray:
-    return m.PoseEstimateArray(header=header(stamp_ns, FRAME_CAMERA_OPTICAL),
-                               estimates=[m.PoseEstimate(obj_id=int(e.obj_id), pose=pose_to_msg(e.cam_T_obj),
+def estimates_to_msg(estimates: list[Estimate], stamp_ns: int = 0) -> m.ObjectEstimateArray:
+    return m.ObjectEstimateArray(header=header(stamp_ns, FRAME_CAMERA_OPTICAL),
+                               estimates=[m.ObjectEstimate(obj_id=int(e.obj_id), pose=pose_to_msg(e.cam_T_obj),
                                                          score=float(e.score)) for e in estimates])
 
 

@@ -20,7 +20,7 @@ from ros_interface.bridge import Estimate
 from ros_interface.ros2.agent import Ros2Agent
 from ros_interface.ros2.cli import domain_id_from
 from ros_interface.ros2.dds import DdsDomain
-from ros_interface.ros2.node import DEFAULT_NAMESPACE
+from ros_interface.ros2.defaults import DEFAULT_NAMESPACE
 
 
 def run_episode(agent: Ros2Agent, seed: int = 0) -> dict:

@@ -12,7 +12,7 @@ serialisation of the same values (Humble and Jazzy definitions).
 but held as ``bytes``: :class:`Image` writes it in one copy (cyclonedds would pack one Python int
 per byte, ~50 ms for a 640x480 RGB image) and reads it back as ``bytes``.
 
-The package ``brave6d_msgs`` (``PoseEstimate``, ``PoseEstimateArray``) is ours: its ``.msg``
+The package ``brave6d_msgs`` (``ObjectEstimate``, ``ObjectEstimateArray``) is ours: its ``.msg``
 definitions ship in ``ros_interface/ros2/msg/`` (and are read from there by :data:`CUSTOM_MSG_FILES`).
 """
 
@@ -213,16 +213,16 @@ class CameraInfo(IdlStruct, typename=dds_type_name("sensor_msgs/msg/CameraInfo")
 
 # ----------------------------------------------------------------------------- brave6d_msgs (ours)
 @dataclass
-class PoseEstimate(IdlStruct, typename=dds_type_name("brave6d_msgs/msg/PoseEstimate")):
+class ObjectEstimate(IdlStruct, typename=dds_type_name("brave6d_msgs/msg/ObjectEstimate")):
     obj_id: int32 = 0
     pose: Pose = field(default_factory=Pose)
     score: float64 = 0.0
 
 
 @dataclass
-class PoseEstimateArray(IdlStruct, typename=dds_type_name("brave6d_msgs/msg/PoseEstimateArray")):
+class ObjectEstimateArray(IdlStruct, typename=dds_type_name("brave6d_msgs/msg/ObjectEstimateArray")):
     header: Header = field(default_factory=Header)
-    estimates: sequence[PoseEstimate] = field(default_factory=list)
+    estimates: sequence[ObjectEstimate] = field(default_factory=list)
 
 
 #: ROS type name of every class above (``rosbags`` and ``ros2 topic`` spell them this way).
@@ -235,14 +235,14 @@ ROS_TYPES: dict[type[IdlStruct], str] = {
     Transform: "geometry_msgs/msg/Transform", TransformStamped: "geometry_msgs/msg/TransformStamped",
     TFMessage: "tf2_msgs/msg/TFMessage", Image: "sensor_msgs/msg/Image",
     RegionOfInterest: "sensor_msgs/msg/RegionOfInterest", CameraInfo: "sensor_msgs/msg/CameraInfo",
-    PoseEstimate: "brave6d_msgs/msg/PoseEstimate", PoseEstimateArray: "brave6d_msgs/msg/PoseEstimateArray",
+    ObjectEstimate: "brave6d_msgs/msg/ObjectEstimate", ObjectEstimateArray: "brave6d_msgs/msg/ObjectEstimateArray",
 }
 
 #: The ``.msg`` definitions of our own package, shipped beside this module.
 MSG_DIR = Path(__file__).resolve().parent / "msg"
 CUSTOM_MSG_FILES: dict[str, Path] = {
-    "brave6d_msgs/msg/PoseEstimate": MSG_DIR / "PoseEstimate.msg",
-    "brave6d_msgs/msg/PoseEstimateArray": MSG_DIR / "PoseEstimateArray.msg",
+    "brave6d_msgs/msg/ObjectEstimate": MSG_DIR / "ObjectEstimate.msg",
+    "brave6d_msgs/msg/ObjectEstimateArray": MSG_DIR / "ObjectEstimateArray.msg",
 }
 
 

@@ -28,12 +28,9 @@ from ros_interface.frames import pose_to_matrix
 from ros_interface.ros2 import convert
 from ros_interface.ros2 import messages as m
 from ros_interface.ros2.dds import DEFAULT, SENSOR_DATA, TF, DdsDomain, QosProfile
+from ros_interface.ros2.defaults import DEFAULT_NAMESPACE, DEFAULT_TWIST_DURATION_S
 
 log = logging.getLogger(__name__)
-
-DEFAULT_NAMESPACE = "/brave6d"
-#: How long one ``cmd_twist`` is applied (seconds) unless ``twist_duration`` says otherwise.
-DEFAULT_TWIST_DURATION_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -49,13 +46,13 @@ class Topic:
 
 #: The node's interface (docs/ROS.md shows this table). ``/tf`` is global, not namespaced.
 TOPICS: tuple[Topic, ...] = (
-    Topic("reset", m.String, DEFAULT, True, 'JSON {"scene", "target", "seed", "start" (4x4 world_T_cam), "id"}; '
-          "all optional; starts an episode (closing the open one)"),
-    Topic("cmd_pose", m.PoseStamped, DEFAULT, True, "teleport the camera: world_T_cam of the optical frame, "
+    Topic("reset", m.String, DEFAULT, True, 'JSON {"scene", "target", "seed", "start", "id"}, all optional; '
+          "starts an episode (closing the open one); start: 4x4 world_T_cam or {position, orientation x-y-z-w}"),
+    Topic("set_pose", m.PoseStamped, DEFAULT, True, "teleport the camera: world_T_cam of the optical frame, "
           "header.frame_id world"),
     Topic("cmd_twist", m.TwistStamped, DEFAULT, True, "constant twist (m/s, rad/s) for the node's twist duration, "
           "in the camera optical frame (frame_id empty or brave6d_camera_optical_frame) or world"),
-    Topic("submit", m.PoseEstimateArray, DEFAULT, True, "hand in pose estimates (camera optical frame of the "
+    Topic("submit", m.ObjectEstimateArray, DEFAULT, True, "hand in pose estimates (camera optical frame of the "
           "current view); ends the episode; answered on result"),
     Topic("submit_json", m.String, DEFAULT, True, 'the same as JSON {"estimates": [{"obj_id", "position": [x, y, z], '
           '"orientation": [x, y, z, w], "score"}], "id"} for agents without brave6d_msgs'),
@@ -90,6 +87,19 @@ def parse_json_command(msg: m.String, topic: str) -> dict[str, Any]:
     return value
 
 
+def start_pose(value: Any, topic: str) -> Any:
+    """A reset's ``start``: None, a 4x4 ``world_T_cam`` (nested lists) or ``{"position": [x, y, z],
+    "orientation": [x, y, z, w]}`` (the camera optical frame's pose in world, metres)."""
+    if value is None or isinstance(value, list):
+        return value
+    if isinstance(value, dict) and set(value) == {"position", "orientation"}:
+        try:
+            return pose_to_matrix(value["position"], value["orientation"], f"{topic}.start")
+        except (TypeError, ValueError) as exc:
+            raise BraveError(f"{topic}.start: {exc}") from None
+    raise BraveError(f"{topic}.start: a 4x4 world_T_cam or {{position: [x, y, z], orientation: [x, y, z, w]}}")
+
+
 def estimates_from_json(command: dict[str, Any], topic: str) -> list[Estimate]:
     items = command.get("estimates")
     if not isinstance(items, list):
@@ -111,17 +121,20 @@ class Ros2Node:
     """Serves one :class:`EpisodeBridge` on a :class:`DdsDomain` under ``namespace``."""
 
     def __init__(self, bridge: EpisodeBridge, dds: DdsDomain, *, namespace: str = DEFAULT_NAMESPACE,
-                 twist_duration_s: float = DEFAULT_TWIST_DURATION_S) -> None:
+                 twist_duration_s: float = DEFAULT_TWIST_DURATION_S, default_scene: str | None = None) -> None:
         if not namespace.startswith("/"):
             raise BraveError(f"--namespace {namespace!r}: must start with '/'")
         self.bridge = bridge
         self.dds = dds
         self.namespace = namespace.rstrip("/") or ""
+        if not twist_duration_s > 0:
+            raise BraveError(f"twist duration must be > 0 s, got {twist_duration_s}")
         self.twist_duration_s = float(twist_duration_s)
+        self.default_scene = default_scene
         self._queue: queue.Queue[tuple[str, Any] | None] = queue.Queue()
         self._worker: threading.Thread | None = None
         self._handlers: dict[str, Callable[[Any, str], None]] = {
-            "reset": self._on_reset, "cmd_pose": self._on_pose, "cmd_twist": self._on_twist,
+            "reset": self._on_reset, "set_pose": self._on_pose, "cmd_twist": self._on_twist,
             "submit": self._on_submit, "submit_json": self._on_submit_json, "close": self._on_close,
         }
 
@@ -193,19 +206,20 @@ class Ros2Node:
         seed = c.get("seed")
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
             raise BraveError(f"{topic}: seed must be an integer, got {seed!r}")
-        step = self.bridge.reset(scene=c.get("scene"), target=c.get("target"), seed=seed, start=c.get("start"))
+        step = self.bridge.reset(scene=c.get("scene") or self.default_scene, target=c.get("target"), seed=seed,
+                                 start=start_pose(c.get("start"), topic))
         self._publish_step(step, self._request("reset", msg))
 
     def _on_pose(self, msg: m.PoseStamped, topic: str) -> None:
         step = self.bridge.set_pose(convert.camera_pose_from_msg(msg, topic))
-        self._publish_step(step, self._request("cmd_pose", msg))
+        self._publish_step(step, self._request("set_pose", msg))
 
     def _on_twist(self, msg: m.TwistStamped, topic: str) -> None:
         linear, angular, frame = convert.twist_from_msg(msg, topic)
         step = self.bridge.move(linear, angular, self.twist_duration_s, frame)
         self._publish_step(step, self._request("cmd_twist", msg))
 
-    def _on_submit(self, msg: m.PoseEstimateArray, topic: str) -> None:
+    def _on_submit(self, msg: m.ObjectEstimateArray, topic: str) -> None:
         self._submit(convert.estimates_from_msg(msg, topic), self._request("submit", msg))
 
     def _on_submit_json(self, msg: m.String, topic: str) -> None:
