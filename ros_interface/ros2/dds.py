@@ -17,11 +17,14 @@ domain bound to one network interface (loopback by default).
 from __future__ import annotations
 
 import ipaddress
+import logging
 import threading
 from dataclasses import dataclass
 from typing import Any, Callable
 
 from brave6d.errors import BraveError
+
+log = logging.getLogger(__name__)
 
 #: Prefix of ROS 2 topics on DDS (rmw's ``ROS_TOPIC_PREFIX``).
 ROS_TOPIC_PREFIX = "rt"
@@ -30,6 +33,10 @@ MAX_DOMAIN_ID = 232
 #: Participant indices probed in unicast discovery (Cyclone's ``MaxAutoParticipantIndex``):
 #: how many DDS processes can meet on one machine with multicast off.
 MAX_PARTICIPANTS = 32
+#: UDP receive buffer asked for (the kernel caps it at net.core.rmem_max): a 640x480 frame is
+#: ~2 MB of fragments arriving at once; Cyclone's default 1 MiB loses best-effort images when the
+#: receiving process is busy (the ROS 2 DDS tuning guide's advice for large messages).
+SOCKET_RECEIVE_BUFFER = "16MiB"
 
 
 def dds_topic_name(ros_topic: str) -> str:
@@ -98,7 +105,9 @@ def cyclone_config(interface: str = "127.0.0.1", peers: tuple[str, ...] = ()) ->
                  f"</MaxAutoParticipantIndex>" + (f"<Peers>{peer_xml}</Peers>" if peer_xml else ""))
     return ('<CycloneDDS><Domain Id="any"><General><Interfaces>' + nic + "</Interfaces>"
             f"<AllowMulticast>{multicast}</AllowMulticast></General>"
-            f"<Discovery>{discovery}</Discovery></Domain></CycloneDDS>")
+            f"<Discovery>{discovery}</Discovery>"
+            f'<Internal><SocketReceiveBufferSize min="default" max="{SOCKET_RECEIVE_BUFFER}"/></Internal>'
+            "</Domain></CycloneDDS>")
 
 
 def check_domain_id(domain_id: int) -> int:
@@ -151,6 +160,7 @@ class DdsDomain:
         self._topics: dict[str, Any] = {}
         self._writers: dict[str, Any] = {}
         self._readers: dict[str, Any] = {}
+        self._dispatch: _Dispatcher | None = None
 
     def _topic(self, ros_topic: str, msg_type: type) -> Any:
         from cyclonedds.topic import Topic
@@ -175,29 +185,30 @@ class DdsDomain:
 
     def reader(self, ros_topic: str, msg_type: type, qos: QosProfile,
                on_data: Callable[[Any], None] | None = None) -> Any:
-        """The DataReader of ``ros_topic``; with ``on_data``, every sample is handed to it on
-        Cyclone's listener thread (keep it short; it must not block on DDS)."""
-        from cyclonedds.core import Listener
+        """The DataReader of ``ros_topic``; with ``on_data``, every sample is handed to it on this
+        domain's dispatch thread (one for all readers; keep ``on_data`` short)."""
         from cyclonedds.sub import DataReader
 
         r = self._readers.get(ros_topic)
         if r is None:
-            listener = None
+            r = self._readers[ros_topic] = DataReader(self.participant, self._topic(ros_topic, msg_type), qos.to_dds())
             if on_data is not None:
-                def _on_data_available(reader: Any) -> None:
-                    for sample in reader.take(N=64):
-                        on_data(sample)
-
-                listener = Listener(on_data_available=_on_data_available)
-            r = self._readers[ros_topic] = DataReader(self.participant, self._topic(ros_topic, msg_type),
-                                                      qos.to_dds(), listener=listener)
+                self._dispatcher().add(r, on_data)
         return r
+
+    def _dispatcher(self) -> "_Dispatcher":
+        if self._dispatch is None:
+            self._dispatch = _Dispatcher(self.participant, f"dds-dispatch-{self.domain_id}")
+        return self._dispatch
 
     def publish(self, ros_topic: str, sample: Any, qos: QosProfile) -> None:
         self.writer(ros_topic, type(sample), qos).write(sample)
 
     def close(self) -> None:
-        """Delete the participant (and with it every reader and writer)."""
+        """Stop the dispatch thread; delete the participant (and with it every reader and writer)."""
+        if self._dispatch is not None:
+            self._dispatch.stop()
+            self._dispatch = None
         self._readers.clear()
         self._writers.clear()
         self._topics.clear()
@@ -212,3 +223,52 @@ class DdsDomain:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class _Dispatcher:
+    """One thread that waits on a WaitSet of read conditions and hands every new sample to its
+    reader's callback.
+
+    Why not Cyclone listeners: a listener runs on Cyclone's receive thread, which then waits for
+    Python's GIL in every callback; while it waits, a fragmented sample (a 640x480 depth image is
+    ~850 UDP fragments) overflows the socket buffer and a best-effort image is lost. Here the
+    receive thread only stores samples (each reader keeps its QoS history) and signals the WaitSet.
+    """
+
+    POLL_NS = 100_000_000  # the thread re-checks for stop() this often
+
+    def __init__(self, participant: Any, name: str) -> None:
+        from cyclonedds.core import WaitSet
+
+        self._waitset = WaitSet(participant)
+        self._entries: list[tuple[Any, Any, Callable[[Any], None]]] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def add(self, reader: Any, on_data: Callable[[Any], None]) -> None:
+        from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState
+
+        condition = ReadCondition(reader, SampleState.NotRead | ViewState.Any | InstanceState.Any)
+        with self._lock:
+            self._entries.append((reader, condition, on_data))
+            self._waitset.attach(condition)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._waitset.wait(self.POLL_NS)
+            with self._lock:
+                entries = list(self._entries)
+            for reader, condition, on_data in entries:
+                if self._stop.is_set():
+                    return
+                for sample in reader.take(N=64, condition=condition):
+                    try:
+                        on_data(sample)
+                    except Exception:  # one bad callback must not stop every reader
+                        log.exception("DDS callback of %s failed", reader.topic.name)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
