@@ -206,12 +206,14 @@ class EpisodeBridge:
     def set_pose(self, world_T_cam: ArrayLike) -> BridgeStep:
         """Teleport the camera (optical frame) to ``world_T_cam`` (metres, world = robot base)."""
         with self._lock:
-            return self._step(self.manager.set_pose(self._current(), np.asarray(world_T_cam, dtype=np.float64)))
+            eid = self._current()
+            return self._step(self.manager.set_pose(eid, np.asarray(world_T_cam, dtype=np.float64)))
 
     def move(self, linear: ArrayLike, angular: ArrayLike, duration: float, frame: str = "camera") -> BridgeStep:
         """Apply a constant twist (m/s, rad/s; ``frame`` "camera" or "world") for ``duration`` seconds."""
         with self._lock:
-            return self._step(self.manager.move(self._current(), np.asarray(linear, dtype=np.float64),
+            eid = self._current()
+            return self._step(self.manager.move(eid, np.asarray(linear, dtype=np.float64),
                                                 np.asarray(angular, dtype=np.float64), float(duration), frame))
 
     def submit(self, estimates: list[Estimate]) -> EpisodeResult:

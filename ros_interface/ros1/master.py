@@ -12,7 +12,7 @@ import xmlrpc.client
 from pathlib import Path
 
 from brave6d.errors import BraveError
-from ros_interface.ros1.ros_env import ROSMASTER, loopback_environment, require_ros1
+from ros_interface.ros1.ros_env import ROSMASTER, loopback_environment
 
 
 def free_port() -> int:
@@ -60,7 +60,8 @@ class RosMaster:
         self.proc: subprocess.Popen | None = None
 
     def start(self) -> RosMaster:
-        require_ros1()
+        if not os.path.exists(ROSMASTER):
+            raise BraveError(f"{ROSMASTER} not found: apt-get install python3-rosmaster")
         if master_is_up(self.uri):
             raise BraveError(f"a ROS master already answers at {self.uri}")
         env = loopback_environment(self.uri)

@@ -39,11 +39,19 @@ def add_debian_path() -> None:
         sys.path.append(DEBIAN_DIST_PACKAGES)
 
 
-def missing_ros1() -> list[str]:
-    """The Debian packages whose modules cannot be imported (empty when ROS 1 is usable)."""
-    add_debian_path()
+def missing_ros1(import_modules: bool = True) -> list[str]:
+    """The Debian packages whose modules cannot be imported (empty when ROS 1 is usable).
+    ``import_modules=False`` only looks for their files (nothing imported, ``sys.path`` untouched:
+    what a test's skip condition wants)."""
+    if import_modules:
+        add_debian_path()
     missing = []
     for module, package in REQUIRED_MODULES.items():
+        if not import_modules:
+            base = os.path.join(DEBIAN_DIST_PACKAGES, *module.split("."))
+            if not (os.path.isfile(os.path.join(base, "__init__.py")) or os.path.isfile(base + ".py")):
+                missing.append(package)
+            continue
         try:
             importlib.import_module(module)
         except ImportError:

@@ -1,0 +1,204 @@
+"""Per-step latency of the ROS interface vs HTTP on the same bundle and the same poses.
+
+One step = an agent sends a camera pose and waits for the image of that pose:
+
+* ``http``: ``BraveClient.set_pose`` against ``serve.ServerThread`` on loopback (PNG RGB and
+  float32 depth in the JSON reply, decoded), i.e. the reply the agent waits for;
+* ``ros1``: a ``geometry_msgs/PoseStamped`` published on ``/brave6d_sim/set_pose`` until the
+  ``sensor_msgs/Image`` (rgb8) with that step's stamp reaches the agent's callback (rosmaster and
+  ``brave6d ros1`` on loopback, the agent a separate rospy process; column ``depth``: the 32FC1
+  image's arrival).
+
+Every transport sees the same ``--steps`` free poses around the target (after ``--warmup`` steps
+that are not counted); ``server ms`` is the episode log's own time for the step (render, ground
+truth and visible fractions), so ``latency - server`` is the transport's cost. Medians and p90
+are printed as a table; ``--json`` writes them.
+
+    python benchmarks/ros_latency.py [--bundle DIR] [--device cpu|cuda|auto] [--steps 30] [--json out.json]
+
+Without ``--bundle``, a synthetic bundle (``serve.make_synthetic_bundle``) is built in a temporary
+folder. ROS 1 needs Debian's packages (see docs/ROS.md); its column is skipped, saying why, without
+them. Transports are registered in ``TRANSPORTS`` (name -> function), so a new one is one entry.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+# this folder holds benchmarks/serve.py, which would shadow the serve package
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "benchmarks"]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the CLI does
+
+from brave6d.transforms import look_at  # noqa: E402
+
+
+def free_views(bundle_dir: Path, n: int, seed: int = 0) -> list[np.ndarray]:
+    """``n`` free camera poses on capture-like rings around the bundle's first object (seeded)."""
+    from serve import load_bundle
+
+    bundle = load_bundle(bundle_dir)
+    centre = bundle.objects[0].world_T_obj[:3, 3] if bundle.objects else np.zeros(3)
+    dists = bundle.start.get("distances_m") or [0.25, 0.4]
+    rng = np.random.default_rng(seed)
+    out: list[np.ndarray] = []
+    for _ in range(100 * n):
+        d = rng.uniform(min(dists), max(dists))
+        el, az = math.radians(rng.uniform(30, 80)), rng.uniform(-math.pi, math.pi)
+        T = look_at(centre + d * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]),
+                    centre)
+        if bundle.world.check(T) is None:
+            out.append(T)
+            if len(out) == n:
+                return out
+    raise SystemExit(f"found only {len(out)} free views around {bundle.objects[0].name}")
+
+
+def server_step_ms(log_dir: Path) -> list[float]:
+    """The ``step`` time of every set_pose in the episode logs of ``log_dir`` (in order)."""
+    out: list[float] = []
+    for path in sorted(log_dir.glob("*.jsonl")):
+        for line in path.read_text(encoding="utf-8").splitlines():
+            rec = json.loads(line)
+            if rec.get("event") == "set_pose":
+                out.append(float(rec["timings_ms"]["step"]))
+    return out
+
+
+def measure_http(bundle_dir: Path, views: list[np.ndarray], args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    from serve import BraveClient, ServerThread, create_app
+
+    log_dir = work / "http_episodes"
+    app = create_app(bundle_dir, device=args.device, log_dir=log_dir)
+    lat = []
+    with ServerThread(app) as server, BraveClient(server.url, rgb="png", depth="f32") as client:
+        client.reset(start=views[0], agent="bench-http")
+        for T in views[1:]:
+            t0 = time.perf_counter()
+            step = client.set_pose(T)
+            lat.append(time.perf_counter() - t0)
+            assert step.accepted and step.observation.rgb is not None
+        client.close()
+    return {"image_s": lat, "server_ms": server_step_ms(log_dir)}
+
+
+def measure_ros1(bundle_dir: Path, views: list[np.ndarray], args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    from ros_interface.ros1.master import RosMaster, stop_group
+    from ros_interface.ros1.ros_env import loopback_environment, missing_ros1
+
+    missing = missing_ros1(import_modules=False)
+    if missing:
+        return {"skipped": "ROS 1 not installed: apt-get install " + " ".join(missing)}
+    log_dir = work / "ros1_episodes"
+    actions = [{"op": "reset", "start": views[0].tolist()}] + [{"op": "set_pose", "world_T_cam": T.tolist()}
+                                                             for T in views[1:]]
+    (work / "ros1_actions.json").write_text(json.dumps({"actions": actions, "timeout_s": 300}), encoding="utf-8")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    with RosMaster(log_file=work / "rosmaster.log") as master:
+        env.update(loopback_environment(master.uri))
+        node = subprocess.Popen(
+            [sys.executable, "-c", "import sys; from brave6d.cli import main; sys.exit(main(sys.argv[1:]))", "ros1",
+             str(bundle_dir), "--master-uri", master.uri, "--device", args.device, "--log-dir", str(log_dir),
+             "--agent", "bench-ros1"], env=env, cwd=REPO, stdout=open(work / "ros1_node.log", "wb"),
+            stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            agent = subprocess.run([sys.executable, "-m", "ros_interface.ros1.client", str(work / "ros1_actions.json"),
+                                    str(work / "ros1_out")], env=env, cwd=REPO, capture_output=True, text=True,
+                                   timeout=1800)
+            if agent.returncode != 0:
+                raise SystemExit(f"ROS 1 agent failed:\n{agent.stderr[-2000:]}\n"
+                                 f"{(work / 'ros1_node.log').read_text(errors='replace')[-2000:]}")
+        finally:
+            stop_group(node)
+    record = json.loads((work / "ros1_out" / "record.json").read_text(encoding="utf-8"))
+    steps = [s for s in record["steps"] if s["op"] == "set_pose"]
+    assert all(s["status"]["accepted"] for s in steps)
+    return {"image_s": [s["latency_s"]["rgb"] for s in steps], "depth_s": [s["latency_s"]["depth"] for s in steps],
+            "server_ms": server_step_ms(log_dir)}
+
+
+#: name -> function(bundle_dir, views (the first is the reset's start), args, work dir) -> samples.
+TRANSPORTS: dict[str, Callable[[Path, list[np.ndarray], argparse.Namespace, Path], dict[str, Any]]] = {
+    "http": measure_http,
+    "ros1": measure_ros1,
+}
+
+
+def summarise(samples: dict[str, Any], warmup: int) -> dict[str, Any]:
+    if "skipped" in samples:
+        return samples
+    ms = np.asarray(samples["image_s"][warmup:]) * 1000.0
+    server = np.asarray(samples["server_ms"][warmup:])
+    out = {"steps": int(ms.size), "median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90)),
+           "server_median_ms": float(np.median(server)) if server.size else None}
+    if out["server_median_ms"] is not None:
+        out["transport_median_ms"] = float(np.median(ms - server[: ms.size])) if server.size >= ms.size else None
+    if "depth_s" in samples:
+        depth = np.asarray(samples["depth_s"][warmup:]) * 1000.0
+        out["depth_median_ms"], out["depth_p90_ms"] = float(np.median(depth)), float(np.percentile(depth, 90))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--bundle", type=Path, default=None, help="bundle folder (default: a synthetic one)")
+    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu")
+    parser.add_argument("--steps", type=int, default=30, help="timed steps per transport (default 30)")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed steps first (default 3)")
+    parser.add_argument("--transports", nargs="+", default=list(TRANSPORTS), choices=list(TRANSPORTS))
+    parser.add_argument("--json", type=Path, default=None, help="write the figures here")
+    args = parser.parse_args(argv)
+    from brave6d.progress import format_table
+
+    with tempfile.TemporaryDirectory(prefix="brave6d_ros_latency_") as tmp:
+        work = Path(tmp)
+        bundle_dir = args.bundle
+        if bundle_dir is None:
+            from serve import make_synthetic_bundle
+
+            bundle_dir = make_synthetic_bundle(work / "scene")
+        views = free_views(bundle_dir, 1 + args.warmup + args.steps)
+        results = {}
+        for name in args.transports:
+            (work / name).mkdir()
+            results[name] = summarise(TRANSPORTS[name](bundle_dir, views, args, work / name), args.warmup)
+        from serve import load_bundle
+
+        bundle = load_bundle(bundle_dir)
+        size = f"{bundle.render.width}x{bundle.render.height}"
+    rows = []
+    for name, r in results.items():
+        if "skipped" in r:
+            rows.append([name, "-", "-", "-", "-", r["skipped"]])
+            continue
+        rows.append([name, r["steps"], f"{r['median_ms']:.1f}", f"{r['p90_ms']:.1f}",
+                     f"{r['server_median_ms']:.1f}" if r.get("server_median_ms") is not None else "-",
+                     f"{r['transport_median_ms']:.1f}" if r.get("transport_median_ms") is not None else "-"])
+    print(f"set_pose -> image received, {bundle.name} ({size}, {args.device}), {platform.node()}:")
+    print(format_table(["transport", "steps", "median ms", "p90 ms", "server ms (median)",
+                        "transport ms (median)"], rows))
+    if args.json is not None:
+        args.json.write_text(json.dumps({"bundle": bundle.name, "size": size, "device": args.device,
+                                         "host": platform.node(), "python": platform.python_version(),
+                                         "results": results}, indent=1), encoding="utf-8")
+        print(f"written: {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
