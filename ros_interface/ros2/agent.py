@@ -42,6 +42,7 @@ class Observation:
     world_T_cam: NDArray[np.float64]  # from /tf (world -> brave6d_camera_optical_frame)
     ground_truth: dict[str, NDArray[np.float64]]  # gt frame -> world_T_obj, from /tf
     messages: dict[str, Any]
+    received: dict[str, float]  # part (rgb, depth, rgb_info, depth_info, tf) -> time.perf_counter() on arrival
 
     def cam_T_gt(self, frame: str) -> NDArray[np.float64]:
         """A ground-truth object's pose in the camera frame of this view."""
@@ -100,8 +101,10 @@ class Ros2Agent:
             self._cond.notify_all()
 
     def _store(self, stamp_ns: int, part: str, value: Any) -> None:
+        arrived = time.perf_counter()
         with self._cond:
             self._parts.setdefault(stamp_ns, {})[part] = value
+            self._parts[stamp_ns][f"{part}@"] = arrived
             while len(self._parts) > self._keep:
                 self._parts.popitem(last=False)
             self._cond.notify_all()
@@ -166,7 +169,7 @@ class Ros2Agent:
                            K=np.asarray(parts["rgb_info"].k, dtype=np.float64).reshape(3, 3),
                            world_T_cam=tf[FRAME_CAMERA_OPTICAL],
                            ground_truth={k: v for k, v in tf.items() if k.startswith(GT_FRAME_PREFIX)},
-                           messages=parts)
+                           messages={p: parts[p] for p in STEP_PARTS}, received={p: parts[f"{p}@"] for p in STEP_PARTS})
 
     def _json_command(self, topic: str, body: dict[str, Any]) -> Any:
         request_id = f"{topic}-{next(self._ids)}"
