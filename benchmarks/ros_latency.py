@@ -7,7 +7,11 @@ One step = an agent sends a camera pose and waits for the image of that pose:
 * ``ros1``: a ``geometry_msgs/PoseStamped`` published on ``/brave6d_sim/set_pose`` until the
   ``sensor_msgs/Image`` (rgb8) with that step's stamp reaches the agent's callback (rosmaster and
   ``brave6d ros1`` on loopback, the agent a separate rospy process; column ``depth``: the 32FC1
-  image's arrival).
+  image's arrival);
+* ``ros2``: the same over ROS 2 topics on DDS (``brave6d ros2`` on loopback with a random domain
+  id, its own process; the agent a Cyclone DDS participant in this process,
+  ``ros_interface.ros2.agent.Ros2Agent``): ``PoseStamped`` published on ``/brave6d_sim/set_pose``
+  until the rgb8 image with that step's stamp is taken from its reader (``depth``: the 32FC1 one).
 
 Every transport sees the same ``--steps`` free poses around the target (after ``--warmup`` steps
 that are not counted); ``server ms`` is the episode log's own time for the step (render, ground
@@ -132,10 +136,51 @@ def measure_ros1(bundle_dir: Path, views: list[np.ndarray], args: argparse.Names
             "server_ms": server_step_ms(log_dir)}
 
 
+def measure_ros2(bundle_dir: Path, views: list[np.ndarray], args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    try:
+        import cyclonedds  # noqa: F401
+    except ImportError:
+        return {"skipped": "Cyclone DDS not installed: pip install cyclonedds==11.0.1"}
+    import random
+
+    from ros_interface.ros2.agent import Ros2Agent
+    from ros_interface.ros2.dds import DdsDomain
+
+    log_dir = work / "ros2_episodes"
+    domain_id = random.randrange(100, 230)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    node = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from brave6d.cli import main; sys.exit(main(sys.argv[1:]))", "ros2",
+         str(bundle_dir), "--domain-id", str(domain_id), "--device", args.device, "--log-dir", str(log_dir),
+         "--agent", "bench-ros2"], env=env, cwd=REPO, stdout=open(work / "ros2_node.log", "wb"),
+        stderr=subprocess.STDOUT)
+    rgb_s, depth_s = [], []
+    try:
+        with DdsDomain(domain_id) as dds:
+            agent = Ros2Agent(dds, timeout_s=300)
+            agent.wait_until_connected(timeout_s=300)
+            agent.reset(start=views[0])
+            for T in views[1:]:
+                t0 = time.perf_counter()
+                obs = agent.set_pose(T)
+                assert obs.status["accepted"]
+                rgb_s.append(obs.received["rgb"] - t0)
+                depth_s.append(obs.received["depth"] - t0)
+            agent.close()
+    finally:
+        node.terminate()
+        try:
+            node.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            node.kill()
+    return {"image_s": rgb_s, "depth_s": depth_s, "server_ms": server_step_ms(log_dir)}
+
+
 #: name -> function(bundle_dir, views (the first is the reset's start), args, work dir) -> samples.
 TRANSPORTS: dict[str, Callable[[Path, list[np.ndarray], argparse.Namespace, Path], dict[str, Any]]] = {
     "http": measure_http,
     "ros1": measure_ros1,
+    "ros2": measure_ros2,
 }
 
 

@@ -37,6 +37,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("serve", "serve.cli", "serve a bundle to active-vision agents (HTTP + WebSocket, browser viewer)"),
     Command("release", "dataset.release.cli", "build a dataset release (BOP zips, bundles, checksums, card) or verify one"),
     Command("ros1", "ros_interface.ros1.cli", "serve a bundle or release as a ROS 1 node (topics, tf, services; rospy)"),
+    Command("ros2", "ros_interface.ros2.cli", "serve a bundle or release as ROS 2 topics over DDS (Cyclone DDS; loopback by default)"),
     Command("evaluate", "evaluation.cli", "score agent episodes (BOP Average Recall, adjustments) and print a leaderboard"),
     Command("report", "evaluation.report.cli", "write the accuracy-vs-time report from real measurements"),
     Command("dataset", "dataset.cli", "run every stage of every scene of a dataset (local or Slurm); show its status"),
