@@ -54,6 +54,9 @@ class Preset:
     prune_opa: float = 0.005
     prune_scale3d: float = 0.1
     max_gaussians: int | None = None  # growth is limited to the highest gradients beyond this
+    # coarse-to-fine: the first `coarse_steps` steps train on 2x2-averaged images (half width and
+    # height, a quarter of the pixels per step); 0: every step at the training resolution
+    coarse_steps: int = 0
     # bookkeeping
     checkpoint_every: int = 5000
     keep_checkpoints: int = 2
@@ -69,6 +72,8 @@ class Preset:
             raise BraveError(f"preset {self.name}: sh_degree must be in 0..3, got {self.sh_degree}")
         if not 0.0 <= self.ssim_lambda <= 1.0:
             raise BraveError(f"preset {self.name}: ssim_lambda must be in [0, 1], got {self.ssim_lambda}")
+        if not 0 <= self.coarse_steps <= self.steps:
+            raise BraveError(f"preset {self.name}: coarse_steps must be in 0..steps ({self.steps}), got {self.coarse_steps}")
         if self.checkpoint_every < 1 or self.keep_checkpoints < 1:
             raise BraveError(f"preset {self.name}: checkpoint_every and keep_checkpoints must be >= 1")
 
@@ -91,6 +96,7 @@ class Preset:
             refine_every=sc(self.refine_every), reset_every=sc(self.reset_every),
             checkpoint_every=sc(self.checkpoint_every), curve_every=sc(self.curve_every),
             eval_every=sc(self.eval_every) if self.eval_every else 0,
+            coarse_steps=min(steps, round(self.coarse_steps * f)),
         )
 
     def to_json(self) -> dict[str, Any]:

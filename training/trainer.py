@@ -129,6 +129,7 @@ class Trainer:
         self.K = torch.from_numpy(data.camera.K).float().to(self.device)
         self.images = [torch.from_numpy(v.image).to(self.device) for v in data.train]
         self.valid = data.valid_tensor(self.device)
+        self._coarse: CoarseLevel | None = None  # half-resolution copies, made when a coarse step first needs them
 
     # ------------------------------------------------------------------ setup
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
@@ -146,18 +147,27 @@ class Trainer:
         return self.order.pop()
 
     # ------------------------------------------------------------------ one step
-    def render(self, viewmat: Tensor, sh_degree: int | None = None) -> tuple[Tensor, Tensor, dict[str, Any]]:
-        """Render the current model into one camera: ``(rgb [H, W, 3], alpha [H, W, 1], info)``."""
+    def render(self, viewmat: Tensor, sh_degree: int | None = None,
+               level: CoarseLevel | None = None) -> tuple[Tensor, Tensor, dict[str, Any]]:
+        """Render the current model into one camera: ``(rgb [H, W, 3], alpha [H, W, 1], info)``
+        (at the half resolution of ``level`` when given)."""
         from training.rasterizer import rasterize
 
         m = self.model
         d = m.sh_degree if sh_degree is None else sh_degree
         coeffs = m.sh_coeffs()[:, : (d + 1) ** 2]
         cam = self.data.camera
+        K, width, height = (self.K, cam.width, cam.height) if level is None else (level.K, level.width, level.height)
         colors, _, alphas, info = rasterize(
-            m.means, m.quats, m.scales(), m.opacities(), coeffs, viewmat[None], self.K[None],
-            cam.width, cam.height, sh_degree=d)
+            m.means, m.quats, m.scales(), m.opacities(), coeffs, viewmat[None], K[None],
+            width, height, sh_degree=d)
         return colors[0], alphas[0], info
+
+    def coarse_level(self) -> CoarseLevel:
+        """The half-resolution training images, intrinsics and valid mask (made once)."""
+        if self._coarse is None:
+            self._coarse = CoarseLevel.of(self.images, self.K, self.valid)
+        return self._coarse
 
     def _check_params(self, when: str) -> None:
         # a NaN/inf anywhere makes the sum non-finite: one cheap reduction per tensor
@@ -181,10 +191,12 @@ class Trainer:
         for group in self.optimizers["means"].param_groups:
             group["lr"] = means_lr(step, p, self.extent)
         i = self._next_view()
-        gt = self.images[i].float() / 255.0
-        render, _, info = self.render(self.viewmats[i], sh_degree_at(step, p, self.model.sh_degree))
+        level = self.coarse_level() if step < p.coarse_steps else None
+        gt = (self.images[i] if level is None else level.images[i]).float() / 255.0
+        valid = self.valid if level is None else level.valid
+        render, _, info = self.render(self.viewmats[i], sh_degree_at(step, p, self.model.sh_degree), level)
         self.strategy.step_pre_backward(self.model.params, self.optimizers, self.strategy_state, step, info)
-        gt = fill_invalid(gt, render, self.valid)
+        gt = fill_invalid(gt, render, valid)
         loss, l1, _ = photometric_loss(render, gt, p.ssim_lambda)
         loss_value = float(loss.detach())
         if not math.isfinite(loss_value):
@@ -197,7 +209,7 @@ class Trainer:
                                          packed=False)
         self._check_params("after the optimiser step")
         self.step += 1
-        value = psnr(render, gt, self.valid)
+        value = psnr(render, gt, valid)
         self.psnr_ema = value if self.psnr_ema is None else 0.9 * self.psnr_ema + 0.1 * value
         self.loss_ema = loss_value if self.loss_ema is None else 0.9 * self.loss_ema + 0.1 * loss_value
         return {"loss": loss_value, "l1": float(l1.detach()), "psnr": value}
@@ -410,6 +422,44 @@ def _to_cpu(obj: Any) -> Any:
     if isinstance(obj, list):
         return [_to_cpu(v) for v in obj]
     return obj
+
+
+def half_intrinsics(K: Tensor) -> Tensor:
+    """``K`` of the image made by averaging 2x2 pixel blocks: focal lengths halved, and the
+    principal point moved so that pixel centres stay at integer coordinates
+    (``c' = (c + 0.5) / 2 - 0.5``): a point at full-resolution pixel ``u`` lands at ``(u + 0.5) / 2 - 0.5``."""
+    out = K.clone()
+    out[0, 0], out[1, 1] = K[0, 0] / 2, K[1, 1] / 2
+    out[0, 2], out[1, 2] = (K[0, 2] + 0.5) / 2 - 0.5, (K[1, 2] + 0.5) / 2 - 0.5
+    return out
+
+
+def half_image(image: Tensor) -> Tensor:
+    """A uint8 ``[H, W, C]`` image averaged over 2x2 blocks (odd last row/column dropped), rounded."""
+    h, w = image.shape[0] // 2 * 2, image.shape[1] // 2 * 2
+    x = image[:h, :w].float().reshape(h // 2, 2, w // 2, 2, -1).mean(dim=(1, 3))
+    return x.round().clamp(0, 255).to(torch.uint8)
+
+
+@dataclass(frozen=True)
+class CoarseLevel:
+    """The training images at half width and height (coarse-to-fine schedule of :class:`Preset`)."""
+
+    images: list[Tensor]
+    K: Tensor
+    valid: Tensor | None  # a coarse pixel is valid when its four fine pixels are
+    width: int
+    height: int
+
+    @classmethod
+    def of(cls, images: list[Tensor], K: Tensor, valid: Tensor | None) -> CoarseLevel:
+        if not images or images[0].shape[0] < 2 or images[0].shape[1] < 2:
+            raise BraveError("coarse-to-fine training needs images of at least 2x2 pixels")
+        small = [half_image(im) for im in images]
+        if valid is not None:
+            h, w = valid.shape[0] // 2 * 2, valid.shape[1] // 2 * 2
+            valid = valid[:h, :w].reshape(h // 2, 2, w // 2, 2).all(dim=3).all(dim=1)
+        return cls(small, half_intrinsics(K), valid, int(small[0].shape[1]), int(small[0].shape[0]))
 
 
 def image_of(view_index: int, data: TrainingData, device: torch.device | str = "cpu") -> Tensor:
