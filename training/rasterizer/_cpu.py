@@ -16,7 +16,6 @@ import torch
 from torch import Tensor
 
 from . import kernels as K
-from . import simd
 from .constants import TILE_SIZE
 from ._validation import RasterInputError, RasterInputs
 
@@ -105,14 +104,12 @@ class _Composite(torch.autograd.Function):
             )
         order = K.tile_order(K.forward_costs(tile_offsets))
         bg = _np(backgrounds) if backgrounds is not None else np.zeros((c, 3), np.float32)
-        lane_tag = simd.lane_tag(simd.selected_lane_width())
         rgb_img, depth_img, alpha_img, t_final, acc_depth, last_ids, bwd_costs = K.rasterize_fwd(
             rec, bg, width, height, tile_w, tile_h, tile_offsets, flatten_ids, isect_rows, order,
-            n_workers, lane_tag,
+            n_workers,
         )
         ctx.plan = (tile_w, tile_h, tile_offsets, flatten_ids, isect_rows, gauss_offsets,
-                    isect_of, bwd_costs, n_workers, t_final, acc_depth, last_ids, rec, bg,
-                    lane_tag)
+                    isect_of, bwd_costs, n_workers, t_final, acc_depth, last_ids, rec, bg)
         ctx.cfg = (width, height, absgrad, rgb3.shape[0], rgb.dim())
         ctx.save_for_backward(means2d)
         return torch.from_numpy(rgb_img), torch.from_numpy(depth_img), torch.from_numpy(alpha_img)
@@ -121,7 +118,7 @@ class _Composite(torch.autograd.Function):
     def backward(ctx, v_rgb, v_depth, v_alpha):
         (means2d,) = ctx.saved_tensors
         (tile_w, tile_h, tile_offsets, flatten_ids, isect_rows, gauss_offsets, isect_of,
-         bwd_costs, n_workers, t_final, acc_depth, last_ids, rec, bg, lane_tag) = ctx.plan
+         bwd_costs, n_workers, t_final, acc_depth, last_ids, rec, bg) = ctx.plan
         width, height, absgrad, n_colour_cams, rgb_dim = ctx.cfg
         c = t_final.shape[0]
         v_rgb = _zeros_if_none(v_rgb, torch.empty(c, height, width, 3))
@@ -131,7 +128,7 @@ class _Composite(torch.autograd.Function):
             rec, bg, width, height, tile_w, tile_h, tile_offsets, flatten_ids, isect_rows,
             gauss_offsets, isect_of, K.tile_order(bwd_costs), n_workers, t_final, acc_depth,
             last_ids, _np(v_rgb), _np(v_depth), _np(v_alpha), n_colour_cams,
-            np.empty(0, np.float32) if absgrad else None, lane_tag,
+            np.empty(0, np.float32) if absgrad else None,
         )
         if absgrad:
             means2d.absgrad = torch.from_numpy(v_abs)

@@ -33,7 +33,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from llvmlite import binding as llvm_binding
 from llvmlite import ir
 from numba import njit, prange, types
 from numba.core import cgutils
@@ -68,15 +67,6 @@ _N_GRAD = 12  # per-Gaussian compositing grads: xy(2) conic(3) opacity(1) colour
 # by default for gsplat's CUDA kernels; no other fast-math assumption (NaN/inf, reassociation,
 # approximate functions) is made.
 _PIXEL_MATH = {"contract"}
-
-# LLVM's loop vectoriser refuses loops with a known trip count below 16 whenever they need a
-# runtime alias check (the backward row loop reads the pixel state and accumulates into a
-# separate lane-sum array), so the 8-lane chunks (``simd``) stayed scalar.  Lowering that
-# threshold to the narrowest chunk only lets such loops be vectorised; vectorising without
-# fast-math flags never reorders floating-point operations, so no result changes.  The option
-# is process-wide (like numba's own SVML option) and must be set before the kernels compile.
-_MIN_VECTOR_TRIP_COUNT = 8
-llvm_binding.set_option("", f"-vectorizer-min-trip-count={_MIN_VECTOR_TRIP_COUNT}")
 
 _SH_C0 = 0.28209479177387814
 _SH_C1 = 0.48860251190292
@@ -855,12 +845,11 @@ def _tile_box(tile, tile_w, tile_h, width, height):
 @njit(cache=True)
 def _visit(rec, g, x0, y0, x1, y1):
     """Rows [ylo, yhi] of tile (x0, y0, x1, y1) that a Gaussian's footprint can reach (an
-    empty range if its columns miss the tile), whether each row needs its own column
-    test (the footprint crosses the tile's left or right edge), and the columns [xlo, xhi]
-    of the tile its bounding box covers."""
+    empty range if its columns miss the tile), and whether each row needs its own column
+    test (the footprint crosses the tile's left or right edge)."""
     ry = np.float64(rec[g, _R_RY])
     if ry < 0.0:
-        return np.int64(y0), np.int64(y1 - 1), False, np.int64(x0), np.int64(x1 - 1)
+        return np.int64(y0), np.int64(y1 - 1), False
     mx = np.float64(rec[g, _R_MX])
     my = np.float64(rec[g, _R_MY])
     rx = np.float64(rec[g, _R_RX])
@@ -870,9 +859,7 @@ def _visit(rec, g, x0, y0, x1, y1):
     if mx + rx + pad < x0 + 0.5 or mx - rx - pad > x1 - 0.5:
         yhi = ylo - 1.0
     row_test = mx - rx - pad < x0 + 0.5 or mx + rx + pad > x1 - 0.5
-    xlo = max(math.floor(mx - rx - 0.5 - pad), np.float64(x0))
-    xhi = min(math.ceil(mx + rx - 0.5 + pad), np.float64(x1 - 1))
-    return np.int64(ylo), np.int64(yhi), row_test, np.int64(xlo), np.int64(xhi)
+    return np.int64(ylo), np.int64(yhi), row_test
 
 
 @njit(cache=True, inline="always")
@@ -892,8 +879,7 @@ def _row_misses_tile(mx, dy, pad, slope, ca, cb, cc, smax, x0, x1):
 @njit(cache=True)
 def _tile_rows(rec, g, x0, y0, x1, y1):
     """Rows [ylo, yhi] of tile (x0, y0, x1, y1) that record g's {alpha >= 1/255} footprint
-    can reach (yhi < ylo when it misses the tile) and the columns [xlo, xhi] its bounding
-    box covers (lanes outside them are skipped in chunks, see ``simd``).
+    can reach; yhi < ylo when it misses the tile.
 
     The bounding rows and columns of the ellipse come first; when the ellipse crosses the
     tile's left or right edge, each row is also tested against the tile's columns
@@ -902,11 +888,11 @@ def _tile_rows(rec, g, x0, y0, x1, y1):
     make one, compositing it changes nothing (the per-pixel test decides).  Rows outside
     the image of a border tile are never in the range.
     """
-    if not (rec[g, _R_OP] >= _FALPHA_THR):  # alpha <= opacity never reaches 1/255
-        return np.int64(y0), np.int64(y0 - 1), np.int64(x0), np.int64(x1 - 1)
-    ylo, yhi, row_test, xlo, xhi = _visit(rec, g, x0, y0, x1, y1)
+    if not (rec[g, _R_OP] >= _FALPHA_THR):
+        return np.int64(y0), np.int64(y0 - 1)  # alpha <= opacity never reaches 1/255
+    ylo, yhi, row_test = _visit(rec, g, x0, y0, x1, y1)
     if not row_test or yhi < ylo:
-        return ylo, yhi, xlo, xhi
+        return ylo, yhi
     my = rec[g, _R_MY]
     mx = np.float64(rec[g, _R_MX])
     pad = np.float64(rec[g, _R_PAD])
@@ -925,8 +911,8 @@ def _tile_rows(rec, g, x0, y0, x1, y1):
         first = min(first, r if hit else _TS)
         last = max(last, r if hit else -1)
     if last < 0:
-        return np.int64(y0), np.int64(y0 - 1), xlo, xhi
-    return np.int64(y0 + first), np.int64(y0 + last), xlo, xhi
+        return np.int64(y0), np.int64(y0 - 1)
+    return np.int64(y0 + first), np.int64(y0 + last)
 
 
 @njit(parallel=True, cache=True)
@@ -934,8 +920,7 @@ def _splat_tiles(rec, radii, tile_w, tile_h, width, height):
     """The tiles each (camera, Gaussian) cg reaches, out of its bounding box of tiles
     (gsplat's rule): ``n_hit[cg + 1]`` of them, listed from ``box_offsets[cg]`` in
     row-major tile order as the flat tile index ``hit_tiles`` (camera included) and the
-    packed reachable rows and columns ``hit_rows`` (``ylo | yhi << 8 | xlo << 16 | xhi << 24``,
-    relative to the tile)."""
+    packed reachable rows ``hit_rows`` (``ylo | yhi << 8``, relative to the tile)."""
     n_cam = radii.shape[0]
     n = radii.shape[1]
     rects = np.zeros((n_cam * n, 4), np.int64)
@@ -966,11 +951,10 @@ def _splat_tiles(rec, radii, tile_w, tile_h, width, height):
             py1 = min(py0 + _TS, height)
             for tx in range(rects[cg, 0], rects[cg, 2]):
                 px0 = tx * _TS
-                ylo, yhi, xlo, xhi = _tile_rows(rec, cg, px0, py0, min(px0 + _TS, width), py1)
+                ylo, yhi = _tile_rows(rec, cg, px0, py0, min(px0 + _TS, width), py1)
                 if yhi >= ylo:
                     hit_tiles[j] = np.int32(base + ty * tile_w + tx)
-                    hit_rows[j] = np.int32((ylo - py0) | ((yhi - py0) << 8)
-                                           | ((xlo - px0) << 16) | ((xhi - px0) << 24))
+                    hit_rows[j] = np.int32((ylo - py0) | ((yhi - py0) << 8))
                     j += 1
         n_hit[cg + 1] = j - box_offsets[cg]
     return box_offsets, hit_tiles, hit_rows, n_hit
@@ -1000,8 +984,7 @@ def bin_splats(rec, radii, depths, tile_w, tile_h, width, height, n_workers):
     {alpha >= 1/255} footprint cannot reach are dropped (a fifth on the benchmark scene).
     Returns ``tile_offsets`` [C*tile_h*tile_w + 1] (int64), ``flatten_ids`` [n_isects]
     (int32 record index ``c * N + g``) and ``isect_rows`` [n_isects] (int32, rows
-    ``ylo | yhi << 8`` of the tile to composite and the columns ``xlo << 16 | xhi << 24`` of
-    the Gaussian's bounding box in it, 4 bits each): tile t's Gaussians, front to back, are
+    ``ylo | yhi << 8`` of the tile to composite): tile t's Gaussians, front to back, are
     ``flatten_ids[tile_offsets[t]:tile_offsets[t + 1]]``.  Ties in depth keep index order
     (a stable sort, like gsplat's radix sort).  Also returns the Gaussian-major view
     ``gauss_offsets`` [C*N + 1], ``isect_of`` [n_isects]: the intersections of record cg
@@ -1051,15 +1034,6 @@ def bin_splats(rec, radii, depths, tile_w, tile_h, width, height, n_workers):
     return offsets, flatten_ids, isect_rows, gauss_offsets, isect_of
 
 
-@njit(cache=True, inline="always")
-def _chunk_range(rows, n_lanes):
-    """First and last lane chunk of a tile row that an intersection's packed columns
-    (``isect_rows`` bits 16-31) overlap; a single chunk when it spans the tile (16 lanes)."""
-    if n_lanes >= _TS:
-        return 0, 0
-    return ((rows >> 16) & 255) // n_lanes, ((rows >> 24) & 255) // n_lanes
-
-
 # Forward per-pixel state: one flat float32 array with compile-time field offsets (see the
 # backward state below for why); the last contributor's index is kept as int32 bits.
 _F_T = np.uint64(0 * _TP)  # transmittance; stored negated once the pixel is done
@@ -1074,12 +1048,10 @@ _FWD_FIELDS = 6
 @njit(cache=True, error_model="numpy", fastmath=_PIXEL_MATH)
 def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
               isect_rows, rgb, depth, alpha_img, t_final, acc_depth, last_ids, bwd_costs, st,
-              row_done, lane_tag):
+              row_done):
     """Composite one tile front to back, Gaussian by Gaussian.
 
-    Each reachable row is a run of fixed ``len(lane_tag)``-lane (8 or 16, see ``simd``),
-    branch-free chunks that LLVM vectorises (only the chunks that the Gaussian's bounding box
-    columns overlap: the lanes of the others fail the alpha test anyway), applying
+    Each reachable row is a fixed 16-lane, branch-free loop that LLVM vectorises, applying
     the per-pixel rules of gsplat's forward kernel: alpha = min(0.999, o exp(-sigma)),
     skip if sigma < 0 or alpha < 1/255, stop (exclusive) when T would drop to <= 1e-4.
     A row whose pixels have all stopped is skipped (``row_done`` counts its stopped lanes,
@@ -1087,7 +1059,6 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
     ORs the lanes' stop flags and recounts a row when one stopped: an int64 counter in the
     loop made LLVM use 8-lane vectors instead of 16.
     """
-    n_lanes = len(lane_tag)  # a compile-time constant
     c, x0, y0, x1, y1 = _tile_box(tile, tile_w, tile_h, width, height)
     none = _int32_bits_as_float32(np.int32(-1))
     for i in range(_TP):
@@ -1121,37 +1092,32 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         s_cap = rec[g, _R_SCAP]
         rows = isect_rows[k]
         kbits = _int32_bits_as_float32(np.int32(k))
-        h_lo, h_hi = _chunk_range(rows, n_lanes)
-        for y in range(y0 + (rows & 255), y0 + ((rows >> 8) & 255) + 1):
+        for y in range(y0 + (rows & 255), y0 + (rows >> 8) + 1):
             if row_done[y - y0] >= _TS:
                 continue  # every pixel of this row has stopped
             dy = my - (_F32(y) + _F05)
             ccdy2 = cc * dy * dy
             any_stop = False
             base = np.uint64((y - y0) * _TS)
-            for h in range(h_lo, h_hi + 1):
-                first = np.uint64(h * n_lanes)
-                x_first = x0c + _F32(first)  # exact: integers + 0.5 below 2^23
-                for lane in range(np.uint64(n_lanes)):  # from 0: constant lane offsets
-                    p = base + first + lane
-                    lx = first + lane
-                    dx = mx - (x_first + _F32(lane))
-                    sigma = _F05 * (ca * dx * dx + ccdy2) + cb * dx * dy
-                    alpha = min(_FALPHA_MAX, op * exp_neg(min(max(sigma, _F0), s_cap)))
-                    t_cur = st[p + _F_T]
-                    l_cur = st[p + _F_LAST]
-                    next_t = t_cur * (_F1 - alpha)
-                    ok = (sigma >= _F0) & (alpha >= _FALPHA_THR) & (t_cur > _F0)
-                    stop = ok & (next_t <= _FT_MIN)
-                    use = ok & (next_t > _FT_MIN)
-                    vis = alpha * t_cur if use else _F0
-                    st[p + _F_A0] += c0 * vis
-                    st[p + _F_A1] += c1 * vis
-                    st[p + _F_A2] += c2 * vis
-                    st[p + _F_A3] += c3 * vis
-                    st[p + _F_T] = next_t if use else (-t_cur if stop else t_cur)
-                    st[p + _F_LAST] = kbits if use else l_cur
-                    any_stop |= stop
+            for lx in range(np.uint64(_TS)):
+                p = base + lx
+                dx = mx - (x0c + _F32(lx))
+                sigma = _F05 * (ca * dx * dx + ccdy2) + cb * dx * dy
+                alpha = min(_FALPHA_MAX, op * exp_neg(min(max(sigma, _F0), s_cap)))
+                t_cur = st[p + _F_T]
+                l_cur = st[p + _F_LAST]
+                next_t = t_cur * (_F1 - alpha)
+                ok = (sigma >= _F0) & (alpha >= _FALPHA_THR) & (t_cur > _F0)
+                stop = ok & (next_t <= _FT_MIN)
+                use = ok & (next_t > _FT_MIN)
+                vis = alpha * t_cur if use else _F0
+                st[p + _F_A0] += c0 * vis
+                st[p + _F_A1] += c1 * vis
+                st[p + _F_A2] += c2 * vis
+                st[p + _F_A3] += c3 * vis
+                st[p + _F_T] = next_t if use else (-t_cur if stop else t_cur)
+                st[p + _F_LAST] = kbits if use else l_cur
+                any_stop |= stop
             if any_stop:  # rare (a pixel stops once): recount the row's stopped lanes
                 n_row = 0
                 for lx in range(np.uint64(_TS)):
@@ -1182,12 +1148,12 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
 
 @njit(parallel=True, cache=True)
 def rasterize_fwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-                  isect_rows, order, n_workers, lane_tag):
+                  isect_rows, order, n_workers):
     """Composite 4 channels (RGB + depth) of records ``rec`` [CN,16] (prepare_splats) over
     ``backgrounds`` [C,3] (depth has none).
 
     ``n_workers`` workers take tiles in ``order`` (:func:`tile_order`) from a shared
-    counter; ``lane_tag`` (``simd.lane_tag``) sets the lane width of the row loops.  Returns RGB [C,H,W,3] (background included), expected depth [C,H,W,1]
+    counter.  Returns RGB [C,H,W,3] (background included), expected depth [C,H,W,1]
     (accumulated depth / max(alpha, DEPTH_ALPHA_EPS)), alpha [C,H,W,1], the final transmittance and
     the accumulated depth [C,H,W] (for the backward pass), the index of the last
     contributing intersection per pixel [C,H,W] int32 (-1 if none) and per-tile cost
@@ -1210,7 +1176,7 @@ def rasterize_fwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
         while i < n_tiles:
             _fwd_tile(order[i], rec, backgrounds, width, height, tile_w, tile_h,
                       tile_offsets, flatten_ids, isect_rows, rgb, depth, alpha_img, t_final,
-                      acc_depth, last_ids, bwd_costs, st, row_done, lane_tag)
+                      acc_depth, last_ids, bwd_costs, st, row_done)
             i = _atomic_fetch_add(counter, 1)
     return rgb, depth, alpha_img, t_final, acc_depth, last_ids, bwd_costs
 
@@ -1243,8 +1209,8 @@ _N_LANE_SUMS = 9
 @njit(cache=True, error_model="numpy", fastmath=_PIXEL_MATH)
 def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
               isect_rows, t_final, acc_depth, last_ids, v_rgb, v_depth, v_alpha, isect_grads, st,
-              row_last, lanes, with_abs, lane_tag):
-    """Backward of one tile by reverse traversal, in lane chunks like :func:`_fwd_tile`.
+              row_last, lanes, with_abs):
+    """Backward of one tile by reverse traversal, 16-lane rows like :func:`_fwd_tile`.
 
     Per-pixel rules follow gsplat's backward kernel: T is recovered by dividing by
     (1 - alpha) and the alpha-cap branch gets no gradient.  Two exact rewrites keep the
@@ -1266,7 +1232,6 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
     is skipped for intersections behind all of its pixels' last contributors
     (``row_last``): its lanes would add nothing.
     """
-    n_lanes = len(lane_tag)  # a compile-time constant
     c, x0, y0, x1, y1 = _tile_box(tile, tile_w, tile_h, width, height)
     max_last = np.int32(-1)
     row_last[:] = -1
@@ -1330,8 +1295,7 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         rows = isect_rows[k]
         k32 = np.int32(k)
         touched = False
-        h_lo, h_hi = _chunk_range(rows, n_lanes)
-        for y in range(y0 + (rows & 255), y0 + ((rows >> 8) & 255) + 1):
+        for y in range(y0 + (rows & 255), y0 + (rows >> 8) + 1):
             if k32 > row_last[y - y0]:
                 continue  # behind every pixel's last contributor in this row
             dy = my - (_F32(y) + _F05)
@@ -1342,44 +1306,39 @@ def _bwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
             ccdy2 = cc * dy * dy
             dy2 = dy * dy
             base = np.uint64((y - y0) * _TS)
-            for h in range(h_lo, h_hi + 1):
-                first = np.uint64(h * n_lanes)
-                x_first = x0c + _F32(first)  # exact: integers + 0.5 below 2^23
-                for lane in range(np.uint64(n_lanes)):  # from 0: constant lane offsets
-                    p = base + first + lane
-                    lx = first + lane
-                    dx = mx - (x_first + _F32(lane))
-                    sigma = _F05 * (ca * dx * dx + ccdy2) + cb * dx * dy
-                    vis = exp_neg(min(max(sigma, _F0), s_cap))
-                    alpha = min(_FALPHA_MAX, op * vis)
-                    ok = ((sigma >= _F0) & (alpha >= _FALPHA_THR)
-                          & (k32 <= _float32_bits_as_int32(st[p + _O_LAST])))
-                    ra = _F1 / (_F1 - alpha)
-                    t_old = st[p + _O_T]
-                    t_cur = t_old * ra
-                    w0 = st[p + _O_W0]
-                    w1 = st[p + _O_W1]
-                    w2 = st[p + _O_W2]
-                    w3 = st[p + _O_W3]
-                    d_cur = st[p + _O_D]
-                    cw = c0 * w0 + c1 * w1 + c2 * w2 + c3 * w3
-                    v_al = t_cur * cw + ra * d_cur
-                    grad_ok = ok & (op * vis <= _FALPHA_MAX)
-                    u = vis * v_al if grad_ok else _F0
-                    lanes[lx + _L_U] += u
-                    lanes[lx + _L_QY] += u * dy
-                    lanes[lx + _L_QYY] += u * dy2
-                    fac_ok = alpha * t_cur if ok else _F0
-                    lanes[lx + _L_C0] += fac_ok * w0
-                    lanes[lx + _L_C1] += fac_ok * w1
-                    lanes[lx + _L_C2] += fac_ok * w2
-                    lanes[lx + _L_C3] += fac_ok * w3
-                    if with_abs is not None:
-                        v_sigma = -op * u
-                        lanes[lx + _L_AX] += abs(v_sigma * (ca * dx + cb * dy))
-                        lanes[lx + _L_AY] += abs(v_sigma * (cb * dx + cc * dy))
-                    st[p + _O_T] = t_cur if ok else t_old
-                    st[p + _O_D] = d_cur - fac_ok * cw
+            for lx in range(np.uint64(_TS)):
+                p = base + lx
+                dx = mx - (x0c + _F32(lx))
+                sigma = _F05 * (ca * dx * dx + ccdy2) + cb * dx * dy
+                vis = exp_neg(min(max(sigma, _F0), s_cap))
+                alpha = min(_FALPHA_MAX, op * vis)
+                ok = (sigma >= _F0) & (alpha >= _FALPHA_THR) & (k32 <= _float32_bits_as_int32(st[p + _O_LAST]))
+                ra = _F1 / (_F1 - alpha)
+                t_old = st[p + _O_T]
+                t_cur = t_old * ra
+                w0 = st[p + _O_W0]
+                w1 = st[p + _O_W1]
+                w2 = st[p + _O_W2]
+                w3 = st[p + _O_W3]
+                d_cur = st[p + _O_D]
+                cw = c0 * w0 + c1 * w1 + c2 * w2 + c3 * w3
+                v_al = t_cur * cw + ra * d_cur
+                grad_ok = ok & (op * vis <= _FALPHA_MAX)
+                u = vis * v_al if grad_ok else _F0
+                lanes[lx + _L_U] += u
+                lanes[lx + _L_QY] += u * dy
+                lanes[lx + _L_QYY] += u * dy2
+                fac_ok = alpha * t_cur if ok else _F0
+                lanes[lx + _L_C0] += fac_ok * w0
+                lanes[lx + _L_C1] += fac_ok * w1
+                lanes[lx + _L_C2] += fac_ok * w2
+                lanes[lx + _L_C3] += fac_ok * w3
+                if with_abs is not None:
+                    v_sigma = -op * u
+                    lanes[lx + _L_AX] += abs(v_sigma * (ca * dx + cb * dy))
+                    lanes[lx + _L_AY] += abs(v_sigma * (cb * dx + cc * dy))
+                st[p + _O_T] = t_cur if ok else t_old
+                st[p + _O_D] = d_cur - fac_ok * cw
         if not touched:
             isect_grads[k, :] = _F0
             continue
@@ -1451,7 +1410,7 @@ def _fold_abs(lanes):
 @njit(parallel=True, cache=True)
 def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
                   isect_rows, gauss_offsets, isect_of, order, n_workers, t_final, acc_depth,
-                  last_ids, v_rgb, v_depth, v_alpha, n_colour_cams, with_abs, lane_tag):
+                  last_ids, v_rgb, v_depth, v_alpha, n_colour_cams, with_abs):
     """Backward of :func:`rasterize_fwd` by reverse traversal (gsplat's scheme), given the
     gradients of its three images (``v_rgb`` [C,H,W,3], ``v_depth`` and ``v_alpha``
     [C,H,W,1]).
@@ -1459,7 +1418,7 @@ def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
     Returns the gradients of means2d [C,N,2], conics [C,N,3], RGB [Cc,N,3] (``n_colour_cams``
     Cc = 1: one colour per Gaussian, summed over cameras), depths [C,N], opacities [N]
     (summed over cameras) and the per-pixel absolute means2d gradients [C,N,2] (zero unless
-    ``with_abs`` is an array rather than None); ``lane_tag`` as in :func:`rasterize_fwd`.  Tiles are taken dynamically; each writes
+    ``with_abs`` is an array rather than None).  Tiles are taken dynamically; each writes
     one gradient row per intersection, and the rows of a Gaussian are summed in tile order,
     so the result does not depend on the schedule or the number of threads.
     """
@@ -1475,7 +1434,7 @@ def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
         while i < n_tiles:
             _bwd_tile(order[i], rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
                       flatten_ids, isect_rows, t_final, acc_depth, last_ids, v_rgb, v_depth,
-                      v_alpha, isect_grads, st, row_last, lanes, with_abs, lane_tag)
+                      v_alpha, isect_grads, st, row_last, lanes, with_abs)
             i = _atomic_fetch_add(counter, 1)
     total = np.zeros((n_cg, _N_GRAD), np.float32)
     for cg in prange(n_cg):
