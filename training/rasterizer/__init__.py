@@ -23,6 +23,7 @@ modules are the backends' plumbing):
 * ``constants``: the numerical conventions every backend shares (tile size, alpha cap, ...).
 * ``kernels``: the compiled CPU kernels (projection, SH, tile binning, compositing and their
   backward passes), each testable on its own against ``reference``.
+* ``simd``: the CPU name and SIMD features Numba compiles the kernels for (benchmarks print it).
 * ``reference``: a slow pure-torch implementation (autograd for gradients), the yardstick of
   the kernels; only for tests and benchmarks, never for training.
 
