@@ -10,7 +10,8 @@ depth stored as the capture's is (uint16 mm), so that both sides reach the estim
 In every view each object at least 10 % visible is estimated by the static estimator
 (:mod:`evaluation.report.single_view`, told where in the image the object is) on both images and
 scored against the export's ground truth with VSD/MSSD/MSPD. The gap is AR(real) - AR(splat);
-PSNR and SSIM compare the render with the captured image.
+PSNR and SSIM compare the render with the captured image on the pixels the raw image covers (as
+the training stage scores its holdout).
 """
 
 from __future__ import annotations
@@ -84,6 +85,18 @@ def decimated(K: NDArray[np.float64], stride: int) -> NDArray[np.float64]:
     return out
 
 
+def raw_data_pixels(scene: Any, size: tuple[int, int]) -> NDArray[np.bool_] | None:
+    """Pixels of the undistorted image that the raw (distorted) image covers, at the capture's
+    size ``(width, height)``; None without distortion or when the sizes differ (every pixel counts)."""
+    from brave6d.calibration_io import read_intrinsics
+
+    raw = read_intrinsics(scene)
+    if not raw.has_distortion or (raw.width, raw.height) != tuple(size):
+        return None
+    inside = raw.undistort_image(np.full((raw.height, raw.width), 255, np.uint8))
+    return np.asarray(inside) >= 255
+
+
 def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
     """Run (or resume) the real-vs-splat sweep; see the module docstring."""
     scene, store = inputs.scene, inputs.store
@@ -92,7 +105,8 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
     manifest = scene.bundle_dir / "manifest.json"
     if (absent := store.require(NAME, [(manifest, "serve export (brave6d export)"),
                                        (scene.bop_dir / "brave6d_export.json", "annotation (BOP export)"),
-                                       (scene.frames_path, "capture")])) is not None:
+                                       (scene.frames_path, "capture"),
+                                       (scene.intrinsics_path, "calibration")])) is not None:
         return absent
     from annotation import BopLayout, read_models_info, read_scene_camera, read_scene_gt, read_scene_gt_info
     from brave6d.atomic import depth_m_to_mm_u16, read_png
@@ -108,7 +122,8 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
     bundle = load_bundle(scene.bundle_dir)
     key = {"bundle": file_stamp(manifest), "scene_gt": file_stamp(layout.scene_gt_path),
            "scene_camera": file_stamp(layout.scene_camera_path), "scene_gt_info": file_stamp(layout.scene_gt_info_path),
-           "frames": file_stamp(scene.frames_path), "sweep": asdict(sweep), "device": device}
+           "frames": file_stamp(scene.frames_path), "intrinsics": file_stamp(scene.intrinsics_path),
+           "sweep": asdict(sweep), "device": device}
     if (done := store.complete(NAME, key)) is not None:
         return done
     cams = read_scene_camera(layout.scene_camera_path)
@@ -136,7 +151,7 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
             ids = sorted({g.obj_id for i, _ in views for g in gts[i]})
             models = load_models(layout.models_dir, ids, info)
             renderer = SplatRenderer(bundle.splat_path, device)
-            state.update(renderer=renderer, scorer=ViewScorer(models),
+            state.update(renderer=renderer, scorer=ViewScorer(models), valid=raw_data_pixels(scene, size),
                          centres={k: model_centre_m(v.points) for k, v in models.items()},
                          estimator=StaticEstimator({k: (layout.model_path(k), float(info[k]["diameter"])) for k in ids}))
             if views:  # compiles the kernels outside the first point's render time
@@ -189,7 +204,8 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
                             "bbox_diag_px": (bbox_diagonal(info[r["gt_id"]].bbox_obj) or math.nan) / step,
                             **{f"real_{k}": v for k, v in r.items() if k not in ("gt_id", "obj_id", "visib_fract")},
                             **{f"splat_{k}": v for k, v in sp.items() if k not in ("gt_id", "obj_id", "visib_fract")}})
-        return {**point, "psnr": psnr(out.rgb, rgb_real), "ssim": ssim(out.rgb, rgb_real),
+        valid = s["valid"][::step, ::step] if s["valid"] is not None else None
+        return {**point, "psnr": psnr(out.rgb, rgb_real, valid), "ssim": ssim(out.rgb, rgb_real, valid),
                 "render_s": out.render_ms / 1000.0, "objects": objects}
 
     items = [(f"im{i}", (i, held)) for i, held in views]
