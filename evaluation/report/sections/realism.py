@@ -45,7 +45,8 @@ LARGE_GAP = 0.1
 @dataclass(frozen=True)
 class RealismSweep:
     """Views per distance level (held-out first, then training views), an integer image stride
-    (1: the captured size; ``s``: every ``s``-th pixel of both images) and the render device."""
+    (1: the captured size; ``s``: every ``s``-th pixel of the captured frame and of the render,
+    which is made at the captured size) and the render device."""
 
     holdout_per_level: int = 6
     train_per_level: int = 2
@@ -85,6 +86,17 @@ def decimated(K: NDArray[np.float64], stride: int) -> NDArray[np.float64]:
     return out
 
 
+def images_stamp(paths: Sequence[Path]) -> str:
+    """One fingerprint of many image files (name, size, modification time; absent files count too)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for p in paths:
+        st = p.stat() if p.is_file() else None
+        h.update(f"{p.name}:{st.st_size if st else -1}:{st.st_mtime_ns if st else -1};".encode())
+    return h.hexdigest()
+
+
 def raw_data_pixels(scene: Any, size: tuple[int, int]) -> NDArray[np.bool_] | None:
     """Pixels of the undistorted image that the raw (distorted) image covers, at the capture's
     size ``(width, height)``; None without distortion or when the sizes differ (every pixel counts)."""
@@ -120,18 +132,19 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
     device = str(resolve_device(sweep.device))
     layout = BopLayout.of_scene(scene)
     bundle = load_bundle(scene.bundle_dir)
-    key = {"bundle": file_stamp(manifest), "scene_gt": file_stamp(layout.scene_gt_path),
-           "scene_camera": file_stamp(layout.scene_camera_path), "scene_gt_info": file_stamp(layout.scene_gt_info_path),
-           "frames": file_stamp(scene.frames_path), "intrinsics": file_stamp(scene.intrinsics_path),
-           "sweep": asdict(sweep), "device": device}
-    if (done := store.complete(NAME, key)) is not None:
-        return done
     cams = read_scene_camera(layout.scene_camera_path)
     gts = read_scene_gt(layout.scene_gt_path)
     infos = read_scene_gt_info(layout.scene_gt_info_path)
     records = {r.index: r for r in scene.frames()}
     levels = {i: records[i].distance_level for i in gts if i in records}
     views = choose_views(levels, {h.index for h in bundle.holdout}, set(cams) & set(infos), sweep)
+    key = {"bundle": file_stamp(manifest), "scene_gt": file_stamp(layout.scene_gt_path),
+           "scene_camera": file_stamp(layout.scene_camera_path), "scene_gt_info": file_stamp(layout.scene_gt_info_path),
+           "frames": file_stamp(scene.frames_path), "intrinsics": file_stamp(scene.intrinsics_path),
+           "images": images_stamp([p for i, _ in views for p in (layout.rgb_path(i), layout.depth_path(i))]),
+           "sweep": asdict(sweep), "device": device}
+    if (done := store.complete(NAME, key)) is not None:
+        return done
     names = {o.obj_id: o.name for o in bundle.objects}
     size = (0, 0)
     if views:
@@ -156,8 +169,9 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
                          estimator=StaticEstimator({k: (layout.model_path(k), float(info[k]["diameter"])) for k in ids}))
             if views:  # compiles the kernels outside the first point's render time
                 c = cams[views[0][0]]
-                Kw = decimated(c.cam_K, sweep.stride)
-                renderer.warm_up(PinholeCamera(w, h, Kw[0, 0], Kw[1, 1], Kw[0, 2], Kw[1, 2]), invert(c.cam_T_world()))
+                Kc = c.cam_K
+                renderer.warm_up(PinholeCamera(size[0], size[1], Kc[0, 0], Kc[1, 1], Kc[0, 2], Kc[1, 2]),
+                                 invert(c.cam_T_world()))
         return state
 
     def estimate_all(s: dict[str, Any], im_id: int, depth_m: NDArray[np.float32], K: NDArray[np.float64],
@@ -188,11 +202,12 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
         if not layout.depth_path(im_id).is_file():
             return {**point, "note": f"no depth image {layout.depth_path(im_id)}", "objects": []}
         depth_real = depth_png_to_m(read_png(layout.depth_path(im_id), "depth")[::step, ::step], cam.depth_scale)
-        hh, ww = depth_real.shape
-        out = s["renderer"].render(world_T_cam, PinholeCamera(ww, hh, K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
+        Kc = cam.cam_K  # rendered at the captured size, then decimated as the captured frame is
+        out = s["renderer"].render(world_T_cam, PinholeCamera(size[0], size[1], Kc[0, 0], Kc[1, 1], Kc[0, 2], Kc[1, 2]),
                                    near=bundle.render.near, far=bundle.render.far, background=bundle.render.background,
                                    depth_alpha_min=bundle.render.depth_alpha_min)
-        depth_splat = depth_png_to_m(depth_m_to_mm_u16(out.depth), 1.0)
+        rgb_splat = out.rgb[::step, ::step]
+        depth_splat = depth_png_to_m(depth_m_to_mm_u16(out.depth)[::step, ::step], 1.0)
         real = estimate_all(s, im_id, depth_real, K, world_T_cam)
         splat = {o["gt_id"]: o for o in estimate_all(s, im_id, depth_splat, K, world_T_cam)}
         info = infos[im_id]
@@ -205,7 +220,7 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
                             **{f"real_{k}": v for k, v in r.items() if k not in ("gt_id", "obj_id", "visib_fract")},
                             **{f"splat_{k}": v for k, v in sp.items() if k not in ("gt_id", "obj_id", "visib_fract")}})
         valid = s["valid"][::step, ::step] if s["valid"] is not None else None
-        return {**point, "psnr": psnr(out.rgb, rgb_real, valid), "ssim": ssim(out.rgb, rgb_real, valid),
+        return {**point, "psnr": psnr(rgb_splat, rgb_real, valid), "ssim": ssim(rgb_splat, rgb_real, valid),
                 "render_s": out.render_ms / 1000.0, "objects": objects}
 
     items = [(f"im{i}", (i, held)) for i, held in views]
