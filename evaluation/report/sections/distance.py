@@ -24,7 +24,7 @@ import numpy as np
 
 from brave6d.progress import format_table
 from evaluation.report.common import RenderedSection, fmt, median, nan_note, num, provenance, settings_line, unavailable
-from evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info, run_sweep
+from evaluation.report.measurements import Measurement, describe_machine, file_stamp, machine_info, run_sweep
 from evaluation.report.plots import legend, new_figure, plot_line, save_figure
 from evaluation.report.protocol import MeasureInputs
 from evaluation.report.single_view import MIN_VISIB_FRACT, StaticEstimator, ViewScorer, bbox_diagonal
