@@ -24,6 +24,8 @@ from evaluation.report.sections.latency import LatencySweep, render_latency
 from evaluation.report.plots import finite_pairs, new_figure, plot_line
 from evaluation.report.sections.training import collect_training, render_training
 from evaluation.report.sections.views import ViewsSweep, render_views
+from evaluation.report.sections.distance import render_distance
+from evaluation.report.sections.realism import render_realism
 from evaluation.report.protocol import MeasureInputs
 from evaluation.report.sections import SECTIONS, page_order
 
@@ -81,6 +83,28 @@ def fabricate(workdir: Path, nan: bool = False) -> MeasurementStore:
             {"agent": "static", "ar": 0.3, "adjustments": 0, "wall_s": 2.0, "object": "a"},
             {"agent": "static", "ar": 0.5 if not nan else None, "adjustments": 0, "wall_s": 2.0, "object": "b"}]
     _save(store, "baseline", base, {"episodes": 4}, {"source": "/x/baseline.json"})
+    dist = []
+    for obj_id, name in ((1, "cup"), (2, "nut")):
+        for d, ar in ((0.2, 0.9), (0.35, 0.6), (0.5, 0.2)):
+            ar = ar if obj_id == 1 else ar / 2
+            dist.append({"id": f"o{obj_id}-d{d}", "obj_id": obj_id, "object": name, "distance_m": d, "target": True,
+                         "found": True, "ar": None if (nan and obj_id == 2 and d == 0.35) else ar, "ar_vsd": ar,
+                         "ar_mssd": ar, "ar_mspd": ar, "px_visib": 4000 * (0.2 / d) ** 2, "bbox_diag_px": 80 * 0.2 / d,
+                         "visib_fract": 1.0, "estimate_s": 1.0, "render_s": 0.05})
+    dist.append({"id": "o2-hidden", "obj_id": 2, "object": "nut", "distance_m": 0.5, "target": False,
+                 "visib_fract": 0.02, "render_s": 0.05})
+    _save(store, "distance", dist, {"bundle": "/x/bundle"}, {"views": 1, "image": "160x100"})
+    real = []
+    for level, d, psnr in ((0, 0.2, 30.0), (1, 0.5, 24.0)):
+        objects = [{"obj_id": 1, "object": "cup", "visib_fract": 1.0, "bbox_diag_px": 50.0, "real_ar": 0.8,
+                    "splat_ar": 0.75 if level == 0 else 0.2, "real_found": True, "splat_found": True,
+                    "real_estimate_s": 1.0, "splat_estimate_s": 1.0},
+                   {"obj_id": 2, "object": "nut", "visib_fract": 1.0, "bbox_diag_px": 40.0, "real_ar": 0.5,
+                    "splat_ar": 0.5, "real_found": True, "splat_found": True, "real_estimate_s": 1.0,
+                    "splat_estimate_s": 1.0}]
+        real.append({"id": f"im{level}", "im_id": level, "level": level, "distance_m": d, "holdout": True,
+                     "psnr": None if (nan and level == 1) else psnr, "ssim": 0.9, "render_s": 0.1, "objects": objects})
+    _save(store, "realism", real, {"bop": "/x/bop/test/000001"}, {"views": 2, "image": "160x100"})
     return store
 
 
@@ -97,7 +121,8 @@ def test_report_from_fabricated_measurements(tmp_path: Path) -> None:
     result = write_report(tmp_path)
     md = result.markdown.read_text()
     assert [p.name for p in result.figures] == [s.figure for s in page_order()]
-    assert {"training.png", "handeye.png", "latency.png", "views.png", "baseline.png"} <= {p.name for p in result.figures}
+    assert {"training.png", "handeye.png", "latency.png", "views.png", "baseline.png", "distance.png",
+            "realism.png"} <= {p.name for p in result.figures}
     for png in result.figures:
         w, h = _valid_png(png)
         assert w > 400 and h > 250
@@ -119,6 +144,19 @@ def test_report_from_fabricated_measurements(tmp_path: Path) -> None:
     assert "5/5 training views per level come within 0.5 dB of 10/10" in advice
     assert "0.060 AR per adjustment" in advice  # (0.7 - 0.4) / 5
     assert "Latency grows as Gaussians^1.00 x pixels^1.00" in advice
+    # distance study: rows pool both objects' views (the hidden view is no target), pixel size beside AR
+    assert re.search(r"\| 20 +\| 2/2 +\| 2 +\| 0\.675 +\| 0\.675 +\| 0\.675 +\| 0\.675 +\| 4000 +\| 80 +\| 1\.00 ", md)
+    assert re.search(r"\| 50 +\| 2/3 +\| 2 +\| 0\.150 ", md)
+    assert re.search(r"\| cup \(1\) +\| 0\.90 +\| 0\.60 +\| 0\.20 +\|", md)
+    assert "scores best at 20 cm (AR 0.675, objects about 80 px across) and worst at 50 cm (AR 0.150, 32 px)" in advice
+    assert "below 75% of the best at 35, 50 cm" in advice and "The weakest object is nut" in advice
+    # realism: gap = real - splat per level, and where it is large
+    assert re.search(r"\| 20 +\| 1 \(1 held out\) +\| 2 +\| 30\.00 +\| 0\.900 +\| 0\.650 +\| 0\.625 +\| 0\.025 ", md)
+    assert re.search(r"\| 50 +\| 1 \(1 held out\) +\| 2 +\| 24\.00 +\| 0\.900 +\| 0\.650 +\| 0\.350 +\| 0\.300 ", md)
+    assert "Large gaps (|gap| >= 0.10): cup at 50 cm (0.80 real vs 0.20 splat over 1 targets)." in md
+    assert "What \"real\" means here:** in the demo the captured frames come from the simulated camera" in md
+    assert "differs between captured frames and splat renders by at most 0.300 (at 50 cm" in advice
+    assert "trust splat scores least at 50 cm (largest: cup)" in advice
     assert "NaN" not in md
 
 
@@ -132,6 +170,10 @@ def test_nan_values_are_named_not_plotted_silently(tmp_path: Path) -> None:
     assert "2 plotted view-sweep values had no finite value" in views and re.search(r"\| 5/5 .*\| n/a +\|", views)
     baseline = render_baseline(store.load("baseline"), out).body
     assert "1 plotted episode values had no finite" in baseline
+    distance = render_distance(store.load("distance"), out).body
+    assert re.search(r"\| nut \(2\) +\| 0\.45 +\| n/a +\| 0\.10 +\|", distance)
+    realism = render_realism(store.load("realism"), out).body
+    assert "plotted real-vs-splat values had no finite value" in realism and re.search(r"\| 50 .*\| n/a +\|", realism)
     fig, (ax,) = new_figure(1)
     dropped = plot_line(ax, [1, 2, 3, 4], [1.0, float("nan"), None, 2.0], "series")
     assert dropped == 2 and ax.get_legend_handles_labels()[1] == ["series (2 NaN not drawn)"]
