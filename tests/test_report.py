@@ -26,6 +26,7 @@ from evaluation.report.sections.training import collect_training, render_trainin
 from evaluation.report.sections.views import ViewsSweep, render_views
 from evaluation.report.sections.distance import render_distance
 from evaluation.report.sections.realism import render_realism
+from evaluation.report.sections.synthesis import SynthSweep, advice_synthesis, measure_synthesis, render_synthesis
 from evaluation.report.protocol import MeasureInputs
 from evaluation.report.sections import SECTIONS, page_order
 
@@ -105,6 +106,12 @@ def fabricate(workdir: Path, nan: bool = False) -> MeasurementStore:
         real.append({"id": f"im{level}", "im_id": level, "level": level, "distance_m": d, "holdout": True,
                      "psnr": None if (nan and level == 1) else psnr, "ssim": 0.9, "render_s": 0.1, "objects": objects})
     _save(store, "realism", real, {"bop": "/x/bop/test/000001"}, {"views": 2, "image": "160x100"})
+    synth = [{"id": f"{w}x{h}-w{n}", "width": w, "height": h, "workers": n, "images": 8,
+              "images_per_s": None if (nan and w == 640 and n == 2) else rate}
+             for (w, h), n, rate in (((320, 240), 1, 4.0), ((320, 240), 2, 6.0), ((640, 480), 1, 1.0),
+                                     ((640, 480), 2, 1.6))]
+    _save(store, "synthesis", synth, {"spec": "/x/scene.yaml", "objects": ["cup", "nut"]},
+          {"sizes": ["320x240", "640x480"], "workers": [1, 2], "images": 8})
     return store
 
 
@@ -122,7 +129,7 @@ def test_report_from_fabricated_measurements(tmp_path: Path) -> None:
     md = result.markdown.read_text()
     assert [p.name for p in result.figures] == [s.figure for s in page_order()]
     assert {"training.png", "handeye.png", "latency.png", "views.png", "baseline.png", "distance.png",
-            "realism.png"} <= {p.name for p in result.figures}
+            "realism.png", "synthesis.png"} <= {p.name for p in result.figures}
     for png in result.figures:
         w, h = _valid_png(png)
         assert w > 400 and h > 250
@@ -157,6 +164,12 @@ def test_report_from_fabricated_measurements(tmp_path: Path) -> None:
     assert "What \"real\" means here:** in the demo the captured frames come from the simulated camera" in md
     assert "differs between captured frames and splat renders by at most 0.300 (at 50 cm" in advice
     assert "trust splat scores least at 50 cm (largest: cup)" in advice
+    # synthesis: images/s per size and workers, hours for 10k images = 10000 / rate / 3600
+    assert re.search(r"\| 320x240 +\| 1 +\| 8 +\| 4\.00 +\| 0\.25 +\| 0\.7 +\|", md)
+    assert re.search(r"\| 640x480 +\| 2 +\| 8 +\| 1\.60 +\| 0\.62 +\| 1\.7 +\|", md)
+    assert "with 1 worker 320x240: 4.00 images/s; 640x480: 1.00 images/s" in advice
+    assert "2 workers render 1.50-1.60x faster on this machine (2 cores): use --workers 2" in advice
+    assert "10,000 images at 640x480 take about 1.7 h here (2 workers)" in advice
     assert "NaN" not in md
 
 
@@ -174,6 +187,10 @@ def test_nan_values_are_named_not_plotted_silently(tmp_path: Path) -> None:
     assert re.search(r"\| nut \(2\) +\| 0\.45 +\| n/a +\| 0\.10 +\|", distance)
     realism = render_realism(store.load("realism"), out).body
     assert "plotted real-vs-splat values had no finite value" in realism and re.search(r"\| 50 .*\| n/a +\|", realism)
+    synthesis = render_synthesis(store.load("synthesis"), out)
+    assert "1 plotted synthesis rates had no finite value" in synthesis.body
+    assert re.search(r"\| 640x480 +\| 2 +\| 8 +\| n/a +\| n/a +\| n/a +\|", synthesis.body)
+    assert "10,000 images at 640x480 take about 2.8 h here (1 worker)" in synthesis.advice  # the finite rate
     fig, (ax,) = new_figure(1)
     dropped = plot_line(ax, [1, 2, 3, 4], [1.0, float("nan"), None, 2.0], "series")
     assert dropped == 2 and ax.get_legend_handles_labels()[1] == ["series (2 NaN not drawn)"]
@@ -479,3 +496,32 @@ def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: P
     assert again["latency"].points == lat.points and again["views"].points == views.points
     assert measure_all(tmp_path / "hand", settings, only=("handeye",))[0]["handeye"].points == he.points
     assert (identities(tmp_path / "plane"), identities(tmp_path / "hand")) == before
+
+
+def test_synthesis_advice_keeps_one_worker_when_more_do_not_pay() -> None:
+    rates = {(320, 240): {1: 4.0, 2: 4.2}, (640, 480): {1: 1.0, 2: 1.1}}
+    advice = advice_synthesis(rates, {"usable_cores": 2})
+    assert "2 workers are only 1.05-1.10x as fast on this machine (2 cores): keep --workers 1 here" in advice
+    assert "10,000 images at 640x480 take about 2.5 h here (2 workers)" in advice  # 10000 / 1.1 / 3600
+    assert advice_synthesis({(320, 240): {1: math.nan}}, {}) == ""
+
+
+@pytest.mark.slow
+def test_synthesis_section_measures_the_scenes_objects_outside_the_scene(tmp_path: Path,
+                                                                         demo_spec_path: Path) -> None:
+    from brave6d.layout import init_scene_dir
+
+    scene = init_scene_dir(tmp_path / "scene", demo_spec_path)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    store = measurement_store(tmp_path)
+    sweep = SynthSweep(sizes=((48, 36), (96, 72)), workers=(1,), images=2)
+    m = measure_synthesis(MeasureInputs(tmp_path, scene, store), sweep)
+    assert m.status == "complete" and [p["id"] for p in m.points] == ["48x36-w1", "96x72-w1"]
+    assert all(p["images"] == 2 and p["images_per_s"] > 0 for p in m.points)
+    assert m.summary["objects"] and m.settings["objects"] == len(m.summary["objects"])
+    after = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if "report" not in p.parts)
+    assert after == before  # the images went to a temporary folder, not into the scene
+    again = measure_synthesis(MeasureInputs(tmp_path, scene, store), sweep)  # cached: not measured again
+    assert again.points == m.points
+    section = render_synthesis(again, tmp_path / "report")
+    assert _valid_png(tmp_path / "report" / "synthesis.png")[0] > 400 and "**Synthetic split:**" in section.advice

@@ -13,7 +13,7 @@ from importlib import import_module
 from evaluation.report.protocol import Section
 
 #: Section modules in measuring order; each defines ``SECTION``.
-MODULES = ("handeye", "latency", "views", "training", "baseline", "distance", "realism")
+MODULES = ("handeye", "latency", "views", "training", "baseline", "synthesis", "distance", "realism")
 
 SECTIONS: tuple[Section, ...] = tuple(import_module(f"{__name__}.{module}").SECTION for module in MODULES)
 

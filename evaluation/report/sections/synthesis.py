@@ -1,0 +1,182 @@
+"""Report section 8: synthetic-split speed: ``brave6d synth`` images per second by image size and workers.
+
+The scene's own spec (its objects, camera effects and capture distances) is rendered by
+:func:`synth.synthesize` into a temporary folder (never into the scene) at each image size and
+worker count of the sweep: one point per setting, images per second of wall time from the first
+image to the last written file (worker start-up and library loading included: what a user waits
+for). The advice derives the rate at each size, whether more workers pay on this machine and how
+long 10,000 images take.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from brave6d.progress import format_table
+from evaluation.report.common import RenderedSection, fmt, nan_note, num, provenance, settings_line, unavailable
+from evaluation.report.measurements import Measurement, describe_machine, file_stamp, machine_info, run_sweep
+from evaluation.report.plots import legend, new_figure, plot_line, save_figure
+from evaluation.report.protocol import MeasureInputs
+
+NAME = "synthesis"
+PAGE = 8
+TITLE = f"{PAGE}. Synthetic training split: images per second by image size and workers"
+FIGURE = "synthesis.png"
+#: The split size the advice prices.
+SPLIT_IMAGES = 10_000
+#: More workers "pay" when they are at least this much faster than one.
+WORKERS_PAY = 1.2
+
+
+@dataclass(frozen=True)
+class SynthSweep:
+    """Image sizes (width, height), worker counts, images per point and the split's seed."""
+
+    sizes: tuple[tuple[int, int], ...] = ((320, 240), (640, 480))
+    workers: tuple[int, ...] = (1, 2)
+    images: int = 8
+    seed: int = 0
+
+
+def measure_synthesis(inputs: MeasureInputs, sweep: SynthSweep) -> Measurement:
+    """Run (or resume) the synth speed sweep on the scene's spec; see the module docstring."""
+    scene, store = inputs.scene, inputs.store
+    spec = scene.spec_path
+    if (absent := store.require(NAME, [(spec, "scene init (brave6d init)")])) is not None:
+        return absent
+    from synth import SynthOptions, load_synth_source, synthesize
+
+    key = {"spec": file_stamp(spec), "sweep": asdict(sweep)}
+    if (done := store.complete(NAME, key)) is not None:
+        return done
+    source = load_synth_source(spec)
+    settings = {"sizes": [f"{w}x{h}" for w, h in sweep.sizes], "workers": list(sweep.workers),
+                "images": sweep.images, "seed": sweep.seed, "objects": len(source.objects)}
+    m = store.resume(NAME, key, settings, machine_info("cpu"))
+    m.summary.update({"spec": str(spec), "objects": [o.name for o in source.objects],
+                      "effects": source.effects.enabled()})
+
+    def measure(item: tuple[int, int, int]) -> dict[str, Any]:
+        width, height, workers = item
+        with tempfile.TemporaryDirectory(prefix="brave6d-report-synth-") as tmp:
+            result = synthesize(spec, Path(tmp) / "train_pbr", SynthOptions(
+                images=sweep.images, seed=sweep.seed, workers=workers, width=width, height=height))
+        return {"width": width, "height": height, "workers": workers, "images": result.rendered,
+                "render_s": result.render_seconds, "wall_s": result.seconds, "images_per_s": result.images_per_s}
+
+    items = [(f"{w}x{h}-w{n}", (w, h, n)) for w, h in sweep.sizes for n in sweep.workers]
+    return run_sweep(store, m, items, measure, desc="report: synthesis", unit="setting")
+
+
+# ----------------------------------------------------------------------------- aggregation
+def rate_at(points: Sequence[dict[str, Any]]) -> dict[tuple[int, int], dict[int, float]]:
+    """Images per second by ``(width, height)`` and then by workers (NaN where not finite)."""
+    table: dict[tuple[int, int], dict[int, float]] = {}
+    for p in points:
+        size = (int(p["width"]), int(p["height"]))
+        table.setdefault(size, {})[int(p["workers"])] = num(p.get("images_per_s"))
+    return dict(sorted(table.items(), key=lambda kv: kv[0][0] * kv[0][1]))
+
+
+def best_workers(rates: Mapping[int, float]) -> tuple[int, float] | None:
+    """The worker count with the highest finite rate, and that rate (None when none is finite)."""
+    finite = {w: r for w, r in rates.items() if math.isfinite(r) and r > 0}
+    if not finite:
+        return None
+    w = max(finite, key=lambda k: finite[k])
+    return w, finite[w]
+
+
+def hours_for(images: int, rate: float) -> float:
+    """Hours to render ``images`` at ``rate`` images/s (NaN when the rate is not positive)."""
+    return images / rate / 3600.0 if math.isfinite(rate) and rate > 0 else math.nan
+
+
+# ----------------------------------------------------------------------------- rendering
+def render_synthesis(m: Measurement | None, out_dir: Path) -> RenderedSection:
+    """Section 8 from its measurement: images/s by size (one line per worker count), table, advice."""
+    if m is None or not m.usable or not m.points:
+        return unavailable(TITLE, m, "Synthetic-split speed")
+    rates = rate_at(m.points)
+    sizes = list(rates)
+    workers = sorted({w for per in rates.values() for w in per})
+    fig, (ax,) = new_figure(1, panel=(6.0, 3.6))
+    dropped = 0
+    mpx = [w * h / 1e6 for w, h in sizes]
+    for k, n in enumerate(workers):
+        dropped += plot_line(ax, mpx, [rates[s].get(n, math.nan) for s in sizes],
+                             f"{n} worker{'s' if n > 1 else ''}", fmt="o-", color=f"C{k}")
+    ax.set_xticks(mpx, [f"{w}x{h}" for w, h in sizes])
+    ax.set_xlabel("image size")
+    ax.set_ylabel("synthetic images per second")
+    ax.set_ylim(bottom=0)
+    legend(ax)
+    png = save_figure(fig, out_dir / FIGURE, "brave6d synth on the scene's objects: images per second",
+                      describe_machine(m.machine), settings_line(m))
+    table = []
+    for p in m.points:
+        r = num(p.get("images_per_s"))
+        table.append((f"{p['width']}x{p['height']}", p["workers"], p.get("images"), fmt(r, 2),
+                      fmt(1.0 / r if r > 0 else math.nan, 2), fmt(hours_for(SPLIT_IMAGES, r), 1)))
+    objects = m.summary.get("objects") or []
+    body = (f"`brave6d synth` on `{m.summary.get('spec')}` ({len(objects)} objects: {', '.join(objects)}), "
+            f"{m.settings.get('images')} images per setting into a temporary folder; wall time from the first "
+            "image to the last written file, worker start-up and library loading included.\n\n"
+            f"![images per second]({png.name})\n\n"
+            + format_table(["size", "workers", "images", "images/s", "s/image", f"h for {SPLIT_IMAGES:,}"], table)
+            + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted synthesis rates"))
+    return RenderedSection(TITLE, body, advice_synthesis(rates, m.machine), [png])
+
+
+def advice_synthesis(rates: Mapping[tuple[int, int], Mapping[int, float]], machine: Mapping[str, Any]) -> str:
+    """The rate at each size, whether more workers pay here, and the time of a 10k-image split."""
+    best = {size: b for size, per in rates.items() if (b := best_workers(per)) is not None}
+    if not best:
+        return ""
+    one = {size: per.get(1, math.nan) for size, per in rates.items()}
+    parts = [f"{w}x{h}: {fmt(one[(w, h)], 2)} images/s" for (w, h) in best if math.isfinite(one[(w, h)])]
+    text = "**Synthetic split:** with 1 worker " + ("; ".join(parts) if parts else "not measured")
+    multi = [(size, n, r) for size, per in rates.items() for n, r in per.items() if n > 1 and math.isfinite(r)]
+    cores = machine.get("usable_cores") or machine.get("cores")
+    if multi:
+        gains = [(size, n, r / one[size]) for size, n, r in multi if math.isfinite(one[size]) and one[size] > 0]
+        if gains:
+            n = max(g[1] for g in gains)
+            speedups = [g for s, k, g in gains if k == n]
+            low, high = min(speedups), max(speedups)
+            span = fmt(low, 2) if abs(high - low) < 0.005 else f"{fmt(low, 2)}-{fmt(high, 2)}"
+            if low >= WORKERS_PAY:
+                text += f"; {n} workers render {span}x faster on this machine ({cores} cores): use --workers {n}"
+            else:
+                text += (f"; {n} workers are only {span}x as fast on this machine ({cores} cores): "
+                         "keep --workers 1 here (worker start-up and shared cores eat the gain)")
+    largest = max(best, key=lambda s: s[0] * s[1])
+    n, r = best[largest]
+    return text + (f". {SPLIT_IMAGES:,} images at {largest[0]}x{largest[1]} take about "
+                   f"{fmt(hours_for(SPLIT_IMAGES, r), 1)} h here ({n} worker{'s' if n > 1 else ''}).")
+
+
+class SynthesisSection:
+    """Section 8 behind the :class:`~evaluation.report.protocol.Section` protocol."""
+
+    name, page, title, figure = NAME, PAGE, TITLE, FIGURE
+
+    def settings(self, quick: bool) -> SynthSweep:
+        """Full: 320x240 and 640x480, 1 and 2 workers, 8 images; quick: 3 tiny images, 1 worker."""
+        if quick:
+            return SynthSweep(sizes=((80, 60), (160, 120)), workers=(1,), images=3)
+        return SynthSweep()
+
+    def measure(self, inputs: MeasureInputs, settings: SynthSweep) -> Measurement:
+        return measure_synthesis(inputs, settings)
+
+    def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
+        return render_synthesis(measurements.get(NAME), out_dir)
+
+
+SECTION = SynthesisSection()
