@@ -1,4 +1,5 @@
-"""``brave6d dataset run DATASET.yaml WORKDIR`` and ``brave6d dataset status WORKDIR``."""
+"""``brave6d dataset run DATASET.yaml WORKDIR``, ``brave6d dataset status WORKDIR`` and
+``brave6d dataset report WORKDIR``."""
 
 from __future__ import annotations
 
@@ -34,11 +35,24 @@ def configure(parser: argparse.ArgumentParser) -> None:
     slurm.add_argument("--qos")
     status_p = sub.add_parser("status", help="print the scene x stage table of a work directory")
     status_p.add_argument("workdir", type=Path, metavar="WORKDIR")
+    report_p = sub.add_parser("report", help="the accuracy-vs-time report of every scene, with a cross-scene index",
+                              description="Run 'brave6d report' on every scene of WORKDIR into "
+                              "WORKDIR/report/<scene>/ (resumable: cached measurements are reused) and write "
+                              "WORKDIR/report/README.md, linking them with one cross-scene table.")
+    report_p.add_argument("workdir", type=Path, metavar="WORKDIR")
+    report_p.add_argument("--mode", choices=["quick", "full"], default="full",
+                          help="sweep sizes: quick (CI's miniature) or full (default: %(default)s)")
+    report_p.add_argument("--only", nargs="+", metavar="SECTION",
+                          help="measure only these sections; the others come from each scene's cache")
+    report_p.add_argument("--refresh", action="store_true", help="measure again instead of reusing the caches")
+    report_p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
 
 
 def run(args: argparse.Namespace) -> int:
     if args.action == "status":
         return _status(args.workdir)
+    if args.action == "report":
+        return _report(args)
     from brave6d.dataset_spec import load_dataset_spec
     from dataset.executor import ExecutorOptions
     from dataset.runner import run_dataset
@@ -72,4 +86,18 @@ def _status(workdir: Path) -> int:
     write_summary(workdir, dataset.spec.name, ids)
     print(f"dataset {dataset.spec.name} {dataset.spec.version}: {workdir}")
     print(status_table(workdir, ids))
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from brave6d.runtime import quiet_openmp
+
+    quiet_openmp()  # before torch / numba load: spinning OpenMP threads distort the timings
+    from dataset.report import report_dataset
+
+    done = report_dataset(args.workdir, quick=args.mode == "quick", only=tuple(args.only or ()),
+                          refresh=args.refresh, device=args.device)
+    for s in done.scenes:
+        print(f"{s.scene:<24} " + (", ".join(f"{k} {v}" for k, v in s.statuses.items()) or s.note))
+    print(f"\nindex: {done.index}")
     return 0

@@ -1,7 +1,8 @@
 """The accuracy-vs-time report: one Markdown page with PNG plots, from real measurements.
 
 ``build_report(workdir, settings)`` measures (or reuses cached measurements of) the demo scene
-``<workdir>/scene`` and writes ``<workdir>/report/report.md`` with ``training.png``,
+``<workdir>/scene`` (or any scene directory and output folder: :class:`ReportTarget`) and writes
+``<workdir>/report/report.md`` with ``training.png``,
 ``handeye.png``, ``latency.png``, ``views.png`` and ``baseline.png`` beside it:
 
 1. holdout PSNR/SSIM against training time, steps and Gaussians (:mod:`evaluation.report.sections.training`);
@@ -103,14 +104,42 @@ def report_dir(workdir: Path) -> Path:
     return Path(workdir) / "report"
 
 
+@dataclass(frozen=True)
+class ReportTarget:
+    """What a report reads and where it writes: the work directory (sections that read the demo's
+    other outputs, such as ``evaluation/baseline.json``, look there), the scene directory, and the
+    folder of ``report.md``, its PNGs and ``measurements/``."""
+
+    workdir: Path
+    scene: Path
+    out: Path
+
+    @staticmethod
+    def of_workdir(workdir: Path) -> ReportTarget:
+        """The demo's layout: ``WORKDIR/scene`` reported into ``WORKDIR/report``."""
+        return ReportTarget(Path(workdir), Path(workdir) / "scene", report_dir(workdir))
+
+    @staticmethod
+    def of_scene(scene: Path, out: Path) -> ReportTarget:
+        """Any scene directory reported into ``out`` (its parent is the work directory)."""
+        return ReportTarget(Path(scene).parent, Path(scene), Path(out))
+
+
+def as_target(where: Path | ReportTarget) -> ReportTarget:
+    """``where`` as a :class:`ReportTarget` (a plain path is a demo work directory)."""
+    return where if isinstance(where, ReportTarget) else ReportTarget.of_workdir(Path(where))
+
+
 def measurement_store(workdir: Path, refresh: bool = False) -> MeasurementStore:
     return MeasurementStore(report_dir(workdir) / "measurements", refresh=refresh)
 
 
-def measure_all(workdir: Path, settings: ReportSettings, refresh: bool = False,
+def measure_all(workdir: Path | ReportTarget, settings: ReportSettings, refresh: bool = False,
                 only: tuple[str, ...] | None = None) -> tuple[dict[str, Measurement], dict[str, float]]:
     """Measure (or reuse) every section's data; a failing section is recorded, not raised."""
-    inputs = MeasureInputs(Path(workdir), SceneDir(Path(workdir) / "scene"), measurement_store(workdir, refresh))
+    target = as_target(workdir)
+    inputs = MeasureInputs(target.workdir, SceneDir(target.scene),
+                           MeasurementStore(target.out / "measurements", refresh=refresh))
     results: dict[str, Measurement] = {}
     seconds: dict[str, float] = {}
     for section in registry.SECTIONS:
@@ -148,37 +177,39 @@ def render_sections(measurements: Mapping[str, Measurement | None], out_dir: Pat
     return sections
 
 
-def write_report(workdir: Path, seconds: dict[str, float] | None = None) -> ReportResult:
+def write_report(workdir: Path | ReportTarget, seconds: dict[str, float] | None = None) -> ReportResult:
     """Render ``report/report.md`` and its PNGs from the cached measurements only (no measuring)."""
-    out = report_dir(workdir)
-    store = measurement_store(workdir)
+    target = as_target(workdir)
+    out = target.out
+    store = MeasurementStore(out / "measurements")
     measurements = {name: store.load(name) for name in measurement_names()}
     for name in figure_names():  # a section that lost its data must not keep an old plot
         (out / name).unlink(missing_ok=True)
     sections = render_sections(measurements, out)
-    page = compose(Path(workdir), sections, measurements, seconds or {})
+    page = compose(target, sections, measurements, seconds or {})
     md = atomic_write_text(out / "report.md", page)
     statuses = {k: (m.status if m is not None else "absent") for k, m in measurements.items()}
     return ReportResult(md, [f for s in sections for f in s.figures], seconds or {}, statuses)
 
 
-def compose(workdir: Path, sections: list[RenderedSection], measurements: Mapping[str, Measurement | None],
-            seconds: dict[str, float]) -> str:
+def compose(workdir: Path | ReportTarget, sections: list[RenderedSection],
+            measurements: Mapping[str, Measurement | None], seconds: dict[str, float]) -> str:
     """The whole page: header (machine, scene, time spent), the sections, how to choose settings."""
+    target = as_target(workdir)
     machines = {describe_machine(m.machine, with_load=False)
                 for m in measurements.values() if m is not None and m.machine}
     spent = sum(m.seconds for m in measurements.values() if m is not None)
     now = _dt.datetime.now().isoformat(timespec="seconds")
     header = [
-        f"# What accuracy costs in time: {workdir.name}/scene",
+        f"# What accuracy costs in time: {target.scene.parent.name}/{target.scene.name}",
         "",
         "Every figure below is measured on the scene directory "
-        f"`{workdir / 'scene'}`; each plot states the machine and the settings it was measured with.",
+        f"`{target.scene}`; each plot states the machine and the settings it was measured with.",
         "",
         f"- Machine: {'; '.join(sorted(machines)) or 'not recorded'}",
         f"- Written {now}; "
         + (f"this run measured for {sum(seconds.values()):.0f} s; " if seconds else "from cached measurements; ")
-        + f"the sweeps' points took {spent:.0f} s in all (cached in `report/measurements/`).",
+        + f"the sweeps' points took {spent:.0f} s in all (cached in `{target.out.name}/measurements/`).",
         "- Sections: " + ", ".join(f"{name} {_status(measurements.get(name))}" for name in measurement_names()),
         "",
     ]
@@ -195,9 +226,10 @@ def _status(m: Measurement | None) -> str:
     return f"({m.status}{'' if m.status != 'partial' else f', {len(m.points)} points'})"
 
 
-def build_report(workdir: Path, settings: ReportSettings, refresh: bool = False,
+def build_report(workdir: Path | ReportTarget, settings: ReportSettings, refresh: bool = False,
                  only: tuple[str, ...] | None = None, measure: bool = True) -> ReportResult:
-    """Measure what is not cached (unless ``measure`` is False), then write the page."""
+    """Measure what is not cached (unless ``measure`` is False), then write the page; ``workdir``:
+    a demo work directory, or a :class:`ReportTarget` for any scene directory and output folder."""
     seconds: dict[str, float] = {}
     if measure:
         _, seconds = measure_all(workdir, settings, refresh, only)

@@ -1,4 +1,5 @@
-"""``brave6d report [--workdir DIR]``: the accuracy-vs-time report of a demo work directory.
+"""``brave6d report [--workdir DIR | --scene SCENE_DIR --out DIR]``: the accuracy-vs-time report of a demo
+work directory (``WORKDIR/scene`` into ``WORKDIR/report``) or of any scene directory into ``--out``.
 
 Registered in ``brave6d/cli.py`` as ``Command("report", "evaluation.report.cli", ...)``.
 """
@@ -7,8 +8,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from brave6d.errors import BraveError
+
+if TYPE_CHECKING:
+    from evaluation.report.build import ReportTarget
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -16,7 +21,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
     sections = names()
     parser.add_argument("--workdir", type=Path, default=Path("runs/demo"),
-                        help="the demo's work directory, holding scene/ (default: runs/demo)")
+                        help="the demo's work directory, holding scene/; the report goes to WORKDIR/report "
+                             "(default: runs/demo)")
+    parser.add_argument("--scene", type=Path, default=None, metavar="SCENE_DIR",
+                        help="report on this scene directory instead (any scene, e.g. a dataset's "
+                             "scenes/<name>); needs --out")
+    parser.add_argument("--out", type=Path, default=None, metavar="DIR",
+                        help="with --scene: the folder of report.md, its PNGs and measurements/")
     parser.add_argument("--mode", choices=["auto", "quick", "full"], default="auto",
                         help="sweep sizes: quick (CI's miniature, < 2 min) or full (several minutes); auto: quick "
                              "when the scene was made by 'brave6d demo --quick' (default: %(default)s)")
@@ -39,18 +50,31 @@ def run(args: argparse.Namespace) -> int:
     quiet_openmp()  # before torch / numba load: spinning OpenMP threads distort the timings
     from evaluation.report.build import ReportSettings, build_report
 
-    scene_dir = args.workdir / "scene"
-    if not scene_dir.is_dir() and not args.no_measure:
-        raise BraveError(f"{scene_dir}: no scene directory (run 'brave6d demo --workdir {args.workdir}' first)")
-    quick = args.mode == "quick" or (args.mode == "auto" and _made_quick(scene_dir))
+    target = report_target(args.workdir, args.scene, args.out)
+    if not target.scene.is_dir() and not args.no_measure:
+        hint = (f"run 'brave6d demo --workdir {args.workdir}' first" if args.scene is None
+                else "give a scene directory made by 'brave6d init' or 'brave6d dataset run'")
+        raise BraveError(f"{target.scene}: no scene directory ({hint})")
+    quick = args.mode == "quick" or (args.mode == "auto" and _made_quick(target.scene))
     settings = ReportSettings.for_mode(quick, args.device, args.benchmark_json)
-    result = build_report(args.workdir, settings, refresh=args.refresh, only=tuple(args.only or ()),
+    result = build_report(target, settings, refresh=args.refresh, only=tuple(args.only or ()),
                           measure=not args.no_measure)
     for name, status in result.statuses.items():
         took = f" ({result.seconds[name]:.1f} s)" if name in result.seconds else ""
         print(f"{name:<10} {status}{took}")
     print(f"\nreport: {result.markdown}")
     return 0
+
+
+def report_target(workdir: Path, scene: Path | None, out: Path | None) -> ReportTarget:
+    """``--scene``/``--out`` (both or neither) or the demo layout of ``--workdir``."""
+    from evaluation.report.build import ReportTarget
+
+    if scene is None and out is None:
+        return ReportTarget.of_workdir(workdir)
+    if scene is None or out is None:
+        raise BraveError("brave6d report: --scene and --out go together (give both, or --workdir alone)")
+    return ReportTarget.of_scene(scene, out)
 
 
 def _made_quick(scene_dir: Path) -> bool:
