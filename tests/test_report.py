@@ -168,7 +168,7 @@ def test_report_from_fabricated_measurements(tmp_path: Path) -> None:
     assert re.search(r"\| 320x240 +\| 1 +\| 8 +\| 4\.00 +\| 0\.25 +\| 0\.7 +\|", md)
     assert re.search(r"\| 640x480 +\| 2 +\| 8 +\| 1\.60 +\| 0\.62 +\| 1\.7 +\|", md)
     assert "with 1 worker 320x240: 4.00 images/s; 640x480: 1.00 images/s" in advice
-    assert "2 workers render 1.50-1.60x faster on this machine (2 cores): use --workers 2" in advice
+    assert "2 workers render 1.50-1.60x faster on this machine (2 cores, 8-image runs): use --workers 2" in advice
     assert "10,000 images at 640x480 take about 1.7 h here (2 workers)" in advice
     assert "NaN" not in md
 
@@ -500,10 +500,11 @@ def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: P
 
 def test_synthesis_advice_keeps_one_worker_when_more_do_not_pay() -> None:
     rates = {(320, 240): {1: 4.0, 2: 4.2}, (640, 480): {1: 1.0, 2: 1.1}}
-    advice = advice_synthesis(rates, {"usable_cores": 2})
-    assert "2 workers are only 1.05-1.10x as fast on this machine (2 cores): keep --workers 1 here" in advice
+    advice = advice_synthesis(rates, {"usable_cores": 2}, images=8)
+    assert ("2 workers are only 1.05-1.10x as fast on this machine (2 cores, 8-image runs, start-up included): "
+            "keep --workers 1 for runs this short") in advice
     assert "10,000 images at 640x480 take about 2.5 h here (2 workers)" in advice  # 10000 / 1.1 / 3600
-    assert advice_synthesis({(320, 240): {1: math.nan}}, {}) == ""
+    assert advice_synthesis({(320, 240): {1: math.nan}}, {}, images=8) == ""
 
 
 @pytest.mark.slow

@@ -140,11 +140,14 @@ def render_synthesis(m: Measurement | None, out_dir: Path) -> RenderedSection:
             f"![images per second]({png.name})\n\n"
             + format_table(["size", "workers", "images", "images/s", "s/image", f"h for {SPLIT_IMAGES:,}"], table)
             + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted synthesis rates"))
-    return RenderedSection(TITLE, body, advice_synthesis(rates, m.machine), [png])
+    return RenderedSection(TITLE, body, advice_synthesis(rates, m.machine, int(num(m.settings.get("images")))),
+                           [png])
 
 
-def advice_synthesis(rates: Mapping[tuple[int, int], Mapping[int, float]], machine: Mapping[str, Any]) -> str:
-    """The rate at each size, whether more workers pay here, and the time of a 10k-image split."""
+def advice_synthesis(rates: Mapping[tuple[int, int], Mapping[int, float]], machine: Mapping[str, Any],
+                     images: int) -> str:
+    """The rate at each size, whether more workers pay here for runs of ``images`` images (their
+    start-up included), and the time of a 10k-image split."""
     best = {size: b for size, per in rates.items() if (b := best_workers(per)) is not None}
     if not best:
         return ""
@@ -161,10 +164,12 @@ def advice_synthesis(rates: Mapping[tuple[int, int], Mapping[int, float]], machi
             low, high = min(speedups), max(speedups)
             span = fmt(low, 2) if abs(high - low) < 0.005 else f"{fmt(low, 2)}-{fmt(high, 2)}"
             if low >= WORKERS_PAY:
-                text += f"; {n} workers render {span}x faster on this machine ({cores} cores): use --workers {n}"
+                text += (f"; {n} workers render {span}x faster on this machine ({cores} cores, {images}-image "
+                         f"runs): use --workers {n}")
             else:
-                text += (f"; {n} workers are only {span}x as fast on this machine ({cores} cores): "
-                         "keep --workers 1 here (worker start-up and shared cores eat the gain)")
+                text += (f"; {n} workers are only {span}x as fast on this machine ({cores} cores, {images}-image "
+                         "runs, start-up included): keep --workers 1 for runs this short (on a long split the "
+                         "start-up amortises: time a longer run with benchmarks/synth.py before adding workers)")
     largest = max(best, key=lambda s: s[0] * s[1])
     n, r = best[largest]
     return text + (f". {SPLIT_IMAGES:,} images at {largest[0]}x{largest[1]} take about "
