@@ -10,11 +10,12 @@ Public API (imported lazily; ``import dataset`` loads no stage, torch or submiti
 - ``prepare_workdir``, ``scene_dir``: the work directory (``dataset.yaml``, ``objects/``,
   ``scenes/<name>/``, ``status/``);
 - ``read_scene_status``, ``SceneStatus``, ``read_summary``, ``status_table``, ``SCENE_STAGES``: the
-  status records (``status/<scene>.json``) and the table (``status.json``).
+  status records (``status/<scene>.json``) and the table (``status.json``);
+- ``report_dataset``, ``DatasetReport``: ``brave6d dataset report`` (every scene's report and an index).
 
 The dataset spec itself (``dataset.yaml``) is read by :mod:`brave6d.dataset_spec`
 (``load_dataset_spec``), the shared core, so that every package can read it.
-Modules: ``status``, ``workdir``, ``job``, ``executor``, ``runner``, ``cli`` (``brave6d dataset``).
+Modules: ``status``, ``workdir``, ``job``, ``executor``, ``runner``, ``report``, ``cli`` (``brave6d dataset``).
 The release of a dataset is the subpackage ``dataset.release``; ``release_scene_sources`` (the
 scenes of a release for the render server) is re-exported here for other stages.
 """
@@ -28,7 +29,7 @@ _LAZY = {
     "prepare_workdir": ".workdir", "scene_dir": ".workdir",
     "read_scene_status": ".status", "SceneStatus": ".status", "read_summary": ".status",
     "status_table": ".status", "SCENE_STAGES": ".status",
-    "release_scene_sources": ".release.serving",
+    "release_scene_sources": ".release.serving", "report_dataset": ".report", "DatasetReport": ".report",
 }
 
 __all__ = sorted(_LAZY)
