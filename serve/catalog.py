@@ -206,7 +206,11 @@ class SceneCatalog:
 
     def loaded_bytes(self) -> int:
         with self._cond:
-            return sum(e.source.memory_bytes for e in self._loaded.values()) + sum(self._loading.values())
+            return self._used_bytes()
+
+    def _used_bytes(self) -> int:
+        """Estimated bytes of the loaded scenes and of those being loaded (call with the lock held)."""
+        return sum(e.source.memory_bytes for e in self._loaded.values()) + sum(self._loading.values())
 
     # -------------------------------------------------------------- loading
     def acquire(self, key: str | int | None) -> SceneServer:
@@ -269,9 +273,8 @@ class SceneCatalog:
 
     def _fits(self, need: int) -> bool:
         count = len(self._loaded) + len(self._loading) + 1
-        used = sum(e.source.memory_bytes for e in self._loaded.values()) + sum(self._loading.values())
         return ((self.max_loaded is None or count <= self.max_loaded)
-                and (self.memory_budget_bytes is None or used + need <= self.memory_budget_bytes))
+                and (self.memory_budget_bytes is None or self._used_bytes() + need <= self.memory_budget_bytes))
 
     def _make_room(self, src: SceneSource) -> None:
         """Evict unpinned scenes (least recently used first) until ``src`` fits; else :class:`SceneCacheFull`."""

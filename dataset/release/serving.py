@@ -15,7 +15,6 @@ the file sizes (the zip's directory or the bundle's manifest) without reading th
 
 from __future__ import annotations
 
-import hashlib
 import os
 import threading
 import zipfile
@@ -26,6 +25,7 @@ from brave6d.atomic import file_sha256, read_json, staged_folder
 from dataset.release.formats import DATASET_INFO, MANIFEST, SUMS, bundle_folder, bundle_zip, read_sha256sums
 from dataset.release.manifest import read_manifest
 from dataset.release.source import ReleaseError
+from dataset.release.zips import member_outside
 
 #: Where unpacked bundles go unless a cache folder is given: ``$BRAVE6D_CACHE``, else
 #: ``$XDG_CACHE_HOME/brave6d``, else ``~/.cache/brave6d``.
@@ -66,7 +66,7 @@ def _zipped_sources(base: Path, cache_dir: Path | None) -> list[Any]:
 
     manifest = read_manifest(base / MANIFEST)
     sums = read_sha256sums(base / SUMS)
-    digest = hashlib.sha256((base / MANIFEST).read_bytes()).hexdigest()[:12]
+    digest = file_sha256(base / MANIFEST)[:12]
     cache = (cache_dir or default_cache_dir()) / f"{manifest['name']}-{manifest.get('version', '0')}-{digest}"
     categories = _categories(manifest["objects"])
     out = []
@@ -117,10 +117,9 @@ class _Unpacker:
                 raise ReleaseError(f"{self.zip_path}: sha256 {digest[:12]}... does not match {SUMS} "
                                    f"({self.sha256[:12]}...); the release was modified or is incomplete")
             with zipfile.ZipFile(self.zip_path) as zf:
-                members = zf.namelist()
-                outside = [m for m in members if not m.startswith(self.folder + "/") or ".." in Path(m).parts]
-                if outside:
-                    raise ReleaseError(f"{self.zip_path}: member {outside[0]} lies outside {self.folder}/")
+                bad = member_outside(zf.namelist(), self.folder)
+                if bad is not None:
+                    raise ReleaseError(f"{self.zip_path}: member {bad} lies outside {self.folder}/")
                 with staged_folder(self.target) as stage:
                     prefix = len(self.folder) + 1
                     for info in zf.infolist():

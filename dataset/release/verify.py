@@ -27,6 +27,7 @@ from dataset.release.formats import (CAMERA, DATASET_INFO, HOLDOUT, MANIFEST, SU
 from dataset.release.manifest import read_manifest
 from dataset.release.source import ReleaseError
 from dataset.release.train_pbr import check_train_pbr_zip
+from dataset.release.zips import member_outside
 
 T = TypeVar("T")
 
@@ -208,9 +209,8 @@ def _check_bundle(path: Path, scene: dict[str, Any], library: dict[int, str], tm
     folder = bundle_folder(scene["scene_id"])
     target = tmp / "bundles" / path.stem
     with zipfile.ZipFile(path) as zf:
-        members = zf.namelist()
-        if any(not m.startswith(folder + "/") for m in members):
-            bad = next(m for m in members if not m.startswith(folder + "/"))
+        bad = member_outside(zf.namelist(), folder)
+        if bad is not None:
             raise ReleaseError(f"{path}: member {bad} lies outside {folder}/")
         zf.extractall(target)
     try:

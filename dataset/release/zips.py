@@ -45,3 +45,8 @@ def _info(name: str) -> zipfile.ZipInfo:
     info.compress_type = zipfile.ZIP_STORED if name.lower().endswith(_STORED) else zipfile.ZIP_DEFLATED
     info.external_attr = 0o644 << 16
     return info
+
+
+def member_outside(names: Sequence[str], folder: str) -> str | None:
+    """The first member name that does not lie inside ``folder/`` (or climbs out with ``..``), else None."""
+    return next((m for m in names if not m.startswith(folder + "/") or ".." in Path(m).parts), None)
