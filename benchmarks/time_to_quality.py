@@ -161,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=None, help="output JSON (default: <scene>/splat/time_to_quality.json)")
     args = parser.parse_args(argv)
 
+    from brave6d.atomic import atomic_write_json
     from brave6d.layout import SceneDir
     from brave6d.progress import format_table, progress_bar
     from brave6d.runtime import prepare_process
@@ -206,8 +207,7 @@ def main(argv: list[str] | None = None) -> int:
           f"B {cell(sb['time_to_other_final'], '{:.1f} s')} -> ratio A/B = {cell(ratio, '{:.2f}')}")
     print(f"peak RSS of the process (both runs): {out['memory']['peak_rss_mb']:.0f} MB")
     path = args.json or scene.splat_dir / "time_to_quality.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(json_safe(out), indent=2) + "\n")
+    atomic_write_json(path, json_safe(out))
     plot(path.with_suffix(".png"), [sa, sb], f"{scene.root.name}: {sa['name']} vs {sb['name']} on {device}")
     print(f"{path}\n{path.with_suffix('.png')}")
     return 0

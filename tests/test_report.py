@@ -526,3 +526,45 @@ def test_synthesis_section_measures_the_scenes_objects_outside_the_scene(tmp_pat
     assert again.points == m.points
     section = render_synthesis(again, tmp_path / "report")
     assert _valid_png(tmp_path / "report" / "synthesis.png")[0] > 400 and "**Synthetic split:**" in section.advice
+
+
+def _schedule_run(name: str, steps: int, psnrs: list[float], seconds_per_step: float, gaussians: int,
+                  time_to_other_final: float | None) -> dict:
+    every = steps // (len(psnrs) - 1)
+    points = [{"step": i * every, "time_s": i * every * seconds_per_step, "cpu_s": 0.0, "psnr": p, "ssim": 0.9,
+               "gaussians": gaussians} for i, p in enumerate(psnrs)]
+    return {"name": name, "preset": {"name": "fast"}, "steps": steps, "final_psnr": psnrs[-1], "final_ssim": 0.95,
+            "gaussians": gaussians, "gaussians_per_pixel": gaussians / 64000, "train_s": steps * seconds_per_step,
+            "time_to_other_final": time_to_other_final, "points": points}
+
+
+def test_training_section_plots_two_schedules_and_advises_from_them(tmp_path: Path) -> None:
+    from brave6d.layout import SceneDir
+
+    scene = SceneDir(tmp_path / "scene")
+    atomic_write_json(scene.splat_dir / "metrics.json", {
+        "preset": "fast", "device": "cpu", "steps": 100, "train_time_s": 10.0, "num_gaussians": 800,
+        "holdout": {"psnr": 22.0, "ssim": 0.8}, "curve": []})
+    old = _schedule_run("old", 3000, [14.0, 28.0, 30.0, 31.0, 31.9], 0.1, 113000, 300.0)
+    new = _schedule_run("new", 1000, [14.0, 29.0, 31.0, 31.95, 32.1], 0.08, 40000, 60.0)
+    atomic_write_json(scene.splat_dir / "time_to_quality.json", {"device": "cpu", "a": old, "b": new,
+                                                                 "ratio_time_to_a_final": 5.0})
+    m = collect_training(scene, MeasurementStore(tmp_path / "m"))
+    assert sum(p["source"] == "schedule" for p in m.points) == 10
+    section = render_training(m, None, tmp_path / "out")
+    assert [f.name for f in section.figures] == ["training.png", "training_schedules.png"]
+    _valid_png(tmp_path / "out" / "training_schedules.png")
+    assert re.search(r"\| new +\| fast +\| 1000 +\| 80\.0 +\| 32\.10 ", section.body)
+    assert ("new reached old's final 31.90 dB after 60 s against 300 s (5.00x faster) and ended at 32.10 dB "
+            "with 40000 Gaussians (against 113000): choose new") in section.advice
+    # a schedule that never gets there: the advice names the quality it gives up
+    new["time_to_other_final"], new["final_psnr"] = None, 31.5
+    atomic_write_json(scene.splat_dir / "time_to_quality.json", {"device": "cpu", "a": old, "b": new,
+                                                                 "ratio_time_to_a_final": None})
+    section = render_training(collect_training(scene, MeasurementStore(tmp_path / "m2")), None, tmp_path / "out")
+    assert "new ended at 31.50 dB and never reached old's 31.90 dB (300 s)" in section.advice
+    assert "0.40 dB less will do" in section.advice
+    # an unreadable comparison is named, not fatal
+    (scene.splat_dir / "time_to_quality.json").write_text('{"a": 1}')
+    section = render_training(collect_training(scene, MeasurementStore(tmp_path / "m3")), None, tmp_path / "out")
+    assert "time_to_quality.json could not be read" in section.body

@@ -70,9 +70,15 @@ def l1_loss(img1: Tensor, img2: Tensor) -> Tensor:
 
 
 def photometric_loss(render: Tensor, target: Tensor, ssim_lambda: float = 0.2) -> tuple[Tensor, Tensor, Tensor]:
-    """``(1 - lambda) * L1 + lambda * (1 - SSIM)``; returns ``(loss, l1, ssim)``."""
+    """``(1 - lambda) * L1 + lambda * (1 - SSIM)``; returns ``(loss, l1, ssim)``.
+
+    On the CPU the SSIM term is :func:`training.fused_ssim.fused_ssim` (the same number, its
+    gradient in compiled loops); elsewhere torch's autograd through :func:`ssim`.
+    """
+    from training.fused_ssim import can_fuse, fused_ssim
+
     l1 = l1_loss(render, target)
-    s = ssim(render, target)
+    s = fused_ssim(render, target) if can_fuse(render, target) else ssim(render, target)
     return (1.0 - ssim_lambda) * l1 + ssim_lambda * (1.0 - s), l1, s
 
 

@@ -73,12 +73,14 @@ class ReportSettings:
         return section.settings(quick=False)
 
     @staticmethod
-    def for_mode(quick: bool, device: str = "auto", benchmark_json: Path | None = None) -> ReportSettings:
+    def for_mode(quick: bool, device: str = "auto", benchmark_json: Path | None = None,
+                 schedules_json: Path | None = None) -> ReportSettings:
         """Quick: a miniature sweep of every section (well under 2 minutes on 2 cores); full: the demo's.
 
-        ``device`` and ``benchmark_json`` go to every section whose settings have a field of that name.
+        ``device``, ``benchmark_json`` and ``schedules_json`` go to every section whose settings have a
+        field of that name.
         """
-        common = {"device": device, "benchmark_json": benchmark_json}
+        common = {"device": device, "benchmark_json": benchmark_json, "schedules_json": schedules_json}
         return ReportSettings({s.name: with_common(s.settings(quick), common) for s in registry.SECTIONS})
 
 

@@ -42,6 +42,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--benchmark-json", type=Path, default=None,
                         help="output of benchmarks/training.py --json, for the training section "
                              "(default: scene/splat/benchmark_training.json)")
+    parser.add_argument("--schedules-json", type=Path, default=None,
+                        help="output of benchmarks/time_to_quality.py --json, for the training section's "
+                             "schedule comparison (default: scene/splat/time_to_quality.json)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -56,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
                 else "give a scene directory made by 'brave6d init' or 'brave6d dataset run'")
         raise BraveError(f"{target.scene}: no scene directory ({hint})")
     quick = args.mode == "quick" or (args.mode == "auto" and _made_quick(target.scene))
-    settings = ReportSettings.for_mode(quick, args.device, args.benchmark_json)
+    settings = ReportSettings.for_mode(quick, args.device, args.benchmark_json, args.schedules_json)
     result = build_report(target, settings, refresh=args.refresh, only=tuple(args.only or ()),
                           measure=not args.no_measure)
     for name, status in result.statuses.items():

@@ -6,7 +6,10 @@ Three sources, each drawn when it exists:
   Gaussians, time per recorded step) and the final holdout scores;
 * the JSON of ``benchmarks/training.py`` (default ``splat/benchmark_training.json``): holdout
   PSNR/SSIM at several steps of a full run;
-* the report's own run on all training views (section 4's sweep), scored every few steps.
+* the report's own run on all training views (section 4's sweep), scored every few steps;
+* the JSON of ``benchmarks/time_to_quality.py`` (default ``splat/time_to_quality.json``): two
+  training schedules trained interleaved on one machine, drawn on one PSNR-against-time plot
+  (``training_schedules.png``) with the time each takes to the first one's final PSNR.
 
 Collecting reads files only (cheap); the result is cached like the measurements so that the
 page can be rebuilt from ``report/measurements`` alone.
@@ -35,6 +38,7 @@ NAME = "training"
 PAGE = 1
 TITLE = f"{PAGE}. Training: holdout quality against time, steps and Gaussians"
 FIGURE = "training.png"
+SCHEDULES_FIGURE = "training_schedules.png"
 PSNR_TOLERANCE_DB = 0.5
 
 
@@ -43,13 +47,22 @@ def default_benchmark_json(scene: SceneDir) -> Path:
     return scene.splat_dir / "benchmark_training.json"
 
 
-def collect_training(scene: SceneDir, store: MeasurementStore, benchmark: Path | None = None) -> Measurement:
-    """Read ``splat/metrics.json`` (and the benchmark JSON if present) into the ``training`` measurement."""
+def default_schedules_json(scene: SceneDir) -> Path:
+    """Where ``benchmarks/time_to_quality.py`` writes its JSON by default."""
+    return scene.splat_dir / "time_to_quality.json"
+
+
+def collect_training(scene: SceneDir, store: MeasurementStore, benchmark: Path | None = None,
+                     schedules: Path | None = None) -> Measurement:
+    """Read ``splat/metrics.json`` (and the benchmark and schedule-comparison JSONs if present)
+    into the ``training`` measurement."""
     metrics_path = scene.splat_dir / "metrics.json"
     bench_path = benchmark or default_benchmark_json(scene)
+    schedules_path = schedules or default_schedules_json(scene)
     if (absent := store.require(NAME, [(metrics_path, "training")])) is not None:
         return absent
-    key = {"metrics": file_stamp(metrics_path), "benchmark": file_stamp(bench_path)}
+    key = {"metrics": file_stamp(metrics_path), "benchmark": file_stamp(bench_path),
+           "schedules": file_stamp(schedules_path)}
     metrics = read_json(metrics_path)
     # reading is cheap: always collect afresh (the cached copy serves write_report)
     m = Measurement(name=NAME, key=key, machine=machine_info(str(metrics.get("device", "cpu"))))
@@ -81,9 +94,35 @@ def collect_training(scene: SceneDir, store: MeasurementStore, benchmark: Path |
                                       "device": bench.get("device"), "image_size": bench.get("image_size")}
         except (DataError, AttributeError) as exc:
             m.summary["benchmark"] = {"path": str(bench_path), "error": str(exc)}
+    m.summary["schedules"] = None
+    if schedules_path.is_file():
+        try:
+            points, m.summary["schedules"] = read_schedules(schedules_path)
+            m.points += points
+        except (DataError, AttributeError, KeyError, TypeError) as exc:
+            m.summary["schedules"] = {"path": str(schedules_path), "error": f"{type(exc).__name__}: {exc}"}
     m.status = "complete"
     store.save(m)
     return m
+
+
+def read_schedules(path: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The two holdout curves and the summary of a ``benchmarks/time_to_quality.py`` JSON."""
+    data = read_json(path)
+    points, runs = [], []
+    for key in ("a", "b"):
+        run = data[key]
+        points += [{"source": "schedule", "schedule": run["name"], "step": p.get("step"), "time_s": p.get("time_s"),
+                    "gaussians": p.get("gaussians"), "psnr": p.get("psnr"), "ssim": p.get("ssim")}
+                   for p in run["points"]]
+        preset = run.get("preset") or {}
+        runs.append({"name": run["name"], "preset": preset.get("name"), "steps": run.get("steps"),
+                     "train_s": run.get("train_s"), "final_psnr": run.get("final_psnr"),
+                     "final_ssim": run.get("final_ssim"), "gaussians": run.get("gaussians"),
+                     "gaussians_per_pixel": run.get("gaussians_per_pixel"),
+                     "time_to_other_final": run.get("time_to_other_final")})
+    return points, {"path": str(path), "device": data.get("device"), "ratio": data.get("ratio_time_to_a_final"),
+                    "runs": runs}
 
 
 # ----------------------------------------------------------------------------- rendering
@@ -160,8 +199,72 @@ def render_training(training: Measurement | None, views: Measurement | None, out
         rows = [(int(num(p.get("step"))) if math.isfinite(num(p.get("step"))) else "n/a", fmt(p.get("time_s"), 1),
                  p.get("gaussians"), fmt(p.get("psnr")), fmt(p.get("ssim"), 4)) for p in pts]
         body.append(f"**{label}:**\n\n" + format_table(["step", "train s", "Gaussians", "PSNR [dB]", "SSIM"], rows))
+    figures = [png]
+    schedules = (training.summary.get("schedules") if training is not None and training.usable else None) or {}
+    advice = advice_training(sources, training)
+    if schedules.get("runs"):
+        assert training is not None
+        curves_png, text, schedule_advice, n = render_schedules(training, schedules, out_dir)
+        figures.append(curves_png)
+        dropped += n
+        body += [f"![holdout PSNR of two training schedules against time]({curves_png.name})", text]
+        advice = f"{schedule_advice} {advice}".strip()
+    elif schedules.get("error"):
+        body.append(f"The schedule comparison {schedules.get('path')} could not be read: {schedules['error']}.")
+    else:
+        body.append("To compare two training schedules (e.g. the previous `fast` against today's), run "
+                    "`python benchmarks/time_to_quality.py SCENE_DIR --a old=fast,... --b new=fast`; it writes "
+                    "`splat/time_to_quality.json`, which this report plots.")
     body.append(provenance(provenance_of) + "\n" + nan_note(dropped, "plotted training values"))
-    return RenderedSection(TITLE, "\n\n".join(body), advice_training(sources, training), [png])
+    return RenderedSection(TITLE, "\n\n".join(body), advice, figures)
+
+
+def render_schedules(training: Measurement, schedules: dict[str, Any], out_dir: Path
+                     ) -> tuple[Path, str, str, int]:
+    """The two schedules' holdout PSNR against time on one plot, their table and the advice that
+    follows from it; returns ``(png, body text, advice, NaN values dropped)``."""
+    a, b = schedules["runs"]
+    target = num(a.get("final_psnr"))
+    fig, axes = new_figure(1, 1, panel=(7.0, 4.0))
+    ax = axes[0]
+    dropped = 0
+    for run in (a, b):
+        pts = [p for p in training.points if p.get("source") == "schedule" and p.get("schedule") == run["name"]]
+        dropped += plot_line(ax, [p.get("time_s") for p in pts], [p.get("psnr") for p in pts],
+                             f"{run['name']}: {fmt(run.get('final_psnr'))} dB, {run.get('gaussians')} Gaussians, "
+                             f"{fmt(run.get('train_s'), 0)} s", fmt="o-", ms=3)
+    if math.isfinite(target):
+        ax.axhline(target, color="0.5", lw=0.8, ls="--")
+        ax.annotate(f"{a['name']}'s final {fmt(target)} dB", (0.01, target), xycoords=("axes fraction", "data"),
+                    fontsize=7, va="bottom", color="0.4")
+        for run, time_s in ((a, a.get("train_s")), (b, b.get("time_to_other_final"))):
+            if math.isfinite(num(time_s)):
+                ax.axvline(num(time_s), color="0.7", lw=0.8, ls=":")
+    ax.set_xlabel("training time [s] (holdout evaluation excluded)")
+    ax.set_ylabel("holdout PSNR [dB]")
+    legend(ax)
+    png = save_figure(fig, out_dir / SCHEDULES_FIGURE, "Two training schedules, trained interleaved on one machine",
+                      describe_machine(training.machine), f"device {schedules.get('device')}; {schedules.get('path')}")
+    rows = [(r["name"], r.get("preset"), r.get("steps"), fmt(r.get("train_s"), 1), fmt(r.get("final_psnr")),
+             fmt(r.get("final_ssim"), 4), r.get("gaussians"), fmt(r.get("gaussians_per_pixel"))) for r in (a, b)]
+    text = ("**Training schedules** (`benchmarks/time_to_quality.py`, both trained in one process, alternating "
+            "chunks of steps, so that both saw the same machine load):\n\n"
+            + format_table(["schedule", "preset", "steps", "train s", "PSNR [dB]", "SSIM", "Gaussians",
+                            "Gaussians / pixel"], rows))
+    return png, text, advice_schedules(a, b, schedules.get("ratio")), dropped
+
+
+def advice_schedules(a: dict[str, Any], b: dict[str, Any], ratio: Any) -> str:
+    """Which schedule to choose, from the time each needs to A's final PSNR and where each ends."""
+    target, b_final = num(a.get("final_psnr")), num(b.get("final_psnr"))
+    b_time, a_time = num(b.get("time_to_other_final")), num(a.get("train_s"))
+    if not math.isfinite(b_time):
+        return (f"**Training schedule:** {b['name']} ended at {fmt(b_final)} dB and never reached {a['name']}'s "
+                f"{fmt(target)} dB ({fmt(a_time, 0)} s): choose {a['name']} when that quality is needed, "
+                f"{b['name']} ({fmt(b.get('train_s'), 0)} s) when {fmt(target - b_final)} dB less will do.")
+    return (f"**Training schedule:** {b['name']} reached {a['name']}'s final {fmt(target)} dB after {fmt(b_time, 0)} s "
+            f"against {fmt(a_time, 0)} s ({fmt(ratio)}x faster) and ended at {fmt(b_final)} dB with "
+            f"{b.get('gaussians')} Gaussians (against {a.get('gaussians')}): choose {b['name']}.")
 
 
 def _scene_text(m: Measurement) -> str:
@@ -210,9 +313,11 @@ def advice_training(sources: list[tuple[str, list[dict[str, Any]], str]], traini
 @dataclass(frozen=True)
 class TrainingSources:
     """Where the section reads from besides ``splat/metrics.json``: the benchmark JSON
-    (None: :func:`default_benchmark_json`)."""
+    (None: :func:`default_benchmark_json`) and the schedule comparison (None:
+    :func:`default_schedules_json`)."""
 
     benchmark_json: Path | None = None
+    schedules_json: Path | None = None
 
 
 class TrainingSection:
@@ -225,7 +330,7 @@ class TrainingSection:
         return TrainingSources()
 
     def measure(self, inputs: MeasureInputs, settings: TrainingSources) -> Measurement:
-        return collect_training(inputs.scene, inputs.store, settings.benchmark_json)
+        return collect_training(inputs.scene, inputs.store, settings.benchmark_json, settings.schedules_json)
 
     def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
         return render_training(measurements.get(NAME), measurements.get(VIEWS), out_dir)
