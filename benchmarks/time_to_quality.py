@@ -13,8 +13,10 @@ section plots).
 
 Configurations are ``NAME=PRESET[,field=value...]`` with any :class:`training.Preset` field:
 
-    python benchmarks/time_to_quality.py runs/demo/scene --a old=fast --b new=fast,steps=1000 \\
+    python benchmarks/time_to_quality.py runs/demo/scene [--a old=fast-3000] [--b new=fast,steps=1000] \\
         [--every 250] [--chunk 50] [--json out.json]
+
+``fast-3000`` is the ``fast`` preset before issue 22 (:data:`training.presets.FAST_3000`).
 """
 
 from __future__ import annotations
@@ -152,8 +154,9 @@ def plot(path: Path, runs: list[dict[str, Any]], title: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scene_dir", type=Path, help="a captured scene directory (e.g. runs/demo/scene)")
-    parser.add_argument("--a", default="old=fast", help="configuration A (default: old=fast)")
-    parser.add_argument("--b", required=True, help="configuration B, e.g. new=fast,steps=1000")
+    parser.add_argument("--a", default="old=fast-3000",
+                        help="configuration A (default: old=fast-3000, the fast preset before issue 22)")
+    parser.add_argument("--b", default="new=fast", help="configuration B (default: new=fast), e.g. new=fast,steps=1000")
     parser.add_argument("--every", type=int, default=250, help="holdout evaluation every K steps (default 250)")
     parser.add_argument("--chunk", type=int, default=50, help="steps per turn when interleaving (default 50)")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
@@ -168,6 +171,7 @@ def main(argv: list[str] | None = None) -> int:
 
     prepare_process()
     from training import get_preset, resolve_device
+    from training.presets import BENCHMARK_PRESETS
     from training.evaluate import json_safe, peak_memory_mb
 
     scene = SceneDir(args.scene_dir)
@@ -175,7 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     runs = []
     for text in (args.a, args.b):
         name, preset_name, overrides = parse_config(text)
-        runs.append(Run(name, get_preset(preset_name).with_overrides(**overrides), scene, args.every, device,
+        runs.append(Run(name, get_preset(preset_name, BENCHMARK_PRESETS).with_overrides(**overrides), scene,
+                        args.every, device,
                         args.init))
     total = sum(r.preset.steps for r in runs)
     bar = progress_bar(total=total, desc="interleaved training", unit="step")

@@ -81,4 +81,5 @@ def test_trainer_renders_coarse_first_then_full(tmp_path: Path) -> None:
 def test_coarse_steps_are_validated_and_scaled() -> None:
     with pytest.raises(BraveError, match="coarse_steps must be in 0..steps"):
         get_preset("fast").with_overrides(coarse_steps=10**6)
-    assert get_preset("fast").with_overrides(coarse_steps=1000).with_steps(300).coarse_steps == 100
+    fast = get_preset("fast")
+    assert fast.with_overrides(coarse_steps=1000).with_steps(fast.steps // 10).coarse_steps == 100

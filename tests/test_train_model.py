@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from training.model import GaussianModel, initial_log_scales
 from training.ply import SH_C0
-from training.presets import FAST, PRESETS, get_preset
+from training.presets import BENCHMARK_PRESETS, FAST, PRESETS, get_preset
 from training.strategy import DensifyStrategy, make_strategy
 
 
@@ -112,3 +112,9 @@ def test_presets_are_typed_and_scale_with_steps() -> None:
     with pytest.raises(Exception, match="unknown preset"):
         get_preset("turbo")
     assert math.isclose(d.shN_lr * 20, d.sh0_lr)
+    # the fast schedule before issue 22 stays reachable for benchmarks, not as a user preset
+    with pytest.raises(Exception, match="unknown preset 'fast-3000'"):
+        get_preset("fast-3000")
+    old = get_preset("fast-3000", BENCHMARK_PRESETS)
+    assert (old.steps, old.coarse_steps, old.max_gaussians, old.sh0_lr) == (3000, 0, 150_000, d.sh0_lr)
+    assert FAST.coarse_steps > 0 and FAST.steps < old.steps and FAST.max_gaussians < old.max_gaussians
