@@ -258,13 +258,20 @@ def advice_schedules(a: dict[str, Any], b: dict[str, Any], ratio: Any) -> str:
     """Which schedule to choose, from the time each needs to A's final PSNR and where each ends."""
     target, b_final = num(a.get("final_psnr")), num(b.get("final_psnr"))
     b_time, a_time = num(b.get("time_to_other_final")), num(a.get("train_s"))
+    name_a, name_b = _schedule_label(a), _schedule_label(b)
     if not math.isfinite(b_time):
-        return (f"**Training schedule:** {b['name']} ended at {fmt(b_final)} dB and never reached {a['name']}'s "
-                f"{fmt(target)} dB ({fmt(a_time, 0)} s): choose {a['name']} when that quality is needed, "
-                f"{b['name']} ({fmt(b.get('train_s'), 0)} s) when {fmt(target - b_final)} dB less will do.")
-    return (f"**Training schedule:** {b['name']} reached {a['name']}'s final {fmt(target)} dB after {fmt(b_time, 0)} s "
+        return (f"**Training schedule:** {name_b} ended at {fmt(b_final)} dB and never reached {name_a}'s "
+                f"{fmt(target)} dB ({fmt(a_time, 0)} s): choose {name_a} when that quality is needed, "
+                f"{name_b} ({fmt(b.get('train_s'), 0)} s) when {fmt(target - b_final)} dB less will do.")
+    return (f"**Training schedule:** {name_b} reached {name_a}'s final {fmt(target)} dB after {fmt(b_time, 0)} s "
             f"against {fmt(a_time, 0)} s ({fmt(ratio)}x faster) and ended at {fmt(b_final)} dB with "
-            f"{b.get('gaussians')} Gaussians (against {a.get('gaussians')}): choose {b['name']}.")
+            f"{b.get('gaussians')} Gaussians (against {a.get('gaussians')}): choose {name_b}.")
+
+
+def _schedule_label(run: dict[str, Any]) -> str:
+    """``name (`preset`)``, or the name alone when it is the preset's."""
+    preset = run.get("preset")
+    return run["name"] if not preset or preset == run["name"] else f"{run['name']} (`{preset}`)"
 
 
 def _scene_text(m: Measurement) -> str:
