@@ -103,3 +103,18 @@ def test_image_metrics() -> None:
     noisy = np.clip(a.astype(int) + rng.integers(-8, 9, a.shape), 0, 255).astype(np.uint8)
     mse = np.mean(((a.astype(float) - noisy) / 255.0) ** 2)
     assert abs(psnr(a, noisy) - (-10 * np.log10(mse))) < 1e-9
+
+
+@pytest.mark.parametrize(("gaps", "says"), [
+    ([0.1, 0.3, 0.5, 0.7], "higher PSNR came with a larger gap"),
+    ([0.7, 0.5, 0.3, 0.1], "(higher PSNR, smaller gap)"),
+    ([0.4, 0.1, 0.5, 0.2], "PSNR alone does not predict the gap"),
+])
+def test_realism_advice_says_which_way_psnr_and_the_gap_go(gaps: list[float], says: str) -> None:
+    from evaluation.report.sections.realism import advice_realism
+
+    rows = [{"distance_m": d, "gap": g, "psnr": p, "estimate_s": 1.0, "render_s": 0.1}
+            for d, g, p in zip((0.2, 0.3, 0.4, 0.5), gaps, (28.0, 29.0, 30.0, 31.0))]
+    text = advice_realism(rows, [])
+    assert says in text
+    assert sum(s in text for s in ("larger gap", "smaller gap", "alone does not predict")) == 1

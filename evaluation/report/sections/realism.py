@@ -354,8 +354,10 @@ def advice_realism(rows: list[dict[str, Any]], gaps: list[dict[str, Any]]) -> st
     psnrs = [r["psnr"] for r in ok if math.isfinite(r["psnr"])]
     if len(ok) > 2 and len(psnrs) == len(ok) and np.std(psnrs) > 0 and np.std([r["gap"] for r in ok]) > 0:
         corr = float(np.corrcoef(psnrs, [abs(r["gap"]) for r in ok])[0, 1])
-        text += (f"; across levels PSNR and |gap| correlate at {fmt(corr, 2)}"
-                 + (", so PSNR alone does not predict the gap" if corr > -0.5 else ""))
+        text += f"; across levels PSNR and |gap| correlate at {fmt(corr, 2)}" + (
+            " (higher PSNR, smaller gap)" if corr <= -0.5 else
+            ": higher PSNR came with a larger gap, so PSNR does not say where splat scores can be trusted"
+            if corr >= 0.5 else ", so PSNR alone does not predict the gap")
     est = median([r["estimate_s"] for r in ok])
     return text + f". One estimate costs {fmt(est, 2)} s, one render {fmt(median([r['render_s'] for r in ok]), 3)} s."
 
