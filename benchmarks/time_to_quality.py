@@ -179,9 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     runs = []
     for text in (args.a, args.b):
         name, preset_name, overrides = parse_config(text)
-        runs.append(Run(name, get_preset(preset_name, BENCHMARK_PRESETS).with_overrides(**overrides), scene,
-                        args.every, device,
-                        args.init))
+        preset = get_preset(preset_name, BENCHMARK_PRESETS).with_overrides(**overrides)
+        runs.append(Run(name, preset, scene, args.every, device, args.init))
     total = sum(r.preset.steps for r in runs)
     bar = progress_bar(total=total, desc="interleaved training", unit="step")
     while not all(r.done for r in runs):
