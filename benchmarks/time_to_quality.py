@@ -123,6 +123,7 @@ class Run:
             "time_to_db": {f"{lv:g}": time_to(self.points, lv, "time_s") for lv in LEVELS_DB},
             "cpu_to_db": {f"{lv:g}": time_to(self.points, lv, "cpu_s") for lv in LEVELS_DB},
             "time_to_other_final": time_to(self.points, other_final_psnr, "time_s"),
+            "time_to_own_final": time_to(self.points, last["psnr"], "time_s"),
             "points": self.points,
         }
 
@@ -192,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     bar.close()
     a, b = runs
     sa, sb = a.summary(b.points[-1]["psnr"]), b.summary(a.points[-1]["psnr"])
-    a_own = time_to(a.points, a.points[-1]["psnr"], "time_s")
+    a_own = sa["time_to_own_final"]
     ratio = (a_own / sb["time_to_other_final"]) if a_own and sb["time_to_other_final"] else None
     out = {"scene": str(scene.root), "device": str(device), "every": args.every, "chunk": args.chunk,
            "memory": peak_memory_mb(device), "a": sa, "b": sb,

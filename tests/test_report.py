@@ -557,12 +557,18 @@ def test_training_section_plots_two_schedules_and_advises_from_them(tmp_path: Pa
     assert re.search(r"\| new +\| fast +\| 1000 +\| 80\.0 +\| 32\.10 ", section.body)
     assert ("new (`fast`) reached old (`fast`)'s final 31.90 dB after 60 s against 300 s (5.00x faster) and ended "
             "at 32.10 dB with 40000 Gaussians (against 113000): choose new (`fast`)") in section.advice
+    # A reached its final PSNR before its last step: the advice compares the times behind the ratio
+    old["time_to_own_final"] = 240.0
+    atomic_write_json(scene.splat_dir / "time_to_quality.json", {"device": "cpu", "a": old, "b": new,
+                                                                 "ratio_time_to_a_final": 4.0})
+    section = render_training(collect_training(scene, MeasurementStore(tmp_path / "m1")), None, tmp_path / "out")
+    assert "after 60 s against 240 s (4.00x faster)" in section.advice
     # a schedule that never gets there: the advice names the quality it gives up
     new["time_to_other_final"], new["final_psnr"] = None, 31.5
     atomic_write_json(scene.splat_dir / "time_to_quality.json", {"device": "cpu", "a": old, "b": new,
                                                                  "ratio_time_to_a_final": None})
     section = render_training(collect_training(scene, MeasurementStore(tmp_path / "m2")), None, tmp_path / "out")
-    assert "new (`fast`) ended at 31.50 dB and never reached old (`fast`)'s 31.90 dB (300 s)" in section.advice
+    assert "new (`fast`) ended at 31.50 dB and never reached old (`fast`)'s 31.90 dB (240 s)" in section.advice
     assert "0.40 dB less will do" in section.advice
     # an unreadable comparison is named, not fatal
     (scene.splat_dir / "time_to_quality.json").write_text('{"a": 1}')
