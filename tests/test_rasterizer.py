@@ -129,6 +129,10 @@ GRAD_CASES = {
     "sh1": {"seed": 22, "sh_degree": 1},
     "sh3": {"seed": 23, "sh_degree": 3},
     "sh2-per-camera": {"seed": 24, "sh_degree": 2, "per_camera_colors": True},
+    # one camera: the SH backward writes each Gaussian's gradient once (no accumulation);
+    # the spread leaves some Gaussians culled, whose gradient must still be zero
+    "sh2-one-camera": {"seed": 27, "sh_degree": 2, "n_cams": 1, "n": 150, "spread": 2.0},
+    "sh3-one-camera": {"seed": 28, "sh_degree": 3, "n_cams": 1, "n": 150},
     "clamped-jacobian": {"seed": 25, "spread": 2.5, "n": 200},
     "opaque-dense": {"seed": 26, "n": 250, "opacity": (0.7, 0.99), "scale_px": (2.0, 7.0)},
 }

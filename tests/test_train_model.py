@@ -48,6 +48,24 @@ def test_initial_scales_always_finite(n: int, seed: int, spread: float) -> None:
     assert s.shape == (n, 3) and np.isfinite(s).all()
 
 
+def test_sh_coeffs_copy_only_the_degree_in_use() -> None:
+    model = GaussianModel.from_points(np.random.default_rng(0).normal(size=(7, 3)), sh_degree=3)
+    with torch.no_grad():
+        model.params["shN"].copy_(torch.arange(7 * 15 * 3, dtype=torch.float32).reshape(7, 15, 3))
+    full = torch.cat([model.params["sh0"], model.params["shN"]], dim=1)
+    for d in range(4):
+        coeffs = model.sh_coeffs(d)
+        assert coeffs.shape == (7, (d + 1) ** 2, 3)
+        assert torch.equal(coeffs, full[:, : (d + 1) ** 2])
+    assert torch.equal(model.sh_coeffs(), full)
+    assert model.sh_coeffs(0).data_ptr() == model.params["sh0"].data_ptr()  # degree 0: no copy
+    model.sh_coeffs(2).sum().backward()  # gradient reaches both parameters, only where used
+    assert torch.equal(model.params["shN"].grad[:, :8], torch.ones(7, 8, 3))
+    assert torch.equal(model.params["shN"].grad[:, 8:], torch.zeros(7, 7, 3))
+    with pytest.raises(ValueError, match="degree must be in 0..3"):
+        model.sh_coeffs(4)
+
+
 def test_nan_points_are_refused() -> None:
     with pytest.raises(ValueError, match="NaN"):
         GaussianModel.from_points(np.array([[0.0, np.nan, 0.0]]))

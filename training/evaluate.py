@@ -62,7 +62,7 @@ def render_view(model: GaussianModel, view: View, data: TrainingData, sh_degree:
     viewmat = torch.from_numpy(view.viewmat).float().to(device)[None]
     K = torch.from_numpy(data.camera.K).float().to(device)[None]
     colors, _, _, _ = rasterize(model.means, model.quats, model.scales(), model.opacities(),
-                                model.sh_coeffs()[:, : (d + 1) ** 2], viewmat, K, data.camera.width,
+                                model.sh_coeffs(d), viewmat, K, data.camera.width,
                                 data.camera.height, sh_degree=d)
     return colors[0].clamp(0.0, 1.0)
 

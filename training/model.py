@@ -139,9 +139,17 @@ class GaussianModel:
         """Activated opacities (sigmoid)."""
         return torch.sigmoid(self.params["opacities"])
 
-    def sh_coeffs(self) -> Tensor:
-        """All SH coefficients [N, (sh_degree + 1)^2, 3]."""
-        return torch.cat([self.params["sh0"], self.params["shN"]], dim=1)
+    def sh_coeffs(self, degree: int | None = None) -> Tensor:
+        """The SH coefficients up to ``degree`` (default: the model's), [N, (degree + 1)^2, 3].
+
+        Only the coefficients the degree uses are copied (degree 0 is ``sh0`` itself), which
+        matters on the CPU, where this concatenation and its backward are a per-step cost."""
+        d = self.sh_degree if degree is None else degree
+        if not 0 <= d <= self.sh_degree:
+            raise ValueError(f"sh_coeffs: degree must be in 0..{self.sh_degree}, got {d}")
+        if d == 0:
+            return self.params["sh0"]
+        return torch.cat([self.params["sh0"], self.params["shN"][:, : (d + 1) ** 2 - 1]], dim=1)
 
     def non_finite(self) -> list[str]:
         """Names of parameters that hold NaN or inf (empty when all are finite)."""

@@ -155,7 +155,7 @@ class Trainer:
 
         m = self.model
         d = m.sh_degree if sh_degree is None else sh_degree
-        coeffs = m.sh_coeffs()[:, : (d + 1) ** 2]
+        coeffs = m.sh_coeffs(d)
         cam = self.data.camera
         K, width, height = (self.K, cam.width, cam.height) if level is None else (level.K, level.width, level.height)
         colors, _, alphas, info = rasterize(

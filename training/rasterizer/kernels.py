@@ -267,14 +267,49 @@ def _view(viewmats, c):
 
 
 @njit(cache=True)
-def _persp_terms(xc, yc, zc, fx, fy, cx, cy, width, height):
-    """Clamped Jacobian terms of the pinhole projection (gsplat's persp_proj)."""
-    tan_fovx = 0.5 * width / fx
-    tan_fovy = 0.5 * height / fy
-    lim_x_pos = (width - cx) / fx + 0.3 * tan_fovx
-    lim_x_neg = cx / fx + 0.3 * tan_fovx
-    lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy
-    lim_y_neg = cy / fy + 0.3 * tan_fovy
+def _camera_terms(viewmats, Ks, width, height):
+    """Per camera, the float64 terms every Gaussian needs, computed once per call: rotation
+    (row-major, 0-8), translation (9-11), fx, fy, cx, cy (12-15) and the clamp limits of the
+    projection's Jacobian (16-19: +x, -x, +y, -y; gsplat's persp_proj)."""
+    n_cam = viewmats.shape[0]
+    out = np.empty((n_cam, 20), np.float64)
+    for c in range(n_cam):
+        rv, tv = _view(viewmats, c)
+        for i in range(9):
+            out[c, i] = rv[i]
+        for i in range(3):
+            out[c, 9 + i] = tv[i]
+        fx = np.float64(Ks[c, 0, 0])
+        fy = np.float64(Ks[c, 1, 1])
+        cx = np.float64(Ks[c, 0, 2])
+        cy = np.float64(Ks[c, 1, 2])
+        out[c, 12] = fx
+        out[c, 13] = fy
+        out[c, 14] = cx
+        out[c, 15] = cy
+        tan_fovx = 0.5 * width / fx
+        tan_fovy = 0.5 * height / fy
+        out[c, 16] = (width - cx) / fx + 0.3 * tan_fovx
+        out[c, 17] = cx / fx + 0.3 * tan_fovx
+        out[c, 18] = (height - cy) / fy + 0.3 * tan_fovy
+        out[c, 19] = cy / fy + 0.3 * tan_fovy
+    return out
+
+
+@njit(cache=True, inline="always")
+def _camera_rotation(cams, c):
+    return (cams[c, 0], cams[c, 1], cams[c, 2], cams[c, 3], cams[c, 4], cams[c, 5],
+            cams[c, 6], cams[c, 7], cams[c, 8])
+
+
+@njit(cache=True, inline="always")
+def _persp_terms(xc, yc, zc, cams, c):
+    """Clamped Jacobian terms of the pinhole projection (gsplat's persp_proj) for camera c of
+    :func:`_camera_terms`."""
+    lim_x_pos = cams[c, 16]
+    lim_x_neg = cams[c, 17]
+    lim_y_pos = cams[c, 18]
+    lim_y_neg = cams[c, 19]
     rz = 1.0 / zc
     rz2 = rz * rz
     u = xc * rz
@@ -321,24 +356,25 @@ def project_fwd(means, quats, scales, opacities, use_opacity, viewmats, Ks, widt
     conics = np.zeros((n_cam, n, 3), np.float32)
     wf = np.float64(width)
     hf = np.float64(height)
+    cams = _camera_terms(viewmats, Ks, wf, hf)
     for g in prange(n):
         cov, _r, _m, _inv, _qn = _covar3d(quats[g], scales[g])
         mx = np.float64(means[g, 0])
         my = np.float64(means[g, 1])
         mz = np.float64(means[g, 2])
         for c in range(n_cam):
-            rv, tv = _view(viewmats, c)
-            xc = rv[0] * mx + rv[1] * my + rv[2] * mz + tv[0]
-            yc = rv[3] * mx + rv[4] * my + rv[5] * mz + tv[1]
-            zc = rv[6] * mx + rv[7] * my + rv[8] * mz + tv[2]
+            rv = _camera_rotation(cams, c)
+            xc = rv[0] * mx + rv[1] * my + rv[2] * mz + cams[c, 9]
+            yc = rv[3] * mx + rv[4] * my + rv[5] * mz + cams[c, 10]
+            zc = rv[6] * mx + rv[7] * my + rv[8] * mz + cams[c, 11]
             if not (zc >= near and zc <= far) or zc <= 0.0:
                 continue
             sc = _mmtt(_mm(rv, cov), rv)
-            fx = np.float64(Ks[c, 0, 0])
-            fy = np.float64(Ks[c, 1, 1])
-            cx = np.float64(Ks[c, 0, 2])
-            cy = np.float64(Ks[c, 1, 2])
-            rz, rz2, tx, ty, _ix, _iy = _persp_terms(xc, yc, zc, fx, fy, cx, cy, wf, hf)
+            fx = cams[c, 12]
+            fy = cams[c, 13]
+            cx = cams[c, 14]
+            cy = cams[c, 15]
+            rz, rz2, tx, ty, _ix, _iy = _persp_terms(xc, yc, zc, cams, c)
             a, b, cc = _cov2d(sc, fx * rz, -fx * tx * rz2, fy * rz, -fy * ty * rz2)
             a += eps2d
             cc += eps2d
@@ -387,6 +423,7 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, eps2d, radii,
     v_scales = np.zeros((n, 3), np.float32)
     wf = np.float64(width)
     hf = np.float64(height)
+    cams = _camera_terms(viewmats, Ks, wf, hf)
     for g in prange(n):
         cov, rq, m, inv_norm, qn = _covar3d(quats[g], scales[g])
         mx = np.float64(means[g, 0])
@@ -401,16 +438,14 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, eps2d, radii,
             if radii[c, g, 0] <= 0 or radii[c, g, 1] <= 0:
                 continue
             any_cam = True
-            rv, tv = _view(viewmats, c)
-            xc = rv[0] * mx + rv[1] * my + rv[2] * mz + tv[0]
-            yc = rv[3] * mx + rv[4] * my + rv[5] * mz + tv[1]
-            zc = rv[6] * mx + rv[7] * my + rv[8] * mz + tv[2]
+            rv = _camera_rotation(cams, c)
+            xc = rv[0] * mx + rv[1] * my + rv[2] * mz + cams[c, 9]
+            yc = rv[3] * mx + rv[4] * my + rv[5] * mz + cams[c, 10]
+            zc = rv[6] * mx + rv[7] * my + rv[8] * mz + cams[c, 11]
             sc = _mmtt(_mm(rv, cov), rv)
-            fx = np.float64(Ks[c, 0, 0])
-            fy = np.float64(Ks[c, 1, 1])
-            cx = np.float64(Ks[c, 0, 2])
-            cy = np.float64(Ks[c, 1, 2])
-            rz, rz2, tx, ty, in_x, in_y = _persp_terms(xc, yc, zc, fx, fy, cx, cy, wf, hf)
+            fx = cams[c, 12]
+            fy = cams[c, 13]
+            rz, rz2, tx, ty, in_x, in_y = _persp_terms(xc, yc, zc, cams, c)
             j00 = fx * rz
             j02 = -fx * tx * rz2
             j11 = fy * rz
@@ -555,28 +590,19 @@ def _sh_basis(degree, x, y, z, b):
             b[15] = -0.5900435899266435 * c2
 
 
-@njit(cache=True)
-def _sh_basis_grad(degree, x, y, z, bx, by, bz):
-    """Write d(basis)/dx, /dy, /dz at (x, y, z) into bx, by, bz (length 16, zeroed here)."""
-    bx[:] = 0.0
-    by[:] = 0.0
-    bz[:] = 0.0
-    if degree >= 1:
-        by[1] = -_SH_C1
-        bz[2] = _SH_C1
-        bx[3] = -_SH_C1
+@njit(cache=True, inline="always")
+def _sh_dir_grad(degree, x, y, z, w):
+    """d/d(x, y, z) of sum_k w[k] * basis_k(x, y, z) (w[0] unused): the basis derivatives of
+    :func:`_sh_basis` written out per degree, so no per-Gaussian arrays are zeroed or looped."""
+    gx = -_SH_C1 * w[3]
+    gy = -_SH_C1 * w[1]
+    gz = _SH_C1 * w[2]
     if degree >= 2:
         k4 = 0.5462742152960395
         kb = -1.092548430592079
-        bx[4] = k4 * 2.0 * y
-        by[4] = k4 * 2.0 * x
-        by[5] = kb * z
-        bz[5] = kb * y
-        bz[6] = 2.0 * 0.9461746957575601 * z
-        bx[7] = kb * z
-        bz[7] = kb * x
-        bx[8] = k4 * 2.0 * x
-        by[8] = -k4 * 2.0 * y
+        gx += 2.0 * k4 * (y * w[4] + x * w[8]) + kb * z * w[7]
+        gy += 2.0 * k4 * (x * w[4] - y * w[8]) + kb * z * w[5]
+        gz += kb * (y * w[5] + x * w[7]) + 2.0 * 0.9461746957575601 * z * w[6]
         if degree >= 3:
             z2 = z * z
             c1 = x * x - y * y
@@ -585,23 +611,16 @@ def _sh_basis_grad(degree, x, y, z, bx, by, bz):
             kt = 1.445305721320277
             tc = -2.285228997322329 * z2 + 0.4570457994644658
             dtc = -2.0 * 2.285228997322329 * z
-            # s2 = x*s1 + y*c1: ds2/dx = 6xy, ds2/dy = 3(x^2 - y^2)
-            bx[9] = k9 * 6.0 * x * y
-            by[9] = k9 * 3.0 * c1
-            bx[10] = kt * z * 2.0 * y
-            by[10] = kt * z * 2.0 * x
-            bz[10] = kt * s1
-            by[11] = tc
-            bz[11] = dtc * y
-            bz[12] = 3.0 * 1.865881662950577 * z2 - 1.119528997770346
-            bx[13] = tc
-            bz[13] = dtc * x
-            bx[14] = kt * z * 2.0 * x
-            by[14] = -kt * z * 2.0 * y
-            bz[14] = kt * c1
-            # c2 = x*c1 - y*s1: dc2/dx = 3(x^2 - y^2), dc2/dy = -6xy
-            bx[15] = k9 * 3.0 * c1
-            by[15] = -k9 * 6.0 * x * y
+            # s2 = x*s1 + y*c1: ds2/dx = 6xy, ds2/dy = 3(x^2 - y^2); c2 = x*c1 - y*s1:
+            # dc2/dx = 3(x^2 - y^2), dc2/dy = -6xy
+            gx += (k9 * 6.0 * x * y * w[9] + kt * z * 2.0 * y * w[10] + tc * w[13]
+                   + kt * z * 2.0 * x * w[14] + k9 * 3.0 * c1 * w[15])
+            gy += (k9 * 3.0 * c1 * w[9] + kt * z * 2.0 * x * w[10] + tc * w[11]
+                   - kt * z * 2.0 * y * w[14] - k9 * 6.0 * x * y * w[15])
+            gz += (kt * s1 * w[10] + dtc * y * w[11]
+                   + (3.0 * 1.865881662950577 * z2 - 1.119528997770346) * w[12]
+                   + dtc * x * w[13] + kt * c1 * w[14])
+    return gx, gy, gz
 
 
 @njit(cache=True)
@@ -646,52 +665,67 @@ def sh_fwd(degree, means, campos, coeffs, radii):
 @njit(parallel=True, cache=True)
 def sh_bwd(degree, means, campos, coeffs, radii, v_colors):
     """VJP of :func:`sh_fwd`: gradients for the coefficients and (via the view direction)
-    the means."""
+    the means.  With one camera and shared coefficients (training) every Gaussian's gradient
+    is written once, so the outputs are not zero-filled first."""
     n = means.shape[0]
     n_cam = campos.shape[0]
     per_cam = coeffs.shape[0] > 1
     n_basis = (degree + 1) * (degree + 1)
-    v_coeffs = np.zeros(coeffs.shape, np.float32)
-    v_means = np.zeros((n, 3), np.float32)
+    n_k = coeffs.shape[2]
+    once = n_cam == 1
+    v_coeffs = np.empty(coeffs.shape, np.float32) if once else np.zeros(coeffs.shape, np.float32)
+    v_means = np.empty((n, 3), np.float32) if once else np.zeros((n, 3), np.float32)
     n_blocks = (n + _BLOCK - 1) // _BLOCK
     for blk in prange(n_blocks):
         b = np.empty(16, np.float64)
-        bx = np.empty(16, np.float64)
-        by = np.empty(16, np.float64)
-        bz = np.empty(16, np.float64)
+        w = np.empty(16, np.float64)
         for gc in range(blk * _BLOCK * n_cam, min(n, (blk + 1) * _BLOCK) * n_cam):
             g = gc // n_cam
             c = gc - g * n_cam
-            if radii[c, g, 0] <= 0 or radii[c, g, 1] <= 0:
-                continue
+            cc = c if per_cam else 0
             vc0 = np.float64(v_colors[c, g, 0])
             vc1 = np.float64(v_colors[c, g, 1])
             vc2 = np.float64(v_colors[c, g, 2])
-            if vc0 == 0.0 and vc1 == 0.0 and vc2 == 0.0:
+            skip = radii[c, g, 0] <= 0 or radii[c, g, 1] <= 0 or (vc0 == 0.0 and vc1 == 0.0 and vc2 == 0.0)
+            if skip:
+                if once:
+                    v_coeffs[cc, g, :, :] = 0.0
+                    v_means[g, :] = 0.0
                 continue
             x, y, z, inorm = _unit_dir(means, campos, g, c)
             _sh_basis(degree, x, y, z, b)
-            cc = c if per_cam else 0
-            for k in range(n_basis):
-                v_coeffs[cc, g, k, 0] += b[k] * vc0
-                v_coeffs[cc, g, k, 1] += b[k] * vc1
-                v_coeffs[cc, g, k, 2] += b[k] * vc2
+            if once:
+                for k in range(n_basis):
+                    v_coeffs[cc, g, k, 0] = b[k] * vc0
+                    v_coeffs[cc, g, k, 1] = b[k] * vc1
+                    v_coeffs[cc, g, k, 2] = b[k] * vc2
+                for k in range(n_basis, n_k):
+                    v_coeffs[cc, g, k, 0] = 0.0
+                    v_coeffs[cc, g, k, 1] = 0.0
+                    v_coeffs[cc, g, k, 2] = 0.0
+            else:
+                for k in range(n_basis):
+                    v_coeffs[cc, g, k, 0] += b[k] * vc0
+                    v_coeffs[cc, g, k, 1] += b[k] * vc1
+                    v_coeffs[cc, g, k, 2] += b[k] * vc2
             if degree == 0 or inorm == 0.0:
+                if once:
+                    v_means[g, :] = 0.0
                 continue
-            _sh_basis_grad(degree, x, y, z, bx, by, bz)
-            gx = 0.0
-            gy = 0.0
-            gz = 0.0
+            w[:] = 0.0
             for k in range(1, n_basis):
-                w = (vc0 * np.float64(coeffs[cc, g, k, 0]) + vc1 * np.float64(coeffs[cc, g, k, 1])
-                     + vc2 * np.float64(coeffs[cc, g, k, 2]))
-                gx += w * bx[k]
-                gy += w * by[k]
-                gz += w * bz[k]
+                w[k] = (vc0 * np.float64(coeffs[cc, g, k, 0]) + vc1 * np.float64(coeffs[cc, g, k, 1])
+                        + vc2 * np.float64(coeffs[cc, g, k, 2]))
+            gx, gy, gz = _sh_dir_grad(degree, x, y, z, w)
             dot = gx * x + gy * y + gz * z
-            v_means[g, 0] += (gx - dot * x) * inorm
-            v_means[g, 1] += (gy - dot * y) * inorm
-            v_means[g, 2] += (gz - dot * z) * inorm
+            if once:
+                v_means[g, 0] = (gx - dot * x) * inorm
+                v_means[g, 1] = (gy - dot * y) * inorm
+                v_means[g, 2] = (gz - dot * z) * inorm
+            else:
+                v_means[g, 0] += (gx - dot * x) * inorm
+                v_means[g, 1] += (gy - dot * y) * inorm
+                v_means[g, 2] += (gz - dot * z) * inorm
     return v_coeffs, v_means
 
 
