@@ -1,9 +1,12 @@
-"""Time to quality of two training configurations, interleaved in one process (issue #22).
+"""Time to quality of two training configurations, interleaved on one machine (issue #22).
 
 Trains configuration A and configuration B on the same scene, alternating chunks of ``--chunk``
-steps (A, B, A, B, ...) so that both see the same machine load; each keeps its own wall and CPU
-clocks of training steps only (holdout evaluation, every ``--every`` steps, is not counted). It
-reports, per configuration: wall and CPU time to reach 27 dB and 30 dB holdout PSNR (and the
+steps (A, B, A, B, ...; only one of them trains at any moment) so that both see the same machine
+load; each keeps its own wall and CPU clocks of training steps only (holdout evaluation, every
+``--every`` steps, is not counted). Before its clocks start, each configuration runs one untimed
+warm-up step on a throwaway copy of its model (same data and preset, the global RNG restored), so
+that compiling the numba kernels (forward, backward, loss) does not land in its first timed chunk.
+It reports, per configuration: wall and CPU time to reach 27 dB and 30 dB holdout PSNR (and the
 other configuration's final PSNR), final holdout PSNR and SSIM, Gaussians and Gaussians per
 pixel, the model's parameter + optimiser memory, and the ratio that matters: **time for A to
 reach its final PSNR / time for B to reach that PSNR** (> 1: B gets there faster). Times to a
@@ -17,26 +20,53 @@ Configurations are ``NAME=PRESET[,field=value...]`` with any :class:`training.Pr
         [--every 250] [--chunk 50] [--json out.json]
 
 ``fast-3000`` is the ``fast`` preset before issue 22 (:data:`training.presets.FAST_3000`).
+
+``--a-source REV_OR_DIR`` trains A with the code of another source tree, so that per-step code
+speed-ups count too: a git revision of this repository (extracted with ``git archive`` into a
+temporary directory, removed at the end) or a directory holding a checkout. A then runs in a
+worker process (this file with ``--worker``, importing ``training`` and ``brave6d`` from that
+tree), driven chunk by chunk over pipes, still strictly alternating with B (in this process).
+A's preset is looked up in that tree's presets and its fields are checked against that tree's
+``Preset``; without ``--a`` it is ``old=fast``. Issue 22's target, the ``fast`` preset as it was
+when the issue was filed (main at ``a83a1a6``) against the new one:
+
+    python benchmarks/time_to_quality.py runs/demo/scene --a-source a83a1a6 --a old=fast --b new=fast
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import json
 import math
 import os
+import queue
+import subprocess
 import sys
+import tempfile
+import threading
 import time
+import traceback
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
+#: Set by the parent in a worker's environment: the source tree whose ``training`` and ``brave6d``
+#: the worker imports (first on ``sys.path``, ahead of this repository and of an editable install).
+SOURCE_ENV = "BRAVE6D_TTQ_SOURCE"
+CODE_ROOT = Path(os.environ[SOURCE_ENV]).resolve() if os.environ.get(SOURCE_ENV) else REPO
+if __name__ == "__main__":
+    # the code root first, also when PYTHONPATH lists it, and not benchmarks/ (sys.path[0] for a
+    # script), whose training.py would shadow the package
+    sys.path[:] = [str(CODE_ROOT)] + [p for p in sys.path
+                                      if p != str(CODE_ROOT) and (not p or Path(p).resolve() != REPO / "benchmarks")]
+elif str(REPO) not in sys.path:  # imported (tests): leave the importer's path as it is
     sys.path.insert(0, str(REPO))
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 LEVELS_DB = (27.0, 30.0)
+WORKER_STDERR_LINES = 30  # how many of a worker's last stderr lines an error shows
 
 
 def parse_config(text: str) -> tuple[str, str, dict[str, Any]]:
@@ -72,15 +102,33 @@ def time_to(points: list[dict[str, float]], level: float, clock: str) -> float |
     return None
 
 
+def jit_signatures() -> int:
+    """How many numba signatures the loaded ``training`` modules' kernels hold: a count that grows
+    when a kernel compiles (or loads from its cache) for a new type signature."""
+    try:
+        from numba.core.dispatcher import Dispatcher
+    except ImportError:
+        return 0
+    modules = [m for name, m in list(sys.modules.items()) if name == "training" or name.startswith("training.")]
+    return sum(len(v.signatures) for m in modules for v in list(vars(m).values()) if isinstance(v, Dispatcher))
+
+
+def configure(base: Any, overrides: dict[str, Any]) -> Any:
+    """``base`` (a Preset) with ``overrides`` applied, ``None`` values included (``max_gaussians=none``
+    means no limit; ``Preset.with_overrides`` would ignore it)."""
+    return dataclasses.replace(base, **overrides)
+
+
 class Run:
-    """One configuration's trainer and its evaluations."""
+    """One configuration's trainer and its evaluations (in this process)."""
 
     def __init__(self, name: str, preset: Any, scene: Any, every: int, device: Any, init_method: str) -> None:
         from training import GaussianModel, load_scene
         from training.colmap_init import initial_points
         from training.trainer import Trainer
 
-        self.name, self.preset = name, preset.with_overrides(eval_every=every, time_budget_s=None)
+        # no time budget: the benchmark measures the time to quality of the whole schedule
+        self.name, self.preset = name, dataclasses.replace(preset, eval_every=every, time_budget_s=None)
         self.data = load_scene(scene, self.preset.downscale)
         init = initial_points(scene, self.data, max_points=self.preset.max_init_points, seed=self.preset.seed,
                               method=init_method)
@@ -90,6 +138,30 @@ class Run:
         self.trainer = Trainer(self.data, model, self.preset, None, device, show_progress=False,
                                eval_callback=self.evaluate)
         self.evaluate(self.trainer)
+        self.warmup_s = self.warm_up()
+        self.jit_baseline = jit_signatures()  # main resets it once every run of the process is set up
+
+    def warm_up(self) -> float:
+        """One untimed training step on a throwaway copy of the model (same data and preset), so that
+        compiling the kernels of a step (numba's forward, backward and loss; on a GPU, gsplat's) does
+        not land in the first timed chunk. The trainer is left as it was, and so is the global RNG
+        (the copy's constructor reseeds it). Returns the seconds it took."""
+        import torch
+
+        from training import GaussianModel
+        from training.trainer import Trainer
+
+        t0 = time.perf_counter()
+        device = self.trainer.device
+        rng = torch.get_rng_state()
+        cuda_rng = torch.cuda.get_rng_state_all() if device.type == "cuda" else None
+        m = self.trainer.model
+        copy = GaussianModel.from_tensors({k: v.detach().clone() for k, v in m.params.items()}, m.sh_degree, device)
+        Trainer(self.data, copy, self.preset, None, device, show_progress=False).train_step()
+        torch.set_rng_state(rng)
+        if cuda_rng is not None:
+            torch.cuda.set_rng_state_all(cuda_rng)
+        return time.perf_counter() - t0
 
     def evaluate(self, trainer: Any) -> float:
         from training import evaluate_holdout
@@ -98,6 +170,14 @@ class Run:
         self.points.append({"step": trainer.step, "time_s": trainer.elapsed, "cpu_s": trainer.cpu_elapsed,
                             "psnr": m.psnr, "ssim": m.ssim, "gaussians": trainer.model.num_gaussians})
         return m.psnr
+
+    @property
+    def steps(self) -> int:
+        return self.preset.steps
+
+    @property
+    def step(self) -> int:
+        return self.trainer.step
 
     @property
     def done(self) -> bool:
@@ -119,6 +199,9 @@ class Run:
             "image_size": [cam.width, cam.height],
             "gaussians_per_pixel": last["gaussians"] / (cam.width * cam.height),
             "train_s": self.trainer.elapsed, "train_cpu_s": self.trainer.cpu_elapsed,
+            "warmup_s": self.warmup_s,
+            # kernels compiled after the warm-up, i.e. possibly inside the timed steps (should be 0)
+            "jit_compiles_while_timed": jit_signatures() - self.jit_baseline,
             "model_mb": param_bytes * 3 / 2**20,  # parameters + Adam's two moments
             "time_to_db": {f"{lv:g}": time_to(self.points, lv, "time_s") for lv in LEVELS_DB},
             "cpu_to_db": {f"{lv:g}": time_to(self.points, lv, "cpu_s") for lv in LEVELS_DB},
@@ -126,6 +209,234 @@ class Run:
             "time_to_own_final": time_to(self.points, last["psnr"], "time_s"),
             "points": self.points,
         }
+
+    def close(self) -> None:
+        pass
+
+
+# ----------------------------------------------------------------------------- A from another source tree
+class Source:
+    """The source tree that trains configuration A (``--a-source``): its ``root``, the ``label`` the
+    summary line names it by (the revision as given, or the directory), ``info`` for the JSON
+    (``{"rev", "commit"}`` or ``{"dir"}``) and the temporary directory it was extracted into, if any."""
+
+    def __init__(self, root: Path, label: str, info: dict[str, str],
+                 tmp: tempfile.TemporaryDirectory[str] | None = None) -> None:
+        self.root, self.label, self.info, self.tmp = root, label, info, tmp
+
+    def cleanup(self) -> None:
+        if self.tmp is not None:
+            self.tmp.cleanup()
+            self.tmp = None
+
+
+def resolve_source(value: str) -> Source:
+    """An existing directory as it is, else a git revision of this repository extracted (``git
+    archive``) into a temporary directory that :meth:`Source.cleanup` removes."""
+    path = Path(value).expanduser()
+    if path.is_dir():
+        return Source(path.resolve(), str(path.resolve()), {"dir": str(path.resolve())})
+    try:
+        sha = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--verify", "--quiet", f"{value}^{{commit}}"],
+                             capture_output=True, text=True, check=True).stdout.strip()
+    except (subprocess.CalledProcessError, FileNotFoundError):
+        raise SystemExit(f"--a-source {value!r}: neither a directory nor a git revision of {REPO}") from None
+    tmp = tempfile.TemporaryDirectory(prefix=f"ttq-{sha[:10]}-")
+    git = subprocess.Popen(["git", "-C", str(REPO), "archive", "--format=tar", sha], stdout=subprocess.PIPE)
+    tar = subprocess.run(["tar", "-x", "-C", tmp.name], stdin=git.stdout, capture_output=True, text=True)
+    assert git.stdout is not None
+    git.stdout.close()
+    if git.wait() != 0 or tar.returncode != 0:
+        tmp.cleanup()
+        raise SystemExit(f"--a-source {value!r}: could not extract {sha} into a temporary directory: {tar.stderr}")
+    return Source(Path(tmp.name), value, {"rev": value, "commit": sha}, tmp)
+
+
+def _json_default(obj: Any) -> Any:
+    return obj.item() if hasattr(obj, "item") else str(obj)  # numpy / torch scalars
+
+
+class RemoteRun:
+    """Configuration A trained by a worker process running another source tree (``--a-source``).
+
+    The worker is this file with ``--worker``; it imports ``training`` and ``brave6d`` from
+    ``source.root``. It reads one JSON command per line on its stdin (``advance`` N steps,
+    ``summary``) and answers each with one JSON line on its stdout, which carries nothing else
+    (all its logging goes to stderr, which this side keeps the last lines of and echoes). It trains
+    only between a command and its answer, so A and B still alternate strictly. A worker that dies,
+    reports an error, or does not answer within ``timeout_s`` stops the benchmark with a
+    :class:`SystemExit` naming the source tree and showing the worker's last stderr lines.
+    """
+
+    def __init__(self, config: str, source: Source, scene_dir: Path, every: int, device: Any, init_method: str,
+                 timeout_s: float | None = None) -> None:
+        self.name, _, rest = config.partition("=")
+        if not self.name or not rest:
+            raise SystemExit(f"--a: expected NAME=PRESET[,field=value...], got {config!r}")
+        self.preset_name = rest.split(",")[0]
+        self.source, self.timeout_s = source, timeout_s
+        self.stderr_tail: collections.deque[str] = collections.deque(maxlen=WORKER_STDERR_LINES)
+        self.replies: queue.Queue[str | None] = queue.Queue()
+        env = {**os.environ, "PYTHONPATH": str(source.root), SOURCE_ENV: str(source.root)}
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(Path(scene_dir).resolve()),
+               "--config", config, "--every", str(every), "--device", str(device), "--init", init_method]
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True, env=env, bufsize=1)
+        self._threads = [threading.Thread(target=self._pump_replies, daemon=True),
+                         threading.Thread(target=self._pump_stderr, daemon=True)]
+        for t in self._threads:
+            t.start()
+        ready = self._receive("while setting up")
+        self.steps, self.step, self.done = int(ready["steps"]), int(ready["step"]), bool(ready["done"])
+        self.points: list[dict[str, float]] = list(ready["points"])
+        self.modules: dict[str, str] = ready["modules"]
+        self.memory: dict[str, float] = {}
+
+    def _pump_replies(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.replies.put(line)
+        self.replies.put(None)  # EOF: the worker exited (or closed its answer pipe)
+
+    def _pump_stderr(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            line = line.rstrip("\n")
+            self.stderr_tail.append(line)
+            print(f"[{self.name} worker] {line}", file=sys.stderr, flush=True)
+
+    def _fail(self, what: str) -> None:
+        try:
+            rc: int | None = self.proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            rc = None
+        self.close()
+        self._threads[1].join(timeout=5)  # the rest of its stderr
+        tail = "\n".join(f"    {line}" for line in self.stderr_tail) or "    (none)"
+        code = f" (exit code {rc})" if rc is not None else ""
+        where = self.source.label if self.source.label == str(self.source.root) else \
+            f"{self.source.label} ({self.source.root})"
+        raise SystemExit(f"configuration A ({self.name}): the worker running the source tree {where} "
+                         f"{what}{code}; its last stderr lines:\n{tail}")
+
+    def _receive(self, doing: str) -> dict[str, Any]:
+        deadline = None if self.timeout_s is None else time.monotonic() + self.timeout_s
+        while True:
+            try:
+                line = self.replies.get(timeout=0.5)
+                break
+            except queue.Empty:
+                if deadline is not None and time.monotonic() > deadline:
+                    self._fail(f"did not answer within {self.timeout_s:g} s {doing}")
+        if line is None:
+            self._fail(f"exited {doing}")
+        try:
+            msg = json.loads(line)
+        except ValueError:
+            self._fail(f"wrote a line that is not a JSON answer {doing}: {line[:200]!r}")
+        if not isinstance(msg, dict):
+            self._fail(f"wrote an answer that is not a JSON object {doing}: {line[:200]!r}")
+        if "error" in msg:
+            self._fail(f"failed {doing}: {msg['error']}")
+        return msg
+
+    def _request(self, command: dict[str, Any], doing: str) -> dict[str, Any]:
+        try:
+            assert self.proc.stdin is not None
+            self.proc.stdin.write(json.dumps(command) + "\n")
+            self.proc.stdin.flush()
+        except (BrokenPipeError, OSError, ValueError):
+            self._fail(f"could not be sent a command {doing} (its input pipe is closed)")
+        return self._receive(doing)
+
+    def advance(self, chunk: int) -> None:
+        reply = self._request({"cmd": "advance", "steps": chunk}, f"training steps {self.step + 1}-{self.step + chunk}")
+        self.points += reply["points"]
+        self.step, self.done = int(reply["step"]), bool(reply["done"])
+
+    def summary(self, other_final_psnr: float) -> dict[str, Any]:
+        reply = self._request({"cmd": "summary", "other_final_psnr": other_final_psnr}, "summarising")
+        self.memory = reply["memory"]
+        return dict(reply["summary"])
+
+    def close(self) -> None:
+        """Ask the worker to stop (closing its input), then make sure it has."""
+        if self.proc.poll() is None:
+            try:
+                assert self.proc.stdin is not None
+                self.proc.stdin.close()
+            except OSError:
+                pass
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._threads[0].join(timeout=5)
+
+
+def worker_main(argv: list[str]) -> int:
+    """The worker side of :class:`RemoteRun`: configuration A on the tree in ``$BRAVE6D_TTQ_SOURCE``."""
+    parser = argparse.ArgumentParser(prog="time_to_quality.py --worker")
+    parser.add_argument("scene_dir", type=Path)
+    parser.add_argument("--config", required=True)
+    parser.add_argument("--every", type=int, required=True)
+    parser.add_argument("--device", required=True)
+    parser.add_argument("--init", required=True)
+    args = parser.parse_args(argv)
+    # the answer pipe is a duplicate of stdout; fd 1 itself (Python's and C libraries' prints) goes to stderr
+    answers: IO[str] = os.fdopen(os.dup(1), "w", buffering=1)
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
+
+    def send(msg: dict[str, Any]) -> None:
+        answers.write(json.dumps(msg, default=_json_default) + "\n")
+        answers.flush()
+
+    try:
+        from brave6d.runtime import prepare_process
+
+        prepare_process()
+        import brave6d
+        import training
+
+        modules = {m.__name__: str(Path(m.__file__ or "?").resolve()) for m in (training, brave6d)}
+        strays = [f"{name} from {file}" for name, file in modules.items() if not Path(file).is_relative_to(CODE_ROOT)]
+        if strays:
+            raise SystemExit(f"imported {', '.join(strays)}, not from the source tree {CODE_ROOT} "
+                             "(it holds no such package)")
+        print(f"worker: training from {modules['training']}, brave6d from {modules['brave6d']}", file=sys.stderr)
+        import training.presets as presets
+        from brave6d.layout import SceneDir
+        from training import resolve_device
+        from training.evaluate import peak_memory_mb
+
+        name, preset_name, overrides = parse_config(args.config)  # checked against this tree's Preset
+        known = getattr(presets, "BENCHMARK_PRESETS", presets.PRESETS)
+        if preset_name not in known:
+            raise SystemExit(f"{args.config}: no preset {preset_name!r} in {CODE_ROOT} (it has {', '.join(known)})")
+        device = resolve_device(args.device)
+        run = Run(name, configure(known[preset_name], overrides), SceneDir(args.scene_dir), args.every, device,
+                  args.init)
+        send({"steps": run.steps, "step": run.step, "done": run.done, "points": run.points, "modules": modules})
+        for line in sys.stdin:
+            command = json.loads(line)
+            if command["cmd"] == "advance":
+                seen = len(run.points)
+                run.advance(int(command["steps"]))
+                send({"step": run.step, "done": run.done, "points": run.points[seen:]})
+            elif command["cmd"] == "summary":
+                send({"summary": run.summary(float(command["other_final_psnr"])), "memory": peak_memory_mb(device)})
+            else:
+                raise ValueError(f"unknown command {command!r}")
+        return 0
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which stops with it
+        traceback.print_exc(file=sys.stderr)
+        try:
+            send({"error": f"{type(exc).__name__}: {exc}"})
+        except OSError:
+            pass
+        return 1
 
 
 def plot(path: Path, runs: list[dict[str, Any]], title: str) -> None:
@@ -153,17 +464,29 @@ def plot(path: Path, runs: list[dict[str, Any]], title: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["--worker"]:
+        return worker_main(argv[1:])
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scene_dir", type=Path, help="a captured scene directory (e.g. runs/demo/scene)")
-    parser.add_argument("--a", default="old=fast-3000",
-                        help="configuration A (default: old=fast-3000, the fast preset before issue 22)")
+    parser.add_argument("--a", default=None,
+                        help="configuration A (default: old=fast-3000, the fast preset before issue 22; "
+                             "with --a-source: old=fast)")
     parser.add_argument("--b", default="new=fast", help="configuration B (default: new=fast), e.g. new=fast,steps=1000")
+    parser.add_argument("--a-source", default=None, metavar="REV_OR_DIR",
+                        help="train A with the code of another source tree: a git revision of this repository "
+                             "(e.g. a83a1a6, main before issue 22) or a directory holding a checkout; A then runs "
+                             "in a worker process, still alternating with B")
     parser.add_argument("--every", type=int, default=250, help="holdout evaluation every K steps (default 250)")
     parser.add_argument("--chunk", type=int, default=50, help="steps per turn when interleaving (default 50)")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     parser.add_argument("--init", choices=["auto", "colmap", "depth", "random"], default="auto")
+    parser.add_argument("--worker-timeout", type=float, default=3600.0,
+                        help="with --a-source: stop when A's worker does not answer within this many seconds "
+                             "(setup or one chunk; default 3600)")
     parser.add_argument("--json", type=Path, default=None, help="output JSON (default: <scene>/splat/time_to_quality.json)")
     args = parser.parse_args(argv)
+    a_config = args.a or ("old=fast" if args.a_source else "old=fast-3000")
 
     from brave6d.atomic import atomic_write_json
     from brave6d.layout import SceneDir
@@ -172,45 +495,77 @@ def main(argv: list[str] | None = None) -> int:
 
     prepare_process()
     from training import get_preset, resolve_device
-    from training.presets import BENCHMARK_PRESETS
     from training.evaluate import json_safe, peak_memory_mb
+    from training.presets import BENCHMARK_PRESETS
 
     scene = SceneDir(args.scene_dir)
     device = resolve_device(args.device)
-    runs = []
-    for text in (args.a, args.b):
+    here = {"dir": str(REPO)}
+
+    def local(text: str) -> Run:
         name, preset_name, overrides = parse_config(text)
-        preset = get_preset(preset_name, BENCHMARK_PRESETS).with_overrides(**overrides)
-        runs.append(Run(name, preset, scene, args.every, device, args.init))
-    total = sum(r.preset.steps for r in runs)
-    bar = progress_bar(total=total, desc="interleaved training", unit="step")
-    while not all(r.done for r in runs):
+        return Run(name, configure(get_preset(preset_name, BENCHMARK_PRESETS), overrides), scene, args.every, device,
+                   args.init)
+
+    source = resolve_source(args.a_source) if args.a_source else None
+    runs: list[Run | RemoteRun] = []
+    try:
+        # set up one after the other: both write the scene's sparse/0 (the initial points)
+        runs.append(RemoteRun(a_config, source, scene.root, args.every, device, args.init, args.worker_timeout)
+                    if source is not None else local(a_config))
+        runs.append(local(args.b))
         for r in runs:
-            if not r.done:
-                before = r.trainer.step
-                r.advance(args.chunk)
-                bar.update(r.trainer.step - before)
-    bar.close()
-    a, b = runs
-    sa, sb = a.summary(b.points[-1]["psnr"]), b.summary(a.points[-1]["psnr"])
+            if isinstance(r, Run):  # B's warm-up ran after A's: count from here
+                r.jit_baseline = jit_signatures()
+        total = sum(r.steps for r in runs)
+        bar = progress_bar(total=total, desc="interleaved training", unit="step")
+        while not all(r.done for r in runs):
+            for r in runs:  # one at a time: a worker trains only between a command and its answer
+                if not r.done:
+                    before = r.step
+                    r.advance(args.chunk)
+                    bar.update(r.step - before)
+        bar.close()
+        a, b = runs
+        sa, sb = a.summary(b.points[-1]["psnr"]), b.summary(a.points[-1]["psnr"])
+    finally:
+        for r in runs:
+            r.close()
+        if source is not None:
+            source.cleanup()
+    sa["source"] = {**source.info, "modules": a.modules} if isinstance(a, RemoteRun) else here
+    sb["source"] = here
     a_own = sa["time_to_own_final"]
     ratio = (a_own / sb["time_to_other_final"]) if a_own and sb["time_to_other_final"] else None
     out = {"scene": str(scene.root), "device": str(device), "every": args.every, "chunk": args.chunk,
            "memory": peak_memory_mb(device), "a": sa, "b": sb,
            "ratio_time_to_a_final": ratio,
            "note": "ratio = time for A to reach its final holdout PSNR / time for B to reach it (> 1: B is faster)"}
+    if isinstance(a, RemoteRun):
+        out["memory_a_worker"] = a.memory
 
     def cell(v: float | None, fmt: str = "{:.0f}") -> str:
         return "not reached" if v is None or not math.isfinite(v) else fmt.format(v)
 
+    def origin(s: dict[str, Any], run: Run | RemoteRun) -> str:
+        where = run.source.label if isinstance(run, RemoteRun) else "this tree"
+        return f"{s['name']} ({s['preset']['name']} at {where})"
+
     rows = [[s["name"], s["steps"], cell(s["train_s"]), cell(s["train_cpu_s"]), cell(s["time_to_db"]["27"]),
              cell(s["time_to_db"]["30"]), f"{s['final_psnr']:.2f}", f"{s['final_ssim']:.4f}", f"{s['gaussians']:,}",
              f"{s['gaussians_per_pixel']:.2f}", f"{s['model_mb']:.0f}"] for s in (sa, sb)]
+    print(f"A = {origin(sa, a)}, B = {origin(sb, b)}")
     print(format_table(["config", "steps", "train s", "CPU s", "s to 27 dB", "s to 30 dB", "PSNR", "SSIM",
                         "Gaussians", "G / px", "model MB"], rows))
     print(f"\ntime to A's final PSNR ({sa['final_psnr']:.2f} dB): A {cell(a_own, '{:.1f} s')}, "
           f"B {cell(sb['time_to_other_final'], '{:.1f} s')} -> ratio A/B = {cell(ratio, '{:.2f}')}")
-    print(f"peak RSS of the process (both runs): {out['memory']['peak_rss_mb']:.0f} MB")
+    print(f"untimed warm-up step (kernel compilation): A {sa['warmup_s']:.1f} s, B {sb['warmup_s']:.1f} s; "
+          f"kernels compiled after it: A {sa['jit_compiles_while_timed']}, B {sb['jit_compiles_while_timed']}")
+    if isinstance(a, RemoteRun):
+        print(f"peak RSS: this process (B) {out['memory']['peak_rss_mb']:.0f} MB, "
+              f"A's worker {a.memory['peak_rss_mb']:.0f} MB")
+    else:
+        print(f"peak RSS of the process (both runs): {out['memory']['peak_rss_mb']:.0f} MB")
     path = args.json or scene.splat_dir / "time_to_quality.json"
     atomic_write_json(path, json_safe(out))
     plot(path.with_suffix(".png"), [sa, sb], f"{scene.root.name}: {sa['name']} vs {sb['name']} on {device}")
