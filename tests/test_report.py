@@ -554,7 +554,7 @@ def test_training_section_plots_two_schedules_and_advises_from_them(tmp_path: Pa
     section = render_training(m, None, tmp_path / "out")
     assert [f.name for f in section.figures] == ["training.png", "training_schedules.png"]
     _valid_png(tmp_path / "out" / "training_schedules.png")
-    assert re.search(r"\| new +\| fast +\| 1000 +\| 80\.0 +\| 32\.10 ", section.body)
+    assert re.search(r"\| new +\| `fast` +\| 1000 +\| 80\.0 +\| 32\.10 ", section.body)
     assert ("new (`fast`) reached old (`fast`)'s final 31.90 dB after 60 s against 300 s (5.00x faster) and ended "
             "at 32.10 dB with 40000 Gaussians (against 113000): choose new (`fast`)") in section.advice
     # A reached its final PSNR before its last step: the advice compares the times behind the ratio
@@ -563,6 +563,14 @@ def test_training_section_plots_two_schedules_and_advises_from_them(tmp_path: Pa
                                                                  "ratio_time_to_a_final": 4.0})
     section = render_training(collect_training(scene, MeasurementStore(tmp_path / "m1")), None, tmp_path / "out")
     assert "after 60 s against 240 s (4.00x faster)" in section.advice
+    # A trained with the code of another revision (--a-source): the table and the advice say which
+    old["source"] = {"rev": "a83a1a6", "commit": "a83a1a60fad2d0995566092e083d8fc920caee9a"}
+    atomic_write_json(scene.splat_dir / "time_to_quality.json", {"device": "cpu", "a": old, "b": new,
+                                                                 "ratio_time_to_a_final": 4.0})
+    section = render_training(collect_training(scene, MeasurementStore(tmp_path / "m4")), None, tmp_path / "out")
+    assert re.search(r"\| old +\| `fast` at a83a1a6 +\| 3000 ", section.body)
+    assert "reached old (`fast` at a83a1a6)'s final 31.90 dB after 60 s" in section.advice
+    del old["source"]
     # a schedule that never gets there: the advice names the quality it gives up
     new["time_to_other_final"], new["final_psnr"] = None, 31.5
     atomic_write_json(scene.splat_dir / "time_to_quality.json", {"device": "cpu", "a": old, "b": new,

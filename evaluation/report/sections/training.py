@@ -116,7 +116,10 @@ def read_schedules(path: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
                     "gaussians": p.get("gaussians"), "psnr": p.get("psnr"), "ssim": p.get("ssim")}
                    for p in run["points"]]
         preset = run.get("preset") or {}
+        source = run.get("source") or {}
         runs.append({"name": run["name"], "preset": preset.get("name"), "steps": run.get("steps"),
+                     # --a-source REV: the run trained with the code of that git revision
+                     "revision": source.get("rev") if isinstance(source, dict) else None,
                      "train_s": run.get("train_s"), "final_psnr": run.get("final_psnr"),
                      "final_ssim": run.get("final_ssim"), "gaussians": run.get("gaussians"),
                      "gaussians_per_pixel": run.get("gaussians_per_pixel"),
@@ -247,7 +250,7 @@ def render_schedules(training: Measurement, schedules: dict[str, Any], out_dir: 
     legend(ax)
     png = save_figure(fig, out_dir / SCHEDULES_FIGURE, "Two training schedules, trained interleaved on one machine",
                       describe_machine(training.machine), f"device {schedules.get('device')}; {schedules.get('path')}")
-    rows = [(r["name"], r.get("preset"), r.get("steps"), fmt(r.get("train_s"), 1), fmt(r.get("final_psnr")),
+    rows = [(r["name"], _preset_label(r), r.get("steps"), fmt(r.get("train_s"), 1), fmt(r.get("final_psnr")),
              fmt(r.get("final_ssim"), 4), r.get("gaussians"), fmt(r.get("gaussians_per_pixel"))) for r in (a, b)]
     text = ("**Training schedules** (`benchmarks/time_to_quality.py`, both trained in one process, alternating "
             "chunks of steps, so that both saw the same machine load):\n\n"
@@ -270,10 +273,18 @@ def advice_schedules(a: dict[str, Any], b: dict[str, Any], ratio: Any) -> str:
             f"{b.get('gaussians')} Gaussians (against {a.get('gaussians')}): choose {name_b}.")
 
 
+def _preset_label(run: dict[str, Any]) -> str:
+    """```preset```, with `` at REV`` when the run trained with the code of another revision."""
+    preset, rev = run.get("preset"), run.get("revision")
+    return f"`{preset}`" + (f" at {rev}" if rev else "") if preset else ""
+
+
 def _schedule_label(run: dict[str, Any]) -> str:
-    """``name (`preset`)``, or the name alone when it is the preset's."""
+    """``name (`preset` [at REV])``, or the name alone when it is the preset's (and no revision)."""
     preset = run.get("preset")
-    return run["name"] if not preset or preset == run["name"] else f"{run['name']} (`{preset}`)"
+    if not preset or (preset == run["name"] and not run.get("revision")):
+        return run["name"]
+    return f"{run['name']} ({_preset_label(run)})"
 
 
 def _scene_text(m: Measurement) -> str:
