@@ -6,15 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from brave6d.camera import PinholeCamera
 from training.dataset import TrainingData, View
 from training.evaluate import evaluate_holdout
 from training.model import GaussianModel
 from training.presets import get_preset
-from training.strategy import DensifyStrategy
 from training.synthetic import random_gaussians, render_views, ring_poses
 from training.trainer import Trainer
 
@@ -91,28 +88,3 @@ def test_constant_images_train_without_nan(level: int) -> None:
     result = evaluate_holdout(trainer.model, data)
     assert np.isfinite(result.psnr) and np.isfinite(result.ssim)
     assert result.psnr >= before - 0.1
-
-
-def test_a_ramped_budget_holds_at_every_step(scene_views: TrainingData) -> None:
-    """With ``budget_ramp_until`` the cap rises from the initial count to the budget: the count never
-    passes the cap of the step it was grown at, and growth reaches the full budget after the ramp."""
-    preset = _fast(steps=80, budget_ramp_until=40, refine_stop=70)
-    trainer, counts = _train_checked(scene_views, _model(120, float(np.log(0.01))), preset)
-    strategy = trainer.strategy
-    for step, count in enumerate(counts):  # counts[i]: after step i (growth happens at step i)
-        assert count <= strategy.cap_at(step, 120), f"step {step}: {count} Gaussians"
-    assert max(counts[:20]) < BUDGET  # the ramp held growth back early on
-    assert max(counts) == BUDGET
-
-
-@settings(max_examples=200, deadline=None)
-@given(n0=st.integers(0, 10_000), cap=st.integers(1, 10_000), ramp=st.integers(0, 5_000),
-       step=st.integers(-10, 10_000))
-def test_the_budget_ramp_is_monotone_and_bounded(n0: int, cap: int, ramp: int, step: int) -> None:
-    strategy = DensifyStrategy(max_gaussians=cap, budget_ramp_until=ramp)
-    now, later = strategy.cap_at(step, n0), strategy.cap_at(step + 1, n0)
-    assert now <= later  # never shrinks
-    assert min(n0, cap) <= now <= max(n0, cap)
-    if step >= ramp or n0 >= cap:
-        assert now == cap
-    assert DensifyStrategy(max_gaussians=None, budget_ramp_until=ramp).cap_at(step, n0) is None

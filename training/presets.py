@@ -54,9 +54,6 @@ class Preset:
     prune_opa: float = 0.005
     prune_scale3d: float = 0.1
     max_gaussians: int | None = None  # growth is limited to the highest gradients beyond this
-    # budgeted growth: the cap rises linearly from the initial count to max_gaussians at this step
-    # (0: max_gaussians from the start)
-    budget_ramp_until: int = 0
     # coarse-to-fine: the first `coarse_steps` steps train on 2x2-averaged images (half width and
     # height, a quarter of the pixels per step); 0: every step at the training resolution
     coarse_steps: int = 0
@@ -77,8 +74,6 @@ class Preset:
             raise BraveError(f"preset {self.name}: ssim_lambda must be in [0, 1], got {self.ssim_lambda}")
         if not 0 <= self.coarse_steps <= self.steps:
             raise BraveError(f"preset {self.name}: coarse_steps must be in 0..steps ({self.steps}), got {self.coarse_steps}")
-        if self.budget_ramp_until < 0:
-            raise BraveError(f"preset {self.name}: budget_ramp_until must be >= 0, got {self.budget_ramp_until}")
         if self.checkpoint_every < 1 or self.keep_checkpoints < 1:
             raise BraveError(f"preset {self.name}: checkpoint_every and keep_checkpoints must be >= 1")
 
@@ -102,7 +97,6 @@ class Preset:
             checkpoint_every=sc(self.checkpoint_every), curve_every=sc(self.curve_every),
             eval_every=sc(self.eval_every) if self.eval_every else 0,
             coarse_steps=min(steps, round(self.coarse_steps * f)),
-            budget_ramp_until=sc(self.budget_ramp_until) if self.budget_ramp_until else 0,
         )
 
     def to_json(self) -> dict[str, Any]:

@@ -9,10 +9,7 @@ Two differences from gsplat 1.5.3, both on purpose:
   ``(step % reset_every == 0) and (0 > 0)``, so it never fires): every ``reset_every`` steps
   while refining, as Inria does;
 * an optional cap on the number of Gaussians (CPU presets): when a refinement would grow past
-  the cap, only the Gaussians with the highest image-plane gradients grow. The cap is
-  ``max_gaussians``, or, with ``budget_ramp_until``, a budget that rises linearly from the
-  initial count to ``max_gaussians`` at that step (a budgeted growth in the spirit of Taming
-  3DGS: the early steps, which gain least from detail, stay cheap).
+  ``max_gaussians``, only the Gaussians with the highest image-plane gradients grow.
 
 Parameters and optimiser state are edited in place through ``params`` (a ParameterDict with
 the gsplat names) and one single-group optimiser per parameter; ``state`` holds the running
@@ -49,19 +46,10 @@ class DensifyStrategy:
     reset_every: int = 3000
     refine_every: int = 100
     max_gaussians: int | None = None
-    budget_ramp_until: int = 0  # the cap reaches max_gaussians at this step (0: from the start)
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
         """Running statistics, allocated on the first step (on the gradients' device)."""
-        return {"grad2d": None, "count": None, "scene_scale": scene_scale, "n_initial": None}
-
-    def cap_at(self, step: int, n_initial: int) -> int | None:
-        """The most Gaussians a refinement at ``step`` may grow to (None: no cap)."""
-        if self.max_gaussians is None:
-            return None
-        if self.budget_ramp_until <= 0 or step >= self.budget_ramp_until or n_initial >= self.max_gaussians:
-            return self.max_gaussians
-        return n_initial + (self.max_gaussians - n_initial) * max(step, 0) // self.budget_ramp_until
+        return {"grad2d": None, "count": None, "scene_scale": scene_scale}
 
     def check_sanity(self, params: Params, optimizers: Optimizers) -> None:
         """Refuse parameter/optimiser layouts the in-place edits below would corrupt."""
@@ -91,7 +79,7 @@ class DensifyStrategy:
             return
         self._update_state(params, state, info)
         if step > self.refine_start_iter and step % self.refine_every == 0:
-            self._grow_gs(params, optimizers, state, step)
+            self._grow_gs(params, optimizers, state)
             self._prune_gs(params, optimizers, state, step)
             state["grad2d"].zero_()
             state["count"].zero_()
@@ -109,8 +97,6 @@ class DensifyStrategy:
         grads[..., 0] *= info["width"] / 2.0 * info["n_cameras"]
         grads[..., 1] *= info["height"] / 2.0 * info["n_cameras"]
         n_gaussians = len(next(iter(params.values())))
-        if state.get("n_initial") is None:
-            state["n_initial"] = n_gaussians
         if state["grad2d"] is None:
             state["grad2d"] = torch.zeros(n_gaussians, device=grads.device)
         if state["count"] is None:
@@ -121,15 +107,12 @@ class DensifyStrategy:
         state["count"].index_add_(0, ids, torch.ones_like(ids, dtype=torch.float32))
 
     @torch.no_grad()
-    def _grow_gs(self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int = 0
-                 ) -> tuple[int, int]:
+    def _grow_gs(self, params: Params, optimizers: Optimizers, state: dict[str, Any]) -> tuple[int, int]:
         """Duplicate small and split large Gaussians whose mean 2D gradient is high."""
         grads = state["grad2d"] / state["count"].clamp_min(1)
         threshold = self.grow_grad2d
-        n_initial = state.get("n_initial")
-        cap = self.cap_at(step, len(params["means"]) if n_initial is None else n_initial)
-        if cap is not None:
-            room = cap - len(params["means"])
+        if self.max_gaussians is not None:
+            room = self.max_gaussians - len(params["means"])
             if room <= 0:
                 return 0, 0
             candidates = grads > self.grow_grad2d
@@ -174,7 +157,6 @@ def make_strategy(preset: Preset) -> DensifyStrategy:
         reset_every=preset.reset_every,
         refine_every=preset.refine_every,
         max_gaussians=preset.max_gaussians,
-        budget_ramp_until=preset.budget_ramp_until,
     )
 
 
