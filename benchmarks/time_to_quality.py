@@ -19,7 +19,8 @@ Configurations are ``NAME=PRESET[,field=value...]`` with any :class:`training.Pr
     python benchmarks/time_to_quality.py runs/demo/scene [--a old=fast-3000] [--b new=fast,steps=1000] \\
         [--every 250] [--chunk 50] [--json out.json]
 
-``fast-3000`` is the ``fast`` preset before issue 22 (:data:`training.presets.FAST_3000`).
+``fast-3000`` is the ``fast`` preset before issue 22 (:data:`training.presets.FAST_3000`), ``fast-2000``
+today's without its learning-rate annealing (:data:`training.presets.FAST_2000`).
 
 ``--a-source REV_OR_DIR`` trains A with the code of another source tree, so that per-step code
 speed-ups count too: a git revision of this repository (extracted with ``git archive`` into a

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -136,3 +137,7 @@ def test_presets_are_typed_and_scale_with_steps() -> None:
     old = get_preset("fast-3000", BENCHMARK_PRESETS)
     assert (old.steps, old.coarse_steps, old.max_gaussians, old.sh0_lr) == (3000, 0, 150_000, d.sh0_lr)
     assert FAST.coarse_steps > 0 and FAST.steps < old.steps and FAST.max_gaussians < old.max_gaussians
+    # and fast before its learning-rate annealing: the same schedule with constant rates
+    unannealed = get_preset("fast-2000", BENCHMARK_PRESETS)
+    assert (unannealed.lr_decay_final, FAST.lr_decay_final) == (1.0, 0.1)
+    assert dataclasses.replace(unannealed, name="fast", lr_decay_final=0.1, lr_decay_start=600) == FAST

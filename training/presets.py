@@ -5,12 +5,14 @@ see docs/ARCHITECTURE.md). ``quality`` trains longer (50k steps, densifying unti
 tuned for the CPU demo (2 cores, no GPU) to reach a given holdout PSNR in the least time: half-resolution
 images (320x200 for the demo), 2000 steps of which the first 600 on 2x2-averaged images
 (coarse-to-fine), densification from step 100 to 1200 every 50 steps without opacity reset, at most
-100k Gaussians, SH degree 2, learning rates raised for the short run, and a 14-minute budget.
+100k Gaussians, SH degree 2, learning rates raised for the short run and, from step 600, annealed to a
+tenth (all but the positions, which decay as Inria's), and a 14-minute budget.
 ``benchmarks/time_to_quality.py`` compares it with any other configuration, interleaved on one machine.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -57,6 +59,11 @@ class Preset:
     # coarse-to-fine: the first `coarse_steps` steps train on 2x2-averaged images (half width and
     # height, a quarter of the pixels per step); 0: every step at the training resolution
     coarse_steps: int = 0
+    # annealing: the learning rates of quats, scales, opacities and SH fall log-linearly from their
+    # value at `lr_decay_start` to `lr_decay_final` times it at the last step (1.0, or a start at or
+    # after the last step: constant, as Inria)
+    lr_decay_final: float = 1.0
+    lr_decay_start: int = 0
     # bookkeeping
     checkpoint_every: int = 5000
     keep_checkpoints: int = 2
@@ -74,6 +81,10 @@ class Preset:
             raise BraveError(f"preset {self.name}: ssim_lambda must be in [0, 1], got {self.ssim_lambda}")
         if not 0 <= self.coarse_steps <= self.steps:
             raise BraveError(f"preset {self.name}: coarse_steps must be in 0..steps ({self.steps}), got {self.coarse_steps}")
+        if not (math.isfinite(self.lr_decay_final) and 0.0 < self.lr_decay_final <= 1.0):
+            raise BraveError(f"preset {self.name}: lr_decay_final must be in (0, 1], got {self.lr_decay_final}")
+        if self.lr_decay_start < 0:  # at or after the last step: no annealing
+            raise BraveError(f"preset {self.name}: lr_decay_start must be >= 0, got {self.lr_decay_start}")
         if self.checkpoint_every < 1 or self.keep_checkpoints < 1:
             raise BraveError(f"preset {self.name}: checkpoint_every and keep_checkpoints must be >= 1")
 
@@ -97,6 +108,7 @@ class Preset:
             checkpoint_every=sc(self.checkpoint_every), curve_every=sc(self.curve_every),
             eval_every=sc(self.eval_every) if self.eval_every else 0,
             coarse_steps=min(steps, round(self.coarse_steps * f)),
+            lr_decay_start=min(steps, round(self.lr_decay_start * f)),
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -124,6 +136,8 @@ FAST = Preset(
     means_lr_init=5e-4,
     means_lr_final=5e-6,
     coarse_steps=600,  # the first 600 steps on 2x2-averaged images
+    lr_decay_final=0.1,  # from the first full-resolution step, all but the positions' rates fall to 1/10
+    lr_decay_start=600,
     refine_start=100,
     refine_stop=1200,
     refine_every=50,
@@ -156,12 +170,15 @@ FAST_3000 = Preset(
     checkpoint_every=750,
     curve_every=30,
 )
-BENCHMARK_PRESETS: dict[str, Preset] = {**PRESETS, FAST_3000.name: FAST_3000}
+#: ``fast`` before the learning-rate annealing (the same schedule with constant rates but the positions'),
+#: for ``--a old=fast-2000``.
+FAST_2000 = replace(FAST, name="fast-2000", lr_decay_final=1.0, lr_decay_start=0)
+BENCHMARK_PRESETS: dict[str, Preset] = {**PRESETS, FAST_3000.name: FAST_3000, FAST_2000.name: FAST_2000}
 
 
 def get_preset(name: str, known: dict[str, Preset] = PRESETS) -> Preset:
     """The preset called ``name`` (``fast``, ``default`` or ``quality``; benchmarks also pass
-    :data:`BENCHMARK_PRESETS`, which adds ``fast-3000``)."""
+    :data:`BENCHMARK_PRESETS`, which adds ``fast-3000`` and ``fast-2000``)."""
     try:
         return known[name]
     except KeyError:
