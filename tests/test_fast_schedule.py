@@ -13,7 +13,7 @@ from training.evaluate import evaluate_holdout
 from training.model import GaussianModel
 from training.presets import get_preset
 from training.synthetic import random_gaussians, render_views, ring_poses
-from training.trainer import Trainer
+from training.trainer import Trainer, base_lrs
 
 CAM = PinholeCamera(48, 36, 40.0, 40.0, 23.5, 17.5)
 BUDGET = 260
@@ -62,8 +62,11 @@ def _train_checked(data: TrainingData, model: GaussianModel, preset) -> tuple[Tr
 def test_the_gaussian_budget_holds_at_every_step(scene_views: TrainingData) -> None:
     preset = _fast()
     assert preset.coarse_steps > 0  # the schedule under test trains coarse-to-fine
+    assert preset.lr_decay_final < 1.0 and preset.lr_decay_start < preset.steps  # and anneals its rates
     trainer, counts = _train_checked(scene_views, _model(120, float(np.log(0.01))), preset)
     assert len(counts) == preset.steps
+    final_scales_lr = trainer.optimizers["scales"].param_groups[0]["lr"]
+    assert final_scales_lr < base_lrs(preset)["scales"]  # the annealed phase was trained through
     assert max(counts) <= BUDGET
     assert max(counts) == BUDGET  # growth was asked for more and stopped at the budget
     assert np.isfinite(evaluate_holdout(trainer.model, scene_views).psnr)
