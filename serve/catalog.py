@@ -73,6 +73,9 @@ class SceneSource:
     memory_bytes: int
     locate: Callable[[], Path]
     origin: str  # where it comes from, for messages and ``GET /scenes``
+    #: Makes the bundle folder again from its source (a release's zip, checked against SHA256SUMS)
+    #: when the folder ``locate()`` gave fails its checks; None: the folder is the source itself.
+    refresh: Callable[[], Path] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"name": self.name, "scene_id": self.scene_id, "origin": self.origin,

@@ -1,0 +1,54 @@
+"""Bounded number types for ``argparse``: a flag outside its range is refused at start.
+
+``type=float_in(0, 3600, low_open=True)`` makes ``--request-timeout nan`` (or ``inf``, ``-1``)
+end the command before it does anything, with argparse's one-line error naming the flag
+(``argument --request-timeout: must be a finite number in (0, 3600], got nan``), exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+
+
+def _interval(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
+    left = "(" if low_open or low is None else "["
+    right = ")" if high_open or high is None else "]"
+    return f"{left}{'-inf' if low is None else f'{low:g}'}, {'inf' if high is None else f'{high:g}'}{right}"
+
+
+def float_in(low: float | None = None, high: float | None = None, *, low_open: bool = False,
+             high_open: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite float within ``low .. high`` (None: unbounded on that side)."""
+    where = _interval(low, high, low_open, high_open)
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number in {where}, got {text!r}") from None
+        if not math.isfinite(value) or (low is not None and (value <= low if low_open else value < low)) or \
+                (high is not None and (value >= high if high_open else value > high)):
+            raise argparse.ArgumentTypeError(f"must be a finite number in {where}, got {text}")
+        return value
+
+    parse.__name__ = "float"
+    return parse
+
+
+def int_in(low: int | None = None, high: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an integer within ``low .. high`` inclusive (None: unbounded on that side)."""
+    where = _interval(low, high, False, False)
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer in {where}, got {text!r}") from None
+        if (low is not None and value < low) or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be an integer in {where}, got {value}")
+        return value
+
+    parse.__name__ = "int"
+    return parse

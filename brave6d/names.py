@@ -1,0 +1,40 @@
+"""Names that become parts of paths: one validator for all of them.
+
+A dataset's ``name`` and ``version``, a scene's and an object's ``name``, a release's name and
+version (read back from a downloaded ``manifest.json``) all end up as a folder or file name
+(``WORKDIR/scenes/<scene>/``, ``objects/<object>/``, ``<name>_bundle_000001.zip``, the serve
+cache's ``<name>-<version>-<digest>/``). A name with a slash, ``..`` or a leading dot would put
+that folder somewhere else; so every such name passes :func:`folder_name_problem` first.
+"""
+
+from __future__ import annotations
+
+import re
+
+from brave6d.errors import DataError
+
+#: Letters, digits and ``_ . + -``; starts with a letter, digit or ``_`` (so never ``.``, ``..``,
+#: a hidden file or something a command line reads as a flag); at most 100 characters.
+FOLDER_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.+-]{0,99}$"
+_FOLDER_NAME = re.compile(FOLDER_NAME_PATTERN)
+FOLDER_NAME_RULE = ("letters, digits and _ . + - only, starting with a letter, digit or _, "
+                    "at most 100 characters")
+
+
+def folder_name_problem(value: object) -> str | None:
+    """Why ``value`` may not be used as one part of a path, or None when it may."""
+    if not isinstance(value, str):
+        return f"a name (string) is required, got {type(value).__name__}"
+    if _FOLDER_NAME.fullmatch(value) is None:
+        shown = repr(value) if len(value) <= 60 else repr(value[:57] + "...")
+        return f"{shown} is not a folder-safe name ({FOLDER_NAME_RULE})"
+    return None
+
+
+def check_folder_name(value: object, where: str) -> str:
+    """``value`` when it is a folder-safe name; else :class:`DataError` naming ``where`` (file and field)."""
+    problem = folder_name_problem(value)
+    if problem is not None:
+        raise DataError(f"{where}: {problem}")
+    assert isinstance(value, str)
+    return value
