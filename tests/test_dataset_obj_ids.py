@@ -70,6 +70,6 @@ def test_cli_takes_the_obj_ids_from_a_dataset_library(tmp_path: Path) -> None:
     assert main(["annotate", "import-3ddat", str(FIXTURE), str(scene.root), "--dataset", str(dataset)]) == 0
     assert load_annotation(scene).id_map == {"cube": 2, "bar": 3}
     other = _scene(tmp_path / "other")
-    demo = Path(__file__).resolve().parent.parent / "data" / "demo_dataset" / "dataset.yaml"
+    demo = Path(__file__).resolve().parent.parent / "data" / "demo" / "dataset.yaml"
     assert main(["annotate", "import-3ddat", str(FIXTURE), str(other.root), "--dataset", str(demo)]) == 2
     assert not other.annotation_dir.exists()  # a library without the fixture's objects: refused, nothing written

@@ -25,7 +25,7 @@ from dataset import (
 )
 
 ROOT = Path(__file__).resolve().parent.parent
-DEMO_DATASET = ROOT / "data" / "demo_dataset" / "dataset.yaml"
+DEMO_DATASET = ROOT / "data" / "demo" / "dataset.yaml"
 
 
 def test_slurm_executor_gets_the_flags_and_the_cluster_block(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

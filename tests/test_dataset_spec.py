@@ -15,7 +15,7 @@ from brave6d.dataset_spec import load_dataset_spec, scene_fingerprint
 from brave6d.errors import SpecError
 
 ROOT = Path(__file__).resolve().parent.parent
-DEMO_DATASET = ROOT / "data" / "demo_dataset" / "dataset.yaml"
+DEMO_DATASET = ROOT / "data" / "demo" / "dataset.yaml"
 MESHES = ROOT / "data" / "demo" / "meshes"
 
 
