@@ -35,6 +35,7 @@ from annotation.threedat import LibraryEntry, ThreeDatCamera, ThreeDatId, id_key
 from brave6d.atomic import atomic_write_text, staged_folder
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError
+from brave6d.names import check_folder_name
 from brave6d.transforms import check_rigid, format_tum_line
 
 _SAFE = re.compile(r"[^A-Za-z0-9_.-]+")
@@ -81,8 +82,7 @@ def write_threedat_folder(
     see the module docstring (``pose_file_name`` must then be 3D-DAT's default).
     """
     out = Path(out_dir)
-    if not scene_name or _SAFE.search(scene_name):
-        raise BraveError(f"3D-DAT scene name {scene_name!r} must be letters, digits, '_', '.', '-'")
+    check_folder_name(scene_name, "3D-DAT writer: scene name")  # scenes/<scene>/, annotations/<scene>/
     if defaults_only and pose_file_name != "poses.yaml":
         raise BraveError("3D-DAT writer: with defaults_only the pose file is 3D-DAT's default 'poses.yaml'")
     if out.exists() and any(out.iterdir()) and not (out / "dataset.yaml").is_file():

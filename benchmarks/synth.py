@@ -5,7 +5,7 @@ Each run renders ``--images`` images into a fresh folder (seed = run number, so 
 counts wall time from the first image to the last written file (worker start-up included: that is
 what a user waits for). Prints one line per setting and the 2-worker speed-up.
 
-    python benchmarks/synth.py [--spec data/demo_dataset/dataset.yaml] [--images 12] [--repeats 3]
+    python benchmarks/synth.py [--spec data/demo/dataset.yaml] [--images 12] [--repeats 3]
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ WORKERS = (1, 2)
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--spec", type=Path, default=ROOT / "data" / "demo_dataset" / "dataset.yaml")
+    ap.add_argument("--spec", type=Path, default=ROOT / "data" / "demo" / "dataset.yaml")
     ap.add_argument("--images", type=int, default=12, help="images per run")
     ap.add_argument("--repeats", type=int, default=3, help="runs per setting (the median is reported)")
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")

@@ -9,6 +9,14 @@ one BOP ``obj_id`` in every scene: its 1-based position in the library. A scene'
 ``scene_id`` is its 1-based position in ``scenes``. An optional ``cluster`` block holds the
 defaults of ``brave6d dataset run`` for a Slurm cluster.
 
+Every name here becomes a path part (``WORKDIR/objects/<object>/``, ``scenes/<scene>/``, the
+release's ``<name>_...zip``, the serve cache's ``<name>-<version>-...``), so each follows the one
+rule of :mod:`brave6d.names`. Every file ``dataset.yaml`` names (meshes, with the files that travel
+with them, and scene specs, with their meshes) must lie inside its folder, symlinks resolved:
+``dataset run`` copies them into the work directory and on into releases, so a shared
+``dataset.yaml`` must not be able to name a file elsewhere (``/etc/passwd``). Only the user widens
+that, with ``mesh_dirs`` (``--mesh-dir DIR``); no field of the file itself can.
+
 Every bad value raises :class:`~brave6d.errors.SpecError` with one line naming the file and the
 field, like :mod:`brave6d.spec` (the owner of the scene spec, which this module reuses).
 """
@@ -17,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -26,12 +35,13 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from brave6d.atomic import file_sha256
 from brave6d.errors import SpecError, validation_error_field
-from brave6d.spec import Category, ObjectSpec, PositiveFloat, SceneSpec, SymmetrySpec, parse_scene_spec
+from brave6d.layout import mesh_files
+from brave6d.names import FolderName
+from brave6d.spec import Category, ObjectSpec, PositiveFloat, SceneSpec, SymmetrySpec, mesh_fields, parse_scene_spec
 from brave6d.yaml_io import read_yaml
 
 #: The object fields the library gives (everything of a scene object but its pose).
 LIBRARY_FIELDS = ("mesh", "category", "scale", "description", "symmetry")
-_NAME_PATTERN = r"^[A-Za-z0-9_.-]+$"
 
 
 class _Strict(BaseModel):
@@ -41,7 +51,7 @@ class _Strict(BaseModel):
 class LibraryObject(_Strict):
     """One object of the library: a scene spec's object without the pose."""
 
-    name: str = Field(min_length=1)
+    name: FolderName  # WORKDIR/objects/<name>/
     category: Category
     mesh: Path
     scale: PositiveFloat = 1.0
@@ -73,8 +83,8 @@ class ClusterSpec(_Strict):
 class DatasetSpec(_Strict):
     """The whole ``dataset.yaml``."""
 
-    name: str = Field(min_length=1, pattern=_NAME_PATTERN)
-    version: str = Field(min_length=1)
+    name: FolderName  # <name>_base.zip, ... and the serve cache's <name>-<version>-<digest>/
+    version: FolderName
     license: str = Field(min_length=1)
     citation: str = Field(min_length=1)
     description: str = ""
@@ -83,13 +93,6 @@ class DatasetSpec(_Strict):
     cluster: ClusterSpec = ClusterSpec()
 
     source: Path | None = Field(default=None, exclude=True, description="file this spec was read from")
-
-    @field_validator("name")
-    @classmethod
-    def _folder_name(cls, value: str) -> str:
-        if value in (".", ".."):
-            raise ValueError(f"{value!r} is not a usable folder name")
-        return value
 
     @field_validator("objects")
     @classmethod
@@ -154,24 +157,27 @@ def parse_dataset_spec(data: Any, source: Path | str = "<memory>") -> DatasetSpe
         raise SpecError(f"{src}: field '{field_path or '<root>'}': {msg}") from None
 
 
-def load_dataset_spec(path: Path | str) -> Dataset:
-    """Read ``dataset.yaml`` and every scene spec it lists, merged with the library (module docstring)."""
+def load_dataset_spec(path: Path | str, mesh_dirs: Sequence[Path | str] = ()) -> Dataset:
+    """Read ``dataset.yaml`` and every scene spec it lists, merged with the library (module docstring).
+
+    Every file it names must lie inside its folder or one of ``mesh_dirs`` (the user's own
+    ``--mesh-dir`` folders), else :class:`SpecError` naming the file, the field and the folder.
+    """
     p = Path(path)
     if not p.is_file():
         raise SpecError(f"{p}: dataset spec not found")
     spec = parse_dataset_spec(read_yaml(p, error=SpecError), p)
+    allowed = _allowed_folders(spec, mesh_dirs)
     for i, obj in enumerate(spec.objects):
-        if not spec.resolve(obj.mesh).is_file():
-            raise SpecError(f"{p}: field 'objects[{i}].mesh': file not found: {spec.resolve(obj.mesh)}")
+        _check_mesh(spec.resolve(obj.mesh), allowed, f"{p}: field 'objects[{i}].mesh'")
     scenes: list[DatasetScene] = []
     seen: dict[str, int] = {}
     for i, ref in enumerate(spec.scenes):
         scene_file = spec.resolve(ref.spec)
+        _confine(scene_file, allowed, f"{p}: field 'scenes[{i}].spec'")
         if not scene_file.is_file():
             raise SpecError(f"{p}: field 'scenes[{i}].spec': scene spec not found: {scene_file}")
-        scene = merge_scene_spec(spec, scene_file)
-        if scene.name in (".", ".."):
-            raise SpecError(f"{scene_file}: field 'name': {scene.name!r} is not a usable folder name")
+        scene = merge_scene_spec(spec, scene_file, mesh_dirs)
         if scene.name in seen:
             raise SpecError(f"{p}: field 'scenes[{i}].spec': scene name {scene.name!r} ({scene_file}) "
                             f"is already used by scenes[{seen[scene.name]}]; scene names must be unique")
@@ -181,11 +187,12 @@ def load_dataset_spec(path: Path | str) -> Dataset:
     return Dataset(spec, tuple(scenes))
 
 
-def merge_scene_spec(dataset: DatasetSpec, scene_file: Path) -> SceneSpec:
+def merge_scene_spec(dataset: DatasetSpec, scene_file: Path, mesh_dirs: Sequence[Path | str] = ()) -> SceneSpec:
     """The scene spec of ``scene_file`` with its objects completed from the dataset's library.
 
     Library meshes enter the merged spec as absolute paths. A field the scene gives must equal
-    the library's; an unknown object name is an error naming the scene file and the field.
+    the library's; an unknown object name is an error naming the scene file and the field. Its
+    meshes must lie inside the dataset's folder or ``mesh_dirs``, like the library's.
     """
     data = read_yaml(scene_file, error=SpecError)
     if not isinstance(data, dict):
@@ -209,11 +216,47 @@ def merge_scene_spec(dataset: DatasetSpec, scene_file: Path) -> SceneSpec:
             merged_items.append({**lib, **item})
             given.append(set(item) & set(LIBRARY_FIELDS))
         data = {**data, "objects": merged_items}
-    scene = parse_scene_spec(data, scene_file)
+    scene = parse_scene_spec(data, scene_file, check_files=False)
+    allowed = _allowed_folders(dataset, mesh_dirs)
+    for field, mesh in mesh_fields(scene):
+        _check_mesh(mesh, allowed, f"{scene_file}: field '{field}'")
     for i, (obj, fields) in enumerate(zip(scene.objects, given)):
         for name in sorted(fields):
             _check_same(dataset, library[obj.name], scene, obj, name, f"{scene_file}: field 'objects[{i}].{name}'")
     return scene
+
+
+def _allowed_folders(dataset: DatasetSpec, mesh_dirs: Sequence[Path | str]) -> tuple[Path, ...]:
+    """The folders a dataset may name files in: its own (first), then the user's ``mesh_dirs``."""
+    extra = []
+    for d in mesh_dirs:
+        if not Path(d).is_dir():
+            raise SpecError(f"--mesh-dir {d}: not a folder")
+        extra.append(Path(d).resolve())
+    return (dataset.base_dir.resolve(), *extra)
+
+
+def _confine(path: Path, allowed: tuple[Path, ...], where: str, travels_with: Path | None = None) -> None:
+    """SpecError naming ``where`` unless ``path`` (symlinks resolved) lies inside one of ``allowed``."""
+    real = path.resolve()
+    if any(real.is_relative_to(folder) for folder in allowed):
+        return
+    shown = str(path) if real == path else f"{path} (that is {real})"
+    if travels_with is not None:
+        shown += f", which travels with the mesh {travels_with.name},"
+    extra = f" and the --mesh-dir folders {', '.join(map(str, allowed[1:]))}" if len(allowed) > 1 else ""
+    raise SpecError(f"{where}: {shown} lies outside {allowed[0]} (the dataset's folder){extra}; a dataset names "
+                    "only files inside its folder: move it there, or allow its folder with --mesh-dir DIR")
+
+
+def _check_mesh(path: Path, allowed: tuple[Path, ...], where: str) -> None:
+    """The mesh and the files that travel with it (:func:`brave6d.layout.mesh_files`) lie inside ``allowed``."""
+    _confine(path, allowed, where)
+    if not path.is_file():
+        raise SpecError(f"{where}: file not found: {path}")
+    real = path.resolve()
+    for sibling in mesh_files(real):
+        _confine(sibling, allowed, where, travels_with=real)
 
 
 def _check_same(dataset: DatasetSpec, lib: LibraryObject, scene: SceneSpec, obj: ObjectSpec, name: str,

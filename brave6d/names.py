@@ -10,6 +10,9 @@ that folder somewhere else; so every such name passes :func:`folder_name_problem
 from __future__ import annotations
 
 import re
+from typing import Annotated
+
+from pydantic import AfterValidator
 
 from brave6d.errors import DataError
 
@@ -38,3 +41,14 @@ def check_folder_name(value: object, where: str) -> str:
         raise DataError(f"{where}: {problem}")
     assert isinstance(value, str)
     return value
+
+
+def _folder_name_or_value_error(value: str) -> str:
+    problem = folder_name_problem(value)
+    if problem is not None:
+        raise ValueError(problem)  # pydantic reports it at the field: "file: field 'x': <problem>"
+    return value
+
+
+#: The type of a model field whose value becomes a path part (the specs' names, a dataset's version).
+FolderName = Annotated[str, AfterValidator(_folder_name_or_value_error)]

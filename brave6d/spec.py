@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from brave6d.camera import PinholeCamera
 from brave6d.errors import SpecError, validation_error_field
+from brave6d.names import FolderName
 from brave6d.transforms import make_transform, rpy_deg_to_matrix
 from brave6d.yaml_io import read_yaml
 
@@ -129,8 +130,9 @@ class MeshSpec(_Strict):
 
 
 class ObjectSpec(MeshSpec):
-    """An annotated object (a benchmark target)."""
+    """An annotated object (a benchmark target); its name is a folder name (a dataset's ``objects/<name>/``)."""
 
+    name: FolderName
     category: Category
     description: str = ""
     symmetry: SymmetrySpec | None = None
@@ -304,7 +306,7 @@ class SimulationSpec(_Strict):
 class SceneSpec(_Strict):
     """A whole scene. Relative mesh paths are resolved against the spec file's folder."""
 
-    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    name: FolderName  # WORKDIR/scenes/<name>/, status/<name>.json, report/<name>/
     category: Category = Category.mixed
     description: str = ""
     capture: CaptureSpec
@@ -356,12 +358,18 @@ def parse_scene_spec(data: Any, source: Path | str = "<memory>", check_files: bo
     return spec
 
 
+def mesh_fields(spec: SceneSpec) -> list[tuple[str, Path]]:
+    """Every mesh the spec names: ``(field, path)``, e.g. ``("objects[2].mesh", /abs/cup.ply)``
+    (the path resolved against the spec's folder, symlinks not resolved)."""
+    return [(f"{label}[{i}].mesh", spec.resolve(item.mesh))
+            for label, items in (("static_meshes", spec.static_meshes), ("objects", spec.objects))
+            for i, item in enumerate(items)]
+
+
 def _check_mesh_files(spec: SceneSpec, src: Path) -> None:
-    for label, items in (("static_meshes", spec.static_meshes), ("objects", spec.objects)):
-        for i, item in enumerate(items):
-            path = spec.resolve(item.mesh)
-            if not path.is_file():
-                raise SpecError(f"{src}: field '{label}[{i}].mesh': file not found: {path}")
+    for field, path in mesh_fields(spec):
+        if not path.is_file():
+            raise SpecError(f"{src}: field '{field}': file not found: {path}")
 
 
 def load_scene_spec(path: Path | str, check_files: bool = True) -> SceneSpec:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import filecmp
 import shutil
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 from brave6d.atomic import atomic_write_text, move_aside
@@ -94,10 +95,15 @@ def write_workdir_dataset(dataset: Dataset, workdir: Path) -> Path:
     return path
 
 
-def prepare_workdir(dataset_file: Path, workdir: Path, quick: bool = False) -> tuple[Dataset, dict[str, str]]:
+def prepare_workdir(dataset_file: Path, workdir: Path, quick: bool = False,
+                    mesh_dirs: Sequence[Path | str] = ()) -> tuple[Dataset, dict[str, str]]:
     """Load the dataset spec, init every scene, write ``WORKDIR/dataset.yaml``; returns the
-    dataset and each scene's init result (``done``, ``reused`` or ``failed``)."""
-    dataset = load_dataset_spec(dataset_file)
+    dataset and each scene's init result (``done``, ``reused`` or ``failed``).
+
+    ``mesh_dirs``: folders besides the dataset's own that its meshes may lie in (``--mesh-dir``);
+    the work directory gets copies, so its ``dataset.yaml`` needs none.
+    """
+    dataset = load_dataset_spec(dataset_file, mesh_dirs)
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     results = {s.name: init_scene(workdir, s, quick) for s in dataset.scenes}

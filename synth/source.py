@@ -10,6 +10,7 @@ demo numbers them).
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -71,21 +72,25 @@ class SynthSource:
                            self.distance_range_m, self.elevation_range_deg, self.effects)
 
 
-def load_synth_source(path: Path | str) -> SynthSource:
-    """Read a ``dataset.yaml`` or a scene spec (see the module docstring); errors name the file."""
+def load_synth_source(path: Path | str, mesh_dirs: Sequence[Path | str] = ()) -> SynthSource:
+    """Read a ``dataset.yaml`` or a scene spec (see the module docstring); errors name the file.
+
+    ``mesh_dirs``: for a ``dataset.yaml``, folders besides its own that its meshes may lie in
+    (``--mesh-dir``; :func:`brave6d.dataset_spec.load_dataset_spec`).
+    """
     p = Path(path)
     if not p.is_file():
         raise SpecError(f"{p}: dataset or scene spec not found")
     data = read_yaml(p, error=SpecError)
     if isinstance(data, dict) and "scenes" in data and "capture" not in data:
-        return _from_dataset(p)
+        return _from_dataset(p, mesh_dirs)
     return _from_scene(p)
 
 
-def _from_dataset(path: Path) -> SynthSource:
+def _from_dataset(path: Path, mesh_dirs: Sequence[Path | str]) -> SynthSource:
     from brave6d.dataset_spec import load_dataset_spec
 
-    dataset = load_dataset_spec(path)
+    dataset = load_dataset_spec(path, mesh_dirs)
     spec = dataset.spec
     ids = spec.obj_ids()
     objects = tuple(SynthObject(ids[o.name], o.name, spec.resolve(o.mesh).resolve(), float(o.scale))

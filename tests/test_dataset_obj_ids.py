@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -61,7 +62,8 @@ def test_cli_takes_the_obj_ids_from_a_dataset_library(tmp_path: Path) -> None:
                   "workspace": {"min": [0, -0.5, 0], "max": [0.9, 0.5, 0.9]},
                   "objects": [{"name": "cube", "pose": {"xyz": [0.45, 0, 0]}}]}
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(scene_spec))
-    library = [{"name": n, "category": "industry", "mesh": str(meshes / "hex_nut.ply"), "scale": 0.001}
+    shutil.copy(meshes / "hex_nut.ply", tmp_path / "hex_nut.ply")  # a dataset names files in its folder
+    library = [{"name": n, "category": "industry", "mesh": "hex_nut.ply", "scale": 0.001}
                for n in ("unused", "cube", "bar")]
     dataset = tmp_path / "dataset.yaml"
     dataset.write_text(yaml.safe_dump({"name": "ds", "version": "1", "license": "CC-BY-4.0", "citation": "@misc{x}",
@@ -70,6 +72,6 @@ def test_cli_takes_the_obj_ids_from_a_dataset_library(tmp_path: Path) -> None:
     assert main(["annotate", "import-3ddat", str(FIXTURE), str(scene.root), "--dataset", str(dataset)]) == 0
     assert load_annotation(scene).id_map == {"cube": 2, "bar": 3}
     other = _scene(tmp_path / "other")
-    demo = Path(__file__).resolve().parent.parent / "data" / "demo_dataset" / "dataset.yaml"
+    demo = Path(__file__).resolve().parent.parent / "data" / "demo" / "dataset.yaml"
     assert main(["annotate", "import-3ddat", str(FIXTURE), str(other.root), "--dataset", str(demo)]) == 2
     assert not other.annotation_dir.exists()  # a library without the fixture's objects: refused, nothing written

@@ -15,7 +15,7 @@ from brave6d.cli import main as cli_main
 from brave6d.dataset_spec import load_dataset_spec
 
 ROOT = Path(__file__).resolve().parent.parent
-DEMO_DATASET = ROOT / "data" / "demo_dataset" / "dataset.yaml"
+DEMO_DATASET = ROOT / "data" / "demo" / "dataset.yaml"
 
 pytestmark = pytest.mark.slow  # two quick scenes: about a minute
 

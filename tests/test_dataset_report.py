@@ -17,7 +17,7 @@ from dataset.workdir import prepare_workdir
 from evaluation.report import Measurement, MeasurementStore
 
 ROOT = Path(__file__).resolve().parent.parent
-DEMO_DATASET = ROOT / "data" / "demo_dataset" / "dataset.yaml"
+DEMO_DATASET = ROOT / "data" / "demo" / "dataset.yaml"
 MACHINE = {"cpu": "Test CPU", "cores": 2, "gpu": None, "device": "cpu"}
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import time
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from dataset import (
 )
 
 ROOT = Path(__file__).resolve().parent.parent
-DEMO_DATASET = ROOT / "data" / "demo_dataset" / "dataset.yaml"
+DEMO_DATASET = ROOT / "data" / "demo" / "dataset.yaml"
 
 
 def test_slurm_executor_gets_the_flags_and_the_cluster_block(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -74,20 +75,18 @@ def test_status_table_shows_every_state(tmp_path: Path) -> None:
 
 
 def _dataset_with_a_broken_scene(tmp_path: Path) -> Path:
-    """The demo dataset (absolute paths) plus a third scene whose clutter mesh is not a mesh."""
-    data = yaml.safe_load(DEMO_DATASET.read_text())
-    ds = load_dataset_spec(DEMO_DATASET)
-    for obj in data["objects"]:
-        obj["mesh"] = str(ds.spec.resolve(Path(obj["mesh"])).resolve())
-    broken = yaml.safe_load((DEMO_DATASET.parent / "workbench.yaml").read_text())
-    for item in broken["static_meshes"]:
-        item["mesh"] = str((DEMO_DATASET.parent / item["mesh"]).resolve())
-    (tmp_path / "junk.obj").write_text("this is not a mesh\n")
-    broken["static_meshes"].append({"name": "junk", "mesh": str(tmp_path / "junk.obj")})
+    """A copy of the demo dataset (a dataset names files inside its folder) plus a third scene whose
+    clutter mesh is not a mesh."""
+    folder = Path(shutil.copytree(DEMO_DATASET.parent, tmp_path / "demo",
+                                  ignore=shutil.ignore_patterns("*.py", "__pycache__")))
+    broken = yaml.safe_load((folder / "workbench.yaml").read_text())
+    (folder / "junk.obj").write_text("this is not a mesh\n")
+    broken["static_meshes"].append({"name": "junk", "mesh": "junk.obj"})
     broken["name"] = "demo_broken"
-    (tmp_path / "broken.yaml").write_text(yaml.safe_dump(broken))
-    data["scenes"] = [{"spec": str(s.spec_file)} for s in ds.scenes] + [{"spec": "broken.yaml"}]
-    path = tmp_path / "dataset.yaml"
+    (folder / "broken.yaml").write_text(yaml.safe_dump(broken))
+    path = folder / "dataset.yaml"
+    data = yaml.safe_load(path.read_text())
+    data["scenes"].append({"spec": "broken.yaml"})
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
 

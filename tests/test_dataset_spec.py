@@ -15,14 +15,15 @@ from brave6d.dataset_spec import load_dataset_spec, scene_fingerprint
 from brave6d.errors import SpecError
 
 ROOT = Path(__file__).resolve().parent.parent
-DEMO_DATASET = ROOT / "data" / "demo_dataset" / "dataset.yaml"
+DEMO_DATASET = ROOT / "data" / "demo" / "dataset.yaml"
 MESHES = ROOT / "data" / "demo" / "meshes"
 
 
 def _library() -> list[dict[str, Any]]:
+    """Meshes beside dataset.yaml (:func:`_write` copies them there: a dataset names files in its folder)."""
     return [
-        {"name": "nut", "category": "industry", "mesh": str(MESHES / "hex_nut.ply"), "scale": 0.001},
-        {"name": "vial", "category": "laboratory", "mesh": str(MESHES / "sample_vial.ply"), "scale": 0.001,
+        {"name": "nut", "category": "industry", "mesh": "hex_nut.ply", "scale": 0.001},
+        {"name": "vial", "category": "laboratory", "mesh": "sample_vial.ply", "scale": 0.001,
          "symmetry": {"continuous_axes": [[0, 0, 1]]}},
     ]
 
@@ -33,6 +34,8 @@ def _scene(name: str, objects: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def _write(tmp: Path, scene_specs: list[dict[str, Any]], **top: Any) -> Path:
+    for mesh in ("hex_nut.ply", "sample_vial.ply"):
+        shutil.copy(MESHES / mesh, tmp / mesh)
     refs = []
     for i, scene in enumerate(scene_specs):
         (tmp / f"s{i}.yaml").write_text(yaml.safe_dump(scene))
@@ -132,9 +135,9 @@ def test_any_dataset_name_validates_or_is_named(tmp_path_factory: pytest.TempPat
         ds = load_dataset_spec(path)
     except SpecError as exc:
         assert "dataset.yaml: field 'name'" in str(exc)
-    else:
-        assert ds.spec.name == name and name not in ("", ".", "..")
-        assert all(c.isascii() and (c.isalnum() or c in "_.-") for c in name)
+    else:  # the one rule of brave6d.names (tests/test_names_as_paths.py tries it on every field)
+        assert ds.spec.name == name and name not in ("", ".", "..") and name[0] not in ".-"
+        assert all(c.isascii() and (c.isalnum() or c in "_.+-") for c in name)
 
 
 @given(scale=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.just(0.001)))

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from brave6d.atomic import read_json
+from brave6d.names import folder_name_problem
 from brave6d.provenance import software_versions
 from dataset.release.collect import ReleaseModel, SceneRelease
 from dataset.release.formats import FORMAT, bundle_zip
@@ -64,13 +65,19 @@ def make_manifest(source: ReleaseSource, scenes: list[SceneRelease], models: dic
 
 
 def read_manifest(path: Path) -> dict[str, Any]:
-    """Read a release manifest, checking the fields ``release verify`` relies on."""
+    """Read a release manifest, checking the fields ``release verify`` and the server rely on.
+
+    A downloaded manifest is untrusted: its ``name``, ``version`` and scene names become path parts
+    (``<name>_bundle_XXXXXX.zip``, the cache's ``<name>-<version>-<digest>/``), so each must pass
+    :func:`brave6d.names.folder_name_problem`.
+    """
     data = read_json(path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         got = data.get("format") if isinstance(data, dict) else None
         raise ReleaseError(f"{path}: field 'format': {got!r} is not a release manifest ({FORMAT!r})")
-    if not isinstance(data.get("name"), str):
-        raise ReleaseError(f"{path}: field 'name': a string is required")
+    for key in ("name", "version"):
+        if (problem := folder_name_problem(data.get(key))) is not None:
+            raise ReleaseError(f"{path}: field '{key}': {problem}")
     for key in ("scenes", "objects"):
         if not isinstance(data.get(key), list) or not all(isinstance(e, dict) for e in data[key]):
             raise ReleaseError(f"{path}: field '{key}': a list of objects is required")
@@ -80,6 +87,8 @@ def read_manifest(path: Path) -> dict[str, Any]:
                 raise ReleaseError(f"{path}: field 'scenes[{i}].{key}': an integer is required")
         if not isinstance(s.get("depth"), bool) or not isinstance(s.get("name"), str):
             raise ReleaseError(f"{path}: field 'scenes[{i}]': 'name' (string) and 'depth' (bool) are required")
+        if (problem := folder_name_problem(s["name"])) is not None:
+            raise ReleaseError(f"{path}: field 'scenes[{i}].name': {problem}")
     for i, o in enumerate(data["objects"]):
         if not isinstance(o.get("obj_id"), int) or not isinstance(o.get("name"), str):
             raise ReleaseError(f"{path}: field 'objects[{i}]': 'obj_id' (integer) and 'name' are required")
