@@ -44,9 +44,12 @@ def run(args: argparse.Namespace) -> int:
         options = AlignmentOptions(max_rms_mm=args.max_rms_mm, max_rms_deg=args.max_rms_deg)
         obj_ids = None
         if args.dataset is not None:
-            from brave6d.dataset_spec import load_dataset_spec
+            from brave6d.dataset_spec import parse_dataset_spec
+            from brave6d.errors import SpecError
+            from brave6d.yaml_io import read_yaml
 
-            obj_ids = load_dataset_spec(args.dataset).spec.obj_ids()
+            # only the library's order is needed: its names are checked, its meshes are not read
+            obj_ids = parse_dataset_spec(read_yaml(args.dataset, error=SpecError), args.dataset).obj_ids()
         result = import_threedat(args.dat_dir, args.scene_dir, args.scene, options, obj_ids=obj_ids)
         print(result.alignment.summary())
         for warning in result.warnings:

@@ -75,3 +75,25 @@ def test_cli_takes_the_obj_ids_from_a_dataset_library(tmp_path: Path) -> None:
     demo = Path(__file__).resolve().parent.parent / "data" / "demo" / "dataset.yaml"
     assert main(["annotate", "import-3ddat", str(FIXTURE), str(other.root), "--dataset", str(demo)]) == 2
     assert not other.annotation_dir.exists()  # a library without the fixture's objects: refused, nothing written
+
+
+def test_cli_reads_only_the_library_order_of_a_dataset_whose_meshes_lie_elsewhere(tmp_path: Path) -> None:
+    """``import-3ddat --dataset`` needs the library's names and order, not its meshes: a lab's
+    dataset.yaml whose meshes lie outside its folder (allowed by ``dataset run --mesh-dir``) still
+    gives the ids here, while its names are still checked."""
+    import yaml
+
+    from brave6d.cli import main
+
+    library = [{"name": n, "category": "industry", "mesh": "/elsewhere/meshes/nut.ply"} for n in ("bar", "cube")]
+    dataset = tmp_path / "ds" / "dataset.yaml"
+    dataset.parent.mkdir()
+    head = {"name": "ds", "version": "1", "license": "CC-BY-4.0", "citation": "@misc{x}", "scenes": [{"spec": "s.yaml"}]}
+    dataset.write_text(yaml.safe_dump({**head, "objects": library}))
+    scene = _scene(tmp_path)
+    assert main(["annotate", "import-3ddat", str(FIXTURE), str(scene.root), "--dataset", str(dataset)]) == 0
+    assert load_annotation(scene).id_map == {"bar": 1, "cube": 2}
+    dataset.write_text(yaml.safe_dump({**head, "objects": [*library, {**library[0], "name": "../x"}]}))
+    other = _scene(tmp_path / "other")
+    assert main(["annotate", "import-3ddat", str(FIXTURE), str(other.root), "--dataset", str(dataset)]) == 2
+    assert not other.annotation_dir.exists()
