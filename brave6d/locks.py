@@ -64,8 +64,12 @@ class LockHeld(LockError):
 
     def __init__(self, path: Path, holder: Holder) -> None:
         self.path, self.holder = path, holder
-        if holder.process.pid > 0:
+        if holder.process.pid > 0 and holder.process.on_this_machine():
             why = f"held by {holder.describe()} since {holder.since_text()}, which is still running"
+        elif holder.process.pid > 0:
+            why = (f"held by {holder.describe()} since {holder.since_text()}; its heartbeat is "
+                   f"{max(0.0, time.time() - holder.heartbeat):.0f} s old (a holder on another machine is taken "
+                   f"for dead after {STALE_S:.0f} s without one)")
         else:
             why = (f"{holder.describe()}, changed at {holder.since_text()}; it is taken over {STALE_S:.0f} s after "
                    "that (or remove it if nothing is running)")
@@ -254,7 +258,7 @@ class FileLock:
         while not self._stop.wait(self.heartbeat_s):
             try:
                 self.refresh()
-            except OSError as exc:  # a file system hiccup: try again at the next beat
+            except (OSError, LockError) as exc:  # a file system hiccup: try again at the next beat
                 log.warning("%s: heartbeat not written (%s)", self.path, exc)
             if self.lost is not None:
                 return
@@ -284,10 +288,13 @@ class FileLock:
         self._thread = None
         if mine is None:
             return
-        with self._maybe_guard():
-            current = read_holder(self.path)
-            if current is not None and current.token == mine.token:
-                self.path.unlink(missing_ok=True)
+        try:
+            with self._maybe_guard():
+                current = read_holder(self.path)
+                if current is not None and current.token == mine.token:
+                    self.path.unlink(missing_ok=True)
+        except (OSError, LockError) as exc:  # left behind: taken over once this process is gone
+            log.warning("%s: lock not removed (%s)", self.path, exc)
 
     def _maybe_guard(self) -> Any:
         return _guard(self.path) if self.guarded else suppress()

@@ -86,7 +86,7 @@ def test_a_holder_on_another_machine_lives_by_its_heartbeat(tmp_path: Path) -> N
     path = tmp_path / "scene.lock"
     elsewhere = Process("node-elsewhere", 4242, "another-boot", 1, job="77", restarts=0)
     write_lock(path, elsewhere)  # fresh heartbeat: alive, whatever its pid does here
-    with pytest.raises(LockHeld, match=r"node-elsewhere \(pid 4242\)"):
+    with pytest.raises(LockHeld, match=r"node-elsewhere \(pid 4242\) since .*; its heartbeat is \d+ s old"):
         FileLock(path).acquire()
     write_lock(path, elsewhere, heartbeat=time.time() - STALE_S - 5)
     lock = FileLock(path)

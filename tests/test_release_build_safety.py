@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 from lock_holder import kill_holder, spawn_holder
-from test_release import NAME, _make_scene, _write_dataset
+from test_release import NAME, workdir  # noqa: F401 - test_release's two-scene dataset, made once here too
 
 from annotation import BopLayout
 from brave6d.layout import SceneDir
@@ -28,20 +28,11 @@ ROOT = Path(__file__).resolve().parent.parent
 SECRET = b"the key to the lab's cluster"
 
 
-@pytest.fixture(scope="module")
-def source(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("dataset")
-    _make_scene(root / "scenes" / "scene_a", 3, depth=True, psnr=27.5)
-    _make_scene(root / "scenes" / "scene_b", 3, depth=False, psnr=None)
-    _write_dataset(root, ["cube_red", "cube_blue"])
-    return root
-
-
 @pytest.fixture()
-def work(source: Path, tmp_path: Path) -> Path:
+def work(workdir: Path, tmp_path: Path) -> Path:  # noqa: F811
     """A copy of the dataset to spoil, and a secret file outside it."""
     (tmp_path / "secret.txt").write_bytes(SECRET)
-    return Path(shutil.copytree(source, tmp_path / "work", symlinks=True))
+    return Path(shutil.copytree(workdir, tmp_path / "work", symlinks=True))
 
 
 def _bop(work: Path, scene: str = "scene_a") -> BopLayout:
