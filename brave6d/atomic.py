@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
+import secrets
 import shutil
 import tempfile
 import time
@@ -21,6 +23,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.errors import DataError
+from brave6d.locks import FileLock, LockHeld, read_holder
+
+log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
@@ -96,17 +101,94 @@ def staged_folder(target: Path | str) -> Iterator[Path]:
     A whole folder or nothing: on an exception the staging folder is deleted and ``target`` is
     left as it was. Only use this for folders the program itself made (the previous ``target`` is
     deleted after the swap); user data is moved aside with :func:`move_aside` first.
+
+    The staging folder ``.<name>.tmp-XXXXXXXX`` has an owner file ``.<name>.tmp-XXXXXXXX.owner``
+    beside it (a :class:`brave6d.locks.FileLock`, made before the folder and removed after it), so
+    that the next staging of ``target`` removes what a killed process left (:func:`clean_stagings`).
     """
     final = Path(target)
     final.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.parent))
+    clean_stagings(final)
+    staging, owner = _new_staging(final)
     try:
-        staging.chmod(0o777 & ~_umask())  # mkdtemp makes 0700; the folder gets os.mkdir's permissions
-        yield staging
-        replace_folder(staging, final)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
+        try:
+            yield staging
+            replace_folder(staging, final)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+    finally:
+        owner.release()
+
+
+#: A staging folder with no owner file (left by a version before owner files) is removed once it
+#: is this old: no staging of this program takes a day.
+ORPHAN_STAGING_S = 24 * 3600.0
+
+
+def _staging_owner(staging: Path) -> Path:
+    return staging.with_name(staging.name + ".owner")
+
+
+def _new_staging(final: Path) -> tuple[Path, FileLock]:
+    """A new staging folder beside ``final`` and the held lock that names its owner (made first)."""
+    for _ in range(100):
+        staging = final.with_name(f".{final.name}.tmp-{secrets.token_hex(4)}")
+        owner = FileLock(_staging_owner(staging), f"staging of {final}", guarded=False)
+        try:
+            owner.acquire()
+        except LockHeld:
+            continue
+        try:
+            os.mkdir(staging, 0o777)  # the permissions os.mkdir gives (umask applies)
+            return staging, owner
+        except FileExistsError:
+            owner.release()
+        except BaseException:
+            owner.release()
+            raise
+    raise DataError(f"{final.parent}: cannot make a staging folder for {final.name} (100 names taken)")
+
+
+def clean_stagings(target: Path | str) -> list[Path]:
+    """Remove the staging folders of ``target`` whose owner is gone; returns them.
+
+    A staging folder whose owner still runs (on this machine: its pid; on another: its heartbeat,
+    :mod:`brave6d.locks`) is kept. So is a staging folder without an owner file, unless it is older
+    than :data:`ORPHAN_STAGING_S`. Each removal is logged with the owner and why it is gone.
+    """
+    final = Path(target)
+    prefix = f".{final.name}.tmp-"
+    removed = []
+    try:
+        siblings = list(final.parent.iterdir())
+    except OSError:
+        return removed
+    for path in siblings:
+        name = path.name
+        if not name.startswith(prefix):
+            continue
+        if name.endswith(".owner"):
+            holder = read_holder(path)
+            why = holder.dead_because() if holder is not None else None
+            if holder is None or why is None:
+                continue  # released just now, or a staging still being written
+            staging = path.with_name(name.removesuffix(".owner"))
+            if staging.is_dir() and not staging.is_symlink():
+                shutil.rmtree(staging, ignore_errors=True)
+                log.warning("removed %s, the staging folder of %s, which is gone (%s)", staging, holder.describe(), why)
+                removed.append(staging)
+            path.unlink(missing_ok=True)
+        elif path.is_dir() and not path.is_symlink() and not _staging_owner(path).exists():
+            try:
+                age_h = (time.time() - path.stat().st_mtime) / 3600
+            except OSError:
+                continue
+            if age_h * 3600 > ORPHAN_STAGING_S:
+                shutil.rmtree(path, ignore_errors=True)
+                log.warning("removed %s, a staging folder %.0f h old without an owner file", path, age_h)
+                removed.append(path)
+    return removed
 
 
 def replace_folder(staging: Path, final: Path) -> None:

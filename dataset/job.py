@@ -6,6 +6,11 @@ requeues the same job, which skips the stages recorded ``done`` and continues th
 its checkpoints (``DemoContext.resume``). A failing stage is recorded with its error and ends
 the job (later stages need its outputs); the job returns a :class:`SceneOutcome`, it never
 raises for a stage's failure, so one scene never stops another.
+
+One scene, one job: the job holds the scene's lock (``status/<scene>.lock``, :mod:`brave6d.locks`)
+while it runs. A second job on the scene while the first one's process is alive (a re-run after
+only the driver was killed) does nothing and returns an outcome naming the first one's host and
+pid (``busy``), leaving the status record to it; the lock of a job that is gone is taken over.
 """
 
 from __future__ import annotations
@@ -20,8 +25,9 @@ from typing import Any
 import submitit
 
 from brave6d.errors import BraveError
+from brave6d.locks import FileLock, LockHeld
 from brave6d.progress import Stopwatch
-from dataset.status import mark, read_scene_status
+from dataset.status import mark, read_scene_status, scene_lock_path
 
 log = logging.getLogger(__name__)
 
@@ -31,15 +37,17 @@ JOB_STAGES = ("calibrate", "capture", "annotate", "train", "export")
 
 @dataclass(frozen=True)
 class SceneOutcome:
-    """How a scene's job ended: the failed stage and its error, or ``None`` for both."""
+    """How a scene's job ended: the failed stage and its error, or ``None`` for both; ``busy``
+    names the live job already running the scene (``HOST (pid N)``) when this one did nothing."""
 
     scene: str
     failed_stage: str | None = None
     error: str | None = None
+    busy: str | None = None
 
     @property
     def ok(self) -> bool:
-        return self.failed_stage is None
+        return self.failed_stage is None and self.busy is None
 
 
 class SceneJob(submitit.helpers.Checkpointable):
@@ -54,6 +62,17 @@ class SceneJob(submitit.helpers.Checkpointable):
         from brave6d.runtime import prepare_process
 
         prepare_process()  # before any stage loads torch / numba, as the CLI does
+        lock = FileLock(scene_lock_path(self.workdir, self.scene), f"dataset scene {self.scene}")
+        try:
+            lock.acquire()
+        except LockHeld as exc:
+            log.warning("%s: already running on %s; this job does nothing", self.scene, exc.holder.describe())
+            return SceneOutcome(self.scene, busy=exc.holder.describe())
+        with lock:
+            return self._run_stages(lock)
+
+    def _run_stages(self, lock: FileLock) -> SceneOutcome:
+        """Run the stages not recorded ``done``, in order, while holding the scene's ``lock``."""
         from brave6d.demo import STAGES, DemoContext
         from brave6d.layout import SceneDir
 
@@ -68,6 +87,8 @@ class SceneJob(submitit.helpers.Checkpointable):
         for name in JOB_STAGES:
             if status.done(name):
                 continue
+            if lock.lost is not None:  # another job took the scene over (this one looked dead): leave it be
+                return SceneOutcome(self.scene, name, f"{lock.lost}; stopped before {name}")
             mark(self.workdir, status, name, "running")
             with Stopwatch() as watch:
                 try:

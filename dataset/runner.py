@@ -4,7 +4,8 @@ The driver initialises the scenes (:mod:`dataset.workdir`), submits one :class:`
 scene that has stages left (local: one after another, or ``array_parallelism`` at a time;
 Slurm: one job array), prints one line per scene and stage as the scenes' status records change,
 and ends with the scene x stage table, naming every failed scene and its error. Running it again
-redoes nothing that is recorded ``done``.
+redoes nothing that is recorded ``done``. A scene whose job from an earlier run still runs (its
+lock has a live holder, :mod:`dataset.job`) is not started again: the run says where it runs.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ import submitit
 from brave6d.errors import BraveError
 from dataset.executor import ExecutorOptions, make_executor
 from dataset.job import JOB_STAGES, SceneJob, SceneOutcome
-from dataset.status import SCENE_STAGES, read_scene_status, status_table, write_summary
+from dataset.status import (SCENE_STAGES, live_scene_holder, read_scene_status, running_text, status_table,
+                            write_summary)
 from dataset.workdir import prepare_workdir
 
 #: Seconds between two looks at the status records while jobs run.
@@ -29,11 +31,13 @@ POLL_S = 1.0
 
 @dataclass
 class RunSummary:
-    """What a run did: the scenes it ran, those that failed (name -> (stage, error)), the table."""
+    """What a run did: the scenes it ran, those that failed (name -> (stage, error)), those
+    already running elsewhere (name -> ``HOST (pid N)``, not started again), the table."""
 
     dataset: str
     ran: list[str] = field(default_factory=list)
     failed: dict[str, tuple[str, str]] = field(default_factory=dict)
+    busy: dict[str, str] = field(default_factory=dict)
     table: str = ""
     seconds: float = 0.0
 
@@ -56,7 +60,13 @@ def run_dataset(dataset_file: Path, workdir: Path, *, quick: bool = False, devic
     printer.poll()
     todo = [s for s in selected if inits[s.name] != "failed"
             and not all(read_scene_status(workdir, s.name).done(st) for st in JOB_STAGES)]
-    jobs = [SceneJob(workdir, s.name, s.scene_id, s.obj_ids, quick, device) for s in todo]
+    busy: dict[str, str] = {}
+    for s in todo:
+        holder = live_scene_holder(workdir, s.name)
+        if holder is not None:
+            busy[s.name] = holder.describe()
+            printer.say(_busy_line(s.name, busy[s.name]))
+    jobs = [SceneJob(workdir, s.name, s.scene_id, s.obj_ids, quick, device) for s in todo if s.name not in busy]
     outcomes: dict[str, SceneOutcome] = {}
     if jobs:
         executor = make_executor(options, workdir / "jobs", device)
@@ -69,10 +79,16 @@ def run_dataset(dataset_file: Path, workdir: Path, *, quick: bool = False, devic
             printer.say(f"submitted {len(submitted)} Slurm jobs ({submitted[0].job_id.split('_')[0]}); "
                         f"logs in {workdir / 'jobs'}")
             outcomes.update(_wait(printer, submitted, jobs))
+    for name, outcome in outcomes.items():
+        if outcome.busy is not None:  # its job started between the look above and the job's own
+            busy[name] = outcome.busy
+            printer.say(_busy_line(name, outcome.busy))
     write_summary(workdir, dataset.spec.name, ids)
-    summary = RunSummary(dataset.spec.name, ran=[j.scene for j in jobs], table=status_table(workdir, ids),
-                         seconds=time.perf_counter() - start)
+    summary = RunSummary(dataset.spec.name, ran=[j.scene for j in jobs if j.scene not in busy],
+                         table=status_table(workdir, ids), seconds=time.perf_counter() - start, busy=busy)
     for s in selected:
+        if s.name in busy:
+            continue  # its record belongs to the job that runs it
         failure = read_scene_status(workdir, s.name).first_failure()
         if failure is not None:
             summary.failed[s.name] = failure
@@ -80,6 +96,10 @@ def run_dataset(dataset_file: Path, workdir: Path, *, quick: bool = False, devic
             outcome = outcomes[s.name]
             summary.failed[s.name] = (outcome.failed_stage or "?", outcome.error or "")
     return summary
+
+
+def _busy_line(scene: str, where: str) -> str:
+    return f"{scene}: already running on {where}, not started again"
 
 
 def _submit_array(executor: submitit.Executor, jobs: list[SceneJob]) -> list[submitit.Job]:
@@ -135,4 +155,4 @@ class _Printer:
                 elif state == "failed":
                     self.say(f"{prefix} FAILED: {record.get('error', '')}")
                 else:
-                    self.say(f"{prefix} running on {record.get('host', '?')} (pid {record.get('pid', '?')}) ...")
+                    self.say(f"{prefix} {running_text(self.workdir, scene, record)} ...")

@@ -5,12 +5,14 @@ side by side on a cluster never write the same file; every write is atomic. A st
 ``running`` (with host, pid, start time), ``done`` (seconds, figures) or ``failed`` (the error);
 a stage with no record is ``pending``. ``WORKDIR/status.json`` is the whole table gathered from
 the records (``dataset run`` and ``dataset status`` rewrite it), for people and for the release.
+
+A scene's job holds the scene's lock ``status/<scene>.lock`` (:mod:`brave6d.locks`) while it runs,
+so a stage recorded ``running`` whose job is gone (killed, its node lost) shows as
+``interrupted (host:pid gone)`` rather than ``running``; a re-run redoes it.
 """
 
 from __future__ import annotations
 
-import os
-import socket
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +20,7 @@ from typing import Any
 
 from brave6d.atomic import atomic_write_json, read_json
 from brave6d.errors import DataError
+from brave6d.locks import Holder, Process, read_holder
 from brave6d.progress import format_table
 
 FORMAT = "brave6d-dataset-status/1"
@@ -33,6 +36,17 @@ def status_dir(workdir: Path) -> Path:
 
 def scene_status_path(workdir: Path, scene: str) -> Path:
     return status_dir(workdir) / f"{scene}.json"
+
+
+def scene_lock_path(workdir: Path, scene: str) -> Path:
+    """The lock that the job running ``scene``'s stages holds (one job per scene)."""
+    return status_dir(workdir) / f"{scene}.lock"
+
+
+def live_scene_holder(workdir: Path, scene: str) -> Holder | None:
+    """The live holder of ``scene``'s lock (a job running its stages), or None."""
+    holder = read_holder(scene_lock_path(workdir, scene))
+    return holder if holder is not None and holder.dead_because() is None else None
 
 
 def summary_path(workdir: Path) -> Path:
@@ -89,10 +103,26 @@ def mark(workdir: Path, status: SceneStatus, stage: str, state: str, **details: 
     """Record ``stage``'s new state (with when, where and ``details``) and write the record."""
     record: dict[str, Any] = {"state": state, "at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     if state == "running":
-        record.update(host=socket.gethostname(), pid=os.getpid(), job=os.environ.get("SLURM_JOB_ID"))
+        record.update(Process.current().to_json())
     record.update(details)
     status.stages[stage] = record
     write_scene_status(workdir, status)
+
+
+def running_text(workdir: Path, scene: str, record: dict[str, Any]) -> str:
+    """``running (host:pid)`` for a stage recorded ``running`` whose process still runs, else
+    ``interrupted (host:pid gone)``.
+
+    It runs while the scene's lock has a live holder, or (a stage run outside a job, such as
+    ``init`` in the driver) while the recorded process is found running on this machine.
+    """
+    holder = live_scene_holder(workdir, scene)
+    if holder is not None:
+        return f"running ({holder.process.host}:{holder.process.pid})"
+    recorded = Process.from_json(record)
+    if recorded.on_this_machine() and recorded.gone() is None:
+        return f"running ({recorded.host}:{recorded.pid})"
+    return f"interrupted ({recorded.host}:{recorded.pid} gone)"
 
 
 def write_summary(workdir: Path, dataset: str, scenes: list[tuple[int, str]]) -> Path:
@@ -100,8 +130,11 @@ def write_summary(workdir: Path, dataset: str, scenes: list[tuple[int, str]]) ->
     rows = []
     for scene_id, name in scenes:
         st = read_scene_status(workdir, name, scene_id)
-        rows.append({"scene_id": scene_id, "scene": name,
-                     "stages": {s: st.stages.get(s, {"state": "pending"}) for s in SCENE_STAGES}})
+        stages = {s: dict(st.stages.get(s, {"state": "pending"})) for s in SCENE_STAGES}
+        for record in stages.values():
+            if record["state"] == "running" and running_text(workdir, name, record).startswith("interrupted"):
+                record["interrupted"] = True  # its process is gone; a re-run redoes the stage
+        rows.append({"scene_id": scene_id, "scene": name, "stages": stages})
     return atomic_write_json(summary_path(workdir), {"format": FORMAT, "dataset": dataset,
                                                      "updated_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                                                      "scenes": rows})
@@ -130,7 +163,7 @@ def status_table(workdir: Path, scenes: list[tuple[int, str]]) -> str:
                 cells.append("FAILED")
                 errors.append(f"{name} / {stage}: {record.get('error', '')}")
             elif state == "running":
-                cells.append(f"running ({record.get('host', '?')}:{record.get('pid', '?')})")
+                cells.append(running_text(workdir, name, record))
             else:
                 cells.append("pending")
         rows.append((scene_id, name, *cells))

@@ -14,6 +14,7 @@ from annotation import BopLayout, read_scene_gt
 from brave6d.cli import main as cli_main
 from brave6d.dataset_spec import ClusterSpec, load_dataset_spec
 from brave6d.layout import SceneDir
+from brave6d.locks import Process
 from dataset import (
     SCENE_STAGES,
     ExecutorOptions,
@@ -65,11 +66,14 @@ def test_status_table_shows_every_state(tmp_path: Path) -> None:
     write_scene_status(tmp_path, SceneStatus("a", 1, "f", {
         "init": {"state": "done", "seconds": 0.0}, "calibrate": {"state": "failed", "error": "board unreachable"},
     }))
-    write_scene_status(tmp_path, SceneStatus("b", 2, "g", {"init": {"state": "running", "host": "n1", "pid": 7}}))
-    table = status_table(tmp_path, [(1, "a"), (2, "b")])
-    rows = {cells[2]: cells[3:-1] for line in table.splitlines()[2:4] if (cells := [c.strip() for c in line.split("|")])}
+    me = Process.current()
+    write_scene_status(tmp_path, SceneStatus("b", 2, "g", {"init": {"state": "running", **me.to_json()}}))
+    write_scene_status(tmp_path, SceneStatus("c", 3, "h", {"init": {"state": "running", "host": "n1", "pid": 7}}))
+    table = status_table(tmp_path, [(1, "a"), (2, "b"), (3, "c")])
+    rows = {cells[2]: cells[3:-1] for line in table.splitlines()[2:5] if (cells := [c.strip() for c in line.split("|")])}
     assert rows["a"] == ["done 0s", "FAILED", "pending", "pending", "pending", "pending"]
-    assert rows["b"] == ["running (n1:7)", *["pending"] * 5]
+    assert rows["b"] == [f"running ({me.host}:{me.pid})", *["pending"] * 5]
+    assert rows["c"] == ["interrupted (n1:7 gone)", *["pending"] * 5]  # no live job holds scene c's lock
     assert "a / calibrate: board unreachable" in table
     assert read_scene_status(tmp_path, "a").first_failure() == ("calibrate", "board unreachable")
 

@@ -1,21 +1,31 @@
 """``brave6d release build WORKDIR OUT``: package a dataset's scenes as a BOP-style release.
 
 Everything is read and checked first (:mod:`dataset.release.collect`); the zips are then streamed
-into a staging folder beside ``OUT`` that is renamed into place at the end (all or nothing).
+into a staging folder beside ``OUT`` that is renamed into place at the end (all or nothing; the
+staging folder of a build that was killed is removed by the next one, :func:`brave6d.atomic.staged_folder`).
 ``OUT`` must be absent or empty; anything else is refused unless ``force``, and then moved aside
 to ``<OUT>.old-<time>`` (never deleted) once the new release is complete.
+
+A release packs the scenes' own files and nothing a link points to: a scene's bundle zip holds
+exactly its manifest and the files the manifest lists (verified by ``serve.load_bundle``), and
+every file packed (bundle, test split images and masks, models, camera, the synthetic split) must
+be a regular file, not a symbolic link, inside its folder once the links on its way are followed;
+anything else is refused, naming the file.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
+from collections.abc import Iterable
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 from annotation import dump_bop_json
 from brave6d.atomic import atomic_write_json, atomic_write_text, file_sha256, move_aside, read_json, staged_folder
+from brave6d.errors import DataError
 from brave6d.progress import progress
 from dataset.release.card import render_card
 from dataset.release.collect import ReleaseModel, SceneRelease, collect_models, collect_scene
@@ -29,6 +39,9 @@ from dataset.release.train_pbr import synthetic_split, train_pbr_files
 from dataset.release.zips import write_zip
 
 log = logging.getLogger(__name__)
+
+#: The bundle's own manifest, which lists (with checksums) every other file of the bundle.
+BUNDLE_MANIFEST = "manifest.json"
 
 
 @dataclass(frozen=True)
@@ -54,27 +67,27 @@ def build_release(workdir: Path | str, out: Path | str, *, force: bool = False) 
     scenes = [collect_scene(s, source) for s in progress(source.scenes, total=len(source.scenes),
                                                            desc="release: check scenes", unit="scene")]
     models = collect_models(scenes)
-    camera = _camera(scenes)
+    camera = _confined([(_camera(scenes), f"{source.name}/{CAMERA}")], scenes[0].layout.root)
+    test_files, model_files = _test_files(scenes), _model_files(scenes, models)
+    split = synthetic_split(source.workdir)  # WORKDIR/synth/train_pbr from `brave6d synth`, when there is one
+    split_files = _confined(train_pbr_files(split, models), split) if split is not None else []
+    bundles = {s.source.scene_id: _bundle_files(s) for s in progress(scenes, desc="release: check bundles",
+                                                                      unit="bundle")}
     sizes: dict[str, int] = {}
     moved = None
     with staged_folder(target) as stage:
-        write_zip(stage / test_zip(source.name), _test_files(scenes), _test_texts(scenes), desc="test split")
-        write_zip(stage / models_zip(source.name),
-                  [(m.path, f"models/{m.path.name}") for _, m in sorted(models.items())],
+        write_zip(stage / test_zip(source.name), test_files, _test_texts(scenes), desc="test split")
+        write_zip(stage / models_zip(source.name), model_files,
                   [("models/models_info.json", dump_bop_json({k: m.info for k, m in models.items()}))],
                   desc="models")
-        split = synthetic_split(source.workdir)  # WORKDIR/synth/train_pbr from `brave6d synth`, when there is one
         if split is not None:
-            write_zip(stage / train_pbr_zip(source.name), train_pbr_files(split, models), desc="train_pbr split")
+            write_zip(stage / train_pbr_zip(source.name), split_files, desc="train_pbr split")
         for s in scenes:
-            name = bundle_zip(source.name, s.source.scene_id)
-            root = s.bundle_root
-            files = [(p, f"{bundle_folder(s.source.scene_id)}/{p.relative_to(root).as_posix()}")
-                     for p in sorted(root.rglob("*")) if p.is_file()]
-            write_zip(stage / name, files, desc=f"bundle {s.source.name}")
+            write_zip(stage / bundle_zip(source.name, s.source.scene_id), bundles[s.source.scene_id],
+                      desc=f"bundle {s.source.name}")
         sizes = {p.name: p.stat().st_size for p in stage.iterdir()}
         card = render_card(source, scenes, models, sizes)
-        write_zip(stage / base_zip(source.name), [(camera, f"{source.name}/{CAMERA}")],
+        write_zip(stage / base_zip(source.name), camera,
                   _base_texts(source, scenes, models, card), desc="base")
         sizes[base_zip(source.name)] = (stage / base_zip(source.name)).stat().st_size
         atomic_write_text(stage / CARD, card)
@@ -125,12 +138,56 @@ def _camera(scenes: list[SceneRelease]) -> Path:
     return first
 
 
+def _confined(files: list[tuple[Path, str]], root: Path) -> list[tuple[Path, str]]:
+    """``files`` (``(file, member)``) once each is checked to be a real file of ``root``: not a
+    symbolic link, and inside ``root`` with every link on its way followed. A link placed in a
+    scene would otherwise ship whatever it points to."""
+    _refuse_links((src for src, _ in files), root)
+    return files
+
+
+def _refuse_links(paths: Iterable[Path], root: Path) -> None:
+    base = root.resolve()
+    for path in paths:
+        if path.is_symlink():
+            raise ReleaseError(f"{path}: is a symbolic link (to {os.readlink(path)}); a release packs only the "
+                               "scene's own files: put the file itself there")
+        if not path.resolve().is_relative_to(base):
+            raise ReleaseError(f"{path}: lies outside {root} (a folder on its way is a symbolic link to "
+                               f"{path.resolve().parent}); a release packs only the scene's own files")
+
+
+def _bundle_files(s: SceneRelease) -> list[tuple[Path, str]]:
+    """Exactly the bundle's manifest and the files it lists (verified again by ``serve.load_bundle``,
+    which also refuses a listed name that climbs out), each a real file of the bundle folder."""
+    from serve import load_bundle
+
+    root = s.bundle_root
+    _refuse_links([root / BUNDLE_MANIFEST], root)
+    try:
+        listed = load_bundle(root).manifest["files"]
+    except DataError as exc:
+        raise ReleaseError(f"scene {s.source.name}: {exc} (run 'brave6d export {s.source.root}')") from None
+    names = sorted({BUNDLE_MANIFEST, *listed}, key=PurePosixPath)
+    folder = bundle_folder(s.source.scene_id)
+    return _confined([(root / name, f"{folder}/{name}") for name in names], root)
+
+
+def _model_files(scenes: list[SceneRelease], models: dict[int, ReleaseModel]) -> list[tuple[Path, str]]:
+    """Each model once, checked to be a real file of the BOP export it comes from."""
+    roots = {s.layout.model_path(obj_id): s.layout.root for s in scenes for obj_id in s.objects}
+    out = []
+    for _, m in sorted(models.items()):
+        out += _confined([(m.path, f"models/{m.path.name}")], roots[m.path])
+    return out
+
+
 def _test_files(scenes: list[SceneRelease]) -> list[tuple[Path, str]]:
     out = []
     for s in scenes:
         folder = scene_folder(s.source.scene_id)
-        out += [(s.layout.scene_dir / name, f"{folder}/{name}") for name in SCENE_JSONS]
-        out += [(src, f"{folder}/{rel}") for src, rel in s.image_files()]
+        files = [(s.layout.scene_dir / name, f"{folder}/{name}") for name in SCENE_JSONS]
+        out += _confined(files + [(src, f"{folder}/{rel}") for src, rel in s.image_files()], s.layout.root)
     return out
 
 
