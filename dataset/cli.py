@@ -23,6 +23,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     run_p.add_argument("--executor", choices=["local", "slurm"], default=None,
                        help="local: child processes on this machine; slurm: one job array (default: cluster.executor)")
     run_p.add_argument("--scenes", nargs="+", metavar="NAME", help="run only these scenes")
+    run_p.add_argument("--mesh-dir", type=Path, action="append", default=[], metavar="DIR",
+                       help="also accept meshes (and scene specs) of DATASET.yaml that lie under DIR (repeatable); "
+                            "by default every file it names must lie in its own folder")
     slurm = run_p.add_argument_group("Slurm (defaults: the dataset's cluster block)")
     slurm.add_argument("--partition")
     slurm.add_argument("--time-min", type=int, help="time limit per scene job, minutes (also the local limit)")
@@ -57,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     from dataset.executor import ExecutorOptions
     from dataset.runner import run_dataset
 
-    cluster = load_dataset_spec(args.dataset).spec.cluster
+    cluster = load_dataset_spec(args.dataset, args.mesh_dir).spec.cluster
     options = ExecutorOptions.from_cluster(
         cluster, executor=args.executor, partition=args.partition, time_min=args.time_min,
         gpus_per_task=args.gpus_per_task, cpus_per_task=args.cpus_per_task, mem_gb=args.mem_gb,
@@ -65,13 +68,15 @@ def run(args: argparse.Namespace) -> int:
     if options.executor == "local" and args.array_parallelism is None:
         options = dataclasses.replace(options, array_parallelism=1)  # one scene at a time on this machine
     summary = run_dataset(args.dataset, args.workdir, quick=args.quick, device=args.device, options=options,
-                          scenes=args.scenes)
+                          scenes=args.scenes, mesh_dirs=args.mesh_dir)
     print()
     print(summary.table)
     print(f"\n{len(summary.ran)} scene job(s) ran in {summary.seconds:.1f} s; work directory: {args.workdir}")
     for scene, (stage, error) in summary.failed.items():
         print(f"FAILED {scene} at {stage}: {error}")
-    return 1 if summary.failed else 0
+    for scene, holder in summary.busy.items():
+        print(f"NOT STARTED {scene}: its job still runs on {holder}; run again once it has ended")
+    return 1 if summary.failed or summary.busy else 0
 
 
 def _status(workdir: Path) -> int:

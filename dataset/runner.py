@@ -44,11 +44,12 @@ class RunSummary:
 
 def run_dataset(dataset_file: Path, workdir: Path, *, quick: bool = False, device: str = "auto",
                 options: ExecutorOptions | None = None, scenes: Sequence[str] | None = None,
-                echo: bool = True) -> RunSummary:
-    """Run every pending stage of every (selected) scene of ``dataset_file`` in ``workdir``."""
+                echo: bool = True, mesh_dirs: Sequence[Path | str] = ()) -> RunSummary:
+    """Run every pending stage of every (selected) scene of ``dataset_file`` in ``workdir``
+    (``mesh_dirs``: the user's ``--mesh-dir`` folders, :func:`dataset.workdir.prepare_workdir`)."""
     start, started = time.perf_counter(), time.strftime("%Y-%m-%dT%H:%M:%S%z")
     workdir = Path(workdir).resolve()
-    dataset, inits = prepare_workdir(Path(dataset_file), workdir, quick)
+    dataset, inits = prepare_workdir(Path(dataset_file), workdir, quick, mesh_dirs)
     options = options or ExecutorOptions.from_cluster(dataset.spec.cluster)
     names = [s.name for s in dataset.scenes]
     unknown = sorted(set(scenes or ()) - set(names))

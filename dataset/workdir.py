@@ -23,7 +23,7 @@ from brave6d.dataset_spec import Dataset, DatasetScene, load_dataset_spec, scene
 from brave6d.errors import BraveError
 from brave6d.layout import SceneDir, init_scene_dir, mesh_files
 from brave6d.spec import SceneSpec, spec_to_yaml
-from dataset.status import mark, read_scene_status
+from dataset.status import live_scene_holder, mark, read_scene_status
 
 
 
@@ -44,7 +44,10 @@ def scene_spec_for_run(scene: DatasetScene, quick: bool) -> SceneSpec:
 
 
 def init_scene(workdir: Path, scene: DatasetScene, quick: bool) -> str:
-    """The ``init`` stage of one scene: ``"done"``, ``"reused"`` or ``"failed"`` (recorded with its error)."""
+    """The ``init`` stage of one scene: ``"done"``, ``"reused"``, ``"failed"`` (recorded with its error) or
+    ``"busy"`` (a job runs the scene now: its record is that job's to write, so nothing is written)."""
+    if live_scene_holder(workdir, scene.name) is not None:
+        return "busy"
     spec = scene_spec_for_run(scene, quick)
     fingerprint = scene_fingerprint(spec, scene.obj_ids)
     status = read_scene_status(workdir, scene.name, scene.scene_id)

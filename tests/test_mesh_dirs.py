@@ -152,3 +152,36 @@ def test_symlinked_dataset_folder_inside_is_fine(tmp_path: Path) -> None:
     path = _dataset(tmp_path / "ds")
     os.symlink(tmp_path / "ds", tmp_path / "linked")
     assert load_dataset_spec(tmp_path / "linked" / path.name).scenes[0].obj_ids == {"nut": 1}
+
+
+def test_dataset_run_takes_mesh_dir_flags(tmp_path: Path, outside: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``brave6d dataset run DATASET WORK`` refuses an outside mesh in one line (exit 2, nothing written);
+    with ``--mesh-dir`` it gets past loading into init (stopped by an unknown ``--scenes`` name, before any job)."""
+    from brave6d.cli import main
+
+    path = _dataset(tmp_path / "ds", nut_mesh=str(outside / "secret.ply"))
+    work = tmp_path / "work"
+    argv = ["dataset", "run", str(path), str(work), "--quick", "--executor", "local", "--scenes", "nope"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.search(_outside_error("dataset.yaml", "objects[0].mesh"), err[0]), err
+    assert not work.exists()
+    assert main([*argv, "--mesh-dir", str(tmp_path / "unrelated"), "--mesh-dir", str(outside)]) == 2
+    assert "--mesh-dir" in capsys.readouterr().err  # the first folder does not exist: named
+    (tmp_path / "unrelated").mkdir()
+    assert main([*argv, "--mesh-dir", str(tmp_path / "unrelated"), "--mesh-dir", str(outside)]) == 2
+    assert "--scenes: ['nope'] are not scenes of" in capsys.readouterr().err
+    copied = load_dataset_spec(work / "dataset.yaml")  # the work directory is self-contained
+    assert copied.spec.resolve(copied.spec.objects[0].mesh).resolve().is_relative_to(work.resolve())
+
+
+def test_synth_takes_mesh_dir_flags_into_its_workers(tmp_path: Path, outside: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    from brave6d.cli import main
+
+    path = _dataset(tmp_path / "ds", nut_mesh=str(outside / "secret.ply"))
+    argv = ["synth", str(path), str(tmp_path / "out"), "--images", "2", "--width", "32", "--height", "24"]
+    assert main(argv) == 2
+    assert re.search(_outside_error("dataset.yaml", "objects[0].mesh"), capsys.readouterr().err)
+    assert main([*argv, "--workers", "2", "--mesh-dir", str(outside)]) == 0  # spawned workers load it again
+    assert len(list((tmp_path / "out" / "train_pbr").rglob("*.png"))) >= 2

@@ -23,7 +23,7 @@ from dataset.status import mark, scene_status_path
 from dataset.workdir import prepare_workdir
 
 ROOT = Path(__file__).resolve().parent.parent
-DEMO_DATASET = ROOT / "data" / "demo_dataset" / "dataset.yaml"
+DEMO_DATASET = ROOT / "data" / "demo" / "dataset.yaml"
 SCENE = "demo_tabletop"
 
 
@@ -133,3 +133,36 @@ def test_the_driver_does_not_start_a_second_job_on_a_busy_scene(work: Path, monk
     assert f"{SCENE}: already running on {job.host} (pid {job.pid}), not started again" in capsys.readouterr().err
     assert summary.busy == {SCENE: f"{job.host} (pid {job.pid})"}
     assert summary.failed == {} and summary.ran == []
+
+
+def test_the_command_says_which_scene_it_did_not_start_and_exits_non_zero(
+        work: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """``brave6d dataset run`` with a busy scene: not a success (exit 1), and the last lines say why."""
+    from brave6d.cli import main
+
+    monkeypatch.setattr(dataset.runner, "make_executor", lambda *a, **k: pytest.fail("a second job was started"))
+    proc, job = spawn_holder(scene_lock_path(work, SCENE))
+    try:
+        code = main(["dataset", "run", str(DEMO_DATASET), str(work), "--quick", "--device", "cpu", "--scenes", SCENE])
+    finally:
+        kill_holder(proc)
+    assert code == 1
+    assert f"NOT STARTED {SCENE}: its job still runs on {job.host} (pid {job.pid})" in capsys.readouterr().out
+
+
+def test_init_writes_nothing_while_the_scene_job_runs(work: Path) -> None:
+    """The driver's ``init`` of a re-run (here with a changed spec, which would record ``init``
+    failed) leaves the record of a scene whose job still runs untouched."""
+    from brave6d.dataset_spec import load_dataset_spec
+    from dataset.workdir import init_scene
+
+    scene = load_dataset_spec(DEMO_DATASET).scene(SCENE)
+    record = scene_status_path(work, SCENE)
+    before = record.read_bytes()
+    proc, _ = spawn_holder(scene_lock_path(work, SCENE))
+    try:
+        assert init_scene(work, scene, quick=False) == "busy"  # quick=False: another fingerprint
+        assert record.read_bytes() == before
+    finally:
+        kill_holder(proc)
+    assert init_scene(work, scene, quick=False) == "failed"  # once the job is gone: the usual refusal
