@@ -10,7 +10,9 @@ size and kind (bit depth and colour type of ``rgb``, ``depth`` or ``mask``):
 - ``decode``: ``crc``, then a full decode (OpenCV). Also finds compressed data that does not
   inflate to the image, which only a forged file (with recomputed CRCs) has.
 
-Times per image of a 640x480 split are in ``benchmarks/synth.py --check-images``.
+Cost per 640x480 image (rgb, depth and ~4 objects' masks: 9 PNGs, 0.65 MiB; one thread, files in
+the page cache; ``benchmarks/synth.py --check-images 300`` on a busy 2-core machine): ``header``
+0.45 .. 0.6 ms, ``crc`` 1.2 .. 2.1 ms, ``decode`` 19 .. 38 ms; rendering the image takes ~500 ms.
 """
 
 from __future__ import annotations
