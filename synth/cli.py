@@ -5,15 +5,22 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from brave6d.cli_types import int_in
+from synth.limits import BOUNDS
+
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("spec", type=Path, metavar="DATASET_OR_SCENE", help="dataset.yaml or a scene spec (YAML)")
     parser.add_argument("out", type=Path, metavar="OUT", help="output folder (train_pbr/ is written inside; resumable)")
-    parser.add_argument("--images", type=int, required=True, help="number of images")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the split (image i depends only on seed and i)")
-    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    parser.add_argument("--width", type=int, default=None, help="image width (default: the spec's camera)")
-    parser.add_argument("--height", type=int, default=None, help="image height (default: the spec's camera)")
+    parser.add_argument("--images", type=int_in(*BOUNDS["images"]), required=True, help="number of images")
+    parser.add_argument("--seed", type=int_in(*BOUNDS["seed"]), default=0,
+                        help="seed of the split (image i depends only on seed and i)")
+    parser.add_argument("--workers", type=int_in(*BOUNDS["workers"]), default=1,
+                        help="worker processes (default 1; at most the CPU cores, and as many as memory holds)")
+    parser.add_argument("--width", type=int_in(*BOUNDS["width"]), default=None,
+                        help="image width (default: the spec's camera)")
+    parser.add_argument("--height", type=int_in(*BOUNDS["height"]), default=None,
+                        help="image height (default: the spec's camera)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -24,4 +31,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"synth: {result.images} images in {result.out / 'train_pbr'} ({result.rendered} rendered, "
           f"{result.skipped} already complete); {result.images_per_s:.2f} images/s with {args.workers} worker(s), "
           f"{result.seconds:.1f} s in all")
+    if result.repaired:
+        print(f"synth: {result.repaired} image(s) written before were damaged and rendered again; "
+              f"first: {result.repair_reason}")
     return 0

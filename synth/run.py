@@ -10,17 +10,20 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
 
 from brave6d.errors import BraveError
 from brave6d.progress import progress_bar
+from synth import limits
+from synth.png_check import CHECKS, DEFAULT_CHECK
 from synth.randomize import LibraryAssets, Randomization, sample_image_scene
 from synth.render import render_image
 from synth.source import SynthSource, load_synth_source
-from synth.writer import check_settings, gather_scene_files, is_complete, write_image
+from synth.writer import check_settings, gather_scene_files, has_record, image_problem, write_image
 
 log = logging.getLogger(__name__)
 
@@ -28,7 +31,9 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class SynthOptions:
     """``images``: how many; ``seed``: the split's seed (>= 0); ``workers``: processes; ``width`` /
-    ``height``: image size (default: the spec's camera); ``randomization``: how images vary."""
+    ``height``: image size (default: the spec's camera); ``randomization``: how images vary;
+    ``resume_check``: how the PNGs of images already written are checked before they count as
+    complete (:mod:`synth.png_check`: ``header``, ``crc`` or ``decode``). Bounds: :mod:`synth.limits`."""
 
     images: int
     seed: int = 0
@@ -36,19 +41,22 @@ class SynthOptions:
     width: int | None = None
     height: int | None = None
     randomization: Randomization = field(default_factory=Randomization)
+    resume_check: str = DEFAULT_CHECK
 
     def __post_init__(self) -> None:
-        if self.images < 1 or self.images > 1_000_000:
-            raise BraveError(f"synth: --images must be in 1..1000000, got {self.images}")
-        if self.seed < 0 or self.seed >= 2 ** 63:
-            raise BraveError(f"synth: --seed must be a non-negative 64-bit integer, got {self.seed}")
-        if self.workers < 1:
-            raise BraveError(f"synth: --workers must be at least 1, got {self.workers}")
+        for name in limits.BOUNDS:
+            value = getattr(self, name)
+            if value is not None or name not in ("width", "height"):
+                object.__setattr__(self, name, limits.check_option(name, value))
+        if self.resume_check not in CHECKS:
+            raise BraveError(f"synth: resume_check must be one of {', '.join(CHECKS)}, got {self.resume_check!r}")
 
 
 @dataclass(frozen=True)
 class SynthResult:
-    """What a run did: images in the split, rendered now, skipped (already complete), wall time."""
+    """What a run did: images in the split, rendered now, skipped (already complete), wall time;
+    ``repaired``: images rendered again because their files were damaged (counted in ``rendered``),
+    ``repair_reason``: the first damaged file and what was wrong with it."""
 
     out: Path
     images: int
@@ -56,6 +64,8 @@ class SynthResult:
     skipped: int
     seconds: float
     render_seconds: float
+    repaired: int = 0
+    repair_reason: str | None = None
 
     @property
     def images_per_s(self) -> float:
@@ -67,36 +77,77 @@ def synthesize(spec_path: Path | str, out: Path | str, options: SynthOptions) ->
     """Write (or complete) the synthetic split of ``spec_path`` into ``out`` (module docstring)."""
     start = time.perf_counter()
     source = load_synth_source(spec_path).with_size(options.width, options.height)
+    size = (source.camera.width, source.camera.height)
+    size_from = "--width/--height" if options.width and options.height else f"the camera of {source.path}"
+    limits.check_machine(*size, options.workers, min(options.workers, options.images), size_from)
     root = Path(out)
     if root.exists() and not root.is_dir():
         raise BraveError(f"{root}: OUT is a file; give a folder")
     root.mkdir(parents=True, exist_ok=True)
     check_settings(root, _settings(source, options))
-    pending = [i for i in range(options.images) if not is_complete(root, i)]
+    recorded = [i for i in range(options.images) if has_record(root, i)]
+    damaged = _damaged(root, recorded, size, options.resume_check)
+    pending = sorted(set(range(options.images)) - set(recorded) | set(damaged))
     skipped = options.images - len(pending)
+    reason = damaged[min(damaged)] if damaged else None
+    if damaged:
+        log.warning("%s: %d image(s) written before are damaged and will be rendered again; first: %s",
+                    root, len(damaged), reason)
     if skipped:
         log.info("%s: %d of %d images already complete, rendering %d", root, skipped, options.images, len(pending))
     job = _Job(source.path, options.width, options.height, options.randomization, options.seed, root)
     render_start = time.perf_counter()
-    bar = progress_bar(options.images, desc="synth", unit="img", initial=skipped)
     try:
-        if options.workers == 1 or len(pending) <= 1:
+        _render_all(job, pending, options.workers, options.images)
+    except (MemoryError, BrokenProcessPool) as exc:
+        what = "ran out of memory" if isinstance(exc, MemoryError) else \
+            "lost a worker process (the system may have killed it for memory)"
+        raise BraveError(f"synth: rendering {size[0]}x{size[1]} images with --workers {options.workers} {what}; "
+                         f"estimate {limits.render_memory_bytes(*size) / limits.GIB:.1f} GiB per worker; "
+                         "use fewer --workers or smaller --width/--height") from None
+    render_seconds = time.perf_counter() - render_start
+    gather_scene_files(root, options.images)
+    return SynthResult(root, options.images, len(pending), skipped, time.perf_counter() - start, render_seconds,
+                       len(damaged), reason)
+
+
+def _damaged(root: Path, indices: list[int], size: tuple[int, int], check: str) -> dict[int, str]:
+    """Image index -> its first problem, for the images of ``indices`` whose record or PNGs are
+    damaged (:func:`synth.writer.image_problem`; on a few threads: reading, CRC-32 and decoding
+    release the GIL)."""
+    found: dict[int, str] = {}
+    if not indices:
+        return found
+    bar = progress_bar(len(indices), desc=f"synth: checking ({check})", unit="img")
+    try:
+        with ThreadPoolExecutor(min(limits.usable_cpus(), 4)) as pool:
+            for i, problem in zip(indices, pool.map(lambda i: image_problem(root, i, size, check), indices)):
+                if problem is not None:
+                    found[i] = problem
+                bar.update(1)
+    finally:
+        bar.close()
+    return found
+
+
+def _render_all(job: _Job, pending: list[int], workers: int, images: int) -> None:
+    """Render ``pending`` (of ``images``) in this process (one worker) or in ``workers`` spawned processes."""
+    bar = progress_bar(images, desc="synth", unit="img", initial=images - len(pending))
+    try:
+        if workers == 1 or len(pending) <= 1:
             _init_worker(job)
             for i in pending:
                 _render_one(i)
                 bar.update(1)
         else:
             ctx = get_context("spawn")  # a fresh process: no Open3D/OpenMP state forked from this one
-            with ProcessPoolExecutor(min(options.workers, len(pending)), mp_context=ctx, initializer=_init_worker,
+            with ProcessPoolExecutor(min(workers, len(pending)), mp_context=ctx, initializer=_init_worker,
                                      initargs=(job,)) as pool:
                 for future in as_completed([pool.submit(_render_one, i) for i in pending]):
                     future.result()
                     bar.update(1)
     finally:
         bar.close()
-    render_seconds = time.perf_counter() - render_start
-    gather_scene_files(root, options.images)
-    return SynthResult(root, options.images, len(pending), skipped, time.perf_counter() - start, render_seconds)
 
 
 def _settings(source: SynthSource, options: SynthOptions) -> dict[str, object]:

@@ -1,0 +1,132 @@
+"""Is a PNG file whole? Three checks of rising cost (``CHECKS``), each also requiring the expected
+size and kind (bit depth and colour type of ``rgb``, ``depth`` or ``mask``):
+
+- ``header``: the signature, the IHDR chunk (and its CRC) and the file ending in the IEND chunk;
+  reads 45 bytes. Finds a file cut short anywhere, one that is not a PNG, a wrong size or kind.
+  Misses bytes changed inside the file (same length): bit rot, a block overwritten.
+- ``crc``: every chunk walked and its CRC-32 checked, image data present, IEND last and nothing
+  after it; reads the whole file. Also finds any changed byte. Misses only a file rewritten with
+  valid CRCs: another valid PNG of the same size and kind, or a forged one.
+- ``decode``: ``crc``, then a full decode (OpenCV). Also finds compressed data that does not
+  inflate to the image, which only a forged file (with recomputed CRCs) has.
+
+Cost per 640x480 image (rgb, depth and ~4 objects' masks: 9 PNGs, 0.65 MiB; one thread, files in
+the page cache; ``benchmarks/synth.py --check-images 300`` on a busy 2-core machine): ``header``
+0.45 .. 0.6 ms, ``crc`` 1.2 .. 2.1 ms, ``decode`` 19 .. 38 ms; rendering the image takes ~500 ms.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from pathlib import Path
+
+CHECKS = ("header", "crc", "decode")
+DEFAULT_CHECK = "crc"
+
+SIGNATURE = b"\x89PNG\r\n\x1a\n"
+IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # length 0, type, CRC-32 of b"IEND"
+_HEAD = len(SIGNATURE) + 8 + 13 + 4  # signature, IHDR length and type, its 13 bytes, its CRC
+
+#: kind -> (bit depth, PNG colour type, words for messages)
+KINDS = {"rgb": (8, 2, "8-bit RGB"), "depth": (16, 0, "16-bit grey"), "mask": (8, 0, "8-bit grey")}
+_COLOUR_WORDS = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
+
+
+def png_problem(source: bytes | Path, kind: str, size: tuple[int, int], check: str = DEFAULT_CHECK) -> str | None:
+    """Why the PNG ``source`` (its bytes, or a file) is not a whole ``kind`` image of ``size``
+    (width, height) by ``check`` (module docstring); None when it is."""
+    if check not in CHECKS:
+        raise ValueError(f"unknown PNG check {check!r}; one of {', '.join(CHECKS)}")
+    if kind not in KINDS:
+        raise ValueError(f"unknown image kind {kind!r}; one of {', '.join(KINDS)}")
+    try:
+        if isinstance(source, Path) and check == "header":
+            head, tail, length = _ends(source)
+        else:
+            data = source.read_bytes() if isinstance(source, Path) else bytes(source)
+            head, tail, length = data[:_HEAD], data[-len(IEND):], len(data)
+    except FileNotFoundError:
+        return "missing"
+    except OSError as exc:
+        return f"cannot read ({exc.strerror or exc})"
+    problem = _header_problem(head, tail, length, kind, size)
+    if problem is None and check != "header":
+        problem = _chunk_problem(data)
+    if problem is None and check == "decode":
+        problem = _decode_problem(data, kind, size)
+    return problem
+
+
+def _ends(path: Path) -> tuple[bytes, bytes, int]:
+    """The first ``_HEAD`` bytes, the last ``len(IEND)`` bytes and the length of ``path``."""
+    with open(path, "rb") as handle:
+        head = handle.read(_HEAD)
+        length = handle.seek(0, 2)
+        handle.seek(max(length - len(IEND), 0))
+        return head, handle.read(), length
+
+
+def _header_problem(head: bytes, tail: bytes, length: int, kind: str, size: tuple[int, int]) -> str | None:
+    if not head:
+        return "empty file"
+    if not SIGNATURE.startswith(head[:len(SIGNATURE)]):
+        return "not a PNG (no PNG signature)"
+    if len(head) < _HEAD:
+        return f"truncated ({length} bytes, the header needs {_HEAD})"
+    n, ctype = struct.unpack(">I4s", head[8:16])
+    if ctype != b"IHDR" or n != 13:
+        return "not a PNG (no IHDR chunk first)"
+    if zlib.crc32(head[12:29]) != struct.unpack(">I", head[29:33])[0]:
+        return "damaged (IHDR CRC mismatch)"
+    width, height, depth, colour, compression, filtering, interlace = struct.unpack(">IIBBBBB", head[16:29])
+    if (width, height) != tuple(size):
+        return f"image is {width}x{height}, expected {size[0]}x{size[1]}"
+    want_depth, want_colour, words = KINDS[kind]
+    if (depth, colour) != (want_depth, want_colour):
+        return f"image is {depth}-bit {_COLOUR_WORDS.get(colour, f'colour type {colour}')}, expected {words}"
+    if compression != 0 or filtering != 0 or interlace not in (0, 1):
+        return "not a PNG (unknown compression, filter or interlace method)"
+    if length < _HEAD + len(IEND) or tail != IEND:
+        return f"truncated ({length} bytes, no IEND chunk at the end)"
+    return None
+
+
+def _chunk_problem(data: bytes) -> str | None:
+    """Walk the chunks after the signature: each CRC right, IDAT present, IEND last, at the end."""
+    view = memoryview(data)
+    pos, seen_idat = len(SIGNATURE), False
+    while pos < len(data):
+        if pos + 12 > len(data):
+            return f"truncated (chunk at byte {pos} cut short)"
+        n, ctype = struct.unpack(">I4s", view[pos:pos + 8])
+        end = pos + 12 + n
+        if end > len(data):
+            return f"truncated (chunk {ctype!r} at byte {pos} runs past the end)"
+        if zlib.crc32(view[pos + 4:end - 4]) != struct.unpack(">I", view[end - 4:end])[0]:
+            return f"damaged (chunk {ctype!r} at byte {pos}: CRC mismatch)"
+        seen_idat = seen_idat or ctype == b"IDAT"
+        if ctype == b"IEND":
+            if end != len(data):
+                return f"damaged ({len(data) - end} bytes after the IEND chunk)"
+            return None if seen_idat else "damaged (no image data)"
+        pos = end
+    return "truncated (no IEND chunk)"
+
+
+def _decode_problem(data: bytes, kind: str, size: tuple[int, int]) -> str | None:
+    import cv2
+    import numpy as np
+
+    try:
+        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        image = None
+    if image is None:
+        return "does not decode"
+    channels = 3 if kind == "rgb" else 1
+    shape = (size[1], size[0], 3) if channels == 3 else (size[1], size[0])
+    dtype = np.uint16 if kind == "depth" else np.uint8
+    if image.shape != shape or image.dtype != dtype:
+        return f"decodes to {image.dtype} {image.shape}, expected {np.dtype(dtype)} {shape}"
+    return None
