@@ -15,7 +15,12 @@ from collections.abc import Callable
 def _interval(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
     left = "(" if low_open or low is None else "["
     right = ")" if high_open or high is None else "]"
-    return f"{left}{'-inf' if low is None else f'{low:g}'}, {'inf' if high is None else f'{high:g}'}{right}"
+    return f"{left}{'-inf' if low is None else _number(low)}, {'inf' if high is None else _number(high)}{right}"
+
+
+def _number(value: float) -> str:
+    """An integer bound in full (``1000000``, not ``1e+06``); a float bound in its short form."""
+    return str(value) if isinstance(value, int) else f"{value:g}"
 
 
 def float_in(low: float | None = None, high: float | None = None, *, low_open: bool = False,

@@ -16,18 +16,23 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int_in(*BOUNDS["seed"]), default=0,
                         help="seed of the split (image i depends only on seed and i)")
     parser.add_argument("--workers", type=int_in(*BOUNDS["workers"]), default=1,
-                        help="worker processes (default 1; at most the CPU cores, and as many as memory holds)")
+                        help="worker processes (default 1; one per CPU core pays, at most 4 per core and as many as "
+                             "memory holds)")
     parser.add_argument("--width", type=int_in(*BOUNDS["width"]), default=None,
                         help="image width (default: the spec's camera)")
     parser.add_argument("--height", type=int_in(*BOUNDS["height"]), default=None,
                         help="image height (default: the spec's camera)")
+    parser.add_argument("--mesh-dir", type=Path, action="append", default=[], metavar="DIR",
+                        help="for a dataset.yaml: also accept meshes that lie under DIR (repeatable); by default "
+                             "every file it names must lie in its own folder")
 
 
 def run(args: argparse.Namespace) -> int:
     from synth.run import SynthOptions, synthesize
 
     result = synthesize(args.spec, args.out, SynthOptions(images=args.images, seed=args.seed, workers=args.workers,
-                                                           width=args.width, height=args.height))
+                                                           width=args.width, height=args.height,
+                                                           mesh_dirs=tuple(args.mesh_dir)))
     print(f"synth: {result.images} images in {result.out / 'train_pbr'} ({result.rendered} rendered, "
           f"{result.skipped} already complete); {result.images_per_s:.2f} images/s with {args.workers} worker(s), "
           f"{result.seconds:.1f} s in all")

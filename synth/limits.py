@@ -11,17 +11,22 @@ per worker; BOP images are 640x480 .. 1920x1080 (0.5 GiB .. 1.3 GiB).
 
 from __future__ import annotations
 
+import logging
 import os
 from numbers import Integral
 from pathlib import Path
 
 from brave6d.errors import BraveError
 
+log = logging.getLogger(__name__)
+
 MIN_SIDE = 8
 MAX_SIDE = 4096
 MAX_IMAGES = 1_000_000
 MAX_SEED = 2 ** 63 - 1
 MAX_WORKERS = 1024
+#: Workers per usable CPU core beyond which ``--workers`` is refused (above one per core: a warning).
+OVERSUBSCRIPTION = 4
 
 #: option/flag name -> inclusive bounds (``synth.cli`` and ``SynthOptions`` both read these).
 BOUNDS: dict[str, tuple[int, int]] = {"images": (1, MAX_IMAGES), "seed": (0, MAX_SEED),
@@ -104,15 +109,19 @@ def _cgroup_headroom() -> int | None:
 
 def check_machine(width: int, height: int, workers: int, processes: int, size_from: str) -> None:
     """Refuse, naming the flag, what this machine cannot run: a side over ``MAX_SIDE`` (``size_from``
-    says where the size came from), more ``workers`` than CPU cores, or ``processes`` workers whose
-    estimated memory exceeds what is available."""
+    says where the size came from), more ``workers`` than ``OVERSUBSCRIPTION`` per CPU core (more than
+    one per core is only warned about), or ``processes`` workers whose estimated memory exceeds what
+    is available."""
     if width > MAX_SIDE or height > MAX_SIDE:
         raise BraveError(f"synth: {size_from} gives {width}x{height} images, more than {MAX_SIDE} pixels a side; "
                          f"give --width and --height (at most {MAX_SIDE})")
     cpus = usable_cpus()
+    if workers > OVERSUBSCRIPTION * cpus:
+        raise BraveError(f"synth: --workers {workers} is more than {OVERSUBSCRIPTION} x the {cpus} CPU core(s) this "
+                         f"process may use; give --workers {cpus} (more than one per core only costs memory)")
     if workers > cpus:
-        raise BraveError(f"synth: --workers {workers} is more than the {cpus} CPU core(s) this process may use; "
-                         f"give --workers {cpus} or fewer")
+        log.warning("synth: --workers %d on %d CPU core(s): workers beyond one per core share the cores and only "
+                    "cost memory", workers, cpus)
     available = available_memory_bytes()
     each = render_memory_bytes(width, height)
     if available is not None and processes * each > available:

@@ -33,7 +33,8 @@ class SynthOptions:
     """``images``: how many; ``seed``: the split's seed (>= 0); ``workers``: processes; ``width`` /
     ``height``: image size (default: the spec's camera); ``randomization``: how images vary;
     ``resume_check``: how the PNGs of images already written are checked before they count as
-    complete (:mod:`synth.png_check`: ``header``, ``crc`` or ``decode``). Bounds: :mod:`synth.limits`."""
+    complete (:mod:`synth.png_check`: ``header``, ``crc`` or ``decode``); ``mesh_dirs``: folders besides a
+    dataset.yaml's own that its meshes may lie in (``--mesh-dir``). Bounds: :mod:`synth.limits`."""
 
     images: int
     seed: int = 0
@@ -42,6 +43,7 @@ class SynthOptions:
     height: int | None = None
     randomization: Randomization = field(default_factory=Randomization)
     resume_check: str = DEFAULT_CHECK
+    mesh_dirs: tuple[Path, ...] = ()
 
     def __post_init__(self) -> None:
         for name in limits.BOUNDS:
@@ -76,7 +78,7 @@ class SynthResult:
 def synthesize(spec_path: Path | str, out: Path | str, options: SynthOptions) -> SynthResult:
     """Write (or complete) the synthetic split of ``spec_path`` into ``out`` (module docstring)."""
     start = time.perf_counter()
-    source = load_synth_source(spec_path).with_size(options.width, options.height)
+    source = load_synth_source(spec_path, options.mesh_dirs).with_size(options.width, options.height)
     size = (source.camera.width, source.camera.height)
     size_from = "--width/--height" if options.width and options.height else f"the camera of {source.path}"
     limits.check_machine(*size, options.workers, min(options.workers, options.images), size_from)
@@ -95,7 +97,8 @@ def synthesize(spec_path: Path | str, out: Path | str, options: SynthOptions) ->
                     root, len(damaged), reason)
     if skipped:
         log.info("%s: %d of %d images already complete, rendering %d", root, skipped, options.images, len(pending))
-    job = _Job(source.path, options.width, options.height, options.randomization, options.seed, root)
+    job = _Job(source.path, options.width, options.height, options.randomization, options.seed, root,
+               options.mesh_dirs)
     render_start = time.perf_counter()
     try:
         _render_all(job, pending, options.workers, options.images)
@@ -166,6 +169,7 @@ class _Job:
     randomization: Randomization
     seed: int
     out: Path
+    mesh_dirs: tuple[Path, ...] = ()
 
 
 _STATE: dict[str, object] = {}
@@ -173,7 +177,7 @@ _STATE: dict[str, object] = {}
 
 def _init_worker(job: _Job) -> None:
     """Load the library once per process."""
-    source = load_synth_source(job.spec).with_size(job.width, job.height)
+    source = load_synth_source(job.spec, job.mesh_dirs).with_size(job.width, job.height)
     _STATE["job"] = job
     _STATE["assets"] = LibraryAssets(source)
 

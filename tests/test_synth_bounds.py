@@ -105,12 +105,16 @@ def test_a_size_that_does_not_fit_in_memory_is_refused_with_the_estimate(
     assert not out.exists()
 
 
-def test_more_workers_than_cpus_are_refused_naming_the_flag(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_far_more_workers_than_cpus_are_refused_naming_the_flag(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                caplog: pytest.LogCaptureFixture) -> None:
     spec = _scene_yaml(tmp_path, 32, 24)
     monkeypatch.setattr(limits, "usable_cpus", lambda: 3)
-    with pytest.raises(BraveError, match=r"--workers 4 .*3 CPU"):
-        synthesize(spec, tmp_path / "out", SynthOptions(images=4, workers=4))
+    with pytest.raises(BraveError, match=r"--workers 13 .*3 CPU"):
+        synthesize(spec, tmp_path / "out", SynthOptions(images=13, workers=13))
     assert not (tmp_path / "out").exists()
+    with caplog.at_level("WARNING", logger="synth.limits"):
+        limits.check_machine(32, 24, 12, 12, "--width/--height")  # 4 per core: allowed, with a warning
+    assert "--workers 12 on 3 CPU core(s)" in caplog.text
 
 
 def test_a_spec_camera_larger_than_the_cap_is_refused_naming_the_flags(tmp_path: Path) -> None:
