@@ -115,6 +115,13 @@ def test_member_name_validator(name: str) -> None:
         win = PureWindowsPath("C:/dest") / name
         assert not PureWindowsPath(name).anchor and ".." not in win.parts and "\\" not in name
         assert all(part not in ("", ".", "..") for part in PurePosixPath(name).parts) and name.isprintable()
+        with tempfile.TemporaryDirectory() as tmp:  # and the unpacker writes it there
+            dest = Path(tmp) / "dest"
+            dest.mkdir()
+            with open_zip(_zip(Path(tmp) / "ok.zip", [(name, b"" if name.endswith("/") else b"x")])) as zf:
+                written = zf.extract(dest)
+            assert written == ([] if name.endswith("/") else [dest / name])
+            assert [p for p in Path(tmp).iterdir() if p != dest] == [Path(tmp) / "ok.zip"]  # nothing beside dest
         return
     with tempfile.TemporaryDirectory() as tmp:
         path = _zip(Path(tmp) / "names.zip", [(name, b"x")])
@@ -492,7 +499,12 @@ def test_a_full_cache_is_named_at_start_with_the_bytes_needed(release: Path, tmp
     with pytest.raises(ReleaseError, match=rf"{cache}: {need - 1} bytes free.*needs {need} bytes"):
         release_scene_sources(release, cache)
     monkeypatch.setattr(shutil, "disk_usage", lambda p: real._replace(free=need))
-    assert len(release_scene_sources(release, cache)) == 2
+    sources = release_scene_sources(release, cache)
+    assert len(sources) == 2
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: real._replace(free=10))  # the disk filled up since
+    with pytest.raises(ReleaseError, match=r"/bundles/000001: 10 bytes free.*needs \d+ bytes"):
+        sources[0].locate()
+    assert not [p for p in cache.rglob("*") if p.is_file()]
 
 
 @pytest.mark.slow

@@ -165,7 +165,10 @@ class _Unpacker:
                                f"({self.sha256[:12]}...); the release was modified or is incomplete")
         try:
             with open_zip(self.zip_path, inside=self.folder) as zf, staged_folder(self.target) as stage:
-                zf.extract(stage, strip=self.folder)
+                try:
+                    zf.extract(stage, strip=self.folder)
+                except ReleaseError as exc:  # name the bundle folder, not its hidden staging sibling
+                    raise ReleaseError(str(exc).replace(str(stage), str(self.target))) from None
                 (stage / STAMP).write_text(self.sha256 + "\n")
         except OSError as exc:  # the stage itself, the stamp (the unpacker names its own errors)
             raise ReleaseError(f"{self.cache}: cannot unpack {self.zip_path.name} here "
