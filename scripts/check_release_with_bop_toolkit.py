@@ -1,10 +1,12 @@
 """Read a BRAVE-6D release with bop_toolkit's own readers (``bop_toolkit_lib.inout``).
 
 bop_toolkit is not on PyPI and pins numpy<2, so it cannot be a dependency of this project: this
-script makes (once) a separate virtualenv with bop_toolkit's reader dependencies, re-runs itself
-there, unzips the release's BOP zips into a temporary folder and reads every file with
-bop_toolkit's functions, checking what BOP's conventions promise (paths from its dataset_params
-templates, image sizes, ids, masks). It imports nothing from brave6d.
+script unzips the release's BOP zips into a temporary folder with the project's safe unpacker
+(``dataset.release.zips``: a release is untrusted, so member names and sizes are checked before
+anything is written), makes (once) a separate virtualenv with bop_toolkit's reader dependencies,
+re-runs itself there on the unzipped folder and reads every file with bop_toolkit's functions,
+checking what BOP's conventions promise (paths from its dataset_params templates, image sizes,
+ids, masks). The part that runs in that virtualenv imports nothing from brave6d.
 
     python scripts/check_release_with_bop_toolkit.py RELEASE_DIR --bop-toolkit PATH/TO/bop_toolkit
         [--venv .venv-bop-toolkit]
@@ -19,7 +21,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import zipfile
 from pathlib import Path
 
 READER_DEPS = ["numpy<2", "scipy", "imageio", "pypng", "pillow"]
@@ -31,35 +32,48 @@ def main() -> int:
     parser.add_argument("--bop-toolkit", type=Path, required=True, help="a checkout of github.com/thodan/bop_toolkit")
     parser.add_argument("--venv", type=Path, default=Path(".venv-bop-toolkit"), help="where the virtualenv goes")
     args = parser.parse_args()
-    if os.environ.get("BRAVE6D_BOP_CHECK_INSIDE") != "1":
-        return _rerun_in_venv(args)
-    sys.path.insert(0, str(args.bop_toolkit.resolve()))
-    with tempfile.TemporaryDirectory() as tmp:
-        # BOP's own instructions: unzip <name>_base.zip, then the models and test zips into <name>/
-        bases = sorted(args.release.glob("*_base.zip"))
-        if len(bases) != 1:
-            return _fail(f"{args.release}: expected one *_base.zip, found {len(bases)}")
-        with zipfile.ZipFile(bases[0]) as zf:
-            zf.extractall(tmp)
-        cameras = sorted(Path(tmp).rglob("camera.json"))
-        if not cameras:
-            return _fail(f"{bases[0].name}: no camera.json")
-        base = cameras[0].parent
-        for archive in [*args.release.glob("*_models.zip"), *args.release.glob("*_test_*.zip")]:
-            with zipfile.ZipFile(archive) as zf:
-                zf.extractall(base)
+    if os.environ.get("BRAVE6D_BOP_CHECK_INSIDE") == "1":
+        sys.path.insert(0, str(args.bop_toolkit.resolve()))
         try:
-            return check(base)
+            return check(Path(os.environ["BRAVE6D_BOP_DATASET"]))
         except (OSError, KeyError, ValueError) as exc:  # a file bop_toolkit cannot read
             return _fail(f"{type(exc).__name__}: {exc}")
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            base = unpack_release(args.release, Path(tmp))
+        except ValueError as exc:  # the project's DataError (a ValueError): a zip refused, naming the member
+            return _fail(str(exc))
+        return _rerun_in_venv(args, base)
 
 
-def _rerun_in_venv(args: argparse.Namespace) -> int:
+def unpack_release(release: Path, dest: Path) -> Path:
+    """BOP's own instructions, with the project's safe unpacker: unzip ``<name>_base.zip`` into
+    ``dest``, then the models and test zips into the ``<name>/`` folder it made; returns that folder."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from dataset.release.zips import open_zip
+
+    bases = sorted(release.glob("*_base.zip"))
+    if len(bases) != 1:
+        raise ValueError(f"{release}: expected one *_base.zip, found {len(bases)}")
+    dest.mkdir(parents=True, exist_ok=True)
+    with open_zip(bases[0]) as zf:
+        zf.extract(dest)
+    cameras = sorted(dest.rglob("camera.json"))
+    if not cameras:
+        raise ValueError(f"{bases[0].name}: no camera.json")
+    base = cameras[0].parent
+    for archive in [*sorted(release.glob("*_models.zip")), *sorted(release.glob("*_test_*.zip"))]:
+        with open_zip(archive) as zf:
+            zf.extract(base)
+    return base
+
+
+def _rerun_in_venv(args: argparse.Namespace, base: Path) -> int:
     python = args.venv / "bin" / "python"
     if not python.exists():
         subprocess.run([sys.executable, "-m", "venv", str(args.venv)], check=True)
         subprocess.run([str(python), "-m", "pip", "install", "-q", *READER_DEPS], check=True)
-    env = {**os.environ, "BRAVE6D_BOP_CHECK_INSIDE": "1"}
+    env = {**os.environ, "BRAVE6D_BOP_CHECK_INSIDE": "1", "BRAVE6D_BOP_DATASET": str(base)}
     return subprocess.run([str(python), *sys.argv], env=env).returncode
 
 

@@ -11,21 +11,32 @@ Two forms of a release are served:
 
 Either way each scene's objects carry the library's category, and its memory estimate comes from
 the file sizes (the zip's directory or the bundle's manifest) without reading the splat.
+
+A release is untrusted: each bundle zip's directory is checked at start (member names, sizes:
+:func:`dataset.release.zips.open_zip`) and unpacked only by that module's safe unpacker. The cache
+folder is checked at start too: made when missing; a file, a folder that cannot be written or a
+disk without room for the largest bundle not unpacked yet is an error naming the folder. A scene's
+``SceneSource.refresh`` unpacks its bundle again from the zip (checked against ``SHA256SUMS``
+again), for when the unpacked folder fails its checks.
 """
 
 from __future__ import annotations
 
 import os
+import tempfile
 import threading
-import zipfile
 from pathlib import Path
 from typing import Any
 
 from brave6d.atomic import file_sha256, read_json, staged_folder
+from brave6d.names import folder_name_problem
 from dataset.release.formats import DATASET_INFO, MANIFEST, SUMS, bundle_folder, bundle_zip, read_sha256sums
 from dataset.release.manifest import read_manifest
 from dataset.release.source import ReleaseError
-from dataset.release.zips import member_outside
+from dataset.release.zips import check_free_space, open_zip
+
+#: The file in an unpacked bundle folder naming the sha256 of the zip it was unpacked from.
+STAMP = ".unpacked-from"
 
 #: Where unpacked bundles go unless a cache folder is given: ``$BRAVE6D_CACHE``, else
 #: ``$XDG_CACHE_HOME/brave6d``, else ``~/.cache/brave6d``.
@@ -67,9 +78,14 @@ def _zipped_sources(base: Path, cache_dir: Path | None) -> list[Any]:
     manifest = read_manifest(base / MANIFEST)
     sums = read_sha256sums(base / SUMS)
     digest = file_sha256(base / MANIFEST)[:12]
-    cache = (cache_dir or default_cache_dir()) / f"{manifest['name']}-{manifest.get('version', '0')}-{digest}"
+    root = cache_dir or default_cache_dir()
+    name = f"{manifest['name']}-{manifest.get('version', '0')}-{digest}"
+    problem = folder_name_problem(name)
+    if problem is not None:  # name and version come from a downloaded manifest.json
+        raise ReleaseError(f"{base / MANIFEST}: fields 'name' and 'version' make the cache folder name {problem}")
+    cache = root / name
     categories = _categories(manifest["objects"])
-    out = []
+    out, unpackers = [], []
     for scene in manifest["scenes"]:
         sid = int(scene["scene_id"])
         zip_path = base / bundle_zip(manifest["name"], sid)
@@ -77,61 +93,87 @@ def _zipped_sources(base: Path, cache_dir: Path | None) -> list[Any]:
             raise ReleaseError(f"{base / SUMS}: does not list {zip_path.name} (scene {scene['name']!r})")
         if not zip_path.is_file():
             raise ReleaseError(f"{zip_path}: the bundle of scene {scene['name']!r} is missing from the release")
-        splat, models = _zip_sizes(zip_path, bundle_folder(sid))
-        locate = _Unpacker(zip_path, sums[zip_path.name], bundle_folder(sid), cache)
+        unpacker = _Unpacker(zip_path, sums[zip_path.name], bundle_folder(sid), cache)
+        splat, models = unpacker.sizes()
+        unpackers.append(unpacker)
         out.append(SceneSource(str(scene["name"]), sid, _scene_objects(scene, categories),
-                               estimate_scene_bytes(splat, models), locate, str(zip_path)))
+                               estimate_scene_bytes(splat, models), unpacker, str(zip_path), refresh=unpacker.refresh))
+    _check_cache(root, max((u for u in unpackers if not u.unpacked()), key=lambda u: u.bytes, default=None))
     return out
 
 
-def _zip_sizes(path: Path, folder: str) -> tuple[int, int]:
-    """Uncompressed bytes of the splat and of the models in a bundle zip (its directory only)."""
+def _check_cache(cache: Path, largest: _Unpacker | None) -> None:
+    """The cache folder exists (made when missing), can be written, and holds the largest bundle
+    not unpacked yet (``largest``); else an error naming the folder and what is wrong."""
+    if cache.exists() and not cache.is_dir():
+        raise ReleaseError(f"{cache}: the cache folder is a file, not a folder; give --cache-dir a folder")
     try:
-        with zipfile.ZipFile(path) as zf:
-            infos = zf.infolist()
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise ReleaseError(f"{path}: not a readable zip ({exc})") from None
-    splat = sum(i.file_size for i in infos if i.filename == f"{folder}/splat.ply")
-    models = sum(i.file_size for i in infos if i.filename.startswith(f"{folder}/models/"))
-    if splat == 0:
-        raise ReleaseError(f"{path}: holds no {folder}/splat.ply")
-    return splat, models
+        cache.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ReleaseError(f"{cache}: the cache folder cannot be made ({exc.strerror or exc}); give --cache-dir "
+                           "a folder this user can write") from None
+    try:
+        fd, probe = tempfile.mkstemp(dir=cache, prefix=".write-test-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise ReleaseError(f"{cache}: the cache folder is not writable ({exc.strerror or exc}); give --cache-dir "
+                           "a folder this user can write") from None
+    if largest is not None:
+        check_free_space(cache, largest.bytes, f"unpacking {largest.zip_path.name} (the largest bundle)")
 
 
 class _Unpacker:
     """Returns a scene's unpacked bundle folder, unpacking its zip (checked against SHA256SUMS)
-    into the cache the first time; a half-unpacked folder never appears (staged, then renamed)."""
+    into the cache the first time; a half-unpacked folder never appears (staged, then renamed).
+    ``refresh()`` unpacks it again whatever the stamp says (the folder failed its checks)."""
 
     def __init__(self, zip_path: Path, sha256: str, folder: str, cache: Path) -> None:
         self.zip_path, self.sha256, self.folder, self.cache = zip_path, sha256, folder, cache
         self.target = cache / folder
+        self.bytes = 0  # unpacked size, from the zip's directory (sizes())
         self._lock = threading.Lock()
+
+    def sizes(self) -> tuple[int, int]:
+        """Uncompressed bytes of the splat and of the models (the zip's directory only, checked)."""
+        with open_zip(self.zip_path, inside=self.folder) as zf:
+            self.bytes = sum(zf.size(n) for n in zf.names)
+            splat = zf.size(f"{self.folder}/splat.ply") if f"{self.folder}/splat.ply" in zf.names else 0
+            models = sum(zf.size(n) for n in zf.names if n.startswith(f"{self.folder}/models/"))
+        if splat == 0:
+            raise ReleaseError(f"{self.zip_path}: holds no {self.folder}/splat.ply")
+        return splat, models
+
+    def unpacked(self) -> bool:
+        """The folder was unpacked from this very zip (its stamp says so)."""
+        stamp = self.target / STAMP
+        return stamp.is_file() and stamp.read_text().strip() == self.sha256
 
     def __call__(self) -> Path:
         with self._lock:
-            stamp = self.target / ".unpacked-from"
-            if stamp.is_file() and stamp.read_text().strip() == self.sha256:
-                return self.target
-            digest = file_sha256(self.zip_path)
-            if digest != self.sha256:
-                raise ReleaseError(f"{self.zip_path}: sha256 {digest[:12]}... does not match {SUMS} "
-                                   f"({self.sha256[:12]}...); the release was modified or is incomplete")
-            with zipfile.ZipFile(self.zip_path) as zf:
-                bad = member_outside(zf.namelist(), self.folder)
-                if bad is not None:
-                    raise ReleaseError(f"{self.zip_path}: member {bad} lies outside {self.folder}/")
-                with staged_folder(self.target) as stage:
-                    prefix = len(self.folder) + 1
-                    for info in zf.infolist():
-                        if info.is_dir():
-                            continue
-                        out = stage / info.filename[prefix:]
-                        out.parent.mkdir(parents=True, exist_ok=True)
-                        with zf.open(info) as src, open(out, "wb") as dst:
-                            while chunk := src.read(1 << 20):
-                                dst.write(chunk)
-                    (stage / ".unpacked-from").write_text(self.sha256 + "\n")
-            return self.target
+            return self.target if self.unpacked() else self._unpack()
+
+    def refresh(self) -> Path:
+        """Unpack the bundle again from its zip, checked against SHA256SUMS again (the stamp is ignored)."""
+        with self._lock:
+            return self._unpack()
+
+    def _unpack(self) -> Path:
+        digest = file_sha256(self.zip_path)
+        if digest != self.sha256:
+            raise ReleaseError(f"{self.zip_path}: sha256 {digest[:12]}... does not match {SUMS} "
+                               f"({self.sha256[:12]}...); the release was modified or is incomplete")
+        try:
+            with open_zip(self.zip_path, inside=self.folder) as zf, staged_folder(self.target) as stage:
+                try:
+                    zf.extract(stage, strip=self.folder)
+                except ReleaseError as exc:  # name the bundle folder, not its hidden staging sibling
+                    raise ReleaseError(str(exc).replace(str(stage), str(self.target))) from None
+                (stage / STAMP).write_text(self.sha256 + "\n")
+        except OSError as exc:  # the stage itself, the stamp (the unpacker names its own errors)
+            raise ReleaseError(f"{self.cache}: cannot unpack {self.zip_path.name} here "
+                               f"({exc.strerror or exc})") from None
+        return self.target
 
 
 def _unzipped_sources(base: Path) -> list[Any]:

@@ -3,22 +3,25 @@
 
 Both sides read the split's JSON files through annotation's BOP readers (the format's owner) and
 check that every image the ``scene_gt.json`` files list has its rgb, depth and masks, and that
-every ``obj_id`` has a model in the release's models zip.
+every ``obj_id`` has a model in the release's models zip. Every PNG is checked too
+(:mod:`dataset.release.images`): its header and tail when packing (a damaged synthetic image is not
+packed), decoded when verifying; all images of one ``train_pbr/XXXXXX`` folder share one size.
+The zip is read through :func:`dataset.release.zips.open_zip` (names, sizes, streamed CRCs).
 """
 
 from __future__ import annotations
 
 import re
 import tempfile
-import zipfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 from annotation import read_scene_camera, read_scene_gt, read_scene_gt_info
-from brave6d.errors import DataError
 from dataset.release.formats import SYNTH_DIR, TRAIN_PBR
+from dataset.release.images import check_png_file, decode_zip_images, image_kind
 from dataset.release.source import ReleaseError
+from dataset.release.zips import open_zip
 
 _FOLDER = re.compile(rf"^{TRAIN_PBR}/(\d{{6}})/")
 
@@ -35,40 +38,36 @@ def train_pbr_files(split: Path, models: Mapping[int, Any]) -> list[tuple[Path, 
     if not folders:
         raise ReleaseError(f"{split}: the synthetic split holds no image folders; run 'brave6d synth' again")
     for folder in folders:
-        members = {p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()}
+        files = sorted(p for p in folder.rglob("*") if p.is_file())
+        members = {p.relative_to(folder).as_posix() for p in files}
         _check_folder(folder.name, lambda name, reader, f=folder: _read_local(reader, f / name), members, models,
                       str(folder))
+        size = None
+        for p in files:
+            kind = image_kind(p.relative_to(folder).as_posix())
+            if kind is not None:
+                size = check_png_file(p, kind, size)
     return [(p, f"{TRAIN_PBR}/{p.relative_to(split).as_posix()}") for p in sorted(split.rglob("*")) if p.is_file()]
 
 
 def check_train_pbr_zip(path: Path, models: Mapping[int, Any]) -> int:
     """Verify a release's ``<name>_train_pbr.zip``; returns the number of images."""
-    try:
-        zf = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise ReleaseError(f"{path}: not a readable zip ({exc})") from None
-    with zf, tempfile.TemporaryDirectory(prefix="brave6d-verify-pbr-") as tmp:
-        if zf.testzip() is not None:
-            raise ReleaseError(f"{path}: a member fails its CRC check (the zip is corrupt)")
+    with open_zip(path, inside=TRAIN_PBR, shown=path.name) as zf, \
+            tempfile.TemporaryDirectory(prefix="brave6d-verify-pbr-") as tmp:
         by_folder: dict[str, set[str]] = {}
-        for name in zf.namelist():
+        for name in zf.names:
             m = _FOLDER.match(name)
             if m is None:
-                raise ReleaseError(f"{path}: member {name} lies outside {TRAIN_PBR}/XXXXXX/")
+                raise ReleaseError(f"{path.name}: member {name}: lies outside {TRAIN_PBR}/XXXXXX/")
             by_folder.setdefault(m.group(1), set()).add(name[m.end():])
         images = 0
         for folder, members in sorted(by_folder.items()):
             def read(name: str, reader: Callable[[Path], Any], f: str = folder) -> Any:
-                member = f"{TRAIN_PBR}/{f}/{name}"
-                if member not in zf.namelist():
-                    raise ReleaseError(f"{path.name}:{member}: missing")
-                local = Path(zf.extract(member, tmp))
-                try:
-                    return reader(local)
-                except DataError as exc:
-                    raise ReleaseError(str(exc).replace(str(local), f"{path.name}:{member}")) from None
+                return zf.run_reader(reader, f"{TRAIN_PBR}/{f}/{name}", Path(tmp))
 
             images += _check_folder(folder, read, members, models, f"{path.name}:{TRAIN_PBR}/{folder}")
+            decode_zip_images(zf, f"{TRAIN_PBR}/{folder}")
+        zf.check_unread()
     return images
 
 

@@ -1,21 +1,29 @@
 """``brave6d release verify OUT``: check a release folder completely; the first problem is an error.
 
 In order: every file's checksum against ``SHA256SUMS`` (and no file left out of it), the manifest,
-every zip's CRCs, every JSON file inside against its reader (annotation's BOP readers, the
-release's own), every image and mask that ``scene_gt``/``scene_camera`` reference, object ids
-(the same name has the same ``obj_id`` in every scene, in ``models_info`` and in the library),
-the targets, that each scene's bundle loads (``serve.load_bundle`` verifies its manifest) and, when
+every zip's directory (member names and sizes: :func:`dataset.release.zips.open_zip`), every JSON
+file inside against its reader (annotation's BOP readers, the release's own), every image and mask
+that ``scene_gt``/``scene_camera`` reference, and every PNG of the test split decoded
+(:mod:`dataset.release.images`: kind by folder, the size of ``camera.json``), object ids (the same
+name has the same ``obj_id`` in every scene, in ``models_info`` and in the library), the targets,
+every other member's length and CRC, each scene's bundle (every member listed by its own
+``manifest.json`` and matching its sha256; then ``serve.load_bundle`` on its small files) and, when
 the release has one, the synthetic training split (:mod:`dataset.release.train_pbr`).
+
+A release is untrusted input, so nothing is extracted whole: members are streamed for their
+checksums, JSON files and images are read into memory (bounded by :class:`~dataset.release.zips.ZipLimits`)
+and only the small files a reader needs are written to a temporary folder.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import tempfile
-import zipfile
-from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 from annotation import read_models_info, read_ply_mesh, read_scene_camera, read_scene_gt, read_scene_gt_info
 from brave6d.atomic import file_sha256, read_json
@@ -24,12 +32,14 @@ from brave6d.progress import progress
 from dataset.release.formats import (CAMERA, DATASET_INFO, HOLDOUT, MANIFEST, SUMS, TARGETS, TARGETS_HOLDOUT,
                                      base_zip, bundle_folder, bundle_zip, models_zip, read_holdout,
                                      read_sha256sums, read_targets, scene_folder, test_zip, train_pbr_zip)
+from dataset.release.images import decode_zip_images
 from dataset.release.manifest import read_manifest
 from dataset.release.source import ReleaseError
 from dataset.release.train_pbr import check_train_pbr_zip
-from dataset.release.zips import member_outside
+from dataset.release.zips import CheckedZip, open_zip
 
-T = TypeVar("T")
+#: Bytes of a splat kept to let ``serve.load_bundle`` read its PLY header (the rest is only hashed).
+_SPLAT_HEAD = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -60,19 +70,18 @@ def verify_release(root: Path | str) -> VerifyReport:
     for z in zips:
         if z not in sums:
             raise ReleaseError(f"{base / z}: required by {MANIFEST} but not in the release")
-    with tempfile.TemporaryDirectory(prefix="brave6d-verify-") as tmp_dir:
+    with tempfile.TemporaryDirectory(prefix="brave6d-verify-") as tmp_dir, ExitStack() as stack:
         tmp = Path(tmp_dir)
-        opened = {z: _open_zip(base / z) for z in zips}
-        try:
-            library = {int(o["obj_id"]): str(o["name"]) for o in manifest["objects"]}
-            models = _check_models(opened[models_zip(name)], models_zip(name), library, tmp)
-            gts = _check_test(opened[test_zip(name)], test_zip(name), scenes, library, models, tmp)
-            _check_base(opened[base_zip(name)], base_zip(name), name, scenes, gts, tmp)
-        finally:
-            for zf in opened.values():
-                zf.close()
+        opened = {z: stack.enter_context(open_zip(base / z, shown=z)) for z in zips[:3]}
+        library = {int(o["obj_id"]): str(o["name"]) for o in manifest["objects"]}
+        size = _check_camera(opened[base_zip(name)], name, tmp)
+        models = _check_models(opened[models_zip(name)], library, tmp)
+        gts = _check_test(opened[test_zip(name)], scenes, library, models, size, tmp)
+        _check_base(opened[base_zip(name)], name, scenes, gts, tmp)
+        for zf in opened.values():
+            zf.check_unread()
         for s in progress(scenes, desc="bundles", unit="bundle"):
-            _check_bundle(base / bundle_zip(name, s["scene_id"]), s, library, tmp)
+            _check_bundle(base, bundle_zip(name, s["scene_id"]), s, library, tmp)
     pbr = train_pbr_zip(name)
     pbr_images = check_train_pbr_zip(base / pbr, models) if pbr in sums else 0
     return VerifyReport(base, len(sums) + 1, sum((base / n).stat().st_size for n in sums), len(scenes),
@@ -94,60 +103,37 @@ def _check_sums(base: Path) -> dict[str, str]:
     return sums
 
 
-def _open_zip(path: Path) -> zipfile.ZipFile:
-    try:
-        zf = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise ReleaseError(f"{path}: not a readable zip ({exc})") from None
-    try:
-        bad = zf.testzip()
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:  # zlib/truncation errors
-        zf.close()
-        raise ReleaseError(f"{path}: corrupt zip ({exc})") from None
-    if bad is not None:
-        zf.close()
-        raise ReleaseError(f"{path}: member {bad}: CRC check failed (the zip is corrupt)")
-    return zf
+def _check_camera(zf: CheckedZip, name: str, tmp: Path) -> tuple[int, int]:
+    """The release's ``camera.json`` (base zip); returns its image size (width, height)."""
+    camera = zf.run_reader(read_json, f"{name}/{CAMERA}", tmp)
+    for key in ("fx", "fy", "cx", "cy", "width", "height", "depth_scale"):
+        if not isinstance(camera, dict) or not isinstance(camera.get(key), (int, float)):
+            raise ReleaseError(f"{zf.shown}:{name}/{CAMERA}: field '{key}': a number is required")
+    return int(camera["width"]), int(camera["height"])
 
 
-def _extract(zf: zipfile.ZipFile, zip_name: str, member: str, tmp: Path) -> Path:
-    try:
-        zf.getinfo(member)
-    except KeyError:
-        raise ReleaseError(f"{zip_name}: {member}: missing") from None
-    return Path(zf.extract(member, tmp / zip_name))
-
-
-def _read(reader: Callable[[Path], T], zf: zipfile.ZipFile, zip_name: str, member: str, tmp: Path) -> T:
-    """Run a file reader on a zip member; its errors name ``zip:member`` rather than the temporary file."""
-    path = _extract(zf, zip_name, member, tmp)
-    try:
-        return reader(path)
-    except DataError as exc:
-        raise ReleaseError(str(exc).replace(str(path), f"{zip_name}:{member}")) from None
-
-
-def _check_models(zf: zipfile.ZipFile, zip_name: str, library: dict[int, str], tmp: Path) -> dict[int, Any]:
-    info = _read(read_models_info, zf, zip_name, "models/models_info.json", tmp)
+def _check_models(zf: CheckedZip, library: dict[int, str], tmp: Path) -> dict[int, Any]:
+    info = zf.run_reader(read_models_info, "models/models_info.json", tmp)
     for obj_id in sorted(info):
         if obj_id not in library:
-            raise ReleaseError(f"{zip_name}:models/models_info.json: obj_id {obj_id} is not in the object library "
+            raise ReleaseError(f"{zf.shown}:models/models_info.json: obj_id {obj_id} is not in the object library "
                                f"of {MANIFEST}")
-        _read(read_ply_mesh, zf, zip_name, f"models/obj_{obj_id:06d}.ply", tmp)
+        zf.run_reader(read_ply_mesh, f"models/obj_{obj_id:06d}.ply", tmp)
     return info
 
 
-def _check_test(zf: zipfile.ZipFile, zip_name: str, scenes: list[dict[str, Any]], library: dict[int, str],
-                models: dict[int, Any], tmp: Path) -> dict[int, dict[int, list[int]]]:
+def _check_test(zf: CheckedZip, scenes: list[dict[str, Any]], library: dict[int, str], models: dict[int, Any],
+                size: tuple[int, int], tmp: Path) -> dict[int, dict[int, list[int]]]:
     """Check every scene folder; returns ``{scene_id: {im_id: [obj_id per gt]}}`` (and holdout under -id)."""
-    names = set(zf.namelist())
+    zip_name = zf.shown
+    names = set(zf.names)
     out: dict[int, dict[int, list[int]]] = {}
     for s in scenes:
         sid, folder = s["scene_id"], scene_folder(s["scene_id"])
-        gt = _read(read_scene_gt, zf, zip_name, f"{folder}/scene_gt.json", tmp)
-        cam = _read(read_scene_camera, zf, zip_name, f"{folder}/scene_camera.json", tmp)
-        info = _read(read_scene_gt_info, zf, zip_name, f"{folder}/scene_gt_info.json", tmp)
-        holdout = _read(read_holdout, zf, zip_name, f"{folder}/{HOLDOUT}", tmp)
+        gt = zf.run_reader(read_scene_gt, f"{folder}/scene_gt.json", tmp)
+        cam = zf.run_reader(read_scene_camera, f"{folder}/scene_camera.json", tmp)
+        info = zf.run_reader(read_scene_gt_info, f"{folder}/scene_gt_info.json", tmp)
+        holdout = zf.run_reader(read_holdout, f"{folder}/{HOLDOUT}", tmp)
         for other, ids in (("scene_camera.json", cam), ("scene_gt_info.json", info)):
             if set(ids) != set(gt):
                 odd = sorted(set(ids) ^ set(gt))[:3]
@@ -175,25 +161,22 @@ def _check_test(zf: zipfile.ZipFile, zip_name: str, scenes: list[dict[str, Any]]
                 if f"{folder}/{rel}" not in names:
                     raise ReleaseError(f"{zip_name}: {folder}/{rel}: missing (image {im_id} is referenced by "
                                        "scene_gt.json and scene_camera.json)")
+        decode_zip_images(zf, folder, size)
         out[sid] = {im: [g.obj_id for g in gts] for im, gts in gt.items()}
         out[-sid] = {im: [] for im in holdout}
     return out
 
 
-def _check_base(zf: zipfile.ZipFile, zip_name: str, name: str, scenes: list[dict[str, Any]],
-                gts: dict[int, dict[int, list[int]]], tmp: Path) -> None:
-    camera = _read(read_json, zf, zip_name, f"{name}/{CAMERA}", tmp)
-    for key in ("fx", "fy", "cx", "cy", "width", "height", "depth_scale"):
-        if not isinstance(camera, dict) or not isinstance(camera.get(key), (int, float)):
-            raise ReleaseError(f"{zip_name}:{name}/{CAMERA}: field '{key}': a number is required")
-    info = _read(read_json, zf, zip_name, f"{name}/{DATASET_INFO}", tmp)
+def _check_base(zf: CheckedZip, name: str, scenes: list[dict[str, Any]], gts: dict[int, dict[int, list[int]]],
+                tmp: Path) -> None:
+    info = zf.run_reader(read_json, f"{name}/{DATASET_INFO}", tmp)
     ids = [s.get("scene_id") for s in info.get("scenes", [])] if isinstance(info, dict) else None
     if ids != [s["scene_id"] for s in scenes]:
-        raise ReleaseError(f"{zip_name}:{name}/{DATASET_INFO}: field 'scenes': scene ids {ids} differ from "
+        raise ReleaseError(f"{zf.shown}:{name}/{DATASET_INFO}: field 'scenes': scene ids {ids} differ from "
                            f"{MANIFEST}'s")
     for member, holdout_only in ((TARGETS, False), (TARGETS_HOLDOUT, True)):
-        shown = f"{zip_name}:{name}/{member}"
-        for i, t in enumerate(_read(lambda p, s=shown: read_targets(p, s), zf, zip_name, f"{name}/{member}", tmp)):
+        shown = f"{zf.shown}:{name}/{member}"
+        for i, t in enumerate(zf.run_reader(lambda p, s=shown: read_targets(p, s), f"{name}/{member}", tmp)):
             ims = gts.get(t["scene_id"], {})
             if t["im_id"] not in ims or t["obj_id"] not in ims[t["im_id"]]:
                 raise ReleaseError(f"{shown}: target [{i}] (scene {t['scene_id']}, image {t['im_id']}, obj_id "
@@ -203,21 +186,71 @@ def _check_base(zf: zipfile.ZipFile, zip_name: str, name: str, scenes: list[dict
                                    "holdout image")
 
 
-def _check_bundle(path: Path, scene: dict[str, Any], library: dict[int, str], tmp: Path) -> None:
-    from serve import load_bundle
+def _check_bundle(base: Path, zip_name: str, scene: dict[str, Any], library: dict[int, str], tmp: Path) -> None:
+    """A bundle zip: every member listed by the bundle's own manifest and matching its size and
+    sha256 (streamed); then ``serve.load_bundle`` on its JSON files and the splat's PLY header."""
+    from serve import SPLAT, load_bundle
 
     folder = bundle_folder(scene["scene_id"])
-    target = tmp / "bundles" / path.stem
-    with zipfile.ZipFile(path) as zf:
-        bad = member_outside(zf.namelist(), folder)
-        if bad is not None:
-            raise ReleaseError(f"{path}: member {bad} lies outside {folder}/")
-        zf.extractall(target)
-    try:
-        bundle = load_bundle(target / folder)
-    except DataError as exc:
-        raise ReleaseError(f"{path}: the bundle does not load: {str(exc).replace(str(target), path.name)}") from None
+    with open_zip(base / zip_name, inside=folder, shown=zip_name) as zf:
+        listed = _bundle_files(zf, folder)
+        head = b""
+        for member, entry in listed.items():
+            digest, kept = _digest(zf, member, _SPLAT_HEAD if member == f"{folder}/{SPLAT}" else 0)
+            head = kept or head
+            if digest != entry["sha256"]:
+                raise ReleaseError(f"{zip_name}:{member}: sha256 {digest[:12]}... does not match {folder}/{MANIFEST} "
+                                   f"({str(entry['sha256'])[:12]}...); the bundle was altered")
+        with tempfile.TemporaryDirectory(prefix="bundle-", dir=tmp) as tmp_bundle:
+            target = Path(tmp_bundle)
+            small = [m for m in listed if m.count("/") == folder.count("/") + 1 and m.endswith(".json")]
+            zf.extract(target, list(dict.fromkeys([f"{folder}/{MANIFEST}", *small])), strip=folder)
+            (target / SPLAT).write_bytes(head[:head.find(b"end_header\n") + 11] if b"end_header\n" in head else head)
+            try:
+                bundle = load_bundle(target, verify=False)  # every file was checked against the manifest above
+            except DataError as exc:
+                raise ReleaseError(f"{zip_name}: the bundle does not load: "
+                                   f"{str(exc).replace(str(target), f'{zip_name}:{folder}')}") from None
     for o in bundle.objects:
         if library.get(o.obj_id) != o.name:
-            raise ReleaseError(f"{path}: {folder}/objects.json: object {o.name!r} has obj_id {o.obj_id}, which is "
+            raise ReleaseError(f"{zip_name}: {folder}/objects.json: object {o.name!r} has obj_id {o.obj_id}, which is "
                                f"{library.get(o.obj_id)!r} in the object library ({MANIFEST})")
+        if f"{folder}/{o.model}" not in listed:
+            raise ReleaseError(f"{zip_name}: {folder}/objects.json: model {o.model} of object {o.name!r} is not in "
+                               f"the bundle's {MANIFEST}")
+
+
+def _bundle_files(zf: CheckedZip, folder: str) -> dict[str, dict[str, Any]]:
+    """``{member: manifest entry}`` of every file a bundle's ``manifest.json`` lists; every member of
+    the zip must be one of them (or the manifest itself), with the size the manifest gives."""
+    where = f"{zf.shown}:{folder}/{MANIFEST}"
+    try:
+        manifest = json.loads(zf.read(f"{folder}/{MANIFEST}"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ReleaseError(f"{where}: not valid JSON ({exc})") from None
+    files = manifest.get("files") if isinstance(manifest, dict) else None
+    if not isinstance(files, dict) or not all(isinstance(e, dict) and isinstance(e.get("sha256"), str)
+                                              for e in files.values()):
+        raise ReleaseError(f"{where}: field 'files': an object of {{file: {{sha256, bytes}}}} is required")
+    listed = {f"{folder}/{rel}": entry for rel, entry in files.items()}
+    present = set(zf.names)
+    for member in zf.names:
+        if member != f"{folder}/{MANIFEST}" and member not in listed:
+            raise ReleaseError(f"{zf.shown}: member {member}: not listed in the bundle's {MANIFEST}")
+    for member, entry in listed.items():
+        if member not in present:
+            raise ReleaseError(f"{zf.shown}:{member}: missing (listed in {folder}/{MANIFEST})")
+        if "bytes" in entry and entry["bytes"] != zf.size(member):
+            raise ReleaseError(f"{zf.shown}:{member}: {zf.size(member)} bytes, {folder}/{MANIFEST} says "
+                               f"{entry['bytes']}")
+    return listed
+
+
+def _digest(zf: CheckedZip, member: str, keep: int = 0) -> tuple[str, bytes]:
+    """The member's sha256 (streamed) and its first ``keep`` bytes."""
+    digest, head = hashlib.sha256(), b""
+    for piece in zf.chunks(member):
+        digest.update(piece)
+        if len(head) < keep:
+            head += piece[:keep - len(head)]
+    return digest.hexdigest(), head
