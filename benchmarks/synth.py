@@ -8,7 +8,7 @@ what a user waits for). Prints one line per setting and the 2-worker speed-up.
     python benchmarks/synth.py [--spec data/demo/dataset.yaml] [--images 12] [--repeats 3]
 
 ``--check-images N`` measures instead what a resumed run spends checking the images already written
-(:mod:`synth.png_check`): it renders N images at 640x480 once, then times each check over all of
+(:mod:`brave6d.png_check`): it renders N images at 640x480 once, then times each check over all of
 them (one thread, files in the page cache; median of ``--repeats`` passes) and prints ms per image.
 """
 
@@ -35,7 +35,7 @@ if str(ROOT) not in sys.path:
 from brave6d.progress import format_table
 from synth import SynthOptions, synthesize
 from synth.limits import usable_cpus
-from synth.png_check import CHECKS
+from brave6d.png_check import CHECKS
 from synth.writer import image_problem
 
 SIZES = ((640, 480), (320, 240))

@@ -13,7 +13,7 @@ Public API (imported lazily, so ``import synth`` costs no Open3D or trimesh):
 The modules behind them, one job each: ``source`` (the spec), ``placement`` (resting poses without
 interpenetration), ``randomize`` (one image's random scene), ``render`` (SimCamera + ground truth),
 ``writer`` (the train_pbr files, resumable records, ``synth.json``; an image whose files fail their
-check is rendered again on resume), ``png_check`` (structural PNG checks: header, CRC, decode),
+check is rendered again on resume: :mod:`brave6d.png_check`),
 ``limits`` (the bounds of the flags and the memory/CPU check at start), ``run`` (workers, progress),
 ``cli``.
 """

@@ -19,7 +19,7 @@ from pathlib import Path
 from brave6d.errors import BraveError
 from brave6d.progress import progress_bar
 from synth import limits
-from synth.png_check import CHECKS, DEFAULT_CHECK
+from brave6d.png_check import CHECKS, DEFAULT_CHECK
 from synth.randomize import LibraryAssets, Randomization, sample_image_scene
 from synth.render import render_image
 from synth.source import SynthSource, load_synth_source
@@ -33,7 +33,7 @@ class SynthOptions:
     """``images``: how many; ``seed``: the split's seed (>= 0); ``workers``: processes; ``width`` /
     ``height``: image size (default: the spec's camera); ``randomization``: how images vary;
     ``resume_check``: how the PNGs of images already written are checked before they count as
-    complete (:mod:`synth.png_check`: ``header``, ``crc`` or ``decode``); ``mesh_dirs``: folders besides a
+    complete (:mod:`brave6d.png_check`: ``header``, ``crc`` or ``decode``); ``mesh_dirs``: folders besides a
     dataset.yaml's own that its meshes may lie in (``--mesh-dir``). Bounds: :mod:`synth.limits`."""
 
     images: int

@@ -23,7 +23,7 @@ import numpy as np
 
 from brave6d.atomic import atomic_write_json, atomic_write_text, read_json, write_png
 from brave6d.errors import DataError
-from synth.png_check import DEFAULT_CHECK, png_problem
+from brave6d.png_check import DEFAULT_CHECK, png_problem
 from synth.render import RenderedImage
 
 SPLIT = "train_pbr"
@@ -58,7 +58,7 @@ def has_record(out: Path, index: int) -> bool:
 def image_problem(out: Path, index: int, size: tuple[int, int], check: str = DEFAULT_CHECK) -> str | None:
     """Why image ``index`` (``size``: width, height) is not complete and whole, naming the first bad
     file: its record missing or malformed, or a PNG it lists missing or failing ``check``
-    (:mod:`synth.png_check`); None when it is."""
+    (:mod:`brave6d.png_check`); None when it is."""
     path = record_path(out, index)
     try:
         record = _record_fields(path, read_json(path))

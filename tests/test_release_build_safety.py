@@ -137,3 +137,19 @@ def test_the_next_build_removes_what_a_killed_build_left(work: Path, tmp_path: P
     assert verify_release(out).scenes == 2
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".out.")) == [
         ".out.tmp-0live0ne", ".out.tmp-0live0ne.owner"]  # kept until a staging of out finds its owner gone
+
+
+def test_write_zip_never_reads_through_a_link(tmp_path: Path) -> None:
+    """The last line of defence: a file checked by build and then swapped for a link is not packed."""
+    from dataset.release.source import ReleaseError
+    from dataset.release.zips import write_zip
+
+    secret = tmp_path / "secret.txt"
+    secret.write_text("private")
+    real = tmp_path / "real.json"
+    real.write_text("{}")
+    write_zip(tmp_path / "ok.zip", [(real, "a/real.json")])
+    real.unlink()
+    real.symlink_to(secret)
+    with pytest.raises(ReleaseError, match=rf"{real}: is a symbolic link"):
+        write_zip(tmp_path / "bad.zip", [(real, "a/real.json")])

@@ -13,9 +13,13 @@ Public API (imported lazily: ``import dataset.release`` loads no torch):
 
 The modules behind them, one job each: ``source`` (dataset.yaml -> scenes and library),
 ``collect`` (read and check each scene's BOP export, bundle, holdout and statistics), ``zips``
-(streamed, reproducible zips), ``formats`` (file names, SHA256SUMS, targets, holdout.json),
-``manifest`` (manifest.json), ``card`` (the dataset card), ``build``, ``verify``, ``serving`` (the
-scenes of a release for ``brave6d serve``), ``cli``.
+(the project's one zip module: streamed, reproducible writing, and the one safe reader and
+unpacker with its size policy ``ZipLimits``: every member checked to stay inside its folder, sizes
+checked from the headers and again while streaming), ``images`` (every PNG of a release decoded
+or header-checked, through ``brave6d.png_check``), ``formats`` (file names, SHA256SUMS, targets,
+holdout.json), ``manifest`` (manifest.json), ``card`` (the dataset card), ``build``, ``verify``,
+``serving`` (the scenes of a release for ``brave6d serve``: the cache folder checked at start,
+bundles unpacked on first use and again by ``refresh``), ``cli``.
 """
 
 from brave6d.lazy import lazy_exports

@@ -62,13 +62,25 @@ def write_zip(path: Path, files: Sequence[tuple[Path, str]], texts: Sequence[tup
                 zf.writestr(_info(name), text.encode("utf-8"))
             for src, name in files:
                 info = _info(name)
-                info.file_size = src.stat().st_size  # lets zipfile choose ZIP64 for files over 2 GiB
-                with open(src, "rb") as source, zf.open(info, "w") as dest:
-                    shutil.copyfileobj(source, dest, _CHUNK)
+                with _open_no_link(src) as source:
+                    info.file_size = os.fstat(source.fileno()).st_size  # lets zipfile choose ZIP64 over 2 GiB
+                    with zf.open(info, "w") as dest:
+                        shutil.copyfileobj(source, dest, _CHUNK)
                 bar.update(info.file_size)
     finally:
         bar.close()
     return path
+
+
+def _open_no_link(src: Path) -> BinaryIO:
+    """``src`` opened for reading, never through a symbolic link (``O_NOFOLLOW``): what the
+    caller checked is what is packed, even if the file is swapped for a link in between."""
+    try:
+        return open(src, "rb", opener=lambda path, flags: os.open(path, flags | os.O_NOFOLLOW))
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise ReleaseError(f"{src}: is a symbolic link; a release packs only real files") from None
+        raise ReleaseError(f"{src}: cannot read ({exc.strerror})") from None
 
 
 def _info(name: str) -> zipfile.ZipInfo:

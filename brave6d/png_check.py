@@ -1,5 +1,9 @@
-"""Is a PNG file whole? Three checks of rising cost (``CHECKS``), each also requiring the expected
-size and kind (bit depth and colour type of ``rgb``, ``depth`` or ``mask``):
+"""Is a PNG whole, and the image it should be? The one checker of PNG files for every stage
+(``brave6d synth``'s resume, ``release build``'s synthetic split, ``release verify``).
+
+Three checks of rising cost (``CHECKS``), each also requiring the expected kind (bit depth and
+colour type of ``rgb``, ``depth`` or ``mask``; ``any`` for any PNG) and, when given, the size; an
+image that declares more than ``MAX_PIXELS`` pixels is refused before anything is decoded:
 
 - ``header``: the signature, the IHDR chunk (and its CRC) and the file ending in the IEND chunk;
   reads 45 bytes. Finds a file cut short anywhere, one that is not a PNG, a wrong size or kind.
@@ -28,14 +32,35 @@ SIGNATURE = b"\x89PNG\r\n\x1a\n"
 IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # length 0, type, CRC-32 of b"IEND"
 _HEAD = len(SIGNATURE) + 8 + 13 + 4  # signature, IHDR length and type, its 13 bytes, its CRC
 
-#: kind -> (bit depth, PNG colour type, words for messages)
-KINDS = {"rgb": (8, 2, "8-bit RGB"), "depth": (16, 0, "16-bit grey"), "mask": (8, 0, "8-bit grey")}
+#: kind -> (bit depth, PNG colour types, words for messages); a palette image decodes to RGB.
+KINDS: dict[str, tuple[int | None, tuple[int, ...], str]] = {
+    "rgb": (8, (2, 3), "8-bit RGB"), "depth": (16, (0,), "16-bit grey"), "mask": (8, (0,), "8-bit grey"),
+    "any": (None, (), "a PNG")}
+#: The kind of image each BOP folder holds (``rgb/``, ``depth/``, ``mask/``, ``mask_visib/``).
+FOLDER_KINDS = {"rgb": "rgb", "depth": "depth", "mask": "mask", "mask_visib": "mask"}
+#: Larger images are refused before they are decoded (8192 x 8192).
+MAX_PIXELS = 1 << 26
 _COLOUR_WORDS = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
 
 
-def png_problem(source: bytes | Path, kind: str, size: tuple[int, int], check: str = DEFAULT_CHECK) -> str | None:
+def folder_kind(relative: str) -> str | None:
+    """The kind of a ``.png`` file from its BOP folder (``rgb``, ``depth``, ``mask``), ``"any"`` for a
+    PNG elsewhere, None for a file that is no PNG (``relative``: a POSIX path)."""
+    parts = relative.rsplit("/", 2)
+    if not parts[-1].lower().endswith(".png"):
+        return None
+    return FOLDER_KINDS.get(parts[-2] if len(parts) > 1 else "", "any")
+
+
+def png_size(head: bytes) -> tuple[int, int]:
+    """(width, height) from the first 24 bytes of a PNG that :func:`png_problem` accepted."""
+    return struct.unpack(">II", head[16:24])
+
+
+def png_problem(source: bytes | Path, kind: str, size: tuple[int, int] | None = None,
+                check: str = DEFAULT_CHECK) -> str | None:
     """Why the PNG ``source`` (its bytes, or a file) is not a whole ``kind`` image of ``size``
-    (width, height) by ``check`` (module docstring); None when it is."""
+    (width, height; None: any) by ``check`` (module docstring); None when it is."""
     if check not in CHECKS:
         raise ValueError(f"unknown PNG check {check!r}; one of {', '.join(CHECKS)}")
     if kind not in KINDS:
@@ -67,7 +92,7 @@ def _ends(path: Path) -> tuple[bytes, bytes, int]:
         return head, handle.read(), length
 
 
-def _header_problem(head: bytes, tail: bytes, length: int, kind: str, size: tuple[int, int]) -> str | None:
+def _header_problem(head: bytes, tail: bytes, length: int, kind: str, size: tuple[int, int] | None) -> str | None:
     if not head:
         return "empty file"
     if not SIGNATURE.startswith(head[:len(SIGNATURE)]):
@@ -80,10 +105,12 @@ def _header_problem(head: bytes, tail: bytes, length: int, kind: str, size: tupl
     if zlib.crc32(head[12:29]) != struct.unpack(">I", head[29:33])[0]:
         return "damaged (IHDR CRC mismatch)"
     width, height, depth, colour, compression, filtering, interlace = struct.unpack(">IIBBBBB", head[16:29])
-    if (width, height) != tuple(size):
+    if not 0 < width * height <= MAX_PIXELS:
+        return f"declares {width}x{height} pixels (at most {MAX_PIXELS} are read)"
+    if size is not None and (width, height) != tuple(size):
         return f"image is {width}x{height}, expected {size[0]}x{size[1]}"
-    want_depth, want_colour, words = KINDS[kind]
-    if (depth, colour) != (want_depth, want_colour):
+    want_depth, want_colours, words = KINDS[kind]
+    if want_depth is not None and (depth != want_depth or colour not in want_colours):
         return f"image is {depth}-bit {_COLOUR_WORDS.get(colour, f'colour type {colour}')}, expected {words}"
     if compression != 0 or filtering != 0 or interlace not in (0, 1):
         return "not a PNG (unknown compression, filter or interlace method)"
@@ -114,7 +141,7 @@ def _chunk_problem(data: bytes) -> str | None:
     return "truncated (no IEND chunk)"
 
 
-def _decode_problem(data: bytes, kind: str, size: tuple[int, int]) -> str | None:
+def _decode_problem(data: bytes, kind: str, size: tuple[int, int] | None) -> str | None:
     import cv2
     import numpy as np
 
@@ -124,8 +151,10 @@ def _decode_problem(data: bytes, kind: str, size: tuple[int, int]) -> str | None
         image = None
     if image is None:
         return "does not decode"
-    channels = 3 if kind == "rgb" else 1
-    shape = (size[1], size[0], 3) if channels == 3 else (size[1], size[0])
+    if kind == "any":
+        return None
+    width, height = size if size is not None else png_size(data)
+    shape = (height, width, 3) if kind == "rgb" else (height, width)
     dtype = np.uint16 if kind == "depth" else np.uint8
     if image.shape != shape or image.dtype != dtype:
         return f"decodes to {image.dtype} {image.shape}, expected {np.dtype(dtype)} {shape}"
