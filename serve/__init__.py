@@ -5,6 +5,7 @@ Public API (imported lazily, so ``import serve`` stays cheap: no torch, FastAPI 
 a name is used). Other stages import only these names:
 
 - bundles: ``export_bundle``, ``load_bundle``, ``Bundle``, ``BundleObject``, ``BundleError``,
+  ``read_bundle_manifest`` (the one reader of a bundle's ``manifest.json``, structure checked),
   ``find_splat_ply``, ``SPLAT`` (the splat's file name inside a bundle);
 - the server: ``create_app``, ``ServerLimits`` (its limits, checked when made: ``LimitError``;
   ``limit_arg(name)``: the argparse type of the flag setting one), ``ServerThread`` (uvicorn in a
@@ -37,7 +38,7 @@ from brave6d.lazy import lazy_exports
 
 _LAZY = {
     "export_bundle": ".bundle", "load_bundle": ".bundle", "Bundle": ".bundle", "BundleObject": ".bundle",
-    "BundleError": ".bundle", "find_splat_ply": ".bundle", "SPLAT": ".bundle",
+    "BundleError": ".bundle", "read_bundle_manifest": ".bundle", "find_splat_ply": ".bundle", "SPLAT": ".bundle",
     "create_app": ".app", "ServerLimits": ".limits", "LimitError": ".limits", "limit_arg": ".limits",
     "ServerThread": ".runner", "SceneServer": ".episodes",
     "SplatRenderer": ".renderer", "EpisodeManager": ".episodes",

@@ -30,7 +30,17 @@ from typing import Any
 import numpy as np
 
 from brave6d.errors import BraveError
-from serve.bundle import MANIFEST, OBJECTS, SPLAT, Bundle, load_bundle
+from serve.bundle import (
+    MANIFEST,
+    SCENE,
+    SPLAT,
+    Bundle,
+    bundle_scene_name,
+    load_bundle,
+    read_bundle_json,
+    read_bundle_manifest,
+    read_listed_objects,
+)
 from serve.episodes import EpisodeError, EpisodeNotFound, InvalidAction, SceneServer
 
 log = logging.getLogger(__name__)
@@ -85,28 +95,22 @@ class SceneSource:
 
 def bundle_memory_bytes(folder: Path) -> int:
     """:func:`estimate_scene_bytes` of a bundle folder (from the sizes its manifest lists)."""
-    from brave6d.atomic import read_json
-
-    files = read_json(folder / MANIFEST).get("files", {})
-    splat = int(files.get(SPLAT, {}).get("bytes", 0))
-    models = sum(int(v.get("bytes", 0)) for k, v in files.items() if k.startswith("models/"))
+    files = read_bundle_manifest(folder)["files"]
+    splat = files[SPLAT]["bytes"] if SPLAT in files else 0
+    models = sum(v["bytes"] for k, v in files.items() if k.startswith("models/"))
     return estimate_scene_bytes(splat, models)
 
 
 def bundle_scene_source(folder: Path | str, scene_id: int | None = None) -> SceneSource:
-    """The :class:`SceneSource` of one bundle folder (its manifest must exist; it is verified on load)."""
-    from brave6d.atomic import read_json
-
+    """The :class:`SceneSource` of one bundle folder (its manifest must exist; it is verified on load).
+    A malformed manifest, ``scene.json`` or ``objects.json`` raises :class:`BundleError` naming the
+    file and the field."""
     root = Path(folder)
     if not (root / MANIFEST).is_file():
         raise BraveError(f"{root}: not a bundle (no {MANIFEST}); give a bundle folder written by 'brave6d export' "
                          "or a release folder written by 'brave6d release build'")
-    try:
-        scene_name = str(read_json(root / "scene.json").get("name", root.name))
-        objs = read_json(root / OBJECTS).get("objects", [])
-        objects = tuple(SceneObject(int(o["obj_id"]), str(o["name"]), o.get("class")) for o in objs)
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise BraveError(f"{root}: malformed bundle ({type(exc).__name__}: {exc})") from None
+    scene_name = bundle_scene_name(root, read_bundle_json(root, SCENE))
+    objects = tuple(SceneObject(o["obj_id"], o["name"], o.get("class")) for o in read_listed_objects(root))
     return SceneSource(scene_name, scene_id, objects, bundle_memory_bytes(root), lambda: root, str(root))
 
 
