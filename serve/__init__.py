@@ -13,7 +13,8 @@ a name is used). Other stages import only these names:
   ``SceneServer``, ``SplatRenderer``, ``EpisodeManager`` (episodes without HTTP);
 - the scenes of a server (:mod:`serve.catalog`): ``open_scenes`` (a bundle or a release),
   ``SceneCatalog`` (lazy loading within a memory bound), ``SceneSource``, ``SceneObject``,
-  ``bundle_scene_source``, ``estimate_scene_bytes``, ``SceneCacheFull``;
+  ``bundle_scene_source``, ``estimate_scene_bytes``, ``SceneCacheFull``, ``SceneUnavailable`` (503:
+  a scene whose files cannot be located, unpacked or verified, even after ``SceneSource.refresh``);
 - the client: ``BraveClient``, ``PoseEstimate``, ``ServerError``, ``Observation``, ``StepResult``,
   ``decode_observation``, and ``BraveEnv`` (a ``gymnasium.Env``);
 - the wire schema (:mod:`serve.schema`): ``ObservationMessage``, ``StepMessage``, ``ObjectState``,
@@ -44,6 +45,7 @@ _LAZY = {
     "SplatRenderer": ".renderer", "EpisodeManager": ".episodes",
     "open_scenes": ".catalog", "SceneCatalog": ".catalog", "SceneSource": ".catalog", "SceneObject": ".catalog",
     "bundle_scene_source": ".catalog", "estimate_scene_bytes": ".catalog", "SceneCacheFull": ".catalog",
+    "SceneUnavailable": ".catalog",
     "BraveClient": ".client", "PoseEstimate": ".client", "ServerError": ".client", "Observation": ".client",
     "StepResult": ".client", "decode_observation": ".client", "BraveEnv": ".gym_env",
     "ObservationMessage": ".schema", "StepMessage": ".schema", "ObjectState": ".schema",

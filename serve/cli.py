@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from serve.app import LOOPBACK_HOSTS, create_app
-    from serve.catalog import open_scenes
+    from serve.catalog import SceneUnavailable, open_scenes
     from serve.runner import is_loopback, uvicorn_config
 
     # every number was bounded when the flags were parsed (limit_arg); ServerLimits checks again
@@ -155,7 +155,10 @@ def run(args: argparse.Namespace) -> int:
     scenes = open_scenes(args.bundle, device=args.device, cache_dir=args.cache_dir,
                          max_loaded=args.max_loaded_scenes, max_memory_mb=budget)
     if len(scenes.sources) == 1:  # one scene: load it now, so the first episode is as fast as the rest
-        scenes.release(scenes.acquire(None))
+        try:
+            scenes.release(scenes.acquire(None))
+        except SceneUnavailable as exc:  # at start, the bundle given is the user's: say what is wrong with it
+            raise exc.cause if isinstance(exc.cause, BraveError) else exc from None
     log_dir = args.log_dir if args.log_dir is not None else Path(args.bundle).resolve().parent / "episodes"
     app = create_app(scenes, device=args.device, log_dir=log_dir, limits=limits,
                      allowed_hosts=access.allowed_hosts, token=access.token)
