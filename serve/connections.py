@@ -71,6 +71,7 @@ class ClientConnections:
     def __init__(self, cap: int) -> None:
         self.cap = cap
         self._open: Counter[str] = Counter()
+        self._refusing: set[str] = set()  # clients refused since they last dropped below the cap
 
     def count(self, key: str) -> int:
         """Open connections of the client ``key`` (see :func:`client_key`)."""
@@ -79,6 +80,9 @@ class ClientConnections:
     def admit(self, key: str) -> Seat | None:
         """A seat for a new connection of ``key``, or None when it holds ``cap`` already."""
         if self._open[key] >= self.cap:
+            if key not in self._refusing:  # one warning per episode of refusals, not one per connection
+                self._refusing.add(key)
+                log.warning("refusing connections from %s: it holds %d already (the per-client cap)", key, self.cap)
             return None
         self._open[key] += 1
         return Seat(self, key)
@@ -87,6 +91,8 @@ class ClientConnections:
         self._open[key] -= 1
         if self._open[key] <= 0:
             del self._open[key]
+        if self._open[key] < self.cap:
+            self._refusing.discard(key)
 
 
 class Seat:
@@ -159,7 +165,6 @@ def guarded_protocols(limits: ServerLimits) -> GuardedProtocols:
             self.seat = clients.admit(key)
             if self.seat is None:
                 self.refused = True
-                log.warning("refused a connection from %s: it holds %d already", key, clients.cap)
                 self._refuse(transport, key)
                 return
             super().connection_made(transport)  # type: ignore[arg-type]
