@@ -3,12 +3,16 @@
 its per-client share of connections, the rest refused at once, and the admitted ones closed after
 the header timeout, while a normal client from 127.0.0.1 is served; a body that trickles in is cut
 after the body timeout; WebSocket connections count toward their client's share until they close
-and are not cut by the HTTP timeouts."""
+and are not cut by the HTTP timeouts; ``brave6d serve`` enforces its flags the same way."""
 
 from __future__ import annotations
 
 import json
+import os
+import re
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -37,12 +41,12 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerThread]:
         yield srv
 
 
-def slow_socket(server: ServerThread, payload: bytes, source: str = SLOW_PEER) -> socket.socket:
-    """A connection from ``source`` that sends ``payload`` and then nothing."""
+def slow_socket(server: ServerThread | tuple[str, int], payload: bytes, source: str = SLOW_PEER) -> socket.socket:
+    """A connection to ``server`` (or a host, port) from ``source`` that sends ``payload``, then nothing."""
     s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     s.bind((source, 0))
     s.settimeout(WAIT_S)
-    s.connect((server.host, server.port))
+    s.connect(server if isinstance(server, tuple) else (server.host, server.port))
     s.sendall(payload)
     return s
 
@@ -76,6 +80,7 @@ def wait_for(predicate, what: str) -> None:  # type: ignore[no-untyped-def]
         time.sleep(0.02)
 
 
+@pytest.mark.slow  # a real server, and waits for its 1 s timeouts
 def test_slowloris_does_not_lock_other_clients_out(server: ServerThread) -> None:
     slow = [slow_socket(server, b"GET /hea") for _ in range(300)]
     try:
@@ -91,10 +96,12 @@ def test_slowloris_does_not_lock_other_clients_out(server: ServerThread) -> None
     assert httpx.get(server.url + "/health", timeout=REPLY_S).status_code == 200
 
 
+@pytest.mark.slow  # a real server, and waits for its 1 s timeouts
 def test_a_silent_connection_is_closed_without_a_reply(server: ServerThread) -> None:
     assert answer(slow_socket(server, b"")) is None
 
 
+@pytest.mark.slow  # a real server, and waits for its 1 s timeouts
 def test_headers_of_a_second_request_on_a_kept_alive_connection_are_timed_too(server: ServerThread) -> None:
     s = slow_socket(server, b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
     first = b""
@@ -105,6 +112,7 @@ def test_headers_of_a_second_request_on_a_kept_alive_connection_are_timed_too(se
     assert answer(s) == 408
 
 
+@pytest.mark.slow  # a real server, and waits for its 1 s timeouts
 def test_a_trickling_body_is_cut_after_the_body_timeout(server: ServerThread) -> None:
     body = json.dumps({"start": {"world_T_cam": FREE.tolist()}, "width": 16, "height": 16,
                        "rgb": "none", "depth": "none"}).encode().ljust(2000)
@@ -132,6 +140,7 @@ def test_a_trickling_body_is_cut_after_the_body_timeout(server: ServerThread) ->
     assert sent < len(body)
 
 
+@pytest.mark.slow  # a real server, and waits for its 1 s timeouts
 def test_websockets_count_toward_their_client_and_outlive_the_http_timeouts(server: ServerThread) -> None:
     from websockets.sync.client import connect
 
@@ -159,3 +168,36 @@ def test_client_keys_group_an_ipv6_prefix() -> None:
     assert client_key("::ffff:10.1.2.3") == "10.1.2.3"
     assert client_key("2001:db8:1:2:aaaa::1") == client_key("2001:db8:1:2:bbbb::7") != client_key("2001:db8:1:3::1")
     assert client_key(None) == "local"
+
+
+@pytest.mark.slow
+def test_the_cli_server_enforces_its_flags(tmp_path: Path) -> None:
+    """``brave6d serve --header-timeout 1 --max-client-connections 2`` runs the same protocol as
+    :class:`ServerThread`: of three half requests from one address, two are cut (408), one refused (429)."""
+    bundle = make_synthetic_bundle(tmp_path / "scene", n_gaussians=300, n_views=4)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).resolve().parents[1]),
+                                                                      os.environ.get("PYTHONPATH")]))}
+    proc = subprocess.Popen([sys.executable, "-m", "brave6d.cli", "serve", str(bundle), "--port", "0", "--device",
+                             "cpu", "--log-dir", str(tmp_path / "episodes"), "--header-timeout", "1",
+                             "--max-client-connections", "2"], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        banner = proc.stdout.readline() if proc.stdout else ""
+        match = re.search(r"on http://(127\.0\.0\.1):(\d+)", banner)
+        assert match, f"no banner: {banner!r}"
+        address = (match.group(1), int(match.group(2)))
+        wait_for(lambda: httpx.get(f"http://{address[0]}:{address[1]}/health").status_code == 200
+                 if _listening(address) else False, "the CLI server listening")
+        slow = [slow_socket(address, b"GET /hea") for _ in range(3)]
+        assert sorted(answer(s) or 0 for s in slow) == [408, 408, 429]
+    finally:
+        proc.terminate()
+        proc.wait(timeout=60)
+
+
+def _listening(address: tuple[str, int]) -> bool:
+    try:
+        socket.create_connection(address, timeout=1).close()
+        return True
+    except OSError:
+        return False
