@@ -25,7 +25,6 @@ import logging
 import os
 import secrets
 import signal
-import socket
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -139,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
 
     from serve.app import LOOPBACK_HOSTS, create_app
     from serve.catalog import SceneUnavailable, open_scenes
-    from serve.runner import is_loopback, uvicorn_config
+    from serve.runner import is_loopback, listening_socket, uvicorn_config
 
     # every number was bounded when the flags were parsed (limit_arg); ServerLimits checks again
     limits = ServerLimits(max_body_bytes=args.max_body_bytes, request_timeout_s=args.request_timeout,
@@ -162,10 +161,8 @@ def run(args: argparse.Namespace) -> int:
     log_dir = args.log_dir if args.log_dir is not None else Path(args.bundle).resolve().parent / "episodes"
     app = create_app(scenes, device=args.device, log_dir=log_dir, limits=limits,
                      allowed_hosts=access.allowed_hosts, token=access.token)
-    sock = socket.socket(socket.AF_INET6 if ":" in args.host else socket.AF_INET, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
-        sock.bind((args.host, args.port))
+        sock = listening_socket(args.host, args.port)
     except OSError as exc:
         raise BraveError(f"cannot listen on {args.host}:{args.port}: {exc.strerror}") from None
     port = sock.getsockname()[1]

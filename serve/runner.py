@@ -30,6 +30,23 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def listening_socket(host: str, port: int) -> socket.socket:
+    """A TCP socket bound to ``host:port`` (port 0: any free port) for uvicorn to listen on.
+
+    Made with proto ``IPPROTO_TCP``, so that asyncio sets ``TCP_NODELAY`` on the connections it
+    accepts (it checks the proto): with proto 0, every reply uvicorn writes in two parts (head,
+    then body) waited for the client's delayed ACK, about 40 ms a request on loopback.
+    """
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
 def uvicorn_config(app: Any, host: str = "127.0.0.1", port: int = 8765, log_level: str = "warning",
                    limits: ServerLimits | None = None) -> tuple[Any, ClientConnections]:
     """The uvicorn configuration serving ``app`` within ``limits`` (default: the app's own,
@@ -61,9 +78,7 @@ class ServerThread:
                  limits: ServerLimits | None = None) -> None:
         import uvicorn
 
-        self.sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self.sock.bind((host, port))
+        self.sock = listening_socket(host, port)
         self.host, self.port = host, self.sock.getsockname()[1]
         config, self.clients = uvicorn_config(app, host, self.port, log_level, limits)
         self.server = uvicorn.Server(config)
