@@ -62,7 +62,6 @@ import time
 from collections.abc import AsyncIterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -89,6 +88,7 @@ from serve.limits import (
     MAX_MOVE_DURATION_S,
     MAX_WIDTH,
     MIN_SIZE,
+    ServerLimits,
 )
 from serve.catalog import SceneCatalog, warm_scene
 from serve.episodes import (
@@ -109,17 +109,6 @@ VIEWER_DIR = Path(__file__).resolve().parent / "viewer"
 
 RIGID_ATOL = 1e-5
 QUAT_NORM_TOL = 1e-3
-
-
-@dataclass(frozen=True)
-class ServerLimits:
-    """Operational limits of one server."""
-
-    max_body_bytes: int = 64 * 1024
-    request_timeout_s: float = 30.0
-    max_episodes: int = 32
-    idle_timeout_s: float = 900.0
-    workers: int = 16
 
 
 # ----------------------------------------------------------------------------- request models

@@ -28,7 +28,11 @@ so are a corrupt ``frames.jsonl`` and holdout images that cannot be made (unless
 purpose with ``include_holdout_images=False``).
 :func:`load_bundle` recomputes every checksum and refuses a bundle whose files do not match
 its manifest (or that lists a file outside itself); files the manifest does not list are
-ignored (never read).
+ignored (never read). The manifest is read by :func:`read_bundle_manifest` only (verify, load,
+the server's catalog, export's replace check), which checks its structure: a malformed one
+(a list, ``files`` not an object, an entry without a 64-hex ``sha256`` or an integer ``bytes``,
+a listed path that is absolute or has ``..``) is a :class:`BundleError` naming the file and the
+field; so are a ``scene.json``/``objects.json`` that are not objects (:func:`read_bundle_json`).
 
 What another stage writes is read in ONE small function each (easy to adapt when a format
 changes): :func:`find_splat_ply`, :func:`read_annotation_instances`, :func:`holdout_frames`,
@@ -39,9 +43,9 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
-import json
 import logging
 import os
+import re
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -365,16 +369,12 @@ def not_a_bundle(folder: Path) -> str | None:
         return "is a file, not a bundle folder"
     if next(folder.iterdir(), None) is None:
         return None
-    manifest = folder / MANIFEST
-    if not manifest.is_file():
+    if not (folder / MANIFEST).is_file():
         return f"is a folder that is not a bundle (no {MANIFEST})"
     try:
-        data = json.loads(manifest.read_text(encoding="utf-8"))
-        listed = set(data["files"]) if str(data.get("format", "")).startswith("brave6d-bundle") else None
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        listed = None
-    if listed is None:
-        return f"is a folder that is not a bundle (its {MANIFEST} is not a brave6d bundle manifest)"
+        listed = set(read_bundle_manifest(folder)["files"])
+    except BundleError as exc:
+        return f"is a folder that is not a bundle ({exc})"
     extra = sorted(rel for p in folder.rglob("*") if (p.is_file() or p.is_symlink())
                    and (rel := p.relative_to(folder).as_posix()) not in listed and rel != MANIFEST)
     if extra:
@@ -569,36 +569,125 @@ def _file_table(root: Path) -> dict[str, dict[str, Any]]:
     return table
 
 
-# ----------------------------------------------------------------------------- load + verify
+# ----------------------------------------------------------------------------- read + verify
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+
+
+def _kind(value: object) -> str:
+    """How a JSON value is named in messages."""
+    return {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null",
+            int: "an integer", float: "a number"}.get(type(value), type(value).__name__)
+
+
+def _shown(value: object) -> str:
+    """``value`` as a message shows it: its repr when short, else its kind."""
+    text = repr(value)
+    return text if len(text) <= 70 and not isinstance(value, (dict, list)) else _kind(value)
+
+
+def read_bundle_json(root: Path | str, name: str) -> dict[str, Any]:
+    """The JSON object in the bundle file ``root/name``; :class:`BundleError` naming the file when
+    it is missing, not JSON, or not an object."""
+    path = Path(root) / name
+    try:
+        data = read_json(path)
+    except DataError as exc:
+        raise BundleError(str(exc)) from None
+    if not isinstance(data, dict):
+        raise BundleError(f"{path}: must be a JSON object, got {_kind(data)}")
+    return data
+
+
+def bundle_scene_name(root: Path | str, scene: dict[str, Any]) -> str:
+    """The scene's name from the bundle's ``scene.json`` object ``scene`` (default: the folder's name)."""
+    name = scene.get("name", Path(root).name)
+    if not isinstance(name, str):
+        raise BundleError(f"{Path(root) / SCENE}: field 'name': a string is required, got {_kind(name)}")
+    return name
+
+
+def read_listed_objects(root: Path | str) -> list[dict[str, Any]]:
+    """The ``objects`` of the bundle's ``objects.json`` with their ids and names checked (an integer
+    ``obj_id`` >= 0, a string ``name``, ``class`` a string or absent), for listing a scene without
+    loading it; :class:`BundleError` naming the file and the field otherwise."""
+    path = Path(root) / OBJECTS
+    objects = read_bundle_json(root, OBJECTS).get("objects", [])
+    if not isinstance(objects, list):
+        raise BundleError(f"{path}: field 'objects': a list is required, got {_kind(objects)}")
+    for i, o in enumerate(objects):
+        if not isinstance(o, dict):
+            raise BundleError(f"{path}: field 'objects[{i}]': an object is required, got {_kind(o)}")
+        obj_id, name, cls = o.get("obj_id"), o.get("name"), o.get("class")
+        if isinstance(obj_id, bool) or not isinstance(obj_id, int) or obj_id < 0:
+            raise BundleError(f"{path}: field 'objects[{i}].obj_id': an integer >= 0 is required, got {_shown(obj_id)}")
+        if not isinstance(name, str) or (cls is not None and not isinstance(cls, str)):
+            which, value = ("name", name) if not isinstance(name, str) else ("class", cls)
+            raise BundleError(f"{path}: field 'objects[{i}].{which}': a string is required, got {_kind(value)}")
+    return objects
+
+
+def listed_path_problem(rel: str) -> str | None:
+    """Why ``rel``, a file name a manifest lists, could name something outside the bundle (absolute,
+    a drive, a backslash, an empty, ``.`` or ``..`` part), or None when it is a plain relative path."""
+    if not rel or rel.startswith("/") or "\\" in rel or ":" in rel.split("/", 1)[0]:
+        return "not a relative path with '/' separators"
+    if any(part in ("", ".", "..") for part in rel.split("/")):
+        return "has an empty, '.' or '..' part"
+    return None
+
+
+def read_bundle_manifest(root: Path | str) -> dict[str, Any]:
+    """The bundle's ``manifest.json``, its structure checked: an object of format :data:`FORMAT`
+    whose ``files`` maps plain relative paths to ``{sha256: 64 lowercase hex digits, bytes: int >= 0}``.
+
+    The one reader of the manifest (verify, load, the catalog's estimates, export's replace check):
+    a malformed one raises :class:`BundleError` naming the file and the field. Files are not opened.
+    """
+    path = Path(root) / MANIFEST
+    if not path.is_file():
+        raise BundleError(f"{path}: no manifest; not a bundle (export one with 'brave6d export SCENE_DIR')")
+    manifest = read_bundle_json(root, MANIFEST)
+    if manifest.get("format") != FORMAT:
+        raise BundleError(f"{path}: field 'format': unsupported bundle format {manifest.get('format')!r} (this "
+                          f"server reads {FORMAT!r})")
+    files = manifest.get("files")
+    if not isinstance(files, dict):
+        raise BundleError(f"{path}: field 'files': an object (file path -> {{sha256, bytes}}) is required, got "
+                          f"{_kind(files) if 'files' in manifest else 'nothing'}")
+    for rel, entry in files.items():
+        field = f"{path}: field 'files[{rel!r}]"
+        problem = listed_path_problem(rel)
+        if problem is not None:
+            raise BundleError(f"{field}': the file lies outside the bundle ({problem})")
+        if not isinstance(entry, dict):
+            raise BundleError(f"{field}': an object {{sha256, bytes}} is required, got {_kind(entry)}")
+        sha = entry.get("sha256")
+        if not isinstance(sha, str) or _SHA256.fullmatch(sha) is None:
+            raise BundleError(f"{field}.sha256': 64 lowercase hex digits are required, got {_shown(sha)}")
+        size = entry.get("bytes")
+        if isinstance(size, bool) or not isinstance(size, int) or size < 0:
+            raise BundleError(f"{field}.bytes': a size in bytes (an integer >= 0) is required, got {_shown(size)}")
+    return manifest
+
+
 def verify_manifest(root: Path | str) -> dict[str, Any]:
-    """Read ``manifest.json`` and check every listed file's size and sha256; returns the manifest."""
+    """Read ``manifest.json`` (:func:`read_bundle_manifest`) and check every listed file's size and
+    sha256; returns the manifest."""
     base = Path(root)
     if not base.is_dir():
         raise BundleError(f"{base}: bundle folder not found")
     path = base / MANIFEST
-    if not path.is_file():
-        raise BundleError(f"{path}: no manifest; not a bundle (export one with 'brave6d export SCENE_DIR')")
-    try:
-        manifest = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise BundleError(f"{path}: not valid JSON ({exc})") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-        got = manifest.get("format") if isinstance(manifest, dict) else None
-        raise BundleError(f"{path}: unsupported bundle format {got!r} (this server reads {FORMAT!r})")
-    files = manifest.get("files")
-    if not isinstance(files, dict):
-        raise BundleError(f"{path}: field 'files' is missing")
+    manifest = read_bundle_manifest(base)
+    files = manifest["files"]
     resolved_root = base.resolve()
     for rel, entry in files.items():
         p = (base / rel)
-        if Path(rel).is_absolute() or ".." in Path(rel).parts or not p.resolve().is_relative_to(resolved_root):
+        if not p.resolve().is_relative_to(resolved_root):  # a link out of the folder
             raise BundleError(f"{path}: file {rel!r} lies outside the bundle")
         if not p.is_file():
             raise BundleError(f"{p}: listed in the manifest but missing")
-        if not isinstance(entry, dict) or "sha256" not in entry:
-            raise BundleError(f"{path}: entry for {rel!r} has no sha256")
         size = p.stat().st_size
-        if "bytes" in entry and size != entry["bytes"]:
+        if size != entry["bytes"]:
             raise BundleError(f"{p}: size {size} bytes does not match the manifest ({entry['bytes']}); "
                               "the bundle was modified or is incomplete")
         digest = file_sha256(p)
@@ -614,19 +703,16 @@ def verify_manifest(root: Path | str) -> dict[str, Any]:
 def load_bundle(root: Path | str, verify: bool = True) -> Bundle:
     """Load a bundle; with ``verify`` (default) every checksum is checked first."""
     base = Path(root)
-    if verify:
-        manifest = verify_manifest(base)
-    else:
-        manifest = read_json(base / MANIFEST)
+    manifest = verify_manifest(base) if verify else read_bundle_manifest(base)
+    scene = read_bundle_json(base, SCENE)
     try:
-        scene = read_json(base / SCENE)
         camera = PinholeCamera.from_json(scene["camera"])
         render = RenderDefaults.from_json(scene["render"])
         coll = scene["collision"]
         world = CollisionWorld(tuple(OrientedBox.from_json(b) for b in coll["boxes"]),
                                Workspace.from_json(coll["workspace"]),
                                float(coll.get("camera_radius", DEFAULT_CAMERA_RADIUS)))
-        objs = read_json(base / OBJECTS)["objects"]
+        objs = read_bundle_json(base, OBJECTS)["objects"]
         objects = tuple(BundleObject(
             int(o["gt_id"]), int(o["obj_id"]), str(o["name"]),
             check_rigid(o["world_T_obj"], f"{OBJECTS}: objects[{i}].world_T_obj"), str(o["model"]),
@@ -634,8 +720,11 @@ def load_bundle(root: Path | str, verify: bool = True) -> Bundle:
             tuple(tuple(float(x) for x in m) for m in o.get("symmetries_discrete_mm", [])),
             tuple(o.get("symmetries_continuous", []))) for i, o in enumerate(objs))
         holdout = tuple(HoldoutView(int(h["index"]), str(h["view_id"]), check_rigid(h["world_T_cam"], "holdout view"),
-                                    h.get("image")) for h in read_json(base / HOLDOUT)["views"])
-    except (KeyError, TypeError, ValueError, BraveError) as exc:
+                                    h.get("image")) for h in read_bundle_json(base, HOLDOUT)["views"])
+        name, start = bundle_scene_name(base, scene), dict(scene.get("start", {}))
+    except BundleError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError, BraveError) as exc:
         raise BundleError(f"{base}: malformed bundle ({type(exc).__name__}: {exc})") from None
     splat = base / SPLAT
     if not splat.is_file():
@@ -646,9 +735,8 @@ def load_bundle(root: Path | str, verify: bool = True) -> Bundle:
         raise BundleError(str(exc)) from None
     if count == 0:
         raise BundleError(f"{splat}: the splat holds no Gaussians; export the bundle again from a trained scene")
-    listed = set(manifest.get("files", {}))
+    listed = set(manifest["files"])
     for o in objects:
         if verify and o.model not in listed:
             raise BundleError(f"{base}: model {o.model} of object {o.name} is not in the manifest")
-    return Bundle(base, manifest, str(scene.get("name", base.name)), camera, render, world, objects, holdout,
-                  dict(scene.get("start", {})))
+    return Bundle(base, manifest, name, camera, render, world, objects, holdout, start)

@@ -14,6 +14,13 @@ load would exceed the bound while every loaded scene has open episodes is refuse
 (:class:`SceneCacheFull`), naming the scenes that hold the memory; the client retries after
 closing episodes. Loads of one scene are never done twice at once (a second request waits for
 the first); loads of different scenes run concurrently within the bound.
+
+A scene's files are the server's, not the client's: a bundle folder that fails its checks
+(tampered, truncated, malformed) is remade once from its source (:attr:`SceneSource.refresh`: a
+release unpacks its verified zip again) and verified again; when that fails too, or the source
+has no refresh, or locating / unpacking the scene fails (a release error, a full disk), the
+request gets 503 (:class:`SceneUnavailable`) naming the scene and the cause, and the server goes
+on serving the other scenes.
 """
 
 from __future__ import annotations
@@ -30,7 +37,17 @@ from typing import Any
 import numpy as np
 
 from brave6d.errors import BraveError
-from serve.bundle import MANIFEST, OBJECTS, SPLAT, Bundle, load_bundle
+from serve.bundle import (
+    MANIFEST,
+    SCENE,
+    SPLAT,
+    Bundle,
+    bundle_scene_name,
+    load_bundle,
+    read_bundle_json,
+    read_bundle_manifest,
+    read_listed_objects,
+)
 from serve.episodes import EpisodeError, EpisodeNotFound, InvalidAction, SceneServer
 
 log = logging.getLogger(__name__)
@@ -52,6 +69,17 @@ class SceneCacheFull(EpisodeError):
     """Loading the scene would exceed the memory bound and no loaded scene is free to evict."""
 
     status = 503
+
+
+class SceneUnavailable(EpisodeError):
+    """The scene's files cannot be located, unpacked, verified or loaded: the server's problem
+    (503, with the cause), never the request's. ``cause``: the error behind it."""
+
+    status = 503
+
+    def __init__(self, message: str, field: str | None = None, cause: BaseException | None = None) -> None:
+        super().__init__(message, field)
+        self.cause = cause
 
 
 @dataclass(frozen=True)
@@ -85,28 +113,22 @@ class SceneSource:
 
 def bundle_memory_bytes(folder: Path) -> int:
     """:func:`estimate_scene_bytes` of a bundle folder (from the sizes its manifest lists)."""
-    from brave6d.atomic import read_json
-
-    files = read_json(folder / MANIFEST).get("files", {})
-    splat = int(files.get(SPLAT, {}).get("bytes", 0))
-    models = sum(int(v.get("bytes", 0)) for k, v in files.items() if k.startswith("models/"))
+    files = read_bundle_manifest(folder)["files"]
+    splat = files[SPLAT]["bytes"] if SPLAT in files else 0
+    models = sum(v["bytes"] for k, v in files.items() if k.startswith("models/"))
     return estimate_scene_bytes(splat, models)
 
 
 def bundle_scene_source(folder: Path | str, scene_id: int | None = None) -> SceneSource:
-    """The :class:`SceneSource` of one bundle folder (its manifest must exist; it is verified on load)."""
-    from brave6d.atomic import read_json
-
+    """The :class:`SceneSource` of one bundle folder (its manifest must exist; it is verified on load).
+    A malformed manifest, ``scene.json`` or ``objects.json`` raises :class:`BundleError` naming the
+    file and the field."""
     root = Path(folder)
     if not (root / MANIFEST).is_file():
         raise BraveError(f"{root}: not a bundle (no {MANIFEST}); give a bundle folder written by 'brave6d export' "
                          "or a release folder written by 'brave6d release build'")
-    try:
-        scene_name = str(read_json(root / "scene.json").get("name", root.name))
-        objs = read_json(root / OBJECTS).get("objects", [])
-        objects = tuple(SceneObject(int(o["obj_id"]), str(o["name"]), o.get("class")) for o in objs)
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise BraveError(f"{root}: malformed bundle ({type(exc).__name__}: {exc})") from None
+    scene_name = bundle_scene_name(root, read_bundle_json(root, SCENE))
+    objects = tuple(SceneObject(o["obj_id"], o["name"], o.get("class")) for o in read_listed_objects(root))
     return SceneSource(scene_name, scene_id, objects, bundle_memory_bytes(root), lambda: root, str(root))
 
 
@@ -265,14 +287,46 @@ class SceneCatalog:
         """The scene's bundle (loaded scene's, else read and verified from its folder; no renderer)."""
         return self._bundle(self.source(key))
 
-    def _bundle(self, src: SceneSource) -> Bundle:
+    def _bundle(self, src: SceneSource, *, again: bool = False) -> Bundle:
+        """The scene's verified bundle: known, else located and verified (:meth:`_verified`);
+        ``again``: verified again even when known (its files failed to load)."""
         with self._cond:
-            known = self._bundles.get(src.name)
+            known = None if again else self._bundles.get(src.name)
         if known is not None:
             return known
-        bundle = load_bundle(src.locate())  # its own name may differ: the source's name is the scene's
+        bundle = self._verified(src)  # its own name may differ: the source's name is the scene's
         with self._cond:
+            if again:
+                self._bundles[src.name] = bundle
             return self._bundles.setdefault(src.name, bundle)
+
+    def _verified(self, src: SceneSource) -> Bundle:
+        """The scene's bundle folder, located and verified; a folder that fails its checks is remade
+        once from the source (``src.refresh``: a release unpacks its verified zip again) and verified
+        again. What still fails, or cannot be located or unpacked, is :class:`SceneUnavailable`."""
+        try:
+            return load_bundle(self._folder(src, src.locate))
+        except (BraveError, OSError) as exc:
+            if isinstance(exc, SceneUnavailable):
+                raise
+            if src.refresh is None:
+                raise _unavailable(src, exc, "its files fail their checks and it has no source to remake them "
+                                             "from") from None
+            log.warning("scene %s: %s; remaking its bundle folder from %s", src.name, exc, src.origin)
+        try:
+            return load_bundle(self._folder(src, src.refresh))
+        except SceneUnavailable:
+            raise
+        except (BraveError, OSError) as exc:
+            raise _unavailable(src, exc, f"its bundle folder was remade from {src.origin} and still fails") from None
+
+    @staticmethod
+    def _folder(src: SceneSource, make: Callable[[], Path]) -> Path:
+        """``make()`` (the source's locate or refresh); an error there is :class:`SceneUnavailable`."""
+        try:
+            return make()
+        except (BraveError, OSError) as exc:
+            raise _unavailable(src, exc, "its bundle cannot be located or unpacked") from None
 
     def _fits(self, need: int) -> bool:
         count = len(self._loaded) + len(self._loading) + 1
@@ -298,7 +352,18 @@ class SceneCatalog:
             log.info("scene %s evicted (memory bound)", victim)
 
     def _load(self, src: SceneSource) -> SceneServer:
-        scene = self._load_scene(self._bundle(src), self.device)
+        try:
+            scene = self._load_scene(self._bundle(src), self.device)
+        except (BraveError, OSError) as exc:  # files verified earlier changed since: verify (and remake) again
+            if isinstance(exc, EpisodeError):
+                raise
+            log.warning("scene %s: %s; verifying its bundle again", src.name, exc)
+            try:
+                scene = self._load_scene(self._bundle(src, again=True), self.device)
+            except EpisodeError:
+                raise
+            except (BraveError, OSError) as again:
+                raise _unavailable(src, again, "its verified bundle does not load") from None
         return warm_scene(scene) if self.warm_up else scene
 
     def describe(self) -> dict[str, Any]:
@@ -322,6 +387,12 @@ class SceneCatalog:
                                                           1)},
                     "stats": {"loads": self.stats.loads, "evictions": self.stats.evictions,
                               "refusals": self.stats.refusals}}
+
+
+def _unavailable(src: SceneSource, exc: BaseException, why: str) -> SceneUnavailable:
+    """The 503 of a scene the server cannot serve: its name, what went wrong and the cause."""
+    cause = str(exc) or type(exc).__name__
+    return SceneUnavailable(f"scene {src.name!r} cannot be served ({why}): {cause}", "scene", exc)
 
 
 def _default_load(bundle: Bundle, device: str) -> SceneServer:

@@ -9,7 +9,12 @@ Security defaults: the server binds to 127.0.0.1; a non-loopback ``--host`` is r
 ``--allow-remote`` is given, and then a token is required on every request (``--token``, or
 ``$BRAVE6D_TOKEN``, or a random one printed at start). Requests must name an allowed host in
 their ``Host`` header (127.0.0.1, localhost, [::1], the bound address, ``--allow-host`` names):
-a web page that rebinds its own DNS name to this machine gets 400.
+a web page that rebinds its own DNS name to this machine gets 400. Slow clients cannot hold the
+server's connections (:mod:`serve.connections`): a request's headers must come within
+``--header-timeout`` (10 s), its body within ``--body-timeout`` (30 s), and one client address
+holds at most ``--max-client-connections`` (64) of the server's 256 connections. Every number is
+bounded when the flags are parsed (:data:`serve.limits.BOUNDS`): a value outside (NaN, inf,
+negative, too large) ends the command with a line naming the flag, exit status 2.
 """
 
 from __future__ import annotations
@@ -20,12 +25,12 @@ import logging
 import os
 import secrets
 import signal
-import socket
 from dataclasses import dataclass
 from pathlib import Path
 
 from brave6d.errors import BraveError
 from brave6d.runtime import quiet_openmp
+from serve.limits import MAX_CONNECTIONS, ServerLimits, limit_arg
 
 log = logging.getLogger(__name__)
 
@@ -38,9 +43,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache-dir", type=Path, default=None,
                         help="where a release's bundle zips are unpacked on first use (default: $BRAVE6D_CACHE, "
                              "else ~/.cache/brave6d)")
-    parser.add_argument("--max-loaded-scenes", type=int, default=None,
+    parser.add_argument("--max-loaded-scenes", type=limit_arg("max_loaded_scenes"), default=None,
                         help="scenes kept in memory at most (default: as many as --max-memory-mb allows)")
-    parser.add_argument("--max-memory-mb", type=float, default=None,
+    parser.add_argument("--max-memory-mb", type=limit_arg("max_memory_mb"), default=None,
                         help="estimated memory the loaded scenes may take (default: half the machine's memory); "
                              "scenes no open episode uses are unloaded, least recently used first")
     parser.add_argument("--host", default="127.0.0.1",
@@ -56,18 +61,33 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="also accept requests whose Host header names NAME (repeatable; any port; "
                              "'*.example.org': its subdomains; '*': any). Always accepted: 127.0.0.1, localhost, "
                              "[::1] and a specific --host")
-    parser.add_argument("--port", type=int, default=8765, help="TCP port (default 8765; 0: any free port)")
+    parser.add_argument("--port", type=limit_arg("port"), default=8765,
+                        help="TCP port (default 8765; 0: any free port)")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                         help="rasterizer device (auto: cuda when torch sees a GPU)")
     parser.add_argument("--log-dir", type=Path, default=None,
                         help="where episode logs (JSONL) go (default: 'episodes' beside the bundle)")
-    parser.add_argument("--max-episodes", type=int, default=32, help="open episodes at most (default 32)")
-    parser.add_argument("--request-timeout", type=float, default=30.0,
-                        help="seconds one action may take before it is withdrawn with 504 (default 30)")
-    parser.add_argument("--max-body-bytes", type=int, default=64 * 1024,
-                        help="largest request body / WebSocket message (default 65536)")
-    parser.add_argument("--idle-timeout", type=float, default=900.0,
-                        help="close episodes idle for this many seconds (default 900)")
+    d = ServerLimits()
+    parser.add_argument("--max-episodes", type=limit_arg("max_episodes"), default=d.max_episodes,
+                        help=f"open episodes at most (default {d.max_episodes})")
+    parser.add_argument("--request-timeout", type=limit_arg("request_timeout_s"), default=d.request_timeout_s,
+                        help=f"seconds one action may take before it is withdrawn with 504 (default "
+                             f"{d.request_timeout_s:g})")
+    parser.add_argument("--max-body-bytes", type=limit_arg("max_body_bytes"), default=d.max_body_bytes,
+                        help=f"largest request body / WebSocket message (default {d.max_body_bytes})")
+    parser.add_argument("--idle-timeout", type=limit_arg("idle_timeout_s"), default=d.idle_timeout_s,
+                        help=f"close episodes idle for this many seconds (default {d.idle_timeout_s:g})")
+    parser.add_argument("--header-timeout", type=limit_arg("header_timeout_s"), default=d.header_timeout_s,
+                        help="seconds a client has to send a request's line and headers, from connecting or from "
+                             f"the previous response; else 408 and the connection is closed (default "
+                             f"{d.header_timeout_s:g})")
+    parser.add_argument("--body-timeout", type=limit_arg("body_timeout_s"), default=d.body_timeout_s,
+                        help="seconds a client has to send a request's body once its headers came; else 408 and "
+                             f"the connection is closed (default {d.body_timeout_s:g})")
+    parser.add_argument("--max-client-connections", type=limit_arg("max_connections_per_client"),
+                        default=d.max_connections_per_client,
+                        help="open connections (HTTP and WebSocket) one client address may hold; more get 429 "
+                             f"(default {d.max_connections_per_client}, of {MAX_CONNECTIONS} in all)")
 
 
 @dataclass(frozen=True)
@@ -116,18 +136,15 @@ def run(args: argparse.Namespace) -> int:
     quiet_openmp()
     import uvicorn
 
-    from serve.app import LOOPBACK_HOSTS, ServerLimits, create_app
-    from serve.catalog import open_scenes
-    from serve.runner import is_loopback, uvicorn_config
+    from serve.app import LOOPBACK_HOSTS, create_app
+    from serve.catalog import SceneUnavailable, open_scenes
+    from serve.runner import is_loopback, listening_socket, uvicorn_config
 
-    if not 0 <= args.port <= 65535:
-        raise BraveError(f"--port must be in 0..65535, got {args.port}")
-    if args.max_loaded_scenes is not None and args.max_loaded_scenes < 1:
-        raise BraveError(f"--max-loaded-scenes must be at least 1, got {args.max_loaded_scenes}")
-    if args.max_memory_mb is not None and not args.max_memory_mb > 0:
-        raise BraveError(f"--max-memory-mb must be positive, got {args.max_memory_mb}")
-    if args.max_episodes < 1 or args.request_timeout <= 0 or args.max_body_bytes < 1024:
-        raise BraveError("--max-episodes >= 1, --request-timeout > 0 and --max-body-bytes >= 1024 are required")
+    # every number was bounded when the flags were parsed (limit_arg); ServerLimits checks again
+    limits = ServerLimits(max_body_bytes=args.max_body_bytes, request_timeout_s=args.request_timeout,
+                          max_episodes=args.max_episodes, idle_timeout_s=args.idle_timeout,
+                          header_timeout_s=args.header_timeout, body_timeout_s=args.body_timeout,
+                          max_connections_per_client=args.max_client_connections)
     access = access_for(args.host, args.allow_remote, args.token, args.allow_host)
     if not is_loopback(args.host) and not args.allow_host:
         log.warning("binding to %s: only requests whose Host header names %s are accepted; add --allow-host NAME "
@@ -137,16 +154,15 @@ def run(args: argparse.Namespace) -> int:
     scenes = open_scenes(args.bundle, device=args.device, cache_dir=args.cache_dir,
                          max_loaded=args.max_loaded_scenes, max_memory_mb=budget)
     if len(scenes.sources) == 1:  # one scene: load it now, so the first episode is as fast as the rest
-        scenes.release(scenes.acquire(None))
+        try:
+            scenes.release(scenes.acquire(None))
+        except SceneUnavailable as exc:  # at start, the bundle given is the user's: say what is wrong with it
+            raise exc.cause if isinstance(exc.cause, BraveError) else exc from None
     log_dir = args.log_dir if args.log_dir is not None else Path(args.bundle).resolve().parent / "episodes"
-    limits = ServerLimits(max_body_bytes=args.max_body_bytes, request_timeout_s=args.request_timeout,
-                          max_episodes=args.max_episodes, idle_timeout_s=args.idle_timeout)
     app = create_app(scenes, device=args.device, log_dir=log_dir, limits=limits,
                      allowed_hosts=access.allowed_hosts, token=access.token)
-    sock = socket.socket(socket.AF_INET6 if ":" in args.host else socket.AF_INET, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
-        sock.bind((args.host, args.port))
+        sock = listening_socket(args.host, args.port)
     except OSError as exc:
         raise BraveError(f"cannot listen on {args.host}:{args.port}: {exc.strerror}") from None
     port = sock.getsockname()[1]
@@ -162,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
     if access.token_generated:
         print(f"token (send as 'Authorization: Bearer <token>' or '?token=<token>'): {access.token}", flush=True)
     level = "info" if getattr(args, "verbose", 0) else "warning"
-    server = uvicorn.Server(uvicorn_config(app, args.host, port, level, args.max_body_bytes))
+    server = uvicorn.Server(uvicorn_config(app, args.host, port, level, limits)[0])
     # uvicorn shuts down gracefully on Ctrl-C, then raises the signal again with the handler it
     # found. With Python's default handler that goes through asyncio's Runner, which turns it into
     # a task cancellation and, once in a CI run, into a normal return (exit status 0); a handler

@@ -21,6 +21,8 @@ DEFAULT_MASTER = "http://127.0.0.1:11311"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    from serve import limit_arg  # every number bounded at parse time, as the render server's flags
+
     parser.add_argument("scenes", type=Path, metavar="BUNDLE_OR_RELEASE",
                         help="a bundle folder ('brave6d export') or a dataset release ('brave6d release build')")
     parser.add_argument("--master-uri", default=None,
@@ -32,13 +34,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="rasterizer device (auto: cuda when torch sees a GPU)")
     parser.add_argument("--log-dir", type=Path, default=None,
                         help="where episode logs (JSONL) go (default: 'episodes' beside BUNDLE_OR_RELEASE)")
-    parser.add_argument("--width", type=int, default=None, help="image width (default: the bundle's)")
-    parser.add_argument("--height", type=int, default=None, help="image height (default: the bundle's)")
-    parser.add_argument("--twist-duration", type=float, default=None,
+    parser.add_argument("--width", type=limit_arg("width"), default=None, help="image width (default: the bundle's)")
+    parser.add_argument("--height", type=limit_arg("height"), default=None, help="image height (default: the bundle's)")
+    parser.add_argument("--twist-duration", type=limit_arg("move_duration_s"), default=None,
                         help="seconds each ~cmd_twist message is integrated for (default 0.1: a 10 Hz control loop)")
     parser.add_argument("--agent", default="ros1", help="the agent name written in the episode logs (default ros1)")
     parser.add_argument("--node-name", default=None, help="the node's name (default brave6d_sim)")
-    parser.add_argument("--idle-timeout", type=float, default=900.0,
+    parser.add_argument("--idle-timeout", type=limit_arg("idle_timeout_s"), default=900.0,
                         help="close an episode idle for this many seconds (default 900)")
 
 

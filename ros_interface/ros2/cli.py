@@ -23,11 +23,14 @@ log = logging.getLogger(__name__)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    from brave6d.cli_types import int_in
+    from ros_interface.ros2.dds import MAX_DOMAIN_ID
     from ros_interface.ros2.defaults import DEFAULT_NAMESPACE, DEFAULT_TWIST_DURATION_S
+    from serve import limit_arg  # every number bounded at parse time, as the render server's flags
 
     parser.add_argument("scenes", type=Path, metavar="BUNDLE_OR_RELEASE",
                         help="a bundle folder ('brave6d export') or a dataset release ('brave6d release build')")
-    parser.add_argument("--domain-id", type=int, default=None,
+    parser.add_argument("--domain-id", type=int_in(0, MAX_DOMAIN_ID), default=None,
                         help="DDS domain id, as ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID, else 0)")
     parser.add_argument("--interface", default="127.0.0.1",
                         help="network interface for DDS: an address or a name (default 127.0.0.1: this machine "
@@ -38,15 +41,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="also discover DDS participants at HOST by unicast (repeatable; for networks "
                              "without multicast)")
     parser.add_argument("--namespace", default=DEFAULT_NAMESPACE, help=f"topic namespace (default {DEFAULT_NAMESPACE})")
-    parser.add_argument("--twist-duration", type=float, default=DEFAULT_TWIST_DURATION_S,
+    parser.add_argument("--twist-duration", type=limit_arg("move_duration_s"),
+                        default=DEFAULT_TWIST_DURATION_S,
                         help=f"seconds one cmd_twist message is applied (default {DEFAULT_TWIST_DURATION_S})")
-    parser.add_argument("--width", type=int, default=None, help="image width (default: the bundle's)")
-    parser.add_argument("--height", type=int, default=None, help="image height (default: the bundle's)")
+    parser.add_argument("--width", type=limit_arg("width"), default=None, help="image width (default: the bundle's)")
+    parser.add_argument("--height", type=limit_arg("height"), default=None, help="image height (default: the bundle's)")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto", help="rasterizer device")
     parser.add_argument("--log-dir", type=Path, default=None,
                         help="where episode logs (JSONL) go (default: 'episodes' beside the bundle)")
     parser.add_argument("--scene", default=None, help="the scene a reset uses when it names none (a release's scene)")
-    parser.add_argument("--idle-timeout", type=float, default=900.0,
+    parser.add_argument("--idle-timeout", type=limit_arg("idle_timeout_s"), default=900.0,
                         help="close an episode idle for this many seconds (default 900)")
     parser.add_argument("--agent", default="ros2", help="agent name written in the episode logs (default ros2)")
 
