@@ -186,7 +186,8 @@ def main(argv: list[str] | None = None) -> int:
             tmp = tempfile.TemporaryDirectory(prefix="brave6d_load_")
             bundle_dir = make_synthetic_bundle(Path(tmp.name) / "scene", n_gaussians=150_000, sh_degree=2,
                                                volume_fraction=0.3)
-        limits = ServerLimits(request_timeout_s=max(60.0, args.max_seconds), max_episodes=max(32, 2 * args.clients))
+        limits = ServerLimits(request_timeout_s=min(3600.0, max(60.0, args.max_seconds)),  # the bound of ServerLimits
+                              max_episodes=max(32, 2 * args.clients))
         app = create_app(bundle_dir, device=args.device, limits=limits,
                          log_dir=Path(tmp.name) / "episodes" if tmp else None)
         server = ServerThread(app).start()

@@ -59,6 +59,7 @@ from brave6d.atomic import atomic_write_json, file_sha256, move_aside, read_json
 from brave6d.camera import PinholeCamera
 from brave6d.errors import BraveError, DataError, NonRigidTransformError
 from brave6d.layout import FrameRecord, SceneDir
+from brave6d.names import relative_path_problem
 from brave6d.provenance import software_versions
 from brave6d.transforms import check_rigid
 from serve.geometry import DEFAULT_CAMERA_RADIUS, CollisionWorld, OrientedBox, Workspace
@@ -626,16 +627,6 @@ def read_listed_objects(root: Path | str) -> list[dict[str, Any]]:
     return objects
 
 
-def listed_path_problem(rel: str) -> str | None:
-    """Why ``rel``, a file name a manifest lists, could name something outside the bundle (absolute,
-    a drive, a backslash, an empty, ``.`` or ``..`` part), or None when it is a plain relative path."""
-    if not rel or rel.startswith("/") or "\\" in rel or ":" in rel.split("/", 1)[0]:
-        return "not a relative path with '/' separators"
-    if any(part in ("", ".", "..") for part in rel.split("/")):
-        return "has an empty, '.' or '..' part"
-    return None
-
-
 def read_bundle_manifest(root: Path | str) -> dict[str, Any]:
     """The bundle's ``manifest.json``, its structure checked: an object of format :data:`FORMAT`
     whose ``files`` maps plain relative paths to ``{sha256: 64 lowercase hex digits, bytes: int >= 0}``.
@@ -656,9 +647,9 @@ def read_bundle_manifest(root: Path | str) -> dict[str, Any]:
                           f"{_kind(files) if 'files' in manifest else 'nothing'}")
     for rel, entry in files.items():
         field = f"{path}: field 'files[{rel!r}]"
-        problem = listed_path_problem(rel)
+        problem = relative_path_problem(rel)
         if problem is not None:
-            raise BundleError(f"{field}': the file lies outside the bundle ({problem})")
+            raise BundleError(f"{field}': not a plain path inside the bundle ({problem})")
         if not isinstance(entry, dict):
             raise BundleError(f"{field}': an object {{sha256, bytes}} is required, got {_kind(entry)}")
         sha = entry.get("sha256")

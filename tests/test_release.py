@@ -325,15 +325,15 @@ def test_serve_every_scene_of_a_release(release: Path, tmp_path: Path, capsys: p
 
 
 def test_serving_refuses_an_altered_bundle_zip(copy: Path, tmp_path: Path) -> None:
-    from serve import EpisodeManager, open_scenes
+    from serve import EpisodeManager, SceneUnavailable, open_scenes
 
     zip_path = copy / f"{NAME}_bundle_000001.zip"
     data = bytearray(zip_path.read_bytes())
     data[len(data) // 2] ^= 0xFF
     zip_path.write_bytes(bytes(data))
     manager = EpisodeManager(open_scenes(copy, device="cpu", cache_dir=tmp_path / "cache", warm_up=False), None)
-    with pytest.raises(ReleaseError, match=rf"{NAME}_bundle_000001\.zip: sha256 .* does not match SHA256SUMS"):
-        manager.reset(scene="scene_a", seed=0)
+    with pytest.raises(SceneUnavailable, match=rf"{NAME}_bundle_000001\.zip: sha256 .* does not match SHA256SUMS"):
+        manager.reset(scene="scene_a", seed=0)  # the server's failure (503), not the client's
     assert manager.reset(scene="scene_b", seed=0).accepted  # the other scene still serves
     assert [p.parent.name for p in (tmp_path / "cache").rglob("splat.ply")] == ["000002"]  # nothing half-unpacked
 

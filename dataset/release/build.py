@@ -70,6 +70,8 @@ def build_release(workdir: Path | str, out: Path | str, *, force: bool = False) 
     camera = _confined([(_camera(scenes), f"{source.name}/{CAMERA}")], scenes[0].layout.root)
     test_files, model_files = _test_files(scenes), _model_files(scenes, models)
     split = synthetic_split(source.workdir)  # WORKDIR/synth/train_pbr from `brave6d synth`, when there is one
+    if split is not None:
+        _refuse_links(split.rglob("*"), split)  # before train_pbr_files reads a single byte through a link
     split_files = _confined(train_pbr_files(split, models), split) if split is not None else []
     bundles = {s.source.scene_id: _bundle_files(s) for s in progress(scenes, desc="release: check bundles",
                                                                       unit="bundle")}

@@ -40,6 +40,7 @@ from pathlib import Path, PurePosixPath
 from typing import BinaryIO, TypeVar
 
 from brave6d.errors import DataError
+from brave6d.names import relative_path_problem
 from brave6d.progress import progress_bar
 from dataset.release.source import ReleaseError
 
@@ -130,33 +131,9 @@ DEFAULT_LIMITS = ZipLimits()
 
 # ----------------------------------------------------------------------------- member names
 def member_name_problem(name: str) -> str | None:
-    """Why the zip member ``name`` might land outside its destination folder, or None when it cannot.
-
-    A folder member's one trailing ``/`` is allowed. Parts that end with a dot or a space are
-    refused too (Windows drops those, so ``a.`` would become ``a`` and ``...`` nothing).
-    """
-    if not isinstance(name, str) or not name:
-        return "an empty name"
-    if name.startswith("/"):
-        return "an absolute path"
-    if "\\" in name:
-        return "a backslash (a Windows path separator)"
-    if ":" in name:
-        return "a ':' (a drive letter or a Windows stream name)"
-    if len(name.encode("utf-8", "surrogatepass")) > 4095:
-        return "a name longer than 4095 bytes"
-    for part in (name[:-1] if name.endswith("/") else name).split("/"):
-        if not part:
-            return "an empty path part ('//')"
-        if part in (".", ".."):
-            return f"a '{part}' path part"
-        if not part.isprintable():
-            return "a control or non-printable character"
-        if part.endswith((".", " ")):
-            return "a path part ending in a dot or a space"
-        if len(part.encode("utf-8")) > 255:
-            return "a path part longer than 255 bytes"
-    return None
+    """Why the zip member ``name`` might land outside its destination folder, or None when it cannot
+    (:func:`brave6d.names.relative_path_problem`; a folder member's one trailing ``/`` is allowed)."""
+    return relative_path_problem(name, folder_slash=True)
 
 
 def _shown(name: str) -> str:
