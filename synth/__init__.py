@@ -8,7 +8,8 @@ Public API (imported lazily, so ``import synth`` costs no Open3D or trimesh):
 - randomisation: ``Randomization``, ``sample_image_scene``, ``ImageScene``, ``LibraryAssets``,
   ``image_rng``;
 - placement: ``resting_poses``, ``RestingPoses``, ``place_on_plane``, ``Placement``;
-- rendering and files: ``render_image``, ``RenderedImage``, ``SPLIT``, ``image_address``.
+- rendering and files: ``render_image``, ``RenderedImage``, ``SPLIT``, ``image_address``,
+  ``image_problem`` (is an image written before complete and whole: what a resumed run checks).
 
 The modules behind them, one job each: ``source`` (the spec), ``placement`` (resting poses without
 interpenetration), ``randomize`` (one image's random scene), ``render`` (SimCamera + ground truth),
@@ -28,6 +29,7 @@ _LAZY = {
     "resting_poses": ".placement", "RestingPoses": ".placement", "place_on_plane": ".placement",
     "Placement": ".placement",
     "render_image": ".render", "RenderedImage": ".render", "SPLIT": ".writer", "image_address": ".writer",
+    "image_problem": ".writer",
 }
 
 __all__ = sorted(_LAZY)

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from brave6d.cli_types import int_in
+from brave6d.png_check import CHECKS, DEFAULT_CHECK
 from synth.limits import BOUNDS
 
 
@@ -22,6 +23,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="image width (default: the spec's camera)")
     parser.add_argument("--height", type=int_in(*BOUNDS["height"]), default=None,
                         help="image height (default: the spec's camera)")
+    parser.add_argument("--resume-check", choices=CHECKS, default=DEFAULT_CHECK,
+                        help="how the images a resumed run finds are checked before they count as complete "
+                             "(default %(default)s): header (45 bytes: truncated or foreign files, wrong size or "
+                             "kind), crc (every byte, ~3x header's time), decode (a full decode, ~20-40x); a "
+                             "damaged image is rendered again. Costs on this machine: brave6d report, section 8")
     parser.add_argument("--mesh-dir", type=Path, action="append", default=[], metavar="DIR",
                         help="for a dataset.yaml: also accept meshes that lie under DIR (repeatable); by default "
                              "every file it names must lie in its own folder")
@@ -32,7 +38,8 @@ def run(args: argparse.Namespace) -> int:
 
     result = synthesize(args.spec, args.out, SynthOptions(images=args.images, seed=args.seed, workers=args.workers,
                                                            width=args.width, height=args.height,
-                                                           mesh_dirs=tuple(args.mesh_dir)))
+                                                           mesh_dirs=tuple(args.mesh_dir),
+                                                           resume_check=args.resume_check))
     print(f"synth: {result.images} images in {result.out / 'train_pbr'} ({result.rendered} rendered, "
           f"{result.skipped} already complete); {result.images_per_s:.2f} images/s with {args.workers} worker(s), "
           f"{result.seconds:.1f} s in all")

@@ -498,6 +498,24 @@ def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: P
     assert (identities(tmp_path / "plane"), identities(tmp_path / "hand")) == before
 
 
+def test_synthesis_section_prices_the_resume_check() -> None:
+    """``--resume-check``'s levels beside a render: a table and the advice (from a fabricated point)."""
+    from evaluation.report.sections.synthesis import advice_resume_check, resume_check_text
+
+    points = [{"id": "640x480-w1", "width": 640, "height": 480, "workers": 1, "images": 8, "images_per_s": 2.0,
+               "resume_check_ms": {"header": 0.5, "crc": 1.5, "decode": 25.0}}]
+    table = resume_check_text(points)
+    assert "rendering one took 500 ms" in table
+    assert re.search(r"\| crc +\| 1\.50 +\| 0\.30 +\| also any changed byte +\|", table)  # 1.5 / 500 ms
+    assert re.search(r"\| decode +\| 25\.00 +\| 5\.00 +\|", table)
+    advice = advice_resume_check(points)
+    assert "the default `crc` costs 1.50 ms per image found on resume (0.30 % of rendering one)" in advice
+    assert "`decode` (25.0 ms) adds only forged files" in advice
+    unpriced = [{k: v for k, v in points[0].items() if k != "resume_check_ms"}]
+    assert resume_check_text(unpriced) == "" and advice_resume_check(unpriced) == ""
+    assert advice_resume_check([{**points[0], "images_per_s": None}]) == ""  # no render time: no advice
+
+
 def test_synthesis_advice_keeps_one_worker_when_more_do_not_pay() -> None:
     rates = {(320, 240): {1: 4.0, 2: 4.2}, (640, 480): {1: 1.0, 2: 1.1}}
     advice = advice_synthesis(rates, {"usable_cores": 2}, images=8)
@@ -520,6 +538,9 @@ def test_synthesis_section_measures_the_scenes_objects_outside_the_scene(tmp_pat
     assert m.status == "complete" and [p["id"] for p in m.points] == ["48x36-w1", "96x72-w1"]
     assert all(p["images"] == 2 and p["images_per_s"] > 0 for p in m.points)
     assert m.summary["objects"] and m.settings["objects"] == len(m.summary["objects"])
+    checks = m.points[1]["resume_check_ms"]  # the largest size's one-worker run prices --resume-check
+    assert set(checks) == {"header", "crc", "decode"} and all(v > 0 for v in checks.values())
+    assert "resume_check_ms" not in m.points[0]
     after = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if "report" not in p.parts)
     assert after == before  # the images went to a temporary folder, not into the scene
     again = measure_synthesis(MeasureInputs(tmp_path, scene, store), sweep)  # cached: not measured again

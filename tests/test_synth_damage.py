@@ -137,3 +137,26 @@ def test_cli_says_how_many_images_were_rendered_again_and_why(clean: tuple[Path,
     assert "(1 rendered, 5 already complete)" in run.stdout
     assert f"1 image(s) written before were damaged and rendered again; first: {rgb}: truncated" in run.stdout
     assert _tree(out) == _tree(first)
+
+
+@pytest.mark.slow
+def test_the_resume_check_flag_chooses_the_level(clean: tuple[Path, Path], tmp_path: Path) -> None:
+    """``brave6d synth --resume-check``: a byte changed inside an RGB image (same length) passes the
+    ``header`` level and is kept; the default ``crc`` finds it and renders the image again."""
+    spec, first = clean
+    out = tmp_path / "flipped"
+    shutil.copytree(first, out)
+    rgb = out / "train_pbr" / "000000" / "rgb" / "000002.png"
+    data = bytearray(rgb.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    rgb.write_bytes(bytes(data))
+    cmd = [sys.executable, "-m", "brave6d.cli", "synth", str(spec), str(out), "--images", str(IMAGES)]
+    kept = subprocess.run([*cmd, "--resume-check", "header"], capture_output=True, text=True, timeout=300)
+    assert kept.returncode == 0, kept.stderr
+    assert rgb.read_bytes() == bytes(data) and "damaged" not in kept.stdout
+    redone = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert redone.returncode == 0, redone.stderr
+    assert "1 image(s) written before were damaged" in redone.stdout and "rgb/000002.png" in redone.stdout
+    assert _tree(out) == _tree(first)
+    bad = subprocess.run([*cmd, "--resume-check", "md5"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--resume-check" in bad.stderr

@@ -7,12 +7,18 @@ image to the last written file (worker start-up and library loading included: wh
 for). One untimed one-image run at the smallest size comes first, so that this process's one-time
 imports and compilation do not land on the first setting. The advice derives the rate at each size, whether more workers pay on this machine and how
 long 10,000 images take.
+
+It also prices ``synth --resume-check``: on the images of the largest size's one-worker run, the
+time :func:`synth.image_problem` takes per image at each check level (``header``, ``crc``,
+``decode``: what a resumed run spends on every image it finds), beside the time to render one.
 """
 
 from __future__ import annotations
 
 import math
+import statistics
 import tempfile
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -62,10 +68,15 @@ def measure_synthesis(inputs: MeasureInputs, sweep: SynthSweep) -> Measurement:
     m.summary.update({"spec": str(spec), "objects": [o.name for o in source.objects],
                       "effects": source.effects.enabled()})
 
-    def run(images: int, width: int, height: int, workers: int) -> Any:
+    largest = max(sweep.sizes, key=lambda s: s[0] * s[1])
+
+    def run(images: int, width: int, height: int, workers: int) -> tuple[Any, dict[str, float]]:
         with tempfile.TemporaryDirectory(prefix="brave6d-report-synth-") as tmp:
-            return synthesize(spec, Path(tmp) / "train_pbr", SynthOptions(
-                images=images, seed=sweep.seed, workers=workers, width=width, height=height))
+            out = Path(tmp) / "train_pbr"
+            result = synthesize(spec, out, SynthOptions(images=images, seed=sweep.seed, workers=workers,
+                                                        width=width, height=height))
+            priced = (width, height) == largest and workers == min(sweep.workers)
+            return result, (resume_check_ms(out, images, (width, height)) if priced else {})
 
     warmed: list[bool] = []
 
@@ -74,12 +85,32 @@ def measure_synthesis(inputs: MeasureInputs, sweep: SynthSweep) -> Measurement:
         if not warmed:  # untimed: one-time imports and compilation (module docstring)
             run(1, *min(sweep.sizes, key=lambda s: s[0] * s[1]), 1)
             warmed.append(True)
-        result = run(sweep.images, width, height, workers)
-        return {"width": width, "height": height, "workers": workers, "images": result.rendered,
-                "render_s": result.render_seconds, "wall_s": result.seconds, "images_per_s": result.images_per_s}
+        result, check_ms = run(sweep.images, width, height, workers)
+        point = {"width": width, "height": height, "workers": workers, "images": result.rendered,
+                 "render_s": result.render_seconds, "wall_s": result.seconds, "images_per_s": result.images_per_s}
+        return {**point, "resume_check_ms": check_ms} if check_ms else point
 
     items = [(f"{w}x{h}-w{n}", (w, h, n)) for w, h in sweep.sizes for n in sweep.workers]
     return run_sweep(store, m, items, measure, desc="report: synthesis", unit="setting")
+
+
+def resume_check_ms(out: Path, images: int, size: tuple[int, int], repeats: int = 3) -> dict[str, float]:
+    """Milliseconds per image that a resumed run spends checking the ``images`` images in ``out``
+    at each level of ``--resume-check`` (one thread, files in the page cache: median of ``repeats``)."""
+    from brave6d.png_check import CHECKS
+    from synth import image_problem
+
+    out_ms = {}
+    for check in CHECKS:
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            bad = [i for i in range(images) if image_problem(out, i, size, check) is not None]
+            times.append((time.perf_counter() - t0) * 1000.0 / images)
+            if bad:  # a freshly written split: a problem here is the check's, not the images'
+                raise RuntimeError(f"synth check {check!r} refused image {bad[0]} of a fresh split in {out}")
+        out_ms[check] = statistics.median(times)
+    return out_ms
 
 
 # ----------------------------------------------------------------------------- aggregation
@@ -139,9 +170,62 @@ def render_synthesis(m: Measurement | None, out_dir: Path) -> RenderedSection:
             "warm-up image).\n\n"
             f"![images per second]({png.name})\n\n"
             + format_table(["size", "workers", "images", "images/s", "s/image", f"h for {SPLIT_IMAGES:,}"], table)
-            + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted synthesis rates"))
-    return RenderedSection(TITLE, body, advice_synthesis(rates, m.machine, int(num(m.settings.get("images")))),
-                           [png])
+            + "\n\n" + resume_check_text(m.points) + provenance(m) + "\n" + nan_note(dropped, "plotted synthesis rates"))
+    advice = advice_synthesis(rates, m.machine, int(num(m.settings.get("images"))))
+    return RenderedSection(TITLE, body, (advice + " " + advice_resume_check(m.points)).strip(), [png])
+
+
+def _priced(points: Sequence[dict[str, Any]]) -> tuple[dict[str, Any], dict[str, float]] | None:
+    """The point whose images were checked at every ``--resume-check`` level, and its ms per image."""
+    for p in points:
+        ms = p.get("resume_check_ms")
+        if isinstance(ms, dict) and ms:
+            return p, {str(k): num(v) for k, v in ms.items()}
+    return None
+
+
+def _render_ms(point: Mapping[str, Any]) -> float:
+    rate = num(point.get("images_per_s"))
+    return 1000.0 / rate if math.isfinite(rate) and rate > 0 else math.nan
+
+
+def resume_check_text(points: Sequence[dict[str, Any]]) -> str:
+    """A table of what each ``--resume-check`` level costs per image (empty when not measured)."""
+    priced = _priced(points)
+    if priced is None:
+        return ""
+    point, ms = priced
+    render = _render_ms(point)
+    rows = [(level, fmt(v, 2), fmt(v / render * 100.0, 2) if math.isfinite(render) else "n/a", CATCHES.get(level, ""))
+            for level, v in ms.items()]
+    return (f"`--resume-check`: what a resumed run spends checking each image it finds "
+            f"({point['width']}x{point['height']}, {point.get('images')} images, one thread, files in the page "
+            f"cache; rendering one took {fmt(render, 0)} ms):\n\n"
+            + format_table(["level", "ms/image", "% of a render", "finds"], rows) + "\n\n")
+
+
+#: What each ``--resume-check`` level finds (:mod:`brave6d.png_check`).
+CATCHES = {"header": "a file cut short, not a PNG, wrong size or kind",
+           "crc": "also any changed byte",
+           "decode": "also compressed data that does not inflate (only a forged file with valid CRCs)"}
+
+
+def advice_resume_check(points: Sequence[dict[str, Any]]) -> str:
+    """Which ``--resume-check`` level to use, from its measured cost beside a render."""
+    priced = _priced(points)
+    if priced is None:
+        return ""
+    point, ms = priced
+    render = _render_ms(point)
+    crc, decode = ms.get("crc", math.nan), ms.get("decode", math.nan)
+    if not (math.isfinite(render) and math.isfinite(crc)):
+        return ""
+    text = (f"**Resume check:** the default `crc` costs {fmt(crc, 2)} ms per image found on resume "
+            f"({fmt(crc / render * 100.0, 2)} % of rendering one) and finds any changed byte: keep it")
+    if math.isfinite(decode):
+        text += (f"; `decode` ({fmt(decode, 1)} ms) adds only forged files with valid CRCs, worth it for a split "
+                 "others could have written")
+    return text + "."
 
 
 def advice_synthesis(rates: Mapping[tuple[int, int], Mapping[int, float]], machine: Mapping[str, Any],
