@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import os
+import json
 import shutil
 import stat
 import struct
@@ -404,6 +405,21 @@ def test_verify_refuses_a_bundle_member_its_manifest_does_not_list(copy: Path) -
     _resum(copy)
     with pytest.raises(ReleaseError, match=r"bundle_000001\.zip: member bundles/000001/extra\.txt: not listed in "
                                            r"the bundle's manifest\.json"):
+        verify_release(copy)
+
+
+@pytest.mark.slow
+def test_verify_reads_a_bundle_manifest_through_serves_reader(copy: Path) -> None:
+    """A malformed bundle ``manifest.json`` inside a release: one line naming the zip, the file and
+    the field (``serve.read_bundle_manifest``, the format's one reader), not a partial check of its own."""
+    member = "bundles/000001/manifest.json"
+    with zipfile.ZipFile(copy / f"{NAME}_bundle_000001.zip") as zf:
+        manifest = json.loads(zf.read(member))
+    manifest["files"]["splat.ply"]["bytes"] = "many"
+    _replace_member(copy / f"{NAME}_bundle_000001.zip", member, json.dumps(manifest).encode())
+    _resum(copy)
+    with pytest.raises(ReleaseError, match=r"bundle_000001\.zip: the bundle does not load: .*bundle_000001\.zip:"
+                                           r"bundles/000001/manifest\.json: field 'files\['splat\.ply'\]\.bytes'"):
         verify_release(copy)
 
 

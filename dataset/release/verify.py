@@ -18,12 +18,12 @@ and only the small files a reader needs are written to a temporary folder.
 from __future__ import annotations
 
 import hashlib
-import json
 import tempfile
+from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from annotation import read_models_info, read_ply_mesh, read_scene_camera, read_scene_gt, read_scene_gt_info
 from brave6d.atomic import file_sha256, read_json
@@ -37,6 +37,8 @@ from dataset.release.manifest import read_manifest
 from dataset.release.source import ReleaseError
 from dataset.release.train_pbr import check_train_pbr_zip
 from dataset.release.zips import CheckedZip, open_zip
+
+T = TypeVar("T")
 
 #: Bytes of a splat kept to let ``serve.load_bundle`` read its PLY header (the rest is only hashed).
 _SPLAT_HEAD = 1 << 16
@@ -187,13 +189,16 @@ def _check_base(zf: CheckedZip, name: str, scenes: list[dict[str, Any]], gts: di
 
 
 def _check_bundle(base: Path, zip_name: str, scene: dict[str, Any], library: dict[int, str], tmp: Path) -> None:
-    """A bundle zip: every member listed by the bundle's own manifest and matching its size and
-    sha256 (streamed); then ``serve.load_bundle`` on its JSON files and the splat's PLY header."""
+    """A bundle zip: its ``manifest.json`` read by serve's one reader, every member listed by it and
+    matching its size and sha256 (streamed); then ``serve.load_bundle`` on its JSON files and the
+    splat's PLY header."""
     from serve import SPLAT, load_bundle
 
     folder = bundle_folder(scene["scene_id"])
-    with open_zip(base / zip_name, inside=folder, shown=zip_name) as zf:
-        listed = _bundle_files(zf, folder)
+    with open_zip(base / zip_name, inside=folder, shown=zip_name) as zf, \
+            tempfile.TemporaryDirectory(prefix="bundle-", dir=tmp) as tmp_bundle:
+        target = Path(tmp_bundle)
+        listed = _bundle_files(zf, folder, target)
         head = b""
         for member, entry in listed.items():
             digest, kept = _digest(zf, member, _SPLAT_HEAD if member == f"{folder}/{SPLAT}" else 0)
@@ -201,16 +206,10 @@ def _check_bundle(base: Path, zip_name: str, scene: dict[str, Any], library: dic
             if digest != entry["sha256"]:
                 raise ReleaseError(f"{zip_name}:{member}: sha256 {digest[:12]}... does not match {folder}/{MANIFEST} "
                                    f"({str(entry['sha256'])[:12]}...); the bundle was altered")
-        with tempfile.TemporaryDirectory(prefix="bundle-", dir=tmp) as tmp_bundle:
-            target = Path(tmp_bundle)
-            small = [m for m in listed if m.count("/") == folder.count("/") + 1 and m.endswith(".json")]
-            zf.extract(target, list(dict.fromkeys([f"{folder}/{MANIFEST}", *small])), strip=folder)
-            (target / SPLAT).write_bytes(head[:head.find(b"end_header\n") + 11] if b"end_header\n" in head else head)
-            try:
-                bundle = load_bundle(target, verify=False)  # every file was checked against the manifest above
-            except DataError as exc:
-                raise ReleaseError(f"{zip_name}: the bundle does not load: "
-                                   f"{str(exc).replace(str(target), f'{zip_name}:{folder}')}") from None
+        small = [m for m in listed if m.count("/") == folder.count("/") + 1 and m.endswith(".json")]
+        zf.extract(target, small, strip=folder)
+        (target / SPLAT).write_bytes(head[:head.find(b"end_header\n") + 11] if b"end_header\n" in head else head)
+        bundle = _bundle_call(load_bundle, target, zip_name, folder, verify=False)  # files checked above
     for o in bundle.objects:
         if library.get(o.obj_id) != o.name:
             raise ReleaseError(f"{zip_name}: {folder}/objects.json: object {o.name!r} has obj_id {o.obj_id}, which is "
@@ -220,18 +219,24 @@ def _check_bundle(base: Path, zip_name: str, scene: dict[str, Any], library: dic
                                f"the bundle's {MANIFEST}")
 
 
-def _bundle_files(zf: CheckedZip, folder: str) -> dict[str, dict[str, Any]]:
-    """``{member: manifest entry}`` of every file a bundle's ``manifest.json`` lists; every member of
-    the zip must be one of them (or the manifest itself), with the size the manifest gives."""
-    where = f"{zf.shown}:{folder}/{MANIFEST}"
+def _bundle_call(fn: Callable[..., T], target: Path, zip_name: str, folder: str, **kwargs: Any) -> T:
+    """``fn(target, **kwargs)`` (serve's bundle readers), its errors naming ``zip:folder`` instead of
+    the temporary folder the bundle's small files were unpacked to."""
     try:
-        manifest = json.loads(zf.read(f"{folder}/{MANIFEST}"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ReleaseError(f"{where}: not valid JSON ({exc})") from None
-    files = manifest.get("files") if isinstance(manifest, dict) else None
-    if not isinstance(files, dict) or not all(isinstance(e, dict) and isinstance(e.get("sha256"), str)
-                                              for e in files.values()):
-        raise ReleaseError(f"{where}: field 'files': an object of {{file: {{sha256, bytes}}}} is required")
+        return fn(target, **kwargs)
+    except DataError as exc:
+        raise ReleaseError(f"{zip_name}: the bundle does not load: "
+                           f"{str(exc).replace(str(target), f'{zip_name}:{folder}')}") from None
+
+
+def _bundle_files(zf: CheckedZip, folder: str, target: Path) -> dict[str, dict[str, Any]]:
+    """``{member: manifest entry}`` of every file the bundle's ``manifest.json`` lists (read by
+    ``serve.read_bundle_manifest``, the format's one reader, from ``target``, where it is unpacked);
+    every member of the zip must be one of them (or the manifest itself), of the size it gives."""
+    from serve import read_bundle_manifest
+
+    zf.extract(target, [f"{folder}/{MANIFEST}"], strip=folder)
+    files = _bundle_call(read_bundle_manifest, target, zf.shown, folder)["files"]
     listed = {f"{folder}/{rel}": entry for rel, entry in files.items()}
     present = set(zf.names)
     for member in zf.names:
@@ -240,7 +245,7 @@ def _bundle_files(zf: CheckedZip, folder: str) -> dict[str, dict[str, Any]]:
     for member, entry in listed.items():
         if member not in present:
             raise ReleaseError(f"{zf.shown}:{member}: missing (listed in {folder}/{MANIFEST})")
-        if "bytes" in entry and entry["bytes"] != zf.size(member):
+        if entry["bytes"] != zf.size(member):
             raise ReleaseError(f"{zf.shown}:{member}: {zf.size(member)} bytes, {folder}/{MANIFEST} says "
                                f"{entry['bytes']}")
     return listed
