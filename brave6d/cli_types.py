@@ -10,6 +10,9 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from typing import TypeVar
+
+T = TypeVar("T", int, float)
 
 
 def _interval(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
@@ -26,34 +29,28 @@ def _number(value: float) -> str:
 def float_in(low: float | None = None, high: float | None = None, *, low_open: bool = False,
              high_open: bool = False) -> Callable[[str], float]:
     """An argparse type: a finite float within ``low .. high`` (None: unbounded on that side)."""
-    where = _interval(low, high, low_open, high_open)
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"must be a number in {where}, got {text!r}") from None
-        if not math.isfinite(value) or (low is not None and (value <= low if low_open else value < low)) or \
-                (high is not None and (value >= high if high_open else value > high)):
-            raise argparse.ArgumentTypeError(f"must be a finite number in {where}, got {text}")
-        return value
-
-    parse.__name__ = "float"
-    return parse
+    return _bounded(float, "a finite number", low, high, low_open, high_open)
 
 
 def int_in(low: int | None = None, high: int | None = None) -> Callable[[str], int]:
     """An argparse type: an integer within ``low .. high`` inclusive (None: unbounded on that side)."""
-    where = _interval(low, high, False, False)
+    return _bounded(int, "an integer", low, high, False, False)
 
-    def parse(text: str) -> int:
+
+def _bounded(convert: Callable[[str], T], what: str, low: float | None, high: float | None, low_open: bool,
+             high_open: bool) -> Callable[[str], T]:
+    where = _interval(low, high, low_open, high_open)
+
+    def parse(text: str) -> T:
         try:
-            value = int(text)
+            value = convert(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"must be an integer in {where}, got {text!r}") from None
-        if (low is not None and value < low) or (high is not None and value > high):
-            raise argparse.ArgumentTypeError(f"must be an integer in {where}, got {value}")
+            raise argparse.ArgumentTypeError(f"must be {what} in {where}, got {text!r}") from None
+        if (isinstance(value, float) and not math.isfinite(value)) or \
+                (low is not None and (value <= low if low_open else value < low)) or \
+                (high is not None and (value >= high if high_open else value > high)):
+            raise argparse.ArgumentTypeError(f"must be {what} in {where}, got {text}")
         return value
 
-    parse.__name__ = "int"
+    parse.__name__ = convert.__name__  # argparse names the type in its own messages
     return parse

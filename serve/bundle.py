@@ -42,7 +42,6 @@ changes): :func:`find_splat_ply`, :func:`read_annotation_instances`, :func:`hold
 from __future__ import annotations
 
 import datetime as _dt
-import hashlib
 import logging
 import os
 import re
@@ -57,7 +56,7 @@ from numpy.typing import NDArray
 
 from brave6d.atomic import atomic_write_json, file_sha256, move_aside, read_json, staged_folder
 from brave6d.camera import PinholeCamera
-from brave6d.errors import BraveError, DataError, NonRigidTransformError
+from brave6d.errors import BraveError, DataError
 from brave6d.layout import FrameRecord, SceneDir
 from brave6d.names import relative_path_problem
 from brave6d.provenance import software_versions

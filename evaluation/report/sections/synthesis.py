@@ -175,18 +175,15 @@ def render_synthesis(m: Measurement | None, out_dir: Path) -> RenderedSection:
     return RenderedSection(TITLE, body, (advice + " " + advice_resume_check(m.points)).strip(), [png])
 
 
-def _priced(points: Sequence[dict[str, Any]]) -> tuple[dict[str, Any], dict[str, float]] | None:
-    """The point whose images were checked at every ``--resume-check`` level, and its ms per image."""
+def _priced(points: Sequence[dict[str, Any]]) -> tuple[dict[str, Any], dict[str, float], float] | None:
+    """The point whose images were checked at every ``--resume-check`` level, its ms per image by
+    level and its ms to render one image (NaN when its rate is not finite); None when none was."""
     for p in points:
         ms = p.get("resume_check_ms")
         if isinstance(ms, dict) and ms:
-            return p, {str(k): num(v) for k, v in ms.items()}
+            rate = num(p.get("images_per_s"))
+            return p, {str(k): num(v) for k, v in ms.items()}, (1000.0 / rate if rate > 0 else math.nan)
     return None
-
-
-def _render_ms(point: Mapping[str, Any]) -> float:
-    rate = num(point.get("images_per_s"))
-    return 1000.0 / rate if math.isfinite(rate) and rate > 0 else math.nan
 
 
 def resume_check_text(points: Sequence[dict[str, Any]]) -> str:
@@ -194,8 +191,7 @@ def resume_check_text(points: Sequence[dict[str, Any]]) -> str:
     priced = _priced(points)
     if priced is None:
         return ""
-    point, ms = priced
-    render = _render_ms(point)
+    point, ms, render = priced
     rows = [(level, fmt(v, 2), fmt(v / render * 100.0, 2) if math.isfinite(render) else "n/a", CATCHES.get(level, ""))
             for level, v in ms.items()]
     return (f"`--resume-check`: what a resumed run spends checking each image it finds "
@@ -215,8 +211,7 @@ def advice_resume_check(points: Sequence[dict[str, Any]]) -> str:
     priced = _priced(points)
     if priced is None:
         return ""
-    point, ms = priced
-    render = _render_ms(point)
+    _, ms, render = priced
     crc, decode = ms.get("crc", math.nan), ms.get("decode", math.nan)
     if not (math.isfinite(render) and math.isfinite(crc)):
         return ""
