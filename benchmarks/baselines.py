@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch / numba load (see brave6d.runtime)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch / numba load (see brave6d.core.runtime)
 
 import argparse
 import json
@@ -26,11 +26,11 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+if str(ROOT / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(ROOT / "src"))
 
-from evaluation.agents import ACTIVE_AGENT, POLICIES, STATIC_AGENT
-from evaluation.demo import EPISODES_PER_OBJECT, run_baselines
+from brave6d.evaluation.agents import ACTIVE_AGENT, POLICIES, STATIC_AGENT
+from brave6d.evaluation.demo import EPISODES_PER_OBJECT, run_baselines
 
 DEFAULT_BUNDLE = ROOT / "runs" / "demo" / "scene" / "bundle"
 

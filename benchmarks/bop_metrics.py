@@ -13,9 +13,9 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from evaluation.metrics.bop_metrics import VSD_TAUS, mspd, mssd, vsd
-from evaluation.metrics.recall import Estimate, GTInstance, ObjectModel, evaluate_bop19
-from evaluation.metrics.depth_renderer import DepthRenderer
+from brave6d.evaluation.metrics.bop_metrics import VSD_TAUS, mspd, mssd, vsd
+from brave6d.evaluation.metrics.recall import Estimate, GTInstance, ObjectModel, evaluate_bop19
+from brave6d.evaluation.metrics.depth_renderer import DepthRenderer
 
 
 def make_models() -> dict[int, ObjectModel]:

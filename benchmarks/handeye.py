@@ -1,6 +1,6 @@
 """Hand-eye accuracy against the number of poses and the rotation span, with solve time.
 
-Synthetic eye-in-hand captures (calibration.synthetic: the spec's default board 0.45 m from
+Synthetic eye-in-hand captures (brave6d.calibration.known_truth: the spec's default board 0.45 m from
 the camera, 640x480 camera with f = 600 px, corner noise and robot pose error as given) are
 solved by every closed-form method and by the joint refinement. The conditioning check runs
 with relaxed thresholds so that poor geometry is measured instead of refused; the column
@@ -29,13 +29,13 @@ from typing import Any
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+if str(ROOT / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(ROOT / "src"))
 
-from brave6d.errors import DegenerateGeometryError
-from calibration.conditioning import ConditioningThresholds, check_handeye_conditioning
-from calibration.handeye import HandEyeOptions, calibrate_handeye, estimate_board_pose
-from calibration.synthetic import make_handeye_dataset
+from brave6d.core.errors import DegenerateGeometryError
+from brave6d.calibration.conditioning import ConditioningThresholds, check_handeye_conditioning
+from brave6d.calibration.handeye import HandEyeOptions, calibrate_handeye, estimate_board_pose
+from brave6d.calibration.known_truth import make_handeye_dataset
 
 METHODS = ("tsai", "park", "daniilidis", "refined")
 

@@ -31,19 +31,19 @@ from typing import Any
 import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-# as `brave6d serve` does (serve.cli.quiet_openmp): OpenMP threads sleep while they wait
+if str(REPO / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(REPO / "src"))
+# as `brave6d serve` does (brave6d.serve.cli.quiet_openmp): OpenMP threads sleep while they wait
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from brave6d.transforms import look_at
+from brave6d.core.transforms import look_at
 
 DEMO_BUNDLE = REPO / "runs" / "demo" / "scene" / "bundle"
 
 
 def _views(info: dict[str, Any], rng: np.random.Generator, n: int) -> list[np.ndarray]:
     """Seeded free views around the first object, from the bundle description (GET /bundle)."""
-    from serve.geometry import CollisionWorld, OrientedBox, Workspace
+    from brave6d.serve.geometry import CollisionWorld, OrientedBox, Workspace
 
     coll = info["collision"]
     world = CollisionWorld(tuple(OrientedBox.from_json(b) for b in coll["boxes"]), Workspace.from_json(coll["workspace"]),
@@ -76,7 +76,7 @@ def _blocked_pose(info: dict[str, Any]) -> np.ndarray | None:
 def run_load_test(url: str, clients: int = 8, requests: int = 50, width: int = 320, height: int = 240,
                   seed: int = 0, max_seconds: float = 600.0, timeout: float = 120.0) -> dict[str, Any]:
     """Run the load test against ``url``; returns latencies (ms), throughput and errors."""
-    from serve.client import BraveClient
+    from brave6d.serve.client import BraveClient
 
     with BraveClient(url, timeout=timeout) as probe:
         info = probe.bundle()
@@ -174,14 +174,14 @@ def main(argv: list[str] | None = None) -> int:
     server = None
     url = args.url
     if url is None:
-        from serve.app import ServerLimits, create_app
-        from serve.runner import ServerThread
+        from brave6d.serve.app import ServerLimits, create_app
+        from brave6d.serve.runner import ServerThread
 
         bundle_dir = args.bundle
         if bundle_dir is None and (DEMO_BUNDLE / "manifest.json").is_file():
             bundle_dir = DEMO_BUNDLE
         if bundle_dir is None:
-            from serve.synthetic import make_synthetic_bundle
+            from brave6d.serve.toy_scene import make_synthetic_bundle
 
             tmp = tempfile.TemporaryDirectory(prefix="brave6d_load_")
             bundle_dir = make_synthetic_bundle(Path(tmp.name) / "scene", n_gaussians=150_000, sh_degree=2,

@@ -22,13 +22,13 @@ from typing import Any
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+if str(ROOT / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(ROOT / "src"))
 
-from brave6d.spec import SceneSpec, load_scene_spec, parse_scene_spec  # noqa: E402
-from capture.collision import BoxSet  # noqa: E402
-from capture.kinematics import URKinematics  # noqa: E402
-from capture.planning import Plan, PlannerOptions, path_travel_time, plan_views, plot_plan  # noqa: E402
+from brave6d.core.spec import SceneSpec, load_scene_spec, parse_scene_spec  # noqa: E402
+from brave6d.capture.collision import BoxSet  # noqa: E402
+from brave6d.capture.kinematics import URKinematics  # noqa: E402
+from brave6d.capture.planning import Plan, PlannerOptions, path_travel_time, plan_views, plot_plan  # noqa: E402
 
 DEMO = ROOT / "data" / "demo" / "scene.yaml"
 

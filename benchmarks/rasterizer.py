@@ -33,8 +33,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+if str(REPO / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(REPO / "src"))
 
 if "--omp-default" not in sys.argv:  # must happen before torch / numba load libgomp
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -143,7 +143,7 @@ def interleaved(kernel: Callable, reference: Callable, rounds: int) -> dict:
 _JIT_PROBE = r"""
 import time, torch
 t0 = time.perf_counter()
-from training.rasterizer import rasterize
+from brave6d.training.rasterizer import rasterize
 n = 64
 g = torch.Generator().manual_seed(0)
 p = [torch.randn(n, 3, generator=g) + torch.tensor([0.0, 0.0, 3.0]), torch.randn(n, 4, generator=g),
@@ -182,9 +182,9 @@ def main(argv: list[str] | None = None) -> int:
 
     import numba
 
-    from training.rasterizer import rasterize
-    from training.rasterizer.reference import rasterize_reference
-    from training.rasterizer.simd import REPORTED_FEATURES, target_cpu
+    from brave6d.training.rasterizer import rasterize
+    from brave6d.training.rasterizer.reference import rasterize_reference
+    from brave6d.training.rasterizer.simd import REPORTED_FEATURES, target_cpu
 
     cpu = target_cpu()
 

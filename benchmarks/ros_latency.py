@@ -2,7 +2,7 @@
 
 One step = an agent sends a camera pose and waits for the image of that pose:
 
-* ``http``: ``BraveClient.set_pose`` against ``serve.ServerThread`` on loopback (PNG RGB and
+* ``http``: ``BraveClient.set_pose`` against ``brave6d.serve.ServerThread`` on loopback (PNG RGB and
   float32 depth in the JSON reply, decoded), i.e. the reply the agent waits for;
 * ``ros1``: a ``geometry_msgs/PoseStamped`` published on ``/brave6d_sim/set_pose`` until the
   ``sensor_msgs/Image`` (rgb8) with that step's stamp reaches the agent's callback (rosmaster and
@@ -10,7 +10,7 @@ One step = an agent sends a camera pose and waits for the image of that pose:
   image's arrival);
 * ``ros2``: the same over ROS 2 topics on DDS (``brave6d ros2`` on loopback with a random domain
   id, its own process; the agent a Cyclone DDS participant in this process,
-  ``ros_interface.ros2.agent.Ros2Agent``): ``PoseStamped`` published on ``/brave6d_sim/set_pose``
+  ``brave6d.ros_interface.ros2.agent.Ros2Agent``): ``PoseStamped`` published on ``/brave6d_sim/set_pose``
   until the rgb8 image with that step's stamp is taken from its reader (``depth``: the 32FC1 one).
 
 Every transport sees the same ``--steps`` free poses around the target (after ``--warmup`` steps
@@ -20,7 +20,7 @@ are printed as a table; ``--json`` writes them.
 
     python benchmarks/ros_latency.py [--bundle DIR] [--device cpu|cuda|auto] [--steps 30] [--json out.json]
 
-Without ``--bundle``, a synthetic bundle (``serve.make_synthetic_bundle``) is built in a temporary
+Without ``--bundle``, a synthetic bundle (``brave6d.serve.make_synthetic_bundle``) is built in a temporary
 folder. ROS 1 needs Debian's packages (see docs/ROS.md); its column is skipped, saying why, without
 them. Transports are registered in ``TRANSPORTS`` (name -> function), so a new one is one entry.
 """
@@ -45,16 +45,16 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 # this folder holds benchmarks/serve.py, which would shadow the serve package
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "benchmarks"]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+if str(REPO / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(REPO / "src"))
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the CLI does
 
-from brave6d.transforms import look_at  # noqa: E402
+from brave6d.core.transforms import look_at  # noqa: E402
 
 
 def free_views(bundle_dir: Path, n: int, seed: int = 0) -> list[np.ndarray]:
     """``n`` free camera poses on capture-like rings around the bundle's first object (seeded)."""
-    from serve import load_bundle
+    from brave6d.serve import load_bundle
 
     bundle = load_bundle(bundle_dir)
     centre = bundle.objects[0].world_T_obj[:3, 3] if bundle.objects else np.zeros(3)
@@ -85,7 +85,7 @@ def server_step_ms(log_dir: Path) -> list[float]:
 
 
 def measure_http(bundle_dir: Path, views: list[np.ndarray], args: argparse.Namespace, work: Path) -> dict[str, Any]:
-    from serve import BraveClient, ServerThread, create_app
+    from brave6d.serve import BraveClient, ServerThread, create_app
 
     log_dir = work / "http_episodes"
     app = create_app(bundle_dir, device=args.device, log_dir=log_dir)
@@ -102,8 +102,8 @@ def measure_http(bundle_dir: Path, views: list[np.ndarray], args: argparse.Names
 
 
 def measure_ros1(bundle_dir: Path, views: list[np.ndarray], args: argparse.Namespace, work: Path) -> dict[str, Any]:
-    from ros_interface.ros1.master import RosMaster, stop_group
-    from ros_interface.ros1.ros_env import loopback_environment, missing_ros1
+    from brave6d.ros_interface.ros1.master import RosMaster, stop_group
+    from brave6d.ros_interface.ros1.ros_env import loopback_environment, missing_ros1
 
     missing = missing_ros1(import_modules=False)
     if missing:
@@ -121,7 +121,7 @@ def measure_ros1(bundle_dir: Path, views: list[np.ndarray], args: argparse.Names
              "--agent", "bench-ros1"], env=env, cwd=REPO, stdout=open(work / "ros1_node.log", "wb"),
             stderr=subprocess.STDOUT, start_new_session=True)
         try:
-            agent = subprocess.run([sys.executable, "-m", "ros_interface.ros1.client", str(work / "ros1_actions.json"),
+            agent = subprocess.run([sys.executable, "-m", "brave6d.ros_interface.ros1.client", str(work / "ros1_actions.json"),
                                     str(work / "ros1_out")], env=env, cwd=REPO, capture_output=True, text=True,
                                    timeout=1800)
             if agent.returncode != 0:
@@ -143,8 +143,8 @@ def measure_ros2(bundle_dir: Path, views: list[np.ndarray], args: argparse.Names
         return {"skipped": "Cyclone DDS not installed: pip install cyclonedds==11.0.1"}
     import random
 
-    from ros_interface.ros2.agent import Ros2Agent
-    from ros_interface.ros2.dds import DdsDomain
+    from brave6d.ros_interface.ros2.agent import Ros2Agent
+    from brave6d.ros_interface.ros2.dds import DdsDomain
 
     log_dir = work / "ros2_episodes"
     domain_id = random.randrange(100, 230)
@@ -208,13 +208,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--transports", nargs="+", default=list(TRANSPORTS), choices=list(TRANSPORTS))
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
     args = parser.parse_args(argv)
-    from brave6d.progress import format_table
+    from brave6d.core.progress import format_table
 
     with tempfile.TemporaryDirectory(prefix="brave6d_ros_latency_") as tmp:
         work = Path(tmp)
         bundle_dir = args.bundle
         if bundle_dir is None:
-            from serve import make_synthetic_bundle
+            from brave6d.serve import make_synthetic_bundle
 
             bundle_dir = make_synthetic_bundle(work / "scene")
         views = free_views(bundle_dir, 1 + args.warmup + args.steps)
@@ -222,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in args.transports:
             (work / name).mkdir()
             results[name] = summarise(TRANSPORTS[name](bundle_dir, views, args, work / name), args.warmup)
-        from serve import load_bundle
+        from brave6d.serve import load_bundle
 
         bundle = load_bundle(bundle_dir)
         size = f"{bundle.render.width}x{bundle.render.height}"

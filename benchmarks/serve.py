@@ -34,12 +34,12 @@ from typing import Any
 import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-# as `brave6d serve` does (serve.cli.quiet_openmp): OpenMP threads sleep while they wait
+if str(REPO / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(REPO / "src"))
+# as `brave6d serve` does (brave6d.serve.cli.quiet_openmp): OpenMP threads sleep while they wait
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from brave6d.transforms import look_at
+from brave6d.core.transforms import look_at
 
 DEMO_BUNDLE = REPO / "runs" / "demo" / "scene" / "bundle"
 TARGETS = {"320x240": 150.0, "640x480": 600.0}  # CPU acceptance (median render ms)
@@ -86,8 +86,8 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from serve.bundle import load_bundle
-    from serve.episodes import SceneServer
+    from brave6d.serve.bundle import load_bundle
+    from brave6d.serve.episodes import SceneServer
 
     tmp = None
     if args.bundle is not None:
@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     elif (DEMO_BUNDLE / "manifest.json").is_file():
         bundle_dir, source = DEMO_BUNDLE, "demo"
     else:
-        from serve.synthetic import make_synthetic_bundle
+        from brave6d.serve.toy_scene import make_synthetic_bundle
 
         tmp = tempfile.TemporaryDirectory(prefix="brave6d_bench_")
         print(f"no demo bundle at {DEMO_BUNDLE}: building a synthetic one with {args.gaussians} Gaussians ...",
@@ -132,9 +132,9 @@ def main(argv: list[str] | None = None) -> int:
         results["sizes"][size] = {"render_ms": stats(render), "observe_ms": stats(observe),
                                   "gaussians_drawn_median": float(np.median(drawn))}
     if not args.no_http:
-        from serve.app import create_app
-        from serve.client import BraveClient
-        from serve.runner import ServerThread
+        from brave6d.serve.app import create_app
+        from brave6d.serve.client import BraveClient
+        from brave6d.serve.runner import ServerThread
 
         app = create_app(bundle, scene=scene, warm_up=False)
         with ServerThread(app) as server, BraveClient(server.url) as client:

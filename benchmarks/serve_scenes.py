@@ -3,7 +3,7 @@ the loaded scenes hold against the catalog's estimate.
 
 Serves a release (``--release``: a release folder or an unzipped one) or several bundle folders
 (``--bundles A B ...``, served as scenes named after their folders' parents) through
-``serve.open_scenes`` / ``serve.SceneCatalog`` and the real ``EpisodeManager`` on the CPU, and measures:
+``brave6d.serve.open_scenes`` / ``brave6d.serve.SceneCatalog`` and the real ``EpisodeManager`` on the CPU, and measures:
 
 * **first use**: the first reset on each scene (a release: its bundle zip is checked and unpacked
   into a fresh cache; then the bundle is verified, the splat and the visibility structures loaded),
@@ -38,8 +38,8 @@ from typing import Any
 import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+if str(REPO / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(REPO / "src"))
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
@@ -59,7 +59,7 @@ def peak_rss_mb() -> float:
 
 
 def catalog_for(args: argparse.Namespace, cache: Path, max_loaded: int | None) -> Any:
-    from serve import SceneCatalog, SceneSource, bundle_scene_source, open_scenes
+    from brave6d.serve import SceneCatalog, SceneSource, bundle_scene_source, open_scenes
 
     if args.release is not None:
         return open_scenes(args.release, device="cpu", cache_dir=cache, max_loaded=max_loaded)
@@ -74,7 +74,7 @@ def catalog_for(args: argparse.Namespace, cache: Path, max_loaded: int | None) -
 def warm_up_process(folder: Path) -> float:
     """Pay the once-per-process costs (torch, Open3D, the compiled CPU kernels) on a small
     synthetic scene, so that the first use of each real scene measures the scene alone."""
-    from serve import EpisodeManager, SceneCatalog, bundle_scene_source, make_synthetic_bundle
+    from brave6d.serve import EpisodeManager, SceneCatalog, bundle_scene_source, make_synthetic_bundle
 
     t0 = time.perf_counter()
     catalog = SceneCatalog([bundle_scene_source(make_synthetic_bundle(folder, n_gaussians=2000))], device="cpu")
@@ -105,10 +105,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", default="320x240", help="observation size of each reset")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    from brave6d.runtime import prepare_process
+    from brave6d.core.runtime import prepare_process
 
     prepare_process()
-    from serve import EpisodeManager
+    from brave6d.serve import EpisodeManager
 
     size = tuple(int(v) for v in args.size.split("x"))
     out: dict[str, Any] = {"source": str(args.release or [str(b) for b in args.bundles]), "size": args.size}
@@ -156,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
         out["peak_rss_mb"] = peak_rss_mb()
         out["gaussians"] = {s.bundle.name: s.renderer.num_gaussians for s in catalog.loaded_scenes()}
 
-    from brave6d.progress import format_table
+    from brave6d.core.progress import format_table
 
     print(f"process warm-up (torch, Open3D, kernels; once per server): {out['process_warm_up_s']:.2f} s")
     rows = [[n, f"{first[n]:.2f}"] for n in names]

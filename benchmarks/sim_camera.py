@@ -23,14 +23,14 @@ from typing import Any
 import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+if str(REPO / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(REPO / "src"))
 
-from brave6d.spec import EffectsSpec, SceneSpec, load_scene_spec, parse_scene_spec  # noqa: E402
-from brave6d.transforms import look_at  # noqa: E402
-from capture.effects import CAMERA_EFFECTS, GEOMETRIC_EFFECTS  # noqa: E402
-from capture.scene_model import SceneModel  # noqa: E402
-from capture.sim_camera import SimCamera  # noqa: E402
+from brave6d.core.spec import EffectsSpec, SceneSpec, load_scene_spec, parse_scene_spec  # noqa: E402
+from brave6d.core.transforms import look_at  # noqa: E402
+from brave6d.capture.effects import CAMERA_EFFECTS, GEOMETRIC_EFFECTS  # noqa: E402
+from brave6d.capture.scene_model import SceneModel  # noqa: E402
+from brave6d.capture.sim_camera import SimCamera  # noqa: E402
 
 DEMO_SPEC = REPO / "data" / "demo" / "scene.yaml"
 

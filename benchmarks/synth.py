@@ -8,7 +8,7 @@ what a user waits for). Prints one line per setting and the 2-worker speed-up.
     python benchmarks/synth.py [--spec data/demo/dataset.yaml] [--images 12] [--repeats 3]
 
 ``--check-images N`` measures instead what a resumed run spends checking the images already written
-(:mod:`brave6d.png_check`): it renders N images at 640x480 once, then times each check over all of
+(:mod:`brave6d.core.png_check`): it renders N images at 640x480 once, then times each check over all of
 them (one thread, files in the page cache; median of ``--repeats`` passes) and prints ms per image.
 """
 
@@ -29,14 +29,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 # this file is named like the package it measures: drop its own folder from the path, put the repo first
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+if str(ROOT / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(ROOT / "src"))
 
-from brave6d.progress import format_table
-from synth import SynthOptions, synthesize
-from synth.limits import usable_cpus
-from brave6d.png_check import CHECKS
-from synth.writer import image_problem
+from brave6d.core.progress import format_table
+from brave6d.synth import SynthOptions, synthesize
+from brave6d.synth.limits import usable_cpus
+from brave6d.core.png_check import CHECKS
+from brave6d.synth.writer import image_problem
 
 SIZES = ((640, 480), (320, 240))
 WORKERS = (1, 2)

@@ -14,13 +14,13 @@ level are interpolated linearly between evaluations; a level not reached is repo
 Writes a JSON table and one PNG with both PSNR-vs-time curves (what the report's training
 section plots).
 
-Configurations are ``NAME=PRESET[,field=value...]`` with any :class:`training.Preset` field:
+Configurations are ``NAME=PRESET[,field=value...]`` with any :class:`brave6d.training.Preset` field:
 
     python benchmarks/time_to_quality.py runs/demo/scene [--a old=fast-3000] [--b new=fast,steps=1000] \\
         [--every 250] [--chunk 50] [--json out.json]
 
-``fast-3000`` is the ``fast`` preset before issue 22 (:data:`training.presets.FAST_3000`), ``fast-2000``
-today's without its learning-rate annealing (:data:`training.presets.FAST_2000`).
+``fast-3000`` is the ``fast`` preset before issue 22 (:data:`brave6d.training.presets.FAST_3000`), ``fast-2000``
+today's without its learning-rate annealing (:data:`brave6d.training.presets.FAST_2000`).
 
 ``--a-source REV_OR_DIR`` trains A with the code of another source tree, so that per-step code
 speed-ups count too: a git revision of this repository (extracted with ``git archive`` into a
@@ -57,13 +57,39 @@ REPO = Path(__file__).resolve().parent.parent
 #: the worker imports (first on ``sys.path``, ahead of this repository and of an editable install).
 SOURCE_ENV = "BRAVE6D_TTQ_SOURCE"
 CODE_ROOT = Path(os.environ[SOURCE_ENV]).resolve() if os.environ.get(SOURCE_ENV) else REPO
+
+
+def code_path(root: Path) -> Path:
+    """Where a source tree's packages import from: its ``src/`` (the layout since issue 33), else the
+    tree itself (older trees: top-level ``training`` beside the kernel ``brave6d``)."""
+    return root / "src" if (root / "src" / "brave6d").is_dir() else root
+
+
+#: An older tree's modules under the names this file imports (``alias_old_layout``).
+OLD_LAYOUT = {"brave6d.core": "brave6d", "brave6d.core.runtime": "brave6d.runtime",
+              "brave6d.core.layout": "brave6d.layout", "brave6d.core.atomic": "brave6d.atomic",
+              "brave6d.core.progress": "brave6d.progress", "brave6d.training": "training",
+              "brave6d.training.presets": "training.presets", "brave6d.training.trainer": "training.trainer",
+              "brave6d.training.colmap_init": "training.colmap_init",
+              "brave6d.training.holdout_eval": "training.evaluate"}
+
+
+def alias_old_layout() -> None:
+    """In a worker on a tree before the src layout, make ``brave6d.training...`` and ``brave6d.core...``
+    name that tree's own modules (the same module objects, so classes stay one and the same)."""
+    import importlib
+
+    for new, old in OLD_LAYOUT.items():
+        sys.modules[new] = importlib.import_module(old)
+
+
 if __name__ == "__main__":
     # the code root first, also when PYTHONPATH lists it, and not benchmarks/ (sys.path[0] for a
-    # script), whose training.py would shadow the package
-    sys.path[:] = [str(CODE_ROOT)] + [p for p in sys.path
-                                      if p != str(CODE_ROOT) and (not p or Path(p).resolve() != REPO / "benchmarks")]
-elif str(REPO) not in sys.path:  # imported (tests): leave the importer's path as it is
-    sys.path.insert(0, str(REPO))
+    # script), whose training.py would shadow an older tree's package
+    sys.path[:] = [str(code_path(CODE_ROOT))] + [
+        p for p in sys.path if p != str(code_path(CODE_ROOT)) and (not p or Path(p).resolve() != REPO / "benchmarks")]
+elif str(REPO / "src") not in sys.path:  # imported (tests): leave the importer's path as it is
+    sys.path.insert(0, str(REPO / "src"))
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 LEVELS_DB = (27.0, 30.0)
@@ -72,7 +98,7 @@ WORKER_STDERR_LINES = 30  # how many of a worker's last stderr lines an error sh
 
 def parse_config(text: str) -> tuple[str, str, dict[str, Any]]:
     """``NAME=PRESET[,field=value...]`` -> (name, preset name, overrides with typed values)."""
-    from training import Preset
+    from brave6d.training import Preset
 
     name, _, rest = text.partition("=")
     if not name or not rest:
@@ -110,8 +136,9 @@ def jit_signatures() -> int:
         from numba.core.dispatcher import Dispatcher
     except ImportError:
         return 0
-    modules = [m for name, m in list(sys.modules.items()) if name == "training" or name.startswith("training.")]
-    return sum(len(v.signatures) for m in modules for v in list(vars(m).values()) if isinstance(v, Dispatcher))
+    modules = {id(m): m for name, m in list(sys.modules.items())  # an older tree's modules are also aliased
+               if name.startswith(("training.", "brave6d.training.")) or name in ("training", "brave6d.training")}
+    return sum(len(v.signatures) for m in modules.values() for v in list(vars(m).values()) if isinstance(v, Dispatcher))
 
 
 def configure(base: Any, overrides: dict[str, Any]) -> Any:
@@ -124,9 +151,9 @@ class Run:
     """One configuration's trainer and its evaluations (in this process)."""
 
     def __init__(self, name: str, preset: Any, scene: Any, every: int, device: Any, init_method: str) -> None:
-        from training import GaussianModel, load_scene
-        from training.colmap_init import initial_points
-        from training.trainer import Trainer
+        from brave6d.training import GaussianModel, load_scene
+        from brave6d.training.colmap_init import initial_points
+        from brave6d.training.trainer import Trainer
 
         # no time budget: the benchmark measures the time to quality of the whole schedule
         self.name, self.preset = name, dataclasses.replace(preset, eval_every=every, time_budget_s=None)
@@ -149,8 +176,8 @@ class Run:
         (the copy's constructor reseeds it). Returns the seconds it took."""
         import torch
 
-        from training import GaussianModel
-        from training.trainer import Trainer
+        from brave6d.training import GaussianModel
+        from brave6d.training.trainer import Trainer
 
         t0 = time.perf_counter()
         device = self.trainer.device
@@ -165,7 +192,7 @@ class Run:
         return time.perf_counter() - t0
 
     def evaluate(self, trainer: Any) -> float:
-        from training import evaluate_holdout
+        from brave6d.training import evaluate_holdout
 
         m = evaluate_holdout(trainer.model, self.data)
         self.points.append({"step": trainer.step, "time_s": trainer.elapsed, "cpu_s": trainer.cpu_elapsed,
@@ -395,22 +422,25 @@ def worker_main(argv: list[str]) -> int:
         answers.flush()
 
     try:
-        from brave6d.runtime import prepare_process
+        old_layout = code_path(CODE_ROOT) == CODE_ROOT and (CODE_ROOT / "training").is_dir()
+        import importlib
 
-        prepare_process()
+        importlib.import_module("brave6d.runtime" if old_layout else "brave6d.core.runtime").prepare_process()
+        if old_layout:
+            alias_old_layout()  # after prepare_process: the aliased modules may load torch
         import brave6d
-        import training
+        from brave6d import training
 
         modules = {m.__name__: str(Path(m.__file__ or "?").resolve()) for m in (training, brave6d)}
         strays = [f"{name} from {file}" for name, file in modules.items() if not Path(file).is_relative_to(CODE_ROOT)]
         if strays:
             raise SystemExit(f"imported {', '.join(strays)}, not from the source tree {CODE_ROOT} "
                              "(it holds no such package)")
-        print(f"worker: training from {modules['training']}, brave6d from {modules['brave6d']}", file=sys.stderr)
-        import training.presets as presets
-        from brave6d.layout import SceneDir
-        from training import resolve_device
-        from training.evaluate import peak_memory_mb
+        print(f"worker: training from {modules[training.__name__]}, brave6d from {modules['brave6d']}", file=sys.stderr)
+        import brave6d.training.presets as presets
+        from brave6d.core.layout import SceneDir
+        from brave6d.training import resolve_device
+        from brave6d.training.holdout_eval import peak_memory_mb
 
         name, preset_name, overrides = parse_config(args.config)  # checked against this tree's Preset
         known = getattr(presets, "BENCHMARK_PRESETS", presets.PRESETS)
@@ -446,7 +476,7 @@ def plot(path: Path, runs: list[dict[str, Any]], title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from brave6d.atomic import atomic_write
+    from brave6d.core.atomic import atomic_write
 
     fig, ax = plt.subplots(figsize=(7, 4))
     for r in runs:
@@ -489,15 +519,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     a_config = args.a or ("old=fast" if args.a_source else "old=fast-3000")
 
-    from brave6d.atomic import atomic_write_json
-    from brave6d.layout import SceneDir
-    from brave6d.progress import format_table, progress_bar
-    from brave6d.runtime import prepare_process
+    from brave6d.core.atomic import atomic_write_json
+    from brave6d.core.layout import SceneDir
+    from brave6d.core.progress import format_table, progress_bar
+    from brave6d.core.runtime import prepare_process
 
     prepare_process()
-    from training import get_preset, resolve_device
-    from training.evaluate import json_safe, peak_memory_mb
-    from training.presets import BENCHMARK_PRESETS
+    from brave6d.training import get_preset, resolve_device
+    from brave6d.training.holdout_eval import json_safe, peak_memory_mb
+    from brave6d.training.presets import BENCHMARK_PRESETS
 
     scene = SceneDir(args.scene_dir)
     device = resolve_device(args.device)

@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+if str(REPO / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(REPO / "src"))
 
 DEFAULT_SCENE = REPO / "runs" / "demo" / "scene"
 
@@ -43,16 +43,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    from brave6d.atomic import atomic_write
-    from brave6d.layout import SceneDir
-    from brave6d.progress import format_table, setup_logging
-    from training.colmap_init import initial_points
-    from training.dataset import load_scene
-    from training.evaluate import evaluate_holdout, json_safe, peak_memory_mb, write_metrics
-    from training.model import GaussianModel
-    from training.pipeline import require_capture
-    from training.presets import get_preset
-    from training.trainer import Trainer, resolve_device
+    from brave6d.core.atomic import atomic_write
+    from brave6d.core.layout import SceneDir
+    from brave6d.core.progress import format_table, setup_logging
+    from brave6d.training.colmap_init import initial_points
+    from brave6d.training.views import load_scene
+    from brave6d.training.holdout_eval import evaluate_holdout, json_safe, peak_memory_mb, write_metrics
+    from brave6d.training.model import GaussianModel
+    from brave6d.training.pipeline import require_capture
+    from brave6d.training.presets import get_preset
+    from brave6d.training.trainer import Trainer, resolve_device
 
     setup_logging(1)
     log = logging.getLogger("benchmarks.training")

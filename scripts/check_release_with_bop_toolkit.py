@@ -2,7 +2,7 @@
 
 bop_toolkit is not on PyPI and pins numpy<2, so it cannot be a dependency of this project: this
 script unzips the release's BOP zips into a temporary folder with the project's safe unpacker
-(``dataset.release.zips``: a release is untrusted, so member names and sizes are checked before
+(``brave6d.dataset.release.zips``: a release is untrusted, so member names and sizes are checked before
 anything is written), makes (once) a separate virtualenv with bop_toolkit's reader dependencies,
 re-runs itself there on the unzipped folder and reads every file with bop_toolkit's functions,
 checking what BOP's conventions promise (paths from its dataset_params templates, image sizes,
@@ -50,7 +50,7 @@ def unpack_release(release: Path, dest: Path) -> Path:
     """BOP's own instructions, with the project's safe unpacker: unzip ``<name>_base.zip`` into
     ``dest``, then the models and test zips into the ``<name>/`` folder it made; returns that folder."""
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-    from dataset.release.zips import open_zip
+    from brave6d.dataset.release.zips import open_zip
 
     bases = sorted(release.glob("*_base.zip"))
     if len(bases) != 1:

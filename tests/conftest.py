@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from brave6d.runtime import prepare_process
+from brave6d.core.runtime import prepare_process
 
 # As the CLI does: OpenMP threads sleep while they wait (spinning teams of torch and numba slow
 # each other down several times on a small machine) and numba stays off its TBB threading layer

@@ -1,6 +1,6 @@
 """A process that holds a lock until it is killed, for the lock tests.
 
-``python tests/lock_holder.py LOCK`` prints one JSON line (its :class:`brave6d.locks.Process`) once
+``python tests/lock_holder.py LOCK`` prints one JSON line (its :class:`brave6d.core.locks.Process`) once
 it holds the lock, then sleeps; :func:`spawn_holder` starts it and waits for that line.
 """
 
@@ -14,7 +14,7 @@ import sys
 import time
 from pathlib import Path
 
-from brave6d.locks import FileLock, Process
+from brave6d.core.locks import FileLock, Process
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from brave6d.errors import BraveError
-from evaluation.agents import (
+from brave6d.core.errors import BraveError
+from brave6d.evaluation.agents import (
     ACTIVE_AGENT,
     POLICIES,
     STATIC_AGENT,

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from evaluation.agents import view_weights
+from brave6d.evaluation.agents import view_weights
 
 
 def test_view_weights_trust_views_by_their_own_fit() -> None:

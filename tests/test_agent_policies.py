@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from brave6d.transforms import invert, look_at
-from evaluation.agents import (
+from brave6d.core.transforms import invert, look_at
+from brave6d.evaluation.agents import (
     ActivePolicy,
     Cluster,
     EpisodeState,

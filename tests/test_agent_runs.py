@@ -12,8 +12,8 @@ from typing import Any
 import pytest
 from pydantic import ValidationError
 
-from brave6d.errors import DataError
-from evaluation.metrics import (AGENT_RUNS_FORMAT, AgentRuns, AgentRunsRow, agent_runs_from_board, agent_runs_path,
+from brave6d.core.errors import DataError
+from brave6d.evaluation.metrics import (AGENT_RUNS_FORMAT, AgentRuns, AgentRunsRow, agent_runs_from_board, agent_runs_path,
                                 read_agent_runs, write_agent_runs)
 
 
@@ -33,7 +33,7 @@ def _board_episode(agent: str, episode_id: str, ar: float, adjustments: int) -> 
 
 
 def _board() -> SimpleNamespace:
-    """A leaderboard of two agents with one episode each, shaped like ``evaluation.metrics.Leaderboard``."""
+    """A leaderboard of two agents with one episode each, shaped like ``brave6d.evaluation.metrics.Leaderboard``."""
     agents = [_board_agent("baseline-active", 0.6, 4.0), _board_agent("baseline-static", 0.3, 0.0)]
     episodes = [_board_episode("baseline-active", "e-active", 0.6, 4),
                 _board_episode("baseline-static", "e-static", 0.3, 0)]

@@ -10,14 +10,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from annotation.alignment import (
+from brave6d.annotation.alignment import (
     AlignmentError,
     AlignmentOptions,
     align_camera_poses,
     apply_alignment,
     rigid_alignment,
 )
-from brave6d.transforms import invert, look_at, make_transform, rotation_distance
+from brave6d.core.transforms import invert, look_at, make_transform, rotation_distance
 
 
 def _ring(n: int, radius: float = 0.4, seed: int = 0) -> list[np.ndarray]:

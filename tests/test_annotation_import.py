@@ -12,18 +12,18 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from annotation.alignment import AlignmentError
-from annotation.bop import BopExportOptions, export_bop
-from annotation.bop_format import BopLayout, read_models_info, read_scene_camera, read_scene_gt
-from annotation.importer import assign_obj_ids, import_threedat
-from annotation.store import AnnotatedObject, load_annotation, write_annotation
-from annotation.synthetic import make_synthetic_scene
-from annotation.threedat import read_threedat
-from annotation.threedat_writer import write_threedat_folder
+from brave6d.annotation.alignment import AlignmentError
+from brave6d.annotation.bop import BopExportOptions, export_bop
+from brave6d.annotation.bop_format import BopLayout, read_models_info, read_scene_camera, read_scene_gt
+from brave6d.annotation.importer import assign_obj_ids, import_threedat
+from brave6d.annotation.store import AnnotatedObject, load_annotation, write_annotation
+from brave6d.annotation.toy_scene import make_synthetic_scene
+from brave6d.annotation.threedat import read_threedat
+from brave6d.annotation.threedat_writer import write_threedat_folder
 from brave6d.cli import main as cli_main
-from brave6d.errors import BraveError
-from brave6d.layout import SceneDir
-from brave6d.transforms import invert, look_at, make_transform
+from brave6d.core.errors import BraveError
+from brave6d.core.layout import SceneDir
+from brave6d.core.transforms import invert, look_at, make_transform
 
 FIXTURE = Path(__file__).parent / "fixtures" / "threedat"
 
@@ -201,7 +201,7 @@ def test_frames_matched_by_view_id_when_indices_differ(tmp_path: Path) -> None:
 
 
 def _cli(argv: list[str]) -> int:
-    """``brave6d annotate ...``; drives annotation.cli directly until the lead registers the command."""
+    """``brave6d annotate ...``; drives brave6d.annotation.cli directly until the lead registers the command."""
     from brave6d.cli import COMMANDS
 
     if any(c.name == "annotate" for c in COMMANDS):
@@ -209,7 +209,7 @@ def _cli(argv: list[str]) -> int:
     import argparse
     import sys
 
-    from annotation import cli
+    from brave6d.annotation import cli
 
     parser = argparse.ArgumentParser()
     cli.configure(parser)

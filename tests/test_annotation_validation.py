@@ -9,17 +9,17 @@ import open3d as o3d
 import pytest
 import trimesh
 
-from annotation.bop import export_bop
-from annotation.bop_format import BopLayout, read_models_info
-from annotation.demo import write_demo_threedat
-from annotation.importer import import_threedat
-from annotation.synthetic import make_synthetic_scene
-from annotation.threedat import read_threedat
-from annotation.validation import mask_iou_against_sim_truth
-from brave6d.atomic import write_png
-from brave6d.calibration_io import camera_poses
-from brave6d.camera import PinholeCamera
-from brave6d.transforms import look_at, make_transform, rpy_deg_to_matrix, transform_points
+from brave6d.annotation.bop import export_bop
+from brave6d.annotation.bop_format import BopLayout, read_models_info
+from brave6d.annotation.demo import write_demo_threedat
+from brave6d.annotation.importer import import_threedat
+from brave6d.annotation.toy_scene import make_synthetic_scene
+from brave6d.annotation.threedat import read_threedat
+from brave6d.annotation.validation import mask_iou_against_sim_truth
+from brave6d.core.atomic import write_png
+from brave6d.core.calibration_io import camera_poses
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.transforms import look_at, make_transform, rpy_deg_to_matrix, transform_points
 
 # A distorted raw camera (as captured); BOP works in its undistorted pinhole version.
 RAW = PinholeCamera(96, 72, 90.0, 90.0, 47.5, 35.5, (0.08, -0.05, 0.0, 0.0, 0.0))
@@ -117,10 +117,10 @@ def test_iou_drops_when_the_buffer_is_wrong(sim_scene) -> None:
 
 
 def test_demo_stage_runs_on_a_captured_scene(sim_scene, tmp_path: Path) -> None:
-    from annotation.demo import stage_annotation
-    from brave6d.demo import DemoContext
+    from brave6d.annotation.demo import stage_annotation
+    from brave6d.core.run_context import RunContext
 
     scene, _ = sim_scene
-    result = stage_annotation(DemoContext(workdir=tmp_path, scene=scene, spec=scene.load_spec()))
+    result = stage_annotation(RunContext(workdir=tmp_path, scene=scene, spec=scene.load_spec()))
     assert result.name == "annotation" and result.figures["views"] == 3 and result.figures["instances"] == 2
     assert (tmp_path / "threedat" / "dataset.yaml").is_file()

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from brave6d.atomic import move_aside, staged_folder
+from brave6d.core.atomic import move_aside, staged_folder
 
 
 def test_move_aside_keeps_every_copy_even_within_one_second(tmp_path: Path) -> None:
@@ -39,7 +39,7 @@ def test_atomic_files_and_staged_folders_get_the_permissions_open_and_mkdir_give
     """mkstemp/mkdtemp make 0600/0700; written data must be as readable as a plain open()/mkdir()."""
     import stat
 
-    from brave6d.atomic import atomic_write_text, staged_folder
+    from brave6d.core.atomic import atomic_write_text, staged_folder
 
     plain_file, plain_dir = tmp_path / "plain.txt", tmp_path / "plain_dir"
     plain_file.write_text("x")

@@ -1,4 +1,4 @@
-"""The weight-free baseline agent (evaluation.agents): perception, registration and multi-view fusion
+"""The weight-free baseline agent (brave6d.evaluation.agents): perception, registration and multi-view fusion
 on ray-cast views with a known answer, then both policies end to end against a live server on
 127.0.0.1 (the demo's evaluation stage on the synthetic bundle), the client and Gym-style submission.
 
@@ -18,9 +18,9 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from annotation import write_ply_mesh
-from brave6d.transforms import invert, look_at, make_transform
-from evaluation.agents import (
+from brave6d.annotation import write_ply_mesh
+from brave6d.core.transforms import invert, look_at, make_transform
+from brave6d.evaluation.agents import (
     ACTIVE_AGENT,
     POLICIES,
     STATIC_AGENT,
@@ -40,15 +40,15 @@ from evaluation.agents import (
     view_weights,
     voxel_size,
 )
-from evaluation.metrics.bop_metrics import identity_symmetries, mssd
-from evaluation.metrics.episodes import read_episodes
-from evaluation.metrics.depth_renderer import render_depth
-from serve.app import create_app
-from serve.bundle import Bundle, load_bundle
-from serve.client import BraveClient, PoseEstimate
-from serve.gym_env import BraveEnv
-from serve.runner import ServerThread
-from serve.synthetic import cube_mesh_mm, make_synthetic_bundle
+from brave6d.evaluation.metrics.bop_metrics import identity_symmetries, mssd
+from brave6d.evaluation.metrics.episodes import read_episodes
+from brave6d.evaluation.metrics.depth_renderer import render_depth
+from brave6d.serve.app import create_app
+from brave6d.serve.bundle import Bundle, load_bundle
+from brave6d.serve.client import BraveClient, PoseEstimate
+from brave6d.serve.gym_env import BraveEnv
+from brave6d.serve.runner import ServerThread
+from brave6d.serve.toy_scene import cube_mesh_mm, make_synthetic_bundle
 
 pytestmark = pytest.mark.slow
 
@@ -65,7 +65,7 @@ def l_shape_mm(scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def diameter_mm(vertices: np.ndarray) -> float:
-    from serve.bundle import model_diameter
+    from brave6d.serve.bundle import model_diameter
 
     return model_diameter(vertices)
 
@@ -314,7 +314,7 @@ def bundle(tmp_path_factory: pytest.TempPathFactory) -> Bundle:
 
 @pytest.fixture(scope="module")
 def stage(bundle: Bundle, tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
-    from evaluation.demo import stage_evaluate
+    from brave6d.evaluation.demo import stage_evaluate
 
     work = tmp_path_factory.mktemp("evaluate_stage")
     ctx = SimpleNamespace(scene=SimpleNamespace(bundle_dir=bundle.root), workdir=work, device="cpu", quick=True)

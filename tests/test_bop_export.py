@@ -9,17 +9,17 @@ import numpy as np
 import pytest
 import trimesh
 
-from annotation.bop import export_bop
-from annotation.bop_format import BopLayout, read_models_info, read_scene_gt_info
-from annotation.importer import import_threedat
-from annotation.models import diameter, load_mesh, model_info_mm, write_ply
-from annotation.threedat import ContinuousSymmetry, LibraryEntry
-from annotation.threedat_writer import write_threedat_folder
-from annotation.synthetic import make_synthetic_scene
-from annotation import bbox_xywh
-from brave6d.atomic import read_png
-from brave6d.camera import PinholeCamera
-from brave6d.transforms import make_transform
+from brave6d.annotation.bop import export_bop
+from brave6d.annotation.bop_format import BopLayout, read_models_info, read_scene_gt_info
+from brave6d.annotation.importer import import_threedat
+from brave6d.annotation.models import diameter, load_mesh, model_info_mm, write_ply
+from brave6d.annotation.threedat import ContinuousSymmetry, LibraryEntry
+from brave6d.annotation.threedat_writer import write_threedat_folder
+from brave6d.annotation.toy_scene import make_synthetic_scene
+from brave6d.annotation import bbox_xywh
+from brave6d.core.atomic import read_png
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.transforms import make_transform
 
 REPO = Path(__file__).resolve().parent.parent
 FIXTURE = Path(__file__).parent / "fixtures" / "threedat"

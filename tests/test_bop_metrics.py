@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from evaluation.metrics.bop_metrics import (
+from brave6d.evaluation.metrics.bop_metrics import (
     MSPD_THRESHOLDS,
     MSSD_THRESHOLDS,
     VSD_TAUS,
@@ -28,7 +28,7 @@ from evaluation.metrics.bop_metrics import (
     vsd,
     vsd_from_depths,
 )
-from evaluation.metrics.depth_renderer import DepthRenderer, render_depth
+from brave6d.evaluation.metrics.depth_renderer import DepthRenderer, render_depth
 
 W, H = 640, 480
 K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])

@@ -13,10 +13,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from annotation import bop_cam_K, read_models_info, read_scene_camera
-from brave6d.atomic import write_png
-from brave6d.errors import DataError
-from evaluation.metrics.bop_results import (
+from brave6d.annotation import bop_cam_K, read_models_info, read_scene_camera
+from brave6d.core.atomic import write_png
+from brave6d.core.errors import DataError
+from brave6d.evaluation.metrics.bop_results import (
     RESULTS_HEADER,
     check_times,
     format_results_csv,
@@ -26,8 +26,8 @@ from evaluation.metrics.bop_results import (
     read_bop_results,
     write_bop_results,
 )
-from evaluation.metrics.recall import Estimate, evaluate_bop19
-from evaluation.metrics.depth_renderer import DepthRenderer
+from brave6d.evaluation.metrics.recall import Estimate, evaluate_bop19
+from brave6d.evaluation.metrics.depth_renderer import DepthRenderer
 
 W, H = 320, 240
 K = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from brave6d.errors import BraveError
-from brave6d.layout import SceneDir
-from brave6d.transforms import invert
-from serve.bundle import BundleError, export_bundle, load_bundle, verify_manifest
-from serve.synthetic import CUBE_MM, make_synthetic_scene, world_T_cube
+from brave6d.core.errors import BraveError
+from brave6d.core.layout import SceneDir
+from brave6d.core.transforms import invert
+from brave6d.serve.bundle import BundleError, export_bundle, load_bundle, verify_manifest
+from brave6d.serve.toy_scene import CUBE_MM, make_synthetic_scene, world_T_cube
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +50,7 @@ def test_loaded_bundle_content(bundle_dir: Path) -> None:
     assert [(o.gt_id, o.obj_id, o.name) for o in b.objects] == [(0, 1, "cube_red"), (1, 2, "cube_blue")]
     np.testing.assert_array_equal(b.objects[1].world_T_obj, world_T_cube("cube_blue"))
     assert b.objects[0].diameter_mm == pytest.approx(CUBE_MM * np.sqrt(3), rel=1e-6)
-    from serve.bundle import load_model_m
+    from brave6d.serve.bundle import load_model_m
 
     v, f = load_model_m(b.model_path(b.objects[0]))
     np.testing.assert_allclose(v.max(axis=0) - v.min(axis=0), [0.02, 0.02, 0.02], atol=1e-7)  # mm -> m
@@ -97,7 +97,7 @@ def test_truncated_missing_and_escaping_files_are_refused(bundle_dir: Path) -> N
 
 
 def test_server_refuses_a_tampered_bundle(bundle_dir: Path) -> None:
-    from serve.app import create_app
+    from brave6d.serve.app import create_app
 
     objects = bundle_dir / "objects.json"
     data = json.loads(objects.read_text())
@@ -110,7 +110,7 @@ def test_server_refuses_a_tampered_bundle(bundle_dir: Path) -> None:
 def test_cli_serve_refuses_a_tampered_bundle(bundle_dir: Path) -> None:
     import argparse
 
-    from serve import cli
+    from brave6d.serve import cli
 
     (bundle_dir / "scene.json").write_text("{}")
     parser = argparse.ArgumentParser()
@@ -136,7 +136,7 @@ def test_failed_export_keeps_the_previous_bundle(scene: SceneDir, tmp_path: Path
 def test_export_cli(scene: SceneDir, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     import argparse
 
-    from serve import export_cli
+    from brave6d.serve import export_cli
 
     parser = argparse.ArgumentParser()
     export_cli.configure(parser)
@@ -154,15 +154,15 @@ def test_ground_truth_equals_the_bop_export(tmp_path: Path) -> None:
     pytest.importorskip("open3d")
     from fastapi.testclient import TestClient
 
-    from annotation.bop_format import (
+    from brave6d.annotation.bop_format import (
         BopLayout,
         read_scene_camera,
         read_scene_gt,
         read_scene_gt_info,
     )
-    from brave6d.calibration_io import camera_poses
-    from serve.app import create_app
-    from serve.synthetic import make_synthetic_bundle
+    from brave6d.core.calibration_io import camera_poses
+    from brave6d.serve.app import create_app
+    from brave6d.serve.toy_scene import make_synthetic_bundle
 
     bundle_dir = make_synthetic_bundle(tmp_path / "scene", n_gaussians=20_000, n_views=6, bop=True)
     scene = SceneDir(tmp_path / "scene")
@@ -201,7 +201,7 @@ def test_ground_truth_equals_the_bop_export(tmp_path: Path) -> None:
 
 
 def test_holdout_views_follow_the_trainers_split(scene: SceneDir, tmp_path: Path) -> None:
-    from serve.bundle import holdout_frames
+    from brave6d.serve.bundle import holdout_frames
 
     copy = SceneDir(tmp_path / "scene")
     shutil.copytree(scene.root, copy.root)
@@ -217,7 +217,7 @@ def test_holdout_views_follow_the_trainers_split(scene: SceneDir, tmp_path: Path
     assert [r.index for r, _ in frames] == [1, 9]
     b = load_bundle(export_bundle(copy.root, tmp_path / "b").root)
     assert [h.index for h in b.holdout] == [1, 9]
-    from brave6d.calibration_io import camera_poses
+    from brave6d.core.calibration_io import camera_poses
 
     poses = {r.index: T for r, T in camera_poses(copy)}
     np.testing.assert_array_equal(b.holdout[1].world_T_cam, poses[9])

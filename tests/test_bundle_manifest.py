@@ -16,9 +16,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from brave6d.cli import main
-from serve import BundleError, bundle_scene_source, load_bundle, make_synthetic_bundle
-from serve.bundle import MANIFEST, not_a_bundle, read_bundle_manifest, verify_manifest
-from serve.catalog import bundle_memory_bytes
+from brave6d.serve import BundleError, bundle_scene_source, load_bundle, make_synthetic_bundle
+from brave6d.serve.bundle import MANIFEST, not_a_bundle, read_bundle_manifest, verify_manifest
+from brave6d.serve.catalog import bundle_memory_bytes
 
 Doc = dict[str, Any]
 

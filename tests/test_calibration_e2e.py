@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from brave6d.transforms import invert
-from calibration import (
+from brave6d.core.transforms import invert
+from brave6d.calibration import (
     HandEyeView,
     board_corner_points,
     calibrate_handeye,
@@ -17,7 +17,7 @@ from calibration import (
     plan_for_board,
     write_report,
 )
-from calibration.synthetic import (
+from brave6d.calibration.known_truth import (
     default_board,
     default_tcp_T_cam,
     perturb_pose,

@@ -7,19 +7,19 @@ import json
 import numpy as np
 import pytest
 
-from brave6d.board import board_size_m
-from brave6d.calibration_io import read_intrinsics
-from brave6d.errors import BraveError, DegenerateGeometryError
-from brave6d.layout import SceneDir
-from brave6d.transforms import invert
-from calibration.board import CharucoDetection, board_corner_points, detect_charuco
-from calibration.intrinsics import (
+from brave6d.core.board import board_size_m
+from brave6d.core.calibration_io import read_intrinsics
+from brave6d.core.errors import BraveError, DegenerateGeometryError
+from brave6d.core.layout import SceneDir
+from brave6d.core.transforms import invert
+from brave6d.calibration.board import CharucoDetection, board_corner_points, detect_charuco
+from brave6d.calibration.intrinsics import (
     IntrinsicsResult,
     calibrate_intrinsics,
     evaluate_intrinsics,
 )
-from calibration.plan import board_T_cam_view
-from calibration.synthetic import default_board, render_board_view
+from brave6d.calibration.plan import board_T_cam_view
+from brave6d.calibration.known_truth import default_board, render_board_view
 
 SPEC = default_board()
 K_TRUE = np.array([[610.0, 0.0, 322.0], [0.0, 605.0, 236.0], [0.0, 0.0, 1.0]])

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from brave6d.atomic import read_png, write_png, depth_m_to_mm_u16
-from brave6d.calibration_io import camera_poses, read_handeye, read_intrinsics, write_handeye, write_intrinsics
-from brave6d.camera import PinholeCamera
-from brave6d.errors import DataError, NonRigidTransformError
-from brave6d.layout import FrameLog, FrameRecord, SceneDir
-from brave6d.transforms import look_at, make_transform, rpy_deg_to_matrix
-from brave6d.undistort import ensure_undistorted
+from brave6d.core.atomic import read_png, write_png, depth_m_to_mm_u16
+from brave6d.core.calibration_io import camera_poses, read_handeye, read_intrinsics, write_handeye, write_intrinsics
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import DataError, NonRigidTransformError
+from brave6d.core.layout import FrameLog, FrameRecord, SceneDir
+from brave6d.core.transforms import look_at, make_transform, rpy_deg_to_matrix
+from brave6d.core.undistort import ensure_undistorted
 
 CAM = PinholeCamera(64, 40, 50.0, 50.0, 31.5, 19.5, (0.1, -0.05, 0.0, 0.0, 0.0))
 

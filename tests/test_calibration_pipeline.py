@@ -16,15 +16,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from brave6d.atomic import atomic_write_json, write_png
-from brave6d.calibration_io import read_handeye, read_intrinsics
+from brave6d.core.atomic import atomic_write_json, write_png
+from brave6d.core.calibration_io import read_handeye, read_intrinsics
 from brave6d.cli import main
-from brave6d.demo import DemoContext
-from brave6d.errors import DegenerateGeometryError
-from brave6d.layout import FrameLog, FrameRecord, SceneDir, init_scene_dir, write_spec
-from brave6d.spec import load_scene_spec
-from brave6d.transforms import rotation_distance, translation_distance
-from calibration.board_capture import BoardPlan, plan_board_capture
+from brave6d.core.run_context import RunContext
+from brave6d.core.errors import DegenerateGeometryError
+from brave6d.core.layout import FrameLog, FrameRecord, SceneDir, init_scene_dir, write_spec
+from brave6d.core.spec import load_scene_spec
+from brave6d.core.transforms import rotation_distance, translation_distance
+from brave6d.calibration.board_capture import BoardPlan, plan_board_capture
 
 VIEWS = 10
 
@@ -159,11 +159,11 @@ def test_conditioning_failure_is_one_line(calibrated: SceneDir, tmp_path: Path,
 @pytest.mark.slow
 def test_demo_stage_reuses_results_newer_than_the_frames(calibrated: SceneDir, tmp_path: Path,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
-    import calibration.demo as demo
+    import brave6d.calibration.demo as demo
 
     scene = copy_scene(calibrated, tmp_path / "scene")
     monkeypatch.setattr(demo, "QUICK_VIEWS", VIEWS)
-    ctx = DemoContext(workdir=tmp_path, scene=scene, spec=scene.load_spec(), quick=True)
+    ctx = RunContext(workdir=tmp_path, scene=scene, spec=scene.load_spec(), quick=True)
     reused = demo.stage_calibrate(ctx)
     assert reused.status == "reused" and reused.figures["board views"] == VIEWS
     assert reused.figures["error vs truth mm"] < 2.0 and reused.figures["hand-eye RMS px"] < 1.0
@@ -237,9 +237,9 @@ def test_bad_input_is_one_line_and_status_2(args: tuple[str, ...], expected: str
 # ----------------------------------------------------------------------------- distortion model choice
 @pytest.mark.parametrize("p1, expected", [(0.0, "radial"), (0.004, "5")])
 def test_auto_distortion_fits_tangential_terms_only_when_the_data_show_them(p1: float, expected: str) -> None:
-    from calibration import CharucoDetection, board_corner_points
-    from calibration.intrinsics import calibrate_intrinsics_auto
-    from calibration.synthetic import default_board, default_K, project_corners, random_board_views
+    from brave6d.calibration import CharucoDetection, board_corner_points
+    from brave6d.calibration.intrinsics import calibrate_intrinsics_auto
+    from brave6d.calibration.known_truth import default_board, default_K, project_corners, random_board_views
 
     board, K, size = default_board(), default_K(), (640, 480)
     obj = board_corner_points(board)

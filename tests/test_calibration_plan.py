@@ -5,17 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from brave6d.board import board_size_m
-from brave6d.errors import DegenerateGeometryError
-from brave6d.transforms import invert
-from calibration.conditioning import check_handeye_conditioning
-from calibration.plan import (
+from brave6d.core.board import board_size_m
+from brave6d.core.errors import DegenerateGeometryError
+from brave6d.core.transforms import invert
+from brave6d.calibration.conditioning import check_handeye_conditioning
+from brave6d.calibration.plan import (
     board_T_cam_view,
     plan_calibration_poses,
     plan_for_board,
     plan_pairs,
 )
-from calibration.synthetic import default_board, default_K, default_tcp_T_cam
+from brave6d.calibration.known_truth import default_board, default_K, default_tcp_T_cam
 
 SPEC = default_board()
 W = SPEC.pose.matrix()

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from brave6d.camera import PinholeCamera
-from brave6d.errors import BraveError
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import BraveError
 
 CAM = PinholeCamera(640, 400, 457.0, 455.0, 321.3, 198.7, (0.04, -0.08, 0.001, -0.0005, 0.01))
 

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 import yaml
 
-from brave6d.atomic import read_json, read_png
-from brave6d.errors import DataError
-from brave6d.layout import SceneDir, init_scene_dir
-from capture.backends import open_rig
-from capture.cli import make_plan
-from capture.protocols import RobotError
-from capture.runner import CaptureExistsError, CaptureOptions, run_capture
+from brave6d.core.atomic import read_json, read_png
+from brave6d.core.errors import DataError
+from brave6d.core.layout import SceneDir, init_scene_dir
+from brave6d.capture.backends import open_rig
+from brave6d.capture.cli import make_plan
+from brave6d.capture.protocols import RobotError
+from brave6d.capture.runner import CaptureExistsError, CaptureOptions, run_capture
 
 
 def _small_scene(tmp_path: Path, demo_spec_path: Path, views: int = 4) -> SceneDir:

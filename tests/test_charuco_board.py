@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from brave6d.board import board_size_m
-from brave6d.errors import BraveError
-from brave6d.spec import BoardSpec
-from calibration.board import (
+from brave6d.core.board import board_size_m
+from brave6d.core.errors import BraveError
+from brave6d.core.spec import BoardSpec
+from brave6d.calibration.board import (
     BoardTexture,
     CharucoDetection,
     board_corner_points,

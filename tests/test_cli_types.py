@@ -1,4 +1,4 @@
-"""``brave6d.cli_types``: a bounded flag either parses to a finite value inside its bounds or is
+"""``brave6d.core.cli_types``: a bounded flag either parses to a finite value inside its bounds or is
 refused with argparse's one-line error naming the flag; never NaN, inf or an overflow traceback."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from brave6d.cli_types import float_in, int_in
+from brave6d.core.cli_types import float_in, int_in
 
 texts = st.one_of(st.text(max_size=30), st.floats(allow_nan=True, allow_infinity=True).map(repr),
                   st.integers(-(10 ** 500), 10 ** 500).map(str), st.sampled_from(["nan", "-inf", "1e400", "0x10"]))

@@ -11,11 +11,11 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from brave6d.camera import PinholeCamera
-from brave6d.errors import BraveError
-from training import GaussianModel, get_preset, load_scene
-from training.synthetic import plane_views, write_scene
-from training.trainer import CoarseLevel, Trainer, half_image, half_intrinsics
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import BraveError
+from brave6d.training import GaussianModel, get_preset, load_scene
+from brave6d.training.toy_scenes import plane_views, write_scene
+from brave6d.training.trainer import CoarseLevel, Trainer, half_image, half_intrinsics
 
 CAM = PinholeCamera.from_hfov(64, 48, 60.0)
 finite = st.floats(-1e3, 1e3, allow_nan=False)

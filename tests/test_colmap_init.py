@@ -10,8 +10,8 @@ import numpy as np
 import pycolmap
 import pytest
 
-from brave6d.camera import PinholeCamera
-from training.colmap_init import (
+from brave6d.core.camera import PinholeCamera
+from brave6d.training.colmap_init import (
     ColmapOptions,
     colmap_pinhole_params,
     initial_points,
@@ -19,8 +19,8 @@ from training.colmap_init import (
     random_points,
     voxel_downsample,
 )
-from training.dataset import load_scene
-from training.synthetic import plane_views, write_scene
+from brave6d.training.views import load_scene
+from brave6d.training.toy_scenes import plane_views, write_scene
 
 CAM = PinholeCamera(320, 200, 250.0, 250.0, 159.5, 99.5)
 OPTS = ColmapOptions(max_features=2048, neighbours=5, min_points=200)
@@ -167,7 +167,7 @@ def test_voxel_downsample_and_random_points() -> None:
 
 @pytest.mark.slow
 def test_unchanged_model_is_reused(plane_scene, monkeypatch: pytest.MonkeyPatch) -> None:
-    import training.colmap_init as ci
+    import brave6d.training.colmap_init as ci
 
     scene, data, init = plane_scene
 
@@ -186,9 +186,9 @@ def test_new_image_contents_are_triangulated_again(plane_scene, tmp_path: Path,
                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     import shutil
 
-    import training.colmap_init as ci
-    from brave6d.atomic import read_png, write_png
-    from brave6d.layout import SceneDir
+    import brave6d.training.colmap_init as ci
+    from brave6d.core.atomic import read_png, write_png
+    from brave6d.core.layout import SceneDir
 
     scene = SceneDir(shutil.copytree(plane_scene[0].root, tmp_path / "recaptured"))
     raw = scene.capture_dir / "rgb" / "000003.png"

@@ -22,9 +22,9 @@ CHILD = textwrap.dedent("""
     import json, sys
     sys.modules["gsplat"] = None  # every `import gsplat...` now raises ImportError, as without the extra
 
-    from brave6d.camera import PinholeCamera
-    from training import get_preset, read_ply, train_scene
-    from training.synthetic import plane_views, write_scene
+    from brave6d.core.camera import PinholeCamera
+    from brave6d.training import get_preset, read_ply, train_scene
+    from brave6d.training.toy_scenes import plane_views, write_scene
 
     cam = PinholeCamera(80, 50, 62.5, 62.5, 39.5, 24.5)
     scene = write_scene(sys.argv[1], cam, plane_views(cam, [0.45, 0.6], 5))

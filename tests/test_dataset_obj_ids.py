@@ -1,4 +1,4 @@
-"""A dataset's library fixes the BOP obj_ids of a scene's import (annotation.import_threedat(obj_ids=...))."""
+"""A dataset's library fixes the BOP obj_ids of a scene's import (brave6d.annotation.import_threedat(obj_ids=...))."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from annotation import (
+from brave6d.annotation import (
     BopLayout,
     export_bop,
     import_threedat,
@@ -16,7 +16,7 @@ from annotation import (
     read_scene_gt,
     read_threedat,
 )
-from brave6d.errors import DataError
+from brave6d.core.errors import DataError
 
 FIXTURE = Path(__file__).parent / "fixtures" / "threedat"
 

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from annotation import read_models_info, read_scene_gt
+from brave6d.annotation import read_models_info, read_scene_gt
 from brave6d.cli import main as cli_main
-from brave6d.dataset_spec import load_dataset_spec
+from brave6d.core.dataset_spec import load_dataset_spec
 
 ROOT = Path(__file__).resolve().parent.parent
 DEMO_DATASET = ROOT / "data" / "demo" / "dataset.yaml"
@@ -59,8 +59,8 @@ def test_demo_dataset_runs_releases_and_verifies(tmp_path: Path, capsys: pytest.
 
 
 def _serve_and_score(release: Path, tmp_path: Path, scenes: list[str], capsys: pytest.CaptureFixture[str]) -> None:
-    from evaluation.agents import STATIC_AGENT, make_agent, run_episode
-    from serve import BraveClient, ServerThread, create_app, open_scenes
+    from brave6d.evaluation.agents import STATIC_AGENT, make_agent, run_episode
+    from brave6d.serve import BraveClient, ServerThread, create_app, open_scenes
 
     logs = tmp_path / "logs"
     catalog = open_scenes(release, device="cpu", cache_dir=tmp_path / "cache", max_loaded=1)

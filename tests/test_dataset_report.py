@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 
 from brave6d.cli import main as cli_main
-from brave6d.errors import BraveError
-from dataset.report import gap_by_ring, pooled_ar, report_dataset
-from dataset.workdir import prepare_workdir
-from evaluation.report import Measurement, MeasurementStore
+from brave6d.core.errors import BraveError
+from brave6d.dataset.report import gap_by_ring, pooled_ar, report_dataset
+from brave6d.dataset.workdir import prepare_workdir
+from brave6d.evaluation.report import Measurement, MeasurementStore
 
 ROOT = Path(__file__).resolve().parent.parent
 DEMO_DATASET = ROOT / "data" / "demo" / "dataset.yaml"

@@ -10,12 +10,12 @@ import pytest
 import submitit
 import yaml
 
-from annotation import BopLayout, read_scene_gt
+from brave6d.annotation import BopLayout, read_scene_gt
 from brave6d.cli import main as cli_main
-from brave6d.dataset_spec import ClusterSpec, load_dataset_spec
-from brave6d.layout import SceneDir
-from brave6d.locks import Process
-from dataset import (
+from brave6d.core.dataset_spec import ClusterSpec, load_dataset_spec
+from brave6d.core.layout import SceneDir
+from brave6d.core.locks import Process
+from brave6d.dataset import (
     SCENE_STAGES,
     ExecutorOptions,
     SceneJob,
@@ -61,7 +61,7 @@ def test_the_scene_job_is_requeued_with_its_own_state(tmp_path: Path) -> None:
 
 
 def test_status_table_shows_every_state(tmp_path: Path) -> None:
-    from dataset.status import write_scene_status
+    from brave6d.dataset.status import write_scene_status
 
     write_scene_status(tmp_path, SceneStatus("a", 1, "f", {
         "init": {"state": "done", "seconds": 0.0}, "calibrate": {"state": "failed", "error": "board unreachable"},
@@ -141,9 +141,9 @@ def test_the_public_api_resolves_and_stays_light() -> None:
     import subprocess
     import sys
 
-    import dataset
+    from brave6d import dataset
 
     assert all(hasattr(dataset, n) for n in dataset.__all__)
-    code = "import sys, dataset; print(','.join(m for m in ('torch', 'submitit', 'open3d') if m in sys.modules))"
+    code = "import sys, brave6d.dataset; print(','.join(m for m in ('torch', 'submitit', 'open3d') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "", out.stdout + out.stderr

@@ -1,4 +1,4 @@
-"""The dataset spec (brave6d.dataset_spec): library merge, ids by position, one-line errors."""
+"""The dataset spec (brave6d.core.dataset_spec): library merge, ids by position, one-line errors."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from brave6d.dataset_spec import load_dataset_spec, scene_fingerprint
-from brave6d.errors import SpecError
+from brave6d.core.dataset_spec import load_dataset_spec, scene_fingerprint
+from brave6d.core.errors import SpecError
 
 ROOT = Path(__file__).resolve().parent.parent
 DEMO_DATASET = ROOT / "data" / "demo" / "dataset.yaml"
@@ -135,7 +135,7 @@ def test_any_dataset_name_validates_or_is_named(tmp_path_factory: pytest.TempPat
         ds = load_dataset_spec(path)
     except SpecError as exc:
         assert "dataset.yaml: field 'name'" in str(exc)
-    else:  # the one rule of brave6d.names (tests/test_names_as_paths.py tries it on every field)
+    else:  # the one rule of brave6d.core.names (tests/test_names_as_paths.py tries it on every field)
         assert ds.spec.name == name and name not in ("", ".", "..") and name[0] not in ".-"
         assert all(c.isascii() and (c.isalnum() or c in "_.+-") for c in name)
 

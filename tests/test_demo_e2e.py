@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from brave6d.demo import DEMO_SPEC, QUICK_CAPTURE, STAGES
+from brave6d.pipeline import QUICK_CAPTURE, STAGES
+from brave6d.pipeline.demo import DEMO_SPEC
 
 STAGE_LINE = re.compile(r"^\[(\d+)/(\d+)\] (\S+)\s+done in ([0-9.]+) s  (.*)$")
 
@@ -86,7 +87,7 @@ def test_quick_demo_runs_every_stage(tmp_path: Path) -> None:
     assert final_m < start_m  # it approached the target
 
     evaluate = fig["evaluate"]
-    from evaluation.agents import POLICIES
+    from brave6d.evaluation.agents import POLICIES
 
     assert int(evaluate["episodes"]) == len(POLICIES) * n_objects  # every registered agent, one episode per object
     assert 0.2 < float(evaluate["AR active"]) <= 1.0 and 0.2 < float(evaluate["AR static"]) <= 1.0

@@ -1,4 +1,4 @@
-"""training.strategy against gsplat 1.5.3's DefaultStrategy, the third-party reference it follows.
+"""brave6d.training.strategy against gsplat 1.5.3's DefaultStrategy, the third-party reference it follows.
 
 The same random training history (parameters, Adam moments, 2D-mean gradients, visibility) is
 run through both; every parameter, optimiser moment and running statistic must come out
@@ -13,8 +13,8 @@ from typing import Any
 import pytest
 import torch
 
-import training.strategy as strategy_module
-from training.strategy import DensifyStrategy
+import brave6d.training.strategy as strategy_module
+from brave6d.training.strategy import DensifyStrategy
 
 gsplat_strategy = pytest.importorskip("gsplat.strategy")  # the `test` extra installs gsplat
 gsplat_ops = pytest.importorskip("gsplat.strategy.ops")

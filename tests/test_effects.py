@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-import capture.effects as fx
-from brave6d.camera import PinholeCamera
-from brave6d.spec import (
+import brave6d.capture.effects as fx
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.spec import (
     DefocusBlur,
     DepthNoise,
     EffectsSpec,
@@ -20,9 +20,9 @@ from brave6d.spec import (
     SensorNoise,
     Vignetting,
 )
-from brave6d.transforms import look_at
-from capture.scene_model import MeshPart, SceneModel
-from capture.sim_camera import SimCamera
+from brave6d.core.transforms import look_at
+from brave6d.capture.scene_model import MeshPart, SceneModel
+from brave6d.capture.sim_camera import SimCamera
 
 CAMERA = PinholeCamera.from_hfov(96, 64, 70.0)
 WORLD_T_CAM = look_at((0.05, -0.12, 0.35), (0.0, 0.0, 0.0))

@@ -1,4 +1,4 @@
-"""The episode log schema (serve.episode_log): versioned records, round trip, clear errors."""
+"""The episode log schema (brave6d.serve.episode_log): versioned records, round trip, clear errors."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from brave6d.errors import DataError
-from brave6d.transforms import make_transform
-from serve import (
+from brave6d.core.errors import DataError
+from brave6d.core.transforms import make_transform
+from brave6d.serve import (
     LOG_FORMAT_VERSION,
     ActionRecord,
     CloseRecord,

@@ -1,4 +1,4 @@
-"""Episode scoring (evaluation.metrics.episodes, brave6d evaluate) on hand-made logs written by the
+"""Episode scoring (brave6d.evaluation.metrics.episodes, brave6d evaluate) on hand-made logs written by the
 server's own record writer, and the estimates endpoint (POST /episodes/{id}/estimates)."""
 
 from __future__ import annotations
@@ -15,11 +15,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from brave6d.atomic import depth_m_to_mm_u16, read_png, write_png
-from brave6d.camera import PinholeCamera
-from brave6d.errors import DataError
-from brave6d.transforms import look_at, make_transform
-from evaluation.metrics.episodes import (
+from brave6d.core.atomic import depth_m_to_mm_u16, read_png, write_png
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import DataError
+from brave6d.core.transforms import look_at, make_transform
+from brave6d.evaluation.metrics.episodes import (
     episode_to_bop,
     models_from_bundle,
     read_episode,
@@ -27,9 +27,9 @@ from evaluation.metrics.episodes import (
     score_episodes,
     write_leaderboard,
 )
-from evaluation.metrics.recall import ObjectModel, evaluate_bop19
-from evaluation.metrics.depth_renderer import render_depth
-from serve import (
+from brave6d.evaluation.metrics.recall import ObjectModel, evaluate_bop19
+from brave6d.evaluation.metrics.depth_renderer import render_depth
+from brave6d.serve import (
     Bundle,
     EpisodeLog,
     FinalView,
@@ -45,7 +45,7 @@ from serve import (
     make_synthetic_bundle,
     read_episode_log,
 )
-from serve.synthetic import cube_mesh_mm
+from brave6d.serve.toy_scene import cube_mesh_mm
 
 CAMERA = PinholeCamera.from_hfov(96, 72, 60.0)
 #: cube_red (obj_id 1) 0.25 m in front of the camera, turned about its vertical axis
@@ -77,7 +77,7 @@ def write_episode(folder: Path, eid: str, agent: str | None, estimates: list[np.
                   gt: np.ndarray = GT, adjustments: int = 0, bundle_name: str = "synthetic_tabletop",
                   started: str = "2026-01-01T00:00:00.000+00:00", scene: str | None = None) -> Path:
     """A reset (+ submit with ``estimates``, cam_T_obj 4x4 of obj 1; None: no submission) log,
-    written through the server's log schema (:mod:`serve.episode_log`)."""
+    written through the server's log schema (:mod:`brave6d.serve.episode_log`)."""
     folder.mkdir(parents=True, exist_ok=True)
     target = TargetRef(gt_id=0, obj_id=1, name="cube_red")
     depth = depth_of(gt)
@@ -206,7 +206,7 @@ def test_scores_per_scene_and_category_are_exact(tmp_path: Path, models: dict[in
 
 def test_cli_prints_leaderboard_and_writes_files(tmp_path: Path, bundle: Bundle,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
-    from evaluation import cli
+    from brave6d.evaluation import cli
 
     logs = tmp_path / "logs"
     write_episode(logs, "c0", "oracle", [GT])
@@ -224,7 +224,7 @@ def test_cli_prints_leaderboard_and_writes_files(tmp_path: Path, bundle: Bundle,
 
 
 def test_bundle_found_from_the_logs(tmp_path: Path, bundle: Bundle) -> None:
-    from evaluation.cli import resolve_bundles
+    from brave6d.evaluation.cli import resolve_bundles
 
     write_episode(tmp_path, "r0", "a", [GT])
     eps = read_episodes([tmp_path])

@@ -12,11 +12,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from brave6d.atomic import file_sha256
-from brave6d.errors import BraveError, DataError
-from brave6d.layout import SceneDir
-from serve.bundle import BundleError, export_bundle, load_bundle, verify_manifest
-from serve.synthetic import make_synthetic_scene, synthetic_splat
+from brave6d.core.atomic import file_sha256
+from brave6d.core.errors import BraveError, DataError
+from brave6d.core.layout import SceneDir
+from brave6d.serve.bundle import BundleError, export_bundle, load_bundle, verify_manifest
+from brave6d.serve.toy_scene import make_synthetic_scene, synthetic_splat
 
 
 @pytest.fixture(scope="module")
@@ -206,7 +206,7 @@ def test_scene_without_a_capture_exports_without_holdout_views(scene: SceneDir, 
 
 # ----------------------------------------------------------------------------- item 8: broken splats
 def _write_splat(path: Path, splat: object) -> None:
-    from training import write_ply
+    from brave6d.training import write_ply
 
     write_ply(path, splat)  # type: ignore[arg-type]
 
@@ -239,7 +239,7 @@ def _resign_splat(bundle: Path) -> None:
 def test_load_refuses_a_bundle_whose_splat_holds_no_gaussians(scene: SceneDir, tmp_path: Path) -> None:
     from plyfile import PlyData, PlyElement
 
-    from training.ply import inria_attribute_names
+    from brave6d.training.ply import inria_attribute_names
 
     bundle = export_bundle(scene.root, tmp_path / "b").root
     path = bundle / "splat.ply"
@@ -251,8 +251,8 @@ def test_load_refuses_a_bundle_whose_splat_holds_no_gaussians(scene: SceneDir, t
 
 
 def test_serving_refuses_a_bundle_whose_splat_has_nan(scene: SceneDir, tmp_path: Path) -> None:
-    from serve.app import create_app
-    from serve.renderer import SplatRenderer
+    from brave6d.serve.app import create_app
+    from brave6d.serve.renderer import SplatRenderer
 
     bundle = export_bundle(scene.root, tmp_path / "b").root
     splat = synthetic_splat(2000, seed=1)
@@ -282,8 +282,8 @@ def test_any_non_finite_value_is_refused_naming_its_ply_property(field: str, row
                                                                  extra_rows: set[int]) -> None:
     import tempfile
 
-    from serve.splat_check import check_splat
-    from training import read_ply
+    from brave6d.serve.splat_check import check_splat
+    from brave6d.training import read_ply
 
     splat = synthetic_splat(1000, sh_degree=1, seed=2)
     for name in _FIELDS:

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from brave6d.camera import PinholeCamera
-from training.dataset import TrainingData, View
-from training.evaluate import evaluate_holdout
-from training.model import GaussianModel
-from training.presets import get_preset
-from training.synthetic import random_gaussians, render_views, ring_poses
-from training.trainer import Trainer, base_lrs
+from brave6d.core.camera import PinholeCamera
+from brave6d.training.views import TrainingData, View
+from brave6d.training.holdout_eval import evaluate_holdout
+from brave6d.training.model import GaussianModel
+from brave6d.training.presets import get_preset
+from brave6d.training.toy_scenes import random_gaussians, render_views, ring_poses
+from brave6d.training.trainer import Trainer, base_lrs
 
 CAM = PinholeCamera(48, 36, 40.0, 40.0, 23.5, 17.5)
 BUDGET = 260

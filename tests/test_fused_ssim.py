@@ -8,8 +8,8 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
-from training.fused_ssim import blur_planes, can_fuse, fused_ssim
-from training.losses import gaussian_window, photometric_loss, ssim
+from brave6d.training.fused_ssim import blur_planes, can_fuse, fused_ssim
+from brave6d.training.losses import gaussian_window, photometric_loss, ssim
 
 
 def _value_and_grad(fn, render: torch.Tensor, target: torch.Tensor) -> tuple[float, torch.Tensor]:

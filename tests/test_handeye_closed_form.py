@@ -11,11 +11,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from brave6d.errors import DegenerateGeometryError, NonRigidTransformError
-from brave6d.transforms import invert, make_transform, rotation_distance
-from calibration.closed_form import CLOSED_FORM_METHODS, motion_pairs, solve_closed_form
-from calibration.conditioning import ConditioningThresholds
-from calibration.synthetic import perturb_pose
+from brave6d.core.errors import DegenerateGeometryError, NonRigidTransformError
+from brave6d.core.transforms import invert, make_transform, rotation_distance
+from brave6d.calibration.closed_form import CLOSED_FORM_METHODS, motion_pairs, solve_closed_form
+from brave6d.calibration.conditioning import ConditioningThresholds
+from brave6d.calibration.known_truth import perturb_pose
 
 OPENCV = {"tsai": cv2.CALIB_HAND_EYE_TSAI, "park": cv2.CALIB_HAND_EYE_PARK, "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS}
 BOARD = make_transform(Rotation.from_euler("xyz", [180, 0, 0], degrees=True).as_matrix(), [0.5, -0.1, 0.02])

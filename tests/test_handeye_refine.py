@@ -13,17 +13,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from brave6d.board import board_size_m
-from brave6d.calibration_io import read_handeye
-from brave6d.errors import BraveError, DegenerateGeometryError, NonRigidTransformError
-from brave6d.layout import SceneDir
-from brave6d.transforms import invert, make_transform
-from calibration.closed_form import solve_closed_form
-from calibration.handeye import HandEyeOptions, HandEyeView, calibrate_handeye, estimate_board_pose
-from calibration.handeye_result import HandEyeResult
-from calibration.plan import board_T_cam_view
-from calibration.report import write_report
-from calibration.synthetic import (
+from brave6d.core.board import board_size_m
+from brave6d.core.calibration_io import read_handeye
+from brave6d.core.errors import BraveError, DegenerateGeometryError, NonRigidTransformError
+from brave6d.core.layout import SceneDir
+from brave6d.core.transforms import invert, make_transform
+from brave6d.calibration.closed_form import solve_closed_form
+from brave6d.calibration.handeye import HandEyeOptions, HandEyeView, calibrate_handeye, estimate_board_pose
+from brave6d.calibration.handeye_result import HandEyeResult
+from brave6d.calibration.plan import board_T_cam_view
+from brave6d.calibration.report import write_report
+from brave6d.calibration.known_truth import (
     default_board,
     default_K,
     default_tcp_T_cam,
@@ -277,7 +277,7 @@ def test_near_parallel_axes_give_a_clear_error_or_an_accurate_answer(cone_deg, a
 
 
 # ----------------------------------------------------------------------------- robot noisier than configured
-# An independent generator (not calibration.synthetic): its own 9 x 6 corner grid, camera,
+# An independent generator (not brave6d.calibration.known_truth): its own 9 x 6 corner grid, camera,
 # look-at poses, OpenCV's projectPoints, robot pose error applied in the TCP frame.
 _GRID = np.array([[0.025 * c, 0.025 * r, 0.0] for r in range(6) for c in range(9)])
 _K_OWN = np.array([[910.0, 0.0, 640.0], [0.0, 905.0, 360.0], [0.0, 0.0, 1.0]])

@@ -15,14 +15,14 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from annotation.threedat import ThreeDatError, read_threedat
-from brave6d.atomic import read_png, write_png
-from brave6d.calibration_io import read_camera_json
-from brave6d.camera import PinholeCamera
+from brave6d.annotation.threedat import ThreeDatError, read_threedat
+from brave6d.core.atomic import read_png, write_png
+from brave6d.core.calibration_io import read_camera_json
+from brave6d.core.camera import PinholeCamera
 from brave6d.cli import main
-from brave6d.errors import DataError, SpecError
-from brave6d.spec import load_scene_spec
-from brave6d.yaml_io import MAX_DEPTH, parse_yaml
+from brave6d.core.errors import DataError, SpecError
+from brave6d.core.spec import load_scene_spec
+from brave6d.core.yaml_io import MAX_DEPTH, parse_yaml
 
 FIXTURE = Path(__file__).parent / "fixtures" / "threedat"
 KEYS = st.from_regex(r"[a-z][a-z0-9_]{0,8}", fullmatch=True).filter(
@@ -134,8 +134,8 @@ def test_read_png_checks_the_size_and_names_the_file(tmp_path: Path) -> None:
 def test_wrong_size_capture_png_names_the_file_and_the_camera(tmp_path: Path) -> None:
     """Training on a capture with one frame of the wrong size: the message names that file and the
     intrinsics it disagrees with; --skip-bad-frames trains without it."""
-    from training.dataset import load_scene
-    from training.synthetic import plane_views, write_scene
+    from brave6d.training.views import load_scene
+    from brave6d.training.toy_scenes import plane_views, write_scene
 
     camera = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
     scene = write_scene(tmp_path / "scene", camera, plane_views(camera, [0.4, 0.5], 6))

@@ -12,9 +12,9 @@ from hypothesis import strategies as st
 from scipy.optimize import brentq, least_squares
 from scipy.spatial.transform import Rotation
 
-from brave6d.errors import NonRigidTransformError
-from brave6d.transforms import make_transform
-from capture.kinematics import (
+from brave6d.core.errors import NonRigidTransformError
+from brave6d.core.transforms import make_transform
+from brave6d.capture.kinematics import (
     UR_DH,
     URKinematics,
     closest_solution,

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from brave6d.atomic import (
+from brave6d.core.atomic import (
     atomic_write_json,
     atomic_write_text,
     depth_m_to_mm_u16,
@@ -22,10 +22,10 @@ from brave6d.atomic import (
     read_png,
     write_png,
 )
-from brave6d.errors import DataError
-from brave6d.layout import FrameLog, FrameRecord, SceneDir, init_scene_dir
-from brave6d.spec import load_scene_spec
-from brave6d.transforms import look_at
+from brave6d.core.errors import DataError
+from brave6d.core.layout import FrameLog, FrameRecord, SceneDir, init_scene_dir
+from brave6d.core.spec import load_scene_spec
+from brave6d.core.transforms import look_at
 
 
 def _record(i: int) -> FrameRecord:
@@ -41,7 +41,7 @@ def test_atomic_write_survives_killed_writer(tmp_path: Path) -> None:
     atomic_write_json(target, {"version": "old", "values": list(range(10))})
     script = textwrap.dedent(f"""
         import time
-        from brave6d.atomic import atomic_write
+        from brave6d.core.atomic import atomic_write
         def slow(handle):
             handle.write(b'{{"version": "new", "values": [')
             handle.flush()
@@ -58,7 +58,7 @@ def test_atomic_write_survives_killed_writer(tmp_path: Path) -> None:
 
 
 def test_atomic_write_exception_keeps_old_file_and_no_temp(tmp_path: Path) -> None:
-    from brave6d.atomic import atomic_write
+    from brave6d.core.atomic import atomic_write
 
     target = tmp_path / "a.txt"
     atomic_write_text(target, "old")

@@ -1,4 +1,4 @@
-"""``brave6d.locks`` (issue 32, items 11 and 12): a lock names its holder, refuses while that runs,
+"""``brave6d.core.locks`` (issue 32, items 11 and 12): a lock names its holder, refuses while that runs,
 is taken over once it is gone (dead pid, reused pid, zombie, stale heartbeat of another machine,
 requeued Slurm job), and concurrent takers get exactly one owner."""
 
@@ -21,7 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from lock_holder import kill_holder, spawn_holder
 
-from brave6d.locks import STALE_S, FileLock, Holder, LockHeld, Process, read_holder
+from brave6d.core.locks import STALE_S, FileLock, Holder, LockHeld, Process, read_holder
 
 
 @functools.cache
@@ -53,7 +53,7 @@ def test_a_live_holder_is_named_and_a_killed_one_is_taken_over(tmp_path: Path,
     finally:
         kill_holder(proc)
     lock = FileLock(path, "second")
-    with caplog.at_level(logging.WARNING, logger="brave6d.locks"):
+    with caplog.at_level(logging.WARNING, logger="brave6d.core.locks"):
         taken = lock.acquire()
     try:
         assert taken is not None and taken.process == holder

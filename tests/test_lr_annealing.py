@@ -10,13 +10,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from brave6d.camera import PinholeCamera
-from brave6d.errors import BraveError
-from training.dataset import TrainingData, View
-from training.model import GaussianModel
-from training.presets import get_preset
-from training.synthetic import random_gaussians, render_views, ring_poses
-from training.trainer import Trainer, base_lrs, other_lr_factor
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import BraveError
+from brave6d.training.views import TrainingData, View
+from brave6d.training.model import GaussianModel
+from brave6d.training.presets import get_preset
+from brave6d.training.toy_scenes import random_gaussians, render_views, ring_poses
+from brave6d.training.trainer import Trainer, base_lrs, other_lr_factor
 
 FAST = get_preset("fast")
 

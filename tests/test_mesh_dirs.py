@@ -14,8 +14,8 @@ from typing import Any
 import pytest
 import yaml
 
-from brave6d.dataset_spec import load_dataset_spec
-from brave6d.errors import SpecError
+from brave6d.core.dataset_spec import load_dataset_spec
+from brave6d.core.errors import SpecError
 
 ROOT = Path(__file__).resolve().parent.parent
 MESHES = ROOT / "data" / "demo" / "meshes"
@@ -122,8 +122,8 @@ def test_mesh_dirs_must_be_folders(tmp_path: Path) -> None:
 def test_a_work_directory_made_with_mesh_dirs_is_self_contained(tmp_path: Path, outside: Path) -> None:
     """``dataset run --mesh-dir`` copies the meshes into WORKDIR, whose dataset.yaml (what release build
     reads) then loads without any flag."""
-    from dataset.release.source import load_release_source
-    from dataset.workdir import prepare_workdir
+    from brave6d.dataset.release.source import load_release_source
+    from brave6d.dataset.workdir import prepare_workdir
 
     path = _dataset(tmp_path / "ds", nut_mesh=str(outside / "secret.ply"))
     work = tmp_path / "work"
@@ -138,7 +138,7 @@ def test_a_work_directory_made_with_mesh_dirs_is_self_contained(tmp_path: Path, 
 
 
 def test_synth_takes_mesh_dirs_for_a_dataset(tmp_path: Path, outside: Path) -> None:
-    from synth import load_synth_source
+    from brave6d.synth import load_synth_source
 
     path = _dataset(tmp_path / "ds", nut_mesh=str(outside / "secret.ply"))
     with pytest.raises(SpecError, match=_outside_error("dataset.yaml", "objects[0].mesh")):

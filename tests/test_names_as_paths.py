@@ -1,4 +1,4 @@
-"""Names that become path parts (issue #32, item 2): one rule (``brave6d.names``) for the dataset's
+"""Names that become path parts (issue #32, item 2): one rule (``brave6d.core.names``) for the dataset's
 ``name`` and ``version``, library and scene object names, scene names and a downloaded release's
 name, version and scene names; an accepted name is always a direct child of the folder it is
 joined to, a refused one is an error naming the file and the field."""
@@ -16,13 +16,13 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from brave6d.dataset_spec import load_dataset_spec, parse_dataset_spec
-from brave6d.errors import BraveError, DataError, SpecError
-from brave6d.names import check_folder_name, folder_name_problem
-from brave6d.spec import parse_scene_spec
-from dataset.release.formats import FORMAT, MANIFEST, SUMS
-from dataset.release.manifest import read_manifest
-from dataset.release.source import ReleaseError
+from brave6d.core.dataset_spec import load_dataset_spec, parse_dataset_spec
+from brave6d.core.errors import BraveError, DataError, SpecError
+from brave6d.core.names import check_folder_name, folder_name_problem
+from brave6d.core.spec import parse_scene_spec
+from brave6d.dataset.release.formats import FORMAT, MANIFEST, SUMS
+from brave6d.dataset.release.manifest import read_manifest
+from brave6d.dataset.release.source import ReleaseError
 
 ROOT = Path(__file__).resolve().parent.parent
 MESHES = ROOT / "data" / "demo" / "meshes"
@@ -129,7 +129,7 @@ def test_a_dataset_name_or_version_that_climbs_is_refused(tmp_path: Path, field:
 @pytest.mark.parametrize("field", ["name", "version", "scenes[0].name"])
 def test_a_hand_edited_release_manifest_is_refused_before_any_cache_folder(tmp_path: Path, field: str) -> None:
     """The server reads name and version from a downloaded manifest.json into its cache folder's name."""
-    from dataset.release import release_scene_sources
+    from brave6d.dataset.release import release_scene_sources
 
     release, cache = tmp_path / "release", tmp_path / "a" / "b" / "cache"
     release.mkdir()
@@ -150,7 +150,7 @@ def test_a_hand_edited_release_manifest_is_refused_before_any_cache_folder(tmp_p
 
 
 def test_a_library_object_name_that_climbs_writes_nothing_outside_the_work_directory(tmp_path: Path) -> None:
-    from dataset.workdir import prepare_workdir
+    from brave6d.dataset.workdir import prepare_workdir
 
     path = _dataset_folder(tmp_path / "src")
     data = yaml.safe_load(path.read_text())
@@ -174,7 +174,7 @@ def test_a_scene_name_follows_the_same_rule(tmp_path: Path, name: str) -> None:
 
 
 def test_an_object_name_in_a_scene_spec_follows_the_rule(tmp_path: Path) -> None:
-    from brave6d.spec import load_scene_spec
+    from brave6d.core.spec import load_scene_spec
 
     shutil.copy(MESHES / "hex_nut.ply", tmp_path / "hex_nut.ply")
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(_scene_data(
@@ -187,8 +187,8 @@ def test_an_object_name_in_a_scene_spec_follows_the_rule(tmp_path: Path) -> None
 def test_the_3ddat_writer_takes_the_same_rule_for_its_scene_folder(tmp_path: Path, name: str) -> None:
     import numpy as np
 
-    from annotation import read_threedat, write_threedat_folder
-    from brave6d.camera import PinholeCamera
+    from brave6d.annotation import read_threedat, write_threedat_folder
+    from brave6d.core.camera import PinholeCamera
 
     cube = read_threedat(ROOT / "tests" / "fixtures" / "threedat").library[0]
     out = tmp_path / "dat"

@@ -11,10 +11,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from brave6d.camera import PinholeCamera
-from brave6d.errors import BraveError
-from capture.oak_camera import OakCamera
-from capture.protocols import Camera, CameraError
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import BraveError
+from brave6d.capture.oak_camera import OakCamera
+from brave6d.capture.protocols import Camera, CameraError
 
 K_FULL = [[3000.0, 0.0, 2030.0], [0.0, 3001.0, 1520.0], [0.0, 0.0, 1.0]]  # 4056 x 3040 sensor
 DIST14 = [0.11, -0.3, 0.001, -0.002, 0.2, 0.05, -0.04, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]

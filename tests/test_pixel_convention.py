@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import torch
 
-from brave6d.camera import PinholeCamera
-from brave6d.transforms import invert, look_at
-from capture.scene_model import MeshPart, SceneModel, srgb_to_linear
-from capture.sim_camera import SimCamera
-from training.rasterizer import rasterize
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.transforms import invert, look_at
+from brave6d.capture.scene_model import MeshPart, SceneModel, srgb_to_linear
+from brave6d.capture.sim_camera import SimCamera
+from brave6d.training.rasterizer import rasterize
 
 CAMERA = PinholeCamera(128, 96, 150.0, 150.0, 61.3, 49.8)  # principal point off the centre on purpose
 SIDE_M = 0.3  # the textured square, centred on the world origin in the plane z = 0

@@ -13,10 +13,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from brave6d.errors import DataError
-from brave6d.spec import parse_scene_spec
-from brave6d.transforms import make_transform
-from capture.collision import (
+from brave6d.core.errors import DataError
+from brave6d.core.spec import parse_scene_spec
+from brave6d.core.transforms import make_transform
+from brave6d.capture.collision import (
     BoxSet,
     ToolModel,
     arm_collisions,
@@ -25,8 +25,8 @@ from capture.collision import (
     segment_hits,
     tool_collisions,
 )
-from capture.kinematics import URKinematics
-from capture.planning import (
+from brave6d.capture.kinematics import URKinematics
+from brave6d.capture.planning import (
     PlannerOptions,
     choose_representatives,
     fibonacci_cap,
@@ -38,7 +38,7 @@ from capture.planning import (
     sample_viewpoints,
     save_plan,
 )
-from capture.sim_robot import SimRobot
+from brave6d.capture.sim_robot import SimRobot
 
 
 def rot(rpy_deg: tuple[float, float, float]) -> np.ndarray:

@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from plyfile import PlyData, PlyElement
 
-from brave6d.errors import DataError
-from training.model import GaussianModel
-from training.ply import SH_C0, SplatData, inria_attribute_names, read_ply, trim_sh, write_ply
+from brave6d.core.errors import DataError
+from brave6d.training.model import GaussianModel
+from brave6d.training.ply import SH_C0, SplatData, inria_attribute_names, read_ply, trim_sh, write_ply
 
 INRIA_ORDER = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
                + [f"f_rest_{i}" for i in range(45)]

@@ -1,4 +1,4 @@
-"""The one mesh-PLY reader and writer (``annotation.read_ply_mesh`` / ``write_ply_mesh``) and the
+"""The one mesh-PLY reader and writer (``brave6d.annotation.read_ply_mesh`` / ``write_ply_mesh``) and the
 stages' readers built on it: they return the same arrays on every mesh PLY the project ships."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ import pytest
 import trimesh
 from plyfile import PlyData, PlyElement
 
-from annotation import MeshData, load_mesh, read_ply_mesh, write_ply_mesh
-from brave6d.errors import DataError
-from evaluation.agents import read_model_ply
-from evaluation.metrics import load_ply_mesh
-from serve.bundle import load_model_m
+from brave6d.annotation import MeshData, load_mesh, read_ply_mesh, write_ply_mesh
+from brave6d.core.errors import DataError
+from brave6d.evaluation.agents import read_model_ply
+from brave6d.evaluation.metrics import load_ply_mesh
+from brave6d.serve.bundle import load_model_m
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = sorted((REPO / "data" / "demo" / "meshes").glob("*.ply")) + sorted(

@@ -30,7 +30,7 @@ ONE_CPU = "import os; os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})\n"
 RENDER_ON_THREAD = ONE_CPU + """
 import sys, threading
 import numba, torch
-from training import rasterize
+from brave6d.training import rasterize
 
 def render():
     n = 64
@@ -72,7 +72,7 @@ def _wait_for_exit(proc: subprocess.Popen, done: Path) -> int:
 
 PIN = """
 import os, sys
-from brave6d.runtime import pin_threading_layer
+from brave6d.core.runtime import pin_threading_layer
 pin_threading_layer()
 print(os.environ.get("NUMBA_THREADING_LAYER"), os.environ.get("NUMBA_THREADING_LAYER_PRIORITY"), "numba" in sys.modules)
 """
@@ -123,7 +123,7 @@ def _wait_until_listening(client: httpx.Client, proc: subprocess.Popen) -> None:
 
 @pytest.fixture(scope="module")
 def bundle_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from serve.synthetic import make_synthetic_bundle
+    from brave6d.serve.toy_scene import make_synthetic_bundle
 
     return make_synthetic_bundle(tmp_path_factory.mktemp("exit_scene"), n_gaussians=2000)
 

@@ -1,5 +1,6 @@
-"""The stages' public APIs (docs/ARCHITECTURE.md): every exported name resolves, importing a
-stage stays cheap, and no stage reaches into another stage's modules."""
+"""The package's floors and the stages' public APIs (docs/ARCHITECTURE.md): every exported name
+resolves, importing a stage stays cheap, no stage reaches into another stage's modules, the core
+imports no stage and nothing below the top floor imports it."""
 
 from __future__ import annotations
 
@@ -12,9 +13,14 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-STAGES = ("capture", "calibration", "annotation", "training", "serve", "evaluation", "dataset", "ros_interface",
-          "synth")
-PACKAGES = (*STAGES, "evaluation.metrics", "evaluation.agents", "evaluation.report", "dataset.release")
+PACKAGE = ROOT / "src" / "brave6d"
+STAGE_NAMES = ("capture", "calibration", "annotation", "training", "serve", "evaluation", "dataset",
+               "ros_interface", "synth")
+STAGES = tuple(f"brave6d.{s}" for s in STAGE_NAMES)
+PACKAGES = (*STAGES, "brave6d.evaluation.metrics", "brave6d.evaluation.agents", "brave6d.evaluation.report",
+            "brave6d.dataset.release")
+#: The floor above the stages: the command line and the pipeline that drives the stages.
+TOP = ("brave6d.cli", "brave6d.init_cli", "brave6d.spec_cli", "brave6d.pipeline")
 HEAVY = ("torch", "open3d", "fastapi", "trimesh", "numba", "pycolmap", "matplotlib")
 
 
@@ -27,7 +33,7 @@ def test_every_exported_name_resolves(package: str) -> None:
     assert not missing, f"{package}.__all__ names that do not resolve: {missing}"
 
 
-@pytest.mark.parametrize("package", [p for p in PACKAGES if p not in ("capture", "calibration")])
+@pytest.mark.parametrize("package", [p for p in PACKAGES if p not in ("brave6d.capture", "brave6d.calibration")])
 def test_importing_a_lazy_package_loads_nothing_heavy(package: str) -> None:
     code = f"import sys, {package}; print(','.join(m for m in {HEAVY!r} if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
@@ -36,27 +42,30 @@ def test_importing_a_lazy_package_loads_nothing_heavy(package: str) -> None:
 
 
 def _stage_of(module: str) -> str | None:
-    top = module.split(".")[0]
-    return top if top in STAGES else None
+    """``brave6d.serve`` for ``brave6d.serve.app``; None for the core, the top floor or anything else."""
+    parts = module.split(".")
+    return ".".join(parts[:2]) if len(parts) >= 2 and parts[0] == "brave6d" and parts[1] in STAGE_NAMES else None
 
 
-def _cross_stage_imports(stage: str) -> list[str]:
-    """``file:line: module`` for every import of another stage's submodule (``from serve.app import``)."""
-    bad = []
-    for path in sorted((ROOT / stage).rglob("*.py")):
+def _imports(folder: Path) -> list[tuple[Path, int, str]]:
+    """``(file, line, module)`` of every absolute import in the Python files under ``folder``."""
+    found = []
+    for path in sorted(folder.rglob("*.py")):
         tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                modules = [node.module]
+                found += [(path, node.lineno, node.module)]
             elif isinstance(node, ast.Import):
-                modules = [alias.name for alias in node.names]
-            else:
-                continue
-            for module in modules:
-                other = _stage_of(module)
-                if other is not None and other != stage and "." in module and module not in PACKAGES:
-                    bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {module}")
-    return bad
+                found += [(path, node.lineno, alias.name) for alias in node.names]
+    return found
+
+
+def _cross_stage_imports(stage: str) -> list[str]:
+    """``file:line: module`` for every import of another stage's submodule (``from brave6d.serve.app import``)."""
+    folder = PACKAGE / stage.split(".", 1)[1]
+    return [f"{path.relative_to(PACKAGE.parent)}:{line}: {module}" for path, line, module in _imports(folder)
+            if (other := _stage_of(module)) is not None and other != stage and module != other
+            and module not in PACKAGES]
 
 
 @pytest.mark.parametrize("stage", STAGES)
@@ -65,19 +74,32 @@ def test_stages_import_only_each_others_public_names(stage: str) -> None:
 
 
 def test_the_import_check_sees_a_cross_stage_import(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    fake = tmp_path / "serve"
-    fake.mkdir()
-    (fake / "bad.py").write_text("def f():\n    from training.trainer import Trainer\n")
-    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
-    assert _cross_stage_imports("serve") == ["serve/bad.py:2: training.trainer"]
+    fake = tmp_path / "brave6d" / "serve"
+    fake.mkdir(parents=True)
+    (fake / "bad.py").write_text("def f():\n    from brave6d.training.trainer import Trainer\n")
+    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", tmp_path / "brave6d")
+    assert _cross_stage_imports("brave6d.serve") == ["brave6d/serve/bad.py:2: brave6d.training.trainer"]
 
 
-def test_the_shared_core_imports_no_stage() -> None:
-    bad = []
-    for path in sorted((ROOT / "brave6d").rglob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if isinstance(node, ast.ImportFrom) and node.module and _stage_of(node.module):
-                bad.append(f"{path.name}:{node.lineno}: {node.module}")
-            elif isinstance(node, ast.Import):
-                bad += [f"{path.name}:{node.lineno}: {a.name}" for a in node.names if _stage_of(a.name)]
+def test_the_core_imports_no_stage_and_not_the_top_floor() -> None:
+    bad = [f"{path.name}:{line}: {module}" for path, line, module in _imports(PACKAGE / "core")
+           if _stage_of(module) or module.startswith(TOP)]
     assert not bad, bad
+
+
+def test_no_stage_imports_the_top_floor() -> None:
+    """Stages name the run's context through the core; only ``dataset``, which runs the pipeline once
+    per scene, may import ``brave6d.pipeline``; nothing below the command line imports it."""
+    bad = [f"{path.relative_to(PACKAGE)}:{line}: {module}" for stage in STAGE_NAMES
+           for path, line, module in _imports(PACKAGE / stage)
+           if module.startswith(TOP) and not (stage == "dataset" and module.startswith("brave6d.pipeline"))]
+    bad += [f"pipeline/{path.name}:{line}: {module}" for path, line, module in _imports(PACKAGE / "pipeline")
+            if module.startswith(("brave6d.cli", "brave6d.init_cli", "brave6d.spec_cli"))]
+    assert not bad, "a stage reaches up to the command line or the pipeline:\n" + "\n".join(bad)
+
+
+def test_the_installed_package_has_one_top_level_name() -> None:
+    """Everything lives under ``brave6d``: nothing else in ``src/`` that an install would put
+    beside it in site-packages."""
+    assert sorted(p.name for p in (ROOT / "src").iterdir() if not p.name.endswith(".egg-info")) == ["brave6d"]
+    assert not [s for s in STAGE_NAMES if (ROOT / s).exists()], "a stage folder is left at the repository's top"

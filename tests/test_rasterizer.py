@@ -16,10 +16,10 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from brave6d.camera import PinholeCamera
-from training.rasterizer import RasterBackendError, RasterInputError, rasterize
-from training.rasterizer import kernels
-from training.rasterizer.reference import project, rasterize_reference
+from brave6d.core.camera import PinholeCamera
+from brave6d.training.rasterizer import RasterBackendError, RasterInputError, rasterize
+from brave6d.training.rasterizer import kernels
+from brave6d.training.rasterizer.reference import project, rasterize_reference
 
 FWD_ATOL = 1e-4
 GRAD_RTOL = 1e-3
@@ -324,7 +324,7 @@ def _densify_with(strategy, absgrad: bool) -> None:
 
 
 def test_info_drives_the_training_densification():
-    from training.strategy import DensifyStrategy
+    from brave6d.training.strategy import DensifyStrategy
 
     _densify_with(DensifyStrategy(refine_start_iter=1, refine_every=2, reset_every=10_000, grow_grad2d=1e-7,
                                   grow_scale3d=1e-3), absgrad=False)
@@ -342,7 +342,7 @@ def test_info_drives_gsplat_default_strategy_with_absgrad():
 
 
 def test_public_api_and_reexport():
-    import training
+    from brave6d import training
 
     assert training.rasterize is rasterize
     scene = make_scene(70, n=50)

@@ -15,8 +15,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from training.rasterizer import kernels as K
-from training.rasterizer.constants import ALPHA_THRESHOLD, TILE_SIZE
+from brave6d.training.rasterizer import kernels as K
+from brave6d.training.rasterizer.constants import ALPHA_THRESHOLD, TILE_SIZE
 
 @st.composite
 def projected_scenes(draw):

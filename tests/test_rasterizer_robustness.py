@@ -15,9 +15,9 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from training.rasterizer import RasterInputError, rasterize
-from training.rasterizer.constants import SCALE_MAX
-from training.rasterizer.reference import rasterize_reference
+from brave6d.training.rasterizer import RasterInputError, rasterize
+from brave6d.training.rasterizer.constants import SCALE_MAX
+from brave6d.training.rasterizer.reference import rasterize_reference
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
 

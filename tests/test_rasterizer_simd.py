@@ -1,4 +1,4 @@
-"""The rasterizer's SIMD target report (training.rasterizer.simd)."""
+"""The rasterizer's SIMD target report (brave6d.training.rasterizer.simd)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import llvmlite.binding as llvm
 import numba
 import pytest
 
-from training.rasterizer.simd import REPORTED_FEATURES, TargetCpu, enabled_features, target_cpu
+from brave6d.training.rasterizer.simd import REPORTED_FEATURES, TargetCpu, enabled_features, target_cpu
 
 
 @pytest.mark.parametrize("features", [

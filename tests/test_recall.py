@@ -12,9 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from brave6d.atomic import atomic_write_json, read_json
-from brave6d.errors import DataError
-from evaluation.metrics.recall import (
+from brave6d.core.atomic import atomic_write_json, read_json
+from brave6d.core.errors import DataError
+from brave6d.evaluation.metrics.recall import (
     EvalConfig,
     Estimate,
     GTInstance,
@@ -22,7 +22,7 @@ from evaluation.metrics.recall import (
     evaluate_bop19,
     greedy_match,
 )
-from evaluation.metrics.depth_renderer import DepthRenderer
+from brave6d.evaluation.metrics.depth_renderer import DepthRenderer
 
 W, H = 640, 480
 K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])

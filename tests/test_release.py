@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 import yaml
 
-from annotation import export_bop, read_scene_gt
-from brave6d.atomic import write_png
+from brave6d.annotation import export_bop, read_scene_gt
+from brave6d.core.atomic import write_png
 from brave6d.cli import main
-from brave6d.layout import FrameLog, SceneDir
-from dataset.release import ReleaseError, build_release, read_sha256sums, read_targets, verify_release
-from serve import export_bundle, load_bundle, make_synthetic_scene
+from brave6d.core.layout import FrameLog, SceneDir
+from brave6d.dataset.release import ReleaseError, build_release, read_sha256sums, read_targets, verify_release
+from brave6d.serve import export_bundle, load_bundle, make_synthetic_scene
 
 pytestmark = pytest.mark.slow  # the module fixture makes, exports and bundles two scenes (~10 s)
 
@@ -51,7 +51,7 @@ def _make_scene(root: Path, n_views: int, depth: bool, psnr: float | None) -> No
 
 
 def _write_dataset(workdir: Path, objects: list[str]) -> None:
-    """A dataset.yaml as `brave6d dataset run` leaves it: valid for brave6d.dataset_spec, each scene
+    """A dataset.yaml as `brave6d dataset run` leaves it: valid for brave6d.core.dataset_spec, each scene
     entry pointing at its scene directory's scene.yaml (named after the folder), a library whose
     meshes are the scenes' (plus objects no scene uses)."""
     meshes = workdir / "meshes"
@@ -276,10 +276,10 @@ def test_public_api_resolves_and_import_is_cheap() -> None:
     import subprocess
     import sys
 
-    import dataset.release as release_pkg
+    import brave6d.dataset.release as release_pkg
 
     assert all(hasattr(release_pkg, n) for n in release_pkg.__all__)
-    code = ("import sys, dataset.release; print(','.join(m for m in ('torch', 'open3d', 'fastapi', 'trimesh') "
+    code = ("import sys, brave6d.dataset.release; print(','.join(m for m in ('torch', 'open3d', 'fastapi', 'trimesh') "
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=Path(__file__).resolve().parent.parent, timeout=120)
@@ -299,7 +299,7 @@ def _episode(manager: object, scene: str | int, shift_m: float) -> str:
 
 
 def test_serve_every_scene_of_a_release(release: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from serve import EpisodeManager, open_scenes
+    from brave6d.serve import EpisodeManager, open_scenes
 
     cache = tmp_path / "cache"
     catalog = open_scenes(release, device="cpu", cache_dir=cache, warm_up=False)
@@ -325,7 +325,7 @@ def test_serve_every_scene_of_a_release(release: Path, tmp_path: Path, capsys: p
 
 
 def test_serving_refuses_an_altered_bundle_zip(copy: Path, tmp_path: Path) -> None:
-    from serve import EpisodeManager, SceneUnavailable, open_scenes
+    from brave6d.serve import EpisodeManager, SceneUnavailable, open_scenes
 
     zip_path = copy / f"{NAME}_bundle_000001.zip"
     data = bytearray(zip_path.read_bytes())
@@ -340,7 +340,7 @@ def test_serving_refuses_an_altered_bundle_zip(copy: Path, tmp_path: Path) -> No
 
 def test_serve_the_unzipped_release(release: Path, tmp_path: Path) -> None:
     """The layout BOP users make: unzip the base zip, then the others into the folder it made."""
-    from serve import EpisodeManager, open_scenes
+    from brave6d.serve import EpisodeManager, open_scenes
 
     with zipfile.ZipFile(release / f"{NAME}_base.zip") as zf:
         zf.extractall(tmp_path)

@@ -18,9 +18,9 @@ import pytest
 from lock_holder import kill_holder, spawn_holder
 from test_release import NAME, workdir  # noqa: F401 - test_release's two-scene dataset, made once here too
 
-from annotation import BopLayout
-from brave6d.layout import SceneDir
-from dataset.release import ReleaseError, build_release, verify_release
+from brave6d.annotation import BopLayout
+from brave6d.core.layout import SceneDir
+from brave6d.dataset.release import ReleaseError, build_release, verify_release
 
 pytestmark = pytest.mark.slow  # two exported, bundled scenes (~10 s) and a build per test
 
@@ -53,7 +53,7 @@ def test_a_bundle_zip_holds_exactly_the_listed_files(work: Path, tmp_path: Path)
     (bundle / "stolen.txt").symlink_to(tmp_path / "secret.txt")  # a link nobody listed
     (bundle / "notes.txt").write_text("a stray file\n")  # not listed either
     build_release(work, tmp_path / "out")
-    from serve import load_bundle
+    from brave6d.serve import load_bundle
 
     listed = set(load_bundle(bundle).manifest["files"])
     with zipfile.ZipFile(tmp_path / "out" / f"{NAME}_bundle_000001.zip") as zf:
@@ -100,7 +100,7 @@ def test_a_link_in_the_synthetic_split_is_refused(work: Path, tmp_path: Path) ->
 
 PAUSED_BUILD = """
 import sys, time
-import dataset.release.build as build
+import brave6d.dataset.release.build as build
 real = build.write_zip
 def write_then_stop(*args, **kwargs):
     real(*args, **kwargs)
@@ -127,7 +127,7 @@ def test_the_next_build_removes_what_a_killed_build_left(work: Path, tmp_path: P
     live.mkdir()
     holder, _ = spawn_holder(tmp_path / ".out.tmp-0live0ne.owner")
     try:
-        with caplog.at_level("WARNING", logger="brave6d.atomic"):
+        with caplog.at_level("WARNING", logger="brave6d.core.atomic"):
             build_release(work, out)
         assert not left[0].exists()
         assert f"removed {left[0]}, the staging folder of" in caplog.text and f"(pid {build.pid})" in caplog.text
@@ -141,8 +141,8 @@ def test_the_next_build_removes_what_a_killed_build_left(work: Path, tmp_path: P
 
 def test_write_zip_never_reads_through_a_link(tmp_path: Path) -> None:
     """The last line of defence: a file checked by build and then swapped for a link is not packed."""
-    from dataset.release.source import ReleaseError
-    from dataset.release.zips import write_zip
+    from brave6d.dataset.release.source import ReleaseError
+    from brave6d.dataset.release.zips import write_zip
 
     secret = tmp_path / "secret.txt"
     secret.write_text("private")

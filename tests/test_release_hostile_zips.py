@@ -25,8 +25,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from test_synth_release import release  # noqa: F401  (the module fixture: two scenes and a synthetic split)
 
-from brave6d.atomic import write_png
-from dataset.release import ReleaseError, release_scene_sources, verify_release
+from brave6d.core.atomic import write_png
+from brave6d.dataset.release import ReleaseError, release_scene_sources, verify_release
 
 NAME = "synthset"
 GIB = 1 << 30
@@ -107,7 +107,7 @@ _NAMES = st.one_of(st.text(st.characters(blacklist_categories=("Cs",)), max_size
 def test_member_name_validator(name: str) -> None:
     """Accepted names always resolve inside the destination (on POSIX and Windows); a rejected one
     is refused by the reader with an error naming the zip and the member."""
-    from dataset.release.zips import member_name_problem, open_zip
+    from brave6d.dataset.release.zips import member_name_problem, open_zip
 
     problem = member_name_problem(name)
     if problem is None:
@@ -154,7 +154,7 @@ HOSTILE = {
 
 @pytest.mark.parametrize("case", sorted(HOSTILE))
 def test_hostile_members_are_refused_before_anything_is_written(case: str, tmp_path: Path) -> None:
-    from dataset.release.zips import open_zip
+    from brave6d.dataset.release.zips import open_zip
 
     path = _zip(tmp_path / f"{case.replace(' ', '_')}.zip", HOSTILE[case])
     dest = tmp_path / "dest"
@@ -168,7 +168,7 @@ def test_hostile_members_are_refused_before_anything_is_written(case: str, tmp_p
 
 
 def test_a_good_zip_extracts_inside_its_folder(tmp_path: Path) -> None:
-    from dataset.release.zips import open_zip, write_zip
+    from brave6d.dataset.release.zips import open_zip, write_zip
 
     src = tmp_path / "a.json"
     src.write_text("{\"a\": 1}\n")
@@ -185,7 +185,7 @@ def test_a_good_zip_extracts_inside_its_folder(tmp_path: Path) -> None:
 
 # ----------------------------------------------------------------------------- size policy (item 4)
 def test_a_zip_bomb_is_refused_from_the_headers(bomb: Path, tmp_path: Path) -> None:
-    from dataset.release.zips import DEFAULT_LIMITS, open_zip
+    from brave6d.dataset.release.zips import DEFAULT_LIMITS, open_zip
 
     assert bomb.stat().st_size < 8 * MIB
     dest = tmp_path / "dest"
@@ -200,7 +200,7 @@ def test_a_zip_bomb_is_refused_from_the_headers(bomb: Path, tmp_path: Path) -> N
 
 
 def test_many_small_members_are_capped_by_the_whole_zips_ratio(tmp_path: Path) -> None:
-    from dataset.release.zips import open_zip
+    from brave6d.dataset.release.zips import open_zip
 
     path = tmp_path / "many.zip"
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
@@ -212,7 +212,7 @@ def test_many_small_members_are_capped_by_the_whole_zips_ratio(tmp_path: Path) -
 
 @pytest.mark.parametrize("field", ["max_member_bytes", "max_total_bytes", "max_members"])
 def test_each_cap_names_itself(field: str, tmp_path: Path) -> None:
-    from dataset.release.zips import ZipLimits, open_zip
+    from brave6d.dataset.release.zips import ZipLimits, open_zip
 
     path = _zip(tmp_path / "two.zip", [("d/a.bin", os.urandom(3000)), ("d/b.bin", os.urandom(3000))])
     limits = ZipLimits(**{field: {"max_member_bytes": 2000, "max_total_bytes": 4000, "max_members": 1}[field]})
@@ -223,7 +223,7 @@ def test_each_cap_names_itself(field: str, tmp_path: Path) -> None:
 
 
 def test_a_header_that_lies_about_the_size_is_stopped_while_streaming(tmp_path: Path) -> None:
-    from dataset.release.zips import open_zip
+    from brave6d.dataset.release.zips import open_zip
 
     path = tmp_path / "liar.zip"
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
@@ -241,7 +241,7 @@ def test_a_header_that_lies_about_the_size_is_stopped_while_streaming(tmp_path: 
 
 
 def test_free_space_is_checked_before_extracting(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from dataset.release.zips import open_zip
+    from brave6d.dataset.release.zips import open_zip
 
     path = _zip(tmp_path / "a.zip", [("d/a.bin", os.urandom(5000))])
     dest = tmp_path / "dest"
@@ -254,7 +254,7 @@ def test_free_space_is_checked_before_extracting(tmp_path: Path, monkeypatch: py
 
 
 def test_enospc_while_writing_names_the_folder_and_the_space(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from dataset.release import zips
+    from brave6d.dataset.release import zips
 
     path = _zip(tmp_path / "a.zip", [("d/a.bin", os.urandom(3000)), ("d/b.bin", os.urandom(5000))])
     dest = tmp_path / "dest"
@@ -291,7 +291,7 @@ def test_enospc_while_writing_names_the_folder_and_the_space(tmp_path: Path, mon
 
 def test_overlapping_members_are_refused(tmp_path: Path) -> None:
     """A 'quoted overlap' bomb: two directory entries share one member's data."""
-    from dataset.release.zips import open_zip
+    from brave6d.dataset.release.zips import open_zip
 
     path = _zip(tmp_path / "o.zip", [("d/aa.bin", bytes(100_000))])
     data = bytearray(path.read_bytes())
@@ -329,7 +329,7 @@ GOOD = {"rgb": _noise((48, 64, 3)), "depth": _noise((48, 64), np.uint16) * 100, 
 ])
 def test_png_checks_name_the_problem(kind: str, image: np.ndarray, damage, expect: str,  # type: ignore[no-untyped-def]
                                      tmp_path: Path) -> None:
-    from dataset.release.images import decode_png
+    from brave6d.dataset.release.images import decode_png
 
     assert decode_png(_png(GOOD[kind], tmp_path), kind, "z.zip:ok.png", (64, 48)) == (64, 48)
     with pytest.raises(ReleaseError, match=rf"z\.zip:bad\.png: .*{expect}"):
@@ -411,7 +411,7 @@ def test_verify_refuses_a_bundle_member_its_manifest_does_not_list(copy: Path) -
 @pytest.mark.slow
 def test_verify_reads_a_bundle_manifest_through_serves_reader(copy: Path) -> None:
     """A malformed bundle ``manifest.json`` inside a release: one line naming the zip, the file and
-    the field (``serve.read_bundle_manifest``, the format's one reader), not a partial check of its own."""
+    the field (``brave6d.serve.read_bundle_manifest``, the format's one reader), not a partial check of its own."""
     member = "bundles/000001/manifest.json"
     with zipfile.ZipFile(copy / f"{NAME}_bundle_000001.zip") as zf:
         manifest = json.loads(zf.read(member))
@@ -445,8 +445,8 @@ def test_verify_decodes_every_image(copy: Path, zip_part: str, member: str, dama
 
 @pytest.mark.slow
 def test_build_refuses_a_damaged_synthetic_image(release: Path, tmp_path: Path) -> None:
-    from dataset.release.train_pbr import train_pbr_files
-    from dataset.release.zips import open_zip
+    from brave6d.dataset.release.train_pbr import train_pbr_files
+    from brave6d.dataset.release.zips import open_zip
 
     with open_zip(release / f"{NAME}_train_pbr.zip") as zf:  # the synthetic split as `brave6d synth` wrote it
         zf.extract(tmp_path, strip=None)
@@ -526,7 +526,7 @@ def test_a_full_cache_is_named_at_start_with_the_bytes_needed(release: Path, tmp
 @pytest.mark.slow
 def test_refresh_unpacks_a_tampered_cache_again_from_the_verified_zip(release: Path, copy: Path,
                                                                       tmp_path: Path) -> None:
-    from serve import BundleError, load_bundle
+    from brave6d.serve import BundleError, load_bundle
 
     sources = release_scene_sources(release, tmp_path / "cache")
     folder = sources[0].locate()
@@ -556,7 +556,7 @@ def test_refresh_unpacks_a_tampered_cache_again_from_the_verified_zip(release: P
 def test_the_bop_toolkit_check_unpacks_with_the_safe_unpacker(copy: Path, tmp_path: Path) -> None:
     import importlib.util
 
-    from brave6d.errors import DataError
+    from brave6d.core.errors import DataError
 
     script = Path(__file__).resolve().parent.parent / "scripts" / "check_release_with_bop_toolkit.py"
     spec = importlib.util.spec_from_file_location("check_release_with_bop_toolkit", script)

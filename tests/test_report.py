@@ -13,22 +13,22 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from brave6d.atomic import atomic_write_json, read_json
-from evaluation.report.measurements import Measurement, MeasurementStore, run_sweep
-from evaluation.report.build import ReportSettings, build_report, compose, figure_names, measure_all, stage_report
-from evaluation.report.build import measurement_store, write_report
-from evaluation.report.sections.baseline import by_agent, collect_baseline, render_baseline
-from evaluation.report.common import RenderedSection, fmt, median, quantile
-from evaluation.report.sections.handeye import HandEyeSweep
-from evaluation.report.sections.latency import LatencySweep, render_latency
-from evaluation.report.plots import finite_pairs, new_figure, plot_line
-from evaluation.report.sections.training import collect_training, render_training
-from evaluation.report.sections.views import ViewsSweep, render_views
-from evaluation.report.sections.distance import render_distance
-from evaluation.report.sections.realism import render_realism
-from evaluation.report.sections.synthesis import SynthSweep, advice_synthesis, measure_synthesis, render_synthesis
-from evaluation.report.protocol import MeasureInputs
-from evaluation.report.sections import SECTIONS, page_order
+from brave6d.core.atomic import atomic_write_json, read_json
+from brave6d.evaluation.report.measurements import Measurement, MeasurementStore, run_sweep
+from brave6d.evaluation.report.build import ReportSettings, build_report, compose, figure_names, measure_all, stage_report
+from brave6d.evaluation.report.build import measurement_store, write_report
+from brave6d.evaluation.report.sections.baseline import by_agent, collect_baseline, render_baseline
+from brave6d.evaluation.report.common import RenderedSection, fmt, median, quantile
+from brave6d.evaluation.report.sections.handeye import HandEyeSweep
+from brave6d.evaluation.report.sections.latency import LatencySweep, render_latency
+from brave6d.evaluation.report.plots import finite_pairs, new_figure, plot_line
+from brave6d.evaluation.report.sections.training import collect_training, render_training
+from brave6d.evaluation.report.sections.views import ViewsSweep, render_views
+from brave6d.evaluation.report.sections.distance import render_distance
+from brave6d.evaluation.report.sections.realism import render_realism
+from brave6d.evaluation.report.sections.synthesis import SynthSweep, advice_synthesis, measure_synthesis, render_synthesis
+from brave6d.evaluation.report.protocol import MeasureInputs
+from brave6d.evaluation.report.sections import SECTIONS, page_order
 
 N_SECTIONS = len(SECTIONS)  # every count below follows the registry, so adding a section changes none
 
@@ -229,7 +229,7 @@ def test_page_renders_from_nothing_from_a_broken_file_and_from_a_partial_sweep(t
 
 
 def test_training_section_reads_metrics_and_the_benchmark_json(tmp_path: Path) -> None:
-    from brave6d.layout import SceneDir
+    from brave6d.core.layout import SceneDir
 
     scene = SceneDir(tmp_path / "scene")
     curve = [{"step": 0.0, "time_s": 0.0, "train_psnr": None, "num_gaussians": 100.0},
@@ -281,7 +281,7 @@ class ExtraSection:
 @pytest.mark.slow
 def test_a_section_added_to_the_registry_is_measured_and_on_the_page(tmp_path: Path,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    from evaluation.report import sections
+    from brave6d.evaluation.report import sections
 
     monkeypatch.setattr(sections, "SECTIONS", (*sections.SECTIONS, ExtraSection()))
     fabricate(tmp_path)
@@ -296,7 +296,7 @@ def test_a_section_added_to_the_registry_is_measured_and_on_the_page(tmp_path: P
 
 
 def test_report_settings_reach_every_section_generically() -> None:
-    from evaluation.report import sections
+    from brave6d.evaluation.report import sections
 
     quick = ReportSettings.for_mode(True, "cpu", Path("bench.json"))
     full = ReportSettings.for_mode(False)
@@ -351,7 +351,7 @@ def test_nan_in_a_point_is_stored_as_null(tmp_path: Path) -> None:
 # ----------------------------------------------------------------------------- baseline reader
 def _agent_runs_file(workdir: Path) -> Path:
     """An agent-run summary whose leaderboard AR (pooled) differs from the mean of the episodes' ARs."""
-    from evaluation.metrics import AgentRuns, agent_runs_path, write_agent_runs
+    from brave6d.evaluation.metrics import AgentRuns, agent_runs_path, write_agent_runs
 
     def episode(agent: str, obj: str, ar: float, adjustments: int, wall: float | None) -> dict:
         return {"agent": agent, "variant": agent, "object": obj, "gt_id": 0, "obj_id": 1, "seed": 0,
@@ -415,13 +415,13 @@ def test_baseline_file_not_json(tmp_path: Path) -> None:
 # ----------------------------------------------------------------------------- real, miniature sweeps
 def _board_capture(scene_root: Path, n_views: int = 8) -> None:
     """A rendered ChArUco board capture of the demo spec's board with exact robot poses."""
-    from brave6d.atomic import write_png
-    from brave6d.calibration_io import write_intrinsics
-    from brave6d.camera import PinholeCamera
-    from brave6d.layout import FrameLog, FrameRecord, SceneDir
-    from brave6d.transforms import invert
-    from calibration import plan_for_board
-    from calibration.synthetic import render_board_view
+    from brave6d.core.atomic import write_png
+    from brave6d.core.calibration_io import write_intrinsics
+    from brave6d.core.camera import PinholeCamera
+    from brave6d.core.layout import FrameLog, FrameRecord, SceneDir
+    from brave6d.core.transforms import invert
+    from brave6d.calibration import plan_for_board
+    from brave6d.calibration.known_truth import render_board_view
 
     scene = SceneDir(scene_root)
     spec = scene.load_spec()
@@ -439,9 +439,9 @@ def _board_capture(scene_root: Path, n_views: int = 8) -> None:
 
 def _plane_scene(root: Path) -> None:
     """A captured, calibrated plane scene with a small random splat in ``splat/``."""
-    from brave6d.camera import PinholeCamera
-    from training.ply import SplatData, write_ply
-    from training.synthetic import plane_views, random_gaussians, write_scene
+    from brave6d.core.camera import PinholeCamera
+    from brave6d.training.ply import SplatData, write_ply
+    from brave6d.training.toy_scenes import plane_views, random_gaussians, write_scene
 
     camera = PinholeCamera.from_hfov(64, 48, 60.0)
     write_scene(root, camera, plane_views(camera, [0.3, 0.45], per_ring=5))
@@ -452,7 +452,7 @@ def _plane_scene(root: Path) -> None:
 
 @pytest.mark.slow
 def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: Path) -> None:
-    from brave6d.layout import init_scene_dir
+    from brave6d.core.layout import init_scene_dir
 
     init_scene_dir(tmp_path / "hand" / "scene", demo_spec_path)
     _board_capture(tmp_path / "hand" / "scene")
@@ -500,7 +500,7 @@ def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: P
 
 def test_synthesis_section_prices_the_resume_check() -> None:
     """``--resume-check``'s levels beside a render: a table and the advice (from a fabricated point)."""
-    from evaluation.report.sections.synthesis import advice_resume_check, resume_check_text
+    from brave6d.evaluation.report.sections.synthesis import advice_resume_check, resume_check_text
 
     points = [{"id": "640x480-w1", "width": 640, "height": 480, "workers": 1, "images": 8, "images_per_s": 2.0,
                "resume_check_ms": {"header": 0.5, "crc": 1.5, "decode": 25.0}}]
@@ -528,7 +528,7 @@ def test_synthesis_advice_keeps_one_worker_when_more_do_not_pay() -> None:
 @pytest.mark.slow
 def test_synthesis_section_measures_the_scenes_objects_outside_the_scene(tmp_path: Path,
                                                                          demo_spec_path: Path) -> None:
-    from brave6d.layout import init_scene_dir
+    from brave6d.core.layout import init_scene_dir
 
     scene = init_scene_dir(tmp_path / "scene", demo_spec_path)
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
@@ -560,7 +560,7 @@ def _schedule_run(name: str, steps: int, psnrs: list[float], seconds_per_step: f
 
 
 def test_training_section_plots_two_schedules_and_advises_from_them(tmp_path: Path) -> None:
-    from brave6d.layout import SceneDir
+    from brave6d.core.layout import SceneDir
 
     scene = SceneDir(tmp_path / "scene")
     atomic_write_json(scene.splat_dir / "metrics.json", {

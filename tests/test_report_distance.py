@@ -10,17 +10,17 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from brave6d.layout import SceneDir
-from brave6d.transforms import make_transform
-from evaluation.report.measurements import MeasurementStore
-from evaluation.report.protocol import MeasureInputs
-from evaluation.report.sections.distance import DistanceSweep, by_distance, measure_distance
-from evaluation.report.single_view import ViewEstimate, ViewScorer, anchor_on_ray
+from brave6d.core.layout import SceneDir
+from brave6d.core.transforms import make_transform
+from brave6d.evaluation.report.measurements import MeasurementStore
+from brave6d.evaluation.report.protocol import MeasureInputs
+from brave6d.evaluation.report.sections.distance import DistanceSweep, by_distance, measure_distance
+from brave6d.evaluation.report.single_view import ViewEstimate, ViewScorer, anchor_on_ray
 
 
 @pytest.fixture(scope="module")
 def bundle_workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from serve import make_synthetic_bundle
+    from brave6d.serve import make_synthetic_bundle
 
     work = tmp_path_factory.mktemp("distance")
     make_synthetic_bundle(work / "scene", n_gaussians=8000)
@@ -55,9 +55,9 @@ def test_distance_sweep_on_the_synthetic_bundle(bundle_workdir: Path) -> None:
 
 
 def test_an_exact_pose_scores_ar_1_and_a_wrong_one_less(bundle_workdir: Path) -> None:
-    from brave6d.transforms import look_at
-    from evaluation.metrics import models_from_bundle
-    from serve import SceneServer, load_bundle
+    from brave6d.core.transforms import look_at
+    from brave6d.evaluation.metrics import models_from_bundle
+    from brave6d.serve import SceneServer, load_bundle
 
     bundle = load_bundle(bundle_workdir / "scene" / "bundle")
     server = SceneServer(bundle, "cpu")

@@ -9,20 +9,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from brave6d.atomic import depth_m_to_mm_u16, read_png, write_png
-from brave6d.layout import SceneDir
-from evaluation.report.image_quality import psnr, ssim
-from evaluation.report.measurements import MeasurementStore
-from evaluation.report.protocol import MeasureInputs
-from evaluation.report.sections.realism import RealismSweep, choose_views, gap_rows, measure_realism
+from brave6d.core.atomic import depth_m_to_mm_u16, read_png, write_png
+from brave6d.core.layout import SceneDir
+from brave6d.evaluation.report.image_quality import psnr, ssim
+from brave6d.evaluation.report.measurements import MeasurementStore
+from brave6d.evaluation.report.protocol import MeasureInputs
+from brave6d.evaluation.report.sections.realism import RealismSweep, choose_views, gap_rows, measure_realism
 
 
 def _splat_frames_as_capture(scene: SceneDir) -> list[int]:
     """Overwrite the BOP export's RGB-D with the splat's renders of the same poses; the image ids."""
-    from annotation import BopLayout, read_scene_camera
-    from brave6d.camera import PinholeCamera
-    from brave6d.transforms import invert
-    from serve import SplatRenderer, load_bundle
+    from brave6d.annotation import BopLayout, read_scene_camera
+    from brave6d.core.camera import PinholeCamera
+    from brave6d.core.transforms import invert
+    from brave6d.serve import SplatRenderer, load_bundle
 
     layout = BopLayout.of_scene(scene)
     bundle = load_bundle(scene.bundle_dir)
@@ -41,7 +41,7 @@ def _splat_frames_as_capture(scene: SceneDir) -> list[int]:
 
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from serve import make_synthetic_bundle
+    from brave6d.serve import make_synthetic_bundle
 
     work = tmp_path_factory.mktemp("realism")
     make_synthetic_bundle(work / "scene", n_gaussians=8000, n_views=6, bop=True)
@@ -69,7 +69,7 @@ def test_gap_is_zero_when_the_real_frames_are_the_splats_own_renders(workdir: Pa
     assert [r["gap"] for r in gap_rows(m.points)] == [0.0] * len(gap_rows(m.points))
 
     # frames that differ from the renders (a 3 cm deeper table and objects, brighter image): the code sees it
-    from annotation import BopLayout
+    from brave6d.annotation import BopLayout
 
     layout = BopLayout.of_scene(scene)
     for p in m.points:
@@ -111,7 +111,7 @@ def test_image_metrics() -> None:
     ([0.4, 0.1, 0.5, 0.2], "PSNR alone does not predict the gap"),
 ])
 def test_realism_advice_says_which_way_psnr_and_the_gap_go(gaps: list[float], says: str) -> None:
-    from evaluation.report.sections.realism import advice_realism
+    from brave6d.evaluation.report.sections.realism import advice_realism
 
     rows = [{"distance_m": d, "gap": g, "psnr": p, "estimate_s": 1.0, "render_s": 0.1}
             for d, g, p in zip((0.2, 0.3, 0.4, 0.5), gaps, (28.0, 29.0, 30.0, 31.0))]

@@ -12,12 +12,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from brave6d.spec import EffectsSpec, RobotPoseError, RobotSpec, SensorNoise, TimeOffset, parse_scene_spec
-from brave6d.transforms import make_transform, matrix_to_ur_pose, rotation_distance, ur_pose_to_matrix
-from capture.kinematics import URKinematics
-from capture.protocols import Robot, RobotError
-from capture.sim_robot import SimRobot, joint_move_time, trapezoid_fraction, trapezoid_time
-from capture.ur_robot import URRobot
+from brave6d.core.spec import EffectsSpec, RobotPoseError, RobotSpec, SensorNoise, TimeOffset, parse_scene_spec
+from brave6d.core.transforms import make_transform, matrix_to_ur_pose, rotation_distance, ur_pose_to_matrix
+from brave6d.capture.kinematics import URKinematics
+from brave6d.capture.protocols import Robot, RobotError
+from brave6d.capture.sim_robot import SimRobot, joint_move_time, trapezoid_fraction, trapezoid_time
+from brave6d.capture.ur_robot import URRobot
 
 HOME = np.deg2rad([0, -90, 90, -90, -90, 0])
 Q_A = np.array([0.2, -1.2, 1.5, -1.8, -1.5, 0.3])

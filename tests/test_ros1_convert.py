@@ -1,4 +1,4 @@
-"""Incoming ROS 1 messages -> bridge values (ros_interface.ros1.convert): frame_ids, quaternions and
+"""Incoming ROS 1 messages -> bridge values (brave6d.ros_interface.ros1.convert): frame_ids, quaternions and
 twists are checked with one-line errors naming the topic and field. Plain stand-ins for the
 messages (the converters read attributes only), so no ROS install is needed."""
 
@@ -10,8 +10,8 @@ from types import SimpleNamespace as NS
 import numpy as np
 import pytest
 
-from brave6d.errors import BraveError
-from ros_interface.ros1 import convert
+from brave6d.core.errors import BraveError
+from brave6d.ros_interface.ros1 import convert
 
 
 def _pose(x: float = 0.3, q: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)) -> NS:

@@ -1,7 +1,7 @@
 """ROS 1 end to end (issue #20's acceptance): rosmaster on loopback, ``brave6d ros1`` on a synthetic
 bundle with a collision box, a rospy agent (a separate process) that moves (a refused set_pose and a
 refused cmd_twist into the box included), reads images, camera info and /tf, submits estimates and
-gets the scored result, which must equal what the HTTP path (serve.ServerThread + BraveClient)
+gets the scored result, which must equal what the HTTP path (brave6d.serve.ServerThread + BraveClient)
 returns and scores for the same actions. Skipped, naming the Debian packages, when ROS 1 is absent."""
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from brave6d.transforms import look_at
-from ros_interface.frames import matrix_to_pose, pose_to_matrix
-from ros_interface.ros1.ros_env import loopback_environment, missing_ros1
+from brave6d.core.transforms import look_at
+from brave6d.ros_interface.frames import matrix_to_pose, pose_to_matrix
+from brave6d.ros_interface.ros1.ros_env import loopback_environment, missing_ros1
 
 ROOT = Path(__file__).resolve().parent.parent
 MISSING = missing_ros1(import_modules=False)
@@ -95,7 +95,7 @@ def _group_alive(pgid: int) -> bool:
 
 def _http_episode(bundle_dir: Path, log_dir: Path, estimates: list[dict[str, Any]]) -> dict[str, Any]:
     """The same actions over HTTP (poses as the node received them); the steps and the submit reply."""
-    from serve import BraveClient, ServerThread, create_app
+    from brave6d.serve import BraveClient, ServerThread, create_app
 
     app = create_app(bundle_dir, device="cpu", log_dir=log_dir)
     steps = []
@@ -114,9 +114,9 @@ def _http_episode(bundle_dir: Path, log_dir: Path, estimates: list[dict[str, Any
 
 
 def test_ros1_agent_episode_equals_the_http_path(tmp_path: Path) -> None:
-    from evaluation.metrics import EvalConfig, models_from_bundle, read_episode, score_episodes
-    from ros_interface.ros1.master import RosMaster
-    from serve import load_bundle, make_synthetic_bundle
+    from brave6d.evaluation.metrics import EvalConfig, models_from_bundle, read_episode, score_episodes
+    from brave6d.ros_interface.ros1.master import RosMaster
+    from brave6d.serve import load_bundle, make_synthetic_bundle
 
     bundle_dir = make_synthetic_bundle(tmp_path / "scene", n_gaussians=4000, width=160, height=120)
     bundle = load_bundle(bundle_dir)
@@ -131,7 +131,7 @@ def test_ros1_agent_episode_equals_the_http_path(tmp_path: Path) -> None:
                  "--log-dir", str(tmp_path / "ros_episodes"), "--twist-duration", str(TWIST_S), "--agent", "ros1"],
                 env=env, cwd=ROOT, stdout=open(tmp_path / "node.log", "wb"), stderr=subprocess.STDOUT,
                 start_new_session=True)
-            agent = subprocess.run([sys.executable, "-m", "ros_interface.ros1.client", str(tmp_path / "actions.json"),
+            agent = subprocess.run([sys.executable, "-m", "brave6d.ros_interface.ros1.client", str(tmp_path / "actions.json"),
                                     str(tmp_path / "ros_out")], env=env, cwd=ROOT, capture_output=True, text=True,
                                    timeout=300, start_new_session=True)
             assert agent.returncode == 0, agent.stdout[-3000:] + agent.stderr[-3000:] + \

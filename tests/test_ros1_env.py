@@ -1,4 +1,4 @@
-"""Reaching Debian's ROS 1 from the project's Python (ros_interface.ros1.ros_env) and the
+"""Reaching Debian's ROS 1 from the project's Python (brave6d.ros_interface.ros1.ros_env) and the
 ``brave6d ros1`` command's one-line errors; fast, and most of it without ROS installed."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from ros_interface.ros1 import ros_env
-from ros_interface.ros1.cli import master_uri_of
-from brave6d.errors import BraveError
+from brave6d.ros_interface.ros1 import ros_env
+from brave6d.ros_interface.ros1.cli import master_uri_of
+from brave6d.core.errors import BraveError
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -1,4 +1,4 @@
-"""ROS 2 messages over DDS: every message class of ``ros_interface.ros2.messages`` serialises to
+"""ROS 2 messages over DDS: every message class of ``brave6d.ros_interface.ros2.messages`` serialises to
 the same bytes as ``rosbags``' CDR serialiser (the ROS 2 Humble and Jazzy definitions) for the same
 values, reads rosbags' bytes back, and crosses a real DDS link (two processes, loopback only) intact.
 
@@ -26,8 +26,8 @@ from hypothesis import strategies as st
 pytest.importorskip("cyclonedds")
 rosbags_typesys = pytest.importorskip("rosbags.typesys")
 
-from ros_interface.ros2 import messages as m  # noqa: E402
-from ros_interface.ros2.dds import DEFAULT, SENSOR_DATA, DdsDomain, dds_topic_name  # noqa: E402
+from brave6d.ros_interface.ros2 import messages as m  # noqa: E402
+from brave6d.ros_interface.ros2.dds import DEFAULT, SENSOR_DATA, DdsDomain, dds_topic_name  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 CLASS_OF = {ros: cls for cls, ros in m.ROS_TYPES.items()}
@@ -241,8 +241,8 @@ def qos_of(key: str) -> Any:
 
 CHILD = textwrap.dedent("""
     import json, sys, time
-    from ros_interface.ros2 import messages as m
-    from ros_interface.ros2.dds import DdsDomain, DEFAULT, SENSOR_DATA
+    from brave6d.ros_interface.ros2 import messages as m
+    from brave6d.ros_interface.ros2.dds import DdsDomain, DEFAULT, SENSOR_DATA
     domain_id, spec = int(sys.argv[1]), json.loads(sys.argv[2])
     classes = {cls.__name__: cls for cls in m.ROS_TYPES}
     qos = {"default": DEFAULT, "sensor_data": SENSOR_DATA}

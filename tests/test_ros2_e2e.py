@@ -19,14 +19,14 @@ pytest.importorskip("cyclonedds")
 
 from fastapi.testclient import TestClient  # noqa: E402
 
-from brave6d.transforms import look_at, make_transform  # noqa: E402
-from ros_interface import EpisodeScorer, Estimate, gt_frame, matrix_to_pose, pose_to_matrix  # noqa: E402
-from ros_interface.ros2.agent import AgentError, Ros2Agent  # noqa: E402
-from ros_interface.ros2.dds import DdsDomain  # noqa: E402
-from ros_interface.ros2.defaults import DEFAULT_TWIST_DURATION_S  # noqa: E402
-from serve import load_bundle, make_synthetic_bundle  # noqa: E402
-from serve.app import ServerLimits, create_app  # noqa: E402
-from serve.client import decode_step  # noqa: E402
+from brave6d.core.transforms import look_at, make_transform  # noqa: E402
+from brave6d.ros_interface import EpisodeScorer, Estimate, gt_frame, matrix_to_pose, pose_to_matrix  # noqa: E402
+from brave6d.ros_interface.ros2.agent import AgentError, Ros2Agent  # noqa: E402
+from brave6d.ros_interface.ros2.dds import DdsDomain  # noqa: E402
+from brave6d.ros_interface.ros2.defaults import DEFAULT_TWIST_DURATION_S  # noqa: E402
+from brave6d.serve import load_bundle, make_synthetic_bundle  # noqa: E402
+from brave6d.serve.app import ServerLimits, create_app  # noqa: E402
+from brave6d.serve.client import decode_step  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01))

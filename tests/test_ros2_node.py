@@ -14,9 +14,9 @@ from hypothesis import strategies as st
 pytest.importorskip("cyclonedds")
 from rosbags.typesys import get_types_from_msg  # noqa: E402
 
-from brave6d.errors import BraveError  # noqa: E402
-from brave6d.transforms import look_at  # noqa: E402
-from ros_interface import (  # noqa: E402
+from brave6d.core.errors import BraveError  # noqa: E402
+from brave6d.core.transforms import look_at  # noqa: E402
+from brave6d.ros_interface import (  # noqa: E402
     FRAME_CAMERA_OPTICAL,
     FRAME_WORLD,
     BridgeStep,
@@ -24,11 +24,11 @@ from ros_interface import (  # noqa: E402
     GroundTruthObject,
     matrix_to_pose,
 )
-from ros_interface.ros2 import convert  # noqa: E402
-from ros_interface.ros2 import messages as m  # noqa: E402
-from ros_interface.ros2.cli import domain_id_from  # noqa: E402
-from ros_interface.ros2.dds import check_interface, cyclone_config, is_loopback  # noqa: E402
-from ros_interface.ros2.node import TOPICS, estimates_from_json, parse_json_command, start_pose  # noqa: E402
+from brave6d.ros_interface.ros2 import convert  # noqa: E402
+from brave6d.ros_interface.ros2 import messages as m  # noqa: E402
+from brave6d.ros_interface.ros2.cli import domain_id_from  # noqa: E402
+from brave6d.ros_interface.ros2.dds import check_interface, cyclone_config, is_loopback  # noqa: E402
+from brave6d.ros_interface.ros2.node import TOPICS, estimates_from_json, parse_json_command, start_pose  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -159,9 +159,9 @@ def test_estimates_round_trip_and_frames_are_checked() -> None:
 
 def test_our_object_estimate_is_ros1s_definition() -> None:
     """One definition for both generations: the ROS 2 brave6d_msgs/ObjectEstimate has the fields
-    of the ROS 1 one (ros_interface/ros1/msg)."""
+    of the ROS 1 one (src/brave6d/ros_interface/ros1/msg)."""
     name = "brave6d_msgs/msg/ObjectEstimate"
-    ros1 = get_types_from_msg((REPO / "ros_interface/ros1/msg/ObjectEstimate.msg").read_text(), name)
+    ros1 = get_types_from_msg((REPO / "src/brave6d/ros_interface/ros1/msg/ObjectEstimate.msg").read_text(), name)
     ros2 = get_types_from_msg(m.CUSTOM_MSG_FILES[name].read_text(), name)
     assert ros1 == ros2
     assert list(m.ObjectEstimate.__dataclass_fields__) == ["obj_id", "pose", "score"]

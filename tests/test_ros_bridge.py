@@ -1,5 +1,5 @@
-"""The ROS-agnostic bridge (ros_interface.bridge): an episode through the bridge logs and scores
-exactly as the same actions through serve.EpisodeManager; refusals are reported; estimates and
+"""The ROS-agnostic bridge (brave6d.ros_interface.bridge): an episode through the bridge logs and scores
+exactly as the same actions through brave6d.serve.EpisodeManager; refusals are reported; estimates and
 poses round-trip through the (position, quaternion x-y-z-w) helpers, also near singular rotations."""
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from brave6d.errors import BraveError
-from brave6d.transforms import check_rigid, look_at, make_transform
-from evaluation.metrics import EvalConfig, models_from_bundle, read_episode, score_episodes
-from ros_interface import (
+from brave6d.core.errors import BraveError
+from brave6d.core.transforms import check_rigid, look_at, make_transform
+from brave6d.evaluation.metrics import EvalConfig, models_from_bundle, read_episode, score_episodes
+from brave6d.ros_interface import (
     FRAME_CAMERA_OPTICAL,
     FRAME_WORLD,
     BridgeError,
@@ -31,7 +31,7 @@ from ros_interface import (
     matrix_to_pose,
     pose_to_matrix,
 )
-from serve import EpisodeManager, SceneServer, load_bundle, make_synthetic_bundle
+from brave6d.serve import EpisodeManager, SceneServer, load_bundle, make_synthetic_bundle
 
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01))
 FREE2 = look_at((0.30, 0.10, 0.35), (0.46, 0.0, 0.01))

@@ -14,13 +14,13 @@ from typing import Any
 import pytest
 from lock_holder import kill_holder, spawn_holder
 
-import brave6d.demo
-import dataset.runner
+import brave6d.pipeline.stages
+import brave6d.dataset.runner
 from brave6d.cli import main as cli_main
-from brave6d.locks import read_holder
-from dataset import JOB_STAGES, ExecutorOptions, SceneJob, read_scene_status, read_summary, run_dataset
-from dataset.status import mark, scene_status_path
-from dataset.workdir import prepare_workdir
+from brave6d.core.locks import read_holder
+from brave6d.dataset import JOB_STAGES, ExecutorOptions, SceneJob, read_scene_status, read_summary, run_dataset
+from brave6d.dataset.status import mark, scene_status_path
+from brave6d.dataset.workdir import prepare_workdir
 
 ROOT = Path(__file__).resolve().parent.parent
 DEMO_DATASET = ROOT / "data" / "demo" / "dataset.yaml"
@@ -28,7 +28,7 @@ SCENE = "demo_tabletop"
 
 
 def scene_lock_path(work: Path, scene: str) -> Path:
-    """Where a scene's job keeps its lock (``dataset.status.scene_lock_path``, written out: it is documented)."""
+    """Where a scene's job keeps its lock (``brave6d.dataset.status.scene_lock_path``, written out: it is documented)."""
     return work / "status" / f"{scene}.lock"
 
 
@@ -51,7 +51,7 @@ def ran(work: Path, monkeypatch: pytest.MonkeyPatch) -> list[tuple[str, int | No
             return SimpleNamespace(figures={})
         return SimpleNamespace(name=name, resolve=lambda: run)
 
-    monkeypatch.setattr(brave6d.demo, "STAGES", tuple(stage(n) for n in JOB_STAGES))
+    monkeypatch.setattr(brave6d.pipeline.stages, "STAGES", tuple(stage(n) for n in JOB_STAGES))
     return ran
 
 
@@ -74,7 +74,7 @@ def test_the_lock_of_a_killed_job_is_taken_over(work: Path, ran: list[tuple[str,
     lock = scene_lock_path(work, SCENE)
     proc, first = spawn_holder(lock)
     kill_holder(proc)  # SIGKILL: its lock file stays behind
-    with caplog.at_level(logging.WARNING, logger="brave6d.locks"):
+    with caplog.at_level(logging.WARNING, logger="brave6d.core.locks"):
         outcome = SceneJob(work, SCENE, 1, {}, quick=True, device="cpu")()
     assert outcome.ok
     assert ran == [(name, os.getpid()) for name in JOB_STAGES]  # every stage ran under this job's lock
@@ -88,13 +88,13 @@ def test_the_lock_is_released_when_a_stage_fails_or_the_job_raises(work: Path, r
     def broken(ctx: Any) -> Any:
         raise RuntimeError("disk on fire")
 
-    stages = list(brave6d.demo.STAGES)
+    stages = list(brave6d.pipeline.stages.STAGES)
     stages[1] = SimpleNamespace(name=stages[1].name, resolve=lambda: broken)
-    monkeypatch.setattr(brave6d.demo, "STAGES", tuple(stages))
+    monkeypatch.setattr(brave6d.pipeline.stages, "STAGES", tuple(stages))
     outcome = SceneJob(work, SCENE, 1, {}, quick=True, device="cpu")()
     assert outcome.failed_stage == JOB_STAGES[1] and "disk on fire" in (outcome.error or "")
     assert not scene_lock_path(work, SCENE).exists()
-    monkeypatch.setattr("brave6d.layout.SceneDir.load_spec", lambda self: (_ for _ in ()).throw(OSError("gone")))
+    monkeypatch.setattr("brave6d.core.layout.SceneDir.load_spec", lambda self: (_ for _ in ()).throw(OSError("gone")))
     with pytest.raises(OSError, match="gone"):
         SceneJob(work, SCENE, 1, {}, quick=True, device="cpu")()
     assert not scene_lock_path(work, SCENE).exists()
@@ -123,7 +123,7 @@ def test_the_driver_does_not_start_a_second_job_on_a_busy_scene(work: Path, monk
     def no_jobs(*args: Any, **kwargs: Any) -> Any:
         raise AssertionError("a second job was started on a scene whose job still runs")
 
-    monkeypatch.setattr(dataset.runner, "make_executor", no_jobs)
+    monkeypatch.setattr(brave6d.dataset.runner, "make_executor", no_jobs)
     proc, job = spawn_holder(scene_lock_path(work, SCENE))
     try:
         summary = run_dataset(DEMO_DATASET, work, quick=True, device="cpu", scenes=[SCENE],
@@ -140,7 +140,7 @@ def test_the_command_says_which_scene_it_did_not_start_and_exits_non_zero(
     """``brave6d dataset run`` with a busy scene: not a success (exit 1), and the last lines say why."""
     from brave6d.cli import main
 
-    monkeypatch.setattr(dataset.runner, "make_executor", lambda *a, **k: pytest.fail("a second job was started"))
+    monkeypatch.setattr(brave6d.dataset.runner, "make_executor", lambda *a, **k: pytest.fail("a second job was started"))
     proc, job = spawn_holder(scene_lock_path(work, SCENE))
     try:
         code = main(["dataset", "run", str(DEMO_DATASET), str(work), "--quick", "--device", "cpu", "--scenes", SCENE])
@@ -153,8 +153,8 @@ def test_the_command_says_which_scene_it_did_not_start_and_exits_non_zero(
 def test_init_writes_nothing_while_the_scene_job_runs(work: Path) -> None:
     """The driver's ``init`` of a re-run (here with a changed spec, which would record ``init``
     failed) leaves the record of a scene whose job still runs untouched."""
-    from brave6d.dataset_spec import load_dataset_spec
-    from dataset.workdir import init_scene
+    from brave6d.core.dataset_spec import load_dataset_spec
+    from brave6d.dataset.workdir import init_scene
 
     scene = load_dataset_spec(DEMO_DATASET).scene(SCENE)
     record = scene_status_path(work, SCENE)

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from brave6d.transforms import check_rigid, invert, look_at
-from serve.app import ServerLimits, create_app
-from serve.bundle import Bundle, load_bundle
-from serve.client import decode_observation
-from serve import SceneServer, read_episode_log
-from serve.synthetic import make_synthetic_bundle
+from brave6d.core.transforms import check_rigid, invert, look_at
+from brave6d.serve.app import ServerLimits, create_app
+from brave6d.serve.bundle import Bundle, load_bundle
+from brave6d.serve.client import decode_observation
+from brave6d.serve import SceneServer, read_episode_log
+from brave6d.serve.toy_scene import make_synthetic_bundle
 
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01))
 FREE2 = look_at((0.30, 0.10, 0.35), (0.46, 0.0, 0.01))
@@ -138,7 +138,7 @@ def test_ground_truth_in_the_camera_frame(client: TestClient, bundle: Bundle) ->
 
 
 def test_pose_forms_are_equivalent(client: TestClient) -> None:
-    from brave6d.transforms import matrix_to_quat_wxyz
+    from brave6d.core.transforms import matrix_to_quat_wxyz
 
     eid = reset(client, rgb="none", depth="none")["episode_id"]
     eye, target = (0.28, -0.12, 0.31), (0.46, 0.0, 0.01)

@@ -13,9 +13,9 @@ from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from brave6d.errors import BraveError
-from brave6d.transforms import look_at
-from serve import (
+from brave6d.core.errors import BraveError
+from brave6d.core.transforms import look_at
+from brave6d.serve import (
     EpisodeManager,
     SceneCacheFull,
     SceneCatalog,
@@ -28,7 +28,7 @@ from serve import (
     make_synthetic_bundle,
     open_scenes,
 )
-from serve.episodes import EpisodeNotFound, InvalidAction
+from brave6d.serve.episodes import EpisodeNotFound, InvalidAction
 
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01)).tolist()
 MB = 2**20
@@ -171,7 +171,7 @@ def test_http_multi_scene_server(bundle_dir: Path, tmp_path: Path) -> None:
         assert client.get("/bundle", params={"scene": "2"}).json()["scene_id"] == 2
         assert client.get("/bundle/models/1", params={"scene": "a"}).status_code == 200
         assert client.get("/bundle", params={"scene": "zz"}).status_code == 404
-    from serve import read_episode_log
+    from brave6d.serve import read_episode_log
 
     first = read_episode_log(tmp_path / f"{ea}.jsonl")[0]
     assert first.scene == "a" and first.scene_id == 1

@@ -1,4 +1,4 @@
-"""Collision checks and twist integration of the render server (serve.geometry)."""
+"""Collision checks and twist integration of the render server (brave6d.serve.geometry)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.linalg import expm
 
-from brave6d.transforms import check_rigid, look_at, make_transform, rpy_deg_to_matrix
-from serve.geometry import (
+from brave6d.core.transforms import check_rigid, look_at, make_transform, rpy_deg_to_matrix
+from brave6d.serve.geometry import (
     CollisionWorld,
     OrientedBox,
     Workspace,

@@ -19,14 +19,14 @@ from hypothesis import event, given
 from hypothesis import strategies as st
 from starlette.testclient import WebSocketDenialResponse
 
-from brave6d.errors import BraveError
-from brave6d.transforms import look_at
-from serve.app import ServerLimits, create_app
-from serve.bundle import Bundle, BundleError, export_bundle, load_bundle
-from serve import EpisodeLog, SceneServer, read_episode_log
-from serve.episodes import EpisodeManager, InvalidAction
-from serve.limits import MAX_HEIGHT, MAX_WIDTH, fit_image_size
-from serve.synthetic import make_synthetic_bundle, make_synthetic_scene
+from brave6d.core.errors import BraveError
+from brave6d.core.transforms import look_at
+from brave6d.serve.app import ServerLimits, create_app
+from brave6d.serve.bundle import Bundle, BundleError, export_bundle, load_bundle
+from brave6d.serve import EpisodeLog, SceneServer, read_episode_log
+from brave6d.serve.episodes import EpisodeManager, InvalidAction
+from brave6d.serve.limits import MAX_HEIGHT, MAX_WIDTH, fit_image_size
+from brave6d.serve.toy_scene import make_synthetic_bundle, make_synthetic_scene
 
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01))
 IN_POST = look_at((0.30, 0.25, 0.15), (0.46, 0.0, 0.01))
@@ -336,7 +336,7 @@ def test_cli_refuses_a_remote_bind_without_the_flag(tmp_path: Path, capsys: pyte
 
 
 def test_cli_access_settings() -> None:
-    from serve.cli import access_for
+    from brave6d.serve.cli import access_for
 
     loop = access_for("127.0.0.1", False, None, [], environ={})
     assert loop.token is None and loop.allowed_hosts == ()
@@ -397,8 +397,8 @@ const t0 = Date.now();
 
 @pytest.mark.skipif(shutil.which("node") is None, reason="Node.js not installed")
 def test_viewer_sends_the_token(bundle: Bundle, scene: SceneServer, tmp_path: Path) -> None:
-    from serve.app import VIEWER_DIR
-    from serve.runner import ServerThread
+    from brave6d.serve.app import VIEWER_DIR
+    from brave6d.serve.runner import ServerThread
 
     harness = tmp_path / "harness.js"
     harness.write_text(VIEWER_HARNESS)
@@ -439,7 +439,7 @@ def test_large_camera_defaults_are_fitted_to_the_cap(tmp_path: Path, caplog: pyt
     """A scene shot at 2048x1536 exports (and serves) default views of 1280x960, the largest an
     explicit request may ask for, instead of 2048x1536 replies."""
     scene = make_synthetic_scene(tmp_path / "scene", n_gaussians=200, n_views=4, width=2048, height=1536)
-    with caplog.at_level(logging.WARNING, logger="serve.bundle"):
+    with caplog.at_level(logging.WARNING, logger="brave6d.serve.bundle"):
         root = export_bundle(scene.root, tmp_path / "bundle").root
     assert "exceed the server's image-size cap" in caplog.text
     b = load_bundle(root)
@@ -465,7 +465,7 @@ def test_loaded_defaults_beyond_the_cap_are_fitted_or_refused(bundle: Bundle, tm
     scene_json = json.loads((root / "scene.json").read_text())
     scene_json["render"].update({"width": 2048, "height": 1536})
     (root / "scene.json").write_text(json.dumps(scene_json))
-    with caplog.at_level(logging.WARNING, logger="serve.bundle"):
+    with caplog.at_level(logging.WARNING, logger="brave6d.serve.bundle"):
         b = load_bundle(root, verify=False)
     assert (b.render.width, b.render.height) == (MAX_WIDTH, MAX_HEIGHT) and "2048x1536" in caplog.text
     scene_json["render"].update({"width": 100000, "height": 16})

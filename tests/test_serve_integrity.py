@@ -15,9 +15,9 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from brave6d.errors import BraveError
-from brave6d.transforms import look_at
-from serve import SceneCatalog, SceneSource, bundle_scene_source, create_app, make_synthetic_bundle
+from brave6d.core.errors import BraveError
+from brave6d.core.transforms import look_at
+from brave6d.serve import SceneCatalog, SceneSource, bundle_scene_source, create_app, make_synthetic_bundle
 
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01)).tolist()
 RESET = {"scene": "s", "start": {"world_T_cam": FREE}, "width": 16, "height": 16, "rgb": "none", "depth": "none"}

@@ -14,14 +14,14 @@ import gymnasium
 import numpy as np
 import pytest
 
-from brave6d.transforms import look_at
-from serve.app import ServerLimits, create_app
-from serve.bundle import Bundle, load_bundle
-from serve.client import BraveClient, ServerError
-from serve import SceneServer, read_episode_log
-from serve import BraveEnv
-from serve.runner import ServerThread
-from serve.synthetic import make_synthetic_bundle
+from brave6d.core.transforms import look_at
+from brave6d.serve.app import ServerLimits, create_app
+from brave6d.serve.bundle import Bundle, load_bundle
+from brave6d.serve.client import BraveClient, ServerError
+from brave6d.serve import SceneServer, read_episode_log
+from brave6d.serve import BraveEnv
+from brave6d.serve.runner import ServerThread
+from brave6d.serve.toy_scene import make_synthetic_bundle
 
 REPO = Path(__file__).resolve().parent.parent
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01))
@@ -196,8 +196,8 @@ def test_load_test_small(server: ServerThread) -> None:
 
 
 def test_demo_stages_run_one_agent_episode(scene_dir: Path, tmp_path: Path) -> None:
-    from brave6d.layout import SceneDir
-    from serve.demo import stage_export, stage_serve
+    from brave6d.core.layout import SceneDir
+    from brave6d.serve.demo import stage_export, stage_serve
 
     scene = SceneDir(scene_dir)
     ctx = SimpleNamespace(scene=scene, spec=scene.load_spec(), quick=True, device="cpu", workdir=tmp_path)
@@ -213,7 +213,7 @@ def test_demo_stages_run_one_agent_episode(scene_dir: Path, tmp_path: Path) -> N
 
 
 def test_scripted_agent_approaches_the_target(server: ServerThread) -> None:
-    from serve.demo import run_scripted_episode
+    from brave6d.serve.demo import run_scripted_episode
 
     with BraveClient(server.url) as client:
         report = run_scripted_episode(client, target="cube_blue", width=160, height=120, seed=11, max_steps=10)

@@ -7,21 +7,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from brave6d.camera import PinholeCamera
-from brave6d.errors import BraveError
-from brave6d.transforms import look_at
-from brave6d.errors import DataError
-from serve import SplatRenderer
-from serve.renderer import effective_sh_degree
-from training import read_ply, resolve_device
-from serve.synthetic import synthetic_splat
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import BraveError
+from brave6d.core.transforms import look_at
+from brave6d.core.errors import DataError
+from brave6d.serve import SplatRenderer
+from brave6d.serve.renderer import effective_sh_degree
+from brave6d.training import read_ply, resolve_device
+from brave6d.serve.toy_scene import synthetic_splat
 
 CAMERA = PinholeCamera.from_hfov(160, 120, 70.0)
 
 
 @pytest.fixture(scope="module")
 def splat_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from training.ply import write_ply
+    from brave6d.training.ply import write_ply
 
     splat = synthetic_splat(6000, sh_degree=1, seed=3)
     n = splat.num_gaussians
@@ -108,7 +108,7 @@ def test_served_gaussian_is_centred_at_its_opencv_projection(tmp_path: Path, poi
     """The server's image of one small Gaussian is centred (alpha centroid) at the camera's
     OpenCV projection of its mean, within 0.05 px, as the simulator's images are; the old code
     served it 0.5 px up and left (K handed unconverted to gsplat's +0.5 pixel centres)."""
-    from training.ply import SplatData, write_ply
+    from brave6d.training.ply import SplatData, write_ply
 
     camera = PinholeCamera(160, 120, 150.0, 150.0, 78.3, 61.7)
     X = np.array([point], np.float32)

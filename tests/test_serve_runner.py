@@ -7,7 +7,7 @@ from __future__ import annotations
 import asyncio
 import socket
 
-from serve.runner import listening_socket
+from brave6d.serve.runner import listening_socket
 
 
 def test_accepted_connections_have_nodelay() -> None:

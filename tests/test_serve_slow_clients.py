@@ -21,8 +21,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from brave6d.transforms import look_at
-from serve import SceneServer, ServerLimits, ServerThread, create_app, load_bundle, make_synthetic_bundle
+from brave6d.core.transforms import look_at
+from brave6d.serve import SceneServer, ServerLimits, ServerThread, create_app, load_bundle, make_synthetic_bundle
 
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01))
 SLOW_PEER = "127.0.0.2"  # Linux routes all of 127/8 to loopback
@@ -162,7 +162,7 @@ def test_websockets_count_toward_their_client_and_outlive_the_http_timeouts(serv
 
 
 def test_client_keys_group_an_ipv6_prefix() -> None:
-    from serve.connections import client_key
+    from brave6d.serve.connections import client_key
 
     assert client_key("127.0.0.2") == "127.0.0.2"
     assert client_key("::ffff:10.1.2.3") == "10.1.2.3"

@@ -15,10 +15,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from brave6d.cli import main
-from serve import LimitError, ServerLimits
-from serve.limits import BOUNDS
+from brave6d.serve import LimitError, ServerLimits
+from brave6d.serve.limits import BOUNDS
 
-COMMANDS = {"serve": "serve.cli", "ros1": "ros_interface.ros1.cli", "ros2": "ros_interface.ros2.cli"}
+COMMANDS = {"serve": "brave6d.serve.cli", "ros1": "brave6d.ros_interface.ros1.cli", "ros2": "brave6d.ros_interface.ros2.cli"}
 
 BAD = [
     ("serve", "--request-timeout", "nan"), ("serve", "--request-timeout", "inf"), ("serve", "--request-timeout", "0"),

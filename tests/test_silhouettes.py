@@ -1,6 +1,6 @@
-"""The one silhouette ray caster (annotation.SilhouetteCaster) and the two rules built on it: the
-BOP export's masks (annotation.visibility.MaskRenderer) and the server's visible fractions with
-splat occlusion (serve.visibility.VisibilityComputer). Pixel-exact expectations on thin plates."""
+"""The one silhouette ray caster (brave6d.annotation.SilhouetteCaster) and the two rules built on it: the
+BOP export's masks (brave6d.annotation.visibility.MaskRenderer) and the server's visible fractions with
+splat occlusion (brave6d.serve.visibility.VisibilityComputer). Pixel-exact expectations on thin plates."""
 
 from __future__ import annotations
 
@@ -9,13 +9,13 @@ import threading
 import numpy as np
 import pytest
 
-from annotation import SilhouetteCaster, bbox_xywh
-from annotation.models import MeshData
-from annotation.visibility import MaskRenderer
-from brave6d.camera import PinholeCamera
-from brave6d.errors import NonRigidTransformError
-from brave6d.transforms import look_at, make_transform
-from serve.visibility import VisibilityComputer
+from brave6d.annotation import SilhouetteCaster, bbox_xywh
+from brave6d.annotation.models import MeshData
+from brave6d.annotation.visibility import MaskRenderer
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import NonRigidTransformError
+from brave6d.core.transforms import look_at, make_transform
+from brave6d.serve.visibility import VisibilityComputer
 
 # 64 x 64 camera, f = 100 px, at the world origin looking along +z (identity pose): a point (x, y, Z)
 # lands on u = 31.5 + 100 x / Z, so plate edges fall on half-integer pixel coordinates.

@@ -12,14 +12,14 @@ import pytest
 import trimesh
 from PIL import Image
 
-from brave6d.board import chessboard_corners, make_charuco_board
-from brave6d.camera import PinholeCamera
-from brave6d.errors import BraveError, DataError
-from brave6d.spec import EffectsSpec, SceneSpec, load_scene_spec, parse_scene_spec
-from brave6d.transforms import invert, look_at, make_transform, rotation_distance, rpy_deg_to_matrix
-from capture.protocols import Camera
-from capture.scene_model import BOARD_SEGMENT_ID, STATIC_ID_BASE, MeshPart, SceneModel, load_mesh_parts
-from capture.sim_camera import SimCamera, silhouette_mask
+from brave6d.core.board import chessboard_corners, make_charuco_board
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import BraveError, DataError
+from brave6d.core.spec import EffectsSpec, SceneSpec, load_scene_spec, parse_scene_spec
+from brave6d.core.transforms import invert, look_at, make_transform, rotation_distance, rpy_deg_to_matrix
+from brave6d.capture.protocols import Camera
+from brave6d.capture.scene_model import BOARD_SEGMENT_ID, STATIC_ID_BASE, MeshPart, SceneModel, load_mesh_parts
+from brave6d.capture.sim_camera import SimCamera, silhouette_mask
 
 REPO = Path(__file__).resolve().parent.parent
 SMALL = PinholeCamera.from_hfov(160, 100, 70.0)

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from brave6d.errors import SpecError
-from brave6d.spec import load_scene_spec, parse_scene_spec, spec_to_yaml
+from brave6d.core.errors import SpecError
+from brave6d.core.spec import load_scene_spec, parse_scene_spec, spec_to_yaml
 
 
 @pytest.fixture()

@@ -10,7 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from training.losses import gaussian_window, l1_loss, photometric_loss, psnr, ssim, ssim_map
+from brave6d.training.losses import gaussian_window, l1_loss, photometric_loss, psnr, ssim, ssim_map
 
 
 def reference_ssim_map(x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -13,10 +13,10 @@ import pytest
 from lock_holder import kill_holder, spawn_holder
 from test_locks import dead_process, write_lock
 
-from brave6d.atomic import staged_folder
-from brave6d.locks import STALE_S, Process
+from brave6d.core.atomic import staged_folder
+from brave6d.core.locks import STALE_S, Process
 
-ORPHAN_STAGING_S = 24 * 3600.0  # brave6d.atomic.ORPHAN_STAGING_S
+ORPHAN_STAGING_S = 24 * 3600.0  # brave6d.core.atomic.ORPHAN_STAGING_S
 
 
 def _leftover(parent: Path, name: str, owner: Process | None, heartbeat: float | None = None) -> Path:
@@ -44,7 +44,7 @@ def test_staging_cleans_what_dead_owners_left_and_keeps_a_live_ones(tmp_path: Pa
     live_staging.mkdir()
     proc, _ = spawn_holder(tmp_path / ".out.tmp-livelive.owner")
     try:
-        with caplog.at_level(logging.WARNING, logger="brave6d.atomic"):
+        with caplog.at_level(logging.WARNING, logger="brave6d.core.atomic"):
             with staged_folder(target) as stage:
                 (stage / "a.txt").write_text("new")
         assert (target / "a.txt").read_text() == "new"
@@ -54,7 +54,7 @@ def test_staging_cleans_what_dead_owners_left_and_keeps_a_live_ones(tmp_path: Pa
         assert f"removed {dead}, the staging folder of {dead_process().describe()}, which is gone" in caplog.text
     finally:
         kill_holder(proc)
-    from brave6d.atomic import clean_stagings
+    from brave6d.core.atomic import clean_stagings
 
     assert clean_stagings(target) == [live_staging] and not live_staging.exists()
     left = sorted(p.name for p in tmp_path.iterdir())

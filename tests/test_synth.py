@@ -13,11 +13,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from annotation import read_ply_mesh, read_scene_camera, read_scene_gt, read_scene_gt_info
-from brave6d.atomic import read_png
-from brave6d.errors import DegenerateGeometryError
-from brave6d.transforms import invert, make_transform, transform_points
-from synth import Randomization, SynthOptions, place_on_plane, resting_poses, synthesize
+from brave6d.annotation import read_ply_mesh, read_scene_camera, read_scene_gt, read_scene_gt_info
+from brave6d.core.atomic import read_png
+from brave6d.core.errors import DegenerateGeometryError
+from brave6d.core.transforms import invert, make_transform, transform_points
+from brave6d.synth import Randomization, SynthOptions, place_on_plane, resting_poses, synthesize
 
 ROOT = Path(__file__).resolve().parent.parent
 MESHES = ROOT / "data" / "demo" / "meshes"

@@ -16,10 +16,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_synth import _scene_yaml
 
-import synth.limits as limits
-from brave6d.errors import BraveError
-from synth import SynthOptions, synthesize
-from synth.cli import configure
+import brave6d.synth.limits as limits
+from brave6d.core.errors import BraveError
+from brave6d.synth import SynthOptions, synthesize
+from brave6d.synth.cli import configure
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -112,7 +112,7 @@ def test_far_more_workers_than_cpus_are_refused_naming_the_flag(tmp_path: Path, 
     with pytest.raises(BraveError, match=r"--workers 13 .*3 CPU"):
         synthesize(spec, tmp_path / "out", SynthOptions(images=13, workers=13))
     assert not (tmp_path / "out").exists()
-    with caplog.at_level("WARNING", logger="synth.limits"):
+    with caplog.at_level("WARNING", logger="brave6d.synth.limits"):
         limits.check_machine(32, 24, 12, 12, "--width/--height")  # 4 per core: allowed, with a warning
     assert "--workers 12 on 3 CPU core(s)" in caplog.text
 
@@ -127,12 +127,12 @@ def test_a_spec_camera_larger_than_the_cap_is_refused_naming_the_flags(tmp_path:
 
 def test_running_out_of_memory_while_rendering_is_one_clear_error(tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    import synth.run
+    import brave6d.synth.run
 
     def no_memory(*_args: object) -> None:
         raise MemoryError
 
     spec = _scene_yaml(tmp_path, 32, 24)
-    monkeypatch.setattr(synth.run, "render_image", no_memory)
+    monkeypatch.setattr(brave6d.synth.run, "render_image", no_memory)
     with pytest.raises(BraveError, match=r"32x24 images with --workers 1 ran out of memory.*GiB per worker"):
         synthesize(spec, tmp_path / "out", SynthOptions(images=1))

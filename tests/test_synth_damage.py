@@ -16,8 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_synth import _scene_yaml, _tree
 
-from synth import SynthOptions, synthesize
-from brave6d.png_check import CHECKS, png_problem
+from brave6d.synth import SynthOptions, synthesize
+from brave6d.core.png_check import CHECKS, png_problem
 
 ROOT = Path(__file__).resolve().parent.parent
 IMAGES = 6

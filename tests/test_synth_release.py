@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from test_release import NAME, _make_scene, _resum, _rewrite_zip, _write_dataset
 
-from dataset.release import ReleaseError, build_release, verify_release
-from synth import SynthOptions, synthesize
+from brave6d.dataset.release import ReleaseError, build_release, verify_release
+from brave6d.synth import SynthOptions, synthesize
 
 pytestmark = pytest.mark.slow  # two exported, bundled scenes and a release (~15 s)
 

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from annotation.threedat import (
+from brave6d.annotation.threedat import (
     LibraryEntry,
     ThreeDatError,
     find_config,
@@ -21,9 +21,9 @@ from annotation.threedat import (
     read_config,
     read_threedat,
 )
-from annotation.threedat_writer import write_threedat_folder
-from brave6d.camera import PinholeCamera
-from brave6d.transforms import make_transform
+from brave6d.annotation.threedat_writer import write_threedat_folder
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.transforms import make_transform
 
 FIXTURE = Path(__file__).parent / "fixtures" / "threedat"
 

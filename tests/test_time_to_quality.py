@@ -43,8 +43,8 @@ TINY = "fast,steps=4,coarse_steps=0,downscale=1,max_init_points={}"
 
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from brave6d.camera import PinholeCamera
-    from training.synthetic import plane_views, write_scene
+    from brave6d.core.camera import PinholeCamera
+    from brave6d.training.toy_scenes import plane_views, write_scene
 
     cam = PinholeCamera(80, 50, 62.5, 62.5, 39.5, 24.5)
     return write_scene(tmp_path_factory.mktemp("ttq") / "scene", cam, plane_views(cam, [0.45, 0.6], 5)).root
@@ -69,8 +69,9 @@ def test_a_trained_by_a_worker_on_another_source_tree(tiny_scene: Path, tmp_path
     assert a["preset"]["max_init_points"] == 1000 and a["preset"]["eval_every"] == 2
     assert a["preset"]["time_budget_s"] is None
     assert a["points"][0]["gaussians"] <= 1000 < b["points"][0]["gaussians"]
-    assert a["source"] == {"dir": str(REPO), "modules": {"training": str(REPO / "training" / "__init__.py"),
-                                                         "brave6d": str(REPO / "brave6d" / "__init__.py")}}
+    package = REPO / "src" / "brave6d"
+    assert a["source"] == {"dir": str(REPO), "modules": {"brave6d.training": str(package / "training" / "__init__.py"),
+                                                         "brave6d": str(package / "__init__.py")}}
     assert b["source"] == {"dir": str(REPO)}
     for run in (a, b):
         assert isinstance(run["train_s"], float) and run["train_s"] > 0
@@ -84,8 +85,8 @@ def test_a_trained_by_a_worker_on_another_source_tree(tiny_scene: Path, tmp_path
 
 
 def test_the_warm_up_leaves_the_training_as_it_was(tiny_scene: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from brave6d.layout import SceneDir
-    from training import get_preset
+    from brave6d.core.layout import SceneDir
+    from brave6d.training import get_preset
 
     preset = ttq.configure(get_preset("fast"), {"steps": 3, "coarse_steps": 0, "downscale": 1,
                                                 "max_init_points": 500})
@@ -115,9 +116,10 @@ def test_a_source_without_training_stops_naming_it(tiny_scene: Path, tmp_path: P
 @pytest.mark.timeout(60)
 def test_a_worker_that_dies_stops_with_its_exit_code_and_stderr(tiny_scene: Path, tmp_path: Path) -> None:
     fake = tmp_path / "fake"
-    (fake / "brave6d").mkdir(parents=True)
-    (fake / "brave6d" / "__init__.py").write_text("")
-    (fake / "brave6d" / "runtime.py").write_text(
+    (fake / "src" / "brave6d" / "core").mkdir(parents=True)
+    (fake / "src" / "brave6d" / "__init__.py").write_text("")
+    (fake / "src" / "brave6d" / "core" / "__init__.py").write_text("")
+    (fake / "src" / "brave6d" / "core" / "runtime.py").write_text(
         "import os, sys\n\ndef prepare_process():\n    print('fake tree: giving up', file=sys.stderr, flush=True)\n"
         "    os._exit(7)\n")
     with pytest.raises(SystemExit, match=r"source tree .*fake.* exited while setting up \(exit code 7\)") as info:
@@ -146,9 +148,27 @@ def test_a_revision_is_extracted_and_removed(tmp_path: Path) -> None:
     source = ttq.resolve_source("HEAD")
     try:
         assert source.info == {"rev": "HEAD", "commit": head} and source.label == "HEAD"
-        assert (source.root / "training" / "__init__.py").is_file()
+        assert (source.root / "src" / "brave6d" / "training" / "__init__.py").is_file()
     finally:
         source.cleanup()
     assert not source.root.exists()
     with pytest.raises(SystemExit, match="neither a directory nor a git revision"):
         ttq.resolve_source("no-such-revision-0123")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_a_revision_before_the_src_layout_trains_in_its_worker(tiny_scene: Path, tmp_path: Path) -> None:
+    """A tree from before ``src/brave6d`` (top-level ``training``, kernel modules in ``brave6d/``):
+    the worker imports its own modules under today's names, so old code can still be compared."""
+    moved = subprocess.run(["git", "-C", str(REPO), "log", "-1", "--format=%H", "--", "brave6d/atomic.py"],
+                           capture_output=True, text=True)
+    if moved.returncode != 0 or not moved.stdout.strip():
+        pytest.skip("not a git checkout with the history of the src layout")
+    old = moved.stdout.strip() + "^"  # the commit before the move: brave6d/atomic.py still at the top
+    out = tmp_path / "ttq.json"
+    assert ttq.main([str(tiny_scene), "--a-source", old, "--a", "old=" + TINY.format(1000),
+                     "--b", "new=" + TINY.format(1000), "--every", "2", "--device", "cpu", "--json", str(out)]) == 0
+    a = json.loads(out.read_text())["a"]
+    assert a["source"]["rev"] == old and a["steps"] == 4 and a["final_psnr"] > 0
+    assert a["source"]["modules"]["training"].endswith("/training/__init__.py")  # the old tree's own package

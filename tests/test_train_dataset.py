@@ -11,11 +11,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from brave6d.camera import PinholeCamera
-from brave6d.errors import DataError
-from brave6d.layout import FrameRecord
-from training.dataset import holdout_split, load_scene
-from training.synthetic import plane_views, write_scene
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import DataError
+from brave6d.core.layout import FrameRecord
+from brave6d.training.views import holdout_split, load_scene
+from brave6d.training.toy_scenes import plane_views, write_scene
 
 
 def rec(index: int, level: int) -> FrameRecord:

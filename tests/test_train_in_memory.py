@@ -1,4 +1,4 @@
-"""``training.train``: a run in memory (nothing written), scored on the holdout during training,
+"""``brave6d.training.train``: a run in memory (nothing written), scored on the holdout during training,
 and the same numbers as ``brave6d train`` (``train_scene`` trains through it)."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from brave6d.camera import PinholeCamera
-from brave6d.layout import SceneDir
-from training import evaluate_holdout, get_preset, load_scene, read_ply, train, train_scene
-from training.synthetic import plane_views, write_scene
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.layout import SceneDir
+from brave6d.training import evaluate_holdout, get_preset, load_scene, read_ply, train, train_scene
+from brave6d.training.toy_scenes import plane_views, write_scene
 
 CAM = PinholeCamera.from_hfov(64, 48, 60.0)
 PRESET = get_preset("fast").with_steps(12).with_overrides(name="tiny", downscale=1, eval_every=4, max_gaussians=2000,

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 import torch
 
-from brave6d.camera import PinholeCamera
-from brave6d.errors import DataError
-from training.dataset import TrainingData, View
-from training.evaluate import evaluate_holdout
-from training.model import GaussianModel
-from training.presets import Preset
-from training.synthetic import random_gaussians, render_views, ring_poses
-from training.trainer import Trainer, TrainingDiverged, list_checkpoints, means_lr, read_checkpoint
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import DataError
+from brave6d.training.views import TrainingData, View
+from brave6d.training.holdout_eval import evaluate_holdout
+from brave6d.training.model import GaussianModel
+from brave6d.training.presets import Preset
+from brave6d.training.toy_scenes import random_gaussians, render_views, ring_poses
+from brave6d.training.trainer import Trainer, TrainingDiverged, list_checkpoints, means_lr, read_checkpoint
 
 CAM = PinholeCamera(48, 36, 40.0, 40.0, 23.5, 17.5)
 
@@ -92,7 +92,7 @@ def test_nan_stops_with_a_clear_message_and_keeps_the_last_good_checkpoint(tiny_
 
 
 def test_nan_loss_is_caught(tiny_data: TrainingData, monkeypatch: pytest.MonkeyPatch) -> None:
-    import training.trainer as tr
+    import brave6d.training.trainer as tr
 
     real = tr.photometric_loss
     calls = {"n": 0}

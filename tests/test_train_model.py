@@ -11,10 +11,10 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from training.model import GaussianModel, initial_log_scales
-from training.ply import SH_C0
-from training.presets import BENCHMARK_PRESETS, FAST, PRESETS, get_preset
-from training.strategy import DensifyStrategy, make_strategy
+from brave6d.training.model import GaussianModel, initial_log_scales
+from brave6d.training.ply import SH_C0
+from brave6d.training.presets import BENCHMARK_PRESETS, FAST, PRESETS, get_preset
+from brave6d.training.strategy import DensifyStrategy, make_strategy
 
 
 def test_init_from_points_follows_inria() -> None:

@@ -11,12 +11,12 @@ import pycolmap
 import pytest
 from plyfile import PlyData
 
-from brave6d.camera import PinholeCamera
-from brave6d.errors import BraveError
-from brave6d.layout import SceneDir
-from training import cli
-from training.ply import inria_attribute_names, read_ply
-from training.synthetic import plane_views, write_scene
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import BraveError
+from brave6d.core.layout import SceneDir
+from brave6d.training import cli
+from brave6d.training.ply import inria_attribute_names, read_ply
+from brave6d.training.toy_scenes import plane_views, write_scene
 
 CAM = PinholeCamera(160, 100, 125.0, 125.0, 79.5, 49.5)
 
@@ -91,13 +91,14 @@ def test_cuda_without_gpu_is_a_clear_error(trained: SceneDir) -> None:
 
 
 @pytest.mark.slow
-def test_demo_stage_quick(tmp_path: Path) -> None:
-    from types import SimpleNamespace
-
-    from training.demo import QUICK, stage_train
+def test_demo_stage_quick(tmp_path: Path, demo_spec_path: Path) -> None:
+    from brave6d.core.run_context import RunContext
+    from brave6d.core.spec import load_scene_spec
+    from brave6d.training.demo import QUICK, stage_train
 
     scene = write_scene(tmp_path / "demo", CAM, plane_views(CAM, [0.45, 0.6], 6))
-    ctx = SimpleNamespace(scene=scene, spec=None, quick=True, device="cpu")
+    # the training stage reads the scene directory only; the spec is any valid one
+    ctx = RunContext(workdir=tmp_path, scene=scene, spec=load_scene_spec(demo_spec_path), quick=True, device="cpu")
     result = stage_train(ctx)
     assert result.name == "train" and result.status == "ok"
     assert result.figures["steps"] == QUICK.steps
@@ -124,7 +125,7 @@ def kept_aside(splat: Path) -> dict[str, bytes]:
 
 def test_a_new_training_never_leaves_the_user_without_the_previous_one(tmp_path: Path,
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
-    from training.trainer import Trainer
+    from brave6d.training.trainer import Trainer
 
     scene = write_scene(tmp_path / "s", CAM, plane_views(CAM, [0.45, 0.6], 4))
     args = ("--preset", "fast", "--steps", "8", "--device", "cpu", "--init", "depth")  # a checkpoint every 2 steps

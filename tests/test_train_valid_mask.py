@@ -7,9 +7,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from brave6d.camera import PinholeCamera
-from training.dataset import valid_pixels
-from training.losses import fill_invalid, photometric_loss, psnr
+from brave6d.core.camera import PinholeCamera
+from brave6d.training.views import valid_pixels
+from brave6d.training.losses import fill_invalid, photometric_loss, psnr
 
 BARREL = PinholeCamera(160, 100, 115.0, 115.0, 79.5, 49.5, (0.05, -0.16, 0.0, 0.0, 0.23))
 

@@ -11,8 +11,8 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from brave6d.errors import NonRigidTransformError
-from brave6d.transforms import (
+from brave6d.core.errors import NonRigidTransformError
+from brave6d.core.transforms import (
     check_rigid,
     format_tum_line,
     invert,

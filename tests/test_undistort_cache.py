@@ -9,13 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from brave6d.atomic import depth_m_to_mm_u16, move_aside, read_png, write_png
-from brave6d.calibration_io import write_intrinsics
-from brave6d.camera import PinholeCamera
-from brave6d.errors import DataError
-from brave6d.layout import FrameLog, FrameRecord, SceneDir
-from brave6d.transforms import look_at
-from brave6d.undistort import ensure_undistorted
+from brave6d.core.atomic import depth_m_to_mm_u16, move_aside, read_png, write_png
+from brave6d.core.calibration_io import write_intrinsics
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import DataError
+from brave6d.core.layout import FrameLog, FrameRecord, SceneDir
+from brave6d.core.transforms import look_at
+from brave6d.core.undistort import ensure_undistorted
 
 CAM = PinholeCamera(64, 40, 50.0, 50.0, 31.5, 19.5, (0.1, -0.05, 0.0, 0.0, 0.0))
 

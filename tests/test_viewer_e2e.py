@@ -71,7 +71,7 @@ class DevTools:
 
 @pytest.fixture(scope="module")
 def synthetic_bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from serve.synthetic import make_synthetic_bundle
+    from brave6d.serve.toy_scene import make_synthetic_bundle
 
     return make_synthetic_bundle(tmp_path_factory.mktemp("viewer_scene"), n_gaussians=20_000)
 
@@ -110,8 +110,8 @@ def browser(tmp_path: Path):
 
 
 def test_viewer_renders_moves_and_shows_refusal(synthetic_bundle: Path, tmp_path: Path, browser: DevTools) -> None:
-    from serve.app import create_app
-    from serve.runner import ServerThread
+    from brave6d.serve.app import create_app
+    from brave6d.serve.runner import ServerThread
 
     app = create_app(synthetic_bundle, device="cpu", log_dir=tmp_path / "episodes")
     with ServerThread(app) as server:

@@ -1,0 +1,260 @@
+"""Per-instance silhouettes and masks by CPU ray casting (Open3D ``RaycastingScene``), one ray per
+pixel centre: the one implementation of BOP's ``scene_gt_info`` geometry in the project.
+
+:class:`SilhouetteCaster` holds the scenes and answers two questions for any camera and pose:
+
+* :meth:`~SilhouetteCaster.silhouettes`: the pixels of each instance ALONE (no occluders), on a
+  canvas three times the image size centred on it (as bop_toolkit's ``calc_gt_info.py`` does), so
+  a truncated object keeps its whole silhouette (``px_count_all``, ``bbox_obj``); each hit pixel
+  also carries its z-depth and its ray;
+* :meth:`~SilhouetteCaster.first_instance`: which instance is the first surface along given rays,
+  among all instances and the static meshes (table, clutter).
+
+:class:`MaskRenderer` turns them into the BOP export's ``mask`` (the object alone, inside the
+image) and ``mask_visib`` (where the object is the first surface seen: a subset of ``mask``).
+The server's visible fractions (``brave6d.serve.visibility``) use the same caster and add their
+splat-occlusion rule on top.
+
+The object-alone silhouette is cast only inside the projection of the model's bounding box,
+against one ray-casting scene per model built in the model frame (rays are moved into it), so
+it costs little. Pixel ``(u, v)`` is the ray through ``((u - cx) / fx, (v - cy) / fy, 1)``
+(OpenCV, centres at integer coordinates), the same convention as the simulated camera, the
+project's K and the splat renders; the hit distance along it is the z-depth.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import ArrayLike, NDArray
+
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import BraveError
+from brave6d.core.transforms import check_rigid, invert, transform_points
+
+if TYPE_CHECKING:
+    from brave6d.annotation.models import MeshData
+
+#: Size of the canvas for truncated silhouettes, in image sizes (bop_toolkit uses 3).
+CANVAS_FACTOR = 3
+_NEAR = 1e-6
+
+#: Triangles in metres: ``(vertices (V, 3), faces (F, 3))``.
+Triangles = tuple[NDArray[np.float64], NDArray[np.int64]]
+
+
+def bbox_xywh(xs: NDArray[np.integer], ys: NDArray[np.integer]) -> tuple[int, int, int, int] | None:
+    """BOP bounding box of pixel coordinates: ``[x_min, y_min, x_max - x_min, y_max - y_min]``
+    (bop_toolkit's ``calc_2d_bbox``: width and height exclude the last pixel); None when empty."""
+    if len(xs) == 0:
+        return None
+    x0, y0 = int(xs.min()), int(ys.min())
+    return (x0, y0, int(xs.max()) - x0, int(ys.max()) - y0)
+
+
+def pixel_rays(camera: PinholeCamera, u: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float32]:
+    """Camera-frame directions ``((u - cx) / fx, (v - cy) / fy, 1)`` of pixels ``(u, v)``, (N, 3)."""
+    return np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)],
+                    axis=1).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class Silhouette:
+    """The hit pixels of one instance alone on the canvas: ``xs``, ``ys`` (N,) int64 in image
+    coordinates (may lie outside the image). Their z-depths and camera-frame rays stay in the
+    arrays that were cast (``hit_index`` into ``cast_depth`` and ``cast_rays``), so that
+    :meth:`within` the image copies only pixel indices."""
+
+    xs: NDArray[np.int64]
+    ys: NDArray[np.int64]
+    hit_index: NDArray[np.int64]
+    cast_depth: NDArray[np.float32]
+    cast_rays: NDArray[np.float32]
+
+    @property
+    def px_count_all(self) -> int:
+        return len(self.xs)
+
+    @property
+    def bbox_all(self) -> tuple[int, int, int, int] | None:
+        """``[x, y, w, h]`` of the whole silhouette (BOP ``bbox_obj``); None when empty."""
+        return bbox_xywh(self.xs, self.ys)
+
+    @property
+    def depth(self) -> NDArray[np.float32]:
+        """(N,) z-depth of the hit pixels, metres."""
+        return self.cast_depth[self.hit_index]
+
+    @property
+    def rays(self) -> NDArray[np.float32]:
+        """(N, 3) camera-frame rays of the hit pixels (z = 1), to cast them again."""
+        return self.cast_rays[self.hit_index]
+
+    def within(self, width: int, height: int) -> Silhouette:
+        """The part of this silhouette inside a ``width`` x ``height`` image."""
+        inside = (self.xs >= 0) & (self.xs < width) & (self.ys >= 0) & (self.ys < height)
+        return Silhouette(self.xs[inside], self.ys[inside], self.hit_index[inside], self.cast_depth, self.cast_rays)
+
+
+_EMPTY = Silhouette(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32),
+                    np.zeros((0, 3), np.float32))
+
+
+def _tensor_scene(vertices: NDArray[np.float64], faces: NDArray[np.int64]) -> o3d.t.geometry.RaycastingScene:
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)))
+    return scene
+
+
+class SilhouetteCaster:
+    """Ray-casting scenes of posed object instances (see the module docstring).
+
+    ``models``: triangles per model key in metres (model frame); ``instances``: ``(model key,
+    world_T_model)``, the instance index is its position; ``static``: occluding triangles already
+    in the world frame (metres). Safe to call from several threads (one lock around the casts:
+    Open3D scenes are shared between calls).
+    """
+
+    def __init__(self, models: Mapping[int, Triangles], instances: Sequence[tuple[int, ArrayLike]],
+                 static: Sequence[Triangles] = ()) -> None:
+        self.instances = [(int(key), check_rigid(T, f"instance {n}: world_T_model"))
+                          for n, (key, T) in enumerate(instances)]
+        missing = {key for key, _ in self.instances} - set(models)
+        if missing:
+            raise BraveError(f"silhouettes: no model for obj_id {sorted(missing)}")
+        self._model_T_world = [invert(T) for _, T in self.instances]
+        self._model_scenes = {key: _tensor_scene(v, f) for key, (v, f) in models.items()}
+        self._corners = {key: _box_corners(v) for key, (v, _) in models.items()}
+        self._world = o3d.t.geometry.RaycastingScene()
+        owner: dict[int, int] = {}
+        for n, (key, T) in enumerate(self.instances):
+            vertices, faces = models[key]
+            gid = self._world.add_triangles(
+                o3d.core.Tensor(transform_points(T, vertices).astype(np.float32)),
+                o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)))
+            owner[int(gid)] = n
+        static_ids = [int(self._world.add_triangles(
+            o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
+            o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)))) for vertices, faces in static]
+        # owner per geometry id; one extra -1 at the end serves misses (geometry id -1)
+        self._owner = np.full(max([*owner, *static_ids], default=0) + 2, -1, dtype=np.int64)
+        for gid, n in owner.items():
+            self._owner[gid] = n
+        self._lock = threading.Lock()
+
+    def _cast(self, scene: o3d.t.geometry.RaycastingScene, origin: NDArray[np.float64], R: NDArray[np.float64],
+              rays_cam: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        """First hits of rays from ``origin`` along ``R @ d`` for camera-frame directions ``d`` (z = 1,
+        so ``t`` is the z-depth). Returns ``t`` (inf = miss) and the geometry id (-1 = miss)."""
+        rays = np.empty((len(rays_cam), 6), dtype=np.float32)
+        rays[:, :3] = origin
+        R32 = np.asarray(R, dtype=np.float32)
+        for k in range(3):  # R @ d per ray, without a BLAS call (slow for (N, 3) @ (3, 3) here)
+            rays[:, 3 + k] = rays_cam[:, 0] * R32[k, 0] + rays_cam[:, 1] * R32[k, 1] + rays_cam[:, 2] * R32[k, 2]
+        with self._lock:
+            out = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
+        t = out["t_hit"].numpy()
+        geometry = out["geometry_ids"].numpy().astype(np.int64)
+        return t, np.where(np.isfinite(t), geometry, -1)
+
+    def silhouettes(self, world_T_cam: ArrayLike, camera: PinholeCamera) -> Iterator[Silhouette]:
+        """Each instance alone, in instance order, seen from ``world_T_cam`` through the undistorted
+        ``camera`` (a generator: one instance's cast arrays alive at a time)."""
+        T = np.asarray(world_T_cam, dtype=np.float64)
+        cam_T_world = invert(T)
+        for (key, world_T_model), model_T_world in zip(self.instances, self._model_T_world):
+            roi = self._roi(key, cam_T_world @ world_T_model, camera)
+            if roi is None:
+                yield _EMPTY
+                continue
+            u0, u1, v0, v1 = roi
+            u, v = np.meshgrid(np.arange(u0, u1 + 1, dtype=np.float64), np.arange(v0, v1 + 1, dtype=np.float64))
+            u, v = u.ravel(), v.ravel()
+            rays = pixel_rays(camera, u, v)
+            model_T_cam = model_T_world @ T
+            t, _ = self._cast(self._model_scenes[key], model_T_cam[:3, 3], model_T_cam[:3, :3], rays)
+            hit = np.isfinite(t)
+            yield Silhouette(u[hit].astype(np.int64), v[hit].astype(np.int64), np.nonzero(hit)[0], t, rays)
+
+    def first_instance(self, world_T_cam: ArrayLike, rays_cam: NDArray[np.float32]) -> NDArray[np.int64]:
+        """(N,) index of the instance hit first along each camera-frame ray; -1 = a static mesh or nothing."""
+        T = np.asarray(world_T_cam, dtype=np.float64)
+        _, geometry = self._cast(self._world, T[:3, 3], T[:3, :3], rays_cam)
+        return self._owner[geometry]  # -1 indexes the sentinel
+
+    def _roi(self, key: int, cam_T_model: NDArray[np.float64],
+             camera: PinholeCamera) -> tuple[int, int, int, int] | None:
+        """Canvas pixel range ``(u0, u1, v0, v1)`` (inclusive) that can hold the silhouette."""
+        w, h = camera.width, camera.height
+        pad = (CANVAS_FACTOR - 1) // 2
+        lo_u, hi_u, lo_v, hi_v = -pad * w, (pad + 1) * w - 1, -pad * h, (pad + 1) * h - 1
+        pts = transform_points(cam_T_model, self._corners[key])
+        z = pts[:, 2]
+        if np.all(z <= _NEAR):
+            return None
+        if np.any(z <= _NEAR):
+            return lo_u, hi_u, lo_v, hi_v
+        u = camera.fx * pts[:, 0] / z + camera.cx
+        v = camera.fy * pts[:, 1] / z + camera.cy
+        u0, u1 = max(lo_u, int(np.floor(u.min())) - 1), min(hi_u, int(np.ceil(u.max())) + 1)
+        v0, v1 = max(lo_v, int(np.floor(v.min())) - 1), min(hi_v, int(np.ceil(v.max())) + 1)
+        if u0 > u1 or v0 > v1:
+            return None
+        return u0, u1, v0, v1
+
+
+@dataclass(frozen=True)
+class InstanceMasks:
+    """Masks and counts of one instance in one view (see the module docstring)."""
+
+    mask: NDArray[np.bool_]
+    mask_visib: NDArray[np.bool_]
+    px_count_all: int
+    bbox_all: tuple[int, int, int, int] | None  # [x, y, w, h] of the whole silhouette, image coordinates
+
+
+class MaskRenderer:
+    """BOP masks of annotated instances for any camera pose (see the module docstring).
+
+    ``models``: mesh per ``obj_id`` in metres (model frame); ``instances``: ``(obj_id,
+    world_T_model)``; ``static``: occluding meshes already in the world frame (metres).
+    """
+
+    def __init__(self, camera: PinholeCamera, models: Mapping[int, MeshData],
+                 instances: Sequence[tuple[int, ArrayLike]], static: Sequence[MeshData] = ()) -> None:
+        if camera.has_distortion:
+            raise BraveError("mask renderer: the camera must be the undistorted pinhole camera")
+        self.camera = camera
+        self.caster = SilhouetteCaster({k: (m.vertices, m.faces) for k, m in models.items()}, instances,
+                                       [(s.vertices, s.faces) for s in static])
+        u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
+        self._image_rays = pixel_rays(camera, u.ravel(), v.ravel())
+
+    def visible_instance_map(self, world_T_cam: ArrayLike) -> NDArray[np.int64]:
+        """(H, W) index of the instance seen first at each pixel; -1 = static mesh or nothing."""
+        T = check_rigid(world_T_cam, "world_T_cam")
+        return self.caster.first_instance(T, self._image_rays).reshape(self.camera.height, self.camera.width)
+
+    def render(self, world_T_cam: ArrayLike) -> list[InstanceMasks]:
+        """Masks of every instance, in instance order."""
+        T = check_rigid(world_T_cam, "world_T_cam")
+        visible = self.visible_instance_map(T)
+        return [self._instance(n, sil, visible) for n, sil in enumerate(self.caster.silhouettes(T, self.camera))]
+
+    def _instance(self, n: int, sil: Silhouette, visible: NDArray[np.int64]) -> InstanceMasks:
+        w, h = self.camera.width, self.camera.height
+        mask = np.zeros((h, w), dtype=bool)
+        seen = sil.within(w, h)
+        mask[seen.ys, seen.xs] = True
+        return InstanceMasks(mask, mask & (visible == n), sil.px_count_all, sil.bbox_all)
+
+
+def _box_corners(vertices: NDArray[np.float64]) -> NDArray[np.float64]:
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])

@@ -1,0 +1,37 @@
+"""Datasets: many scenes sharing one object library, run stage by stage on a machine or a cluster.
+
+Public API (imported lazily; ``import dataset`` loads no stage, torch or submitit):
+
+- ``run_dataset``, ``RunSummary``: ``brave6d dataset run`` (every stage of every scene through
+  submitit, resumable per scene and stage);
+- ``ExecutorOptions``, ``make_executor``, ``slurm_parameters``: the submitit executor (local or
+  Slurm job array) of a run;
+- ``SceneJob``, ``SceneOutcome``, ``JOB_STAGES``: one scene's job (a submitit ``Checkpointable``);
+- ``prepare_workdir``, ``scene_dir``: the work directory (``dataset.yaml``, ``objects/``,
+  ``scenes/<name>/``, ``status/``);
+- ``read_scene_status``, ``SceneStatus``, ``read_summary``, ``status_table``, ``SCENE_STAGES``: the
+  status records (``status/<scene>.json``) and the table (``status.json``);
+- ``report_dataset``, ``DatasetReport``: ``brave6d dataset report`` (every scene's report and an index).
+
+The dataset spec itself (``dataset.yaml``) is read by :mod:`brave6d.core.dataset_spec`
+(``load_dataset_spec``), the shared core, so that every package can read it.
+Modules: ``status``, ``workdir``, ``job``, ``executor``, ``runner``, ``report``, ``cli`` (``brave6d dataset``).
+The release of a dataset is the subpackage ``brave6d.dataset.release``; ``release_scene_sources`` (the
+scenes of a release for the render server) is re-exported here for other stages.
+"""
+
+from brave6d.core.lazy import lazy_exports
+
+_LAZY = {
+    "run_dataset": ".runner", "RunSummary": ".runner",
+    "ExecutorOptions": ".executor", "make_executor": ".executor", "slurm_parameters": ".executor",
+    "SceneJob": ".job", "SceneOutcome": ".job", "JOB_STAGES": ".job",
+    "prepare_workdir": ".workdir", "scene_dir": ".workdir",
+    "read_scene_status": ".status", "SceneStatus": ".status", "read_summary": ".status",
+    "status_table": ".status", "SCENE_STAGES": ".status",
+    "release_scene_sources": ".release.serving", "report_dataset": ".report", "DatasetReport": ".report",
+}
+
+__all__ = sorted(_LAZY)
+
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

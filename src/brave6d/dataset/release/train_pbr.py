@@ -1,0 +1,99 @@
+"""The synthetic training split in a release: pack ``WORKDIR/synth/train_pbr/`` as
+``<name>_train_pbr.zip`` when the work directory has one, and verify that zip.
+
+Both sides read the split's JSON files through annotation's BOP readers (the format's owner) and
+check that every image the ``scene_gt.json`` files list has its rgb, depth and masks, and that
+every ``obj_id`` has a model in the release's models zip. Every PNG is checked too
+(:mod:`brave6d.dataset.release.images`): its header and tail when packing (a damaged synthetic image is not
+packed), decoded when verifying; all images of one ``train_pbr/XXXXXX`` folder share one size.
+The zip is read through :func:`brave6d.dataset.release.zips.open_zip` (names, sizes, streamed CRCs).
+"""
+
+from __future__ import annotations
+
+import re
+import tempfile
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from brave6d.annotation import read_scene_camera, read_scene_gt, read_scene_gt_info
+from brave6d.dataset.release.formats import SYNTH_DIR, TRAIN_PBR
+from brave6d.dataset.release.images import check_png_file, decode_zip_images, image_kind
+from brave6d.dataset.release.source import ReleaseError
+from brave6d.dataset.release.zips import open_zip
+
+_FOLDER = re.compile(rf"^{TRAIN_PBR}/(\d{{6}})/")
+
+
+def synthetic_split(workdir: Path) -> Path | None:
+    """``WORKDIR/synth/train_pbr`` when the work directory has a synthetic split, else None."""
+    root = Path(workdir) / SYNTH_DIR / TRAIN_PBR
+    return root if root.is_dir() else None
+
+
+def train_pbr_files(split: Path, models: Mapping[int, Any]) -> list[tuple[Path, str]]:
+    """``(file, member)`` of every file of the split (sorted), after checking it (module docstring)."""
+    folders = sorted(p for p in split.iterdir() if p.is_dir())
+    if not folders:
+        raise ReleaseError(f"{split}: the synthetic split holds no image folders; run 'brave6d synth' again")
+    for folder in folders:
+        files = sorted(p for p in folder.rglob("*") if p.is_file())
+        members = {p.relative_to(folder).as_posix() for p in files}
+        _check_folder(folder.name, lambda name, reader, f=folder: _read_local(reader, f / name), members, models,
+                      str(folder))
+        size = None
+        for p in files:
+            kind = image_kind(p.relative_to(folder).as_posix())
+            if kind is not None:
+                size = check_png_file(p, kind, size)
+    return [(p, f"{TRAIN_PBR}/{p.relative_to(split).as_posix()}") for p in sorted(split.rglob("*")) if p.is_file()]
+
+
+def check_train_pbr_zip(path: Path, models: Mapping[int, Any]) -> int:
+    """Verify a release's ``<name>_train_pbr.zip``; returns the number of images."""
+    with open_zip(path, inside=TRAIN_PBR, shown=path.name) as zf, \
+            tempfile.TemporaryDirectory(prefix="brave6d-verify-pbr-") as tmp:
+        by_folder: dict[str, set[str]] = {}
+        for name in zf.names:
+            m = _FOLDER.match(name)
+            if m is None:
+                raise ReleaseError(f"{path.name}: member {name}: lies outside {TRAIN_PBR}/XXXXXX/")
+            by_folder.setdefault(m.group(1), set()).add(name[m.end():])
+        images = 0
+        for folder, members in sorted(by_folder.items()):
+            def read(name: str, reader: Callable[[Path], Any], f: str = folder) -> Any:
+                return zf.run_reader(reader, f"{TRAIN_PBR}/{f}/{name}", Path(tmp))
+
+            images += _check_folder(folder, read, members, models, f"{path.name}:{TRAIN_PBR}/{folder}")
+            decode_zip_images(zf, f"{TRAIN_PBR}/{folder}")
+        zf.check_unread()
+    return images
+
+
+def _read_local(reader: Callable[[Path], Any], file: Path) -> Any:
+    if not file.is_file():
+        raise ReleaseError(f"{file}: missing")
+    return reader(file)
+
+
+def _check_folder(folder: str, read: Callable[[str, Callable[[Path], Any]], Any], members: set[str],
+                  models: Mapping[int, Any], where: str) -> int:
+    """Check one ``train_pbr/XXXXXX`` folder; returns its number of images."""
+    gt = read("scene_gt.json", read_scene_gt)
+    for name, reader in (("scene_camera.json", read_scene_camera), ("scene_gt_info.json", read_scene_gt_info)):
+        ids = read(name, reader)
+        if set(ids) != set(gt):
+            raise ReleaseError(f"{where}/{name}: lists other images than scene_gt.json "
+                               f"(e.g. {sorted(set(ids) ^ set(gt))[:3]})")
+    for im_id, gts in sorted(gt.items()):
+        needed = [f"rgb/{im_id:06d}.png", f"depth/{im_id:06d}.png"]
+        for gt_id, g in enumerate(gts):
+            if g.obj_id not in models:
+                raise ReleaseError(f"{where}/scene_gt.json: image {im_id} instance {gt_id}: obj_id {g.obj_id} has no "
+                                   "model in the release (no scene of the dataset shows that object)")
+            needed += [f"mask/{im_id:06d}_{gt_id:06d}.png", f"mask_visib/{im_id:06d}_{gt_id:06d}.png"]
+        for rel in needed:
+            if rel not in members:
+                raise ReleaseError(f"{where}/{rel}: missing (image {im_id} is listed in scene_gt.json)")
+    return len(gt)

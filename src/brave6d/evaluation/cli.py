@@ -1,0 +1,110 @@
+"""``brave6d evaluate EPISODE_LOGS... [--bundle BUNDLE] [--out DIR]``: score agent episodes.
+
+Reads the render server's episode logs (JSONL files or folders of them), scores every episode
+with BOP's Average Recall against the ground truth the server logged with the submission, and
+prints a leaderboard (agent, episodes, AR, AR_VSD, AR_MSSD, AR_MSPD, mean position adjustments,
+mean wall time per episode). Writes ``leaderboard.csv``/``.json``, ``episodes.csv``,
+``per_object.csv``, ``per_scene.csv`` and ``per_category.csv`` to ``--out`` (default: ``evaluation/`` inside the first log folder).
+
+The object models (and categories) come from the bundles: ``--bundle``, else every bundle the
+server recorded in the logs (one per scene of a served release), else a ``bundle`` folder beside
+the log folder (the server's default layout). Besides the agents' table it prints and writes each
+agent's AR per scene (``per_scene.csv``) and per object category (``per_category.csv``).
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from brave6d.core.errors import DataError
+from brave6d.evaluation.metrics import EpisodeRecord
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("episode_logs", nargs="+", type=Path, metavar="EPISODE_LOGS",
+                        help="episode logs (*.jsonl) or folders holding them")
+    parser.add_argument("--bundle", type=Path, default=None,
+                        help="the bundle the episodes ran on (default: recorded in the logs, or 'bundle' "
+                             "beside the log folder)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="output folder (default: <first log folder>/evaluation)")
+    parser.add_argument("--all-objects", action="store_true",
+                        help="score every visible instance of the final views, not only each episode's target")
+    parser.add_argument("--metrics", nargs="+", choices=["vsd", "mssd", "mspd"], default=["vsd", "mssd", "mspd"],
+                        help="metrics to evaluate (default: all three, BOP's AR)")
+
+
+def resolve_bundles(episodes: Sequence[EpisodeRecord], log_paths: Sequence[Path], explicit: Path | None) -> list[Path]:
+    """The bundle folders the episodes ran on: ``explicit``, else every one recorded in the logs
+    (a server of a release records one per scene), else ``<log folder>/../bundle``."""
+    if explicit is not None:
+        return [explicit]
+    recorded = [Path(r) for r in sorted({e.bundle_root for e in episodes if e.bundle_root})
+                if (Path(r) / "manifest.json").is_file()]
+    if recorded:
+        return recorded
+    for p in log_paths:
+        folder = p if p.is_dir() else p.parent
+        candidate = folder.resolve().parent / "bundle"
+        if (candidate / "manifest.json").is_file():
+            return [candidate]
+    raise DataError("cannot find the bundle the episodes ran on; pass --bundle BUNDLE")
+
+
+def check_bundle_name(episodes: Sequence[EpisodeRecord], name: str) -> None:
+    """Refuse episodes that were served from a bundle of another scene."""
+    for e in episodes:
+        if e.bundle is not None and e.bundle != name:
+            raise DataError(f"{e.path}: the episode ran on bundle {e.bundle!r}, not on {name!r} (check --bundle)")
+
+
+def library_of(bundles: Sequence[Any]) -> tuple[dict[int, Any], dict[int, str]]:
+    """The object models (mm) and categories of every bundle, by ``obj_id``; one obj_id naming two
+    different objects in two bundles is refused (a dataset keeps one obj_id per object)."""
+    from brave6d.evaluation.metrics import models_from_bundle
+
+    models: dict[int, Any] = {}
+    names: dict[int, tuple[str, Path]] = {}
+    categories: dict[int, str] = {}
+    for b in bundles:
+        for o in b.objects:
+            seen = names.setdefault(o.obj_id, (o.name, b.root))
+            if seen[0] != o.name:
+                raise DataError(f"{b.root}: obj_id {o.obj_id} is {o.name!r}, but {seen[0]!r} in {seen[1]}: "
+                                "episodes of different datasets cannot be scored together")
+            if o.class_name:
+                categories.setdefault(o.obj_id, o.class_name)
+        models.update({k: v for k, v in models_from_bundle(b).items() if k not in models})
+    return models, categories
+
+
+def default_out(log_paths: Sequence[Path]) -> Path:
+    first = log_paths[0]
+    return (first if first.is_dir() else first.parent) / "evaluation"
+
+
+def run(args: argparse.Namespace) -> int:
+    from brave6d.evaluation.metrics import EvalConfig, read_episodes, score_episodes, write_leaderboard
+    from brave6d.serve import load_bundle
+
+    paths = list(args.episode_logs)
+    episodes = read_episodes(paths)
+    bundles = [load_bundle(p) for p in resolve_bundles(episodes, paths, args.bundle)]
+    if args.bundle is not None:
+        check_bundle_name(episodes, bundles[0].name)
+    models, categories = library_of(bundles)
+    board = score_episodes(episodes, models, EvalConfig(metrics=tuple(args.metrics)), all_objects=args.all_objects,
+                           categories=categories)
+    out = args.out if args.out is not None else default_out(paths)
+    written = write_leaderboard(board, out)
+    print(board.table())
+    for table in (board.group_table("scene"), board.group_table("category"), board.object_table()):
+        print()
+        print(table)
+    scenes = sorted({e.scene for e in episodes})
+    print(f"\n{len(episodes)} episodes on {len(scenes)} scene(s) ({', '.join(scenes)}); written: "
+          + ", ".join(str(p) for p in written))
+    return 0

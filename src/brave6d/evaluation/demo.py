@@ -1,0 +1,121 @@
+"""The demo's evaluation stage: both baselines on every demo object, scored like any agent.
+
+``stage_evaluate`` serves the scene's bundle on a loopback port in a background thread (as the
+serve stage does), runs every registered agent (:data:`brave6d.evaluation.agents.POLICIES`: the static and
+the active baseline) on every object instance, :data:`EPISODES_PER_OBJECT` episodes each (all
+agents from the same seeded starts), scores the episode logs
+with :mod:`brave6d.evaluation.metrics.episodes` and writes, under ``<workdir>/evaluation/``:
+
+* ``episodes/`` the episode logs and final depth images (cleared first);
+* ``leaderboard.csv``/``.json``, ``episodes.csv``, ``per_object.csv`` (as ``brave6d evaluate``);
+* ``baseline.json``: the agent-run summary (per agent and per episode AR and adjustments, what
+  the accuracy-vs-time report plots), written through :func:`brave6d.evaluation.metrics.write_agent_runs`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from brave6d.core.errors import BraveError
+
+if TYPE_CHECKING:
+    from brave6d.core.run_context import RunContext
+    from brave6d.core.progress import StageResult
+    from brave6d.evaluation.agents import EpisodeOutcome
+    from brave6d.evaluation.metrics import AgentRuns, Leaderboard
+
+log = logging.getLogger(__name__)
+
+#: Image size of the baseline episodes (the agent's pixel thresholds were chosen at this width).
+IMAGE_WIDTH = 320
+#: Episodes per object and variant in the full demo (seeded random starts; one in ``--quick``):
+#: with one episode per object the AR of four objects swings by +-0.1 between seeds.
+EPISODES_PER_OBJECT = 6
+
+
+@dataclass
+class BaselineRun:
+    """The outcomes of the agents' episodes and their leaderboard."""
+
+    outcomes: list[EpisodeOutcome]
+    board: Leaderboard
+    width: int
+    height: int
+    bundle: str
+
+
+def clear_logs(folder: Path) -> None:
+    """Remove the episode logs and final depth images a previous run left in ``folder``."""
+    if not folder.is_dir():
+        return
+    for pattern in ("*.jsonl", "*_final_depth.png"):
+        for p in folder.glob(pattern):
+            p.unlink()
+
+
+def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: int = 0,
+                  width: int = IMAGE_WIDTH, episodes_per_object: int = 1,
+                  agents: Sequence[str] | None = None) -> BaselineRun:
+    """Serve ``bundle_dir`` on loopback, run the registered ``agents`` (default: all, in registry
+    order) on every object, ``episodes_per_object`` times from seeded random starts (seed
+    ``seed + gt_id + 1000 r`` for repeat ``r``: every agent starts alike), score the logs; writes
+    nothing but the logs."""
+    from brave6d.evaluation.agents import POLICIES, make_agent, run_episode
+    from brave6d.evaluation.metrics import models_from_bundle, read_episodes, score_episodes
+    from brave6d.serve import BraveClient, ServerThread, create_app, load_bundle
+
+    bundle = load_bundle(bundle_dir)
+    if not bundle.objects:
+        raise BraveError(f"{bundle_dir}: the bundle has no objects to evaluate on")
+    logs = out_dir / "episodes"
+    clear_logs(logs)
+    height = max(16, round(width * bundle.render.height / bundle.render.width))
+    app = create_app(bundle, device=device, log_dir=logs)
+    outcomes = []
+    with ServerThread(app) as server, BraveClient(server.url) as client:
+        players = [make_agent(name, client) for name in (agents if agents is not None else POLICIES)]
+        for repeat in range(episodes_per_object):
+            for obj in bundle.objects:
+                for agent in players:
+                    outcomes.append(run_episode(client, agent, obj.gt_id, seed=seed + obj.gt_id + 1000 * repeat,
+                                                width=width, height=height))
+    episodes = read_episodes([logs])
+    board = score_episodes(episodes, models_from_bundle(bundle, {o.obj_id for o in bundle.objects}))
+    return BaselineRun(outcomes, board, width, height, bundle.name)
+
+
+def agent_runs_of(run: BaselineRun) -> AgentRuns:
+    """The agent-run summary of ``run``: its leaderboard with each episode's registration notes."""
+    from brave6d.evaluation.metrics import agent_runs_from_board
+
+    return agent_runs_from_board(run.board, {o.episode_id: o.notes for o in run.outcomes}, run.bundle,
+                                 (run.width, run.height))
+
+
+def stage_evaluate(ctx: RunContext) -> StageResult:
+    """Demo stage: run and score the registered agents on every demo object (see the module docstring)."""
+    from brave6d.core.progress import StageResult
+    from brave6d.evaluation.agents import ACTIVE_AGENT, STATIC_AGENT
+    from brave6d.evaluation.metrics import agent_runs_path, write_agent_runs, write_leaderboard
+
+    bundle_dir = ctx.scene.bundle_dir
+    if not (bundle_dir / "manifest.json").is_file():
+        raise BraveError(f"{bundle_dir}: no bundle; run the export stage first")
+    out = ctx.workdir / "evaluation"
+    run = run_baselines(bundle_dir, out, device=ctx.device,
+                        episodes_per_object=1 if ctx.quick else EPISODES_PER_OBJECT)
+    write_leaderboard(run.board, out)
+    write_agent_runs(agent_runs_path(ctx.workdir), agent_runs_of(run))
+    log.info("baseline leaderboard:\n%s\n%s", run.board.table(), run.board.object_table())
+    scores = {a.agent: a for a in run.board.agents}
+    active, static = scores.get(ACTIVE_AGENT), scores.get(STATIC_AGENT)
+    return StageResult("evaluate", figures={
+        "episodes": len(run.board.episodes),
+        "AR active": active.ar if active else "n/a",
+        "AR static": static.ar if static else "n/a",
+        "mean adjustments": active.mean_adjustments if active else "n/a",
+    })

@@ -1,0 +1,31 @@
+"""ROS interface stage: robot agents drive a served scene over ROS topics (issue #20).
+
+Public API (lazy: ``import ros_interface`` loads neither torch nor any ROS library):
+
+- the ROS-agnostic bridge over :class:`brave6d.serve.EpisodeManager` (:mod:`brave6d.ros_interface.bridge`):
+  ``EpisodeBridge``, ``BridgeStep``, ``GroundTruthObject``, ``Estimate``, ``EpisodeResult``,
+  ``BridgeError``;
+- scoring a submission with BOP's AR (:mod:`brave6d.ros_interface.scoring`): ``EpisodeScorer``, ``EpisodeScore``;
+- ROS conventions as numpy (:mod:`brave6d.ros_interface.frames`): ``FRAME_WORLD``, ``FRAME_CAMERA_OPTICAL``,
+  ``GT_FRAME_PREFIX``, ``gt_frame``, ``matrix_to_pose``, ``pose_to_matrix`` (quaternions x, y, z, w),
+  ``camera_info_arrays``, ``depth_to_rep118``, ``stamp_parts``.
+
+The nodes live in ``brave6d.ros_interface.ros1`` (rospy, ``brave6d ros1``) and ``brave6d.ros_interface.ros2``
+(DDS, ``brave6d ros2``); both build their messages from the bridge. See docs/ROS.md.
+"""
+
+from brave6d.core.lazy import lazy_exports
+
+_LAZY = {
+    "EpisodeBridge": ".bridge", "BridgeStep": ".bridge", "GroundTruthObject": ".bridge", "Estimate": ".bridge",
+    "EpisodeResult": ".bridge", "BridgeError": ".bridge",
+    "EpisodeScorer": ".scoring", "EpisodeScore": ".scoring",
+    "FRAME_WORLD": ".frames", "FRAME_CAMERA_OPTICAL": ".frames", "GT_FRAME_PREFIX": ".frames",
+    "gt_frame": ".frames", "matrix_to_pose": ".frames", "pose_to_matrix": ".frames",
+    "camera_info_arrays": ".frames", "depth_to_rep118": ".frames", "stamp_parts": ".frames",
+}
+
+__all__ = sorted(_LAZY)
+
+
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

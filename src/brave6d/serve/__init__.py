@@ -1,0 +1,63 @@
+"""Serve stage: scene bundles, the render server, its Python client and wire/log schemas, a
+Gymnasium environment and a browser viewer.
+
+Public API (imported lazily, so ``import serve`` stays cheap: no torch, FastAPI or pydantic until
+a name is used). Other stages import only these names:
+
+- bundles: ``export_bundle``, ``load_bundle``, ``Bundle``, ``BundleObject``, ``BundleError``,
+  ``read_bundle_manifest`` (the one reader of a bundle's ``manifest.json``, structure checked),
+  ``find_splat_ply``, ``SPLAT`` (the splat's file name inside a bundle);
+- the server: ``create_app``, ``ServerLimits`` (its limits, checked when made: ``LimitError``;
+  ``limit_arg(name)``: the argparse type of the flag setting one), ``ServerThread`` (uvicorn in a
+  background thread),
+  ``SceneServer``, ``SplatRenderer``, ``EpisodeManager`` (episodes without HTTP);
+- the scenes of a server (:mod:`brave6d.serve.catalog`): ``open_scenes`` (a bundle or a release),
+  ``SceneCatalog`` (lazy loading within a memory bound), ``SceneSource``, ``SceneObject``,
+  ``bundle_scene_source``, ``estimate_scene_bytes``, ``SceneCacheFull``, ``SceneUnavailable`` (503:
+  a scene whose files cannot be located, unpacked or verified, even after ``SceneSource.refresh``);
+- the client: ``BraveClient``, ``PoseEstimate``, ``ServerError``, ``Observation``, ``StepResult``,
+  ``decode_observation``, and ``BraveEnv`` (a ``gymnasium.Env``);
+- the wire schema (:mod:`brave6d.serve.schema`): ``ObservationMessage``, ``StepMessage``, ``ObjectState``,
+  ``EncodedImage``, ``TargetRef``, ``ErrorMessage``;
+- the episode log (:mod:`brave6d.serve.episode_log`, versioned): ``read_episode_log``, ``EpisodeLog``,
+  ``ResetRecord``, ``ActionRecord``, ``SubmitRecord``, ``CloseRecord``, ``LoggedEstimate``,
+  ``FinalView``, ``LOG_FORMAT_VERSION``, ``FINAL_DEPTH_SUFFIX``;
+- test scenes: ``make_synthetic_bundle``, ``make_synthetic_scene``.
+
+The modules behind them, one job each: ``bundle`` (export + verified load), ``limits`` (image-size
+cap, pose and twist bounds, the server's limits and the bounds of its flags), ``connections``
+(header/body timeouts, per-client connection cap), ``geometry`` (collisions, twist integration),
+``renderer`` (the splat on cuda/cpu), ``catalog`` (the scenes of a server), ``splat_check``,
+``visibility`` (visible fractions), ``episodes`` (the episode state machine), ``schema`` (wire
+models), ``episode_log`` (log schema, writer, reader), ``app`` (FastAPI: REST + WebSocket +
+viewer), ``client``, ``gym_env``, ``runner`` (uvicorn), ``cli`` and ``export_cli`` (``brave6d
+serve``/``export``), ``demo``, ``synthetic``; ``serve/viewer/`` is the static browser viewer
+served at ``/viewer/``.
+"""
+
+from brave6d.core.lazy import lazy_exports
+
+_LAZY = {
+    "export_bundle": ".bundle", "load_bundle": ".bundle", "Bundle": ".bundle", "BundleObject": ".bundle",
+    "BundleError": ".bundle", "read_bundle_manifest": ".bundle", "find_splat_ply": ".bundle", "SPLAT": ".bundle",
+    "create_app": ".app", "ServerLimits": ".limits", "LimitError": ".limits", "limit_arg": ".limits",
+    "ServerThread": ".runner", "SceneServer": ".episodes",
+    "SplatRenderer": ".renderer", "EpisodeManager": ".episodes",
+    "open_scenes": ".catalog", "SceneCatalog": ".catalog", "SceneSource": ".catalog", "SceneObject": ".catalog",
+    "bundle_scene_source": ".catalog", "estimate_scene_bytes": ".catalog", "SceneCacheFull": ".catalog",
+    "SceneUnavailable": ".catalog",
+    "BraveClient": ".client", "PoseEstimate": ".client", "ServerError": ".client", "Observation": ".client",
+    "StepResult": ".client", "decode_observation": ".client", "BraveEnv": ".gym_env",
+    "ObservationMessage": ".schema", "StepMessage": ".schema", "ObjectState": ".schema",
+    "EncodedImage": ".schema", "TargetRef": ".schema", "ErrorMessage": ".schema",
+    "read_episode_log": ".episode_log", "EpisodeLog": ".episode_log", "ResetRecord": ".episode_log",
+    "ActionRecord": ".episode_log", "SubmitRecord": ".episode_log", "CloseRecord": ".episode_log",
+    "LoggedEstimate": ".episode_log", "FinalView": ".episode_log", "LOG_FORMAT_VERSION": ".episode_log",
+    "FINAL_DEPTH_SUFFIX": ".episode_log",
+    "make_synthetic_bundle": ".toy_scene", "make_synthetic_scene": ".toy_scene",
+}
+
+__all__ = sorted(_LAZY)
+
+
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

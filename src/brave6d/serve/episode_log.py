@@ -1,0 +1,252 @@
+"""The episode log: one JSONL file per episode, a versioned schema written by the server and read
+by scoring (``brave6d.evaluation.metrics``) through :func:`read_episode_log`.
+
+``<log_dir>/<episode_id>.jsonl`` holds one record per line, each time-stamped (UTC, ISO 8601):
+
+* ``reset`` (always the first line, carries :data:`LOG_FORMAT_VERSION` as ``format_version``): the
+  target, image size, ``K``, seed, start pose and the target's first ground truth;
+* ``set_pose`` / ``move``: the request, the poses before and after, refusal, counters, timings;
+* ``submit``: the estimates and everything scoring needs that only the server knows about the
+  final view (pose, ``K``, size, depth file beside the log, every object's ground truth);
+* ``close``: the totals.
+
+Version 1 is the format the server has written since the first release; logs written before
+the version field existed carry no ``format_version`` and are exactly version 1, so they are
+read as version 1. Version 2 adds the served scene to ``reset`` (``scene``: its name on the
+server, ``scene_id``: its BOP scene id in a release, else null), since one server may serve
+every scene of a release; a version-1 log reads with both null. Any other version is refused with the file and line. A line that does not
+match the schema is an error naming the file, the line and the field; a partial last line (the
+server stopped mid-write) is ignored.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+from pathlib import Path
+from typing import IO, Annotated, Any, Literal
+
+from pydantic import Field, TypeAdapter, ValidationError
+
+from brave6d.core.errors import DataError, validation_error_field
+from brave6d.serve.schema import Finite, Matrix3, Matrix4, ObjectState, TargetRef, Vector3, WireModel, matrix_type
+
+#: A rotation as an array, written as 9 numbers row-major (as the log has always held it).
+Rotation9 = matrix_type(3, 3, flat=True)
+
+#: The version every new log is written in (the ``format_version`` of its ``reset`` record).
+LOG_FORMAT_VERSION = 2
+#: The versions :func:`read_episode_log` reads.
+READABLE_VERSIONS = (1, 2)
+#: File name (beside the log) of the depth image of the view an episode's estimates refer to.
+FINAL_DEPTH_SUFFIX = "_final_depth.png"
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+class _Record(WireModel):
+    """Common to every record: written with the time it was made; unknown fields are refused."""
+
+    model_config = WireModel.model_config | {"extra": "forbid"}
+
+    time: str = Field(default_factory=_now)
+
+
+class ResetRecord(_Record):
+    event: Literal["reset"] = "reset"
+    format_version: int = LOG_FORMAT_VERSION
+    episode_id: str
+    bundle: str | None
+    agent: str | None
+    target: TargetRef
+    #: the scene's name on the server and its BOP scene_id (version 2; None in version-1 logs)
+    scene: str | None = None
+    scene_id: int | None = None
+    width: int
+    height: int
+    K: Matrix3
+    seed: int | None
+    start: Literal["given", "random"]
+    world_T_cam: Matrix4
+    timings_ms: dict[str, float]
+    #: the target's ground truth in this view (None when the view has no target)
+    target_cam_T_obj: Matrix4 | None = None
+    target_visib_fract: Finite | None = None
+
+
+class ActionRecord(_Record):
+    """A ``set_pose`` or ``move``: accepted (the camera moved; ``collided`` when a move stopped
+    part-way) or refused (the camera stayed; ``refusal`` says why)."""
+
+    event: Literal["set_pose", "move"]
+    step: int
+    accepted: bool
+    collided: bool
+    refusal: dict[str, Any] | None
+    requested: dict[str, Any]
+    world_T_cam_before: Matrix4
+    world_T_cam: Matrix4
+    adjustments: int
+    move: dict[str, Any] | None
+    timings_ms: dict[str, float]
+    target_cam_T_obj: Matrix4 | None = None
+    target_visib_fract: Finite | None = None
+
+
+class LoggedEstimate(WireModel):
+    """One submitted estimate: ``cam_T_obj`` of ``obj_id`` in the final view's camera frame
+    (``R`` 3x3, ``t_m`` metres), with a confidence ``score``."""
+
+    obj_id: int
+    R: Rotation9
+    t_m: Vector3
+    score: Finite = 1.0
+
+
+class FinalView(WireModel):
+    """The view the estimates refer to; ``depth_file`` (uint16 PNG in ``depth_unit``) lies beside the log."""
+
+    world_T_cam: Matrix4
+    K: Matrix3
+    width: int
+    height: int
+    depth_file: str | None
+    depth_unit: Literal["mm"] = "mm"
+
+
+class SubmitRecord(_Record):
+    event: Literal["submit"] = "submit"
+    episode_id: str
+    agent: str | None
+    bundle: str | None
+    bundle_root: str | None
+    target: TargetRef
+    estimates: list[LoggedEstimate]
+    final_view: FinalView
+    objects: list[ObjectState]
+    adjustments: int
+    steps: int
+    refusals: int
+    collisions: int
+    elapsed_s: Finite | None
+
+
+class CloseRecord(_Record):
+    event: Literal["close"] = "close"
+    reason: str
+    steps: int
+    adjustments: int
+    refusals: int
+    collisions: int
+    duration_s: float
+    render_ms_median: float | None
+    world_T_cam: Matrix4
+
+
+LogRecord = Annotated[ResetRecord | ActionRecord | SubmitRecord | CloseRecord, Field(discriminator="event")]
+_RECORD = TypeAdapter(LogRecord)
+
+
+# ----------------------------------------------------------------------------- writing
+def format_record(record: ResetRecord | ActionRecord | SubmitRecord | CloseRecord) -> str:
+    """One JSONL line of ``record`` (``ValueError`` for a value that is not finite, so that a step
+    can format its record before it changes anything)."""
+    return json.dumps(record.model_dump(mode="json"), allow_nan=False) + "\n"
+
+
+class EpisodeLog:
+    """Append-only JSONL log of one episode (one flushed line per record; fsync on close).
+
+    ``path`` None: a log that writes nothing (a server started without a log folder).
+    """
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+        self._handle: IO[str] | None = None
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._handle = open(path, "a", encoding="utf-8")  # noqa: SIM115 - kept open for the episode
+
+    @staticmethod
+    def format(record: ResetRecord | ActionRecord | SubmitRecord | CloseRecord) -> str:
+        return format_record(record)
+
+    def append(self, line: str) -> None:
+        """Append a line made by :meth:`format` and flush it."""
+        if self._handle is None:
+            return
+        self._handle.write(line)
+        self._handle.flush()
+
+    def write(self, record: ResetRecord | ActionRecord | SubmitRecord | CloseRecord) -> None:
+        self.append(self.format(record))
+
+    def close(self) -> None:
+        if self._handle is not None:
+            try:
+                os.fsync(self._handle.fileno())
+            except OSError:
+                pass
+            self._handle.close()
+            self._handle = None
+
+
+# ----------------------------------------------------------------------------- reading
+def _first_error(exc: ValidationError) -> str:
+    loc, msg = validation_error_field(exc.errors(include_url=False), dotted=True, skip=1)  # skip the record's tag
+    return f"field '{loc}': {msg}" if loc else msg
+
+
+def read_episode_log(path: Path | str) -> list[ResetRecord | ActionRecord | SubmitRecord | CloseRecord]:
+    """The records of an episode log, validated against the schema of its version.
+
+    Errors (:class:`DataError`) name the file and line: a line that is not JSON (except a partial
+    last line, which is ignored), a first record that is not ``reset``, a version this reader does
+    not know, a record that does not match the schema.
+    """
+    p = Path(path)
+    try:
+        lines = p.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise DataError(f"{p}: episode log not found") from None
+    except UnicodeDecodeError as exc:
+        raise DataError(f"{p}: not a UTF-8 text file ({exc})") from None
+    raws: list[tuple[int, dict[str, Any]]] = []
+    for n, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        try:
+            raw = json.loads(line)
+        except json.JSONDecodeError as exc:
+            if n == len(lines):  # a partial last line: the server was stopped mid-write
+                break
+            raise DataError(f"{p}:{n}: not valid JSON ({exc.msg})") from None
+        if not isinstance(raw, dict):
+            raise DataError(f"{p}:{n}: a record must be a JSON object")
+        raws.append((n, raw))
+    if raws:
+        _check_header(raws[0][1], p, raws[0][0])
+    records: list[ResetRecord | ActionRecord | SubmitRecord | CloseRecord] = []
+    for n, raw in raws:
+        try:
+            records.append(_RECORD.validate_python(raw))
+        except ValidationError as exc:
+            raise DataError(f"{p}:{n}: '{raw.get('event')}' record does not match the episode log schema "
+                            f"(version {LOG_FORMAT_VERSION}): {_first_error(exc)}") from None
+    if not records:
+        raise DataError(f"{p}: empty episode log")
+    return records
+
+
+def _check_header(raw: dict[str, Any], path: Path, line: int) -> None:
+    if raw.get("event") != "reset":
+        raise DataError(f"{path}:{line}: not an episode log (the first record must be a 'reset' event, "
+                        f"got {raw.get('event')!r})")
+    version = raw.get("format_version", 1)  # logs written before the field existed are version 1
+    if version not in READABLE_VERSIONS or isinstance(version, bool):
+        raise DataError(f"{path}:{line}: episode log format version {version!r} is not supported (this reader "
+                        f"reads version {', '.join(map(str, READABLE_VERSIONS))}); score it with the brave6d "
+                        "release that wrote it")

@@ -1,0 +1,653 @@
+"""Episodes: the state machine behind the API, independent of HTTP.
+
+An episode has a target instance, an image size (a scaled copy of the bundle's pinhole
+camera), the current camera pose ``world_T_cam`` and counters. Actions:
+
+* ``reset`` (creating the episode): start pose given (any free pose) or drawn from a seeded
+  random generator on a spherical cap around the target (capture-like distances and
+  elevations, looking at the target's model centre); returns the first observation.
+* ``set_pose``: teleport to an absolute pose (only the destination is checked, as habitat's
+  ``get_observations_at``).
+* ``move``: a constant twist for a duration, integrated and stopped at the last free substep
+  (:mod:`brave6d.serve.geometry`). A move that is blocked at its first substep goes nowhere.
+* ``submit``: hand in the final pose estimates (camera frame of the current view) and end the
+  episode. The log then holds everything scoring needs that only the server knows: the final
+  view's pose, ``K``, image size, every object's ground-truth ``cam_T_obj`` and visible
+  fraction, and the final depth image (``<episode_id>_final_depth.png``, uint16 mm, beside the
+  log). See :func:`submission_record`. Observations leave the server as :mod:`brave6d.serve.schema` models.
+
+**Refusal** (AI2-THOR semantics): an action whose destination (``set_pose``) or first substep
+(``move``) is in collision or outside the workspace is refused with the reason; the camera
+stays where it was, the adjustment counter does not change, and the observation returned is
+the previous one (not re-rendered). A move stopped part-way is *accepted* (``collided: true``
+plus the reason) and the camera stays at the last free pose, as habitat does.
+
+**Position adjustments**: every accepted ``set_pose`` or ``move`` counts one; the start pose
+of ``reset`` does not.
+
+Each episode is appended, one JSON record per action, to ``<log_dir>/<episode_id>.jsonl`` in the
+versioned schema of :mod:`brave6d.serve.episode_log` (reset, every action with the poses before/after,
+refusal, adjustments, timings, the target's pose in the camera frame and visible fraction; submit
+with the estimates and the final view's ground truth; close with the totals). Every action holds the
+episode's lock, so concurrent requests on one episode run one after the other; different
+episodes run concurrently (renders share one device lock in the renderer).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import secrets
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.core.atomic import depth_m_to_mm_u16, write_png
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import BraveError
+from brave6d.core.transforms import invert, look_at, orthonormalize
+from brave6d.serve.bundle import Bundle, BundleObject, load_model_m
+from brave6d.serve.episode_log import (
+    FINAL_DEPTH_SUFFIX,
+    ActionRecord,
+    CloseRecord,
+    EpisodeLog,
+    FinalView,
+    LoggedEstimate,
+    ResetRecord,
+    SubmitRecord,
+)
+from brave6d.serve.geometry import MoveResult, Refusal, integrate_twist
+from brave6d.serve.limits import MAX_ANGULAR_SPEED_RAD_S, MAX_COORD_M, MAX_LINEAR_SPEED_M_S, MAX_MOVE_DURATION_S
+from brave6d.serve.renderer import SplatRenderer
+from brave6d.serve.schema import ObjectState, TargetRef
+from brave6d.serve.visibility import Visibility, VisibilityComputer
+
+log = logging.getLogger(__name__)
+
+Matrix4 = NDArray[np.float64]
+
+
+# ----------------------------------------------------------------------------- errors
+class EpisodeError(BraveError):
+    """Base of the errors an API client can cause; ``status`` is the HTTP status to answer with."""
+
+    status = 400
+    field: str | None = None
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        if field is not None:
+            self.field = field
+
+
+class EpisodeNotFound(EpisodeError):
+    status = 404
+
+
+class EpisodeClosed(EpisodeError):
+    status = 409
+
+
+class EpisodeBusy(EpisodeError):
+    status = 409
+
+
+class TooManyEpisodes(EpisodeError):
+    status = 429
+
+
+class InvalidAction(EpisodeError):
+    status = 422
+
+
+class Cancelled(Exception):
+    """The request timed out before its result was committed; nothing changed."""
+
+
+class Ticket:
+    """Lets a timed-out request withdraw an action before it is committed (all or nothing)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.cancelled = False
+        self.committed = False
+
+    def commit(self, apply: Any) -> None:
+        with self._lock:
+            if self.cancelled:
+                raise Cancelled()
+            apply()
+            self.committed = True
+
+    def cancel(self) -> bool:
+        """True when the action is withdrawn (it will not be applied); False when it already was."""
+        with self._lock:
+            if self.committed:
+                return False
+            self.cancelled = True
+            return True
+
+
+# ----------------------------------------------------------------------------- views
+def object_state(obj: BundleObject, cam_T_obj: Matrix4, visibility: Visibility | None, is_target: bool) -> ObjectState:
+    """The wire/log record of one object in one view (visibility fields None when not computed)."""
+    vis = visibility.to_json() if visibility is not None else {}
+    return ObjectState(gt_id=obj.gt_id, obj_id=obj.obj_id, name=obj.name, is_target=is_target,
+                       cam_T_obj=cam_T_obj, **vis)
+
+
+@dataclass(frozen=True)
+class RenderedView:
+    """What the server rendered for one pose: the raw images (RGB uint8, depth float32 metres),
+    the camera, and every object's ground truth (:class:`brave6d.serve.schema.ObjectState`)."""
+
+    rgb: NDArray[np.uint8]
+    depth: NDArray[np.float32]
+    camera: PinholeCamera
+    world_T_cam: Matrix4
+    objects: tuple[ObjectState, ...]
+    timings_ms: dict[str, float]
+
+    def target(self) -> ObjectState | None:
+        return next((o for o in self.objects if o.is_target), None)
+
+
+@dataclass
+class ActionResult:
+    """The outcome of ``reset``/``set_pose``/``move`` (the app encodes it as a :class:`brave6d.serve.schema.StepMessage`)."""
+
+    episode_id: str
+    action: str
+    step: int
+    accepted: bool
+    collided: bool
+    refusal: Refusal | None
+    adjustments: int
+    observation: RenderedView
+    move: dict[str, Any] | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class SceneServer:
+    """Bundle + renderer + visibility: renders observations for any pose and image size."""
+
+    def __init__(self, bundle: Bundle, device: str = "auto", renderer: SplatRenderer | None = None,
+                 occlusion_tolerance: float = 0.015, visibility: bool = True) -> None:
+        self.bundle = bundle
+        self.renderer = renderer if renderer is not None else SplatRenderer(bundle.splat_path, device)
+        models = [load_model_m(bundle.model_path(o)) for o in bundle.objects]
+        self.centres_world = []
+        for o, (verts, _) in zip(bundle.objects, models):
+            c = 0.5 * (verts.min(axis=0) + verts.max(axis=0)) if len(verts) else np.zeros(3)
+            self.centres_world.append(o.world_T_obj[:3, :3] @ c + o.world_T_obj[:3, 3])
+        self.visibility: VisibilityComputer | None = None
+        if visibility and bundle.objects:
+            try:
+                self.visibility = VisibilityComputer(models, [o.world_T_obj for o in bundle.objects],
+                                                     occlusion_tolerance)
+            except ImportError as exc:  # Open3D missing: poses still served, visibility null
+                log.warning("visible fractions disabled: %s", exc)
+
+    @property
+    def device(self) -> str:
+        return self.renderer.device
+
+    def camera_for(self, width: int, height: int) -> PinholeCamera:
+        cam = self.bundle.camera
+        if (width, height) == (cam.width, cam.height):
+            return cam
+        return cam.scaled(width, height)
+
+    def observe(self, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None) -> RenderedView:
+        r = self.bundle.render
+        t0 = time.perf_counter()
+        out = self.renderer.render(world_T_cam, camera, near=r.near, far=r.far, background=r.background,
+                                   depth_alpha_min=r.depth_alpha_min)
+        t1 = time.perf_counter()
+        vis: list[Visibility | None] = [None] * len(self.bundle.objects)
+        if self.visibility is not None:
+            vis = list(self.visibility.compute(world_T_cam, camera, out.depth))
+        t2 = time.perf_counter()
+        cam_T_world = invert(world_T_cam)
+        objects = tuple(object_state(o, cam_T_world @ o.world_T_obj, v, o.gt_id == target_gt_id)
+                        for o, v in zip(self.bundle.objects, vis))
+        timings = {"render": out.render_ms, "render_queue": out.queue_ms, "visibility": (t2 - t1) * 1000.0,
+                   "observe": (t2 - t0) * 1000.0}
+        return RenderedView(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), objects, timings)
+
+    def random_start(self, target: BundleObject, rng: np.random.Generator, tries: int = 500) -> Matrix4:
+        """A free pose on a spherical cap around the target, looking at its model centre."""
+        s = self.bundle.start
+        dists = s.get("distances_m") or [0.2, 0.5]
+        d_lo, d_hi = float(min(dists)), float(max(dists))
+        el_lo = math.radians(float(s.get("min_elevation_deg", 30.0)))
+        el_hi = math.radians(float(s.get("max_elevation_deg", 80.0)))
+        az_lo, az_hi = (math.radians(float(a)) for a in s.get("azimuth_range_deg", (-180.0, 180.0)))
+        centre = self.centres_world[target.gt_id] if target.gt_id < len(self.centres_world) else target.world_T_obj[:3, 3]
+        for _ in range(tries):
+            d = rng.uniform(d_lo, d_hi)
+            el = rng.uniform(el_lo, el_hi)
+            az = rng.uniform(az_lo, az_hi)
+            eye = centre + d * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+            T = look_at(eye, centre)
+            if self.bundle.world.check(T) is None:
+                return T
+        raise InvalidAction(f"no free start pose found around object {target.name!r} in {tries} tries "
+                            "(check the collision boxes and the workspace)", "start")
+
+
+# ----------------------------------------------------------------------------- episodes
+@dataclass
+class Episode:
+    id: str
+    scene: SceneServer | None  # None once closed (a closed episode does not keep its scene loaded)
+    scene_name: str
+    target: BundleObject
+    camera: PinholeCamera
+    world_T_cam: Matrix4
+    seed: int | None
+    log: EpisodeLog
+    agent: str | None = None
+    created: float = field(default_factory=time.monotonic)
+    last_active: float = field(default_factory=time.monotonic)
+    adjustments: int = 0
+    steps: int = 0
+    refusals: int = 0
+    collisions: int = 0
+    closed: bool = False
+    close_reason: str | None = None
+    submitted: bool = False
+    last: RenderedView | None = None
+    render_ms: list[float] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def state(self) -> dict[str, Any]:
+        return {"episode_id": self.id, "scene": self.scene_name, "closed": self.closed,
+                "close_reason": self.close_reason, "target": {"gt_id": self.target.gt_id, "obj_id": self.target.obj_id, "name": self.target.name},
+                "width": self.camera.width, "height": self.camera.height, "K": self.camera.K.tolist(),
+                "world_T_cam": self.world_T_cam.tolist(), "adjustments": self.adjustments,
+                "steps": self.steps, "refusals": self.refusals, "collisions": self.collisions,
+                "seed": self.seed, "agent": self.agent, "submitted": self.submitted,
+                "age_s": time.monotonic() - self.created,
+                "log": str(self.log.path) if self.log.path else None}
+
+    def summary(self) -> dict[str, Any]:
+        ms = np.asarray(self.render_ms) if self.render_ms else np.zeros(0)
+        return {"steps": self.steps, "adjustments": self.adjustments, "refusals": self.refusals,
+                "collisions": self.collisions, "duration_s": time.monotonic() - self.created,
+                "render_ms_median": float(np.median(ms)) if len(ms) else None,
+                "world_T_cam": self.world_T_cam.tolist()}
+
+
+#: Largest ``|R^T R - I|`` accepted for a submitted rotation (then re-orthonormalised).
+ESTIMATE_ROTATION_ATOL = 1e-3
+
+
+def check_estimate(index: int, obj_id: int, R: Any, t_m: Any, score: float, known: set[int]) -> LoggedEstimate:
+    """A validated (finite, rotation orthonormal within ``ESTIMATE_ROTATION_ATOL`` with det > 0,
+    known ``obj_id``) and re-orthonormalised estimate; else :class:`InvalidAction` naming the field."""
+    where = f"estimates.{index}"
+    if int(obj_id) not in known:
+        raise InvalidAction(f"{where}.obj_id: unknown object id {obj_id} (known: {sorted(known)})", f"{where}.obj_id")
+    rot = np.asarray(R, dtype=np.float64)
+    if rot.size != 9:
+        raise InvalidAction(f"{where}.R: must have 9 values (3x3, row-major), got {rot.size}", f"{where}.R")
+    rot = rot.reshape(3, 3)
+    t = np.asarray(t_m, dtype=np.float64).reshape(-1)
+    if t.size != 3:
+        raise InvalidAction(f"{where}.t_m: must have 3 values (metres), got {t.size}", f"{where}.t_m")
+    for name, values in (("R", rot), ("t_m", t), ("score", np.asarray([score], dtype=np.float64))):
+        if not np.all(np.isfinite(values)):
+            raise InvalidAction(f"{where}.{name}: must be finite (NaN and inf are refused)", f"{where}.{name}")
+    err = float(np.max(np.abs(rot.T @ rot - np.eye(3))))
+    det = float(np.linalg.det(rot))
+    if err > ESTIMATE_ROTATION_ATOL or det <= 0:
+        raise InvalidAction(f"{where}.R: not a rotation (must be orthonormal with det +1: max |R^T R - I| = "
+                            f"{err:.3g}, det = {det:.3g})", f"{where}.R")
+    return LoggedEstimate(obj_id=int(obj_id), R=orthonormalize(rot), t_m=t, score=float(score))
+
+
+def check_pose(world_T_cam: Any, field: str) -> Matrix4:
+    """``world_T_cam`` as a 4x4 array when it is finite with its centre within ``MAX_COORD_M``
+    (the request models check this too; this guards direct callers), else :class:`InvalidAction`."""
+    T = np.array(world_T_cam, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InvalidAction(f"{field}: must be a finite 4x4 matrix", field)
+    if float(np.max(np.abs(T[:3, 3]))) > MAX_COORD_M:
+        raise InvalidAction(f"{field}: the camera centre must lie within {MAX_COORD_M:g} m of the origin", field)
+    return T
+
+
+def check_twist(linear: Any, angular: Any, duration: Any) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """The twist of a ``move`` as arrays when every value is finite and within the limits of
+    :mod:`brave6d.serve.limits`, else :class:`InvalidAction` naming the field."""
+    out = []
+    for name, values, top in (("linear", linear, MAX_LINEAR_SPEED_M_S), ("angular", angular, MAX_ANGULAR_SPEED_RAD_S)):
+        v = np.asarray(values, dtype=np.float64).reshape(-1)
+        if v.size != 3 or not np.all(np.isfinite(v)) or float(np.max(np.abs(v))) > top:
+            raise InvalidAction(f"{name}: must be 3 finite numbers of magnitude <= {top:.4g}", name)
+        out.append(v)
+    d = float(duration)
+    if not (np.isfinite(d) and 0.0 < d <= MAX_MOVE_DURATION_S):
+        raise InvalidAction(f"duration: must be a finite number in (0, {MAX_MOVE_DURATION_S:g}] seconds", "duration")
+    return out[0], out[1], d
+
+
+def submission_record(ep: Episode, estimates: list[LoggedEstimate], bundle: Bundle, depth_file: str | None,
+                      agent: str | None) -> SubmitRecord:
+    """The ``submit`` log record: the estimates and what only the server knows about the final
+    view (pose, ``K``, image size, depth file, every object's ground truth in that camera frame)."""
+    obs = ep.last
+    assert obs is not None
+    return SubmitRecord(
+        episode_id=ep.id, agent=agent, bundle=bundle.name, bundle_root=str(bundle.root.resolve()),
+        target=_target_ref(ep.target), estimates=estimates,
+        final_view=FinalView(world_T_cam=obs.world_T_cam, K=obs.camera.K, width=obs.camera.width,
+                             height=obs.camera.height, depth_file=depth_file),
+        objects=list(obs.objects), adjustments=ep.adjustments, steps=ep.steps, refusals=ep.refusals,
+        collisions=ep.collisions, elapsed_s=time.monotonic() - ep.created)
+
+
+def _target_ref(obj: BundleObject) -> TargetRef:
+    return TargetRef(gt_id=obj.gt_id, obj_id=obj.obj_id, name=obj.name)
+
+
+def _target_truth(obs: RenderedView) -> dict[str, Any]:
+    """The target's ground truth in ``obs`` for the log (nothing when the view has no target)."""
+    t = obs.target()
+    if t is None:
+        return {}
+    return {"target_cam_T_obj": t.cam_T_obj, "target_visib_fract": t.visib_fract}
+
+
+def _commit(ticket: Ticket | None, apply: Any) -> None:
+    """Run ``apply`` (the state change of an action) unless its request was withdrawn."""
+    if ticket is not None:
+        ticket.commit(apply)
+    else:
+        apply()
+
+
+class EpisodeManager:
+    """Creates, runs and expires episodes (thread-safe) on the scenes of a
+    :class:`brave6d.serve.catalog.SceneCatalog` (or on one loaded :class:`SceneServer`). An open episode
+    keeps its scene loaded; closing it lets the catalog evict the scene when room is needed."""
+
+    def __init__(self, scenes: Any, log_dir: Path | str | None = None, max_episodes: int = 32,
+                 idle_timeout_s: float = 900.0, keep_closed: int = 256, lock_timeout_s: float = 30.0) -> None:
+        from brave6d.serve.catalog import SceneCatalog
+
+        self.scenes: SceneCatalog = scenes if isinstance(scenes, SceneCatalog) else SceneCatalog.of_scene(scenes)
+        self.log_dir = Path(log_dir) if log_dir is not None else None
+        self.max_episodes = max_episodes
+        self.idle_timeout_s = idle_timeout_s
+        self.keep_closed = keep_closed
+        self.lock_timeout_s = lock_timeout_s
+        self._episodes: OrderedDict[str, Episode] = OrderedDict()
+        self._lock = threading.Lock()
+
+    # -------------------------------------------------------------- bookkeeping
+    def _expire(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            stale = [e for e in self._episodes.values()
+                     if not e.closed and now - e.last_active > self.idle_timeout_s]
+        for e in stale:
+            if e.lock.acquire(timeout=0):
+                try:
+                    self._close(e, "expired (idle)")
+                finally:
+                    e.lock.release()
+        with self._lock:
+            closed = [k for k, e in self._episodes.items() if e.closed]
+            for k in closed[: max(0, len(closed) - self.keep_closed)]:
+                del self._episodes[k]
+
+    def open_count(self) -> int:
+        with self._lock:
+            return sum(1 for e in self._episodes.values() if not e.closed)
+
+    def list(self) -> list[dict[str, Any]]:
+        self._expire()
+        with self._lock:
+            return [{"episode_id": e.id, "scene": e.scene_name, "closed": e.closed, "steps": e.steps, "adjustments": e.adjustments,
+                     "target": e.target.name} for e in self._episodes.values()]
+
+    def get(self, episode_id: str) -> Episode:
+        with self._lock:
+            ep = self._episodes.get(episode_id)
+        if ep is None:
+            raise EpisodeNotFound(f"unknown episode {episode_id!r} (never created, or closed and forgotten)",
+                                  "episode_id")
+        return ep
+
+    @staticmethod
+    def _scene(ep: Episode) -> SceneServer:
+        assert ep.scene is not None  # only closed episodes have none, and _acquire refuses them
+        return ep.scene
+
+    def _acquire(self, ep: Episode) -> None:
+        if not ep.lock.acquire(timeout=self.lock_timeout_s):
+            raise EpisodeBusy(f"episode {ep.id} is busy with another request")
+        if ep.closed:
+            ep.lock.release()
+            raise EpisodeClosed(f"episode {ep.id} is closed ({ep.close_reason}); reset a new one", "episode_id")
+
+    # -------------------------------------------------------------- actions
+    def reset(self, *, scene: str | int | None = None, target: int | str | None = None, width: int | None = None,
+              height: int | None = None, start: Matrix4 | None = None, seed: int | None = None,
+              agent: str | None = None, ticket: Ticket | None = None) -> ActionResult:
+        """Start an episode on ``scene`` (a name or BOP scene_id; None: the only scene) at target
+        ``target``; the scene is loaded first when needed (see :class:`brave6d.serve.catalog.SceneCatalog`)."""
+        self._expire()
+        source = self.scenes.source(scene)  # an unknown scene is refused before anything is loaded
+        with self._lock:
+            if sum(1 for e in self._episodes.values() if not e.closed) >= self.max_episodes:
+                raise TooManyEpisodes(f"too many open episodes ({self.max_episodes}); close one first")
+        server = self.scenes.acquire(scene)
+        try:
+            return self._reset(server, source.name, source.scene_id, target, width, height, start, seed, agent,
+                               ticket)
+        except BaseException:
+            self.scenes.release(server)
+            raise
+
+    def _reset(self, server: SceneServer, scene_name: str, scene_id: int | None, target: int | str | None,
+               width: int | None, height: int | None, start: Matrix4 | None, seed: int | None, agent: str | None,
+               ticket: Ticket | None) -> ActionResult:
+        bundle = server.bundle
+        if not bundle.objects:
+            raise InvalidAction("the bundle has no objects to target", "target")
+        if target is None:
+            tgt = bundle.objects[0]
+        else:
+            try:
+                tgt = bundle.object_by(target)
+            except KeyError as exc:
+                raise InvalidAction(str(exc.args[0]), "target") from None
+        w = width or bundle.render.width
+        h = height or bundle.render.height
+        camera = server.camera_for(w, h)
+        if start is not None:
+            T0 = check_pose(start, "start")
+            refusal = bundle.world.check(T0)
+            if refusal is not None:
+                raise InvalidAction(f"start pose refused: {refusal.message}", "start")
+            used_seed = seed
+        else:
+            used_seed = seed if seed is not None else secrets.randbits(31)
+            T0 = server.random_start(tgt, np.random.default_rng(used_seed))
+        with self._lock:
+            if sum(1 for e in self._episodes.values() if not e.closed) >= self.max_episodes:
+                raise TooManyEpisodes(f"too many open episodes ({self.max_episodes}); close one first")
+            eid = secrets.token_hex(8)
+            ep = Episode(eid, server, scene_name, tgt, camera, T0, used_seed,
+                         EpisodeLog(self.log_dir / f"{eid}.jsonl" if self.log_dir else None), agent)
+            self._episodes[eid] = ep  # reserve the slot
+        ep.lock.acquire()
+        try:
+            t0 = time.perf_counter()
+            try:
+                obs = server.observe(T0, camera, tgt.gt_id)
+                timings = {**obs.timings_ms, "step": (time.perf_counter() - t0) * 1000.0}
+                line = ep.log.format(ResetRecord(
+                    episode_id=eid, bundle=bundle.name, agent=agent, target=_target_ref(tgt), scene=scene_name,
+                    scene_id=scene_id, width=w, height=h,
+                    K=camera.K, seed=used_seed, start="given" if start is not None else "random", world_T_cam=T0,
+                    timings_ms=timings, **_target_truth(obs)))
+
+                def apply() -> None:
+                    ep.log.append(line)
+                    ep.last = obs
+                    ep.render_ms.append(obs.timings_ms["render"])
+
+                _commit(ticket, apply)
+            except BaseException:  # the episode never existed
+                with self._lock:
+                    self._episodes.pop(eid, None)
+                ep.log.close()
+                if ep.log.path is not None and ep.log.path.exists():
+                    ep.log.path.unlink()
+                raise
+            return ActionResult(eid, "reset", 0, True, False, None, 0, obs, None, timings)
+        finally:
+            ep.lock.release()
+
+    def set_pose(self, episode_id: str, world_T_cam: Matrix4, ticket: Ticket | None = None) -> ActionResult:
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            T = check_pose(world_T_cam, "pose")
+            return self._finish(ep, "set_pose", T, self._scene(ep).bundle.world.check(T), None,
+                                {"world_T_cam": T.tolist()}, ticket)
+        finally:
+            ep.lock.release()
+
+    def move(self, episode_id: str, linear: Any, angular: Any, duration: float, frame: str = "camera",
+             ticket: Ticket | None = None) -> ActionResult:
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            v, w, d = check_twist(linear, angular, duration)
+            try:
+                res: MoveResult = integrate_twist(self._scene(ep).bundle.world, ep.world_T_cam, v, w, d, frame)
+            except ValueError as exc:
+                raise InvalidAction(str(exc), "frame" if "frame" in str(exc) else "duration") from None
+            move = {"fraction": res.fraction, "substeps": res.substeps, "path_m": res.path_m}
+            requested = {"linear": v.tolist(), "angular": w.tolist(), "duration": d, "frame": frame}
+            if not res.moved:  # blocked at the first substep: refused
+                return self._finish(ep, "move", ep.world_T_cam, res.refusal, move, requested, ticket)
+            return self._finish(ep, "move", res.world_T_cam, None, move, requested, ticket,
+                                stopped_by=res.refusal)
+        finally:
+            ep.lock.release()
+
+    def _finish(self, ep: Episode, action: str, T: Matrix4, refusal: Refusal | None, move: dict[str, Any] | None,
+                requested: dict[str, Any], ticket: Ticket | None, stopped_by: Refusal | None = None) -> ActionResult:
+        """Complete a ``set_pose``/``move`` to ``T`` (or refuse it) as one transaction: the
+        observation, the counters and the log line are all computed first, then the log line is
+        written and the state changed together; a failure before that changes nothing."""
+        t0 = time.perf_counter()
+        before = ep.world_T_cam
+        accepted = refusal is None
+        if accepted:
+            obs = self._scene(ep).observe(T, ep.camera, ep.target.gt_id)
+            after, timings = T, {**obs.timings_ms}
+        else:
+            assert ep.last is not None
+            obs, after = ep.last, before
+            timings = {"render": 0.0, "render_queue": 0.0, "visibility": 0.0, "observe": 0.0}
+        steps, adjustments = ep.steps + 1, ep.adjustments + int(accepted)
+        collided = refusal is not None or stopped_by is not None
+        reason = refusal or stopped_by
+        timings["step"] = (time.perf_counter() - t0) * 1000.0
+        line = ep.log.format(ActionRecord(
+            event=action, step=steps, accepted=accepted, collided=collided,
+            refusal=reason.to_json() if reason else None, requested=requested, world_T_cam_before=before,
+            world_T_cam=after, adjustments=adjustments, move=move, timings_ms=timings, **_target_truth(obs)))
+
+        def apply() -> None:
+            ep.log.append(line)  # first: a failed write leaves the state as it was
+            ep.steps, ep.adjustments, ep.world_T_cam = steps, adjustments, after
+            if accepted:
+                ep.last = obs
+                ep.render_ms.append(obs.timings_ms["render"])
+                ep.collisions += int(stopped_by is not None)
+            else:
+                ep.refusals += 1
+            ep.last_active = time.monotonic()
+
+        _commit(ticket, apply)
+        return ActionResult(ep.id, action, steps, accepted, collided, reason, adjustments, obs, move, timings)
+
+    def submit(self, episode_id: str, estimates: list[dict[str, Any]], agent: str | None = None,
+               ticket: Ticket | None = None) -> dict[str, Any]:
+        """Log the final estimates (``{obj_id, R, t_m, score}``, camera frame of the current view)
+        with the final view's ground truth and depth image, then close the episode."""
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            if ep.last is None:
+                raise InvalidAction("the episode has no observation to refer the estimates to", "episode_id")
+            scene = self._scene(ep)
+            known = {o.obj_id for o in scene.bundle.objects}
+            clean = [check_estimate(i, e.get("obj_id", -1), e.get("R", ()), e.get("t_m", ()), e.get("score", 1.0),
+                                    known) for i, e in enumerate(estimates)]
+            depth = depth_m_to_mm_u16(ep.last.depth)
+            depth_file = f"{ep.id}{FINAL_DEPTH_SUFFIX}" if ep.log.path is not None else None
+            name = agent if agent is not None else ep.agent
+            line = ep.log.format(submission_record(ep, clean, scene.bundle, depth_file, name))
+            out: dict[str, Any] = {}
+
+            def apply() -> None:
+                if ep.log.path is not None and depth_file is not None:
+                    write_png(ep.log.path.with_name(depth_file), depth)
+                ep.log.append(line)
+                ep.agent = name
+                ep.submitted = True
+                out.update(self._close(ep, "submitted"))
+                out.update({"submitted": True, "estimates": len(clean), "depth_file": depth_file, "agent": ep.agent})
+
+            _commit(ticket, apply)
+            return out
+        finally:
+            ep.lock.release()
+
+    def close(self, episode_id: str, reason: str = "closed by the client") -> dict[str, Any]:
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            return self._close(ep, reason)
+        finally:
+            ep.lock.release()
+
+    def _close(self, ep: Episode, reason: str) -> dict[str, Any]:
+        summary = ep.summary()
+        ep.closed = True
+        ep.close_reason = reason
+        ep.log.write(CloseRecord(reason=reason, **summary))
+        ep.log.close()
+        ep.last = None  # free the images (closed episodes are kept for GET /episodes/{id})
+        if ep.scene is not None:
+            self.scenes.release(ep.scene)
+            ep.scene = None
+        return {"episode_id": ep.id, "closed": True, "reason": reason, **summary}
+
+    def close_all(self, reason: str = "server shutdown") -> None:
+        with self._lock:
+            eps = [e for e in self._episodes.values() if not e.closed]
+        for e in eps:
+            if e.lock.acquire(timeout=5.0):
+                try:
+                    if not e.closed:
+                        self._close(e, reason)
+                finally:
+                    e.lock.release()

@@ -1,0 +1,210 @@
+"""Render one view of a bundle's Gaussians with :func:`brave6d.training.rasterize` (forward only).
+
+* The splat is read once (``brave6d.training.read_ply``; or handed over in memory with
+  :meth:`SplatRenderer.from_splat`), activated (``sigmoid`` opacity, ``exp``
+  scale, normalised ``wxyz`` quaternion, SH ``[N, K, 3]``) and kept on the chosen device
+  (``cuda`` or ``cpu``; ``auto`` picks CUDA when torch sees a GPU: ``brave6d.training.resolve_device``).
+* A splat with a NaN or inf parameter, no Gaussians, or none visible is refused at load with a
+  message naming the file (:func:`brave6d.serve.splat_check.check_splat`), never served half-broken.
+* Gaussians whose activated opacity is below 1/255 are dropped at load: the rasterizer skips
+  any Gaussian whose alpha ``o * exp(-sigma) <= o`` is below 1/255, so they can never change a
+  pixel (lossless).
+* Per request, Gaussians that cannot reach the image are culled on the device before the
+  rasterizer runs: centres outside ``(near, far)`` (the rasterizer drops those itself) and
+  Gaussians whose screen footprint, bounded from above through the largest scale and the
+  projection Jacobian (see :meth:`SplatRenderer._cull`), lies outside the image. Lossless
+  too (the rasterizer would draw nothing of them); it saves their projection and binning.
+* SH bands that are all zero (a degree-2 model saved with 45 ``f_rest``) are not evaluated.
+* Renders run under ``torch.no_grad`` and one lock: the CPU kernels use every core, and
+  concurrent renders would only slow each other down. ``render_ms`` is the wall time of the
+  rasterizer call (including waiting for the GPU), ``queue_ms`` the wait for the lock.
+* Depth is the rasterizer's expected z-depth (camera frame, metres, float32); pixels whose
+  alpha is below ``depth_alpha_min`` get depth 0 (= no data, the project's depth convention).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import BraveError
+from brave6d.core.transforms import invert
+from brave6d.serve.splat_check import MIN_ALPHA, activated_opacity, check_splat
+
+if TYPE_CHECKING:
+    from brave6d.training import SplatData
+
+
+def effective_sh_degree(shN: NDArray[np.float32]) -> int:
+    """The lowest SH degree that represents ``shN`` [N, K, 3] exactly: PLY writers pad lower-degree
+    models with zero coefficients (e.g. a degree-2 model saved with 45 ``f_rest``), and evaluating
+    those zero bands changes nothing but costs time."""
+    from brave6d.training import sh_degree_for
+
+    degree = sh_degree_for(shN.shape[1])
+    while degree > 0:
+        lo = degree * degree - 1  # coefficients of degree `degree` are [lo, (degree+1)^2 - 1)
+        if np.any(shN[:, lo:(degree + 1) ** 2 - 1]):
+            break
+        degree -= 1
+    return degree
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    rgb: NDArray[np.uint8]  # (H, W, 3)
+    depth: NDArray[np.float32]  # (H, W) metres, 0 = no data
+    alpha: NDArray[np.float32]  # (H, W)
+    render_ms: float
+    queue_ms: float
+    gaussians_drawn: int
+
+
+class SplatRenderer:
+    """The Gaussians of one splat PLY, ready to render (see the module docstring)."""
+
+    def __init__(self, splat_path: Path | str, device: str = "auto", cull: bool = True) -> None:
+        from brave6d.training import read_ply
+
+        self._load(read_ply(splat_path), splat_path, device, cull)
+
+    @classmethod
+    def from_splat(cls, splat: SplatData, device: str = "auto", cull: bool = True,
+                   source: str = "in-memory splat") -> SplatRenderer:
+        """A renderer of ``splat`` as it is in memory (no PLY file); ``source`` names it in errors."""
+        renderer = cls.__new__(cls)
+        renderer._load(splat, source, device, cull)
+        return renderer
+
+    def _load(self, splat: SplatData, source: Path | str, device: str, cull: bool) -> None:
+        import torch
+
+        from brave6d.training import resolve_device
+
+        dev = resolve_device(device)
+        self.device = dev.type
+        check_splat(splat, source)  # NaN/inf, no Gaussians, nothing visible: refused with the source's name
+        opac = activated_opacity(splat)
+        keep = opac >= MIN_ALPHA
+        self.n_loaded = splat.num_gaussians
+        self.n_pruned = int((~keep).sum())
+        f32 = torch.float32
+        quats = splat.quats[keep].astype(np.float64)
+        norm = np.linalg.norm(quats, axis=1, keepdims=True)
+        quats = np.where(norm > 1e-12, quats / np.maximum(norm, 1e-12), np.array([1.0, 0, 0, 0]))
+        scales = np.exp(np.clip(splat.scales[keep].astype(np.float64), -30, 30))
+        self.means = torch.as_tensor(splat.means[keep], dtype=f32, device=dev).contiguous()
+        self.quats = torch.as_tensor(quats, dtype=f32, device=dev).contiguous()
+        self.scales = torch.as_tensor(scales, dtype=f32, device=dev).contiguous()
+        self.opacities = torch.as_tensor(opac[keep], dtype=f32, device=dev).contiguous()
+        self.sh_degree = effective_sh_degree(splat.shN[keep])
+        k = (self.sh_degree + 1) ** 2 - 1
+        coeffs = np.concatenate([splat.sh0[keep], splat.shN[keep][:, :k]], axis=1)
+        self.colors = torch.as_tensor(coeffs, dtype=f32, device=dev).contiguous()
+        self.max_scale = self.scales.max(dim=1).values.contiguous()
+        self.cull = cull
+        self.lock = threading.Lock()
+        self.renders = 0
+
+    #: The lowest SH degree that represents a splat's ``shN`` exactly (what the renderer evaluates).
+    effective_sh_degree = staticmethod(effective_sh_degree)
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.means.shape[0])
+
+    def _cull(self, viewmat, K, width: int, height: int, near: float, far: float):  # type: ignore[no-untyped-def]
+        """Indices of Gaussians that may touch the image (a superset; see the module docstring).
+
+        The rasterizer's screen radius is at most ``3.33 * sqrt(lambda_max(J S J^T) + 0.3)`` px
+        with ``S`` the 3D covariance (``lambda_max <= s_max^2``) and ``J`` the projection
+        Jacobian, whose x/z, y/z terms are clamped to the image plus 30 % of the half field of
+        view; ``||J||_2 <= ||J||_F = sqrt(fx^2 (1 + tx^2) + fy^2 (1 + ty^2)) / z`` with the
+        clamp limits ``tx``, ``ty``. Gaussians whose centre plus that bound (plus one pixel)
+        misses the image are dropped, as are centres outside ``(near, far)`` (the rasterizer
+        culls those itself). ``K`` is OpenCV's (pixel centres at integers): the image spans
+        ``[-0.5, width - 0.5]``, the clamp limits are measured from those edges.
+        """
+        import torch
+
+        fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+        tx = max(cx + 0.5, width - 0.5 - cx) / fx + 0.3 * (0.5 * width / fx)
+        ty = max(cy + 0.5, height - 0.5 - cy) / fy + 0.3 * (0.5 * height / fy)
+        jf = math.sqrt(fx * fx * (1.0 + tx * tx) + fy * fy * (1.0 + ty * ty))
+        R = viewmat[:3, :3]
+        t = viewmat[:3, 3]
+        pc = self.means @ R.T + t
+        z = pc[:, 2]
+        front = (z > near) & (z < far)
+        zc = torch.clamp(z, min=near)
+        u = fx * pc[:, 0] / zc + cx
+        v = fy * pc[:, 1] / zc + cy
+        sig = jf * self.max_scale / zc
+        rad = 3.33 * torch.sqrt(sig * sig + 0.3) + 1.0
+        inside = (u + rad > -0.5) & (u - rad < width - 0.5) & (v + rad > -0.5) & (v - rad < height - 0.5)
+        return torch.nonzero(front & inside, as_tuple=False).squeeze(1)
+
+    def render(self, world_T_cam: NDArray[np.float64], camera: PinholeCamera, *, near: float = 0.01,
+               far: float = 100.0, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+               depth_alpha_min: float = 0.5) -> RenderOutput:
+        """Render the view of an undistorted pinhole ``camera`` at ``world_T_cam`` (OpenCV axes)."""
+        import torch
+
+        from brave6d.training import rasterize
+
+        if camera.has_distortion:
+            raise BraveError("the renderer draws pinhole images: give an undistorted camera")
+        dev = self.means.device
+        viewmat = torch.as_tensor(invert(world_T_cam), dtype=torch.float32, device=dev)
+        K = torch.as_tensor(camera.K, dtype=torch.float32, device=dev)
+        bg = torch.as_tensor(background, dtype=torch.float32, device=dev).reshape(1, 3)
+        t_wait = time.perf_counter()
+        with self.lock:
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                if self.cull:
+                    idx = self._cull(viewmat, K, camera.width, camera.height, near, far)
+                    if idx.numel() == 0:  # nothing in view: keep one Gaussian so shapes stay valid
+                        idx = torch.zeros(1, dtype=torch.long, device=dev)
+                    args = (self.means[idx], self.quats[idx], self.scales[idx], self.opacities[idx],
+                            self.colors[idx])
+                else:
+                    args = (self.means, self.quats, self.scales, self.opacities, self.colors)
+                colors, depth, alpha, _ = rasterize(
+                    *args, viewmat[None], K[None], camera.width, camera.height,
+                    sh_degree=self.sh_degree, near_plane=near, far_plane=far, backgrounds=bg,
+                    backend="cuda" if dev.type == "cuda" else "cpu")
+                rgb = (colors[0].clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8)
+                a = alpha[0, :, :, 0]
+                d = torch.where(a >= depth_alpha_min, depth[0, :, :, 0], torch.zeros_like(a))
+                d = torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0)
+                rgb_np, d_np, a_np = rgb.cpu().numpy(), d.float().cpu().numpy(), a.float().cpu().numpy()
+            t1 = time.perf_counter()
+            self.renders += 1
+        drawn = int(args[0].shape[0])
+        return RenderOutput(rgb_np, d_np, a_np, (t1 - t0) * 1000.0, (t0 - t_wait) * 1000.0, drawn)
+
+    def warm_up(self, camera: PinholeCamera, world_T_cam: NDArray[np.float64]) -> float:
+        """One render (loads the compiled kernels / CUDA context); returns its milliseconds."""
+        small = camera.scaled(max(16, camera.width // 4), max(16, camera.height // 4))
+        return self.render(world_T_cam, small).render_ms
+
+
+def lookat_default(bundle_start: dict, fallback_target: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A sensible default view: from the capture's middle distance at 45 deg elevation towards the target."""
+    from brave6d.core.transforms import look_at
+
+    target = np.asarray(bundle_start.get("target", fallback_target), dtype=np.float64)
+    dists = bundle_start.get("distances_m") or [0.3]
+    d = float(np.median(dists))
+    el = math.radians(45.0)
+    eye = target + d * np.array([-math.cos(el), 0.0, math.sin(el)])
+    return look_at(eye, target)

@@ -1,0 +1,41 @@
+"""training stage: 3DGS model, rasterizer backends, trainer, evaluation, PLY export.
+
+Public API (imported lazily, so `import training` stays cheap: no torch / numba import).
+Other stages (serve, evaluation) import only these names:
+
+- training: ``train`` (in memory: loaded views + preset -> ``TrainedSplat``, with a ``HoldoutPoint`` per scoring), ``train_scene``
+  (``brave6d train``: a scene directory -> ``splat/`` outputs, through ``train``), ``load_scene``
+  (a scene's views, undistorted, with the holdout split), ``holdout_split``, ``evaluate_holdout``;
+- settings: ``Preset``, ``get_preset``, ``resolve_device`` (``auto``/``cpu``/``cuda`` -> torch device);
+- Gaussians: ``GaussianModel``, ``rasterize``, ``SplatData``, ``read_ply``, ``write_ply``, ``SH_C0``,
+  ``sh_degree_for``.
+"""
+
+from brave6d.core.lazy import lazy_exports
+
+__all__ = ["SH_C0", "GaussianModel", "HoldoutPoint", "Preset", "SplatData", "TrainedSplat", "evaluate_holdout", "get_preset",
+           "holdout_split", "load_scene", "rasterize", "read_ply", "resolve_device", "sh_degree_for", "train",
+           "train_scene", "write_ply"]
+
+_LAZY = {
+    "rasterize": ".rasterizer",
+    "train": ".training_run",
+    "TrainedSplat": ".training_run",
+    "HoldoutPoint": ".training_run",
+    "train_scene": ".pipeline",
+    "GaussianModel": ".model",
+    "read_ply": ".ply",
+    "write_ply": ".ply",
+    "SplatData": ".ply",
+    "SH_C0": ".ply",
+    "sh_degree_for": ".ply",
+    "holdout_split": ".views",
+    "load_scene": ".views",
+    "evaluate_holdout": ".holdout_eval",
+    "Preset": ".presets",
+    "get_preset": ".presets",
+    "resolve_device": ".device",
+}
+
+
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

@@ -1,0 +1,70 @@
+"""``brave6d train SCENE_DIR``: train a 3DGS splat from a captured, calibrated scene.
+
+Registered in ``brave6d/cli.py`` as ``Command("train", "brave6d.training.cli", ...)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from brave6d.core.layout import SceneDir
+from brave6d.core.progress import format_table
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scene_dir", type=Path, help="scene directory with capture/ and calibration/")
+    parser.add_argument("--preset", choices=["fast", "default", "quality"], default="default",
+                        help="fast: CPU demo (half resolution, minutes); default: Inria-like 30k steps; "
+                             "quality: longer, full resolution (default: %(default)s)")
+    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                        help="where to train: auto picks CUDA when available (default: %(default)s)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="number of steps; the preset's step schedules (SH, densification, "
+                             "checkpoints) are scaled with it")
+    parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                        help="stop training after this many seconds (default: the preset's)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from the newest checkpoint in splat/checkpoints; without it a new training "
+                             "starts, and the previous one's outputs are moved aside (splat/<name>.old-<stamp>) "
+                             "once the new one has written its first checkpoint")
+    parser.add_argument("--skip-bad-frames", action="store_true",
+                        help="leave out missing or corrupt frames (listed in metrics.json) instead of stopping")
+    parser.add_argument("--init", choices=["auto", "colmap", "depth", "random"], default="auto",
+                        help="initial points: auto = COLMAP, else depth frames, else random (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's, 0)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from brave6d.training.pipeline import require_capture, train_scene
+    from brave6d.training.presets import get_preset
+
+    scene = SceneDir(args.scene_dir)
+    require_capture(scene)
+    preset = get_preset(args.preset)
+    if args.steps is not None:
+        preset = preset.with_steps(args.steps)
+    preset = preset.with_overrides(seed=args.seed)
+    if args.time_budget is not None:
+        preset = preset.with_overrides(time_budget_s=args.time_budget)
+    metrics = train_scene(scene, preset, device=args.device, resume=args.resume,
+                          skip_bad_frames=args.skip_bad_frames, init_method=args.init)
+    print(summary(metrics))
+    print(f"\nsplat: {metrics['outputs']['ply']}\nmetrics: {scene.splat_dir / 'metrics.json'}")
+    previous = metrics["outputs"].get("previous_training") or []
+    if previous:
+        print("previous training kept as: " + ", ".join(previous))
+    return 0
+
+
+def summary(metrics: dict) -> str:
+    """The holdout table: overall and per distance level."""
+    hold = metrics["holdout"]
+    rows = [(f"level {lvl} ({m['distance_m']:.2f} m)", m["n_views"], f"{m['psnr']:.2f}", f"{m['ssim']:.4f}")
+            for lvl, m in hold["per_level"].items()]
+    rows.append(("all", hold["n_views"], f"{hold['psnr']:.2f}", f"{hold['ssim']:.4f}"))
+    head = (f"preset {metrics['preset']} on {metrics['device']}: {metrics['steps']} steps in "
+            f"{metrics['train_time_s']:.0f} s of training ({metrics['train_cpu_s']:.0f} CPU-s; "
+            f"{metrics['total_time_s']:.0f} s in all), "
+            f"{metrics['num_gaussians']} Gaussians, {metrics['images']['metrics_resolution']} images")
+    return head + "\n" + format_table(["holdout", "views", "PSNR [dB]", "SSIM"], rows)

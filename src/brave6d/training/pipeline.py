@@ -1,0 +1,198 @@
+"""``train_scene``: the whole training stage on one scene directory.
+
+Frames + calibrated poses -> initial points (COLMAP, ``sparse/0``) -> training -> holdout
+evaluation -> ``splat/point_cloud.ply`` (Inria layout), ``splat/metrics.json``,
+``splat/curves.png``, ``splat/holdout/<view>.png`` (render | ground truth) and
+``splat/checkpoints/``.
+
+Nothing of a previous training is deleted. The inputs are checked first; a new training (not
+``--resume``) then writes its checkpoints to a hidden staging folder, and only once the first one
+is written are the previous outputs (:data:`TRAINING_OUTPUTS`) moved aside to
+``<name>.old-<stamp>`` siblings and the staging folder renamed to ``splat/checkpoints``. A run
+that fails earlier leaves the previous training exactly as it was. ``--resume`` continues the
+training in ``splat/checkpoints`` and rewrites its outputs.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from brave6d.core.atomic import move_aside
+from brave6d.core.errors import BraveError
+from brave6d.core.layout import SceneDir
+from brave6d.training.colmap_init import ColmapOptions
+from brave6d.training.views import load_scene
+from brave6d.training.device import resolve_device
+from brave6d.training.holdout_eval import evaluate_holdout, peak_memory_mb, plot_curves, write_metrics
+from brave6d.training.ply import write_ply
+from brave6d.training.presets import Preset
+from brave6d.training.trainer import Trainer, list_checkpoints
+from brave6d.training.training_run import train
+
+log = logging.getLogger(__name__)
+
+#: What a training run writes into ``splat/``: a new run moves the previous run's aside.
+TRAINING_OUTPUTS = ("checkpoints", "point_cloud.ply", "metrics.json", "curves.png", "holdout")
+
+
+def move_previous_outputs(splat: Path) -> list[Path]:
+    """Move each existing :data:`TRAINING_OUTPUTS` entry of ``splat`` aside; returns the new paths.
+
+    An empty folder is simply removed (nothing to keep).
+    """
+    moved = []
+    for name in TRAINING_OUTPUTS:
+        path = splat / name
+        if path.is_dir() and not any(path.iterdir()):
+            path.rmdir()
+        elif path.exists() or path.is_symlink():
+            moved.append(move_aside(path))
+            log.info("kept the previous training's %s as %s", name, moved[-1])
+    return moved
+
+
+class NewRun:
+    """A training that takes the place of the previous one in ``splat/`` only once it has a checkpoint.
+
+    Its checkpoints go to :attr:`staging`; :meth:`take_place` (called at the first checkpoint, and
+    before the other outputs are written) moves the previous outputs aside and makes the staging
+    folder ``splat/checkpoints``. :meth:`close` removes the staging folder of a run that never
+    took place.
+    """
+
+    def __init__(self, splat: Path) -> None:
+        splat.mkdir(parents=True, exist_ok=True)
+        self.splat = splat
+        self.staging = Path(tempfile.mkdtemp(prefix=".checkpoints.new-", dir=splat))
+        self.moved: list[Path] | None = None  # None until the run took its place
+
+    def take_place(self, trainer: Trainer) -> None:
+        """Move the previous outputs aside and the trainer's checkpoints to ``splat/checkpoints`` (once)."""
+        if self.moved is not None:
+            return
+        self.moved = move_previous_outputs(self.splat)
+        trainer.move_checkpoints(self.splat / "checkpoints")
+
+    def finish(self) -> None:
+        """Take the previous run's place after training, if no checkpoint did so already."""
+        if self.moved is not None:
+            return
+        self.moved = move_previous_outputs(self.splat)
+        os.rename(self.staging, self.splat / "checkpoints")
+
+    def close(self) -> None:
+        """Remove the staging folder of a run that never took its place (the previous one is untouched)."""
+        if self.moved is None:
+            shutil.rmtree(self.staging, ignore_errors=True)
+
+
+def train_scene(
+    scene: SceneDir,
+    preset: Preset,
+    device: str = "auto",
+    resume: bool = False,
+    skip_bad_frames: bool = False,
+    init_method: str = "auto",
+    colmap: ColmapOptions | None = None,
+    show_progress: bool = True,
+) -> dict[str, Any]:
+    """Train ``scene`` with ``preset`` and write the ``splat/`` outputs; returns the metrics.
+
+    See the module docstring for what happens to a previous training.
+    """
+    t_start = time.perf_counter()
+    dev = resolve_device(device)
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
+    splat = scene.splat_dir
+    ckpt_dir = splat / "checkpoints"
+    data = load_scene(scene, preset.downscale, skip_bad_frames)  # the inputs, before anything is moved
+    t_loaded = time.perf_counter()
+    log.info("images: %s", data.undistortion)
+    continuing = resume and bool(list_checkpoints(ckpt_dir))
+    if resume and not continuing:
+        log.warning("--resume: no checkpoint in %s; starting a new training", ckpt_dir)
+    run = None if continuing else NewRun(splat)
+    try:
+        trained = train(data, preset, dev, scene=scene, init_method=init_method, colmap=colmap,
+                        checkpoint_dir=ckpt_dir if run is None else run.staging, resume=continuing,
+                        checkpoint_hook=None if run is None else run.take_place, show_progress=show_progress)
+        if run is not None:
+            run.finish()  # a run without any checkpoint (no steps) still replaces the outputs
+    finally:
+        if run is not None:
+            run.close()
+    if run is not None and run.moved:
+        log.info("the previous training is kept beside the new one: %s", ", ".join(p.name for p in run.moved))
+    t_init = t_loaded - t_start + trained.init_seconds
+    result = trained.result
+    model = trained.model
+    ply_path = write_ply(splat / "point_cloud.ply", model.to_splat())
+    t_eval = time.perf_counter()
+    shutil.rmtree(splat / "holdout", ignore_errors=True)  # --resume: no stale views from an earlier split
+    holdout = evaluate_holdout(model, data, splat / "holdout")
+    t_eval = time.perf_counter() - t_eval
+    if result.curve:
+        result.curve[-1]["holdout_psnr"] = holdout.psnr
+        plot_curves(splat / "curves.png", result.curve,
+                    f"{scene.root.name}: preset {preset.name}, {result.steps} steps, holdout {holdout.psnr:.2f} dB")
+    metrics: dict[str, Any] = {
+        "preset": preset.name,
+        "device": str(dev),
+        "steps": result.steps,
+        "planned_steps": preset.steps,
+        "stopped_by": result.stopped_by,
+        "resumed_from_step": result.resumed_from,
+        "train_time_s": result.train_seconds,
+        "train_cpu_s": result.train_cpu_seconds,
+        "threads": {"torch": torch.get_num_threads(), "numba": _numba_threads()},
+        "init_time_s": t_init,
+        "eval_time_s": t_eval,
+        "total_time_s": time.perf_counter() - t_start,
+        "num_gaussians": result.num_gaussians,
+        "memory": peak_memory_mb(dev),
+        "holdout": holdout.to_json(),
+        "n_train_views": len(data.train),
+        "n_holdout_views": len(data.test),
+        "holdout_protocol": "10% of the views of each distance level, evenly spaced in capture order",
+        "skipped_frames": [{"index": s.index, "view_id": s.view_id, "reason": s.reason} for s in data.skipped],
+        "images": {"undistorted_once": True, "how": data.undistortion, "width": data.camera.width,
+                   "height": data.camera.height, "downscale": data.downscale,
+                   "metrics_resolution": f"{data.camera.width}x{data.camera.height}"},
+        "poses": "base_T_tcp (robot) @ tcp_T_cam (calibrated, calibration/handeye.json)",
+        "init": trained.init,
+        "outputs": {"ply": str(ply_path), "curves": str(splat / "curves.png"),
+                    "holdout_images": str(splat / "holdout"), "checkpoints": str(ckpt_dir),
+                    "colmap_model": str(scene.sparse_dir / "0"),
+                    "previous_training": [str(p) for p in (run.moved or [])] if run is not None else []},
+        "preset_config": preset.to_json(),
+        "curve": result.curve,
+    }
+    write_metrics(splat / "metrics.json", metrics)
+    return metrics
+
+
+def _numba_threads() -> int | None:
+    try:
+        import numba
+
+        return int(numba.get_num_threads())
+    except Exception:  # noqa: BLE001 - numba is the CPU rasterizer's dependency; absent on some CUDA installs
+        return None
+
+
+def require_capture(scene: SceneDir) -> None:
+    """Fail early, naming what is missing, before anything heavy is imported or started."""
+    for path, what in ((scene.frames_path, "the capture (run the capture stage)"),
+                       (scene.intrinsics_path, "the intrinsics (run the calibration stage)"),
+                       (scene.handeye_path, "the hand-eye transform (run the calibration stage)")):
+        if not Path(path).exists():
+            raise BraveError(f"{path}: missing; training needs {what}")

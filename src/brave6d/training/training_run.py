@@ -1,0 +1,119 @@
+"""``train``: one training run in memory, from loaded views to a trained model.
+
+Initial points (COLMAP, depth frames or random; see :func:`brave6d.training.colmap_init.initial_points`)
+-> :class:`brave6d.training.trainer.Trainer` -> the trained :class:`~brave6d.training.model.GaussianModel`, its
+curve and the holdout scores taken during training. Nothing is written unless asked:
+``scene`` lets the initialisation write ``sparse/0``, ``checkpoint_dir`` makes the trainer write
+checkpoints. :func:`brave6d.training.pipeline.train_scene` (``brave6d train``) and the report's view
+sweep both train through this function, so there is one training code path.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from brave6d.core.layout import SceneDir
+from brave6d.training.colmap_init import ColmapOptions, initial_points
+from brave6d.training.views import TrainingData
+from brave6d.training.device import resolve_device
+from brave6d.training.holdout_eval import evaluate_holdout
+from brave6d.training.model import GaussianModel
+from brave6d.training.ply import SplatData
+from brave6d.training.presets import Preset
+from brave6d.training.trainer import Trainer, TrainResult, list_checkpoints, set_seed
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class HoldoutPoint:
+    """The holdout scores at one step of a run (taken every ``preset.eval_every`` steps)."""
+
+    step: int
+    time_s: float  # training seconds up to this step (evaluation excluded)
+    gaussians: int
+    psnr: float
+    ssim: float
+    eval_s: float  # seconds this evaluation took
+
+
+@dataclass
+class TrainedSplat:
+    """What :func:`train` returns: the model, the run's record and where it started from."""
+
+    model: GaussianModel
+    result: TrainResult
+    init: dict[str, Any]  # where the initial points came from: {"source", "points", ...} or {"source": "checkpoint"}
+    init_seconds: float  # initial points and model construction
+    holdout_curve: list[HoldoutPoint] = field(default_factory=list)
+
+    @property
+    def steps(self) -> int:
+        return self.result.steps
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.result.num_gaussians
+
+    def to_splat(self) -> SplatData:
+        """The trained Gaussians as PLY data (what ``write_ply`` and ``SplatRenderer.from_splat`` take)."""
+        return self.model.to_splat()
+
+
+def train(
+    data: TrainingData,
+    preset: Preset,
+    device: str | torch.device = "auto",
+    *,
+    scene: SceneDir | None = None,
+    init_method: str = "auto",
+    colmap: ColmapOptions | None = None,
+    checkpoint_dir: Path | None = None,
+    resume: bool = False,
+    checkpoint_hook: Callable[[Trainer], None] | None = None,
+    show_progress: bool = False,
+) -> TrainedSplat:
+    """Train a splat on ``data.train`` with ``preset``; the holdout is scored every ``preset.eval_every`` steps.
+
+    ``scene``: the scene the views come from (COLMAP reuses and writes its ``sparse/0``; None:
+    nothing is written and COLMAP is skipped unless ``data`` has undistorted image files).
+    ``resume``: continue from the newest checkpoint in ``checkpoint_dir`` (the model comes
+    from it; without a checkpoint there a new run starts). ``checkpoint_hook`` is called after
+    each checkpoint is written.
+    """
+    dev = resolve_device(device)
+    set_seed(preset.seed)
+    t0 = time.perf_counter()
+    continuing = resume and checkpoint_dir is not None and bool(list_checkpoints(checkpoint_dir))
+    init_info: dict[str, Any]
+    if continuing:
+        # the model comes from the checkpoint; a placeholder keeps the constructor simple
+        model = GaussianModel.from_points([[0.0, 0.0, 0.0]], sh_degree=preset.sh_degree, device=dev)
+        init_info = {"source": "checkpoint"}
+    else:
+        init = initial_points(scene, data, colmap or ColmapOptions(), preset.max_init_points, preset.seed, init_method)
+        model = GaussianModel.from_points(init.points, init.colors, preset.sh_degree, preset.init_opacity,
+                                          preset.init_scale, device=dev)
+        log.info("initial points: %d from %s", len(init), init.source)
+        init_info = {"source": init.source, "points": len(init), **init.details}
+    init_seconds = time.perf_counter() - t0
+    curve: list[HoldoutPoint] = []
+
+    def score_holdout(trainer: Trainer) -> float:
+        t = time.perf_counter()
+        h = evaluate_holdout(trainer.model, data)
+        curve.append(HoldoutPoint(trainer.step, trainer.elapsed, trainer.model.num_gaussians, h.psnr, h.ssim,
+                                  time.perf_counter() - t))
+        return h.psnr
+
+    trainer = Trainer(data, model, preset, checkpoint_dir, dev, show_progress=show_progress,
+                      eval_callback=score_holdout, checkpoint_hook=checkpoint_hook)
+    result = trainer.train(resume=continuing)
+    return TrainedSplat(trainer.model, result, init_info, init_seconds, curve)
