@@ -27,7 +27,6 @@ depthai is imported lazily; tests pass a fake module as ``dai_module``.
 
 from __future__ import annotations
 
-import importlib
 import logging
 import time
 from datetime import timedelta
@@ -41,6 +40,7 @@ from numpy.typing import NDArray
 from brave6d.core.atomic import atomic_write_json, depth_mm_u16_to_m
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import BraveError
+from brave6d.core.extras import require
 from brave6d.capture.protocols import CameraError, Frame
 
 log = logging.getLogger(__name__)
@@ -297,10 +297,7 @@ class OakCamera:
 
 # ----------------------------------------------------------------------------- helpers
 def _import_depthai() -> ModuleType:
-    try:
-        return importlib.import_module("depthai")
-    except ImportError as exc:
-        raise CameraError(f"oak camera: depthai is not installed ({exc}); pip install 'depthai>=3'") from None
+    return require("depthai", "robot", "--camera oak")
 
 
 def _try(fn: Any) -> Any:

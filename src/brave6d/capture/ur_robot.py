@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from brave6d.core.extras import require
 from brave6d.core.spec import RobotSpec
 from brave6d.core.transforms import check_rigid, matrix_to_ur_pose, ur_pose_to_matrix
 from brave6d.capture.protocols import RobotError
@@ -33,11 +34,8 @@ InterfacesFactory = Callable[[str], tuple[Any, Any]]
 
 def rtde_interfaces(host: str) -> tuple[Any, Any]:
     """Open ur-rtde's control and receive interfaces to ``host`` (imported here, lazily)."""
-    try:
-        import rtde_control
-        import rtde_receive
-    except ImportError as exc:  # pragma: no cover - ur-rtde is a declared dependency
-        raise RobotError(f"ur-rtde is not installed ({exc}); pip install ur-rtde") from None
+    rtde_control = require("rtde_control", "robot", "--robot ur:HOST")
+    rtde_receive = require("rtde_receive", "robot", "--robot ur:HOST")
     receive = rtde_receive.RTDEReceiveInterface(host)
     try:
         control = rtde_control.RTDEControlInterface(host)

@@ -57,6 +57,9 @@ def run(args: argparse.Namespace) -> int:
     if args.action == "report":
         return _report(args)
     from brave6d.core.dataset_spec import load_dataset_spec
+    from brave6d.core.extras import require
+
+    require("submitit", "cluster", "brave6d dataset run")  # the executor of the scene jobs, local or Slurm
     from brave6d.dataset.executor import ExecutorOptions
     from brave6d.dataset.runner import run_dataset
 

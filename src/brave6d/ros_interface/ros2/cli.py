@@ -17,6 +17,7 @@ import threading
 from pathlib import Path
 
 from brave6d.core.errors import BraveError
+from brave6d.core.extras import require
 from brave6d.core.runtime import quiet_openmp
 
 log = logging.getLogger(__name__)
@@ -73,10 +74,7 @@ def domain_id_from(value: int | None, environ: dict[str, str] | None = None) -> 
 
 def run(args: argparse.Namespace) -> int:
     quiet_openmp()
-    try:
-        import cyclonedds  # noqa: F401
-    except ImportError:
-        raise BraveError("brave6d ros2 needs Cyclone DDS for Python: pip install cyclonedds==11.0.1") from None
+    require("cyclonedds", "ros2", "brave6d ros2")
     from brave6d.ros_interface.bridge import EpisodeBridge
     from brave6d.ros_interface.ros2.dds import DdsDomain, check_interface
     from brave6d.ros_interface.ros2.node import Ros2Node
