@@ -300,3 +300,21 @@ def test_shipped_presets_train_bit_for_bit_as_before_the_parts(tmp_path: Path) -
     assert set(now) == set(SHIPPED)
     assert now == was
     assert all(len(r["psnr"]) == 3 and r["psnr"][0] != r["psnr"][-1] for r in now.values())  # it trained
+
+
+def test_the_reports_views_sweep_reads_the_trained_preset_from_its_record(tmp_path: Path) -> None:
+    """``metrics.json`` keeps the flat record; the views sweep trains with that preset, capped."""
+    from brave6d.core.atomic import atomic_write_json
+    from brave6d.core.layout import SceneDir
+    from brave6d.evaluation.report.sections.views import ViewsSweep, scene_preset
+
+    scene = SceneDir(tmp_path / "scene")
+    sweep = ViewsSweep(steps=300, evaluations=3, max_gaussians=10_000, downscale=4)
+    atomic_write_json(scene.splat_dir / "metrics.json", {"preset_config": BENCHMARK_PRESETS["fast-3000"].to_json()})
+    preset, source = scene_preset(scene, sweep)
+    assert (preset.name, source, preset.steps, preset.downscale, preset.time_budget_s) == (
+        "fast-3000", "as trained", 300, 4, None)
+    assert (preset.densification.max_gaussians, preset.initialisation.max_init_points) == (10_000, 5000)
+    assert (preset.schedule.eval_every, preset.densification.refine_stop) == (100, 180)
+    atomic_write_json(scene.splat_dir / "metrics.json", {"preset_config": {}})  # no record: fast
+    assert scene_preset(scene, sweep)[0].name == "fast"
