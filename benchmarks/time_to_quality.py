@@ -14,7 +14,9 @@ level are interpolated linearly between evaluations; a level not reached is repo
 Writes a JSON table and one PNG with both PSNR-vs-time curves (what the report's training
 section plots).
 
-Configurations are ``NAME=PRESET[,field=value...]`` with any :class:`brave6d.training.Preset` field:
+Configurations are ``NAME=PRESET[,field=value...]`` with any :class:`brave6d.training.Preset` field, by
+its name or its path (``max_gaussians=70000`` or ``densification.max_gaussians=70000``; the names are
+those of the flat presets before issue 33, so one configuration works in older trees too):
 
     python benchmarks/time_to_quality.py runs/demo/scene [--a old=fast-3000] [--b new=fast,steps=1000] \\
         [--every 250] [--chunk 50] [--json out.json]
@@ -96,20 +98,32 @@ LEVELS_DB = (27.0, 30.0)
 WORKER_STDERR_LINES = 30  # how many of a worker's last stderr lines an error shows
 
 
-def parse_config(text: str) -> tuple[str, str, dict[str, Any]]:
-    """``NAME=PRESET[,field=value...]`` -> (name, preset name, overrides with typed values)."""
+def preset_fields() -> tuple[set[str], list[str]]:
+    """The keys a configuration may set in this tree's ``Preset`` (names and paths such as
+    ``densification.max_gaussians``), and the paths to list in an error. A tree from before the
+    composed presets (issue 33) has flat fields only: their names are the same."""
     from brave6d.training import Preset
 
+    probe = Preset(name="fields")
+    if not hasattr(probe, "paths"):  # an older tree
+        names = [f.name for f in dataclasses.fields(Preset)]
+        return set(names), sorted(names)
+    paths = probe.paths()
+    return set(paths) | {p.rpartition(".")[2] for p in paths}, paths
+
+
+def parse_config(text: str) -> tuple[str, str, dict[str, Any]]:
+    """``NAME=PRESET[,field=value...]`` -> (name, preset name, overrides with typed values)."""
     name, _, rest = text.partition("=")
     if not name or not rest:
         raise SystemExit(f"--a/--b: expected NAME=PRESET[,field=value...], got {text!r}")
     preset, *pairs = rest.split(",")
-    fields = {f.name: f.type for f in dataclasses.fields(Preset)}
+    keys, listed = preset_fields()
     overrides: dict[str, Any] = {}
     for pair in pairs:
         key, _, value = pair.partition("=")
-        if key not in fields:
-            raise SystemExit(f"{text}: {key!r} is not a Preset field (fields: {', '.join(sorted(fields))})")
+        if key not in keys:
+            raise SystemExit(f"{text}: {key!r} is not a Preset field (fields: {', '.join(listed)})")
         overrides[key] = None if value.lower() == "none" else json.loads(value) if value[:1] in "[{" else (
             float(value) if "." in value or "e" in value.lower() else int(value))
     return name, preset, overrides
@@ -143,7 +157,10 @@ def jit_signatures() -> int:
 
 def configure(base: Any, overrides: dict[str, Any]) -> Any:
     """``base`` (a Preset) with ``overrides`` applied, ``None`` values included (``max_gaussians=none``
-    means no limit; ``Preset.with_overrides`` would ignore it)."""
+    means no limit; ``Preset.with_overrides`` would ignore it). A tree from before the composed presets
+    has flat fields: ``dataclasses.replace`` sets them."""
+    if hasattr(base, "with_values"):
+        return base.with_values(**overrides)
     return dataclasses.replace(base, **overrides)
 
 
@@ -156,12 +173,13 @@ class Run:
         from brave6d.training.trainer import Trainer
 
         # no time budget: the benchmark measures the time to quality of the whole schedule
-        self.name, self.preset = name, dataclasses.replace(preset, eval_every=every, time_budget_s=None)
-        self.data = load_scene(scene, self.preset.downscale)
-        init = initial_points(scene, self.data, max_points=self.preset.max_init_points, seed=self.preset.seed,
+        self.name, self.preset = name, configure(preset, {"eval_every": every, "time_budget_s": None})
+        values = self.preset.to_json()  # flat names in any tree, before and after the composed presets
+        self.data = load_scene(scene, values["downscale"])
+        init = initial_points(scene, self.data, max_points=values["max_init_points"], seed=values["seed"],
                               method=init_method)
-        model = GaussianModel.from_points(init.points, init.colors, self.preset.sh_degree, self.preset.init_opacity,
-                                          self.preset.init_scale, device=device)
+        model = GaussianModel.from_points(init.points, init.colors, values["sh_degree"], values["init_opacity"],
+                                          values["init_scale"], device=device)
         self.points: list[dict[str, float]] = []
         self.trainer = Trainer(self.data, model, self.preset, None, device, show_progress=False,
                                eval_callback=self.evaluate)

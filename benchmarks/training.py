@@ -66,10 +66,11 @@ def main(argv: list[str] | None = None) -> int:
     device = resolve_device(args.device)
     t0 = time.perf_counter()
     data = load_scene(scene, preset.downscale)
-    init = initial_points(scene, data, max_points=preset.max_init_points, seed=preset.seed, method=args.init)
+    start = preset.initialisation
+    init = initial_points(scene, data, max_points=start.max_init_points, seed=preset.seed, method=args.init)
     init_s = time.perf_counter() - t0
-    model = GaussianModel.from_points(init.points, init.colors, preset.sh_degree, preset.init_opacity,
-                                      preset.init_scale, device=device)
+    model = GaussianModel.from_points(init.points, init.colors, start.sh_degree, start.init_opacity,
+                                      start.init_scale, device=device)
     rows: list[dict[str, Any]] = []
 
     def evaluate(trainer: Trainer) -> float:

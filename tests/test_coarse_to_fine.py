@@ -1,4 +1,4 @@
-"""Coarse-to-fine training (``Preset.coarse_steps``): the first steps train on 2x2-averaged images
+"""Coarse-to-fine training (``Schedule.coarse_steps`` of a preset): the first steps train on 2x2-averaged images
 with matching intrinsics, then the training resolution; exact geometry, finite results."""
 
 from __future__ import annotations
@@ -60,8 +60,9 @@ def test_trainer_renders_coarse_first_then_full(tmp_path: Path) -> None:
                                                              time_budget_s=None)
     data = load_scene(scene, 1)
     rng = np.random.default_rng(0)
+    start = preset.initialisation
     model = GaussianModel.from_points(rng.uniform(-0.05, 0.05, (300, 3)), rng.uniform(0, 1, (300, 3)),
-                                      preset.sh_degree, preset.init_opacity, preset.init_scale, device="cpu")
+                                      start.sh_degree, start.init_opacity, start.init_scale, device="cpu")
     trainer = Trainer(data, model, preset, None, "cpu", show_progress=False)
     sizes = []
     original = trainer.render
@@ -82,4 +83,4 @@ def test_coarse_steps_are_validated_and_scaled() -> None:
     with pytest.raises(BraveError, match="coarse_steps must be in 0..steps"):
         get_preset("fast").with_overrides(coarse_steps=10**6)
     fast = get_preset("fast")
-    assert fast.with_overrides(coarse_steps=1000).with_steps(fast.steps // 10).coarse_steps == 100
+    assert fast.with_overrides(coarse_steps=1000).with_steps(fast.steps // 10).schedule.coarse_steps == 100

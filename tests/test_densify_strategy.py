@@ -14,12 +14,20 @@ import pytest
 import torch
 
 import brave6d.training.strategy as strategy_module
+from brave6d.training.presets import Densification
 from brave6d.training.strategy import DensifyStrategy
 
 gsplat_strategy = pytest.importorskip("gsplat.strategy")  # the `test` extra installs gsplat
 gsplat_ops = pytest.importorskip("gsplat.strategy.ops")
 
-SCHEDULE = {"refine_start_iter": 2, "refine_every": 3, "reset_every": 9, "refine_stop_iter": 20}
+SCHEDULE = {"refine_start_iter": 2, "refine_every": 3, "reset_every": 9, "refine_stop_iter": 20}  # gsplat's names
+#: gsplat's names of the schedule -> ours (the rest are the same)
+OURS = {"refine_start_iter": "refine_start", "refine_stop_iter": "refine_stop"}
+
+
+def ours(**options: Any) -> DensifyStrategy:
+    """Our strategy with gsplat-named options."""
+    return DensifyStrategy(Densification(**{OURS.get(k, k): v for k, v in options.items()}))
 STEPS = 24
 WIDTH, HEIGHT, CAMERAS = 100, 80, 2
 
@@ -97,18 +105,18 @@ def test_densification_matches_gsplat_bit_for_bit(max_gaussians: int | None,
             _original(*args, **kwargs)
 
         monkeypatch.setattr(strategy_module, op, counted)
-    ours = simulate(DensifyStrategy(max_gaussians=max_gaussians, **SCHEDULE))
+    mine = simulate(ours(max_gaussians=max_gaussians, **SCHEDULE))
     reference = simulate(GsplatReference(**SCHEDULE))
     # the history exercised every operation, so the comparison covers them all
     assert calls["duplicate"] > 0 and calls["split"] > 0 and calls["remove"] > 0
     assert calls["reset_opacities"] == 2  # steps 9 and 18; none from step 20, where refinement stops
-    assert len(ours[0]["means"]) != 300
-    assert_identical(ours, reference)
+    assert len(mine[0]["means"]) != 300
+    assert_identical(mine, reference)
 
 
 def test_a_binding_cap_stops_growth_at_the_cap() -> None:
     no_pruning = {"prune_opa": 1e-9, "prune_scale3d": 100.0, **SCHEDULE}
-    params, _, _ = simulate(DensifyStrategy(max_gaussians=310, **no_pruning))
-    free, _, _ = simulate(DensifyStrategy(**no_pruning))
+    params, _, _ = simulate(ours(max_gaussians=310, **no_pruning))
+    free, _, _ = simulate(ours(**no_pruning))
     assert len(free["means"]) > 310  # without the cap the same history grows past it
     assert len(params["means"]) == 310

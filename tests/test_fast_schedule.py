@@ -61,8 +61,9 @@ def _train_checked(data: TrainingData, model: GaussianModel, preset) -> tuple[Tr
 
 def test_the_gaussian_budget_holds_at_every_step(scene_views: TrainingData) -> None:
     preset = _fast()
-    assert preset.coarse_steps > 0  # the schedule under test trains coarse-to-fine
-    assert preset.lr_decay_final < 1.0 and preset.lr_decay_start < preset.steps  # and anneals its rates
+    assert preset.schedule.coarse_steps > 0  # the schedule under test trains coarse-to-fine
+    rates = preset.learning_rates
+    assert rates.lr_decay_final < 1.0 and rates.lr_decay_start < preset.steps  # and anneals its rates
     trainer, counts = _train_checked(scene_views, _model(120, float(np.log(0.01))), preset)
     assert len(counts) == preset.steps
     final_scales_lr = trainer.optimizers["scales"].param_groups[0]["lr"]

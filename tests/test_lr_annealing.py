@@ -1,5 +1,5 @@
-"""Learning-rate annealing of quats, scales, opacities and SH (``Preset.lr_decay_final`` /
-``lr_decay_start``): the factor's schedule, its validation, and that a training step applies it."""
+"""Learning-rate annealing of quats, scales, opacities and SH (``LearningRates.lr_decay_final`` /
+``lr_decay_start`` of a preset): the factor's schedule, its validation, and that a training step applies it."""
 
 from __future__ import annotations
 
@@ -22,10 +22,11 @@ FAST = get_preset("fast")
 
 
 def test_fast_anneals_from_its_first_full_resolution_step() -> None:
-    assert FAST.lr_decay_start == FAST.coarse_steps and FAST.lr_decay_final == pytest.approx(0.1)
+    rates = FAST.learning_rates
+    assert rates.lr_decay_start == FAST.schedule.coarse_steps and rates.lr_decay_final == pytest.approx(0.1)
     assert other_lr_factor(0, FAST) == 1.0
-    assert other_lr_factor(FAST.lr_decay_start, FAST) == 1.0
-    mid = (FAST.lr_decay_start + FAST.steps) // 2
+    assert other_lr_factor(rates.lr_decay_start, FAST) == 1.0
+    mid = (rates.lr_decay_start + FAST.steps) // 2
     assert other_lr_factor(mid, FAST) == pytest.approx(math.sqrt(0.1), rel=1e-3)  # log-linear
     assert other_lr_factor(FAST.steps, FAST) == pytest.approx(0.1)
     assert other_lr_factor(10 * FAST.steps, FAST) == pytest.approx(0.1)  # held after the last step
@@ -44,10 +45,10 @@ def test_factor_is_finite_monotone_and_bounded(final: float, steps: int, start_f
 
 
 @pytest.mark.parametrize("field, value, message", [
-    ("lr_decay_final", 0.0, "lr_decay_final must be in"),
-    ("lr_decay_final", 1.5, "lr_decay_final must be in"),
-    ("lr_decay_final", float("nan"), "lr_decay_final must be in"),
-    ("lr_decay_start", -1, "lr_decay_start must be >= 0"),
+    ("lr_decay_final", 0.0, r"learning_rates\.lr_decay_final must be in \(0, 1\], got 0\.0"),
+    ("lr_decay_final", 1.5, r"learning_rates\.lr_decay_final must be in"),
+    ("lr_decay_final", float("nan"), r"learning_rates\.lr_decay_final must be in"),
+    ("learning_rates.lr_decay_start", -1, r"learning_rates\.lr_decay_start must be >= 0, got -1"),
 ])
 def test_bad_annealing_settings_name_the_field(field: str, value: float, message: str) -> None:
     with pytest.raises(BraveError, match=f"preset fast: {message}"):
@@ -61,7 +62,7 @@ def test_a_start_past_the_last_step_means_constant_rates() -> None:
 
 def test_the_start_scales_with_the_run_length() -> None:
     short = FAST.with_steps(FAST.steps // 10)
-    assert short.lr_decay_start == FAST.lr_decay_start // 10
+    assert short.learning_rates.lr_decay_start == FAST.learning_rates.lr_decay_start // 10
     assert other_lr_factor(short.steps, short) == pytest.approx(0.1)
 
 

@@ -324,10 +324,11 @@ def _densify_with(strategy, absgrad: bool) -> None:
 
 
 def test_info_drives_the_training_densification():
+    from brave6d.training.presets import Densification
     from brave6d.training.strategy import DensifyStrategy
 
-    _densify_with(DensifyStrategy(refine_start_iter=1, refine_every=2, reset_every=10_000, grow_grad2d=1e-7,
-                                  grow_scale3d=1e-3), absgrad=False)
+    _densify_with(DensifyStrategy(Densification(refine_start=1, refine_every=2, reset_every=10_000, grow_grad2d=1e-7,
+                                                grow_scale3d=1e-3)), absgrad=False)
 
 
 @pytest.mark.slow

@@ -33,7 +33,7 @@ def test_train_in_memory_writes_nothing_and_scores_the_holdout_on_schedule(scene
     run = train(data, PRESET, "cpu", init_method="depth")
     assert files_of(scene.root) == before  # no splat/, no sparse/, no checkpoints
     assert run.steps == 12 and run.result.stopped_by == "steps"
-    assert run.init["source"] == "depth" and run.init["points"] <= PRESET.max_init_points
+    assert run.init["source"] == "depth" and run.init["points"] <= PRESET.initialisation.max_init_points
     assert [p.step for p in run.holdout_curve] == [4, 8, 12]
     assert [p.gaussians for p in run.holdout_curve][-1] == run.num_gaussians == run.to_splat().num_gaussians
     final = evaluate_holdout(run.model, data)

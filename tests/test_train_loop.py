@@ -45,7 +45,7 @@ def tiny_preset(**kw) -> Preset:
             "refine_stop": 45, "refine_every": 8, "reset_every": 30, "checkpoint_every": 10, "keep_checkpoints": 10,
             "curve_every": 5, "grow_grad2d": 1e-4, "max_gaussians": 400}
     base.update(kw)
-    return Preset(**base)
+    return Preset(name=base.pop("name")).with_values(**base)
 
 
 def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:

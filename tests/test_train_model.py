@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -13,8 +12,8 @@ from hypothesis import strategies as st
 
 from brave6d.training.model import GaussianModel, initial_log_scales
 from brave6d.training.ply import SH_C0
-from brave6d.training.presets import BENCHMARK_PRESETS, FAST, PRESETS, get_preset
-from brave6d.training.strategy import DensifyStrategy, make_strategy
+from brave6d.training.presets import BENCHMARK_PRESETS, FAST, PRESETS, Densification, get_preset
+from brave6d.training.strategy import DensifyStrategy
 
 
 def test_init_from_points_follows_inria() -> None:
@@ -88,7 +87,7 @@ def _params_and_opts(n: int) -> tuple:
 def test_opacity_reset_happens_despite_gsplat_1_5_3_bug() -> None:
     n = 20
     m, opts = _params_and_opts(n)
-    strat = DensifyStrategy(refine_start_iter=1000, refine_stop_iter=5000, reset_every=30)
+    strat = DensifyStrategy(Densification(refine_start=1000, refine_stop=5000, reset_every=30))
     state = strat.initialize_state(scene_scale=1.0)
     info = _fake_info(n, torch.zeros(n, 2))
     strat.step_post_backward(m.params, opts, state, 29, info)
@@ -104,8 +103,8 @@ def test_opacity_reset_happens_despite_gsplat_1_5_3_bug() -> None:
 def test_growth_cap_keeps_the_highest_gradients() -> None:
     n = 30
     m, opts = _params_and_opts(n)
-    strat = DensifyStrategy(refine_start_iter=0, refine_every=1, reset_every=10_000, grow_grad2d=1e-6,
-                            max_gaussians=n + 5, prune_opa=0.0)
+    strat = DensifyStrategy(Densification(refine_start=0, refine_every=1, reset_every=10_000, grow_grad2d=1e-6,
+                                          max_gaussians=n + 5, prune_opa=0.0))
     state = strat.initialize_state(scene_scale=1000.0)  # all "small": growth duplicates
     grads = torch.zeros(n, 2)
     grads[:, 0] = torch.linspace(1e-3, 3e-2, n)  # every Gaussian qualifies
@@ -120,24 +119,43 @@ def test_growth_cap_keeps_the_highest_gradients() -> None:
 def test_presets_are_typed_and_scale_with_steps() -> None:
     assert set(PRESETS) == {"fast", "default", "quality"}
     d = get_preset("default")
-    assert (d.steps, d.means_lr_init, d.means_lr_final, d.refine_stop, d.reset_every, d.grow_grad2d) == \
-        (30_000, 1.6e-4, 1.6e-6, 15_000, 3000, 2e-4)
+    rates, densify = d.learning_rates, d.densification
+    assert (d.steps, rates.means_lr_init, rates.means_lr_final, densify.refine_stop, densify.reset_every,
+            densify.grow_grad2d) == (30_000, 1.6e-4, 1.6e-6, 15_000, 3000, 2e-4)
     half = d.with_steps(15_000)
-    assert (half.refine_stop, half.reset_every, half.sh_degree_interval) == (7500, 1500, 500)
+    assert (half.densification.refine_stop, half.densification.reset_every,
+            half.schedule.sh_degree_interval) == (7500, 1500, 500)
     assert FAST.time_budget_s is not None and FAST.time_budget_s <= 15 * 60
-    s = make_strategy(FAST)
-    assert (s.refine_stop_iter, s.reset_every, s.max_gaussians) == (FAST.refine_stop, FAST.reset_every,
-                                                                     FAST.max_gaussians)
     with pytest.raises(Exception, match="unknown preset"):
         get_preset("turbo")
-    assert math.isclose(d.shN_lr * 20, d.sh0_lr)
+    assert math.isclose(rates.shN_lr * 20, rates.sh0_lr)
     # the fast schedule before issue 22 stays reachable for benchmarks, not as a user preset
     with pytest.raises(Exception, match="unknown preset 'fast-3000'"):
         get_preset("fast-3000")
     old = get_preset("fast-3000", BENCHMARK_PRESETS)
-    assert (old.steps, old.coarse_steps, old.max_gaussians, old.sh0_lr) == (3000, 0, 150_000, d.sh0_lr)
-    assert FAST.coarse_steps > 0 and FAST.steps < old.steps and FAST.max_gaussians < old.max_gaussians
+    assert (old.steps, old.schedule.coarse_steps, old.densification.max_gaussians, old.learning_rates.sh0_lr) == \
+        (3000, 0, 150_000, rates.sh0_lr)
+    assert FAST.schedule.coarse_steps > 0 and FAST.steps < old.steps
+    assert FAST.densification.max_gaussians < old.densification.max_gaussians
     # and fast before its learning-rate annealing: the same schedule with constant rates
     unannealed = get_preset("fast-2000", BENCHMARK_PRESETS)
-    assert (unannealed.lr_decay_final, FAST.lr_decay_final) == (1.0, 0.1)
-    assert dataclasses.replace(unannealed, name="fast", lr_decay_final=0.1, lr_decay_start=600) == FAST
+    assert (unannealed.learning_rates.lr_decay_final, FAST.learning_rates.lr_decay_final) == (1.0, 0.1)
+    assert unannealed.with_values(name="fast", lr_decay_final=0.1, lr_decay_start=600) == FAST
+
+
+def test_the_strategy_reads_the_presets_own_options() -> None:
+    """No copies under other names: the trainer's strategy holds ``preset.densification`` itself."""
+    from brave6d.training.trainer import Trainer
+    from brave6d.training.toy_scenes import random_gaussians, render_views, ring_poses
+    from brave6d.training.views import TrainingData, View
+    from brave6d.core.camera import PinholeCamera
+
+    cam = PinholeCamera(16, 12, 15.0, 15.0, 7.5, 5.5)
+    poses = [p for _, _, p in ring_poses([0.35], 2, elevation_deg=40)]
+    images = render_views(random_gaussians(5, seed=0, extent=0.05), cam, poses)
+    views = [View(i, f"v{i}", 0, 0.35, pose, img) for i, (pose, img) in enumerate(zip(poses, images))]
+    model = GaussianModel.from_points(np.zeros((3, 3)) + np.arange(3)[:, None] * 0.01, None, sh_degree=1)
+    preset = FAST.with_overrides(max_gaussians=1234)
+    trainer = Trainer(TrainingData(cam, views[:1], views[1:]), model, preset, None, show_progress=False)
+    assert trainer.strategy.options is preset.densification
+    assert trainer.strategy.options.max_gaussians == 1234

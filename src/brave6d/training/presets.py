@@ -1,4 +1,18 @@
-"""Training presets: the hyperparameters of one training run, as a typed, frozen dataclass.
+"""Training presets: the hyperparameters of one training run, as frozen dataclasses composed of parts.
+
+A :class:`Preset` has a name, the run's length (``steps``), the image size, a time budget and a seed,
+and one part per job: :class:`Schedule` (when things happen: coarse-to-fine, SH growth, curve,
+holdout and checkpoint cadence), :class:`LearningRates` (Adam's rates and their decay),
+:class:`Loss`, :class:`Initialisation` (the model training starts from) and :class:`Densification`
+(the densification strategy's own options: :class:`brave6d.training.strategy.DensifyStrategy` reads
+that object).
+
+A field counted in optimiser steps is declared as one, with :func:`every` (a period) or :func:`at`
+(a step of the run); :meth:`Preset.with_steps` scales every such field of every part, so a new step
+field scales by being declared as one. :meth:`Preset.with_overrides` and :meth:`Preset.with_values`
+name a field by its path (``densification.max_gaussians``) or by its name alone: names are unique
+across the parts, and they are the keys of :meth:`Preset.to_json`, the same flat record as before
+the parts (so ``metrics.json`` and benchmark JSON of older and newer runs compare key by key).
 
 ``default`` follows the Inria reference (30k steps, learning rates, densification schedule;
 see docs/ARCHITECTURE.md). ``quality`` trains longer (50k steps, densifying until 25k). ``fast`` is
@@ -13,27 +27,91 @@ tenth (all but the positions, which decay as Inria's), and a 14-minute budget.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
+from collections.abc import Iterator, Mapping
+from dataclasses import Field, dataclass, field, fields, is_dataclass, replace
 from typing import Any
 
-from brave6d.core.errors import BraveError
+from brave6d.core.errors import BraveError, DataError
+
+#: The metadata key of a field counted in optimiser steps; its value scales the field (:func:`every`, :func:`at`).
+STEPS = "steps"
 
 
 @dataclass(frozen=True)
-class Preset:
-    """Everything that shapes a training run (all steps count optimiser iterations)."""
+class Every:
+    """How a period in steps scales: proportionally, never below 1; 0 (``may_be_off``: never) stays 0."""
 
-    name: str
-    steps: int = 30_000
-    downscale: int = 1  # images are resampled to 1/downscale of the undistorted resolution
-    time_budget_s: float | None = None  # stop (and evaluate) when training has run this long
-    seed: int = 0
-    # loss
-    ssim_lambda: float = 0.2
-    # spherical harmonics: degree +1 every `sh_degree_interval` steps up to `sh_degree`
-    sh_degree: int = 3
-    sh_degree_interval: int = 1000
-    # Adam learning rates (Inria); means: times the scene extent, exponential decay init -> final
+    may_be_off: bool = False
+
+    def scale(self, value: int, factor: float, steps: int) -> int:
+        return 0 if value == 0 else max(1, round(value * factor))
+
+    def problem(self, value: int) -> str | None:
+        lowest, note = (0, " (0: never)") if self.may_be_off else (1, "")
+        return None if value >= lowest else f"must be >= {lowest}{note}, got {value}"
+
+
+@dataclass(frozen=True)
+class At:
+    """How a step of the run scales: proportionally, at least ``minimum`` and at most the run's steps."""
+
+    minimum: int = 0
+
+    def scale(self, value: int, factor: float, steps: int) -> int:
+        return min(steps, max(self.minimum, round(value * factor)))
+
+    def problem(self, value: int) -> str | None:
+        return None if value >= 0 else f"must be >= 0, got {value}"
+
+
+def every(default: int, *, may_be_off: bool = False) -> Any:
+    """A field holding a period in optimiser steps ("every ``k`` steps"): :meth:`Preset.with_steps`
+    scales it with the run, never below 1; ``may_be_off``: 0 means never and stays 0."""
+    return field(default=default, metadata={STEPS: Every(may_be_off)})
+
+
+def at(default: int, *, minimum: int = 0) -> Any:
+    """A field holding a step of the run (a start, a stop, the end of a phase): :meth:`Preset.with_steps`
+    scales it with the run, keeps it within the run and never below ``minimum``."""
+    return field(default=default, metadata={STEPS: At(minimum)})
+
+
+def step_fields(part: Any) -> list[tuple[Field[Any], Every | At]]:
+    """The fields of a part declared as counted in steps, with how each scales."""
+    return [(f, f.metadata[STEPS]) for f in fields(part) if STEPS in f.metadata]
+
+
+Problems = Iterator[tuple[str, str]]  # (field, what is wrong with it)
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """When things happen during a run (all in optimiser steps)."""
+
+    # coarse-to-fine: the first `coarse_steps` steps train on 2x2-averaged images (half width and
+    # height, a quarter of the pixels per step); 0: every step at the training resolution
+    coarse_steps: int = at(0)
+    sh_degree_interval: int = every(1000)  # the SH degree grows by one every this many steps
+    curve_every: int = every(100)  # record (time, train PSNR, #Gaussians) for the training curves
+    eval_every: int = every(0, may_be_off=True)  # holdout evaluation during training (0: only at the end)
+    checkpoint_every: int = every(5000)
+    keep_checkpoints: int = 2
+
+    def problems(self, steps: int) -> Problems:
+        if not 0 <= self.coarse_steps <= steps:
+            yield "coarse_steps", f"must be in 0..steps ({steps}), got {self.coarse_steps}"
+        if self.keep_checkpoints < 1:
+            yield "keep_checkpoints", f"must be >= 1, got {self.keep_checkpoints}"
+
+
+@dataclass(frozen=True)
+class LearningRates:
+    """Adam's learning rates (Inria's) and their decay. The positions' rate is times the scene extent
+    and decays exponentially from ``means_lr_init`` to ``means_lr_final`` over the run; the others
+    (quats, scales, opacities, SH) fall log-linearly from their value at ``lr_decay_start`` to
+    ``lr_decay_final`` times it at the last step (1.0, or a start at or after the last step: constant,
+    as Inria)."""
+
     means_lr_init: float = 1.6e-4
     means_lr_final: float = 1.6e-6
     sh0_lr: float = 2.5e-3
@@ -42,83 +120,181 @@ class Preset:
     scales_lr: float = 5e-3
     quats_lr: float = 1e-3
     adam_eps: float = 1e-15
-    # initialisation
-    init_opacity: float = 0.1
-    init_scale: float = 1.0  # multiplies the mean 3-nearest-neighbour distance
+    lr_decay_final: float = 1.0
+    lr_decay_start: int = at(0)
+
+    def problems(self, steps: int) -> Problems:
+        if not (math.isfinite(self.lr_decay_final) and 0.0 < self.lr_decay_final <= 1.0):
+            yield "lr_decay_final", f"must be in (0, 1], got {self.lr_decay_final}"
+
+
+@dataclass(frozen=True)
+class Loss:
+    """The photometric loss ``(1 - ssim_lambda) * L1 + ssim_lambda * (1 - SSIM)``."""
+
+    ssim_lambda: float = 0.2
+
+    def problems(self, steps: int) -> Problems:
+        if not 0.0 <= self.ssim_lambda <= 1.0:
+            yield "ssim_lambda", f"must be in [0, 1], got {self.ssim_lambda}"
+
+
+@dataclass(frozen=True)
+class Initialisation:
+    """The model training starts from: at most ``max_init_points`` points (COLMAP's, the depth
+    frames' or random ones), spherical harmonics up to ``sh_degree``, an opacity, and scales of
+    ``init_scale`` times the mean distance to the 3 nearest neighbours."""
+
     max_init_points: int = 300_000
-    # densification (gsplat DefaultStrategy names; Inria values)
-    refine_start: int = 500
-    refine_stop: int = 15_000
-    refine_every: int = 100
-    reset_every: int = 3000
+    sh_degree: int = 3
+    init_opacity: float = 0.1
+    init_scale: float = 1.0
+
+    def problems(self, steps: int) -> Problems:
+        if not 0 <= self.sh_degree <= 3:
+            yield "sh_degree", f"must be in 0..3, got {self.sh_degree}"
+
+
+@dataclass(frozen=True)
+class Densification:
+    """The densification strategy's options (gsplat DefaultStrategy's, Inria's values): refine (grow
+    and prune) every ``refine_every`` steps after ``refine_start`` until ``refine_stop``, reset the
+    opacities every ``reset_every`` steps while refining; ``max_gaussians``: growth is limited to the
+    highest gradients beyond this many Gaussians (None: no limit)."""
+
+    refine_start: int = at(500, minimum=1)
+    refine_stop: int = at(15_000, minimum=1)
+    refine_every: int = every(100)
+    reset_every: int = every(3000)
     grow_grad2d: float = 2e-4
     grow_scale3d: float = 0.01
     prune_opa: float = 0.005
     prune_scale3d: float = 0.1
-    max_gaussians: int | None = None  # growth is limited to the highest gradients beyond this
-    # coarse-to-fine: the first `coarse_steps` steps train on 2x2-averaged images (half width and
-    # height, a quarter of the pixels per step); 0: every step at the training resolution
-    coarse_steps: int = 0
-    # annealing: the learning rates of quats, scales, opacities and SH fall log-linearly from their
-    # value at `lr_decay_start` to `lr_decay_final` times it at the last step (1.0, or a start at or
-    # after the last step: constant, as Inria)
-    lr_decay_final: float = 1.0
-    lr_decay_start: int = 0
-    # bookkeeping
-    checkpoint_every: int = 5000
-    keep_checkpoints: int = 2
-    curve_every: int = 100  # record (time, train PSNR, #Gaussians) for the training curves
-    eval_every: int = 0  # holdout evaluation during training (0: only at the end)
+    max_gaussians: int | None = None
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Everything that shapes a training run (all steps count optimiser iterations); see the module doc."""
+
+    name: str
+    steps: int = 30_000
+    downscale: int = 1  # images are resampled to 1/downscale of the undistorted resolution
+    time_budget_s: float | None = None  # stop (and evaluate) when training has run this long
+    seed: int = 0
+    schedule: Schedule = field(default_factory=Schedule)
+    learning_rates: LearningRates = field(default_factory=LearningRates)
+    loss: Loss = field(default_factory=Loss)
+    initialisation: Initialisation = field(default_factory=Initialisation)
+    densification: Densification = field(default_factory=Densification)
 
     def __post_init__(self) -> None:
+        self._paths()  # names unique across the parts
+        for where, problem in self._problems():
+            raise BraveError(f"preset {self.name}: {where} {problem}")
+
+    def _problems(self) -> Problems:
         if self.steps < 1:
-            raise BraveError(f"preset {self.name}: steps must be >= 1, got {self.steps}")
+            yield "steps", f"must be >= 1, got {self.steps}"
         if self.downscale < 1:
-            raise BraveError(f"preset {self.name}: downscale must be >= 1, got {self.downscale}")
-        if not 0 <= self.sh_degree <= 3:
-            raise BraveError(f"preset {self.name}: sh_degree must be in 0..3, got {self.sh_degree}")
-        if not 0.0 <= self.ssim_lambda <= 1.0:
-            raise BraveError(f"preset {self.name}: ssim_lambda must be in [0, 1], got {self.ssim_lambda}")
-        if not 0 <= self.coarse_steps <= self.steps:
-            raise BraveError(f"preset {self.name}: coarse_steps must be in 0..steps ({self.steps}), got {self.coarse_steps}")
-        if not (math.isfinite(self.lr_decay_final) and 0.0 < self.lr_decay_final <= 1.0):
-            raise BraveError(f"preset {self.name}: lr_decay_final must be in (0, 1], got {self.lr_decay_final}")
-        if self.lr_decay_start < 0:  # at or after the last step: no annealing
-            raise BraveError(f"preset {self.name}: lr_decay_start must be >= 0, got {self.lr_decay_start}")
-        if self.checkpoint_every < 1 or self.keep_checkpoints < 1:
-            raise BraveError(f"preset {self.name}: checkpoint_every and keep_checkpoints must be >= 1")
+            yield "downscale", f"must be >= 1, got {self.downscale}"
+        for part_name, part in self.parts().items():
+            for f, how in step_fields(part):
+                if (problem := how.problem(getattr(part, f.name))) is not None:
+                    yield f"{part_name}.{f.name}", problem
+            check = getattr(part, "problems", None)
+            for name, problem in check(self.steps) if check is not None else ():
+                yield f"{part_name}.{name}", problem
+
+    def parts(self) -> dict[str, Any]:
+        """The parts (the dataclass-valued fields) by field name: ``schedule``, ``learning_rates``, ..."""
+        return {f.name: v for f in fields(self) if is_dataclass(v := getattr(self, f.name)) and not isinstance(v, type)}
+
+    def _paths(self) -> dict[str, str]:
+        """Every settable value's path (``steps``, ``densification.max_gaussians``) by its name."""
+        parts = self.parts()
+        paths = {f.name: f.name for f in fields(self) if f.name not in parts}
+        for part_name, part in parts.items():
+            for f in fields(part):
+                if f.name in paths or f.name in parts:
+                    raise BraveError(f"preset {self.name}: the field name {f.name!r} is in both "
+                                     f"{paths.get(f.name, f.name)} and "
+                                     f"{part_name}.{f.name}; names must be unique across the parts (they are the "
+                                     "keys of to_json and of overrides)")
+                paths[f.name] = f"{part_name}.{f.name}"
+        return paths
+
+    def paths(self) -> list[str]:
+        """The path of every value (``name``, ``steps``, ..., ``densification.max_gaussians``)."""
+        return list(self._paths().values())
+
+    def path_of(self, key: str) -> str:
+        """The path of ``key``: a path, a field name (``max_gaussians`` -> ``densification.max_gaussians``)
+        or a part's name."""
+        paths = self._paths()
+        if key in paths:
+            return paths[key]
+        if key in paths.values() or key in self.parts():
+            return key
+        raise BraveError(f"preset {self.name}: no field {key!r} (fields: {', '.join(paths.values())})")
+
+    def with_values(self, **changes: Any) -> Preset:
+        """A copy with the values at these paths or names replaced (``None`` included: no time budget,
+        no cap on the Gaussians); a whole part may be given by its name."""
+        top: dict[str, Any] = {}
+        by_part: dict[str, dict[str, Any]] = {}
+        for key, value in changes.items():
+            part_name, _, name = self.path_of(key).rpartition(".")
+            if part_name:
+                by_part.setdefault(part_name, {})[name] = value
+            else:
+                top[name] = value
+        for part_name, values in by_part.items():
+            top[part_name] = replace(top.get(part_name, getattr(self, part_name)), **values)
+        return replace(self, **top)
 
     def with_overrides(self, **changes: Any) -> Preset:
-        """A copy with some fields replaced (``None`` values are ignored)."""
-        return replace(self, **{k: v for k, v in changes.items() if v is not None})
+        """A copy with some values replaced, by path or name (``None`` values are ignored: options left unset)."""
+        return self.with_values(**{k: v for k, v in changes.items() if v is not None})
 
     def with_steps(self, steps: int) -> Preset:
-        """A copy for a run of ``steps`` steps: every step-based schedule scales with it."""
+        """A copy for a run of ``steps`` steps: every field of every part declared with :func:`every`
+        or :func:`at` scales with it."""
         if steps == self.steps:
             return self
-        f = steps / self.steps
-
-        def sc(v: int) -> int:
-            return max(1, round(v * f))
-
-        return replace(
-            self, steps=steps, sh_degree_interval=sc(self.sh_degree_interval),
-            refine_start=sc(self.refine_start), refine_stop=sc(self.refine_stop),
-            refine_every=sc(self.refine_every), reset_every=sc(self.reset_every),
-            checkpoint_every=sc(self.checkpoint_every), curve_every=sc(self.curve_every),
-            eval_every=sc(self.eval_every) if self.eval_every else 0,
-            coarse_steps=min(steps, round(self.coarse_steps * f)),
-            lr_decay_start=min(steps, round(self.lr_decay_start * f)),
-        )
+        factor = steps / self.steps
+        scaled = {name: replace(part, **{f.name: how.scale(getattr(part, f.name), factor, steps)
+                                         for f, how in step_fields(part)})
+                  for name, part in self.parts().items()}
+        return replace(self, steps=steps, **scaled)
 
     def to_json(self) -> dict[str, Any]:
-        return asdict(self)
+        """The values by name, flat (the record ``metrics.json`` and the benchmarks keep)."""
+        parts = self.parts()
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in parts}
+        for part in parts.values():
+            out.update({f.name: getattr(part, f.name) for f in fields(part)})
+        return out
+
+    @classmethod
+    def from_json(cls, record: Mapping[str, Any]) -> Preset:
+        """The preset of a :meth:`to_json` record; names this version does not know are left out (a
+        record of another version), missing ones keep their defaults. A record without a name or
+        with an invalid value raises :class:`DataError`."""
+        if not isinstance(record.get("name"), str):
+            raise DataError(f"a preset record needs a name, got {record.get('name')!r}")
+        base = cls(name=record["name"])
+        known = set(base._paths())
+        try:
+            return base.with_values(**{k: v for k, v in record.items() if k in known and k != "name"})
+        except BraveError as exc:
+            raise DataError(f"preset record: {exc}") from None
 
 
 DEFAULT = Preset(name="default")
 
 QUALITY = Preset(
-    name="quality", steps=50_000, refine_stop=25_000, checkpoint_every=5000,
+    name="quality", steps=50_000, densification=Densification(refine_stop=25_000),
 )
 
 FAST = Preset(
@@ -126,27 +302,32 @@ FAST = Preset(
     steps=2000,
     downscale=2,
     time_budget_s=14 * 60.0,
-    sh_degree=2,
-    sh_degree_interval=400,
+    schedule=Schedule(
+        coarse_steps=600,  # the first 600 steps on 2x2-averaged images
+        sh_degree_interval=400,
+        checkpoint_every=500,
+        curve_every=20,
+    ),
     # learning rates for a short run (tuned on the demo capture, issue 22): colours 5x, scales 3x,
     # positions 3x Inria's, the positions decaying to 5e-6 (x extent) instead of 1.6e-6
-    sh0_lr=0.012,
-    shN_lr=0.0006,
-    scales_lr=0.015,
-    means_lr_init=5e-4,
-    means_lr_final=5e-6,
-    coarse_steps=600,  # the first 600 steps on 2x2-averaged images
-    lr_decay_final=0.1,  # from the first full-resolution step, all but the positions' rates fall to 1/10
-    lr_decay_start=600,
-    refine_start=100,
-    refine_stop=1200,
-    refine_every=50,
-    reset_every=1_000_000,  # no opacity reset: too few steps remain to recover from one
-    grow_grad2d=2e-4,
-    max_gaussians=100_000,
-    max_init_points=60_000,
-    checkpoint_every=500,
-    curve_every=20,
+    learning_rates=LearningRates(
+        sh0_lr=0.012,
+        shN_lr=0.0006,
+        scales_lr=0.015,
+        means_lr_init=5e-4,
+        means_lr_final=5e-6,
+        lr_decay_final=0.1,  # from the first full-resolution step, all but the positions' rates fall to 1/10
+        lr_decay_start=600,
+    ),
+    initialisation=Initialisation(sh_degree=2, max_init_points=60_000),
+    densification=Densification(
+        refine_start=100,
+        refine_stop=1200,
+        refine_every=50,
+        reset_every=1_000_000,  # no opacity reset: too few steps remain to recover from one
+        grow_grad2d=2e-4,
+        max_gaussians=100_000,
+    ),
 )
 
 PRESETS: dict[str, Preset] = {p.name: p for p in (FAST, DEFAULT, QUALITY)}
@@ -158,21 +339,14 @@ FAST_3000 = Preset(
     steps=3000,
     downscale=2,
     time_budget_s=14 * 60.0,
-    sh_degree=2,
-    sh_degree_interval=600,
-    refine_start=300,
-    refine_stop=1800,
-    refine_every=150,
-    reset_every=1_000_000,
-    grow_grad2d=2e-4,
-    max_gaussians=150_000,
-    max_init_points=60_000,
-    checkpoint_every=750,
-    curve_every=30,
+    schedule=Schedule(sh_degree_interval=600, checkpoint_every=750, curve_every=30),
+    initialisation=Initialisation(sh_degree=2, max_init_points=60_000),
+    densification=Densification(refine_start=300, refine_stop=1800, refine_every=150, reset_every=1_000_000,
+                                grow_grad2d=2e-4, max_gaussians=150_000),
 )
 #: ``fast`` before the learning-rate annealing (the same schedule with constant rates but the positions'),
 #: for ``--a old=fast-2000``.
-FAST_2000 = replace(FAST, name="fast-2000", lr_decay_final=1.0, lr_decay_start=0)
+FAST_2000 = FAST.with_values(name="fast-2000", lr_decay_final=1.0, lr_decay_start=0)
 BENCHMARK_PRESETS: dict[str, Preset] = {**PRESETS, FAST_3000.name: FAST_3000, FAST_2000.name: FAST_2000}
 
 

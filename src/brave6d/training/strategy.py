@@ -11,6 +11,8 @@ Two differences from gsplat 1.5.3, both on purpose:
 * an optional cap on the number of Gaussians (CPU presets): when a refinement would grow past
   ``max_gaussians``, only the Gaussians with the highest image-plane gradients grow.
 
+The options are the preset's :class:`~brave6d.training.presets.Densification` (gsplat's names, but
+``refine_start`` / ``refine_stop`` for gsplat's ``refine_start_iter`` / ``refine_stop_iter``).
 Parameters and optimiser state are edited in place through ``params`` (a ParameterDict with
 the gsplat names) and one single-group optimiser per parameter; ``state`` holds the running
 gradient statistics (``grad2d``, ``count``) and ``scene_scale``.
@@ -19,14 +21,14 @@ gradient statistics (``grad2d``, ``count``) and ``scene_scale``.
 from __future__ import annotations
 
 from collections.abc import Callable, MutableMapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from brave6d.training.presets import Preset
+from brave6d.training.presets import Densification
 
 Params = MutableMapping[str, torch.nn.Parameter]
 Optimizers = dict[str, torch.optim.Optimizer]
@@ -35,17 +37,10 @@ REQUIRED_PARAMS = ("means", "scales", "quats", "opacities")
 
 @dataclass
 class DensifyStrategy:
-    """Inria's adaptive density control (gsplat parameter names), with a working opacity reset."""
+    """Inria's adaptive density control (gsplat's rules), with a working opacity reset; ``options`` is
+    the preset's own :class:`~brave6d.training.presets.Densification` (``preset.densification``)."""
 
-    prune_opa: float = 0.005
-    grow_grad2d: float = 0.0002
-    grow_scale3d: float = 0.01
-    prune_scale3d: float = 0.1
-    refine_start_iter: int = 500
-    refine_stop_iter: int = 15_000
-    reset_every: int = 3000
-    refine_every: int = 100
-    max_gaussians: int | None = None
+    options: Densification = field(default_factory=Densification)
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
         """Running statistics, allocated on the first step (on the gradients' device)."""
@@ -75,21 +70,21 @@ class DensifyStrategy:
         """After the optimiser step: accumulate gradients; grow, prune and reset on schedule."""
         if packed:
             raise ValueError("DensifyStrategy needs the rasterizer's non-packed info (packed=False)")
-        if step >= self.refine_stop_iter:
+        if step >= self.options.refine_stop:
             return
         self._update_state(params, state, info)
-        if step > self.refine_start_iter and step % self.refine_every == 0:
+        if step > self.options.refine_start and step % self.options.refine_every == 0:
             self._grow_gs(params, optimizers, state)
             self._prune_gs(params, optimizers, state, step)
             state["grad2d"].zero_()
             state["count"].zero_()
             torch.cuda.empty_cache()
         if self.should_reset_opacity(step):
-            reset_opacities(params, optimizers, value=self.prune_opa * 2.0)
+            reset_opacities(params, optimizers, value=self.options.prune_opa * 2.0)
 
     def should_reset_opacity(self, step: int) -> bool:
         """Inria: every ``reset_every`` steps after the first, while densifying."""
-        return 0 < step < self.refine_stop_iter and step % self.reset_every == 0
+        return 0 < step < self.options.refine_stop and step % self.options.reset_every == 0
 
     def _update_state(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> None:
         # gradients of the 2D means in [-1, 1] screen units, summed over the cameras that see each Gaussian
@@ -109,18 +104,19 @@ class DensifyStrategy:
     @torch.no_grad()
     def _grow_gs(self, params: Params, optimizers: Optimizers, state: dict[str, Any]) -> tuple[int, int]:
         """Duplicate small and split large Gaussians whose mean 2D gradient is high."""
+        opts = self.options
         grads = state["grad2d"] / state["count"].clamp_min(1)
-        threshold = self.grow_grad2d
-        if self.max_gaussians is not None:
-            room = self.max_gaussians - len(params["means"])
+        threshold = opts.grow_grad2d
+        if opts.max_gaussians is not None:
+            room = opts.max_gaussians - len(params["means"])
             if room <= 0:
                 return 0, 0
-            candidates = grads > self.grow_grad2d
+            candidates = grads > opts.grow_grad2d
             if int(candidates.sum()) > room:
                 # each duplicate or split adds one Gaussian: keep the `room` highest gradients
                 threshold = float(torch.topk(grads[candidates], room + 1).values[-1])
         is_grad_high = grads > threshold
-        is_small = torch.exp(params["scales"]).max(dim=-1).values <= self.grow_scale3d * state["scene_scale"]
+        is_small = torch.exp(params["scales"]).max(dim=-1).values <= opts.grow_scale3d * state["scene_scale"]
         is_dupli = is_grad_high & is_small
         is_split = is_grad_high & ~is_small
         n_dupli = int(is_dupli.sum().item())
@@ -136,28 +132,14 @@ class DensifyStrategy:
     @torch.no_grad()
     def _prune_gs(self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int) -> int:
         """Remove transparent Gaussians and, after the first reset period, world-space giants."""
-        is_prune = torch.sigmoid(params["opacities"].flatten()) < self.prune_opa
-        if step > self.reset_every:
-            is_prune |= torch.exp(params["scales"]).max(dim=-1).values > self.prune_scale3d * state["scene_scale"]
+        opts = self.options
+        is_prune = torch.sigmoid(params["opacities"].flatten()) < opts.prune_opa
+        if step > opts.reset_every:
+            is_prune |= torch.exp(params["scales"]).max(dim=-1).values > opts.prune_scale3d * state["scene_scale"]
         n_prune = int(is_prune.sum().item())
         if n_prune > 0:
             remove(params, optimizers, state, is_prune)
         return n_prune
-
-
-def make_strategy(preset: Preset) -> DensifyStrategy:
-    """The densification strategy of a preset (gsplat parameter names)."""
-    return DensifyStrategy(
-        prune_opa=preset.prune_opa,
-        grow_grad2d=preset.grow_grad2d,
-        grow_scale3d=preset.grow_scale3d,
-        prune_scale3d=preset.prune_scale3d,
-        refine_start_iter=preset.refine_start,
-        refine_stop_iter=preset.refine_stop,
-        reset_every=preset.reset_every,
-        refine_every=preset.refine_every,
-        max_gaussians=preset.max_gaussians,
-    )
 
 
 # ---------------------------------------------------------------- in-place edits (gsplat's ops)

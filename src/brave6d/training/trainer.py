@@ -4,11 +4,11 @@ Per step (gsplat's ``simple_trainer`` order): render the next training view (vie
 without replacement, a new random order every epoch), loss
 ``(1 - lambda) * L1 + lambda * (1 - SSIM)``, backward, Adam step for every parameter, then the
 densification strategy. The means' learning rate is Inria's (times the scene extent) with an
-exponential decay over the run; the SH degree grows by one every ``sh_degree_interval`` steps.
+exponential decay over the run; the SH degree grows by one every ``schedule.sh_degree_interval`` steps.
 
 Stability: NaN or inf in the loss or in a parameter stops training with :class:`TrainingDiverged`
 naming the step; checkpoints are only written from finite states, so the last one stays good.
-Checkpoints (every ``checkpoint_every`` steps, atomic) hold parameters, optimiser and strategy
+Checkpoints (every ``schedule.checkpoint_every`` steps, atomic) hold parameters, optimiser and strategy
 state and every RNG, so that ``resume=True`` continues exactly where the run stopped: on the
 CPU a resumed run ends with the same parameters as an uninterrupted one, and equal seeds give
 equal results. They hold tensors and plain values (numbers, strings, lists, dicts) only and are
@@ -41,7 +41,7 @@ from brave6d.training.device import resolve_device  # noqa: F401 - also importab
 from brave6d.training.losses import fill_invalid, photometric_loss, psnr
 from brave6d.training.model import PARAM_NAMES, GaussianModel
 from brave6d.training.presets import Preset
-from brave6d.training.strategy import make_strategy
+from brave6d.training.strategy import DensifyStrategy
 
 log = logging.getLogger(__name__)
 
@@ -74,27 +74,30 @@ class TrainResult:
 def means_lr(step: int, preset: Preset, extent: float) -> float:
     """Inria's position learning rate at ``step``: log-linear from init to final, times the extent."""
     t = min(max(step / max(preset.steps, 1), 0.0), 1.0)
-    return extent * math.exp((1.0 - t) * math.log(preset.means_lr_init) + t * math.log(preset.means_lr_final))
+    rates = preset.learning_rates
+    return extent * math.exp((1.0 - t) * math.log(rates.means_lr_init) + t * math.log(rates.means_lr_final))
 
 
 def base_lrs(preset: Preset) -> dict[str, float]:
     """The learning rates of every parameter but the positions, before annealing."""
-    return {"quats": preset.quats_lr, "scales": preset.scales_lr, "opacities": preset.opacities_lr,
-            "sh0": preset.sh0_lr, "shN": preset.shN_lr}
+    rates = preset.learning_rates
+    return {"quats": rates.quats_lr, "scales": rates.scales_lr, "opacities": rates.opacities_lr,
+            "sh0": rates.sh0_lr, "shN": rates.shN_lr}
 
 
 def other_lr_factor(step: int, preset: Preset) -> float:
     """Factor on the quats / scales / opacities / SH learning rates at ``step``: 1 until
     ``lr_decay_start``, then log-linear down to ``lr_decay_final`` at the last step (and after)."""
-    span = preset.steps - preset.lr_decay_start
-    if preset.lr_decay_final == 1.0 or step <= preset.lr_decay_start or span <= 0:
+    rates = preset.learning_rates
+    span = preset.steps - rates.lr_decay_start
+    if rates.lr_decay_final == 1.0 or step <= rates.lr_decay_start or span <= 0:
         return 1.0
-    t = min((step - preset.lr_decay_start) / span, 1.0)
-    return math.exp(t * math.log(preset.lr_decay_final))
+    t = min((step - rates.lr_decay_start) / span, 1.0)
+    return math.exp(t * math.log(rates.lr_decay_final))
 
 
 def sh_degree_at(step: int, preset: Preset, max_degree: int) -> int:
-    return min(step // max(preset.sh_degree_interval, 1), max_degree)
+    return min(step // max(preset.schedule.sh_degree_interval, 1), max_degree)
 
 
 class Trainer:
@@ -125,7 +128,7 @@ class Trainer:
         self.eval_callback = eval_callback
         self.checkpoint_hook = checkpoint_hook  # called after each checkpoint is written
         self.extent = data.scene_extent()
-        self.strategy = make_strategy(preset)
+        self.strategy = DensifyStrategy(preset.densification)
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.extent)
         self.optimizers = self._make_optimizers()
         self.strategy.check_sanity(self.model.params, self.optimizers)
@@ -153,7 +156,7 @@ class Trainer:
         lrs = {"means": means_lr(0, p, self.extent), **base_lrs(p)}
         # fused Adam: the same update, one kernel per tensor (25x faster than the default on CPU)
         return {name: torch.optim.Adam([{"params": self.model.params[name], "lr": lrs[name], "name": name}],
-                                       eps=p.adam_eps, betas=(0.9, 0.999), fused=True)
+                                       eps=p.learning_rates.adam_eps, betas=(0.9, 0.999), fused=True)
                 for name in PARAM_NAMES}
 
     def _next_view(self) -> int:
@@ -205,19 +208,19 @@ class Trainer:
             self._check_params("before the step")
         for group in self.optimizers["means"].param_groups:
             group["lr"] = means_lr(step, p, self.extent)
-        if p.lr_decay_final != 1.0:
+        if p.learning_rates.lr_decay_final != 1.0:
             factor = other_lr_factor(step, p)
             for name, lr in base_lrs(p).items():
                 for group in self.optimizers[name].param_groups:
                     group["lr"] = lr * factor
         i = self._next_view()
-        level = self.coarse_level() if step < p.coarse_steps else None
+        level = self.coarse_level() if step < p.schedule.coarse_steps else None
         gt = (self.images[i] if level is None else level.images[i]).float() / 255.0
         valid = self.valid if level is None else level.valid
         render, _, info = self.render(self.viewmats[i], sh_degree_at(step, p, self.model.sh_degree), level)
         self.strategy.step_pre_backward(self.model.params, self.optimizers, self.strategy_state, step, info)
         gt = fill_invalid(gt, render, valid)
-        loss, l1, _ = photometric_loss(render, gt, p.ssim_lambda)
+        loss, l1, _ = photometric_loss(render, gt, p.loss.ssim_lambda)
         loss_value = float(loss.detach())
         if not math.isfinite(loss_value):
             raise self._diverged(f"the loss is {loss_value} (view {self.data.train[i].view_id})")
@@ -242,6 +245,7 @@ class Trainer:
             resumed_from = self.load_latest_checkpoint()
         end = self.preset.steps if max_steps is None else min(max_steps, self.preset.steps)
         budget = self.preset.time_budget_s
+        schedule = self.preset.schedule
         bar = progress_bar(total=self.preset.steps, desc="train", unit="step", initial=self.step) \
             if self.show_progress else None
         stopped_by = "steps"
@@ -259,13 +263,13 @@ class Trainer:
                 self.train_step()
                 self.elapsed += time.perf_counter() - t0
                 self.cpu_elapsed += time.process_time() - c0
-                if self.step % self.preset.curve_every == 0 or self.step == end:
+                if self.step % schedule.curve_every == 0 or self.step == end:
                     self._record_curve()
-                if self.preset.eval_every and self.step % self.preset.eval_every == 0 and self.eval_callback:
+                if schedule.eval_every and self.step % schedule.eval_every == 0 and self.eval_callback:
                     if self.curve[-1]["step"] != self.step:
                         self._record_curve()
                     self.curve[-1]["holdout_psnr"] = float(self.eval_callback(self))
-                if self.checkpoint_dir is not None and (self.step % self.preset.checkpoint_every == 0
+                if self.checkpoint_dir is not None and (self.step % schedule.checkpoint_every == 0
                                                         or self.step == self.preset.steps):
                     written.append(str(self.save_checkpoint()))
                 if bar is not None:
@@ -356,7 +360,7 @@ class Trainer:
         state = self.state_dict()
         atomic_write(path, lambda handle: torch.save(state, handle))
         self.last_checkpoint = path
-        for old in list_checkpoints(self.checkpoint_dir)[: -self.preset.keep_checkpoints]:
+        for old in list_checkpoints(self.checkpoint_dir)[: -self.preset.schedule.keep_checkpoints]:
             old.unlink(missing_ok=True)
         if self.checkpoint_hook is not None:
             self.checkpoint_hook(self)

@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class HoldoutPoint:
-    """The holdout scores at one step of a run (taken every ``preset.eval_every`` steps)."""
+    """The holdout scores at one step of a run (taken every ``preset.schedule.eval_every`` steps)."""
 
     step: int
     time_s: float  # training seconds up to this step (evaluation excluded)
@@ -80,7 +80,8 @@ def train(
     checkpoint_hook: Callable[[Trainer], None] | None = None,
     show_progress: bool = False,
 ) -> TrainedSplat:
-    """Train a splat on ``data.train`` with ``preset``; the holdout is scored every ``preset.eval_every`` steps.
+    """Train a splat on ``data.train`` with ``preset``; the holdout is scored every
+    ``preset.schedule.eval_every`` steps.
 
     ``scene``: the scene the views come from (COLMAP reuses and writes its ``sparse/0``; None:
     nothing is written and COLMAP is skipped unless ``data`` has undistorted image files).
@@ -95,12 +96,13 @@ def train(
     init_info: dict[str, Any]
     if continuing:
         # the model comes from the checkpoint; a placeholder keeps the constructor simple
-        model = GaussianModel.from_points([[0.0, 0.0, 0.0]], sh_degree=preset.sh_degree, device=dev)
+        model = GaussianModel.from_points([[0.0, 0.0, 0.0]], sh_degree=preset.initialisation.sh_degree, device=dev)
         init_info = {"source": "checkpoint"}
     else:
-        init = initial_points(scene, data, colmap or ColmapOptions(), preset.max_init_points, preset.seed, init_method)
-        model = GaussianModel.from_points(init.points, init.colors, preset.sh_degree, preset.init_opacity,
-                                          preset.init_scale, device=dev)
+        start = preset.initialisation
+        init = initial_points(scene, data, colmap or ColmapOptions(), start.max_init_points, preset.seed, init_method)
+        model = GaussianModel.from_points(init.points, init.colors, start.sh_degree, start.init_opacity,
+                                          start.init_scale, device=dev)
         log.info("initial points: %d from %s", len(init), init.source)
         init_info = {"source": init.source, "points": len(init), **init.details}
     init_seconds = time.perf_counter() - t0

@@ -78,7 +78,8 @@ def measure_views(scene: SceneDir, store: MeasurementStore, sweep: ViewsSweep) -
     levels = sorted(per_level)
     settings = {"preset": f"{preset.name} ({preset_source})", "steps": preset.steps, "fractions": list(sweep.fractions),
                 "image": f"{data.camera.width}x{data.camera.height}", "init": "own depth frames",
-                "max_gaussians": preset.max_gaussians, "holdout_views": len(data.test), "device": str(device)}
+                "max_gaussians": preset.densification.max_gaussians, "holdout_views": len(data.test),
+                "device": str(device)}
     m = store.resume(NAME, key, settings, machine_info(str(device)))
     records = scene.frames()
     m.summary.update({"levels": {str(lv): {"distance_m": per_level[lv][0].distance_m, "train_views": len(per_level[lv]),
@@ -108,19 +109,17 @@ def scene_preset(scene: SceneDir, sweep: ViewsSweep) -> tuple[Preset, str]:
 
     preset, source = get_preset("fast"), "the fast preset: no splat/metrics.json"
     try:
-        config = read_json(scene.splat_dir / "metrics.json").get("preset_config") or {}
-        names = {f.name for f in dataclasses.fields(Preset)}
-        preset = Preset(**{k: v for k, v in config.items() if k in names})
+        preset = Preset.from_json(read_json(scene.splat_dir / "metrics.json").get("preset_config") or {})
         source = "as trained"
     except (DataError, TypeError, AttributeError):
         pass
     preset = preset.with_steps(sweep.steps)
-    cap = preset.max_gaussians if sweep.max_gaussians is None else min(preset.max_gaussians or sweep.max_gaussians,
-                                                                      sweep.max_gaussians)
-    init_points = preset.max_init_points if cap is None else min(preset.max_init_points, max(1, cap // 2))
-    return dataclasses.replace(preset, time_budget_s=None, max_gaussians=cap, max_init_points=init_points,
-                               downscale=max(preset.downscale, sweep.downscale or 1),
-                               eval_every=max(1, sweep.steps // max(sweep.evaluations, 1))), source
+    trained_cap, trained_points = preset.densification.max_gaussians, preset.initialisation.max_init_points
+    cap = trained_cap if sweep.max_gaussians is None else min(trained_cap or sweep.max_gaussians, sweep.max_gaussians)
+    init_points = trained_points if cap is None else min(trained_points, max(1, cap // 2))
+    return preset.with_values(time_budget_s=None, max_gaussians=cap, max_init_points=init_points,
+                              downscale=max(preset.downscale, sweep.downscale or 1),
+                              eval_every=max(1, sweep.steps // max(sweep.evaluations, 1))), source
 
 
 def train_subset(data: Any, preset: Preset, device: Any) -> dict[str, Any]:
