@@ -108,7 +108,7 @@ def scene_preset(scene: SceneDir, sweep: ViewsSweep) -> tuple[Preset, str]:
 
     preset, source = get_preset("fast"), "the fast preset: no splat/metrics.json"
     try:
-        config = read_json(scene.splat_dir / "metrics.json").get("preset_config") or {}
+        config = read_json(scene.metrics_path).get("preset_config") or {}
         names = {f.name for f in dataclasses.fields(Preset)}
         preset = Preset(**{k: v for k, v in config.items() if k in names})
         source = "as trained"
