@@ -16,6 +16,7 @@ import yaml
 
 from brave6d.annotation import export_bop, read_scene_gt
 from brave6d.core.atomic import write_png
+from brave6d.core.layout import SceneDir
 from brave6d.cli import main
 from brave6d.core.layout import FrameLog, SceneDir
 from brave6d.dataset.release import ReleaseError, build_release, read_sha256sums, read_targets, verify_release
@@ -61,10 +62,11 @@ def _write_dataset(workdir: Path, objects: list[str]) -> None:
         spec = yaml.safe_load(spec_file.read_text())
         spec["name"] = name
         spec_file.write_text(yaml.safe_dump(spec, sort_keys=False))
-    cube = workdir / "scenes" / "scene_a" / "meshes" / "cube_red.ply"
+    scene_a = SceneDir(workdir / "scenes" / "scene_a")
+    cube = scene_a.asset_path("cube_red.ply")
     library = []
     for n in objects:
-        in_scene = workdir / "scenes" / "scene_a" / "meshes" / f"{n}.ply"
+        in_scene = scene_a.asset_path(f"{n}.ply")
         if not in_scene.is_file():  # an object of the library that no scene shows
             shutil.copyfile(cube, meshes / f"{n}.ply")
         mesh = in_scene if in_scene.is_file() else meshes / f"{n}.ply"
