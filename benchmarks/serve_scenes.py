@@ -59,10 +59,11 @@ def peak_rss_mb() -> float:
 
 
 def catalog_for(args: argparse.Namespace, cache: Path, max_loaded: int | None) -> Any:
+    from brave6d.commands.scenes import scene_sources
     from brave6d.serve import SceneCatalog, SceneSource, bundle_scene_source, open_scenes
 
     if args.release is not None:
-        return open_scenes(args.release, device="cpu", cache_dir=cache, max_loaded=max_loaded)
+        return open_scenes(scene_sources(args.release, cache), device="cpu", max_loaded=max_loaded)
     sources = []
     for i, folder in enumerate(args.bundles):
         s = bundle_scene_source(folder, i + 1)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from brave6d.core.errors import BraveError
+from brave6d.core.errors import BraveError, DataError
 from brave6d.core.layout import SceneDir
 from brave6d.core.transforms import invert
 from brave6d.serve.bundle import BundleError, export_bundle, load_bundle, verify_manifest
@@ -110,13 +110,13 @@ def test_server_refuses_a_tampered_bundle(bundle_dir: Path) -> None:
 def test_cli_serve_refuses_a_tampered_bundle(bundle_dir: Path) -> None:
     import argparse
 
-    from brave6d.serve import cli
+    from brave6d.commands import serve as command
 
     (bundle_dir / "scene.json").write_text("{}")
     parser = argparse.ArgumentParser()
-    cli.configure(parser)
+    command.configure(parser)
     with pytest.raises(BundleError, match="scene.json"):
-        cli.run(parser.parse_args([str(bundle_dir), "--port", "0"]))
+        command.run(parser.parse_args([str(bundle_dir), "--port", "0"]))
 
 
 def test_failed_export_keeps_the_previous_bundle(scene: SceneDir, tmp_path: Path) -> None:
@@ -201,23 +201,81 @@ def test_ground_truth_equals_the_bop_export(tmp_path: Path) -> None:
 
 
 def test_holdout_views_follow_the_trainers_split(scene: SceneDir, tmp_path: Path) -> None:
+    from brave6d.core.calibration_io import camera_poses
     from brave6d.serve.bundle import holdout_frames
+    from brave6d.training import HeldOutView, write_holdout
 
     copy = SceneDir(tmp_path / "scene")
     shutil.copytree(scene.root, copy.root)
-    # default: the trainer's rule (10 % per distance level)
+    # the split training recorded (the toy scene records the trainer's rule: 10 % per distance level)
     assert [r.index for r, _ in holdout_frames(copy)] == [5]
-    # a split file from the COLMAP step (image names)
+    # whatever training recorded is what the bundle holds; old guesses (metrics.json keys, COLMAP's
+    # holdout.txt) are not read any more
+    write_holdout(copy, [HeldOutView(1, "d0_v001"), HeldOutView(9, "d0_v009")])
+    (copy.splat_dir / "metrics.json").write_text(json.dumps({"psnr": 30.0, "holdout": [{"index": 4}]}))
     copy.sparse_dir.mkdir(parents=True, exist_ok=True)
-    (copy.sparse_dir / "holdout.txt").write_text("000003.png\n000008.png\n")
-    assert [r.index for r, _ in holdout_frames(copy)] == [3, 8]
-    # the trainer's metrics.json wins (frame indices or view ids)
-    (copy.splat_dir / "metrics.json").write_text(json.dumps({"psnr": 30.0, "holdout": [{"index": 1}, "d0_v009"]}))
-    frames = holdout_frames(copy)
-    assert [r.index for r, _ in frames] == [1, 9]
+    (copy.sparse_dir / "holdout.txt").write_text("000003.png\n")
+    assert [r.index for r, _ in holdout_frames(copy)] == [1, 9]
     b = load_bundle(export_bundle(copy.root, tmp_path / "b").root)
-    assert [h.index for h in b.holdout] == [1, 9]
-    from brave6d.core.calibration_io import camera_poses
-
+    assert [(h.index, h.view_id) for h in b.holdout] == [(1, "d0_v001"), (9, "d0_v009")]
     poses = {r.index: T for r, T in camera_poses(copy)}
     np.testing.assert_array_equal(b.holdout[1].world_T_cam, poses[9])
+
+
+def test_a_scene_trained_before_the_split_file_still_exports(scene: SceneDir, tmp_path: Path) -> None:
+    copy = SceneDir(tmp_path / "scene")
+    shutil.copytree(scene.root, copy.root)
+    copy.holdout_split_path.unlink()
+    (copy.splat_dir / "metrics.json").write_text(json.dumps({"psnr": 30.0, "holdout": [{"index": 4}]}))
+    b = load_bundle(export_bundle(copy.root, tmp_path / "b").root)
+    assert [(h.index, h.view_id) for h in b.holdout] == [(5, "d0_v005")]  # the trainer's rule on the capture
+    assert b.source.holdout_sha256 is None  # the manifest says the split was not recorded
+
+
+def test_a_split_that_no_longer_matches_the_capture_is_refused(scene: SceneDir, tmp_path: Path) -> None:
+    from brave6d.training import HeldOutView, write_holdout
+
+    copy = SceneDir(tmp_path / "scene")
+    shutil.copytree(scene.root, copy.root)
+    write_holdout(copy, [HeldOutView(42, "d0_v042")])
+    with pytest.raises(DataError, match=r"holdout\.json: held-out frame 42 \(d0_v042\) is not in the capture"):
+        export_bundle(copy.root, tmp_path / "b")
+    write_holdout(copy, [HeldOutView(5, "d9_v005")])
+    with pytest.raises(DataError, match=r"held-out frame 5 \(d9_v005\) is view 'd0_v005' in the capture"):
+        export_bundle(copy.root, tmp_path / "b")
+    assert not (tmp_path / "b").exists()
+
+
+# ----------------------------------------------------------------------------- where a bundle came from
+def _strings(value: object) -> list[str]:
+    if isinstance(value, dict):
+        return [s for k, v in value.items() for s in (str(k), *_strings(v))]
+    if isinstance(value, list):
+        return [s for v in value for s in _strings(v)]
+    return [value] if isinstance(value, str) else []
+
+
+def test_the_manifest_names_its_source_without_the_builders_paths(scene: SceneDir, bundle_dir: Path) -> None:
+    from brave6d.core.atomic import file_sha256
+
+    text = (bundle_dir / "manifest.json").read_text()
+    manifest = json.loads(text)
+    for folder in {scene.root, scene.root.resolve(), bundle_dir.parent.resolve(), Path.home()}:
+        assert str(folder) not in text, folder
+    assert not [v for v in _strings(manifest) if v.startswith("/")]
+    assert manifest["source"] == {
+        "scene": "synthetic_tabletop", "splat": "splat/point_cloud.ply",
+        "splat_sha256": manifest["files"]["splat.ply"]["sha256"], "metrics_sha256": None,
+        "holdout_sha256": file_sha256(scene.holdout_split_path)}
+    assert manifest["source"]["splat_sha256"] == file_sha256(scene.splat_ply_path)
+    assert load_bundle(bundle_dir).source.splat == "splat/point_cloud.ply"
+
+
+def test_a_bundle_made_before_still_loads_and_its_old_paths_are_ignored(bundle_dir: Path) -> None:
+    manifest = json.loads((bundle_dir / "manifest.json").read_text())
+    manifest["source"] = {"scene": "/home/builder/scenes/tabletop", "splat": "/home/builder/scenes/tabletop/splat/x.ply"}
+    (bundle_dir / "manifest.json").write_text(json.dumps(manifest))  # the manifest is not in its own file table
+    b = load_bundle(bundle_dir)
+    assert b.source.to_json() == {"scene": None, "splat": None, "splat_sha256": None, "metrics_sha256": None,
+                                  "holdout_sha256": None}
+    assert "/home/builder" not in json.dumps(b.summary())

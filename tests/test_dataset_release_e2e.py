@@ -60,10 +60,11 @@ def test_demo_dataset_runs_releases_and_verifies(tmp_path: Path, capsys: pytest.
 
 def _serve_and_score(release: Path, tmp_path: Path, scenes: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     from brave6d.evaluation.agents import STATIC_AGENT, make_agent, run_episode
+    from brave6d.commands.scenes import scene_sources
     from brave6d.serve import BraveClient, ServerThread, create_app, open_scenes
 
     logs = tmp_path / "logs"
-    catalog = open_scenes(release, device="cpu", cache_dir=tmp_path / "cache", max_loaded=1)
+    catalog = open_scenes(scene_sources(release, tmp_path / "cache"), device="cpu", max_loaded=1)
     with ServerThread(create_app(catalog, log_dir=logs)) as server, BraveClient(server.url) as client:
         listed = client.scenes()["scenes"]
         assert [s["name"] for s in listed] == scenes and not any(s["loaded"] for s in listed)

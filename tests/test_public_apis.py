@@ -20,7 +20,7 @@ STAGES = tuple(f"brave6d.{s}" for s in STAGE_NAMES)
 PACKAGES = (*STAGES, "brave6d.evaluation.metrics", "brave6d.evaluation.agents", "brave6d.evaluation.report",
             "brave6d.dataset.release")
 #: The floor above the stages: the command line and the pipeline that drives the stages.
-TOP = ("brave6d.cli", "brave6d.init_cli", "brave6d.spec_cli", "brave6d.pipeline")
+TOP = ("brave6d.cli", "brave6d.init_cli", "brave6d.spec_cli", "brave6d.pipeline", "brave6d.commands")
 HEAVY = ("torch", "open3d", "fastapi", "trimesh", "numba", "pycolmap", "matplotlib")
 
 
@@ -79,6 +79,50 @@ def test_the_import_check_sees_a_cross_stage_import(tmp_path: Path, monkeypatch:
     (fake / "bad.py").write_text("def f():\n    from brave6d.training.trainer import Trainer\n")
     monkeypatch.setattr(sys.modules[__name__], "PACKAGE", tmp_path / "brave6d")
     assert _cross_stage_imports("brave6d.serve") == ["brave6d/serve/bad.py:2: brave6d.training.trainer"]
+
+
+#: The stages in the order their imports run: a stage imports (through public names) only stages
+#: before it. The dataset stage, last, runs them all; nothing imports evaluation but the two that
+#: score (ros_interface's scoring) and report (dataset's report) on top of it.
+STAGE_ORDER = ("capture", "calibration", "annotation", "synth", "training", "serve", "evaluation", "ros_interface",
+               "dataset")
+
+
+def _backward_imports(package: Path = PACKAGE) -> list[str]:
+    """``file:line: module`` for every import (module or function level) of a stage later in
+    :data:`STAGE_ORDER` than the importing file's stage."""
+    bad = []
+    for stage in STAGE_ORDER:
+        for path, line, module in _imports(package / stage):
+            other = _stage_of(module)
+            if other is not None and STAGE_ORDER.index(other.split(".")[1]) > STAGE_ORDER.index(stage):
+                bad.append(f"{path.relative_to(package)}:{line}: {module}")
+    return bad
+
+
+def test_the_stage_order_lists_every_stage() -> None:
+    assert sorted(STAGE_ORDER) == sorted(STAGE_NAMES)
+
+
+def test_serve_imports_no_dataset_module() -> None:
+    """A release's scenes reach the server through the command line (``brave6d.commands.scenes``),
+    which asks ``brave6d.dataset`` for them: the serve stage never imports the dataset stage."""
+    bad = [f"{path.relative_to(PACKAGE)}:{line}: {module}" for path, line, module in _imports(PACKAGE / "serve")
+           if module == "brave6d.dataset" or module.startswith("brave6d.dataset.")]
+    assert not bad, "serve reaches up to the dataset stage:\n" + "\n".join(bad)
+
+
+def test_imports_run_forward_through_the_stages() -> None:
+    bad = _backward_imports()
+    assert not bad, f"a stage imports a later one (order: {' -> '.join(STAGE_ORDER)}):\n" + "\n".join(bad)
+
+
+def test_the_order_check_sees_a_backward_import(tmp_path: Path) -> None:
+    for stage in STAGE_ORDER:
+        (tmp_path / stage).mkdir()
+    (tmp_path / "serve" / "late.py").write_text("def f():\n    from brave6d.dataset import release_scene_sources\n")
+    (tmp_path / "dataset" / "fine.py").write_text("from brave6d.serve import load_bundle\n")
+    assert _backward_imports(tmp_path) == ["serve/late.py:2: brave6d.dataset"]
 
 
 def test_the_core_imports_no_stage_and_not_the_top_floor() -> None:

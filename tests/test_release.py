@@ -16,6 +16,7 @@ import yaml
 
 from brave6d.annotation import export_bop, read_scene_gt
 from brave6d.core.atomic import write_png
+from brave6d.core.layout import SceneDir
 from brave6d.cli import main
 from brave6d.core.layout import FrameLog, SceneDir
 from brave6d.dataset.release import ReleaseError, build_release, read_sha256sums, read_targets, verify_release
@@ -61,10 +62,11 @@ def _write_dataset(workdir: Path, objects: list[str]) -> None:
         spec = yaml.safe_load(spec_file.read_text())
         spec["name"] = name
         spec_file.write_text(yaml.safe_dump(spec, sort_keys=False))
-    cube = workdir / "scenes" / "scene_a" / "meshes" / "cube_red.ply"
+    scene_a = SceneDir(workdir / "scenes" / "scene_a")
+    cube = scene_a.asset_path("cube_red.ply")
     library = []
     for n in objects:
-        in_scene = workdir / "scenes" / "scene_a" / "meshes" / f"{n}.ply"
+        in_scene = scene_a.asset_path(f"{n}.ply")
         if not in_scene.is_file():  # an object of the library that no scene shows
             shutil.copyfile(cube, meshes / f"{n}.ply")
         mesh = in_scene if in_scene.is_file() else meshes / f"{n}.ply"
@@ -299,10 +301,11 @@ def _episode(manager: object, scene: str | int, shift_m: float) -> str:
 
 
 def test_serve_every_scene_of_a_release(release: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from brave6d.commands.scenes import scene_sources
     from brave6d.serve import EpisodeManager, open_scenes
 
     cache = tmp_path / "cache"
-    catalog = open_scenes(release, device="cpu", cache_dir=cache, warm_up=False)
+    catalog = open_scenes(scene_sources(release, cache), device="cpu", warm_up=False)
     assert catalog.names() == ["scene_a", "scene_b"] and [s.scene_id for s in catalog.sources] == [1, 2]
     assert {o.category for s in catalog.sources for o in s.objects} == {"toys_office"}
     assert not list(cache.rglob("splat.ply"))  # nothing unpacked before a scene is used
@@ -312,7 +315,7 @@ def test_serve_every_scene_of_a_release(release: Path, tmp_path: Path, capsys: p
     _episode(manager, 1, 0.05)
     splat = next(p for p in cache.rglob("splat.ply") if p.parent.name == "000001")
     stamp = splat.stat().st_mtime_ns
-    again = open_scenes(release, device="cpu", cache_dir=cache, warm_up=False)
+    again = open_scenes(scene_sources(release, cache), device="cpu", warm_up=False)
     again.bundle("scene_a")
     assert splat.stat().st_mtime_ns == stamp  # the unpacked bundle is reused, not unpacked again
 
@@ -325,13 +328,14 @@ def test_serve_every_scene_of_a_release(release: Path, tmp_path: Path, capsys: p
 
 
 def test_serving_refuses_an_altered_bundle_zip(copy: Path, tmp_path: Path) -> None:
+    from brave6d.commands.scenes import scene_sources
     from brave6d.serve import EpisodeManager, SceneUnavailable, open_scenes
 
     zip_path = copy / f"{NAME}_bundle_000001.zip"
     data = bytearray(zip_path.read_bytes())
     data[len(data) // 2] ^= 0xFF
     zip_path.write_bytes(bytes(data))
-    manager = EpisodeManager(open_scenes(copy, device="cpu", cache_dir=tmp_path / "cache", warm_up=False), None)
+    manager = EpisodeManager(open_scenes(scene_sources(copy, tmp_path / "cache"), device="cpu", warm_up=False), None)
     with pytest.raises(SceneUnavailable, match=rf"{NAME}_bundle_000001\.zip: sha256 .* does not match SHA256SUMS"):
         manager.reset(scene="scene_a", seed=0)  # the server's failure (503), not the client's
     assert manager.reset(scene="scene_b", seed=0).accepted  # the other scene still serves
@@ -340,6 +344,7 @@ def test_serving_refuses_an_altered_bundle_zip(copy: Path, tmp_path: Path) -> No
 
 def test_serve_the_unzipped_release(release: Path, tmp_path: Path) -> None:
     """The layout BOP users make: unzip the base zip, then the others into the folder it made."""
+    from brave6d.commands.scenes import scene_sources
     from brave6d.serve import EpisodeManager, open_scenes
 
     with zipfile.ZipFile(release / f"{NAME}_base.zip") as zf:
@@ -348,10 +353,10 @@ def test_serve_the_unzipped_release(release: Path, tmp_path: Path) -> None:
         if z.name != f"{NAME}_base.zip":
             with zipfile.ZipFile(z) as zf:
                 zf.extractall(tmp_path / NAME)
-    catalog = open_scenes(tmp_path / NAME, device="cpu", warm_up=False)
+    catalog = open_scenes(scene_sources(tmp_path / NAME), device="cpu", warm_up=False)
     assert catalog.names() == ["scene_a", "scene_b"]
     assert catalog.source("scene_b").locate() == tmp_path / NAME / "bundles" / "000002"
     assert EpisodeManager(catalog, None).reset(scene="scene_b", seed=0).accepted
     shutil.rmtree(tmp_path / NAME / "bundles" / "000001")
     with pytest.raises(ReleaseError, match=rf"bundles/000001: the bundle of scene 'scene_a' is missing"):
-        open_scenes(tmp_path / NAME)
+        scene_sources(tmp_path / NAME)

@@ -180,10 +180,20 @@ def test_http_multi_scene_server(bundle_dir: Path, tmp_path: Path) -> None:
 def test_open_scenes_of_a_bundle_folder(bundle_dir: Path) -> None:
     catalog = open_scenes(bundle_dir, device="cpu", warm_up=False)
     assert catalog.names() == [load_bundle(bundle_dir).name] and catalog.source(None).scene_id is None
-    with pytest.raises(BraveError, match="no such bundle or release"):
+    with pytest.raises(BraveError, match="no such bundle"):
         open_scenes(bundle_dir / "missing")
+    with pytest.raises(BraveError, match="not a bundle"):
+        open_scenes(bundle_dir.parent)  # serve opens a bundle; a release's sources come from the command line
+
+
+def test_the_command_line_tells_a_bundle_from_a_release(bundle_dir: Path) -> None:
+    from brave6d.commands.scenes import scene_sources
+
+    assert [s.name for s in scene_sources(bundle_dir)] == [load_bundle(bundle_dir).name]
+    with pytest.raises(BraveError, match="no such bundle or release"):
+        scene_sources(bundle_dir / "missing")
     with pytest.raises(BraveError, match="neither a bundle"):
-        open_scenes(bundle_dir.parent)  # a scene folder: neither a bundle nor a release
+        scene_sources(bundle_dir.parent)  # a scene folder: neither a bundle nor a release
 
 
 def test_single_scene_server_keeps_its_api(bundle_dir: Path, tmp_path: Path) -> None:

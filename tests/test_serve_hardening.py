@@ -24,7 +24,8 @@ from brave6d.core.transforms import look_at
 from brave6d.serve.app import ServerLimits, create_app
 from brave6d.serve.bundle import Bundle, BundleError, export_bundle, load_bundle
 from brave6d.serve import EpisodeLog, SceneServer, read_episode_log
-from brave6d.serve.episodes import EpisodeManager, InvalidAction
+from brave6d.serve.episode_manager import EpisodeManager
+from brave6d.serve.episodes import InvalidAction
 from brave6d.serve.limits import MAX_HEIGHT, MAX_WIDTH, fit_image_size
 from brave6d.serve.toy_scene import make_synthetic_bundle, make_synthetic_scene
 

@@ -14,11 +14,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from brave6d.cli import COMMANDS as CLI_COMMANDS
 from brave6d.cli import main
 from brave6d.serve import LimitError, ServerLimits
 from brave6d.serve.limits import BOUNDS
 
-COMMANDS = {"serve": "brave6d.serve.cli", "ros1": "brave6d.ros_interface.ros1.cli", "ros2": "brave6d.ros_interface.ros2.cli"}
+COMMANDS = {c.name: c.module for c in CLI_COMMANDS if c.name in ("serve", "ros1", "ros2")}
 
 BAD = [
     ("serve", "--request-timeout", "nan"), ("serve", "--request-timeout", "inf"), ("serve", "--request-timeout", "0"),

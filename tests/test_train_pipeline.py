@@ -54,6 +54,13 @@ def test_outputs_and_metrics(trained: SceneDir) -> None:
         assert {"psnr", "ssim", "n_views", "distance_m"} <= set(level)
     assert metrics["init"]["source"] in ("colmap", "depth")
     assert len(list((splat / "holdout").glob("*.png"))) == 2
+    # the split is recorded once, beside the metrics: exactly the views scored (frame 3 was skipped)
+    from brave6d.training import holdout_split, read_holdout
+
+    split = read_holdout(trained)
+    assert split.recorded and trained.holdout_split_path.is_file()
+    assert [(v.index, v.view_id) for v in split.views] == [(s["index"], s["view_id"]) for s in hold["per_view"]]
+    assert split.indices == holdout_split(trained.frames())[1]
     assert (splat / "curves.png").stat().st_size > 1000
     names = [p.name for p in PlyData.read(str(splat / "point_cloud.ply"))["vertex"].properties]
     assert names == inria_attribute_names()
@@ -132,7 +139,7 @@ def test_a_new_training_never_leaves_the_user_without_the_previous_one(tmp_path:
     assert cli.run(parse(str(scene.root), *args)) == 0
     splat = scene.splat_dir
     first = snapshot(splat)
-    assert {"checkpoints/ckpt_000008.pt", "point_cloud.ply", "metrics.json", "curves.png"} <= set(first)
+    assert {"checkpoints/ckpt_000008.pt", "point_cloud.ply", "holdout.json", "metrics.json", "curves.png"} <= set(first)
     assert any(k.startswith("holdout/") for k in first)
 
     # a corrupt frames.jsonl line: stops naming the line, before anything of the training is touched
@@ -166,7 +173,7 @@ def test_a_new_training_never_leaves_the_user_without_the_previous_one(tmp_path:
         cli.run(parse(str(scene.root), *args))
     assert kept_aside(splat) == first
     assert [p.name for p in (splat / "checkpoints").iterdir()] == ["ckpt_000002.pt"]
-    assert not (splat / "point_cloud.ply").exists() and not (splat / "metrics.json").exists()
+    assert not [p.name for p in splat.iterdir() if p.name in ("point_cloud.ply", "holdout.json", "metrics.json")]
     monkeypatch.setattr(Trainer, "train_step", real_step)
     assert cli.run(parse(str(scene.root), *args, "--resume")) == 0
     metrics = json.loads((splat / "metrics.json").read_text())

@@ -138,7 +138,7 @@ def export_bop(scene_dir: Path | str, options: BopExportOptions = BopExportOptio
             "split": options.split, "scene_id": options.scene_id, "image_ids": sorted(scene_gt),
             "obj_ids": [o.obj_id for o in objects], "instances": len(annotation.instances),
             "camera": camera.to_json(), "images": "copied" if options.copy_images else "hard-linked",
-            "static_occluders": options.include_static, "annotation": str(scene.annotation_dir / "objects.json")})
+            "static_occluders": options.include_static, "annotation": str(scene.objects_path)})
         os.sync()  # masks are plain writes inside the staging folder: flush once before the commit
     result_layout = layout.moved_to(scene.bop_dir)
     targets = sum(1 for v in visib if v >= BOP19_MIN_VISIB_FRACT)

@@ -71,7 +71,7 @@ def stage_annotation(ctx: RunContext) -> StageResult:
         "targets": exported.targets,
         "mean visib": exported.mean_visib_fract,
     }
-    if (ctx.scene.capture.sim_truth_dir / "object_ids").is_dir():
+    if ctx.scene.capture.sim_object_ids_dir.is_dir():
         # a check of the export against the simulator's id buffers; nothing downstream reads them
         check = mask_iou_against_sim_truth(ctx.scene.root)
         figures["mask IoU vs sim (mean/min)"] = f"{check['mean_iou']:.3f}/{check['min_iou']:.3f}"

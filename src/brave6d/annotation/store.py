@@ -69,15 +69,15 @@ class Annotation:
 
 
 def objects_path(scene: SceneDir) -> Path:
-    return scene.annotation_dir / "objects.json"
+    return scene.objects_path
 
 
 def alignment_path(scene: SceneDir) -> Path:
-    return scene.annotation_dir / "alignment.json"
+    return scene.alignment_path
 
 
 def meshes_dir(scene: SceneDir) -> Path:
-    return scene.annotation_dir / "meshes"
+    return scene.annotation_meshes_dir
 
 
 def read_id_map(scene: SceneDir) -> dict[str, int]:

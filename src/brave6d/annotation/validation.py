@@ -42,7 +42,7 @@ def mask_iou_against_sim_truth(scene_dir: Path | str, min_visib_fract: float = 0
     per_view: dict[int, dict[str, float]] = {}
     ious: list[tuple[int, str, float]] = []
     for im_id in sorted(infos):
-        path = scene.capture.sim_truth_dir / "object_ids" / f"{im_id:06d}.png"
+        path = scene.capture.sim_object_ids_path(im_id)
         buffer = read_png(path, "any", (raw_camera.width, raw_camera.height), f"the camera in {scene.intrinsics_path}")
         if buffer.ndim != 2:
             raise DataError(f"{path}: expected a single-channel object-id image")

@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     layout = scene.board_capture
     views = args.views or DEFAULT_VIEWS
     if args.action in ("plan", "all"):
-        printable = export_board(spec.board, scene.calibration_dir / "board.pdf")
+        printable = export_board(spec.board, scene.board_pdf_path)
         print(f"printable board at true scale (print at 100 %): {printable}")
     if args.action == "plan":
         plan = plan_only(layout, spec, args.robot, args.camera, views)

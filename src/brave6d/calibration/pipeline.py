@@ -127,7 +127,7 @@ def detect_board_frames(scene: SceneDir, spec: SceneSpec) -> BoardFrames:
     camera = _capture_camera(layout)
     detections = []
     for record in progress(records, total=len(records), desc="detect board", unit="frame"):
-        path = layout.root / record.rgb
+        path = layout.file(record.rgb)
         image = read_png(path, expect="rgb")
         if image.shape[:2] != (camera.height, camera.width):
             raise DataError(f"{path}: image is {image.shape[1]}x{image.shape[0]}, the capture's camera "

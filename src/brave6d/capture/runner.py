@@ -171,14 +171,14 @@ def _write_sim_truth(layout: CaptureLayout, index: int, frame: Frame) -> None:
     """Simulator ground truth for tests (object ids, true pose); real cameras have none."""
     ids = frame.extras.get("object_ids")
     if ids is not None:
-        write_png(layout.sim_truth_dir / "object_ids" / f"{index:06d}.png", np.asarray(ids, dtype=np.uint16))
+        write_png(layout.sim_object_ids_path(index), np.asarray(ids, dtype=np.uint16))
     true_pose = frame.extras.get("world_T_cam_true")
     if true_pose is not None:
-        atomic_write_json(layout.sim_truth_dir / "poses" / f"{index:06d}.json",
+        atomic_write_json(layout.sim_pose_path(index),
                           {"world_T_cam_true": np.asarray(true_pose).tolist(),
                            "effects": list(frame.extras.get("effects", []))})
 
 
 def frame_paths(layout: CaptureLayout, record: FrameRecord) -> tuple[Path, Path | None]:
     """Absolute RGB and depth paths of a record."""
-    return layout.root / record.rgb, (layout.root / record.depth) if record.depth else None
+    return layout.file(record.rgb), layout.file(record.depth) if record.depth else None

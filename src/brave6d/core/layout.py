@@ -64,6 +64,23 @@ class CaptureLayout:
         """Simulator ground truth (object-id buffers, true poses) for tests only: no stage reads it."""
         return self.root / "sim_truth"
 
+    def file(self, relative: str) -> Path:
+        """A file a frame record names (``rgb``, ``depth``: relative to this capture folder)."""
+        return self.root / relative
+
+    @property
+    def sim_object_ids_dir(self) -> Path:
+        """The simulator's object-id buffers (tests only)."""
+        return self.sim_truth_dir / "object_ids"
+
+    def sim_object_ids_path(self, index: int) -> Path:
+        """The simulator's object-id buffer (uint16 PNG) of frame ``index`` (tests only)."""
+        return self.sim_object_ids_dir / f"{index:06d}.png"
+
+    def sim_pose_path(self, index: int) -> Path:
+        """The simulator's true poses of frame ``index`` (tests only)."""
+        return self.sim_truth_dir / "poses" / f"{index:06d}.json"
+
     def frames(self) -> list[FrameRecord]:
         """All complete frame records."""
         return FrameLog(self.frames_path).read()
@@ -71,7 +88,13 @@ class CaptureLayout:
 
 @dataclass(frozen=True)
 class SceneDir:
-    """Paths of one scene directory (the scene-directory contract in docs/ARCHITECTURE.md)."""
+    """Paths of one scene directory (the scene-directory contract in docs/ARCHITECTURE.md).
+
+    Every path of a scene directory is built here: a stage's folder and each file in it that a
+    module names. A folder with a format of its own names its inside through its owner module
+    (the bundle: ``brave6d.serve``; the BOP export: ``brave6d.annotation``; the undistorted
+    cache: ``brave6d.core.undistort``). ``tests/test_scene_paths.py`` finds paths built by hand.
+    """
 
     root: Path
 
@@ -131,23 +154,113 @@ class SceneDir:
     def handeye_path(self) -> Path:
         return self.calibration_dir / "handeye.json"
 
-    # later stages
+    @property
+    def board_pdf_path(self) -> Path:
+        """The printable ChArUco board (``brave6d calibrate --board-pdf``)."""
+        return self.calibration_dir / "board.pdf"
+
+    @property
+    def assets_dir(self) -> Path:
+        """The spec's meshes, copied beside it by :func:`init_scene_dir`."""
+        return self.root / "assets"
+
+    def asset_path(self, name: str) -> Path:
+        """A mesh file ``name`` (relative, posix) under :attr:`assets_dir`."""
+        return self.assets_dir / name
+
+    # undistorted/ (brave6d.core.undistort's cache: its inside is that module's)
+    @property
+    def undistorted_dir(self) -> Path:
+        return self.root / "undistorted"
+
+    # sparse/ (training's COLMAP model)
     @property
     def sparse_dir(self) -> Path:
         return self.root / "sparse"
 
     @property
+    def sparse_model_dir(self) -> Path:
+        """The COLMAP model (binary) that initialises training."""
+        return self.sparse_dir / "0"
+
+    @property
+    def sparse_stamp_path(self) -> Path:
+        """What the COLMAP model was made from (training reuses it when nothing changed)."""
+        return self.sparse_dir / "stamp.json"
+
+    @property
+    def sparse_holdout_path(self) -> Path:
+        """The image names of the COLMAP model that were held out of training (COLMAP's bookkeeping;
+        the split itself is :attr:`holdout_split_path`)."""
+        return self.sparse_dir / "holdout.txt"
+
+    # splat/ (training)
+    @property
     def splat_dir(self) -> Path:
         return self.root / "splat"
 
+    @property
+    def splat_ply_path(self) -> Path:
+        """The trained Gaussians (Inria PLY layout)."""
+        return self.splat_dir / "point_cloud.ply"
+
+    @property
+    def metrics_path(self) -> Path:
+        """The training's metrics (``brave6d.training``'s ``metrics.json``)."""
+        return self.splat_dir / "metrics.json"
+
+    @property
+    def holdout_split_path(self) -> Path:
+        """The views held out of training (``brave6d.training.read_holdout`` is its one reader)."""
+        return self.splat_dir / "holdout.json"
+
+    @property
+    def holdout_images_dir(self) -> Path:
+        """One side-by-side PNG (render | ground truth) per held-out view."""
+        return self.splat_dir / "holdout"
+
+    @property
+    def curves_path(self) -> Path:
+        return self.splat_dir / "curves.png"
+
+    @property
+    def checkpoints_dir(self) -> Path:
+        return self.splat_dir / "checkpoints"
+
+    @property
+    def benchmark_training_path(self) -> Path:
+        """Where ``benchmarks/training.py`` writes its JSON by default (read by the report)."""
+        return self.splat_dir / "benchmark_training.json"
+
+    @property
+    def time_to_quality_path(self) -> Path:
+        """Where ``benchmarks/time_to_quality.py`` writes its JSON by default (read by the report)."""
+        return self.splat_dir / "time_to_quality.json"
+
+    # annotation/
     @property
     def annotation_dir(self) -> Path:
         return self.root / "annotation"
 
     @property
+    def objects_path(self) -> Path:
+        """The annotation (``brave6d.annotation``'s ``objects.json``)."""
+        return self.annotation_dir / "objects.json"
+
+    @property
+    def alignment_path(self) -> Path:
+        return self.annotation_dir / "alignment.json"
+
+    @property
+    def annotation_meshes_dir(self) -> Path:
+        return self.annotation_dir / "meshes"
+
+    @property
     def bop_dir(self) -> Path:
+        """The BOP export (its inside: ``brave6d.annotation``'s ``BopLayout``)."""
         return self.annotation_dir / "bop"
 
+    # bundle/ (its inside: brave6d.serve.bundle)
     @property
     def bundle_dir(self) -> Path:
         return self.root / "bundle"
@@ -172,7 +285,6 @@ def init_scene_dir(root: Path | str, spec_file: Path | str) -> SceneDir:
     spec = load_scene_spec(spec_file)
     scene = SceneDir(root)
     scene.root.mkdir(parents=True, exist_ok=True)
-    assets = scene.root / "assets"
     placed = asset_paths(spec)
     rewritten: dict[str, list[dict]] = {}
     data = spec.model_dump(mode="json", exclude={"source"})
@@ -180,7 +292,7 @@ def init_scene_dir(root: Path | str, spec_file: Path | str) -> SceneDir:
         items = data.get(key, [])
         for item, model in zip(items, getattr(spec, key)):
             src = spec.resolve(model.mesh).resolve()
-            dst = assets / placed[src]
+            dst = scene.asset_path(placed[src])
             _copy_mesh_with_sidecars(src, dst)
             item["mesh"] = dst.relative_to(scene.root).as_posix()
         rewritten[key] = items

@@ -72,10 +72,10 @@ def _jobs(scene: SceneDir, frames: UndistortedFrames) -> list[_Job]:
     """Every undistorted file the capture calls for, RGB and depth, in frame order."""
     jobs = []
     for record in frames.records:
-        jobs.append(_Job(record, scene.capture_dir / record.rgb, frames.rgb_path(record), "rgb"))
+        jobs.append(_Job(record, scene.capture.file(record.rgb), frames.rgb_path(record), "rgb"))
         depth_target = frames.depth_path(record)
         if depth_target is not None:
-            jobs.append(_Job(record, scene.capture_dir / str(record.depth), depth_target, "depth"))
+            jobs.append(_Job(record, scene.capture.file(str(record.depth)), depth_target, "depth"))
     return jobs
 
 
@@ -126,7 +126,7 @@ def ensure_undistorted(scene: SceneDir) -> UndistortedFrames:
     """
     raw = read_intrinsics(scene)
     records = scene.frames()
-    root = scene.root / "undistorted"
+    root = scene.undistorted_dir
     result = UndistortedFrames(root, raw.without_distortion(), records)
     camera = camera_key(raw)
     index = _read_index(root, camera)

@@ -40,16 +40,18 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def resolve_bundles(episodes: Sequence[EpisodeRecord], log_paths: Sequence[Path], explicit: Path | None) -> list[Path]:
     """The bundle folders the episodes ran on: ``explicit``, else every one recorded in the logs
     (a server of a release records one per scene), else ``<log folder>/../bundle``."""
+    from brave6d.core.layout import SceneDir
+    from brave6d.serve import is_bundle
+
     if explicit is not None:
         return [explicit]
-    recorded = [Path(r) for r in sorted({e.bundle_root for e in episodes if e.bundle_root})
-                if (Path(r) / "manifest.json").is_file()]
+    recorded = [Path(r) for r in sorted({e.bundle_root for e in episodes if e.bundle_root}) if is_bundle(r)]
     if recorded:
         return recorded
     for p in log_paths:
         folder = p if p.is_dir() else p.parent
-        candidate = folder.resolve().parent / "bundle"
-        if (candidate / "manifest.json").is_file():
+        candidate = SceneDir(folder.resolve().parent).bundle_dir  # the server's default: <scene>/episodes
+        if is_bundle(candidate):
             return [candidate]
     raise DataError("cannot find the bundle the episodes ran on; pass --bundle BUNDLE")
 

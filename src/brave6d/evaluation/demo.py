@@ -102,8 +102,10 @@ def stage_evaluate(ctx: RunContext) -> StageResult:
     from brave6d.evaluation.agents import ACTIVE_AGENT, STATIC_AGENT
     from brave6d.evaluation.metrics import agent_runs_path, write_agent_runs, write_leaderboard
 
+    from brave6d.serve import is_bundle
+
     bundle_dir = ctx.scene.bundle_dir
-    if not (bundle_dir / "manifest.json").is_file():
+    if not is_bundle(bundle_dir):
         raise BraveError(f"{bundle_dir}: no bundle; run the export stage first")
     out = ctx.workdir / "evaluation"
     run = run_baselines(bundle_dir, out, device=ctx.device,

@@ -6,12 +6,16 @@ a name is used). Other stages import only these names:
 
 - bundles: ``export_bundle``, ``load_bundle``, ``Bundle``, ``BundleObject``, ``BundleError``,
   ``read_bundle_manifest`` (the one reader of a bundle's ``manifest.json``, structure checked),
-  ``find_splat_ply``, ``SPLAT`` (the splat's file name inside a bundle);
+  ``is_bundle`` (the one test for a bundle folder), ``find_splat_ply``, ``MANIFEST`` and ``SPLAT``
+  (the manifest's and the splat's file names inside a bundle: the bundle's names live in
+  :mod:`brave6d.serve.bundle` only);
 - the server: ``create_app``, ``ServerLimits`` (its limits, checked when made: ``LimitError``;
   ``limit_arg(name)``: the argparse type of the flag setting one), ``ServerThread`` (uvicorn in a
   background thread),
   ``SceneServer``, ``SplatRenderer``, ``EpisodeManager`` (episodes without HTTP);
-- the scenes of a server (:mod:`brave6d.serve.catalog`): ``open_scenes`` (a bundle or a release),
+- the scenes of a server (:mod:`brave6d.serve.catalog`): ``open_scenes`` (scene sources, or a bundle
+  folder), ``SourcesOf`` (what the command line hands a serving command: path -> sources; a release's
+  come from ``brave6d.dataset``, which serve never imports),
   ``SceneCatalog`` (lazy loading within a memory bound), ``SceneSource``, ``SceneObject``,
   ``bundle_scene_source``, ``estimate_scene_bytes``, ``SceneCacheFull``, ``SceneUnavailable`` (503:
   a scene whose files cannot be located, unpacked or verified, even after ``SceneSource.refresh``);
@@ -28,7 +32,8 @@ The modules behind them, one job each: ``bundle`` (export + verified load), ``li
 cap, pose and twist bounds, the server's limits and the bounds of its flags), ``connections``
 (header/body timeouts, per-client connection cap), ``geometry`` (collisions, twist integration),
 ``renderer`` (the splat on cuda/cpu), ``catalog`` (the scenes of a server), ``splat_check``,
-``visibility`` (visible fractions), ``episodes`` (the episode state machine), ``schema`` (wire
+``visibility`` (visible fractions), ``episodes`` (the episode state machine), ``episode_manager``
+(runs the episodes of a catalog), ``schema`` (wire
 models), ``episode_log`` (log schema, writer, reader), ``app`` (FastAPI: REST + WebSocket +
 viewer), ``client``, ``gym_env``, ``runner`` (uvicorn), ``cli`` and ``export_cli`` (``brave6d
 serve``/``export``), ``demo``, ``synthetic``; ``serve/viewer/`` is the static browser viewer
@@ -42,9 +47,10 @@ _LAZY = {
     "BundleError": ".bundle", "read_bundle_manifest": ".bundle", "find_splat_ply": ".bundle", "SPLAT": ".bundle",
     "create_app": ".app", "ServerLimits": ".limits", "LimitError": ".limits", "limit_arg": ".limits",
     "ServerThread": ".runner", "SceneServer": ".episodes",
-    "SplatRenderer": ".renderer", "EpisodeManager": ".episodes",
+    "SplatRenderer": ".renderer", "EpisodeManager": ".episode_manager",
     "open_scenes": ".catalog", "SceneCatalog": ".catalog", "SceneSource": ".catalog", "SceneObject": ".catalog",
     "bundle_scene_source": ".catalog", "estimate_scene_bytes": ".catalog", "SceneCacheFull": ".catalog",
+    "SourcesOf": ".catalog", "is_bundle": ".bundle", "MANIFEST": ".bundle",
     "SceneUnavailable": ".catalog",
     "BraveClient": ".client", "PoseEstimate": ".client", "ServerError": ".client", "Observation": ".client",
     "StepResult": ".client", "decode_observation": ".client", "BraveEnv": ".gym_env",

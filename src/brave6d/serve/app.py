@@ -91,11 +91,11 @@ from brave6d.serve.limits import (
     ServerLimits,
 )
 from brave6d.serve.catalog import SceneCatalog, warm_scene
+from brave6d.serve.episode_manager import EpisodeManager
 from brave6d.serve.episodes import (
     ActionResult,
     Cancelled,
     EpisodeError,
-    EpisodeManager,
     EpisodeNotFound,
     RenderedView,
     SceneServer,

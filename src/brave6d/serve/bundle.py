@@ -3,8 +3,11 @@
 ``brave6d export SCENE_DIR`` writes ``<scene>/bundle/``::
 
     manifest.json     format, scene name, creation time, the versions that made it (brave6d,
-                      torch, numpy, scipy, plyfile, python, git commit when known) and, per file,
-                      its sha256 and size. Written last.
+                      torch, numpy, scipy, plyfile, python, git commit when known), where it came
+                      from without a path of the machine that made it (``source``: the scene's
+                      name, the splat's path inside the scene directory and its sha256, the
+                      sha256 of the training's metrics and holdout split) and, per file, its
+                      sha256 and size. Written last.
     splat.ply         the trained Gaussians (Inria 3DGS PLY layout, copied unchanged)
     scene.json        pinhole intrinsics of the undistorted images, render defaults (size,
                       near/far, background, depth validity), collision boxes (oriented, world
@@ -35,8 +38,12 @@ a listed path that is absolute or has ``..``) is a :class:`BundleError` naming t
 field; so are a ``scene.json``/``objects.json`` that are not objects (:func:`read_bundle_json`).
 
 What another stage writes is read in ONE small function each (easy to adapt when a format
-changes): :func:`find_splat_ply`, :func:`read_annotation_instances`, :func:`holdout_frames`,
-:func:`scene_camera`.
+changes): :func:`find_splat_ply`, :func:`read_annotation_instances`, :func:`holdout_frames` (the
+split through :func:`brave6d.training.read_holdout`), :func:`scene_camera`.
+
+This module owns the bundle's file names (:data:`MANIFEST`, :data:`SPLAT`, ...): whoever asks
+whether a folder is a bundle asks :func:`is_bundle`, and whoever names a bundle's file imports
+its name from here (through ``brave6d.serve``).
 """
 
 from __future__ import annotations
@@ -73,6 +80,8 @@ SPLAT = "splat.ply"
 SCENE = "scene.json"
 OBJECTS = "objects.json"
 HOLDOUT = "holdout.json"
+HOLDOUT_IMAGES = "holdout"
+MODELS = "models"
 REQUIRED = (SPLAT, SCENE, OBJECTS, HOLDOUT)
 
 Matrix4 = NDArray[np.float64]
@@ -80,6 +89,16 @@ Matrix4 = NDArray[np.float64]
 
 class BundleError(DataError):
     """A bundle is missing, malformed, or does not match its manifest."""
+
+
+def is_bundle(path: Path | str) -> bool:
+    """Whether ``path`` is a bundle folder: it holds a :data:`MANIFEST` and a :data:`SPLAT`.
+
+    Cheap (no file is read): the one test for "is this a bundle?" (serving a path, finding the
+    bundle of episodes, a release's unpacked scene). :func:`load_bundle` then verifies it.
+    """
+    folder = Path(path)
+    return (folder / MANIFEST).is_file() and (folder / SPLAT).is_file()
 
 
 # ----------------------------------------------------------------------------- typed bundle
@@ -170,6 +189,11 @@ class Bundle:
     def splat_path(self) -> Path:
         return self.root / SPLAT
 
+    @property
+    def source(self) -> BundleSource:
+        """Where the bundle came from, as its manifest records it (:func:`bundle_source`)."""
+        return bundle_source(self.manifest)
+
     def model_path(self, obj: BundleObject) -> Path:
         return self.root / obj.model
 
@@ -203,11 +227,51 @@ class Bundle:
         }
 
 
+@dataclass(frozen=True)
+class BundleSource:
+    """What identifies the scene and the training a bundle was made from, without a path of the
+    machine that made it (``manifest.json``'s ``source``). A field the manifest does not record
+    is None: bundles made before this record held only the builder's absolute paths, which are
+    ignored."""
+
+    scene: str | None = None
+    splat: str | None = None  # the splat's path inside the scene directory (posix)
+    splat_sha256: str | None = None
+    metrics_sha256: str | None = None  # the training's splat/metrics.json
+    holdout_sha256: str | None = None  # the training's splat/holdout.json (None: recomputed by the rule)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"scene": self.scene, "splat": self.splat, "splat_sha256": self.splat_sha256,
+                "metrics_sha256": self.metrics_sha256, "holdout_sha256": self.holdout_sha256}
+
+
+def bundle_source(manifest: dict[str, Any]) -> BundleSource:
+    """The :class:`BundleSource` a manifest records; what is absent, not a string, or an absolute
+    path (a bundle made before this record: ``{"scene": "/home/...", "splat": "/home/..."}``) is None."""
+    raw = manifest.get("source")
+    if not isinstance(raw, dict):
+        return BundleSource()
+
+    def text(key: str) -> str | None:
+        value = raw.get(key)
+        if not isinstance(value, str) or value.startswith("/") or re.match(r"[A-Za-z]:[\\/]", value):
+            return None
+        return value
+
+    def digest(key: str) -> str | None:
+        value = raw.get(key)
+        return value if isinstance(value, str) and _SHA256.fullmatch(value) else None
+
+    splat = text("splat")
+    return BundleSource(text("scene"), splat if splat is None or relative_path_problem(splat) is None else None,
+                        digest("splat_sha256"), digest("metrics_sha256"), digest("holdout_sha256"))
+
+
 # ----------------------------------------------------------------------------- adapters (one per source)
 def find_splat_ply(scene: SceneDir) -> Path:
     """The trained splat of a scene: ``splat/point_cloud.ply``, else the newest
     ``splat/**/point_cloud*.ply`` (Inria's ``point_cloud/iteration_N/point_cloud.ply``)."""
-    direct = scene.splat_dir / "point_cloud.ply"
+    direct = scene.splat_ply_path
     if direct.is_file():
         return direct
     candidates = sorted(scene.splat_dir.glob("**/point_cloud*.ply"), key=lambda p: p.stat().st_mtime)
@@ -239,17 +303,18 @@ def read_annotation_instances(scene: SceneDir) -> list[dict[str, Any]]:
     return out
 
 
-def holdout_frames(scene: SceneDir) -> list[tuple[Any, Matrix4]]:
-    """``(frame record, world_T_cam)`` of the views held out of training.
+def holdout_frames(scene: SceneDir) -> list[tuple[FrameRecord, Matrix4]]:
+    """``(frame record, world_T_cam)`` of the views held out of training, in frame order.
 
-    Sources, first found wins: ``splat/metrics.json`` (a list under ``holdout``, ``holdout_views``,
-    ``test_views`` or ``test``: frame indices, view ids, image names, or dicts with one of
-    ``index``/``view_id``/``name``), ``sparse/holdout.txt`` (image names), else the trainer's
-    rule (:func:`brave6d.training.views.holdout_split`). No capture (``frames.jsonl``) or no hand-eye
-    calibration: no views (with a warning). A corrupt ``frames.jsonl`` or ``handeye.json`` is an
-    error: a bundle silently without its holdout views would be scored on nothing.
+    The split is training's, read by :func:`brave6d.training.read_holdout` (``splat/holdout.json``;
+    a scene trained before that file: the trainer's rule on the capture). No capture
+    (``frames.jsonl``) or no hand-eye calibration: no views (with a warning). A corrupt
+    ``frames.jsonl``, ``handeye.json`` or ``holdout.json``, or a split that names a frame the
+    capture does not hold (or holds under another view id), is an error: a bundle silently
+    without its holdout views would be scored on nothing.
     """
     from brave6d.core.calibration_io import camera_poses
+    from brave6d.training import read_holdout
 
     for needed, what in ((scene.frames_path, "no capture"), (scene.handeye_path, "no hand-eye calibration")):
         if not needed.is_file():
@@ -257,40 +322,19 @@ def holdout_frames(scene: SceneDir) -> list[tuple[Any, Matrix4]]:
             return []
     try:
         views = camera_poses(scene)
+        split = read_holdout(scene)
     except DataError as exc:
         raise DataError(f"{exc}; the bundle's holdout views are read from it: repair it and export again") from None
-    if not views:
-        return []
-    wanted: set[str] | None = None
-    metrics = scene.splat_dir / "metrics.json"
-    if metrics.is_file():
-        data = read_json(metrics)
-        for key in ("holdout", "holdout_views", "test_views", "test"):
-            items = data.get(key) if isinstance(data, dict) else None
-            if isinstance(items, dict):
-                items = items.get("views") or items.get("indices") or items.get("view_ids")
-            if isinstance(items, list) and items:
-                wanted = set()
-                for it in items:
-                    if isinstance(it, dict):
-                        it = it.get("index", it.get("view_id", it.get("name")))
-                    wanted.add(str(it))
-                break
-    if wanted is None and (scene.sparse_dir / "holdout.txt").is_file():
-        wanted = {ln.strip() for ln in (scene.sparse_dir / "holdout.txt").read_text().splitlines() if ln.strip()}
-    if wanted is None:
-        try:
-            from brave6d.training import holdout_split
-
-            _, test = holdout_split([r for r, _ in views])
-            wanted = {str(i) for i in test}
-        except ImportError:  # pragma: no cover - training is part of the package
-            wanted = set()
-
-    def keys(r: Any) -> set[str]:
-        return {str(r.index), r.view_id, Path(r.rgb).name, Path(r.rgb).stem}
-
-    return [(r, T) for r, T in views if keys(r) & wanted]
+    by_index = {r.index: (r, T) for r, T in views}
+    out = []
+    for held in split.views:
+        found = by_index.get(held.index)
+        if found is None or found[0].view_id != held.view_id:
+            now = "is not in the capture" if found is None else f"is view {found[0].view_id!r} in the capture"
+            raise DataError(f"{scene.holdout_split_path}: held-out frame {held.index} ({held.view_id}) {now} "
+                            f"({scene.frames_path}): the capture changed since training; train the scene again")
+        out.append(found)
+    return out
 
 
 def scene_camera(scene: SceneDir, spec: Any) -> PinholeCamera:
@@ -332,13 +376,12 @@ def model_diameter(points: NDArray[np.float64]) -> float:
 
 def _bop_models(scene: SceneDir) -> tuple[Path | None, dict[int, dict[str, Any]]]:
     """``(models folder, models_info)`` of the scene's BOP export, or ``(None, {})``."""
-    from brave6d.annotation import read_models_info
+    from brave6d.annotation import BopLayout, read_models_info
 
-    models = scene.bop_dir / "models"
-    info_path = models / "models_info.json"
-    if not info_path.is_file():
+    bop = BopLayout(scene.bop_dir)
+    if not bop.models_info_path.is_file():
         return None, {}
-    return models, read_models_info(info_path)
+    return bop.models_dir, read_models_info(bop.models_info_path)
 
 
 # ----------------------------------------------------------------------------- export
@@ -475,8 +518,8 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
             image = None
             if undistorted is not None:
                 src = _holdout_image(undistorted, record)
-                image = f"holdout/{src.name}"
-                (staging / "holdout").mkdir(exist_ok=True)
+                image = f"{HOLDOUT_IMAGES}/{src.name}"
+                (staging / HOLDOUT_IMAGES).mkdir(exist_ok=True)
                 shutil.copyfile(src, staging / image)
             holdout.append(HoldoutView(record.index, record.view_id, world_T_cam, image))
         atomic_write_json(staging / HOLDOUT, {"views": [h.to_json() for h in holdout]})
@@ -484,7 +527,7 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
         atomic_write_json(staging / MANIFEST, {
             "format": FORMAT, "name": spec.name,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "source": {"scene": str(scene.root.resolve()), "splat": str(splat_src.resolve())},
+            "source": _source_record(scene, spec.name, splat_src, files[SPLAT]["sha256"]).to_json(),
             "gaussians": splat.num_gaussians, "sh_degree": splat.sh_degree,
             "versions": versions(), "files": files})
         if check_out(target, scene, force):
@@ -494,6 +537,16 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
     log.info("bundle written to %s (%d Gaussians, %d objects, %d holdout views, %.1f MB)", target,
              splat.num_gaussians, len(objects), len(holdout), size / 1e6)
     return ExportResult(target, splat.num_gaussians, len(objects), len(holdout), size, models_from, moved)
+
+
+def _source_record(scene: SceneDir, name: str, splat: Path, splat_sha256: str) -> BundleSource:
+    """What the manifest records of the bundle's source: names and digests, never a path of this
+    machine (the manifest ships inside every release)."""
+    def digest(path: Path) -> str | None:
+        return file_sha256(path) if path.is_file() else None
+
+    return BundleSource(scene=name, splat=splat.relative_to(scene.root).as_posix(), splat_sha256=splat_sha256,
+                        metrics_sha256=digest(scene.metrics_path), holdout_sha256=digest(scene.holdout_split_path))
 
 
 _NO_IMAGES = "repair the capture, or export with --no-holdout-images to leave the images out"
@@ -526,7 +579,7 @@ def _export_objects(staging: Path, instances: list[dict[str, Any]], bop_models: 
                     bop_info: dict[int, dict[str, Any]]) -> tuple[list[BundleObject], str]:
     from brave6d.annotation import model_file
 
-    models_dir = staging / "models"
+    models_dir = staging / MODELS
     models_dir.mkdir()
     done: dict[int, tuple[str, float, list, list]] = {}
     source = "bop" if bop_models is not None else "annotation"
@@ -534,7 +587,7 @@ def _export_objects(staging: Path, instances: list[dict[str, Any]], bop_models: 
     for gt_id, inst in enumerate(instances):
         obj_id = inst["obj_id"]
         if obj_id not in done:
-            rel = f"models/obj_{obj_id:06d}.ply"
+            rel = f"{MODELS}/obj_{obj_id:06d}.ply"
             bop_file = model_file(bop_models, obj_id) if bop_models is not None else None
             if bop_file is not None and bop_file.is_file() and obj_id in bop_info:
                 shutil.copyfile(bop_file, staging / rel)

@@ -4,7 +4,10 @@ A server serves one bundle or every scene of a dataset release. Each scene is a
 :class:`SceneSource`: its name, BOP ``scene_id``, the objects it holds (for ``GET /scenes``
 without loading anything), an estimate of the memory it needs once loaded, and a ``locate``
 callable that returns its bundle folder (a release unpacks the scene's bundle zip there on
-first use; a bundle folder is simply returned).
+first use; a bundle folder is simply returned). The serve stage makes the source of a bundle
+folder (:func:`bundle_scene_source`); a release's sources come from its owner,
+``brave6d.dataset.release_scene_sources``, and the command line hands them to :func:`open_scenes`
+(serve never imports the dataset stage).
 
 :class:`SceneCatalog` loads a scene (verified bundle, splat renderer, visibility) when an episode
 first needs it and keeps it while episodes are open on it. Loaded scenes that no open episode
@@ -39,10 +42,12 @@ import numpy as np
 from brave6d.core.errors import BraveError
 from brave6d.serve.bundle import (
     MANIFEST,
+    MODELS,
     SCENE,
     SPLAT,
     Bundle,
     bundle_scene_name,
+    is_bundle,
     load_bundle,
     read_bundle_json,
     read_bundle_manifest,
@@ -111,11 +116,16 @@ class SceneSource:
                 "memory_mb_estimate": round(self.memory_bytes / 2**20, 1)}
 
 
+#: ``(BUNDLE_OR_RELEASE, cache folder or None) -> its scene sources``: what the command line hands a
+#: serving command (``brave serve``, ``ros1``, ``ros2``; :func:`brave6d.commands.scenes.scene_sources`).
+SourcesOf = Callable[[Path, Path | None], Sequence[SceneSource]]
+
+
 def bundle_memory_bytes(folder: Path) -> int:
     """:func:`estimate_scene_bytes` of a bundle folder (from the sizes its manifest lists)."""
     files = read_bundle_manifest(folder)["files"]
     splat = files[SPLAT]["bytes"] if SPLAT in files else 0
-    models = sum(v["bytes"] for k, v in files.items() if k.startswith("models/"))
+    models = sum(v["bytes"] for k, v in files.items() if k.startswith(f"{MODELS}/"))
     return estimate_scene_bytes(splat, models)
 
 
@@ -124,9 +134,11 @@ def bundle_scene_source(folder: Path | str, scene_id: int | None = None) -> Scen
     A malformed manifest, ``scene.json`` or ``objects.json`` raises :class:`BundleError` naming the
     file and the field."""
     root = Path(folder)
-    if not (root / MANIFEST).is_file():
-        raise BraveError(f"{root}: not a bundle (no {MANIFEST}); give a bundle folder written by 'brave6d export' "
-                         "or a release folder written by 'brave6d release build'")
+    if not root.exists():
+        raise BraveError(f"{root}: no such bundle")
+    if not is_bundle(root):
+        raise BraveError(f"{root}: not a bundle (no {MANIFEST} and {SPLAT}); give a bundle folder written by "
+                         "'brave6d export' or a release folder written by 'brave6d release build'")
     scene_name = bundle_scene_name(root, read_bundle_json(root, SCENE))
     objects = tuple(SceneObject(o["obj_id"], o["name"], o.get("class")) for o in read_listed_objects(root))
     return SceneSource(scene_name, scene_id, objects, bundle_memory_bytes(root), lambda: root, str(root))
@@ -412,20 +424,10 @@ def warm_scene(scene: SceneServer) -> SceneServer:
     return scene
 
 
-def open_scenes(path: Path | str, *, device: str = "auto", cache_dir: Path | str | None = None,
-                max_loaded: int | None = None, max_memory_mb: float | None = None,
-                warm_up: bool = True) -> SceneCatalog:
-    """The scenes of ``path``: a bundle folder (one scene), or a dataset release (every scene: a
-    release folder of zips, its bundles unpacked into ``cache_dir`` on first use, or an unzipped
-    release); see :func:`brave6d.dataset.release_scene_sources`."""
-    root = Path(path)
-    if not root.exists():
-        raise BraveError(f"{root}: no such bundle or release")
+def open_scenes(scenes: Sequence[SceneSource] | Path | str, *, device: str = "auto", max_loaded: int | None = None,
+                max_memory_mb: float | None = None, warm_up: bool = True) -> SceneCatalog:
+    """The catalog of ``scenes``: the sources the command line assembled (a bundle's, or every
+    scene of a release: ``brave6d.dataset.release_scene_sources``), or one bundle folder."""
     budget = None if max_memory_mb is None else int(max_memory_mb * 2**20)
-    if (root / MANIFEST).is_file() and (root / SPLAT).is_file():
-        sources = [bundle_scene_source(root)]
-    else:
-        from brave6d.dataset import release_scene_sources
-
-        sources = release_scene_sources(root, cache_dir=cache_dir)
+    sources = [bundle_scene_source(scenes)] if isinstance(scenes, (str, Path)) else list(scenes)
     return SceneCatalog(sources, device=device, max_loaded=max_loaded, memory_budget_bytes=budget, warm_up=warm_up)

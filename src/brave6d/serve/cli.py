@@ -3,7 +3,10 @@ over HTTP + WebSocket (loopback by default).
 
 A release's scenes are listed at ``GET /scenes`` and loaded when an episode first needs one
 (``POST /episodes`` names the scene), within ``--max-loaded-scenes`` and ``--max-memory-mb``
-(default: half the machine's memory); see :mod:`brave6d.serve.catalog`.
+(default: half the machine's memory); see :mod:`brave6d.serve.catalog`. Whether the path is a
+bundle or a release, and the release's scene sources, are decided above the stages
+(:mod:`brave6d.commands.serve` hands :func:`run` the function that does it), so that serve never
+imports the dataset stage that owns the release format.
 
 Security defaults: the server binds to 127.0.0.1; a non-loopback ``--host`` is refused unless
 ``--allow-remote`` is given, and then a token is required on every request (``--token``, or
@@ -27,10 +30,14 @@ import secrets
 import signal
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from brave6d.core.errors import BraveError
 from brave6d.core.runtime import quiet_openmp
 from brave6d.serve.limits import MAX_CONNECTIONS, ServerLimits, limit_arg
+
+if TYPE_CHECKING:
+    from brave6d.serve.catalog import SourcesOf
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +139,8 @@ def access_for(host: str, allow_remote: bool, token: str | None, allow_hosts: li
     return Access(tuple(hosts), check_token(token) if token is not None else None, generated)
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
+    """Serve the scenes ``sources_of(args.bundle, args.cache_dir)`` gives (see the module docstring)."""
     quiet_openmp()
     import uvicorn
 
@@ -151,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
                     "for each name or address the clients use", args.host,
                     ", ".join([*LOOPBACK_HOSTS, *access.allowed_hosts]))
     budget = args.max_memory_mb if args.max_memory_mb is not None else default_memory_budget_mb()
-    scenes = open_scenes(args.bundle, device=args.device, cache_dir=args.cache_dir,
+    scenes = open_scenes(sources_of(args.bundle, args.cache_dir), device=args.device,
                          max_loaded=args.max_loaded_scenes, max_memory_mb=budget)
     if len(scenes.sources) == 1:  # one scene: load it now, so the first episode is as fast as the rest
         try:

@@ -5,7 +5,8 @@
 * ``scene.yaml``: a tabletop (table box with its top at z = 0), a wall and a tall ``post`` as
   collision boxes, the demo's workspace, two cube objects (20 mm, meshes in mm);
 * ``splat/point_cloud.ply`` (Inria layout): a checkered table of flat Gaussians, the wall, the
-  post and the two cubes' faces (red and blue), ``n_gaussians`` in all (most on the table);
+  post and the two cubes' faces (red and blue), ``n_gaussians`` in all (most on the table), and
+  ``splat/holdout.json`` (the trainer's rule on the frames below, as a training records it);
 * ``annotation/objects.json`` (``brave6d-annotation/1``) with the cubes' world poses;
 * ``calibration/intrinsics.json`` (no distortion) and ``handeye.json`` (identity), and
   ``capture/frames.jsonl`` with ``n_views`` views on a ring looking at the objects and plain
@@ -49,7 +50,7 @@ SPEC = {
         POST,
     ],
     "objects": [
-        {"name": name, "category": "toys_office", "mesh": f"meshes/{name}.ply", "scale": 0.001,
+        {"name": name, "category": "toys_office", "mesh": f"assets/{name}.ply", "scale": 0.001,
          "pose": {"xyz": list(xyz), "rpy_deg": list(rpy)}} for name, (xyz, rpy) in CUBE_POSES.items()
     ],
     "camera": {"model": "synthetic", "width": 320, "height": 240, "hfov_deg": 70, "depth_min_m": 0.05,
@@ -181,13 +182,13 @@ def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree:
                          width: int = 320, height: int = 240, seed: int = 0, volume_fraction: float = 0.0) -> SceneDir:
     """Write the synthetic scene directory (see the module docstring); returns it."""
     from brave6d.annotation import write_ply_mesh
-    from brave6d.training import write_ply
+    from brave6d.training import holdout_split, write_holdout, write_ply
 
     scene = SceneDir(root)
     scene.root.mkdir(parents=True, exist_ok=True)
     v, f = cube_mesh_mm()
     for name in CUBE_POSES:
-        write_ply_mesh(scene.root / "meshes" / f"{name}.ply", v, f)
+        write_ply_mesh(scene.asset_path(f"{name}.ply"), v, f)
     spec = json.loads(json.dumps(SPEC))
     spec["camera"].update({"width": width, "height": height})
     import yaml
@@ -203,17 +204,20 @@ def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree:
     grey = np.full((height, width, 3), 128, dtype=np.uint8)
     for k, T in enumerate(ring_poses(n_views)):
         rgb = f"rgb/{k:06d}.png"
-        write_png(scene.capture_dir / rgb, grey)
+        write_png(scene.capture.file(rgb), grey)
         frames.append(FrameRecord(index=k, view_id=f"d0_v{k:03d}", distance_level=0, distance_m=0.3, rgb=rgb,
                                   depth=None, base_T_tcp=T.tolist(), joints=[0.0] * 6, timestamp=float(k)))
-    write_ply(scene.splat_dir / "point_cloud.ply", synthetic_splat(n_gaussians, sh_degree, seed, volume_fraction))
+    write_ply(scene.splat_ply_path, synthetic_splat(n_gaussians, sh_degree, seed, volume_fraction))
+    records = scene.frames()
+    _, held_out = holdout_split(records)
+    write_holdout(scene, [r for r in records if r.index in held_out])  # as training records its split
     from brave6d.annotation import AnnotatedInstance, AnnotatedObject, Annotation, write_annotation
 
-    ann = scene.annotation_dir
+    meshes = scene.annotation_meshes_dir
     objects, instances, id_map = [], [], {}
     for obj_id, name in enumerate(CUBE_POSES, start=1):
-        write_ply_mesh(ann / "meshes" / f"{name}.ply", v, f)
-        objects.append(AnnotatedObject(obj_id, name, name, ann / "meshes" / f"{name}.ply", 0.001,
+        write_ply_mesh(meshes / f"{name}.ply", v, f)
+        objects.append(AnnotatedObject(obj_id, name, name, meshes / f"{name}.ply", 0.001,
                                        class_name="toys_office", description="20 mm cube"))
         instances.append(AnnotatedInstance(obj_id, name, world_T_cube(name), entry=0))
         id_map[name] = obj_id

@@ -5,7 +5,10 @@ Other stages (serve, evaluation) import only these names:
 
 - training: ``train`` (in memory: loaded views + preset -> ``TrainedSplat``, with a ``HoldoutPoint`` per scoring), ``train_scene``
   (``brave6d train``: a scene directory -> ``splat/`` outputs, through ``train``), ``load_scene``
-  (a scene's views, undistorted, with the holdout split), ``holdout_split``, ``evaluate_holdout``;
+  (a scene's views, undistorted, with the holdout split), ``evaluate_holdout``;
+- the holdout split (:mod:`brave6d.training.holdout`, no torch): ``read_holdout`` (the one reader of
+  ``splat/holdout.json``, every stage's), ``write_holdout``, ``HoldoutSplit``, ``HeldOutView``,
+  ``holdout_split`` (the rule);
 - settings: ``Preset``, ``get_preset``, ``resolve_device`` (``auto``/``cpu``/``cuda`` -> torch device);
 - Gaussians: ``GaussianModel``, ``rasterize``, ``SplatData``, ``read_ply``, ``write_ply``, ``SH_C0``,
   ``sh_degree_for``.
@@ -13,9 +16,9 @@ Other stages (serve, evaluation) import only these names:
 
 from brave6d.core.lazy import lazy_exports
 
-__all__ = ["SH_C0", "GaussianModel", "HoldoutPoint", "Preset", "SplatData", "TrainedSplat", "evaluate_holdout", "get_preset",
-           "holdout_split", "load_scene", "rasterize", "read_ply", "resolve_device", "sh_degree_for", "train",
-           "train_scene", "write_ply"]
+__all__ = ["SH_C0", "GaussianModel", "HeldOutView", "HoldoutPoint", "HoldoutSplit", "Preset", "SplatData", "TrainedSplat",
+           "evaluate_holdout", "get_preset", "holdout_split", "load_scene", "rasterize", "read_holdout", "read_ply",
+           "resolve_device", "sh_degree_for", "train", "train_scene", "write_holdout", "write_ply"]
 
 _LAZY = {
     "rasterize": ".rasterizer",
@@ -29,7 +32,11 @@ _LAZY = {
     "SplatData": ".ply",
     "SH_C0": ".ply",
     "sh_degree_for": ".ply",
-    "holdout_split": ".views",
+    "holdout_split": ".holdout",
+    "read_holdout": ".holdout",
+    "write_holdout": ".holdout",
+    "HoldoutSplit": ".holdout",
+    "HeldOutView": ".holdout",
     "load_scene": ".views",
     "evaluate_holdout": ".holdout_eval",
     "Preset": ".presets",

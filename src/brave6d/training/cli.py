@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     metrics = train_scene(scene, preset, device=args.device, resume=args.resume,
                           skip_bad_frames=args.skip_bad_frames, init_method=args.init)
     print(summary(metrics))
-    print(f"\nsplat: {metrics['outputs']['ply']}\nmetrics: {scene.splat_dir / 'metrics.json'}")
+    print(f"\nsplat: {metrics['outputs']['ply']}\nmetrics: {scene.metrics_path}")
     previous = metrics["outputs"].get("previous_training") or []
     if previous:
         print("previous training kept as: " + ", ".join(previous))

@@ -8,7 +8,8 @@ written to ``sparse/0`` (``cameras.bin``, ``images.bin``, ``points3D.bin``; PINH
 undistorted images in COLMAP's pixel convention, see :func:`colmap_pinhole_params`, named as in
 ``undistorted/rgb``) so that Inria's trainer
 (``-s SCENE -i undistorted/rgb``), gsplat and nerfstudio can train on the same scene; the
-holdout images are included with their poses and listed in ``sparse/holdout.txt``.
+holdout images are included with their poses and listed in ``sparse/holdout.txt`` (for COLMAP's
+users; the split every stage reads is ``splat/holdout.json``).
 
 Fallbacks when COLMAP yields too few points: back-projected depth frames (voxel-downsampled),
 then uniformly random points inside the workspace (with a warning). Holdout views are never
@@ -142,10 +143,13 @@ def add_points(rec: Any, points: NDArray[np.float64], colors: NDArray[np.float32
         rec.add_point3D(xyz, pc.Track(), c)
 
 
-def write_model(rec: Any, sparse_dir: Path, holdout_names: list[str] | None = None) -> Path:
-    """Write ``rec`` to ``sparse_dir/0`` (binary) replacing any previous model (never half-written)."""
+def write_model(rec: Any, scene: SceneDir, holdout_names: list[str] | None = None) -> Path:
+    """Write ``rec`` to ``sparse/0`` (binary) replacing any previous model (never half-written), and
+    the names of its held-out images to ``sparse/holdout.txt`` (COLMAP's bookkeeping: the split is
+    ``splat/holdout.json``, :mod:`brave6d.training.holdout`)."""
+    sparse_dir = scene.sparse_dir
     sparse_dir.mkdir(parents=True, exist_ok=True)
-    final = sparse_dir / "0"
+    final = scene.sparse_model_dir
     tmp = Path(tempfile.mkdtemp(prefix=".0.", dir=sparse_dir))
     try:
         rec.write_binary(str(tmp))
@@ -157,7 +161,7 @@ def write_model(rec: Any, sparse_dir: Path, holdout_names: list[str] | None = No
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     if holdout_names is not None:
-        atomic_write_text(sparse_dir / "holdout.txt", "".join(f"{n}\n" for n in holdout_names))
+        atomic_write_text(scene.sparse_holdout_path, "".join(f"{n}\n" for n in holdout_names))
     return final
 
 
@@ -368,8 +372,8 @@ def image_contents(data: TrainingData) -> dict[str, str]:
 
 def _reusable_colmap(scene: SceneDir, stamp: str, options: ColmapOptions) -> InitPoints | None:
     """The points of ``sparse/0`` when it was triangulated from the same inputs (else None)."""
-    stamp_path = scene.sparse_dir / "stamp.json"
-    model = scene.sparse_dir / "0"
+    stamp_path = scene.sparse_stamp_path
+    model = scene.sparse_model_dir
     if not (stamp_path.is_file() and model.is_dir()):
         return None
     try:
@@ -414,7 +418,7 @@ def initial_points(
     stamp = model_stamp(full, train_images + test_images, options, image_contents(data))
     reused = _reusable_colmap(scene, stamp, options) if "colmap" in chain and scene is not None else None
     if reused is not None and scene is not None and len(reused) >= options.min_points:
-        log.info("reusing the COLMAP points of %s (same images, poses and camera)", scene.sparse_dir / "0")
+        log.info("reusing the COLMAP points of %s (same images, poses and camera)", scene.sparse_model_dir)
         return _drop_far_points(reused, data).subsample(max_points, seed)
     if "colmap" in chain:
         if data.undistorted_root is None:
@@ -453,8 +457,8 @@ def initial_points(
         if result.source != "colmap":
             add_points(rec, result.points, result.colors)
         add_posed_images(rec, test_images)
-        model = write_model(rec, scene.sparse_dir, [n for n, _ in test_images])
-        atomic_write_json(scene.sparse_dir / "stamp.json", {"stamp": stamp, "source": result.source})
+        model = write_model(rec, scene, [n for n, _ in test_images])
+        atomic_write_json(scene.sparse_stamp_path, {"stamp": stamp, "source": result.source})
         result.details["sparse_model"] = str(model)
     result.details["seconds"] = time.perf_counter() - t0
     return result.subsample(max_points, seed)

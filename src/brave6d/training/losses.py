@@ -14,17 +14,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-SSIM_WINDOW = 11
-SSIM_SIGMA = 1.5
-SSIM_C1 = 0.01**2
-SSIM_C2 = 0.03**2
+from brave6d.training.ssim_window import SSIM_C1, SSIM_C2, SSIM_WINDOW, gaussian_window
 
-
-def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA, dtype: torch.dtype = torch.float32) -> Tensor:
-    """The normalised 1D Gaussian ``[size]`` whose outer product is the SSIM window."""
-    x = torch.arange(size, dtype=torch.float64) - size // 2
-    g = torch.exp(-(x**2) / (2.0 * sigma**2))
-    return (g / g.sum()).to(dtype)
+__all__ = ["PSNR_MAX", "SSIM_C1", "SSIM_C2", "SSIM_WINDOW", "fill_invalid", "gaussian_window", "l1_loss",
+           "photometric_loss", "psnr", "ssim", "ssim_map"]
 
 
 def _to_nchw(img: Tensor) -> Tensor:
@@ -73,7 +66,8 @@ def photometric_loss(render: Tensor, target: Tensor, ssim_lambda: float = 0.2) -
     """``(1 - lambda) * L1 + lambda * (1 - SSIM)``; returns ``(loss, l1, ssim)``.
 
     On the CPU the SSIM term is :func:`brave6d.training.fused_ssim.fused_ssim` (the same number, its
-    gradient in compiled loops); elsewhere torch's autograd through :func:`ssim`.
+    gradient in compiled loops); elsewhere torch's autograd through :func:`ssim`. Imported here, not
+    above: numba is the CPU path's dependency only.
     """
     from brave6d.training.fused_ssim import can_fuse, fused_ssim
 

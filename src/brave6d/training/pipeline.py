@@ -1,13 +1,13 @@
 """``train_scene``: the whole training stage on one scene directory.
 
 Frames + calibrated poses -> initial points (COLMAP, ``sparse/0``) -> training -> holdout
-evaluation -> ``splat/point_cloud.ply`` (Inria layout), ``splat/metrics.json``,
-``splat/curves.png``, ``splat/holdout/<view>.png`` (render | ground truth) and
-``splat/checkpoints/``.
+evaluation -> ``splat/point_cloud.ply`` (Inria layout), ``splat/holdout.json`` (the views held
+out: :mod:`brave6d.training.holdout`), ``splat/metrics.json``, ``splat/curves.png``,
+``splat/holdout/<view>.png`` (render | ground truth) and ``splat/checkpoints/``.
 
 Nothing of a previous training is deleted. The inputs are checked first; a new training (not
 ``--resume``) then writes its checkpoints to a hidden staging folder, and only once the first one
-is written are the previous outputs (:data:`TRAINING_OUTPUTS`) moved aside to
+is written are the previous outputs (:func:`training_outputs`) moved aside to
 ``<name>.old-<stamp>`` siblings and the staging folder renamed to ``splat/checkpoints``. A run
 that fails earlier leaves the previous training exactly as it was. ``--resume`` continues the
 training in ``splat/checkpoints`` and rewrites its outputs.
@@ -29,33 +29,35 @@ from brave6d.core.atomic import move_aside
 from brave6d.core.errors import BraveError
 from brave6d.core.layout import SceneDir
 from brave6d.training.colmap_init import ColmapOptions
-from brave6d.training.views import load_scene
 from brave6d.training.device import resolve_device
+from brave6d.training.holdout import HOLDOUT_PROTOCOL, write_holdout
 from brave6d.training.holdout_eval import evaluate_holdout, peak_memory_mb, plot_curves, write_metrics
 from brave6d.training.ply import write_ply
 from brave6d.training.presets import Preset
 from brave6d.training.trainer import Trainer, list_checkpoints
 from brave6d.training.training_run import train
+from brave6d.training.views import load_scene
 
 log = logging.getLogger(__name__)
 
-#: What a training run writes into ``splat/``: a new run moves the previous run's aside.
-TRAINING_OUTPUTS = ("checkpoints", "point_cloud.ply", "metrics.json", "curves.png", "holdout")
+def training_outputs(scene: SceneDir) -> tuple[Path, ...]:
+    """What a training run writes into ``splat/``: a new run moves the previous run's aside."""
+    return (scene.checkpoints_dir, scene.splat_ply_path, scene.holdout_split_path, scene.metrics_path,
+            scene.curves_path, scene.holdout_images_dir)
 
 
-def move_previous_outputs(splat: Path) -> list[Path]:
-    """Move each existing :data:`TRAINING_OUTPUTS` entry of ``splat`` aside; returns the new paths.
+def move_previous_outputs(scene: SceneDir) -> list[Path]:
+    """Move each existing :func:`training_outputs` entry of ``scene`` aside; returns the new paths.
 
     An empty folder is simply removed (nothing to keep).
     """
     moved = []
-    for name in TRAINING_OUTPUTS:
-        path = splat / name
+    for path in training_outputs(scene):
         if path.is_dir() and not any(path.iterdir()):
             path.rmdir()
         elif path.exists() or path.is_symlink():
             moved.append(move_aside(path))
-            log.info("kept the previous training's %s as %s", name, moved[-1])
+            log.info("kept the previous training's %s as %s", path.name, moved[-1])
     return moved
 
 
@@ -68,25 +70,25 @@ class NewRun:
     took place.
     """
 
-    def __init__(self, splat: Path) -> None:
-        splat.mkdir(parents=True, exist_ok=True)
-        self.splat = splat
-        self.staging = Path(tempfile.mkdtemp(prefix=".checkpoints.new-", dir=splat))
+    def __init__(self, scene: SceneDir) -> None:
+        scene.splat_dir.mkdir(parents=True, exist_ok=True)
+        self.scene = scene
+        self.staging = Path(tempfile.mkdtemp(prefix=".checkpoints.new-", dir=scene.splat_dir))
         self.moved: list[Path] | None = None  # None until the run took its place
 
     def take_place(self, trainer: Trainer) -> None:
         """Move the previous outputs aside and the trainer's checkpoints to ``splat/checkpoints`` (once)."""
         if self.moved is not None:
             return
-        self.moved = move_previous_outputs(self.splat)
-        trainer.move_checkpoints(self.splat / "checkpoints")
+        self.moved = move_previous_outputs(self.scene)
+        trainer.move_checkpoints(self.scene.checkpoints_dir)
 
     def finish(self) -> None:
         """Take the previous run's place after training, if no checkpoint did so already."""
         if self.moved is not None:
             return
-        self.moved = move_previous_outputs(self.splat)
-        os.rename(self.staging, self.splat / "checkpoints")
+        self.moved = move_previous_outputs(self.scene)
+        os.rename(self.staging, self.scene.checkpoints_dir)
 
     def close(self) -> None:
         """Remove the staging folder of a run that never took its place (the previous one is untouched)."""
@@ -112,15 +114,14 @@ def train_scene(
     dev = resolve_device(device)
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
-    splat = scene.splat_dir
-    ckpt_dir = splat / "checkpoints"
+    ckpt_dir = scene.checkpoints_dir
     data = load_scene(scene, preset.downscale, skip_bad_frames)  # the inputs, before anything is moved
     t_loaded = time.perf_counter()
     log.info("images: %s", data.undistortion)
     continuing = resume and bool(list_checkpoints(ckpt_dir))
     if resume and not continuing:
         log.warning("--resume: no checkpoint in %s; starting a new training", ckpt_dir)
-    run = None if continuing else NewRun(splat)
+    run = None if continuing else NewRun(scene)
     try:
         trained = train(data, preset, dev, scene=scene, init_method=init_method, colmap=colmap,
                         checkpoint_dir=ckpt_dir if run is None else run.staging, resume=continuing,
@@ -135,14 +136,14 @@ def train_scene(
     t_init = t_loaded - t_start + trained.init_seconds
     result = trained.result
     model = trained.model
-    ply_path = write_ply(splat / "point_cloud.ply", model.to_splat())
+    ply_path = write_ply(scene.splat_ply_path, model.to_splat())
     t_eval = time.perf_counter()
-    shutil.rmtree(splat / "holdout", ignore_errors=True)  # --resume: no stale views from an earlier split
-    holdout = evaluate_holdout(model, data, splat / "holdout")
+    shutil.rmtree(scene.holdout_images_dir, ignore_errors=True)  # --resume: no stale views from an earlier split
+    holdout = evaluate_holdout(model, data, scene.holdout_images_dir)
     t_eval = time.perf_counter() - t_eval
     if result.curve:
         result.curve[-1]["holdout_psnr"] = holdout.psnr
-        plot_curves(splat / "curves.png", result.curve,
+        plot_curves(scene.curves_path, result.curve,
                     f"{scene.root.name}: preset {preset.name}, {result.steps} steps, holdout {holdout.psnr:.2f} dB")
     metrics: dict[str, Any] = {
         "preset": preset.name,
@@ -162,21 +163,23 @@ def train_scene(
         "holdout": holdout.to_json(),
         "n_train_views": len(data.train),
         "n_holdout_views": len(data.test),
-        "holdout_protocol": "10% of the views of each distance level, evenly spaced in capture order",
+        "holdout_protocol": HOLDOUT_PROTOCOL,
         "skipped_frames": [{"index": s.index, "view_id": s.view_id, "reason": s.reason} for s in data.skipped],
         "images": {"undistorted_once": True, "how": data.undistortion, "width": data.camera.width,
                    "height": data.camera.height, "downscale": data.downscale,
                    "metrics_resolution": f"{data.camera.width}x{data.camera.height}"},
         "poses": "base_T_tcp (robot) @ tcp_T_cam (calibrated, calibration/handeye.json)",
         "init": trained.init,
-        "outputs": {"ply": str(ply_path), "curves": str(splat / "curves.png"),
-                    "holdout_images": str(splat / "holdout"), "checkpoints": str(ckpt_dir),
-                    "colmap_model": str(scene.sparse_dir / "0"),
+        "outputs": {"ply": str(ply_path), "curves": str(scene.curves_path),
+                    "holdout_split": str(scene.holdout_split_path),
+                    "holdout_images": str(scene.holdout_images_dir), "checkpoints": str(ckpt_dir),
+                    "colmap_model": str(scene.sparse_model_dir),
                     "previous_training": [str(p) for p in (run.moved or [])] if run is not None else []},
         "preset_config": preset.to_json(),
         "curve": result.curve,
     }
-    write_metrics(splat / "metrics.json", metrics)
+    write_holdout(scene, data.test)  # the split, once, just before the metrics that score it
+    write_metrics(scene.metrics_path, metrics)
     return metrics
 
 

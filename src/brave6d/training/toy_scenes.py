@@ -111,9 +111,9 @@ def write_scene(root: Path | str, camera: PinholeCamera, views: list[SyntheticVi
     log = FrameLog(scene.frames_path)
     for i, v in enumerate(views):
         rgb_rel, depth_rel = f"rgb/{i:06d}.png", f"depth/{i:06d}.png"
-        write_png(scene.capture_dir / rgb_rel, v.rgb)
+        write_png(scene.capture.file(rgb_rel), v.rgb)
         if with_depth:
-            write_png(scene.capture_dir / depth_rel, depth_m_to_mm_u16(v.depth_m))
+            write_png(scene.capture.file(depth_rel), depth_m_to_mm_u16(v.depth_m))
         log.append(FrameRecord(index=i, view_id=f"v{i:04d}", distance_level=v.level, distance_m=v.distance_m,
                                rgb=rgb_rel, depth=depth_rel if with_depth else None,
                                base_T_tcp=(v.base_T_cam @ cam_T_tcp).tolist(), joints=[0.0] * 6,

@@ -5,18 +5,13 @@ calibrated intrinsics) and poses from :func:`brave6d.core.calibration_io.camera_
 times the *calibrated* hand-eye transform, never the simulator's truth). A CPU preset may
 resample the images by an integer factor; the intrinsics are scaled to match.
 
-The holdout follows the paper's protocol: 10% of the views of every distance level, chosen
-deterministically (evenly spaced in capture order), at least one per level with two or more
-views. The split is made over all recorded frames, so skipping a bad frame never moves
-another frame between the sets.
+The holdout is :func:`brave6d.training.holdout.holdout_split` (the paper's protocol), made over all
+recorded frames, so skipping a bad frame never moves another frame between the sets.
 """
 
 from __future__ import annotations
 
 import logging
-import math
-from collections import defaultdict
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,10 +27,9 @@ from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import DataError
 from brave6d.core.layout import FrameRecord, SceneDir
 from brave6d.core.transforms import invert
+from brave6d.training.holdout import holdout_split
 
 log = logging.getLogger(__name__)
-
-HOLDOUT_FRACTION = 0.10
 
 
 @dataclass
@@ -105,32 +99,6 @@ class TrainingData:
 def image_tensor(view: View, device: torch.device | str = "cpu") -> Tensor:
     """The view's image as float32 [H, W, 3] in [0, 1]."""
     return torch.from_numpy(view.image).to(device=device, dtype=torch.float32) / 255.0
-
-
-# ----------------------------------------------------------------------------- holdout split
-def holdout_split(records: Sequence[FrameRecord], fraction: float = HOLDOUT_FRACTION) -> tuple[list[int], list[int]]:
-    """``(train_indices, test_indices)`` (frame ``index`` values), stratified by distance level.
-
-    Per level with n views (in capture-index order): ``round(fraction * n)`` test views, at
-    least one when n >= 2 (never all of them), at evenly spaced positions
-    ``floor((k + 0.5) * n / n_test)``.
-    """
-    by_level: dict[int, list[int]] = defaultdict(list)
-    for r in records:
-        by_level[r.distance_level].append(r.index)
-    test: list[int] = []
-    for level in sorted(by_level):
-        idx = sorted(by_level[level])
-        n = len(idx)
-        n_test = math.floor(fraction * n + 0.5)
-        if n >= 2:
-            n_test = min(max(n_test, 1), n - 1)
-        else:
-            n_test = 0
-        test.extend(idx[math.floor((k + 0.5) * n / n_test)] for k in range(n_test))
-    test_set = set(test)
-    train = sorted(r.index for r in records if r.index not in test_set)
-    return train, sorted(test_set)
 
 
 # ----------------------------------------------------------------------------- loading
@@ -235,11 +203,11 @@ def _file_loader(rgb_path_of, depth_path_of):  # type: ignore[no-untyped-def]
 
 def _memory_loader(scene: SceneDir, raw: PinholeCamera):  # type: ignore[no-untyped-def]
     def load(r: FrameRecord) -> tuple[NDArray[np.uint8], Path, Path | None]:
-        path = scene.capture_dir / r.rgb
+        path = scene.capture.file(r.rgb)
         image = read_png(path, "rgb")
         if image.shape[:2] != (raw.height, raw.width):
             raise DataError(f"{path}: image is {image.shape[1]}x{image.shape[0]}, the camera is {raw.width}x{raw.height}")
-        depth = scene.capture_dir / r.depth if r.depth else None
+        depth = scene.capture.file(r.depth) if r.depth else None
         return raw.undistort_image(image, cv2.INTER_LINEAR), path, None if depth is None else depth
 
     return load

@@ -40,10 +40,6 @@ from brave6d.dataset.release.zips import write_zip
 
 log = logging.getLogger(__name__)
 
-#: The bundle's own manifest, which lists (with checksums) every other file of the bundle.
-BUNDLE_MANIFEST = "manifest.json"
-
-
 @dataclass(frozen=True)
 class ReleaseResult:
     """What a build wrote: the folder, its files (name -> bytes) and where an old ``OUT`` went."""
@@ -162,6 +158,7 @@ def _refuse_links(paths: Iterable[Path], root: Path) -> None:
 def _bundle_files(s: SceneRelease) -> list[tuple[Path, str]]:
     """Exactly the bundle's manifest and the files it lists (verified again by ``brave6d.serve.load_bundle``,
     which also refuses a listed name that climbs out), each a real file of the bundle folder."""
+    from brave6d.serve import MANIFEST as BUNDLE_MANIFEST  # the bundle's own manifest: it lists every other file
     from brave6d.serve import load_bundle
 
     root = s.bundle_root

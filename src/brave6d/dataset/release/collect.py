@@ -133,12 +133,12 @@ def _library_ids(scene: SceneDir, gt: dict[int, Any], release: ReleaseSource) ->
     for obj_id in used:
         name = names.get(obj_id)
         if name is None:
-            raise ReleaseError(f"{scene.annotation_dir / 'objects.json'}: obj_id {obj_id} of the BOP export is not "
+            raise ReleaseError(f"{scene.objects_path}: obj_id {obj_id} of the BOP export is not "
                                "an annotated object; export the BOP ground truth again")
         if release.obj_id_of(name) != obj_id:
             want = release.obj_id_of(name)
             why = "is not in the dataset's object library" if want is None else f"is obj_id {want} in the library"
-            raise ReleaseError(f"{scene.annotation_dir / 'objects.json'}: object {name!r} has obj_id {obj_id} but "
+            raise ReleaseError(f"{scene.objects_path}: object {name!r} has obj_id {obj_id} but "
                                f"{why} ({release.workdir / 'dataset.yaml'}); annotate the scene with the library's ids")
         out[obj_id] = name
     return out
@@ -146,7 +146,7 @@ def _library_ids(scene: SceneDir, gt: dict[int, Any], release: ReleaseSource) ->
 
 def _holdout_psnr(scene: SceneDir) -> tuple[float | None, dict[int, float]]:
     """Holdout PSNR of the scene's training, overall and per distance level (None/empty when not trained)."""
-    path = scene.splat_dir / "metrics.json"
+    path = scene.metrics_path
     if not path.is_file():
         return None, {}
     data = read_json(path)

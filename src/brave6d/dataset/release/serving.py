@@ -1,5 +1,8 @@
 """The scenes of a release, for the render server: ``brave6d serve RELEASE`` serves every scene of it.
 
+The command line (``brave6d.commands.scenes``) asks :func:`release_scene_sources` for them and
+hands them to the server: the serve stage never imports this stage.
+
 Two forms of a release are served:
 
 * the release folder ``brave6d release build`` wrote (zips, ``manifest.json``, ``SHA256SUMS``):
@@ -52,13 +55,16 @@ def default_cache_dir() -> Path:
 
 def release_scene_sources(root: Path | str, cache_dir: Path | str | None = None) -> list[Any]:
     """One ``brave6d.serve.SceneSource`` per scene of the release at ``root`` (see the module docstring)."""
+    from brave6d.serve import MANIFEST as BUNDLE_MANIFEST
+    from brave6d.serve import SPLAT
+
     base = Path(root)
     if (base / MANIFEST).is_file() and (base / SUMS).is_file():
         return _zipped_sources(base, Path(cache_dir) if cache_dir is not None else None)
     if (base / DATASET_INFO).is_file() and (base / "bundles").is_dir():
         return _unzipped_sources(base)
-    raise ReleaseError(f"{base}: neither a bundle (manifest.json + splat.ply), a release folder ({MANIFEST} + {SUMS}, "
-                       f"from 'brave6d release build') nor an unzipped release ({DATASET_INFO} + bundles/)")
+    raise ReleaseError(f"{base}: neither a bundle ({BUNDLE_MANIFEST} + {SPLAT}), a release folder ({MANIFEST} + "
+                       f"{SUMS}, from 'brave6d release build') nor an unzipped release ({DATASET_INFO} + bundles/)")
 
 
 def _categories(objects: list[dict[str, Any]]) -> dict[int, str | None]:
@@ -136,12 +142,15 @@ class _Unpacker:
 
     def sizes(self) -> tuple[int, int]:
         """Uncompressed bytes of the splat and of the models (the zip's directory only, checked)."""
+        from brave6d.serve import SPLAT
+
+        splat_member = f"{self.folder}/{SPLAT}"
         with open_zip(self.zip_path, inside=self.folder) as zf:
             self.bytes = sum(zf.size(n) for n in zf.names)
-            splat = zf.size(f"{self.folder}/splat.ply") if f"{self.folder}/splat.ply" in zf.names else 0
+            splat = zf.size(splat_member) if splat_member in zf.names else 0
             models = sum(zf.size(n) for n in zf.names if n.startswith(f"{self.folder}/models/"))
         if splat == 0:
-            raise ReleaseError(f"{self.zip_path}: holds no {self.folder}/splat.ply")
+            raise ReleaseError(f"{self.zip_path}: holds no {splat_member}")
         return splat, models
 
     def unpacked(self) -> bool:
@@ -177,7 +186,7 @@ class _Unpacker:
 
 
 def _unzipped_sources(base: Path) -> list[Any]:
-    from brave6d.serve import SceneSource, bundle_scene_source
+    from brave6d.serve import SceneSource, bundle_scene_source, is_bundle
 
     info = read_json(base / DATASET_INFO)
     if not isinstance(info, dict) or not isinstance(info.get("scenes"), list):
@@ -190,7 +199,7 @@ def _unzipped_sources(base: Path) -> list[Any]:
         except (KeyError, TypeError, ValueError):
             raise ReleaseError(f"{base / DATASET_INFO}: field 'scenes[{i}]': 'scene_id' and 'name' are required") from None
         folder = base / bundle_folder(sid)
-        if not (folder / "manifest.json").is_file():
+        if not is_bundle(folder):
             raise ReleaseError(f"{folder}: the bundle of scene {name!r} is missing (unzip "
                                f"{bundle_zip(str(info.get('name')), sid)} here)")
         found = bundle_scene_source(folder, sid)

@@ -192,6 +192,7 @@ def _check_bundle(base: Path, zip_name: str, scene: dict[str, Any], library: dic
     """A bundle zip: its ``manifest.json`` read by serve's one reader, every member listed by it and
     matching its size and sha256 (streamed); then ``brave6d.serve.load_bundle`` on its JSON files and the
     splat's PLY header."""
+    from brave6d.serve import MANIFEST as BUNDLE_MANIFEST
     from brave6d.serve import SPLAT, load_bundle
 
     folder = bundle_folder(scene["scene_id"])
@@ -204,8 +205,8 @@ def _check_bundle(base: Path, zip_name: str, scene: dict[str, Any], library: dic
             digest, kept = _digest(zf, member, _SPLAT_HEAD if member == f"{folder}/{SPLAT}" else 0)
             head = kept or head
             if digest != entry["sha256"]:
-                raise ReleaseError(f"{zip_name}:{member}: sha256 {digest[:12]}... does not match {folder}/{MANIFEST} "
-                                   f"({str(entry['sha256'])[:12]}...); the bundle was altered")
+                raise ReleaseError(f"{zip_name}:{member}: sha256 {digest[:12]}... does not match "
+                                   f"{folder}/{BUNDLE_MANIFEST} ({str(entry['sha256'])[:12]}...); the bundle was altered")
         small = [m for m in listed if m.count("/") == folder.count("/") + 1 and m.endswith(".json")]
         zf.extract(target, small, strip=folder)
         (target / SPLAT).write_bytes(head[:head.find(b"end_header\n") + 11] if b"end_header\n" in head else head)
@@ -216,7 +217,7 @@ def _check_bundle(base: Path, zip_name: str, scene: dict[str, Any], library: dic
                                f"{library.get(o.obj_id)!r} in the object library ({MANIFEST})")
         if f"{folder}/{o.model}" not in listed:
             raise ReleaseError(f"{zip_name}: {folder}/objects.json: model {o.model} of object {o.name!r} is not in "
-                               f"the bundle's {MANIFEST}")
+                               f"the bundle's {BUNDLE_MANIFEST}")
 
 
 def _bundle_call(fn: Callable[..., T], target: Path, zip_name: str, folder: str, **kwargs: Any) -> T:
@@ -233,20 +234,21 @@ def _bundle_files(zf: CheckedZip, folder: str, target: Path) -> dict[str, dict[s
     """``{member: manifest entry}`` of every file the bundle's ``manifest.json`` lists (read by
     ``brave6d.serve.read_bundle_manifest``, the format's one reader, from ``target``, where it is unpacked);
     every member of the zip must be one of them (or the manifest itself), of the size it gives."""
+    from brave6d.serve import MANIFEST as BUNDLE_MANIFEST
     from brave6d.serve import read_bundle_manifest
 
-    zf.extract(target, [f"{folder}/{MANIFEST}"], strip=folder)
+    zf.extract(target, [f"{folder}/{BUNDLE_MANIFEST}"], strip=folder)
     files = _bundle_call(read_bundle_manifest, target, zf.shown, folder)["files"]
     listed = {f"{folder}/{rel}": entry for rel, entry in files.items()}
     present = set(zf.names)
     for member in zf.names:
-        if member != f"{folder}/{MANIFEST}" and member not in listed:
-            raise ReleaseError(f"{zf.shown}: member {member}: not listed in the bundle's {MANIFEST}")
+        if member != f"{folder}/{BUNDLE_MANIFEST}" and member not in listed:
+            raise ReleaseError(f"{zf.shown}: member {member}: not listed in the bundle's {BUNDLE_MANIFEST}")
     for member, entry in listed.items():
         if member not in present:
-            raise ReleaseError(f"{zf.shown}:{member}: missing (listed in {folder}/{MANIFEST})")
+            raise ReleaseError(f"{zf.shown}:{member}: missing (listed in {folder}/{BUNDLE_MANIFEST})")
         if entry["bytes"] != zf.size(member):
-            raise ReleaseError(f"{zf.shown}:{member}: {zf.size(member)} bytes, {folder}/{MANIFEST} says "
+            raise ReleaseError(f"{zf.shown}:{member}: {zf.size(member)} bytes, {folder}/{BUNDLE_MANIFEST} says "
                                f"{entry['bytes']}")
     return listed
 

@@ -12,10 +12,14 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import urlparse
 
 from brave6d.core.errors import BraveError
 from brave6d.core.runtime import quiet_openmp
+
+if TYPE_CHECKING:
+    from brave6d.serve import SourcesOf
 
 DEFAULT_MASTER = "http://127.0.0.1:11311"
 
@@ -52,7 +56,9 @@ def master_uri_of(arg: str | None) -> str:
     return uri
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
+    """Run the node on the scenes ``sources_of(args.scenes, None)`` gives (``brave6d.commands.ros1``
+    hands it: a bundle's or a release's)."""
     quiet_openmp()
     from brave6d.ros_interface.ros1.master import RosMaster, master_is_up
     from brave6d.ros_interface.ros1.node import DEFAULT_TWIST_DURATION_S, NODE_NAME
@@ -75,14 +81,14 @@ def run(args: argparse.Namespace) -> int:
         raise BraveError(f"no ROS master answers at {uri}: start one ('rosmaster --core -p PORT', or roscore) "
                          "or pass --start-master")
     try:
-        return _serve(args, uri, args.node_name or NODE_NAME,
+        return _serve(args, sources_of, uri, args.node_name or NODE_NAME,
                       args.twist_duration if args.twist_duration is not None else DEFAULT_TWIST_DURATION_S)
     finally:
         if master is not None:
             master.stop()
 
 
-def _serve(args: argparse.Namespace, uri: str, node_name: str, twist_duration: float) -> int:
+def _serve(args: argparse.Namespace, sources_of: SourcesOf, uri: str, node_name: str, twist_duration: float) -> int:
     import rospy
 
     from brave6d.ros_interface.bridge import EpisodeBridge
@@ -91,7 +97,7 @@ def _serve(args: argparse.Namespace, uri: str, node_name: str, twist_duration: f
     from brave6d.serve import EpisodeManager, open_scenes
 
     msgs = load_messages()
-    scenes = open_scenes(args.scenes, device=args.device)
+    scenes = open_scenes(sources_of(args.scenes, None), device=args.device)
     log_dir = args.log_dir if args.log_dir is not None else Path(args.scenes).resolve().parent / "episodes"
     manager = EpisodeManager(scenes, log_dir, max_episodes=4, idle_timeout_s=args.idle_timeout)
     bridge = EpisodeBridge(manager, agent=args.agent, width=args.width, height=args.height)

@@ -15,10 +15,14 @@ import os
 import signal
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from brave6d.core.errors import BraveError
 from brave6d.core.extras import require
 from brave6d.core.runtime import quiet_openmp
+
+if TYPE_CHECKING:
+    from brave6d.serve import SourcesOf
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +76,9 @@ def domain_id_from(value: int | None, environ: dict[str, str] | None = None) -> 
         raise BraveError(f"$ROS_DOMAIN_ID {raw!r}: not an integer") from None
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
+    """Run the node on the scenes ``sources_of(args.scenes, None)`` gives (``brave6d.commands.ros2``
+    hands it: a bundle's or a release's)."""
     quiet_openmp()
     require("cyclonedds", "ros2", "brave6d ros2")
     from brave6d.ros_interface.bridge import EpisodeBridge
@@ -84,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     check_interface(args.interface, args.allow_remote)
     if not args.twist_duration > 0:
         raise BraveError(f"--twist-duration must be > 0 seconds, got {args.twist_duration}")
-    scenes = open_scenes(args.scenes, device=args.device)
+    scenes = open_scenes(sources_of(args.scenes, None), device=args.device)
     log_dir = args.log_dir if args.log_dir is not None else Path(args.scenes).resolve().parent / "episodes"
     manager = EpisodeManager(scenes, log_dir, max_episodes=4, idle_timeout_s=args.idle_timeout)
     bridge = EpisodeBridge(manager, agent=args.agent, width=args.width, height=args.height)

@@ -71,7 +71,9 @@ def viewpoint(centre: np.ndarray, distance: float, start: Mapping[str, Any], rng
 def measure_distance(inputs: MeasureInputs, sweep: DistanceSweep) -> Measurement:
     """Run (or resume) the distance sweep on the scene's bundle; see the module docstring."""
     scene, store = inputs.scene, inputs.store
-    manifest = scene.bundle_dir / "manifest.json"
+    from brave6d.serve import MANIFEST
+
+    manifest = scene.bundle_dir / MANIFEST
     if (absent := store.require(NAME, [(manifest, "serve export (brave6d export)")])) is not None:
         return absent
     from brave6d.evaluation.metrics import models_from_bundle

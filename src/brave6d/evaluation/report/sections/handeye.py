@@ -70,7 +70,7 @@ def measure_handeye(scene: SceneDir, store: MeasurementStore, sweep: HandEyeSwee
     camera = read_intrinsics(scene)
     records = layout.frames()
     t0 = time.perf_counter()
-    views = [_detect(layout.root / r.rgb, r.base_T_tcp_matrix, r.view_id, spec.board) for r in records]
+    views = [_detect(layout.file(r.rgb), r.base_T_tcp_matrix, r.view_id, spec.board) for r in records]
     detect_s = time.perf_counter() - t0
     defaults = HandEyeOptions()
     usable = [v for v in views if len(v.corner_ids) >= defaults.min_corners]

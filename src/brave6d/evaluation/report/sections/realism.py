@@ -114,13 +114,16 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
     scene, store = inputs.scene, inputs.store
     if sweep.stride < 1:
         raise ValueError(f"realism: stride must be a positive integer, got {sweep.stride}")
-    manifest = scene.bundle_dir / "manifest.json"
+    from brave6d.annotation import BopLayout
+    from brave6d.serve import MANIFEST
+
+    manifest = scene.bundle_dir / MANIFEST
     if (absent := store.require(NAME, [(manifest, "serve export (brave6d export)"),
-                                       (scene.bop_dir / "brave6d_export.json", "annotation (BOP export)"),
+                                       (BopLayout(scene.bop_dir).info_path, "annotation (BOP export)"),
                                        (scene.frames_path, "capture"),
                                        (scene.intrinsics_path, "calibration")])) is not None:
         return absent
-    from brave6d.annotation import BopLayout, read_models_info, read_scene_camera, read_scene_gt, read_scene_gt_info
+    from brave6d.annotation import read_models_info, read_scene_camera, read_scene_gt, read_scene_gt_info
     from brave6d.core.atomic import depth_m_to_mm_u16, read_png
     from brave6d.core.camera import PinholeCamera
     from brave6d.core.transforms import invert

@@ -44,19 +44,19 @@ PSNR_TOLERANCE_DB = 0.5
 
 def default_benchmark_json(scene: SceneDir) -> Path:
     """Where ``benchmarks/training.py`` writes its JSON by default."""
-    return scene.splat_dir / "benchmark_training.json"
+    return scene.benchmark_training_path
 
 
 def default_schedules_json(scene: SceneDir) -> Path:
     """Where ``benchmarks/time_to_quality.py`` writes its JSON by default."""
-    return scene.splat_dir / "time_to_quality.json"
+    return scene.time_to_quality_path
 
 
 def collect_training(scene: SceneDir, store: MeasurementStore, benchmark: Path | None = None,
                      schedules: Path | None = None) -> Measurement:
     """Read ``splat/metrics.json`` (and the benchmark and schedule-comparison JSONs if present)
     into the ``training`` measurement."""
-    metrics_path = scene.splat_dir / "metrics.json"
+    metrics_path = scene.metrics_path
     bench_path = benchmark or default_benchmark_json(scene)
     schedules_path = schedules or default_schedules_json(scene)
     if (absent := store.require(NAME, [(metrics_path, "training")])) is not None:

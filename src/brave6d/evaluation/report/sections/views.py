@@ -109,7 +109,7 @@ def scene_preset(scene: SceneDir, sweep: ViewsSweep) -> tuple[Preset, str]:
 
     preset, source = get_preset("fast"), "the fast preset: no splat/metrics.json"
     try:
-        preset = Preset.from_json(read_json(scene.splat_dir / "metrics.json").get("preset_config") or {})
+        preset = Preset.from_json(read_json(scene.metrics_path).get("preset_config") or {})
         source = "as trained"
     except (DataError, TypeError, AttributeError):
         pass

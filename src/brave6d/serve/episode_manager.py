@@ -1,0 +1,336 @@
+"""The episode manager: creates, runs and expires the episodes of a server (thread-safe).
+
+The actions and their rules are described in :mod:`brave6d.serve.episodes` (the episode, its scene
+server, the checks of every input); this module runs them on the scenes of a
+:class:`brave6d.serve.catalog.SceneCatalog`, one lock per episode, and writes each episode's log.
+It sits above both, so that the catalog (which loads :class:`SceneServer` s) and the episodes never
+import each other.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import threading
+import time
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from brave6d.core.atomic import depth_m_to_mm_u16, write_png
+from brave6d.serve.catalog import SceneCatalog
+from brave6d.serve.episode_log import FINAL_DEPTH_SUFFIX, ActionRecord, CloseRecord, EpisodeLog, ResetRecord
+from brave6d.serve.episodes import (
+    ActionResult,
+    Episode,
+    EpisodeBusy,
+    EpisodeClosed,
+    EpisodeNotFound,
+    InvalidAction,
+    Matrix4,
+    RenderedView,
+    SceneServer,
+    Ticket,
+    TooManyEpisodes,
+    check_estimate,
+    check_pose,
+    check_twist,
+    submission_record,
+    target_ref,
+)
+from brave6d.serve.geometry import MoveResult, Refusal, integrate_twist
+
+log = logging.getLogger(__name__)
+
+
+def _target_truth(obs: RenderedView) -> dict[str, Any]:
+    """The target's ground truth in ``obs`` for the log (nothing when the view has no target)."""
+    t = obs.target()
+    if t is None:
+        return {}
+    return {"target_cam_T_obj": t.cam_T_obj, "target_visib_fract": t.visib_fract}
+
+
+def _commit(ticket: Ticket | None, apply: Any) -> None:
+    """Run ``apply`` (the state change of an action) unless its request was withdrawn."""
+    if ticket is not None:
+        ticket.commit(apply)
+    else:
+        apply()
+
+
+class EpisodeManager:
+    """Creates, runs and expires episodes (thread-safe) on the scenes of a
+    :class:`brave6d.serve.catalog.SceneCatalog` (or on one loaded :class:`SceneServer`). An open episode
+    keeps its scene loaded; closing it lets the catalog evict the scene when room is needed."""
+
+    def __init__(self, scenes: Any, log_dir: Path | str | None = None, max_episodes: int = 32,
+                 idle_timeout_s: float = 900.0, keep_closed: int = 256, lock_timeout_s: float = 30.0) -> None:
+        self.scenes: SceneCatalog = scenes if isinstance(scenes, SceneCatalog) else SceneCatalog.of_scene(scenes)
+        self.log_dir = Path(log_dir) if log_dir is not None else None
+        self.max_episodes = max_episodes
+        self.idle_timeout_s = idle_timeout_s
+        self.keep_closed = keep_closed
+        self.lock_timeout_s = lock_timeout_s
+        self._episodes: OrderedDict[str, Episode] = OrderedDict()
+        self._lock = threading.Lock()
+
+    # -------------------------------------------------------------- bookkeeping
+    def _expire(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            stale = [e for e in self._episodes.values()
+                     if not e.closed and now - e.last_active > self.idle_timeout_s]
+        for e in stale:
+            if e.lock.acquire(timeout=0):
+                try:
+                    self._close(e, "expired (idle)")
+                finally:
+                    e.lock.release()
+        with self._lock:
+            closed = [k for k, e in self._episodes.items() if e.closed]
+            for k in closed[: max(0, len(closed) - self.keep_closed)]:
+                del self._episodes[k]
+
+    def open_count(self) -> int:
+        with self._lock:
+            return sum(1 for e in self._episodes.values() if not e.closed)
+
+    def list(self) -> list[dict[str, Any]]:
+        self._expire()
+        with self._lock:
+            return [{"episode_id": e.id, "scene": e.scene_name, "closed": e.closed, "steps": e.steps, "adjustments": e.adjustments,
+                     "target": e.target.name} for e in self._episodes.values()]
+
+    def get(self, episode_id: str) -> Episode:
+        with self._lock:
+            ep = self._episodes.get(episode_id)
+        if ep is None:
+            raise EpisodeNotFound(f"unknown episode {episode_id!r} (never created, or closed and forgotten)",
+                                  "episode_id")
+        return ep
+
+    @staticmethod
+    def _scene(ep: Episode) -> SceneServer:
+        assert ep.scene is not None  # only closed episodes have none, and _acquire refuses them
+        return ep.scene
+
+    def _acquire(self, ep: Episode) -> None:
+        if not ep.lock.acquire(timeout=self.lock_timeout_s):
+            raise EpisodeBusy(f"episode {ep.id} is busy with another request")
+        if ep.closed:
+            ep.lock.release()
+            raise EpisodeClosed(f"episode {ep.id} is closed ({ep.close_reason}); reset a new one", "episode_id")
+
+    # -------------------------------------------------------------- actions
+    def reset(self, *, scene: str | int | None = None, target: int | str | None = None, width: int | None = None,
+              height: int | None = None, start: Matrix4 | None = None, seed: int | None = None,
+              agent: str | None = None, ticket: Ticket | None = None) -> ActionResult:
+        """Start an episode on ``scene`` (a name or BOP scene_id; None: the only scene) at target
+        ``target``; the scene is loaded first when needed (see :class:`brave6d.serve.catalog.SceneCatalog`)."""
+        self._expire()
+        source = self.scenes.source(scene)  # an unknown scene is refused before anything is loaded
+        with self._lock:
+            if sum(1 for e in self._episodes.values() if not e.closed) >= self.max_episodes:
+                raise TooManyEpisodes(f"too many open episodes ({self.max_episodes}); close one first")
+        server = self.scenes.acquire(scene)
+        try:
+            return self._reset(server, source.name, source.scene_id, target, width, height, start, seed, agent,
+                               ticket)
+        except BaseException:
+            self.scenes.release(server)
+            raise
+
+    def _reset(self, server: SceneServer, scene_name: str, scene_id: int | None, target: int | str | None,
+               width: int | None, height: int | None, start: Matrix4 | None, seed: int | None, agent: str | None,
+               ticket: Ticket | None) -> ActionResult:
+        bundle = server.bundle
+        if not bundle.objects:
+            raise InvalidAction("the bundle has no objects to target", "target")
+        if target is None:
+            tgt = bundle.objects[0]
+        else:
+            try:
+                tgt = bundle.object_by(target)
+            except KeyError as exc:
+                raise InvalidAction(str(exc.args[0]), "target") from None
+        w = width or bundle.render.width
+        h = height or bundle.render.height
+        camera = server.camera_for(w, h)
+        if start is not None:
+            T0 = check_pose(start, "start")
+            refusal = bundle.world.check(T0)
+            if refusal is not None:
+                raise InvalidAction(f"start pose refused: {refusal.message}", "start")
+            used_seed = seed
+        else:
+            used_seed = seed if seed is not None else secrets.randbits(31)
+            T0 = server.random_start(tgt, np.random.default_rng(used_seed))
+        with self._lock:
+            if sum(1 for e in self._episodes.values() if not e.closed) >= self.max_episodes:
+                raise TooManyEpisodes(f"too many open episodes ({self.max_episodes}); close one first")
+            eid = secrets.token_hex(8)
+            ep = Episode(eid, server, scene_name, tgt, camera, T0, used_seed,
+                         EpisodeLog(self.log_dir / f"{eid}.jsonl" if self.log_dir else None), agent)
+            self._episodes[eid] = ep  # reserve the slot
+        ep.lock.acquire()
+        try:
+            t0 = time.perf_counter()
+            try:
+                obs = server.observe(T0, camera, tgt.gt_id)
+                timings = {**obs.timings_ms, "step": (time.perf_counter() - t0) * 1000.0}
+                line = ep.log.format(ResetRecord(
+                    episode_id=eid, bundle=bundle.name, agent=agent, target=target_ref(tgt), scene=scene_name,
+                    scene_id=scene_id, width=w, height=h,
+                    K=camera.K, seed=used_seed, start="given" if start is not None else "random", world_T_cam=T0,
+                    timings_ms=timings, **_target_truth(obs)))
+
+                def apply() -> None:
+                    ep.log.append(line)
+                    ep.last = obs
+                    ep.render_ms.append(obs.timings_ms["render"])
+
+                _commit(ticket, apply)
+            except BaseException:  # the episode never existed
+                with self._lock:
+                    self._episodes.pop(eid, None)
+                ep.log.close()
+                if ep.log.path is not None and ep.log.path.exists():
+                    ep.log.path.unlink()
+                raise
+            return ActionResult(eid, "reset", 0, True, False, None, 0, obs, None, timings)
+        finally:
+            ep.lock.release()
+
+    def set_pose(self, episode_id: str, world_T_cam: Matrix4, ticket: Ticket | None = None) -> ActionResult:
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            T = check_pose(world_T_cam, "pose")
+            return self._finish(ep, "set_pose", T, self._scene(ep).bundle.world.check(T), None,
+                                {"world_T_cam": T.tolist()}, ticket)
+        finally:
+            ep.lock.release()
+
+    def move(self, episode_id: str, linear: Any, angular: Any, duration: float, frame: str = "camera",
+             ticket: Ticket | None = None) -> ActionResult:
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            v, w, d = check_twist(linear, angular, duration)
+            try:
+                res: MoveResult = integrate_twist(self._scene(ep).bundle.world, ep.world_T_cam, v, w, d, frame)
+            except ValueError as exc:
+                raise InvalidAction(str(exc), "frame" if "frame" in str(exc) else "duration") from None
+            move = {"fraction": res.fraction, "substeps": res.substeps, "path_m": res.path_m}
+            requested = {"linear": v.tolist(), "angular": w.tolist(), "duration": d, "frame": frame}
+            if not res.moved:  # blocked at the first substep: refused
+                return self._finish(ep, "move", ep.world_T_cam, res.refusal, move, requested, ticket)
+            return self._finish(ep, "move", res.world_T_cam, None, move, requested, ticket,
+                                stopped_by=res.refusal)
+        finally:
+            ep.lock.release()
+
+    def _finish(self, ep: Episode, action: str, T: Matrix4, refusal: Refusal | None, move: dict[str, Any] | None,
+                requested: dict[str, Any], ticket: Ticket | None, stopped_by: Refusal | None = None) -> ActionResult:
+        """Complete a ``set_pose``/``move`` to ``T`` (or refuse it) as one transaction: the
+        observation, the counters and the log line are all computed first, then the log line is
+        written and the state changed together; a failure before that changes nothing."""
+        t0 = time.perf_counter()
+        before = ep.world_T_cam
+        accepted = refusal is None
+        if accepted:
+            obs = self._scene(ep).observe(T, ep.camera, ep.target.gt_id)
+            after, timings = T, {**obs.timings_ms}
+        else:
+            assert ep.last is not None
+            obs, after = ep.last, before
+            timings = {"render": 0.0, "render_queue": 0.0, "visibility": 0.0, "observe": 0.0}
+        steps, adjustments = ep.steps + 1, ep.adjustments + int(accepted)
+        collided = refusal is not None or stopped_by is not None
+        reason = refusal or stopped_by
+        timings["step"] = (time.perf_counter() - t0) * 1000.0
+        line = ep.log.format(ActionRecord(
+            event=action, step=steps, accepted=accepted, collided=collided,
+            refusal=reason.to_json() if reason else None, requested=requested, world_T_cam_before=before,
+            world_T_cam=after, adjustments=adjustments, move=move, timings_ms=timings, **_target_truth(obs)))
+
+        def apply() -> None:
+            ep.log.append(line)  # first: a failed write leaves the state as it was
+            ep.steps, ep.adjustments, ep.world_T_cam = steps, adjustments, after
+            if accepted:
+                ep.last = obs
+                ep.render_ms.append(obs.timings_ms["render"])
+                ep.collisions += int(stopped_by is not None)
+            else:
+                ep.refusals += 1
+            ep.last_active = time.monotonic()
+
+        _commit(ticket, apply)
+        return ActionResult(ep.id, action, steps, accepted, collided, reason, adjustments, obs, move, timings)
+
+    def submit(self, episode_id: str, estimates: list[dict[str, Any]], agent: str | None = None,
+               ticket: Ticket | None = None) -> dict[str, Any]:
+        """Log the final estimates (``{obj_id, R, t_m, score}``, camera frame of the current view)
+        with the final view's ground truth and depth image, then close the episode."""
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            if ep.last is None:
+                raise InvalidAction("the episode has no observation to refer the estimates to", "episode_id")
+            scene = self._scene(ep)
+            known = {o.obj_id for o in scene.bundle.objects}
+            clean = [check_estimate(i, e.get("obj_id", -1), e.get("R", ()), e.get("t_m", ()), e.get("score", 1.0),
+                                    known) for i, e in enumerate(estimates)]
+            depth = depth_m_to_mm_u16(ep.last.depth)
+            depth_file = f"{ep.id}{FINAL_DEPTH_SUFFIX}" if ep.log.path is not None else None
+            name = agent if agent is not None else ep.agent
+            line = ep.log.format(submission_record(ep, clean, scene.bundle, depth_file, name))
+            out: dict[str, Any] = {}
+
+            def apply() -> None:
+                if ep.log.path is not None and depth_file is not None:
+                    write_png(ep.log.path.with_name(depth_file), depth)
+                ep.log.append(line)
+                ep.agent = name
+                ep.submitted = True
+                out.update(self._close(ep, "submitted"))
+                out.update({"submitted": True, "estimates": len(clean), "depth_file": depth_file, "agent": ep.agent})
+
+            _commit(ticket, apply)
+            return out
+        finally:
+            ep.lock.release()
+
+    def close(self, episode_id: str, reason: str = "closed by the client") -> dict[str, Any]:
+        ep = self.get(episode_id)
+        self._acquire(ep)
+        try:
+            return self._close(ep, reason)
+        finally:
+            ep.lock.release()
+
+    def _close(self, ep: Episode, reason: str) -> dict[str, Any]:
+        summary = ep.summary()
+        ep.closed = True
+        ep.close_reason = reason
+        ep.log.write(CloseRecord(reason=reason, **summary))
+        ep.log.close()
+        ep.last = None  # free the images (closed episodes are kept for GET /episodes/{id})
+        if ep.scene is not None:
+            self.scenes.release(ep.scene)
+            ep.scene = None
+        return {"episode_id": ep.id, "closed": True, "reason": reason, **summary}
+
+    def close_all(self, reason: str = "server shutdown") -> None:
+        with self._lock:
+            eps = [e for e in self._episodes.values() if not e.closed]
+        for e in eps:
+            if e.lock.acquire(timeout=5.0):
+                try:
+                    if not e.closed:
+                        self._close(e, reason)
+                finally:
+                    e.lock.release()
