@@ -53,11 +53,19 @@ def write_demo_threedat(scene_dir: Path | str, out_dir: Path | str, with_images:
 
 
 def stage_annotation(ctx: RunContext) -> StageResult:
-    """Demo stage: write the 3D-DAT folder, import it, export BOP; figures for the summary table."""
+    """Pipeline stage on the simulated rig: write the 3D-DAT folder, import it, export BOP; figures
+    for the summary table. A real capture has no true poses to write: a person annotates it in
+    3D-DAT and imports it (``brave6d annotate import-3ddat``), so a real rig is refused."""
     from brave6d.annotation.bop import export_bop
     from brave6d.annotation.importer import import_threedat
     from brave6d.annotation.validation import mask_iou_against_sim_truth
+    from brave6d.core.errors import BraveError
     from brave6d.core.progress import StageResult
+
+    if not ctx.rig.simulated:
+        raise BraveError(f"{ctx.scene.root}: the annotate stage writes the simulator's true poses, and a capture "
+                         f"with {ctx.rig} has none; annotate it in 3D-DAT and import it with "
+                         f"'brave6d annotate import-3ddat DAT_DIR {ctx.scene.root}'")
 
     dat_dir = ctx.workdir / "threedat"
     write_demo_threedat(ctx.scene.root, dat_dir)

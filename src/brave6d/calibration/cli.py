@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from brave6d.core.errors import BraveError
-from brave6d.core.layout import SceneDir
+from brave6d.core.run_context import RunContext, Rig
 
 ACTIONS = ("plan", "capture", "intrinsics", "handeye", "all")
 
@@ -37,11 +37,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="board views to plan (default: 30)")
 
 
-def _check_args(args: argparse.Namespace, scene: SceneDir) -> None:
+def _check_args(args: argparse.Namespace) -> None:
     from brave6d.calibration.intrinsics import DISTORTION_MODELS
 
-    if not scene.spec_path.is_file():
-        raise BraveError(f"{scene.root}: not a scene directory (no scene.yaml); create it with 'brave6d init'")
     if args.resume and args.force:
         raise BraveError("--resume and --force exclude each other: resume keeps the board capture, "
                          "force moves it aside")
@@ -57,21 +55,21 @@ def run(args: argparse.Namespace) -> int:
     from brave6d.calibration.board_capture import DEFAULT_VIEWS, capture_board, plan_only
     from brave6d.calibration.pipeline import calibrate_scene, summary_lines
 
-    scene = SceneDir(args.scene_dir)
-    _check_args(args, scene)
-    spec = scene.load_spec()
+    ctx = RunContext.for_scene(args.scene_dir, rig=Rig(args.robot, args.camera))  # as the pipeline's calibrate stage
+    _check_args(args)
+    scene, spec, rig = ctx.scene, ctx.spec, ctx.rig
     layout = scene.board_capture
     views = args.views or DEFAULT_VIEWS
     if args.action in ("plan", "all"):
         printable = export_board(spec.board, scene.board_pdf_path)
         print(f"printable board at true scale (print at 100 %): {printable}")
     if args.action == "plan":
-        plan = plan_only(layout, spec, args.robot, args.camera, views)
+        plan = plan_only(layout, spec, rig.robot, rig.camera, views)
         print(f"planned {len(plan.views)} board views at {plan.distance_m:.2f} m "
               f"({len(plan.dropped)} candidates left out); wrote {layout.plan_path}")
         return 0
     if args.action in ("capture", "all"):
-        cap = capture_board(layout, spec, args.robot, args.camera, views, resume=args.resume, force=args.force)
+        cap = capture_board(layout, spec, rig.robot, rig.camera, views, resume=args.resume, force=args.force)
         print(f"board capture: {cap.written} frames captured now, {cap.total} in all "
               f"({cap.robot_seconds:.1f} s robot time) in {layout.root}")
     if args.action in ("intrinsics", "handeye", "all"):

@@ -1,8 +1,10 @@
-"""The demo's calibration stage: ``brave6d.calibration.demo:stage_calibrate`` (see ``brave6d.pipeline``).
+"""The pipeline's calibration stage: ``brave6d.calibration.demo:stage_calibrate`` (see ``brave6d.pipeline``).
 
-Runs ``brave6d calibrate all`` on the demo scene with the simulated UR5e + camera (the spec's
-sensor noise, lens distortion and robot pose error on), before the scene capture, whose plan
-then uses the calibrated mounting. Work already done is reused: a complete board capture of
+Runs ``brave6d calibrate all`` on the scene with the run's rig (``RunContext.rig``; in the demo the
+simulated UR5e + camera, with the spec's sensor noise, lens distortion and robot pose error on),
+before the scene capture, whose plan then uses the calibrated mounting. ``brave6d dataset run``
+never runs it for a captured scene: a real rig is calibrated at the robot (``brave6d calibrate all
+SCENE_DIR --robot ur:HOST --camera oak``), where a person places the board and watches the arm. Work already done is reused: a complete board capture of
 the wanted size is not captured again, and results newer than its frames are not recomputed.
 """
 
@@ -36,7 +38,8 @@ def stage_calibrate(ctx: RunContext) -> StageResult:
     complete = plan is not None and len(scene.board_capture.frames()) >= len(plan.views)
     if not other_size and complete and results_up_to_date(scene):
         return _result(load_results(scene, spec), "reused")
-    capture_board(scene.board_capture, spec, "sim", "sim", wanted, resume=not other_size, force=other_size)
+    capture_board(scene.board_capture, spec, ctx.rig.robot, ctx.rig.camera, wanted, resume=not other_size,
+                  force=other_size)
     return _result(calibrate_scene(scene, spec), "ok")
 
 

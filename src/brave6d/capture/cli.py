@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from brave6d.core.calibration_io import read_handeye
-from brave6d.core.errors import BraveError
 from brave6d.core.layout import SceneDir
+from brave6d.core.run_context import RunContext, Rig
 
 log = logging.getLogger(__name__)
 
@@ -85,10 +85,8 @@ def refuse_replanning_under_frames(scene: SceneDir) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    scene = SceneDir(args.scene_dir)
-    if not scene.spec_path.is_file():
-        raise BraveError(f"{scene.root}: not a scene directory (no scene.yaml); create it with 'brave6d init'")
     if args.action == "plan":
+        scene = RunContext.for_scene(args.scene_dir).scene
         refuse_replanning_under_frames(scene)
         plan = make_plan(scene)
         print(f"planned {len(plan.views)} views, dropped {len(plan.dropped)}; "
@@ -99,14 +97,15 @@ def run(args: argparse.Namespace) -> int:
     from brave6d.capture.planning import load_plan
     from brave6d.capture.runner import CaptureOptions, run_capture
 
-    spec = scene.load_spec()
+    ctx = RunContext.for_scene(args.scene_dir, rig=Rig(args.robot, args.camera))  # as the pipeline's capture stage
+    scene, spec = ctx.scene, ctx.spec
     # --force plans anew; while old frames are there their plan stays with them (it goes aside with them)
     replan = args.force or not scene.capture.plan_path.exists()
     plan = make_plan(scene, save=not captured_frame_count(scene)) if replan else load_plan(scene.capture.plan_path)
     options = CaptureOptions(settle_time_s=spec.capture.settle_time_s, save_depth=spec.capture.depth,
                              resume=args.resume, force=args.force)
     try:
-        with open_rig(spec, args.robot, args.camera, supersample=args.supersample) as rig:
+        with open_rig(spec, ctx.rig.robot, ctx.rig.camera, supersample=args.supersample) as rig:
             summary = run_capture(scene.capture, plan.views, rig.robot, rig.camera, options)
     finally:
         if replan and not scene.capture.plan_path.exists():

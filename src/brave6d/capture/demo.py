@@ -1,4 +1,10 @@
-"""Demo stage: plan the demo scene's views and capture them with the simulated UR5e + camera."""
+"""The pipeline's capture stage: plan the scene's views and capture them with the run's rig.
+
+The rig is ``RunContext.rig``: the simulated UR5e + camera in ``brave6d demo`` and for a dataset's
+simulated scenes. ``brave6d dataset run`` never runs this stage for a captured scene (its jobs run
+unattended, far from any robot): a real rig's capture is ``brave6d capture run --robot ur:HOST
+--camera oak`` at the robot, with a person watching the arm.
+"""
 
 from __future__ import annotations
 
@@ -19,7 +25,7 @@ def stage_capture(ctx: RunContext) -> StageResult:
     spec = scene.load_spec()
     plan = plan_for_capture(scene)
     options = CaptureOptions(settle_time_s=spec.capture.settle_time_s, save_depth=spec.capture.depth, resume=True)
-    with open_rig(spec) as rig:
+    with open_rig(spec, ctx.rig.robot, ctx.rig.camera) as rig:
         summary = run_capture(scene.capture, plan.views, rig.robot, rig.camera, options)
     per_ring = plan.views_per_ring()
     return StageResult("capture", figures={

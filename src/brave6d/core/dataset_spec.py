@@ -1,13 +1,15 @@
 """The dataset spec (``dataset.yaml``): many scenes sharing one object library.
 
 A dataset names itself (``name``, ``version``, ``license``, ``citation``), holds one object
-library (``objects``: every field of a scene spec's object except ``pose``) and lists its scene
-specs (``scenes: [{spec: path}]``, paths relative to ``dataset.yaml``). An object in a listed
+library (``objects``: every field of a scene spec's object except ``pose``) and lists its scenes
+(paths relative to ``dataset.yaml``), each either a scene spec to simulate (``{spec: path}``) or a
+scene directory captured at a robot (``{dir: path}``: made by ``brave6d init``, captured,
+calibrated and annotated there; its ``scene.yaml`` is the scene's spec). An object in a listed
 scene spec may give only ``name`` and ``pose``: the rest comes from the library; a field it does
 give must equal the library's (a mesh: the same file or the same content). So an object keeps
 one BOP ``obj_id`` in every scene: its 1-based position in the library. A scene's BOP
 ``scene_id`` is its 1-based position in ``scenes``. An optional ``cluster`` block holds the
-defaults of ``brave6d dataset run`` for a Slurm cluster.
+defaults of ``brave6d dataset run`` for a Slurm cluster (and the training ``preset`` of every scene).
 
 Every name here becomes a path part (``WORKDIR/objects/<object>/``, ``scenes/<scene>/``, the
 release's ``<name>_...zip``, the serve cache's ``<name>-<version>-...``), so each follows the one
@@ -15,7 +17,10 @@ rule of :mod:`brave6d.core.names`. Every file ``dataset.yaml`` names (meshes, wi
 with them, and scene specs, with their meshes) must lie inside its folder, symlinks resolved:
 ``dataset run`` copies them into the work directory and on into releases, so a shared
 ``dataset.yaml`` must not be able to name a file elsewhere (``/etc/passwd``). Only the user widens
-that, with ``mesh_dirs`` (``--mesh-dir DIR``); no field of the file itself can.
+that, with ``mesh_dirs`` (``--mesh-dir DIR``); no field of the file itself can. A captured scene
+directory (``dir``) likewise lies inside the folder unless the user allows its folder with
+``scene_dirs`` (``--scene-dir DIR``, a flag of its own: ``dataset run`` trains and exports into a
+scene directory where it lies, it does not only read it); its own meshes lie inside it.
 
 Every bad value raises :class:`~brave6d.core.errors.SpecError` with one line naming the file and the
 field, like :mod:`brave6d.core.spec` (the owner of the scene spec, which this module reuses).
@@ -31,11 +36,11 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from brave6d.core.atomic import file_sha256
 from brave6d.core.errors import SpecError, validation_error_field
-from brave6d.core.layout import mesh_files
+from brave6d.core.layout import SceneDir, mesh_files
 from brave6d.core.names import FolderName
 from brave6d.core.spec import Category, ObjectSpec, PositiveFloat, SceneSpec, SymmetrySpec, mesh_fields, parse_scene_spec
 from brave6d.core.yaml_io import read_yaml
@@ -60,9 +65,20 @@ class LibraryObject(_Strict):
 
 
 class SceneRef(_Strict):
-    """A scene of the dataset: its scene spec file (relative to ``dataset.yaml``)."""
+    """A scene of the dataset, one of two kinds (paths relative to ``dataset.yaml``): ``spec``, a
+    scene spec that ``dataset run`` makes a scene directory of and captures on the simulated rig;
+    or ``dir``, a scene directory captured at a real robot (``brave6d init``, ``capture run``,
+    ``calibrate all``, ``annotate import-3ddat``), used where it lies."""
 
-    spec: Path
+    spec: Path | None = None
+    dir: Path | None = None
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> SceneRef:
+        if (self.spec is None) == (self.dir is None):
+            raise ValueError("give exactly one of 'spec' (a scene spec to simulate) or 'dir' (a captured "
+                             "scene directory)")
+        return self
 
 
 class ClusterSpec(_Strict):
@@ -78,6 +94,8 @@ class ClusterSpec(_Strict):
     account: str | None = None
     qos: str | None = None
     setup: list[str] = Field(default_factory=list, description="shell lines run before each job (module load, venv)")
+    preset: str | None = Field(default=None, description="training preset of every scene (None: the training "
+                                                          "stage's default, fast; a GPU cluster wants default)")
 
 
 class DatasetSpec(_Strict):
@@ -118,16 +136,23 @@ class DatasetSpec(_Strict):
 
 @dataclass(frozen=True)
 class DatasetScene:
-    """One scene of a loaded dataset: its merged, validated scene spec and its ids."""
+    """One scene of a loaded dataset: its merged, validated scene spec and its ids; ``dir``: the
+    captured scene directory (absolute, symlinks resolved) of a ``dir`` entry, None for a ``spec``."""
 
     scene_id: int
     spec: SceneSpec
     spec_file: Path
     obj_ids: dict[str, int]  # the scene's object names -> dataset obj_ids
+    dir: Path | None = None
 
     @property
     def name(self) -> str:
         return self.spec.name
+
+    @property
+    def captured(self) -> bool:
+        """A scene captured at a robot (a ``dir`` entry): ``dataset run`` never runs its rig stages."""
+        return self.dir is not None
 
 
 @dataclass(frozen=True)
@@ -157,42 +182,66 @@ def parse_dataset_spec(data: Any, source: Path | str = "<memory>") -> DatasetSpe
         raise SpecError(f"{src}: field '{field_path or '<root>'}': {msg}") from None
 
 
-def load_dataset_spec(path: Path | str, mesh_dirs: Sequence[Path | str] = ()) -> Dataset:
+def load_dataset_spec(path: Path | str, mesh_dirs: Sequence[Path | str] = (),
+                      scene_dirs: Sequence[Path | str] = ()) -> Dataset:
     """Read ``dataset.yaml`` and every scene spec it lists, merged with the library (module docstring).
 
     Every file it names must lie inside its folder or one of ``mesh_dirs`` (the user's own
-    ``--mesh-dir`` folders), else :class:`SpecError` naming the file, the field and the folder.
+    ``--mesh-dir`` folders), and every scene directory (``dir``) inside its folder or one of
+    ``scene_dirs`` (``--scene-dir``), else :class:`SpecError` naming the file, the field and the folder.
+    A scene directory's meshes may also lie inside the scene directory itself.
     """
     p = Path(path)
     if not p.is_file():
         raise SpecError(f"{p}: dataset spec not found")
     spec = parse_dataset_spec(read_yaml(p, error=SpecError), p)
     allowed = _allowed_folders(spec, mesh_dirs)
+    allowed_scenes = (allowed[0], *_flag_folders(scene_dirs, "--scene-dir"))
     for i, obj in enumerate(spec.objects):
         _check_mesh(spec.resolve(obj.mesh), allowed, f"{p}: field 'objects[{i}].mesh'")
     scenes: list[DatasetScene] = []
     seen: dict[str, int] = {}
     for i, ref in enumerate(spec.scenes):
-        scene_file = spec.resolve(ref.spec)
-        _confine(scene_file, allowed, f"{p}: field 'scenes[{i}].spec'")
-        if not scene_file.is_file():
-            raise SpecError(f"{p}: field 'scenes[{i}].spec': scene spec not found: {scene_file}")
-        scene = merge_scene_spec(spec, scene_file, mesh_dirs)
+        folder = None
+        if ref.dir is not None:
+            folder = _scene_folder(spec.resolve(ref.dir), allowed_scenes, f"{p}: field 'scenes[{i}].dir'")
+            scene_file, where = SceneDir(folder).spec_path, f"scenes[{i}].dir"
+            scene = merge_scene_spec(spec, scene_file, mesh_dirs, own_folder=folder)
+        else:
+            assert ref.spec is not None  # SceneRef: exactly one of the two
+            scene_file, where = spec.resolve(ref.spec), f"scenes[{i}].spec"
+            _confine(scene_file, allowed, f"{p}: field '{where}'")
+            if not scene_file.is_file():
+                raise SpecError(f"{p}: field '{where}': scene spec not found: {scene_file}")
+            scene = merge_scene_spec(spec, scene_file, mesh_dirs)
         if scene.name in seen:
-            raise SpecError(f"{p}: field 'scenes[{i}].spec': scene name {scene.name!r} ({scene_file}) "
+            raise SpecError(f"{p}: field '{where}': scene name {scene.name!r} ({scene_file}) "
                             f"is already used by scenes[{seen[scene.name]}]; scene names must be unique")
         seen[scene.name] = i
         ids = spec.obj_ids()
-        scenes.append(DatasetScene(i + 1, scene, scene_file, {o.name: ids[o.name] for o in scene.objects}))
+        scenes.append(DatasetScene(i + 1, scene, scene_file, {o.name: ids[o.name] for o in scene.objects}, folder))
     return Dataset(spec, tuple(scenes))
 
 
-def merge_scene_spec(dataset: DatasetSpec, scene_file: Path, mesh_dirs: Sequence[Path | str] = ()) -> SceneSpec:
+def _scene_folder(folder: Path, allowed: tuple[Path, ...], where: str) -> Path:
+    """The captured scene directory ``folder``, resolved, once it is a scene directory inside ``allowed``:
+    ``dataset run`` trains and exports into it where it lies, so only the user (``--scene-dir``) widens that."""
+    if not folder.is_dir():
+        raise SpecError(f"{where}: scene directory not found: {folder}")
+    _confine(folder, allowed, where, flag="--scene-dir")
+    if not SceneDir(folder).spec_path.is_file():
+        raise SpecError(f"{where}: {folder} is not a scene directory (no scene.yaml); make it with 'brave6d init'")
+    return folder.resolve()
+
+
+def merge_scene_spec(dataset: DatasetSpec, scene_file: Path, mesh_dirs: Sequence[Path | str] = (),
+                     own_folder: Path | None = None) -> SceneSpec:
     """The scene spec of ``scene_file`` with its objects completed from the dataset's library.
 
     Library meshes enter the merged spec as absolute paths. A field the scene gives must equal
     the library's; an unknown object name is an error naming the scene file and the field. Its
-    meshes must lie inside the dataset's folder or ``mesh_dirs``, like the library's.
+    meshes must lie inside the dataset's folder or ``mesh_dirs``, like the library's, or inside
+    ``own_folder`` (a captured scene directory, whose ``scene.yaml`` names its copied meshes).
     """
     data = read_yaml(scene_file, error=SpecError)
     if not isinstance(data, dict):
@@ -217,7 +266,7 @@ def merge_scene_spec(dataset: DatasetSpec, scene_file: Path, mesh_dirs: Sequence
             given.append(set(item) & set(LIBRARY_FIELDS))
         data = {**data, "objects": merged_items}
     scene = parse_scene_spec(data, scene_file, check_files=False)
-    allowed = _allowed_folders(dataset, mesh_dirs)
+    allowed = _allowed_folders(dataset, mesh_dirs) + ((own_folder,) if own_folder is not None else ())
     for field, mesh in mesh_fields(scene):
         _check_mesh(mesh, allowed, f"{scene_file}: field '{field}'")
     for i, (obj, fields) in enumerate(zip(scene.objects, given)):
@@ -228,25 +277,30 @@ def merge_scene_spec(dataset: DatasetSpec, scene_file: Path, mesh_dirs: Sequence
 
 def _allowed_folders(dataset: DatasetSpec, mesh_dirs: Sequence[Path | str]) -> tuple[Path, ...]:
     """The folders a dataset may name files in: its own (first), then the user's ``mesh_dirs``."""
-    extra = []
-    for d in mesh_dirs:
+    return (dataset.base_dir.resolve(), *_flag_folders(mesh_dirs, "--mesh-dir"))
+
+
+def _flag_folders(folders: Sequence[Path | str], flag: str) -> tuple[Path, ...]:
+    """The user's ``flag`` folders, resolved; one that is not a folder is an error naming it."""
+    for d in folders:
         if not Path(d).is_dir():
-            raise SpecError(f"--mesh-dir {d}: not a folder")
-        extra.append(Path(d).resolve())
-    return (dataset.base_dir.resolve(), *extra)
+            raise SpecError(f"{flag} {d}: not a folder")
+    return tuple(Path(d).resolve() for d in folders)
 
 
-def _confine(path: Path, allowed: tuple[Path, ...], where: str, travels_with: Path | None = None) -> None:
-    """SpecError naming ``where`` unless ``path`` (symlinks resolved) lies inside one of ``allowed``."""
+def _confine(path: Path, allowed: tuple[Path, ...], where: str, travels_with: Path | None = None,
+             flag: str = "--mesh-dir") -> None:
+    """SpecError naming ``where`` unless ``path`` (symlinks resolved) lies inside one of ``allowed``
+    (the dataset's folder, then the user's ``flag`` folders)."""
     real = path.resolve()
     if any(real.is_relative_to(folder) for folder in allowed):
         return
     shown = str(path) if real == path else f"{path} (that is {real})"
     if travels_with is not None:
         shown += f", which travels with the mesh {travels_with.name},"
-    extra = f" and the --mesh-dir folders {', '.join(map(str, allowed[1:]))}" if len(allowed) > 1 else ""
+    extra = f" and the {flag} folders {', '.join(map(str, allowed[1:]))}" if len(allowed) > 1 else ""
     raise SpecError(f"{where}: {shown} lies outside {allowed[0]} (the dataset's folder){extra}; a dataset names "
-                    "only files inside its folder: move it there, or allow its folder with --mesh-dir DIR")
+                    f"only files inside its folder: move it there, or allow its folder with {flag} DIR")
 
 
 def _check_mesh(path: Path, allowed: tuple[Path, ...], where: str) -> None:

@@ -7,15 +7,17 @@ Public API (imported lazily; ``import dataset`` loads no stage, torch or submiti
 - ``ExecutorOptions``, ``make_executor``, ``slurm_parameters``: the submitit executor (local or
   Slurm job array) of a run;
 - ``SceneJob``, ``SceneOutcome``, ``JOB_STAGES``: one scene's job (a submitit ``Checkpointable``);
-- ``prepare_workdir``, ``scene_dir``: the work directory (``dataset.yaml``, ``objects/``,
-  ``scenes/<name>/``, ``status/``);
+- ``prepare_workdir``, ``scene_dir``, ``scene_root``, ``load_workdir_dataset``: the work directory
+  (``dataset.yaml``, ``objects/``, ``scenes/<name>/``, ``status/``; a captured scene stays where it lies);
+- ``RIG_STAGES``, ``check_rig_stage``: what a captured scene (``dir:``) brings from the robot, read
+  from its files (``dataset run`` never runs those stages for it);
 - ``read_scene_status``, ``SceneStatus``, ``read_summary``, ``status_table``, ``SCENE_STAGES``: the
   status records (``status/<scene>.json``) and the table (``status.json``);
 - ``report_dataset``, ``DatasetReport``: ``brave6d dataset report`` (every scene's report and an index).
 
 The dataset spec itself (``dataset.yaml``) is read by :mod:`brave6d.core.dataset_spec`
 (``load_dataset_spec``), the shared core, so that every package can read it.
-Modules: ``status``, ``workdir``, ``job``, ``executor``, ``runner``, ``report``, ``cli`` (``brave6d dataset``).
+Modules: ``status``, ``workdir``, ``captured``, ``job``, ``executor``, ``runner``, ``report``, ``cli`` (``brave6d dataset``).
 The release of a dataset is the subpackage ``brave6d.dataset.release``; ``release_scene_sources`` (the
 scenes of a release for the render server) is re-exported here for other stages.
 """
@@ -26,7 +28,8 @@ _LAZY = {
     "run_dataset": ".runner", "RunSummary": ".runner",
     "ExecutorOptions": ".executor", "make_executor": ".executor", "slurm_parameters": ".executor",
     "SceneJob": ".job", "SceneOutcome": ".job", "JOB_STAGES": ".job",
-    "prepare_workdir": ".workdir", "scene_dir": ".workdir",
+    "prepare_workdir": ".workdir", "scene_dir": ".workdir", "scene_root": ".workdir",
+    "load_workdir_dataset": ".workdir", "RIG_STAGES": ".captured", "check_rig_stage": ".captured",
     "read_scene_status": ".status", "SceneStatus": ".status", "read_summary": ".status",
     "status_table": ".status", "SCENE_STAGES": ".status",
     "release_scene_sources": ".release.serving", "report_dataset": ".report", "DatasetReport": ".report",

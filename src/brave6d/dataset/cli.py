@@ -8,24 +8,35 @@ import dataclasses
 from pathlib import Path
 
 from brave6d.core.errors import BraveError
+from brave6d.core.run_context import DEVICES
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
     run_p = sub.add_parser("run", help="run every stage of every scene (resumable; finished stages are not redone)",
                            description="Init, calibrate, capture, annotate, train and export every scene of a "
-                           "dataset, one submitit job per scene. Slurm options default to the dataset's "
-                           "'cluster' block; a flag overrides it.")
+                           "dataset, one submitit job per scene. A captured scene ('dir:' in DATASET.yaml) is "
+                           "trained and exported where it lies; its calibration, capture and annotation must be "
+                           "there (a scene that misses one is named, with what it misses, and the others go on). "
+                           "Slurm options and the training preset default to the dataset's 'cluster' block; "
+                           "a flag overrides it.")
     run_p.add_argument("dataset", type=Path, metavar="DATASET.yaml")
     run_p.add_argument("workdir", type=Path, metavar="WORKDIR")
     run_p.add_argument("--quick", action="store_true", help="miniature run (few views and steps), what CI runs")
-    run_p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    run_p.add_argument("--device", choices=DEVICES, default="auto")
+    run_p.add_argument("--preset", metavar="NAME",
+                       help="training preset of every scene: fast, default or quality (default: cluster.preset, "
+                            "else fast, the CPU demo's; a GPU cluster wants default)")
     run_p.add_argument("--executor", choices=["local", "slurm"], default=None,
                        help="local: child processes on this machine; slurm: one job array (default: cluster.executor)")
     run_p.add_argument("--scenes", nargs="+", metavar="NAME", help="run only these scenes")
     run_p.add_argument("--mesh-dir", type=Path, action="append", default=[], metavar="DIR",
                        help="also accept meshes (and scene specs) of DATASET.yaml that lie under DIR (repeatable); "
                             "by default every file it names must lie in its own folder")
+    run_p.add_argument("--scene-dir", type=Path, action="append", default=[], metavar="DIR",
+                       help="also accept captured scene directories of DATASET.yaml ('dir:') that lie under DIR "
+                            "(repeatable); they are trained and exported into where they lie, so by default "
+                            "each must lie in the dataset's folder")
     slurm = run_p.add_argument_group("Slurm (defaults: the dataset's cluster block)")
     slurm.add_argument("--partition")
     slurm.add_argument("--time-min", type=int, help="time limit per scene job, minutes (also the local limit)")
@@ -48,7 +59,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     report_p.add_argument("--only", nargs="+", metavar="SECTION",
                           help="measure only these sections; the others come from each scene's cache")
     report_p.add_argument("--refresh", action="store_true", help="measure again instead of reusing the caches")
-    report_p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    report_p.add_argument("--device", choices=DEVICES, default="auto")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -63,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     from brave6d.dataset.executor import ExecutorOptions
     from brave6d.dataset.runner import run_dataset
 
-    cluster = load_dataset_spec(args.dataset, args.mesh_dir).spec.cluster
+    cluster = load_dataset_spec(args.dataset, args.mesh_dir, args.scene_dir).spec.cluster
     options = ExecutorOptions.from_cluster(
         cluster, executor=args.executor, partition=args.partition, time_min=args.time_min,
         gpus_per_task=args.gpus_per_task, cpus_per_task=args.cpus_per_task, mem_gb=args.mem_gb,
@@ -71,25 +82,28 @@ def run(args: argparse.Namespace) -> int:
     if options.executor == "local" and args.array_parallelism is None:
         options = dataclasses.replace(options, array_parallelism=1)  # one scene at a time on this machine
     summary = run_dataset(args.dataset, args.workdir, quick=args.quick, device=args.device, options=options,
-                          scenes=args.scenes, mesh_dirs=args.mesh_dir)
+                          scenes=args.scenes, mesh_dirs=args.mesh_dir, scene_dirs=args.scene_dir, preset=args.preset)
     print()
     print(summary.table)
-    print(f"\n{len(summary.ran)} scene job(s) ran in {summary.seconds:.1f} s; work directory: {args.workdir}")
+    print(f"\n{len(summary.ran)} scene job(s) ran in {summary.seconds:.1f} s (training preset: "
+          f"{summary.preset or 'the default, fast'}{', quick' if args.quick else ''}); work directory: {args.workdir}")
     for scene, (stage, error) in summary.failed.items():
         print(f"FAILED {scene} at {stage}: {error}")
+    for scene, (stage, error) in summary.missing.items():
+        print(f"NOT READY {scene} ({stage}): {error}")
     for scene, holder in summary.busy.items():
         print(f"NOT STARTED {scene}: its job still runs on {holder}; run again once it has ended")
-    return 1 if summary.failed or summary.busy else 0
+    return 1 if summary.failed or summary.missing or summary.busy else 0
 
 
 def _status(workdir: Path) -> int:
-    from brave6d.core.dataset_spec import load_dataset_spec
     from brave6d.dataset.status import status_table, write_summary
+    from brave6d.dataset.workdir import WORKDIR_DATASET, load_workdir_dataset
 
-    path = workdir / "dataset.yaml"
+    path = workdir / WORKDIR_DATASET
     if not path.is_file():
         raise BraveError(f"{path}: not found; is {workdir} a work directory of 'brave6d dataset run'?")
-    dataset = load_dataset_spec(path)
+    dataset = load_workdir_dataset(workdir)
     ids = [(s.scene_id, s.name) for s in dataset.scenes]
     write_summary(workdir, dataset.spec.name, ids)
     print(f"dataset {dataset.spec.name} {dataset.spec.version}: {workdir}")

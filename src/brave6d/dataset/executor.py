@@ -39,8 +39,9 @@ class ExecutorOptions:
 
     @classmethod
     def from_cluster(cls, cluster: ClusterSpec, **overrides: Any) -> ExecutorOptions:
-        """The dataset's ``cluster`` block with the flags that were given (``None`` = not given)."""
-        base = cls(**{**cluster.model_dump(), "setup": tuple(cluster.setup)})
+        """The dataset's ``cluster`` block with the flags that were given (``None`` = not given);
+        its training ``preset`` is the scenes' choice, not the executor's."""
+        base = cls(**{**cluster.model_dump(exclude={"preset"}), "setup": tuple(cluster.setup)})
         return replace(base, **{k: v for k, v in overrides.items() if v is not None})
 
 

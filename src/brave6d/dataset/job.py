@@ -3,7 +3,10 @@
 :class:`SceneJob` is what submitit runs (in a child process or on a Slurm node). It is a
 ``submitit.helpers.Checkpointable``: when Slurm preempts it or its time runs out, submitit
 requeues the same job, which skips the stages recorded ``done`` and continues the training from
-its checkpoints (``RunContext.resume``). A failing stage is recorded with its error and ends
+its checkpoints (``RunContext.resume``). The job's context carries the run's choices (training
+preset, device, quick) to the stage functions. A captured scene's job runs only its training and
+export: its rig stages were found done by the driver (:mod:`brave6d.dataset.captured`), and the job
+runs none of them. A failing stage is recorded with its error and ends
 the job (later stages need its outputs); the job returns a :class:`SceneOutcome`, it never
 raises for a stage's failure, so one scene never stops another.
 
@@ -27,6 +30,7 @@ import submitit
 from brave6d.core.errors import BraveError
 from brave6d.core.locks import FileLock, LockHeld
 from brave6d.core.progress import Stopwatch
+from brave6d.dataset.captured import RIG_STAGES
 from brave6d.dataset.status import mark, read_scene_status, scene_lock_path
 
 log = logging.getLogger(__name__)
@@ -54,9 +58,11 @@ class SceneJob(submitit.helpers.Checkpointable):
     """Run the pending stages of one scene of a dataset work directory (module docstring)."""
 
     def __init__(self, workdir: Path, scene: str, scene_id: int, obj_ids: dict[str, int],
-                 quick: bool = False, device: str = "auto") -> None:
+                 quick: bool = False, device: str = "auto", preset: str | None = None,
+                 captured_dir: Path | None = None) -> None:
         self.workdir, self.scene, self.scene_id = Path(workdir), scene, scene_id
-        self.obj_ids, self.quick, self.device = dict(obj_ids), quick, device
+        self.obj_ids, self.quick, self.device, self.preset = dict(obj_ids), quick, device, preset
+        self.captured_dir = Path(captured_dir) if captured_dir is not None else None
 
     def __call__(self) -> SceneOutcome:
         from brave6d.core.runtime import prepare_process
@@ -73,20 +79,21 @@ class SceneJob(submitit.helpers.Checkpointable):
 
     def _run_stages(self, lock: FileLock) -> SceneOutcome:
         """Run the stages not recorded ``done``, in order, while holding the scene's ``lock``."""
-        from brave6d.core.run_context import RunContext
-        from brave6d.pipeline import stage_named
-        from brave6d.core.layout import SceneDir
+        from brave6d.pipeline import RunContext, stage_named
 
         status = read_scene_status(self.workdir, self.scene, self.scene_id)
         if not status.done("init"):
             return SceneOutcome(self.scene, "init", "the scene directory was not initialised")
-        scene_dir = SceneDir(self.workdir / "scenes" / self.scene)
-        ctx = RunContext(workdir=self.workdir / "work" / self.scene, scene=scene_dir, spec=scene_dir.load_spec(),
-                          quick=self.quick, device=self.device, obj_ids=self.obj_ids, resume=True)
+        root = self.captured_dir if self.captured_dir is not None else self.workdir / "scenes" / self.scene
+        ctx = RunContext.for_scene(root, workdir=self.workdir / "work" / self.scene, preset=self.preset,
+                                   quick=self.quick, device=self.device, obj_ids=self.obj_ids, resume=True)
         ctx.workdir.mkdir(parents=True, exist_ok=True)
         for name in JOB_STAGES:
             if status.done(name):
                 continue
+            if self.captured_dir is not None and name in RIG_STAGES:  # the driver found its outputs missing
+                return SceneOutcome(self.scene, name, f"{name} is not done in {root}, and dataset run never runs "
+                                                      "it for a captured scene")
             if lock.lost is not None:  # another job took the scene over (this one looked dead): leave it be
                 return SceneOutcome(self.scene, name, f"{lock.lost}; stopped before {name}")
             mark(self.workdir, status, name, "running")

@@ -1,6 +1,6 @@
 """``brave6d dataset report WORKDIR``: the accuracy-vs-time report of every scene, and one index.
 
-Each scene ``WORKDIR/scenes/<name>`` gets the single-scene report (:func:`brave6d.evaluation.report.build_report`)
+Each scene (``WORKDIR/scenes/<name>``, or a captured scene where it lies) gets the single-scene report (:func:`brave6d.evaluation.report.build_report`)
 in ``WORKDIR/report/<name>/`` (``report.md``, its PNGs, ``measurements/``: resumable per scene as
 ``brave6d report`` is). ``WORKDIR/report/README.md`` links them and compares the scenes in one table
 read from their cached measurements: holdout PSNR, the distance study's AR and the real-vs-splat AR
@@ -52,14 +52,14 @@ def report_root(workdir: Path) -> Path:
 def report_dataset(workdir: Path, quick: bool, only: Sequence[str] = (), refresh: bool = False,
                    device: str = "auto") -> DatasetReport:
     """Report every scene of the work directory (module docstring), then write the index."""
-    from brave6d.core.dataset_spec import load_dataset_spec
+    from brave6d.dataset.workdir import WORKDIR_DATASET, load_workdir_dataset, scene_root
     from brave6d.evaluation.report import ReportSettings, ReportTarget, build_report
 
     workdir = Path(workdir)
-    spec_path = workdir / "dataset.yaml"
+    spec_path = workdir / WORKDIR_DATASET
     if not spec_path.is_file():
         raise BraveError(f"{spec_path}: not found; is {workdir} a work directory of 'brave6d dataset run'?")
-    dataset = load_dataset_spec(spec_path)
+    dataset = load_workdir_dataset(workdir)
     settings = ReportSettings.for_mode(quick, device)
     unknown = sorted(set(only) - set(settings.sections))
     if unknown:
@@ -67,12 +67,12 @@ def report_dataset(workdir: Path, quick: bool, only: Sequence[str] = (), refresh
                          f"(choose from {', '.join(settings.sections)})")
     summaries = []
     for scene in dataset.scenes:
-        scene_root = workdir / "scenes" / scene.name
+        root = scene_root(workdir, scene).root
         out = report_root(workdir) / scene.name
-        if not scene_root.is_dir():
-            summaries.append(SceneSummary(scene.name, None, note=f"no scene directory {scene_root}"))
+        if not root.is_dir():
+            summaries.append(SceneSummary(scene.name, None, note=f"no scene directory {root}"))
             continue
-        result = build_report(ReportTarget.of_scene(scene_root, out), settings, refresh=refresh, only=tuple(only))
+        result = build_report(ReportTarget.of_scene(root, out), settings, refresh=refresh, only=tuple(only))
         summaries.append(summarize_scene(scene.name, out, result.markdown, result.statuses))
     index = write_index(workdir, f"{dataset.spec.name} {dataset.spec.version}", summaries, quick)
     return DatasetReport(index, tuple(summaries))

@@ -3,7 +3,10 @@
 The driver initialises the scenes (:mod:`brave6d.dataset.workdir`), submits one :class:`SceneJob` per
 scene that has stages left (local: one after another, or ``array_parallelism`` at a time;
 Slurm: one job array), prints one line per scene and stage as the scenes' status records change,
-and ends with the scene x stage table, naming every failed scene and its error. Running it again
+and ends with the scene x stage table, naming every failed scene and its error, and every captured
+scene that is not ready for the cluster with what it misses (:mod:`brave6d.dataset.captured`; it gets
+no job, the others go on). Every scene trains with one preset: ``--preset``, else the ``cluster``
+block's ``preset``, else the training stage's default (``fast``). Running it again
 redoes nothing that is recorded ``done``. A scene whose job from an earlier run still runs (its
 lock has a live holder, :mod:`brave6d.dataset.job`) is not started again: the run says where it runs.
 """
@@ -18,7 +21,9 @@ from pathlib import Path
 
 import submitit
 
+from brave6d.core.dataset_spec import Dataset
 from brave6d.core.errors import BraveError
+from brave6d.dataset.captured import RIG_STAGES
 from brave6d.dataset.executor import ExecutorOptions, make_executor
 from brave6d.dataset.job import JOB_STAGES, SceneJob, SceneOutcome
 from brave6d.dataset.status import (SCENE_STAGES, live_scene_holder, read_scene_status, running_text, status_table,
@@ -31,25 +36,33 @@ POLL_S = 1.0
 
 @dataclass
 class RunSummary:
-    """What a run did: the scenes it ran, those that failed (name -> (stage, error)), those
-    already running elsewhere (name -> ``HOST (pid N)``, not started again), the table."""
+    """What a run did: the scenes it ran, those that failed (name -> (stage, error)), the captured
+    scenes not ready for the cluster (name -> (stage, what is missing): a rig stage's outputs are
+    not in the scene directory), those already running elsewhere (name -> ``HOST (pid N)``, not
+    started again), the training preset every scene was given (None: the stage's default), the table."""
 
     dataset: str
     ran: list[str] = field(default_factory=list)
     failed: dict[str, tuple[str, str]] = field(default_factory=dict)
+    missing: dict[str, tuple[str, str]] = field(default_factory=dict)
     busy: dict[str, str] = field(default_factory=dict)
+    preset: str | None = None
     table: str = ""
     seconds: float = 0.0
 
 
 def run_dataset(dataset_file: Path, workdir: Path, *, quick: bool = False, device: str = "auto",
                 options: ExecutorOptions | None = None, scenes: Sequence[str] | None = None,
-                echo: bool = True, mesh_dirs: Sequence[Path | str] = ()) -> RunSummary:
+                echo: bool = True, mesh_dirs: Sequence[Path | str] = (), scene_dirs: Sequence[Path | str] = (),
+                preset: str | None = None) -> RunSummary:
     """Run every pending stage of every (selected) scene of ``dataset_file`` in ``workdir``
-    (``mesh_dirs``: the user's ``--mesh-dir`` folders, :func:`brave6d.dataset.workdir.prepare_workdir`)."""
+    (``mesh_dirs``, ``scene_dirs``: the user's ``--mesh-dir`` and ``--scene-dir`` folders,
+    :func:`brave6d.dataset.workdir.prepare_workdir`). ``preset``: the training preset of every scene
+    (``--preset``; None: the ``cluster`` block's ``preset``, else the training stage's default)."""
     start, started = time.perf_counter(), time.strftime("%Y-%m-%dT%H:%M:%S%z")
     workdir = Path(workdir).resolve()
-    dataset, inits = prepare_workdir(Path(dataset_file), workdir, quick, mesh_dirs)
+    dataset, inits = prepare_workdir(Path(dataset_file), workdir, quick, mesh_dirs, scene_dirs)
+    preset = scene_preset(dataset, preset)
     options = options or ExecutorOptions.from_cluster(dataset.spec.cluster)
     names = [s.name for s in dataset.scenes]
     unknown = sorted(set(scenes or ()) - set(names))
@@ -59,7 +72,7 @@ def run_dataset(dataset_file: Path, workdir: Path, *, quick: bool = False, devic
     ids = [(s.scene_id, s.name) for s in dataset.scenes]
     printer = _Printer(workdir, [s.name for s in selected], echo, started)
     printer.poll()
-    todo = [s for s in selected if inits[s.name] != "failed"
+    todo = [s for s in selected if inits[s.name] not in ("failed", "missing")
             and not all(read_scene_status(workdir, s.name).done(st) for st in JOB_STAGES)]
     busy: dict[str, str] = {}
     for s in todo:
@@ -67,7 +80,8 @@ def run_dataset(dataset_file: Path, workdir: Path, *, quick: bool = False, devic
         if holder is not None:
             busy[s.name] = holder.describe()
             printer.say(_busy_line(s.name, busy[s.name]))
-    jobs = [SceneJob(workdir, s.name, s.scene_id, s.obj_ids, quick, device) for s in todo if s.name not in busy]
+    jobs = [SceneJob(workdir, s.name, s.scene_id, s.obj_ids, quick, device, preset, s.dir)
+            for s in todo if s.name not in busy]
     outcomes: dict[str, SceneOutcome] = {}
     if jobs:
         executor = make_executor(options, workdir / "jobs", device)
@@ -85,18 +99,35 @@ def run_dataset(dataset_file: Path, workdir: Path, *, quick: bool = False, devic
             busy[name] = outcome.busy
             printer.say(_busy_line(name, outcome.busy))
     write_summary(workdir, dataset.spec.name, ids)
-    summary = RunSummary(dataset.spec.name, ran=[j.scene for j in jobs if j.scene not in busy],
+    summary = RunSummary(dataset.spec.name, ran=[j.scene for j in jobs if j.scene not in busy], preset=preset,
                          table=status_table(workdir, ids), seconds=time.perf_counter() - start, busy=busy)
     for s in selected:
         if s.name in busy:
             continue  # its record belongs to the job that runs it
         failure = read_scene_status(workdir, s.name).first_failure()
-        if failure is not None:
+        if failure is not None and inits[s.name] == "missing" and failure[0] in RIG_STAGES:
+            summary.missing[s.name] = failure
+        elif failure is not None:
             summary.failed[s.name] = failure
         elif s.name in outcomes and not outcomes[s.name].ok:
             outcome = outcomes[s.name]
             summary.failed[s.name] = (outcome.failed_stage or "?", outcome.error or "")
     return summary
+
+
+def scene_preset(dataset: Dataset, flag: str | None) -> str | None:
+    """The training preset of every scene: ``flag`` (``--preset``), else the ``cluster`` block's
+    ``preset``, else None (the training stage's default); an unknown name is an error naming where it came from."""
+    from brave6d.training import get_preset
+
+    name = flag if flag is not None else dataset.spec.cluster.preset
+    if name is not None:
+        try:
+            get_preset(name)
+        except BraveError as exc:
+            where = "--preset" if flag is not None else f"{dataset.spec.source}: field 'cluster.preset'"
+            raise BraveError(f"{where}: {exc}") from None
+    return name
 
 
 def _busy_line(scene: str, where: str) -> str:

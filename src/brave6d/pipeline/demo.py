@@ -2,7 +2,8 @@
 
 One configuration of :mod:`brave6d.pipeline`: it makes (or reuses) the scene directory from the
 spec in the repository's ``data/demo/``, runs :data:`~brave6d.pipeline.stages.STAGES` in order with
-one :class:`~brave6d.core.run_context.RunContext`, and prints a summary table at the end.
+one :class:`~brave6d.core.run_context.RunContext` (the simulated rig, the training stage's default
+preset), and prints a summary table at the end.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import argparse
 from pathlib import Path
 
 from brave6d.core.layout import init_scene_dir, write_spec
-from brave6d.core.run_context import QUICK_CAPTURE, RunContext
+from brave6d.core.run_context import DEVICES, QUICK_CAPTURE, RunContext
 from brave6d.pipeline.stages import STAGES, run_stages, summary_table
 
 #: The embedded demo scene shipped in the repository's ``data/`` folder.
@@ -24,7 +25,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spec", type=Path, default=DEMO_SPEC, help="scene spec (default: the embedded demo)")
     parser.add_argument("--quick", action="store_true",
                         help="miniature run: few views, few training steps, small images (what CI runs)")
-    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+    parser.add_argument("--device", choices=DEVICES, default="auto",
                         help="rasterizer device for training and rendering")
     parser.add_argument("--only", nargs="*", metavar="STAGE", choices=[s.name for s in STAGES],
                         help="run only these stages (earlier outputs must exist)")
@@ -40,12 +41,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def prepare(workdir: Path, spec_file: Path = DEMO_SPEC, quick: bool = False, device: str = "auto") -> RunContext:
-    """Create (or reuse) the demo scene directory under ``workdir`` (a miniature variant if ``quick``)."""
+    """Create (or reuse) the demo scene directory under ``workdir`` (a miniature variant if
+    ``quick``); the run's context: the simulated rig and the training stage's default preset."""
     scene = init_scene_dir(Path(workdir) / "scene", spec_file)
-    spec = scene.load_spec()
     if quick:
-        capture = spec.capture.model_copy(update=QUICK_CAPTURE)
-        spec = spec.model_copy(update={"capture": capture, "name": f"{spec.name}_quick"})
-        write_spec(scene, spec)
         spec = scene.load_spec()
-    return RunContext(workdir=Path(workdir), scene=scene, spec=spec, quick=quick, device=device)
+        capture = spec.capture.model_copy(update=QUICK_CAPTURE)
+        write_spec(scene, spec.model_copy(update={"capture": capture, "name": f"{spec.name}_quick"}))
+    return RunContext.for_scene(scene.root, workdir=workdir, quick=quick, device=device)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from brave6d.core.layout import SceneDir
 from brave6d.core.progress import format_table
+from brave6d.core.run_context import DEVICES
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -17,7 +18,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", choices=["fast", "default", "quality"], default="default",
                         help="fast: CPU demo (half resolution, minutes); default: Inria-like 30k steps; "
                              "quality: longer, full resolution (default: %(default)s)")
-    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+    parser.add_argument("--device", choices=DEVICES, default="auto",
                         help="where to train: auto picks CUDA when available (default: %(default)s)")
     parser.add_argument("--steps", type=int, default=None,
                         help="number of steps; the preset's step schedules (SH, densification, "
@@ -36,12 +37,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from brave6d.training.demo import run_preset
     from brave6d.training.pipeline import require_capture, train_scene
-    from brave6d.training.presets import get_preset
 
+    # no RunContext: training reads capture/ and calibration/ only, and a scene directory without a
+    # scene.yaml (a capture made elsewhere) trains too; the preset is resolved as the pipeline's stage does
     scene = SceneDir(args.scene_dir)
     require_capture(scene)
-    preset = get_preset(args.preset)
+    preset = run_preset(args.preset)
     if args.steps is not None:
         preset = preset.with_steps(args.steps)
     preset = preset.with_overrides(seed=args.seed)

@@ -1,4 +1,9 @@
-"""The pipeline's training stage: ``brave6d.training.demo:stage_train`` (see ``brave6d.pipeline``)."""
+"""The pipeline's training stage: ``brave6d.training.demo:stage_train`` (see ``brave6d.pipeline``).
+
+It trains with the preset the run chose (``RunContext.preset``; none: :data:`DEFAULT_PRESET`, the
+CPU demo's), in its miniature variant (:func:`quick_variant`) when the run is ``quick``.
+``brave6d train`` resolves its ``--preset`` through the same :func:`run_preset`.
+"""
 
 from __future__ import annotations
 
@@ -7,25 +12,39 @@ from typing import Any
 from brave6d.core.progress import StageResult
 from brave6d.core.run_context import RunContext
 from brave6d.training.colmap_init import ColmapOptions
-from brave6d.training.presets import FAST, Preset
+from brave6d.training.presets import Preset, get_preset
 
-#: The miniature run of ``brave6d demo --quick`` (CI): small images, few steps.
-QUICK = FAST.with_steps(150).with_overrides(name="fast-quick", downscale=4, time_budget_s=180.0,
-                                            max_gaussians=30_000, max_init_points=20_000)
+#: The preset of a run that chooses none: ``fast``, tuned for the CPU demo (a GPU cluster chooses
+#: ``default``: ``brave6d dataset run --preset default`` or ``preset: default`` in its ``cluster`` block).
+DEFAULT_PRESET = "fast"
 
 
-def demo_preset(quick: bool) -> Preset:
-    return QUICK if quick else FAST
+def quick_variant(preset: Preset) -> Preset:
+    """The miniature run of ``preset`` (``--quick``, what CI runs): small images, few steps,
+    named ``<preset>-quick``."""
+    return preset.with_steps(150).with_overrides(name=f"{preset.name}-quick", downscale=4, time_budget_s=180.0,
+                                                 max_gaussians=30_000, max_init_points=20_000)
+
+
+#: The miniature run of ``brave6d demo --quick`` (CI): ``fast-quick``.
+QUICK = quick_variant(get_preset(DEFAULT_PRESET))
+
+
+def run_preset(name: str | None, quick: bool = False) -> Preset:
+    """The preset a run trains with: ``name`` (``RunContext.preset``; None: :data:`DEFAULT_PRESET`),
+    its :func:`quick_variant` when ``quick``; an unknown name is a :class:`BraveError` listing the known."""
+    preset = get_preset(name or DEFAULT_PRESET)
+    return quick_variant(preset) if quick else preset
 
 
 def stage_train(ctx: RunContext) -> StageResult:
-    """Train the demo scene with the ``fast`` preset (``quick``: a miniature run)."""
+    """Train the scene with the run's preset (:func:`run_preset`) and evaluate the holdout."""
     from brave6d.training.pipeline import require_capture, train_scene
 
+    preset = run_preset(ctx.preset, ctx.quick)  # an unknown name fails here, before anything is loaded
     require_capture(ctx.scene)
     colmap = ColmapOptions(max_features=1024) if ctx.quick else ColmapOptions()
-    m = train_scene(ctx.scene, demo_preset(ctx.quick), device=ctx.device, colmap=colmap,
-                    resume=ctx.resume)
+    m = train_scene(ctx.scene, preset, device=ctx.device, colmap=colmap, resume=ctx.resume)
     hold = m["holdout"]
     figures: dict[str, Any] = {
         "holdout PSNR": round(hold["psnr"], 2),

@@ -13,7 +13,6 @@ from pathlib import Path
 from brave6d.core.errors import BraveError, DataError
 
 DATASET_YAML = "dataset.yaml"
-SCENES_DIR = "scenes"
 
 
 class ReleaseError(DataError):
@@ -58,9 +57,10 @@ class ReleaseSource:
 
 
 def load_release_source(workdir: Path | str) -> ReleaseSource:
-    """Read ``WORKDIR/dataset.yaml`` through the dataset spec's loader (its one reader) and locate
-    each scene directory (``WORKDIR/scenes/<scene name>/``)."""
-    from brave6d.core.dataset_spec import load_dataset_spec
+    """Read ``WORKDIR/dataset.yaml`` through the work directory's loader and locate each scene
+    directory (``WORKDIR/scenes/<scene name>/``, or a captured scene's folder where it lies, as the
+    work directory's ``dataset.yaml`` records it: :func:`brave6d.dataset.workdir.scene_root`)."""
+    from brave6d.dataset.workdir import load_workdir_dataset, scene_root
 
     root = Path(workdir)
     path = root / DATASET_YAML
@@ -69,7 +69,7 @@ def load_release_source(workdir: Path | str) -> ReleaseSource:
     if not path.is_file():
         raise ReleaseError(f"{path}: file not found; run 'brave6d dataset run DATASET.yaml {root}' first")
     try:
-        dataset = load_dataset_spec(path)
+        dataset = load_workdir_dataset(root)
     except BraveError as exc:
         raise ReleaseError(str(exc)) from None
     spec = dataset.spec
@@ -78,7 +78,7 @@ def load_release_source(workdir: Path | str) -> ReleaseSource:
                                   o.description) for o in spec.objects)
     scenes = []
     for i, scene in enumerate(dataset.scenes):
-        folder = root / SCENES_DIR / scene.name
+        folder = scene_root(root, scene).root
         if not folder.is_dir():
             raise ReleaseError(f"{path}: field 'scenes[{i}]': no scene directory {folder}; "
                                f"run 'brave6d dataset run' for the dataset first")
