@@ -105,7 +105,9 @@ def test_captured_scenes_train_and_export_where_they_lie(lab: Path, capsys: pyte
     assert {n: {s: r["at"] for s, r in read_scene_status(work, n).stages.items()} for n in stamps} == stamps
     assert all(read_scene_status(work, "lab_c").done(s) for s in SCENE_STAGES)
 
-    # the release finds every scene where it lies
+    # the release finds every scene where it lies, and is never written into one
+    assert main(["release", "build", str(work), str(captures / "lab_a" / "release")]) == 2
+    assert "inside the scene directory" in capsys.readouterr().err and not (captures / "lab_a" / "release").exists()
     assert main(["release", "build", str(work), str(lab / "release")]) == 0
     manifest = json.loads((lab / "release" / "manifest.json").read_text())
     assert [s["name"] for s in manifest["scenes"]] == ["lab_a", "lab_b", "lab_c"]

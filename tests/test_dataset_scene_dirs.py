@@ -208,3 +208,22 @@ def test_the_executor_takes_the_cluster_block_without_its_preset() -> None:
 
     options = ExecutorOptions.from_cluster(ClusterSpec(preset="default", partition="gpu"))
     assert options.partition == "gpu" and not hasattr(options, "preset")
+
+
+def test_synth_takes_scene_dir_for_captured_scenes_outside_the_dataset(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """``brave6d synth DATASET`` reads the same dataset ``dataset run`` does: a captured scene outside
+    its folder needs the user's ``--scene-dir`` there too (refused in one line, exit 2, nothing written)."""
+    from brave6d.cli import main
+    from brave6d.synth import load_synth_source
+
+    captured = _captured(tmp_path / "captures" / "lab_a")
+    path = _dataset(tmp_path / "ds", [{"dir": str(captured)}])
+    out = tmp_path / "synth"
+    assert main(["synth", str(path), str(out), "--images", "1", "--width", "32", "--height", "24"]) == 2
+    assert "--scene-dir" in capsys.readouterr().err and not out.exists()
+    source = load_synth_source(path, scene_dirs=[tmp_path / "captures"])
+    assert [o.name for o in source.objects] == ["nut"]
+    assert main(["synth", str(path), str(out), "--images", "1", "--width", "32", "--height", "24",
+                 "--scene-dir", str(tmp_path / "captures")]) == 0
+    assert len(list((out / "train_pbr").rglob("rgb/*.png"))) == 1

@@ -31,6 +31,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh-dir", type=Path, action="append", default=[], metavar="DIR",
                         help="for a dataset.yaml: also accept meshes that lie under DIR (repeatable); by default "
                              "every file it names must lie in its own folder")
+    parser.add_argument("--scene-dir", type=Path, action="append", default=[], metavar="DIR",
+                        help="for a dataset.yaml: also accept captured scene directories (scenes: [{dir: ...}]) "
+                             "under DIR (repeatable), as 'brave6d dataset run --scene-dir'")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
     result = synthesize(args.spec, args.out, SynthOptions(images=args.images, seed=args.seed, workers=args.workers,
                                                            width=args.width, height=args.height,
                                                            mesh_dirs=tuple(args.mesh_dir),
+                                                           scene_dirs=tuple(args.scene_dir),
                                                            resume_check=args.resume_check))
     print(f"synth: {result.images} images in {result.out / 'train_pbr'} ({result.rendered} rendered, "
           f"{result.skipped} already complete); {result.images_per_s:.2f} images/s with {args.workers} worker(s), "

@@ -34,7 +34,8 @@ class SynthOptions:
     ``height``: image size (default: the spec's camera); ``randomization``: how images vary;
     ``resume_check``: how the PNGs of images already written are checked before they count as
     complete (:mod:`brave6d.core.png_check`: ``header``, ``crc`` or ``decode``); ``mesh_dirs``: folders besides a
-    dataset.yaml's own that its meshes may lie in (``--mesh-dir``). Bounds: :mod:`brave6d.synth.limits`."""
+    dataset.yaml's own that its meshes may lie in (``--mesh-dir``); ``scene_dirs``: the same for its
+    captured scene directories (``--scene-dir``). Bounds: :mod:`brave6d.synth.limits`."""
 
     images: int
     seed: int = 0
@@ -44,6 +45,7 @@ class SynthOptions:
     randomization: Randomization = field(default_factory=Randomization)
     resume_check: str = DEFAULT_CHECK
     mesh_dirs: tuple[Path, ...] = ()
+    scene_dirs: tuple[Path, ...] = ()
 
     def __post_init__(self) -> None:
         for name in limits.BOUNDS:
@@ -78,7 +80,7 @@ class SynthResult:
 def synthesize(spec_path: Path | str, out: Path | str, options: SynthOptions) -> SynthResult:
     """Write (or complete) the synthetic split of ``spec_path`` into ``out`` (module docstring)."""
     start = time.perf_counter()
-    source = load_synth_source(spec_path, options.mesh_dirs).with_size(options.width, options.height)
+    source = load_synth_source(spec_path, options.mesh_dirs, options.scene_dirs).with_size(options.width, options.height)
     size = (source.camera.width, source.camera.height)
     size_from = "--width/--height" if options.width and options.height else f"the camera of {source.path}"
     limits.check_machine(*size, options.workers, min(options.workers, options.images), size_from)
@@ -98,7 +100,7 @@ def synthesize(spec_path: Path | str, out: Path | str, options: SynthOptions) ->
     if skipped:
         log.info("%s: %d of %d images already complete, rendering %d", root, skipped, options.images, len(pending))
     job = _Job(source.path, options.width, options.height, options.randomization, options.seed, root,
-               options.mesh_dirs)
+               options.mesh_dirs, options.scene_dirs)
     render_start = time.perf_counter()
     try:
         _render_all(job, pending, options.workers, options.images)
@@ -170,6 +172,7 @@ class _Job:
     seed: int
     out: Path
     mesh_dirs: tuple[Path, ...] = ()
+    scene_dirs: tuple[Path, ...] = ()
 
 
 _STATE: dict[str, object] = {}
@@ -177,7 +180,7 @@ _STATE: dict[str, object] = {}
 
 def _init_worker(job: _Job) -> None:
     """Load the library once per process."""
-    source = load_synth_source(job.spec, job.mesh_dirs).with_size(job.width, job.height)
+    source = load_synth_source(job.spec, job.mesh_dirs, job.scene_dirs).with_size(job.width, job.height)
     _STATE["job"] = job
     _STATE["assets"] = LibraryAssets(source)
 

@@ -72,25 +72,27 @@ class SynthSource:
                            self.distance_range_m, self.elevation_range_deg, self.effects)
 
 
-def load_synth_source(path: Path | str, mesh_dirs: Sequence[Path | str] = ()) -> SynthSource:
+def load_synth_source(path: Path | str, mesh_dirs: Sequence[Path | str] = (),
+                      scene_dirs: Sequence[Path | str] = ()) -> SynthSource:
     """Read a ``dataset.yaml`` or a scene spec (see the module docstring); errors name the file.
 
-    ``mesh_dirs``: for a ``dataset.yaml``, folders besides its own that its meshes may lie in
-    (``--mesh-dir``; :func:`brave6d.core.dataset_spec.load_dataset_spec`).
+    ``mesh_dirs`` / ``scene_dirs``: for a ``dataset.yaml``, folders besides its own that its meshes
+    / captured scene directories may lie in (``--mesh-dir`` / ``--scene-dir``;
+    :func:`brave6d.core.dataset_spec.load_dataset_spec`).
     """
     p = Path(path)
     if not p.is_file():
         raise SpecError(f"{p}: dataset or scene spec not found")
     data = read_yaml(p, error=SpecError)
     if isinstance(data, dict) and "scenes" in data and "capture" not in data:
-        return _from_dataset(p, mesh_dirs)
+        return _from_dataset(p, mesh_dirs, scene_dirs)
     return _from_scene(p)
 
 
-def _from_dataset(path: Path, mesh_dirs: Sequence[Path | str]) -> SynthSource:
+def _from_dataset(path: Path, mesh_dirs: Sequence[Path | str], scene_dirs: Sequence[Path | str]) -> SynthSource:
     from brave6d.core.dataset_spec import load_dataset_spec
 
-    dataset = load_dataset_spec(path, mesh_dirs)
+    dataset = load_dataset_spec(path, mesh_dirs, scene_dirs)
     spec = dataset.spec
     ids = spec.obj_ids()
     objects = tuple(SynthObject(ids[o.name], o.name, spec.resolve(o.mesh).resolve(), float(o.scale))

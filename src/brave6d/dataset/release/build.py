@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -59,7 +59,7 @@ def build_release(workdir: Path | str, out: Path | str, *, force: bool = False) 
     """Build the release of dataset work directory ``workdir`` into ``out`` (see the module docstring)."""
     source = load_release_source(workdir)
     target = Path(out)
-    move = _check_out(target, source.workdir, force)
+    move = _check_out(target, source.workdir, force, [s.root for s in source.scenes])
     scenes = [collect_scene(s, source) for s in progress(source.scenes, total=len(source.scenes),
                                                            desc="release: check scenes", unit="scene")]
     models = collect_models(scenes)
@@ -101,14 +101,20 @@ def build_release(workdir: Path | str, out: Path | str, *, force: bool = False) 
     return ReleaseResult(target, sizes, len(scenes), sum(len(s.im_ids) for s in scenes), moved)
 
 
-def _check_out(target: Path, workdir: Path, force: bool) -> bool:
-    """Refuse an ``OUT`` that would lose data; True when it must be moved aside (``force``)."""
+def _check_out(target: Path, workdir: Path, force: bool, scene_roots: Sequence[Path] = ()) -> bool:
+    """Refuse an ``OUT`` that would lose data; True when it must be moved aside (``force``).
+    ``scene_roots``: the scene directories, also captured ones that lie outside the work directory."""
     out, work = target.resolve(), workdir.resolve()
     if out == work or out in work.parents:
         raise ReleaseError(f"{target}: OUT is (or contains) the dataset work directory {workdir}; "
                            "choose a folder of its own")
     if work / "scenes" in (out, *out.parents):
         raise ReleaseError(f"{target}: OUT lies inside the dataset's scenes folder; choose a folder of its own")
+    for root in scene_roots:
+        scene = root.resolve()
+        if scene in (out, *out.parents) or out in scene.parents:
+            raise ReleaseError(f"{target}: OUT is, contains or lies inside the scene directory {root}; "
+                               "choose a folder of its own")
     if target.is_symlink() or (target.exists() and not target.is_dir()):
         what = "a symbolic link" if target.is_symlink() else "a file"
     elif target.is_dir() and next(target.iterdir(), None) is not None:
