@@ -53,7 +53,7 @@ def test_the_real_rig_names_the_robot_extra(opener: str, module: str, monkeypatc
 
     monkeypatch.setitem(sys.modules, module, None)
     with pytest.raises(MissingExtra, match=r"needs the 'robot' extra .*pip install 'brave6d\[robot\]'"):
-        ur_robot.rtde_interfaces("192.0.2.1") if opener == "robot" else oak_camera._import_depthai()
+        ur_robot.rtde_interfaces("192.0.2.1") if opener == "robot" else oak_camera.OakCamera(width=64, height=48)
 
 
 def test_require_returns_the_module_and_refuses_an_unknown_extra() -> None:

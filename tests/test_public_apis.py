@@ -147,3 +147,15 @@ def test_the_installed_package_has_one_top_level_name() -> None:
     beside it in site-packages."""
     assert sorted(p.name for p in (ROOT / "src").iterdir() if not p.name.endswith(".egg-info")) == ["brave6d"]
     assert not [s for s in STAGE_NAMES if (ROOT / s).exists()], "a stage folder is left at the repository's top"
+
+
+def test_tests_and_benchmarks_import_no_private_names() -> None:
+    """They may import a stage's modules directly, but not its ``_private`` names (``from brave6d.x import _y``)."""
+    bad = []
+    for folder in (ROOT / "tests", ROOT / "benchmarks"):
+        for path in sorted(folder.glob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("brave6d"):
+                    bad += [f"{path.relative_to(ROOT)}:{node.lineno}: {node.module}.{a.name}" for a in node.names
+                            if a.name.startswith("_") and not a.name.startswith("__")]
+    assert not bad, "\n".join(bad)
