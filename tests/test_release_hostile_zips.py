@@ -571,3 +571,17 @@ def test_the_bop_toolkit_check_unpacks_with_the_safe_unpacker(copy: Path, tmp_pa
     with pytest.raises(DataError, match=r"_test_all\.zip: member test/000001/\.\./"):
         module.unpack_release(copy, tmp_path / "bad")
     assert not evil.exists()
+
+
+@pytest.mark.slow
+def test_a_long_name_and_version_still_serve(copy: Path, tmp_path: Path) -> None:
+    """Each of name and version is checked as a folder name (read_manifest); together they may make a
+    cache folder longer than one name may be, and the release still serves."""
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["version"] = "1." + "9" * 97  # 99 characters: a valid folder name on its own
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    _resum(copy)
+    sources = release_scene_sources(copy, tmp_path / "cache")
+    assert sources[0].locate().is_dir()
+    (cache,) = (tmp_path / "cache").iterdir()
+    assert manifest["version"] in cache.name and len(cache.name) > 100

@@ -32,7 +32,6 @@ from pathlib import Path
 from typing import Any
 
 from brave6d.core.atomic import file_sha256, read_json, staged_folder
-from brave6d.core.names import folder_name_problem
 from brave6d.dataset.release.formats import DATASET_INFO, MANIFEST, SUMS, bundle_folder, bundle_zip, read_sha256sums
 from brave6d.dataset.release.manifest import read_manifest
 from brave6d.dataset.release.source import ReleaseError
@@ -85,11 +84,8 @@ def _zipped_sources(base: Path, cache_dir: Path | None) -> list[Any]:
     sums = read_sha256sums(base / SUMS)
     digest = file_sha256(base / MANIFEST)[:12]
     root = cache_dir or default_cache_dir()
-    name = f"{manifest['name']}-{manifest.get('version', '0')}-{digest}"
-    problem = folder_name_problem(name)
-    if problem is not None:  # name and version come from a downloaded manifest.json
-        raise ReleaseError(f"{base / MANIFEST}: fields 'name' and 'version' make the cache folder name {problem}")
-    cache = root / name
+    # name and version come from a downloaded manifest.json: read_manifest checked each as a folder name
+    cache = root / f"{manifest['name']}-{manifest['version']}-{digest}"
     categories = _categories(manifest["objects"])
     out, unpackers = [], []
     for scene in manifest["scenes"]:
