@@ -46,3 +46,21 @@ def test_the_error_names_the_flag_and_exits_2(capsys: pytest.CaptureFixture[str]
         parser.parse_args(["--request-timeout", "nan"])
     assert exit_.value.code == 2
     assert "argument --request-timeout: must be a finite number in (0, 3600], got nan" in capsys.readouterr().err
+
+
+def test_a_bound_checks_python_values_with_the_same_range_as_its_flag() -> None:
+    """``Bound``: one range for a flag (``arg_type``) and for the options object (``check``); a huge
+    integer is refused like any other out-of-range value, not with an OverflowError."""
+    from brave6d.core.cli_types import Bound
+    from brave6d.core.errors import BraveError
+
+    bound = Bound(1, 10_000, integer=True)
+    assert bound.arg_type()("42") == 42
+    bound.check(42, "--max-episodes")
+    for bad in (0, 10_001, 10 ** 400, 2.0, True, "3"):
+        with pytest.raises(BraveError, match=r"--max-episodes must be an integer in \[1, 10000\]"):
+            bound.check(bad, "--max-episodes")
+    timeout = Bound(0, 3600, low_open=True)
+    for bad in (0, float("nan"), float("inf"), 3600.5):
+        with pytest.raises(BraveError, match=r"must be a finite number in \(0, 3600\]"):
+            timeout.check(bad, "--request-timeout")

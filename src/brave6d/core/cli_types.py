@@ -1,4 +1,4 @@
-"""Bounded number types for ``argparse``: a flag outside its range is refused at start.
+"""Bounded numbers: a setting outside its range is refused at start, from a flag or from Python.
 
 ``type=float_in(0, 3600, low_open=True)`` makes ``--request-timeout nan`` (or ``inf``, ``-1``)
 end the command before it does anything, with argparse's one-line error naming the flag
@@ -10,7 +10,10 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
-from typing import TypeVar
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from brave6d.core.errors import BraveError
 
 T = TypeVar("T", int, float)
 
@@ -54,3 +57,33 @@ def _bounded(convert: Callable[[str], T], what: str, low: float | None, high: fl
 
     parse.__name__ = convert.__name__  # argparse names the type in its own messages
     return parse
+
+
+@dataclass(frozen=True)
+class Bound:
+    """The range of one setting: ``low .. high`` (``low_open``: ``low`` itself excluded), integers
+    only when ``integer``. The one place a setting's range is written: its flag parses with
+    :meth:`arg_type` (argparse refuses a value outside, naming the flag) and the Python options
+    object checks the same range with :meth:`check`."""
+
+    low: float
+    high: float
+    integer: bool = False
+    low_open: bool = False
+
+    def describe(self) -> str:
+        return f"{'an integer' if self.integer else 'a finite number'} in " + \
+            _interval(self.low, self.high, self.low_open, False)
+
+    def check(self, value: object, name: str, error: type[BraveError] = BraveError) -> None:
+        """``error`` naming ``name`` when ``value`` is not a number (an ``int`` when ``integer``) inside the bound."""
+        kind_ok = isinstance(value, int) if self.integer else isinstance(value, (int, float))
+        if isinstance(value, bool) or not kind_ok or (isinstance(value, float) and not math.isfinite(value)) \
+                or value > self.high or (value <= self.low if self.low_open else value < self.low):  # type: ignore[operator]
+            raise error(f"{name} must be {self.describe()}, got {value!r}")
+
+    def arg_type(self) -> Callable[[str], Any]:
+        """The argparse ``type=`` of a flag with this bound."""
+        if self.integer:
+            return int_in(int(self.low), int(self.high))
+        return float_in(self.low, self.high, low_open=self.low_open)

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any
 
-from brave6d.core.cli_types import float_in, int_in
+from brave6d.core.cli_types import Bound
 from brave6d.core.errors import BraveError
 
 #: Smallest image side (pixels).
@@ -73,37 +73,6 @@ def fit_image_size(width: int, height: int) -> tuple[int, int]:
 # ----------------------------------------------------------------------------- server limits
 class LimitError(BraveError, ValueError):
     """A server limit outside its bounds (NaN, infinite, negative, too large); names the limit."""
-
-
-@dataclass(frozen=True)
-class Bound:
-    """The range of one server setting: ``low .. high`` (``low_open``: ``low`` itself excluded),
-    integers only when ``integer``. The one place each range is written: :class:`ServerLimits`
-    checks its fields with :meth:`check`, and the ``serve``/``ros1``/``ros2`` flags parse with
-    :meth:`arg_type` (argparse then refuses a value outside it, naming the flag)."""
-
-    low: float
-    high: float
-    integer: bool = False
-    low_open: bool = False
-
-    def describe(self) -> str:
-        if self.integer:
-            return f"an integer in {self.low:g}..{self.high:g}"
-        return f"a finite number in {'(' if self.low_open else '['}{self.low:g}, {self.high:g}]"
-
-    def check(self, value: object, name: str) -> None:
-        """:class:`LimitError` naming ``name`` when ``value`` is not inside the bound."""
-        kind_ok = isinstance(value, int) if self.integer else isinstance(value, (int, float))
-        if isinstance(value, bool) or not kind_ok or not math.isfinite(value) or value > self.high \
-                or (value <= self.low if self.low_open else value < self.low):  # type: ignore[operator]
-            raise LimitError(f"{name} must be {self.describe()}, got {value!r}")
-
-    def arg_type(self) -> Callable[[str], Any]:
-        """The argparse ``type=`` of a flag with this bound (:mod:`brave6d.core.cli_types`)."""
-        if self.integer:
-            return int_in(int(self.low), int(self.high))
-        return float_in(self.low, self.high, low_open=self.low_open)
 
 
 #: Connections the HTTP server holds at most (uvicorn answers 503 to requests beyond it).
@@ -157,4 +126,4 @@ class ServerLimits:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            BOUNDS[f.name].check(getattr(self, f.name), f"ServerLimits.{f.name}")
+            BOUNDS[f.name].check(getattr(self, f.name), f"ServerLimits.{f.name}", LimitError)

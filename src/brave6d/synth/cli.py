@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from brave6d.core.cli_types import int_in
 from brave6d.core.png_check import CHECKS, DEFAULT_CHECK
 from brave6d.synth.limits import BOUNDS
 
@@ -13,15 +12,15 @@ from brave6d.synth.limits import BOUNDS
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("spec", type=Path, metavar="DATASET_OR_SCENE", help="dataset.yaml or a scene spec (YAML)")
     parser.add_argument("out", type=Path, metavar="OUT", help="output folder (train_pbr/ is written inside; resumable)")
-    parser.add_argument("--images", type=int_in(*BOUNDS["images"]), required=True, help="number of images")
-    parser.add_argument("--seed", type=int_in(*BOUNDS["seed"]), default=0,
+    parser.add_argument("--images", type=BOUNDS["images"].arg_type(), required=True, help="number of images")
+    parser.add_argument("--seed", type=BOUNDS["seed"].arg_type(), default=0,
                         help="seed of the split (image i depends only on seed and i)")
-    parser.add_argument("--workers", type=int_in(*BOUNDS["workers"]), default=1,
+    parser.add_argument("--workers", type=BOUNDS["workers"].arg_type(), default=1,
                         help="worker processes (default 1; one per CPU core pays, at most 4 per core and as many as "
                              "memory holds)")
-    parser.add_argument("--width", type=int_in(*BOUNDS["width"]), default=None,
+    parser.add_argument("--width", type=BOUNDS["width"].arg_type(), default=None,
                         help="image width (default: the spec's camera)")
-    parser.add_argument("--height", type=int_in(*BOUNDS["height"]), default=None,
+    parser.add_argument("--height", type=BOUNDS["height"].arg_type(), default=None,
                         help="image height (default: the spec's camera)")
     parser.add_argument("--resume-check", choices=CHECKS, default=DEFAULT_CHECK,
                         help="how the images a resumed run finds are checked before they count as complete "

@@ -16,6 +16,7 @@ import os
 from numbers import Integral
 from pathlib import Path
 
+from brave6d.core.cli_types import Bound
 from brave6d.core.errors import BraveError
 
 log = logging.getLogger(__name__)
@@ -28,10 +29,11 @@ MAX_WORKERS = 1024
 #: Workers per usable CPU core beyond which ``--workers`` is refused (above one per core: a warning).
 OVERSUBSCRIPTION = 4
 
-#: option/flag name -> inclusive bounds (``brave6d.synth.cli`` and ``SynthOptions`` both read these).
-BOUNDS: dict[str, tuple[int, int]] = {"images": (1, MAX_IMAGES), "seed": (0, MAX_SEED),
-                                      "workers": (1, MAX_WORKERS), "width": (MIN_SIDE, MAX_SIDE),
-                                      "height": (MIN_SIDE, MAX_SIDE)}
+#: option/flag name -> its range (``brave6d.synth.cli`` parses the flags with them, ``SynthOptions`` checks them).
+BOUNDS: dict[str, Bound] = {"images": Bound(1, MAX_IMAGES, integer=True), "seed": Bound(0, MAX_SEED, integer=True),
+                            "workers": Bound(1, MAX_WORKERS, integer=True),
+                            "width": Bound(MIN_SIDE, MAX_SIDE, integer=True),
+                            "height": Bound(MIN_SIDE, MAX_SIDE, integer=True)}
 
 #: Peak memory of rendering one image, per pixel (measured 382 .. 407) and per worker process
 #: (measured ~380 MiB); both with a margin.
@@ -42,11 +44,12 @@ GIB = 2 ** 30
 
 
 def check_option(name: str, value: object) -> int:
-    """``value`` when it is an integer within ``BOUNDS[name]``; else :class:`BraveError` naming ``--name``."""
-    low, high = BOUNDS[name]
-    if isinstance(value, bool) or not isinstance(value, Integral) or not low <= int(value) <= high:
-        raise BraveError(f"synth: --{name} must be an integer in {low}..{high}, got {value!r}")
-    return int(value)
+    """``value`` (any integer type, numpy's too) as an ``int`` within ``BOUNDS[name]``; else
+    :class:`BraveError` naming ``--name``."""
+    if isinstance(value, Integral) and not isinstance(value, bool):
+        value = int(value)
+    BOUNDS[name].check(value, f"synth: --{name}")
+    return value  # type: ignore[return-value]
 
 
 def render_memory_bytes(width: int, height: int) -> int:
