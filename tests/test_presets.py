@@ -86,17 +86,26 @@ def as_written(record: dict[str, Any]) -> str:
     return json.dumps(record, sort_keys=True)
 
 
+#: Fields added after the parts (issue 34: the depth loss), with each shipped preset's value. An old
+#: record has none of them and reads back with their defaults (colour only, as it trained).
+ADDED_DEFAULTS: dict[str, Any] = {"depth_lambda": 0.0, "depth_edge_ratio": 0.02}
+ADDED: dict[str, dict[str, Any]] = {name: dict(ADDED_DEFAULTS) for name in OLD}
+ADDED["fast"]["depth_lambda"] = ADDED["quality"]["depth_lambda"] = ADDED["fast-quick"]["depth_lambda"] = 0.5
+
+
 def test_every_shipped_preset_flattens_to_its_old_values() -> None:
     assert set(SHIPPED) == set(OLD)
     for name, preset in SHIPPED.items():
-        assert as_written(preset.to_json()) == as_written(OLD[name]), name
-        assert Preset.from_json(OLD[name]) == preset, name  # and an old record reads back as the same preset
+        assert as_written(preset.to_json()) == as_written({**OLD[name], **ADDED[name]}), name
+        # an old record reads back as the same preset, with the added fields at their defaults
+        assert Preset.from_json(OLD[name]) == preset.with_values(**ADDED_DEFAULTS), name
 
 
 @settings(max_examples=150, deadline=None)
 @given(name=st.sampled_from(sorted(OLD)), steps=st.integers(1, 200_000))
 def test_shipped_presets_scale_as_before(name: str, steps: int) -> None:
-    assert as_written(SHIPPED[name].with_steps(steps).to_json()) == as_written(old_with_steps(OLD[name], steps))
+    assert as_written(SHIPPED[name].with_steps(steps).to_json()) == as_written(
+        {**old_with_steps(OLD[name], steps), **ADDED[name]})
 
 
 # ----------------------------------------------------------------------------- step fields scale by declaration
@@ -241,7 +250,7 @@ def test_records_read_back_leaving_out_unknown_names() -> None:
 def test_default_parts_are_inrias() -> None:
     """The parts' defaults are the flat preset's defaults (a preset made of defaults is ``default``)."""
     assert Preset(name="default") == DEFAULT
-    assert as_written(Preset(name="default").to_json()) == as_written(OLD_DEFAULT)
+    assert as_written(Preset(name="default").to_json()) == as_written({**OLD_DEFAULT, **ADDED_DEFAULTS})
 
 
 # ----------------------------------------------------------------------------- the same training, bit for bit
@@ -263,6 +272,8 @@ scene = write_scene(Path(tempfile.mkdtemp()) / "scene", cam, plane_views(cam, [0
 out = {"package": brave6d.__file__}
 for name, preset in [*BENCHMARK_PRESETS.items(), ("fast-quick", quick)]:
     p = preset.with_steps(6).with_overrides(eval_every=2, max_init_points=800)
+    if "depth_lambda" in p.to_json():  # added after the parts (issue 34): the same training without it
+        p = p.with_values(depth_lambda=0.0)
     run = train(load_scene(scene, p.downscale), p, "cpu", init_method="depth")
     out[name] = {"psnr": [h.psnr for h in run.holdout_curve], "ssim": [h.ssim for h in run.holdout_curve],
                  "gaussians": run.num_gaussians,

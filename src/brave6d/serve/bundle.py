@@ -102,6 +102,10 @@ def is_bundle(path: Path | str) -> bool:
 
 
 # ----------------------------------------------------------------------------- typed bundle
+#: The depths a bundle may serve (see :class:`RenderDefaults`; ``brave6d.training.rasterize``'s median_depth).
+DEPTH_MODES = ("median", "expected")
+
+
 @dataclass(frozen=True)
 class RenderDefaults:
     """How views are rendered unless a request says otherwise.
@@ -117,8 +121,13 @@ class RenderDefaults:
     far: float = 100.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     depth_alpha_min: float = 0.5  # depth is 0 (no data) where the splat's alpha is below this
+    # which depth a pixel reports: "median" (the surface that takes the transmittance across 0.5, as a
+    # sensor sees one surface at an edge) or "expected" (alpha-weighted mean; a bundle without the key)
+    depth_mode: str = "median"
 
     def __post_init__(self) -> None:
+        if self.depth_mode not in DEPTH_MODES:
+            raise DataError(f"render defaults: depth_mode must be one of {DEPTH_MODES}, got {self.depth_mode!r}")
         width, height = fit_image_size(self.width, self.height)
         if (width, height) != (self.width, self.height):
             log.warning("render defaults %dx%d exceed the server's image-size cap %dx%d: using %dx%d",
@@ -128,13 +137,14 @@ class RenderDefaults:
 
     def to_json(self) -> dict[str, Any]:
         return {"width": self.width, "height": self.height, "near": self.near, "far": self.far,
-                "background": list(self.background), "depth_alpha_min": self.depth_alpha_min}
+                "background": list(self.background), "depth_alpha_min": self.depth_alpha_min,
+                "depth_mode": self.depth_mode}
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> RenderDefaults:
         return cls(int(d["width"]), int(d["height"]), float(d.get("near", 0.01)), float(d.get("far", 100.0)),
                    tuple(float(x) for x in d.get("background", (0, 0, 0))),  # type: ignore[arg-type]
-                   float(d.get("depth_alpha_min", 0.5)))
+                   float(d.get("depth_alpha_min", 0.5)), str(d.get("depth_mode", "expected")))
 
 
 @dataclass(frozen=True)

@@ -199,7 +199,7 @@ class SceneServer:
         r = self.bundle.render
         t0 = time.perf_counter()
         out = self.renderer.render(world_T_cam, camera, near=r.near, far=r.far, background=r.background,
-                                   depth_alpha_min=r.depth_alpha_min)
+                                   depth_alpha_min=r.depth_alpha_min, depth_mode=r.depth_mode)
         t1 = time.perf_counter()
         vis: list[Visibility | None] = [None] * len(self.bundle.objects)
         if self.visibility is not None:

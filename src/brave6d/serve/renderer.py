@@ -18,8 +18,11 @@
 * Renders run under ``torch.no_grad`` and one lock: the CPU kernels use every core, and
   concurrent renders would only slow each other down. ``render_ms`` is the wall time of the
   rasterizer call (including waiting for the GPU), ``queue_ms`` the wait for the lock.
-* Depth is the rasterizer's expected z-depth (camera frame, metres, float32); pixels whose
-  alpha is below ``depth_alpha_min`` get depth 0 (= no data, the project's depth convention).
+* Depth is z-depth in the camera frame (metres, float32) with a depth sensor's semantics: 0 (= no
+  data, the project's depth convention) where the splat's alpha is below ``depth_alpha_min`` (no
+  surface there), and with ``depth_mode="median"`` (the bundles' default) the depth of the one
+  surface that takes the pixel's transmittance across 0.5, never a blend of a foreground and a
+  background surface at an edge; ``"expected"`` is the alpha-weighted mean (older bundles).
 """
 
 from __future__ import annotations
@@ -154,7 +157,7 @@ class SplatRenderer:
 
     def render(self, world_T_cam: NDArray[np.float64], camera: PinholeCamera, *, near: float = 0.01,
                far: float = 100.0, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-               depth_alpha_min: float = 0.5) -> RenderOutput:
+               depth_alpha_min: float = 0.5, depth_mode: str = "median") -> RenderOutput:
         """Render the view of an undistorted pinhole ``camera`` at ``world_T_cam`` (OpenCV axes)."""
         import torch
 
@@ -178,10 +181,13 @@ class SplatRenderer:
                             self.colors[idx])
                 else:
                     args = (self.means, self.quats, self.scales, self.opacities, self.colors)
-                colors, depth, alpha, _ = rasterize(
+                median = depth_mode == "median"
+                colors, depth, alpha, info = rasterize(
                     *args, viewmat[None], K[None], camera.width, camera.height,
                     sh_degree=self.sh_degree, near_plane=near, far_plane=far, backgrounds=bg,
-                    backend="cuda" if dev.type == "cuda" else "cpu")
+                    backend="cuda" if dev.type == "cuda" else "cpu", median_depth=median)
+                if median:
+                    depth = info["median_depth"]
                 rgb = (colors[0].clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8)
                 a = alpha[0, :, :, 0]
                 d = torch.where(a >= depth_alpha_min, depth[0, :, :, 0], torch.zeros_like(a))

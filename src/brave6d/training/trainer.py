@@ -2,7 +2,8 @@
 
 Per step (gsplat's ``simple_trainer`` order): render the next training view (views are drawn
 without replacement, a new random order every epoch), loss
-``(1 - lambda) * L1 + lambda * (1 - SSIM)``, backward, Adam step for every parameter, then the
+``(1 - lambda) * L1 + lambda * (1 - SSIM)`` (plus ``depth_lambda`` times the relative depth error
+against the captured depth, :mod:`brave6d.training.depth_targets`, when the preset asks), backward, Adam step for every parameter, then the
 densification strategy. The means' learning rate is Inria's (times the scene extent) with an
 exponential decay over the run; the SH degree grows by one every ``schedule.sh_degree_interval`` steps.
 
@@ -36,8 +37,9 @@ from torch import Tensor
 from brave6d.core.atomic import atomic_write
 from brave6d.core.errors import BraveError, DataError
 from brave6d.core.progress import progress_bar
-from brave6d.training.views import TrainingData, image_tensor
+from brave6d.training.views import TrainingData, image_tensor, load_depth_m
 from brave6d.training.device import resolve_device  # noqa: F401 - also importable from here
+from brave6d.training.depth_targets import DepthTarget, depth_loss, depth_target
 from brave6d.training.losses import fill_invalid, photometric_loss, psnr
 from brave6d.training.model import PARAM_NAMES, GaussianModel
 from brave6d.training.presets import Preset
@@ -149,6 +151,7 @@ class Trainer:
         self.images = [torch.from_numpy(v.image).to(self.device) for v in data.train]
         self.valid = data.valid_tensor(self.device)
         self._coarse: CoarseLevel | None = None  # half-resolution copies, made when a coarse step first needs them
+        self._depth_targets: list[DepthTarget | None] | None = None  # loaded when a depth step first needs them
 
     # ------------------------------------------------------------------ setup
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
@@ -176,15 +179,26 @@ class Trainer:
         coeffs = m.sh_coeffs(d)
         cam = self.data.camera
         K, width, height = (self.K, cam.width, cam.height) if level is None else (level.K, level.width, level.height)
-        colors, _, alphas, info = rasterize(
+        colors, depth, alphas, info = rasterize(
             m.means, m.quats, m.scales(), m.opacities(), coeffs, viewmat[None], K[None],
             width, height, sh_degree=d)
+        info["render_depth"] = depth[0]
         return colors[0], alphas[0], info
+
+    def depth_targets(self) -> list[DepthTarget | None]:
+        """Each training view's depth target at the training resolution (loaded once; None: no depth)."""
+        if self._depth_targets is None:
+            self._depth_targets = load_depth_targets(self.data, self.preset.loss.depth_edge_ratio, self.device)
+        return self._depth_targets
 
     def coarse_level(self) -> CoarseLevel:
         """The half-resolution training images, intrinsics and valid mask (made once)."""
         if self._coarse is None:
-            self._coarse = CoarseLevel.of(self.images, self.K, self.valid)
+            depths = None
+            if self.preset.loss.depth_lambda > 0:
+                ratio = self.preset.loss.depth_edge_ratio
+                depths = [None if t is None else t.halved(ratio) for t in self.depth_targets()]
+            self._coarse = CoarseLevel.of(self.images, self.K, self.valid, depths)
         return self._coarse
 
     def _check_params(self, when: str) -> None:
@@ -217,10 +231,15 @@ class Trainer:
         level = self.coarse_level() if step < p.schedule.coarse_steps else None
         gt = (self.images[i] if level is None else level.images[i]).float() / 255.0
         valid = self.valid if level is None else level.valid
-        render, _, info = self.render(self.viewmats[i], sh_degree_at(step, p, self.model.sh_degree), level)
+        render, alpha, info = self.render(self.viewmats[i], sh_degree_at(step, p, self.model.sh_degree), level)
         self.strategy.step_pre_backward(self.model.params, self.optimizers, self.strategy_state, step, info)
         gt = fill_invalid(gt, render, valid)
         loss, l1, _ = photometric_loss(render, gt, p.loss.ssim_lambda)
+        if p.loss.depth_lambda > 0:
+            targets = self.depth_targets() if level is None else level.depths
+            target = targets[i] if targets else None
+            if target is not None:
+                loss = loss + p.loss.depth_lambda * depth_loss(info["render_depth"], alpha, target)
         loss_value = float(loss.detach())
         if not math.isfinite(loss_value):
             raise self._diverged(f"the loss is {loss_value} (view {self.data.train[i].view_id})")
@@ -474,16 +493,38 @@ class CoarseLevel:
     valid: Tensor | None  # a coarse pixel is valid when its four fine pixels are
     width: int
     height: int
+    depths: list[DepthTarget | None] | None = None  # the depth targets at half size (None: no depth loss)
 
     @classmethod
-    def of(cls, images: list[Tensor], K: Tensor, valid: Tensor | None) -> CoarseLevel:
+    def of(cls, images: list[Tensor], K: Tensor, valid: Tensor | None,
+           depths: list[DepthTarget | None] | None = None) -> CoarseLevel:
         if not images or images[0].shape[0] < 2 or images[0].shape[1] < 2:
             raise BraveError("coarse-to-fine training needs images of at least 2x2 pixels")
         small = [half_image(im) for im in images]
         if valid is not None:
             h, w = valid.shape[0] // 2 * 2, valid.shape[1] // 2 * 2
             valid = valid[:h, :w].reshape(h // 2, 2, w // 2, 2).all(dim=3).all(dim=1)
-        return cls(small, half_intrinsics(K), valid, int(small[0].shape[1]), int(small[0].shape[0]))
+        return cls(small, half_intrinsics(K), valid, int(small[0].shape[1]), int(small[0].shape[0]), depths)
+
+
+def load_depth_targets(data: TrainingData, edge_ratio: float, device: torch.device | str = "cpu"
+                       ) -> list[DepthTarget | None]:
+    """The depth target of every training view at the training resolution (None: no usable depth).
+
+    Training views without depth train on colour alone; when no view has any, the run says so once.
+    """
+    cam = data.camera
+    targets: list[DepthTarget | None] = []
+    for view in data.train:
+        target = depth_target(load_depth_m(view, data.depth_camera), cam.width, cam.height, edge_ratio)
+        targets.append(None if target is None else target.to(device))
+    used = sum(t is not None for t in targets)
+    if used == 0:
+        log.warning("depth loss asked for, but none of the %d training views has usable depth; training on "
+                    "colour alone", len(targets))
+    elif used < len(targets):
+        log.info("depth loss on %d of %d training views (the others have no usable depth)", used, len(targets))
+    return targets
 
 
 def image_of(view_index: int, data: TrainingData, device: torch.device | str = "cpu") -> Tensor:

@@ -43,6 +43,7 @@ def rasterize(
     eps2d: float = 0.3,
     backend: str = "auto",
     absgrad: bool = False,
+    median_depth: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
     """Render 3D Gaussians into one or more pinhole cameras (gsplat conventions).
 
@@ -68,6 +69,11 @@ def rasterize(
         backend: 'cpu' (compiled Numba kernels), 'cuda' (gsplat) or 'auto' (follows the
             tensors' device).
         absgrad: also accumulate ``info['means2d'].absgrad`` in backward (AbsGS).
+        median_depth: also return ``info['median_depth']`` [C,H,W,1] (no gradient): the depth of
+            the Gaussian that takes the pixel's transmittance from above 0.5 to 0.5 or below, 0
+            where it never does. Unlike the expected depth it never lies between a foreground and
+            a background surface (what a depth sensor reports at an edge). gsplat has no median
+            depth: on ``cuda`` it comes from the CPU kernels on a CPU copy of the inputs.
 
     Returns:
         ``(render_colors [C,H,W,3], render_depth [C,H,W,1], render_alphas [C,H,W,1], info)``.
@@ -95,7 +101,7 @@ def rasterize(
     if name == "cuda":
         from ._cuda import rasterize_cuda
 
-        return rasterize_cuda(inputs, absgrad)
+        return rasterize_cuda(inputs, absgrad, median_depth)
     from ._cpu import rasterize_cpu
 
-    return rasterize_cpu(inputs, absgrad)
+    return rasterize_cpu(inputs, absgrad, median_depth)

@@ -88,7 +88,7 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conics, rgb, depths, opacities, backgrounds, radii, width, height,
-                absgrad):
+                absgrad, with_median):
         c, n = radii.shape[:2]
         tile_w = math.ceil(width / TILE_SIZE)
         tile_h = math.ceil(height / TILE_SIZE)
@@ -104,18 +104,21 @@ class _Composite(torch.autograd.Function):
             )
         order = K.tile_order(K.forward_costs(tile_offsets))
         bg = _np(backgrounds) if backgrounds is not None else np.zeros((c, 3), np.float32)
+        median = np.zeros((c, height, width, 1), np.float32) if with_median else None
         rgb_img, depth_img, alpha_img, t_final, acc_depth, last_ids, bwd_costs = K.rasterize_fwd(
             rec, bg, width, height, tile_w, tile_h, tile_offsets, flatten_ids, isect_rows, order,
-            n_workers,
+            n_workers, median,
         )
         ctx.plan = (tile_w, tile_h, tile_offsets, flatten_ids, isect_rows, gauss_offsets,
                     isect_of, bwd_costs, n_workers, t_final, acc_depth, last_ids, rec, bg)
         ctx.cfg = (width, height, absgrad, rgb3.shape[0], rgb.dim())
         ctx.save_for_backward(means2d)
-        return torch.from_numpy(rgb_img), torch.from_numpy(depth_img), torch.from_numpy(alpha_img)
+        median_t = torch.from_numpy(median) if median is not None else torch.zeros(0)
+        ctx.mark_non_differentiable(median_t)
+        return torch.from_numpy(rgb_img), torch.from_numpy(depth_img), torch.from_numpy(alpha_img), median_t
 
     @staticmethod
-    def backward(ctx, v_rgb, v_depth, v_alpha):
+    def backward(ctx, v_rgb, v_depth, v_alpha, _v_median):
         (means2d,) = ctx.saved_tensors
         (tile_w, tile_h, tile_offsets, flatten_ids, isect_rows, gauss_offsets, isect_of,
          bwd_costs, n_workers, t_final, acc_depth, last_ids, rec, bg) = ctx.plan
@@ -140,7 +143,7 @@ class _Composite(torch.autograd.Function):
             v_colours_t = v_colours_t[0]
         return (torch.from_numpy(v_means2d), torch.from_numpy(v_conics), v_colours_t,
                 torch.from_numpy(v_depths), torch.from_numpy(v_opacities), v_bg,
-                None, None, None, None)
+                None, None, None, None, None)
 
 
 def _camera_centres(viewmats: Tensor) -> Tensor:
@@ -148,7 +151,8 @@ def _camera_centres(viewmats: Tensor) -> Tensor:
     return torch.inverse(viewmats.detach().double())[:, :3, 3].float().contiguous()
 
 
-def rasterize_cpu(inp: RasterInputs, absgrad: bool) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
+def rasterize_cpu(inp: RasterInputs, absgrad: bool, median_depth: bool = False
+                  ) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
     """Render with the compiled CPU kernels (see :func:`brave6d.training.rasterizer.rasterize`)."""
     if inp.means.device.type != "cpu":
         raise RasterInputError(
@@ -179,8 +183,8 @@ def rasterize_cpu(inp: RasterInputs, absgrad: bool) -> tuple[Tensor, Tensor, Ten
         rgb = colors  # [N, 3] (shared by the cameras) or [C, N, 3]
     bg = inp.backgrounds.to(f32) if inp.backgrounds is not None else None
 
-    render_colors, render_depth, alphas = _Composite.apply(
-        means2d, conics, rgb, depths, opacities, bg, radii, width, height, absgrad)
+    render_colors, render_depth, alphas, median = _Composite.apply(
+        means2d, conics, rgb, depths, opacities, bg, radii, width, height, absgrad, median_depth)
     radii_np = radii.numpy()
     info: dict[str, Any] = {
         "backend": "cpu",
@@ -201,4 +205,6 @@ def rasterize_cpu(inp: RasterInputs, absgrad: bool) -> tuple[Tensor, Tensor, Ten
         "camera_ids": None,
         "batch_ids": None,
     }
+    if median_depth:
+        info["median_depth"] = median
     return render_colors, render_depth, alphas, info

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import torch
@@ -10,8 +11,10 @@ from torch import Tensor
 from ._validation import RasterBackendError, RasterInputError, RasterInputs
 
 
-def rasterize_cuda(inp: RasterInputs, absgrad: bool) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
-    """Render with gsplat's CUDA kernels (see :func:`brave6d.training.rasterizer.rasterize`)."""
+def rasterize_cuda(inp: RasterInputs, absgrad: bool, median_depth: bool = False
+                   ) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
+    """Render with gsplat's CUDA kernels (see :func:`brave6d.training.rasterizer.rasterize`); the
+    median depth (gsplat has none) from the CPU kernels on a detached CPU copy of the inputs."""
     if not torch.cuda.is_available():
         raise RasterBackendError(
             "rasterize: backend='cuda' needs a CUDA GPU but torch.cuda.is_available() is False; "
@@ -51,4 +54,10 @@ def rasterize_cuda(inp: RasterInputs, absgrad: bool) -> tuple[Tensor, Tensor, Te
     )
     meta["backend"] = "cuda"
     meta["visible"] = (meta["radii"] > 0).all(dim=-1)
+    if median_depth:
+        from ._cpu import rasterize_cpu
+
+        on_cpu = dataclasses.replace(inp, **{f.name: getattr(inp, f.name).detach().cpu()
+                                            for f in dataclasses.fields(inp) if isinstance(getattr(inp, f.name), Tensor)})
+        meta["median_depth"] = rasterize_cpu(on_cpu, False, True)[3]["median_depth"].to(inp.means.device)
     return out[..., :3], out[..., 3:4], alphas, meta

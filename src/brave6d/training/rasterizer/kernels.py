@@ -1076,13 +1076,14 @@ _F_A1 = np.uint64(2 * _TP)
 _F_A2 = np.uint64(3 * _TP)
 _F_A3 = np.uint64(4 * _TP)
 _F_LAST = np.uint64(5 * _TP)  # int32 bits of the last contributing intersection index
-_FWD_FIELDS = 6
+_F_MED = np.uint64(6 * _TP)  # median depth: the depth of the Gaussian that takes T across 0.5 (0: none)
+_FWD_FIELDS = 7
 
 
 @njit(cache=True, error_model="numpy", fastmath=_PIXEL_MATH)
 def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
               isect_rows, rgb, depth, alpha_img, t_final, acc_depth, last_ids, bwd_costs, st,
-              row_done):
+              row_done, median):
     """Composite one tile front to back, Gaussian by Gaussian.
 
     Each reachable row is a fixed 16-lane, branch-free loop that LLVM vectorises, applying
@@ -1092,6 +1093,10 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
     those outside the image included): its lanes would change nothing.  The row loop only
     ORs the lanes' stop flags and recounts a row when one stopped: an int64 counter in the
     loop made LLVM use 8-lane vectors instead of 16.
+
+    ``median`` is None or a [C,H,W,1] image for the median depth: the depth of the Gaussian whose
+    compositing takes the transmittance from above 0.5 to 0.5 or below (0 where it never does);
+    numba prunes its code at compile time when it is None, so training pays nothing for it.
     """
     c, x0, y0, x1, y1 = _tile_box(tile, tile_w, tile_h, width, height)
     none = _int32_bits_as_float32(np.int32(-1))
@@ -1106,6 +1111,7 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
         st[p + _F_A2] = _F0
         st[p + _F_A3] = _F0
         st[p + _F_LAST] = none
+        st[p + _F_MED] = _F0
     row_w = x1 - x0
     row_done[:] = _TS - row_w  # stopped lanes per row, counting those outside the image
     n_pix = _TS * (y1 - y0)
@@ -1151,6 +1157,9 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
                 st[p + _F_A3] += c3 * vis
                 st[p + _F_T] = next_t if use else (-t_cur if stop else t_cur)
                 st[p + _F_LAST] = kbits if use else l_cur
+                if median is not None:
+                    crosses = use & (t_cur > _F05) & (next_t <= _F05)
+                    st[p + _F_MED] = c3 if crosses else st[p + _F_MED]
                 any_stop |= stop
             if any_stop:  # rare (a pixel stops once): recount the row's stopped lanes
                 n_row = 0
@@ -1176,13 +1185,15 @@ def _fwd_tile(tile, rec, backgrounds, width, height, tile_w, tile_h, tile_offset
             lk = _float32_bits_as_int32(st[p + _F_LAST])
             last_ids[c, y, x] = lk
             max_last = max(max_last, np.int64(lk))
+            if median is not None:
+                median[c, y, x, 0] = st[p + _F_MED]
     # the backward pass walks this tile's intersections up to its last contributor
     bwd_costs[tile] = max(max_last - tile_offsets[tile] + 1, 0) + 8
 
 
 @njit(parallel=True, cache=True)
 def rasterize_fwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets, flatten_ids,
-                  isect_rows, order, n_workers):
+                  isect_rows, order, n_workers, median=None):
     """Composite 4 channels (RGB + depth) of records ``rec`` [CN,16] (prepare_splats) over
     ``backgrounds`` [C,3] (depth has none).
 
@@ -1191,7 +1202,8 @@ def rasterize_fwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
     (accumulated depth / max(alpha, DEPTH_ALPHA_EPS)), alpha [C,H,W,1], the final transmittance and
     the accumulated depth [C,H,W] (for the backward pass), the index of the last
     contributing intersection per pixel [C,H,W] int32 (-1 if none) and per-tile cost
-    estimates for ordering the backward pass.
+    estimates for ordering the backward pass. ``median``: None, or a [C,H,W,1] float32 array
+    that receives the median depth (see :func:`_fwd_tile`).
     """
     n_cam = backgrounds.shape[0]
     rgb = np.empty((n_cam, height, width, 3), np.float32)
@@ -1210,7 +1222,7 @@ def rasterize_fwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
         while i < n_tiles:
             _fwd_tile(order[i], rec, backgrounds, width, height, tile_w, tile_h,
                       tile_offsets, flatten_ids, isect_rows, rgb, depth, alpha_img, t_final,
-                      acc_depth, last_ids, bwd_costs, st, row_done)
+                      acc_depth, last_ids, bwd_costs, st, row_done, median)
             i = _atomic_fetch_add(counter, 1)
     return rgb, depth, alpha_img, t_final, acc_depth, last_ids, bwd_costs
 

@@ -207,8 +207,10 @@ def composite(
     height: int,
     backgrounds: Tensor | None = None,
     chunk_elems: int = 1 << 22,
-) -> tuple[Tensor, Tensor]:
-    """Front-to-back compositing of D channels -> (out [C,H,W,D] incl. background, alphas [C,H,W,1]).
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Front-to-back compositing of D channels -> (out [C,H,W,D] incl. background, alphas [C,H,W,1],
+    median depth [C,H,W,1]: the depth of the Gaussian that takes the transmittance from above 0.5 to
+    0.5 or below, 0 where it never does; no gradient).
 
     Tiles are processed in chunks of similar length, each padded to its longest list; a
     chunk holds about ``chunk_elems`` pixel-Gaussian pairs.
@@ -233,7 +235,8 @@ def composite(
 
     tile_ids = torch.nonzero(counts > 0).reshape(-1)
     tile_ids = tile_ids[torch.argsort(counts[tile_ids], descending=True, stable=True)]
-    results_col, results_t, done_tiles = [], [], []
+    flat_depth = depths.reshape(-1).detach()
+    results_col, results_t, results_med, done_tiles = [], [], [], []
     i = 0
     while i < tile_ids.numel():
         length = int(counts[tile_ids[i]])
@@ -266,22 +269,29 @@ def composite(
         weights = alpha * t_before
         results_col.append(torch.einsum("tpl,tld->tpd", weights, flat_col[g]))
         results_t.append(trans[..., -1])
+        with torch.no_grad():
+            crosses = (alpha > 0) & (t_before > 0.5) & (trans <= 0.5)
+            results_med.append(torch.einsum("tpl,tl->tp", crosses.to(dtype), flat_depth[g]))
         done_tiles.append(chunk)
 
     all_col = torch.zeros(n_tiles, tp, d, dtype=dtype)
     all_t = torch.ones(n_tiles, tp, dtype=dtype)
+    all_med = torch.zeros(n_tiles, tp, dtype=dtype)
     if done_tiles:
         idx = torch.cat(done_tiles)
         all_col = all_col.index_copy(0, idx, torch.cat(results_col))
         all_t = all_t.index_copy(0, idx, torch.cat(results_t))
+        all_med = all_med.index_copy(0, idx, torch.cat(results_med))
     shape = (c, tile_h, tile_w, TILE_SIZE, TILE_SIZE)
     img_col = all_col.reshape(shape + (d,)).permute(0, 1, 3, 2, 4, 5)
     img_col = img_col.reshape(c, tile_h * TILE_SIZE, tile_w * TILE_SIZE, d)[:, :height, :width]
     img_t = all_t.reshape(shape).permute(0, 1, 3, 2, 4)
     img_t = img_t.reshape(c, tile_h * TILE_SIZE, tile_w * TILE_SIZE)[:, :height, :width, None]
+    img_med = all_med.reshape(shape).permute(0, 1, 3, 2, 4)
+    img_med = img_med.reshape(c, tile_h * TILE_SIZE, tile_w * TILE_SIZE)[:, :height, :width, None]
     if backgrounds is not None:
         img_col = img_col + img_t * backgrounds[:, None, None, :]
-    return img_col, 1.0 - img_t
+    return img_col, 1.0 - img_t, img_med
 
 
 def rasterize_reference(
@@ -326,9 +336,9 @@ def rasterize_reference(
     bg = None
     if inp.backgrounds is not None:
         bg = torch.cat([inp.backgrounds.to(dtype), torch.zeros(c, 1, dtype=dtype)], dim=-1)
-    out, alphas = composite(means2d, conics, colors4, opac, radii, depths, width, height, bg,
-                            chunk_elems)
+    out, alphas, median = composite(means2d, conics, colors4, opac, radii, depths, width, height, bg,
+                                    chunk_elems)
     depth = out[..., 3:4] / alphas.clamp(min=DEPTH_ALPHA_EPS)
     info = {"means2d": means2d, "radii": radii, "depths": depths, "conics": conics,
-            "visible": (radii > 0).all(dim=-1)}
+            "visible": (radii > 0).all(dim=-1), "median_depth": median}
     return out[..., :3], depth, alphas, info

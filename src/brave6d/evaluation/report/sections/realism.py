@@ -208,7 +208,8 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
         Kc = cam.cam_K  # rendered at the captured size, then decimated as the captured frame is
         out = s["renderer"].render(world_T_cam, PinholeCamera(size[0], size[1], Kc[0, 0], Kc[1, 1], Kc[0, 2], Kc[1, 2]),
                                    near=bundle.render.near, far=bundle.render.far, background=bundle.render.background,
-                                   depth_alpha_min=bundle.render.depth_alpha_min)
+                                   depth_alpha_min=bundle.render.depth_alpha_min,
+                                   depth_mode=bundle.render.depth_mode)
         rgb_splat = out.rgb[::step, ::step]
         depth_splat = depth_png_to_m(depth_m_to_mm_u16(out.depth)[::step, ::step], 1.0)
         real = estimate_all(s, im_id, depth_real, K, world_T_cam)
