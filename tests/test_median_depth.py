@@ -63,3 +63,15 @@ def test_an_edge_pixel_reports_one_surface_not_a_blend(front: float, gap: float,
     is_back = (med - back).abs() < 1e-4 * back
     assert bool((is_front | is_back | (med == 0))[alpha > 0.5].all())
     assert bool(is_front[0, 16, 16, 0])  # the centre sees the front disc
+
+
+def test_bundles_record_the_depth_they_serve_and_older_ones_stay_expected() -> None:
+    from brave6d.core.errors import DataError
+    from brave6d.serve.bundle import RenderDefaults
+
+    new = RenderDefaults(640, 400)
+    assert new.depth_mode == "median" and RenderDefaults.from_json(new.to_json()) == new
+    older = {"width": 640, "height": 400, "near": 0.01, "far": 100.0, "background": [0, 0, 0], "depth_alpha_min": 0.5}
+    assert RenderDefaults.from_json(older).depth_mode == "expected"
+    with pytest.raises(DataError, match="depth_mode must be one of"):
+        RenderDefaults.from_json({**older, "depth_mode": "mean"})
