@@ -90,7 +90,7 @@ def as_written(record: dict[str, Any]) -> str:
 #: record has none of them and reads back with their defaults (colour only, as it trained).
 ADDED_DEFAULTS: dict[str, Any] = {"depth_lambda": 0.0, "depth_edge_ratio": 0.02}
 ADDED: dict[str, dict[str, Any]] = {name: dict(ADDED_DEFAULTS) for name in OLD}
-ADDED["fast"]["depth_lambda"] = ADDED["quality"]["depth_lambda"] = ADDED["fast-quick"]["depth_lambda"] = 0.5
+ADDED["fast"]["depth_lambda"] = ADDED["quality"]["depth_lambda"] = ADDED["fast-quick"]["depth_lambda"] = 2.0
 
 
 def test_every_shipped_preset_flattens_to_its_old_values() -> None:

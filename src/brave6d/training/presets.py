@@ -304,7 +304,7 @@ DEFAULT = Preset(name="default")
 
 #: The captured depth's weight in the shipped ``fast`` and ``quality`` presets (issue 34: on the demo it
 #: brings the splat's depth on the objects from 2.2-3.7 mm to about 1 mm, median, at no PSNR cost).
-DEPTH_LAMBDA = 0.5
+DEPTH_LAMBDA = 2.0
 
 QUALITY = Preset(
     name="quality", steps=50_000, densification=Densification(refine_stop=25_000),
