@@ -303,7 +303,7 @@ class Preset:
 DEFAULT = Preset(name="default")
 
 #: The captured depth's weight in the shipped ``fast`` and ``quality`` presets (issue 34: on the demo it
-#: brings the splat's depth on the objects from 2.2-3.7 mm to about 1 mm, median, at no PSNR cost).
+#: brings the splat's expected depth on the objects from 2.2-3.7 mm to 0.6-0.8 mm, median, at no PSNR cost).
 DEPTH_LAMBDA = 2.0
 
 QUALITY = Preset(
