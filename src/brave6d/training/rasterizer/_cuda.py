@@ -48,6 +48,7 @@ def rasterize_cuda(inp: RasterInputs, absgrad: bool) -> tuple[Tensor, Tensor, Te
         backgrounds=backgrounds,
         render_mode="RGB+ED",
         absgrad=absgrad,
+        rasterize_mode="antialiased" if inp.antialiased else "classic",
     )
     meta["backend"] = "cuda"
     meta["visible"] = (meta["radii"] > 0).all(dim=-1)
