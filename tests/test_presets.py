@@ -61,6 +61,12 @@ OLD: dict[str, dict[str, Any]] = {
     },
 }
 SHIPPED: dict[str, Preset] = {**BENCHMARK_PRESETS, QUICK.name: QUICK}
+#: Fields added since (issue 34's anti-aliasing part): classic everywhere but ``quality``.
+NEW_FIELDS: dict[str, dict[str, Any]] = {
+    name: {"antialiasing": "mip" if name == "quality" else "classic", "filter_3d_scale": 0.2,
+           "filter_3d_every": 8 if name == "fast-quick" else 100}  # fast-quick: FAST.with_steps(150)
+    for name in OLD}
+CURRENT: dict[str, dict[str, Any]] = {name: {**OLD[name], **NEW_FIELDS[name]} for name in OLD}
 
 
 def old_with_steps(old: dict[str, Any], steps: int) -> dict[str, Any]:
@@ -77,6 +83,7 @@ def old_with_steps(old: dict[str, Any], steps: int) -> dict[str, Any]:
             "refine_every": sc(old["refine_every"]), "reset_every": sc(old["reset_every"]),
             "checkpoint_every": sc(old["checkpoint_every"]), "curve_every": sc(old["curve_every"]),
             "eval_every": sc(old["eval_every"]) if old["eval_every"] else 0,
+            **({"filter_3d_every": sc(old["filter_3d_every"])} if "filter_3d_every" in old else {}),
             "coarse_steps": min(steps, round(old["coarse_steps"] * f)),
             "lr_decay_start": min(steps, round(old["lr_decay_start"] * f))}
 
@@ -89,14 +96,16 @@ def as_written(record: dict[str, Any]) -> str:
 def test_every_shipped_preset_flattens_to_its_old_values() -> None:
     assert set(SHIPPED) == set(OLD)
     for name, preset in SHIPPED.items():
-        assert as_written(preset.to_json()) == as_written(OLD[name]), name
-        assert Preset.from_json(OLD[name]) == preset, name  # and an old record reads back as the same preset
+        assert as_written(preset.to_json()) == as_written(CURRENT[name]), name
+        assert Preset.from_json(CURRENT[name]) == preset, name  # and the record reads back as the same preset
+        # a record written before the anti-aliasing fields is a classic run
+        assert Preset.from_json(OLD[name]).antialias.antialiasing == "classic", name
 
 
 @settings(max_examples=150, deadline=None)
 @given(name=st.sampled_from(sorted(OLD)), steps=st.integers(1, 200_000))
 def test_shipped_presets_scale_as_before(name: str, steps: int) -> None:
-    assert as_written(SHIPPED[name].with_steps(steps).to_json()) == as_written(old_with_steps(OLD[name], steps))
+    assert as_written(SHIPPED[name].with_steps(steps).to_json()) == as_written(old_with_steps(CURRENT[name], steps))
 
 
 # ----------------------------------------------------------------------------- step fields scale by declaration
@@ -241,7 +250,7 @@ def test_records_read_back_leaving_out_unknown_names() -> None:
 def test_default_parts_are_inrias() -> None:
     """The parts' defaults are the flat preset's defaults (a preset made of defaults is ``default``)."""
     assert Preset(name="default") == DEFAULT
-    assert as_written(Preset(name="default").to_json()) == as_written(OLD_DEFAULT)
+    assert as_written(Preset(name="default").to_json()) == as_written(CURRENT["default"])
 
 
 # ----------------------------------------------------------------------------- the same training, bit for bit
