@@ -83,6 +83,7 @@ def _call(fn, scene, **overrides):
         args["means"], args["quats"], args["scales"], args["opacities"], args["colors"],
         args["viewmats"], args["Ks"], args["width"], args["height"],
         sh_degree=args["sh_degree"], backgrounds=args["backgrounds"],
+        antialiased=args.get("antialiased", False),
     )
 
 
@@ -206,6 +207,93 @@ def test_means2d_gradient_matches_reference():
     assert _rel_err(outs[0], outs[1]) < GRAD_RTOL
 
 
+# ---------------------------------------------------------------- 2D mip filter (antialiased)
+# Gaussians from far below a pixel to several pixels: the compensation ranges over (0, 1).
+AA_CASES = {
+    "rgb-two-cameras": {"seed": 50, "scale_px": (0.05, 4.0)},
+    "sh3-one-camera": {"seed": 51, "sh_degree": 3, "n_cams": 1, "scale_px": (0.05, 4.0)},
+    "opaque-dense": {"seed": 52, "n": 300, "opacity": (0.7, 0.99), "scale_px": (0.1, 6.0)},
+}
+
+
+@pytest.mark.parametrize("case", sorted(AA_CASES))
+def test_antialiased_forward_matches_reference(case):
+    scene = {**make_scene(**AA_CASES[case]), "antialiased": True}
+    with torch.no_grad():
+        rgb, depth, alpha, info = _call(rasterize, scene)
+        rgb_r, depth_r, alpha_r, info_r = _call(rasterize_reference, scene)
+        rgb_classic = _call(rasterize, scene, antialiased=False)[0]
+    assert (rgb - rgb_classic).abs().max() > 0.05, "the mip filter changed nothing: test is vacuous"
+    torch.testing.assert_close(rgb, rgb_r, atol=FWD_ATOL, rtol=0)
+    torch.testing.assert_close(alpha, alpha_r, atol=FWD_ATOL, rtol=0)
+    torch.testing.assert_close(depth, depth_r, atol=FWD_ATOL, rtol=FWD_ATOL)
+    assert torch.equal(info["radii"], info_r["radii"])
+    vis = info["visible"]
+    torch.testing.assert_close(info["opacities"][vis], info_r["opacities"][vis].float(),
+                               atol=1e-5, rtol=1e-4)
+    # the compensated opacity never exceeds the opacity; tiny Gaussians fade
+    base = scene["opacities"][None].expand_as(info["opacities"])
+    assert bool((info["opacities"] <= base + 1e-7).all())
+    assert float((info["opacities"][vis] / base[vis]).min()) < 0.2
+
+
+@pytest.mark.parametrize("case", sorted(AA_CASES))
+def test_antialiased_gradients_match_reference_autograd(case):
+    """As test_gradients_match_reference_autograd, through the opacity compensation: the CPU
+    kernel in float32 against autograd of the reference in float64."""
+    scene = {**make_scene(**AA_CASES[case]), "antialiased": True}
+    names = ["means", "quats", "scales", "opacities", "colors", "backgrounds"]
+    g = torch.Generator().manual_seed(98)
+    c, h, w = scene["viewmats"].shape[0], scene["height"], scene["width"]
+    weights = [torch.randn(c, h, w, k, generator=g, dtype=torch.float64) for k in (3, 1, 1)]
+
+    def grads(fn, dtype, antialiased=True):
+        leaves = {k: scene[k].to(dtype).clone().requires_grad_(True) for k in names}
+        cams = {k: scene[k].to(dtype) for k in ("viewmats", "Ks")}
+        outs = _call(fn, scene, **leaves, **cams, antialiased=antialiased)
+        loss = sum((o.double() * wt).sum() for o, wt in zip(outs[:3], weights))
+        loss.backward()
+        return {k: v.grad for k, v in leaves.items()}
+
+    g_cpu = grads(rasterize, torch.float32)
+    g_ref = grads(rasterize_reference, torch.float64)
+    g_classic = grads(rasterize_reference, torch.float64, antialiased=False)
+    assert _rel_err(g_classic["scales"], g_ref["scales"]) > 10 * GRAD_RTOL, "vacuous: same as classic"
+    for k in names:
+        assert g_ref[k].norm() > 0, f"{k}: reference gradient is zero, test is vacuous"
+        err = _rel_err(g_cpu[k], g_ref[k])
+        assert err < GRAD_RTOL, f"{k}: relative gradient error {err:.2e}"
+
+
+def test_antialiased_compensation_is_gsplats_definition():
+    """One Gaussian seen head-on: cov2d = (f s / z)^2 I, so the compensation is
+    (v / (v + eps2d)) with v = (f s / z)^2 (the sqrt of the determinant ratio of a 2x2)."""
+    f, z = 100.0, 2.0
+    vm, K = torch.eye(4)[None], torch.tensor([[[f, 0.0, 16.0], [0.0, f, 16.0], [0.0, 0.0, 1.0]]])
+    for sigma_px in (0.1, 0.3, 1.0, 5.0):  # 0.01 px: opacity 3e-4 < 1/255, culled
+        s = sigma_px * z / f
+        _, _, _, info = rasterize(torch.tensor([[0.0, 0.0, z]]), torch.tensor([[1.0, 0, 0, 0]]),
+                                  torch.full((1, 3), s), torch.tensor([1.0]), torch.ones(1, 3),
+                                  vm, K, 33, 33, antialiased=True)
+        v = sigma_px**2
+        assert float(info["opacities"][0, 0]) == pytest.approx(v / (v + 0.3), rel=1e-5)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("seed, scale_px, antialiased", [(80, (0.7, 6.0), False), (81, (0.05, 5.0), False),
+                                                         (81, (0.05, 5.0), True)])
+def test_cuda_backend_matches_cpu(seed, scale_px, antialiased):
+    """gsplat's classic and antialiased modes against the CPU kernels (sub-pixel Gaussians too)."""
+    scene = {**make_scene(seed, n=300, sh_degree=3, scale_px=scale_px), "antialiased": antialiased}
+    cuda = {k: (v.cuda() if torch.is_tensor(v) else v) for k, v in scene.items()}
+    rgb, depth, alpha, _ = _call(rasterize, scene)
+    rgb_c, depth_c, alpha_c, info_c = _call(rasterize, cuda)
+    assert info_c["backend"] == "cuda"
+    torch.testing.assert_close(rgb_c.cpu(), rgb, atol=FWD_ATOL, rtol=0)
+    torch.testing.assert_close(alpha_c.cpu(), alpha, atol=FWD_ATOL, rtol=0)
+    torch.testing.assert_close(depth_c.cpu(), depth, atol=FWD_ATOL, rtol=FWD_ATOL)
+
+
 # ---------------------------------------------------------------- gsplat's own functions
 # gsplat's private pure-torch module is a third-party reference here, not part of our API.
 
@@ -241,7 +329,7 @@ def test_projection_matches_gsplat_torch_impl(seed):
     torch.testing.assert_close(depths[valid], depths_g[valid], atol=1e-5, rtol=1e-6)
     torch.testing.assert_close(conics[valid], conics_g[valid], atol=1e-6, rtol=1e-4)
     # the reference's projection agrees too (same conventions, torch ops)
-    radii_r, _means2d_r, _depths_r, conics_r = project(
+    radii_r, _means2d_r, _depths_r, conics_r, _comp_r = project(
         scene["means"], scene["quats"], scene["scales"], None, scene["viewmats"], scene["Ks"],
         scene["width"], scene["height"],
     )
@@ -476,18 +564,6 @@ def test_backend_selection():
         with pytest.raises(RasterBackendError, match="CUDA"):
             rasterize(scene["means"], scene["quats"], scene["scales"], scene["opacities"],
                       scene["colors"], scene["viewmats"], scene["Ks"], 64, 48, backend="cuda")
-
-
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
-def test_cuda_backend_matches_cpu():
-    scene = make_scene(80, n=300, sh_degree=3)
-    cuda = {k: (v.cuda() if torch.is_tensor(v) else v) for k, v in scene.items()}
-    rgb, depth, alpha, _ = _call(rasterize, scene)
-    rgb_c, depth_c, alpha_c, info_c = _call(rasterize, cuda)
-    assert info_c["backend"] == "cuda"
-    torch.testing.assert_close(rgb_c.cpu(), rgb, atol=FWD_ATOL, rtol=0)
-    torch.testing.assert_close(alpha_c.cpu(), alpha, atol=FWD_ATOL, rtol=0)
-    torch.testing.assert_close(depth_c.cpu(), depth, atol=FWD_ATOL, rtol=FWD_ATOL)
 
 
 # ---------------------------------------------------------------- pixel-centre convention

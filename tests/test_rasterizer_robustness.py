@@ -265,6 +265,34 @@ def test_outputs_and_gradients_stay_finite(scene):
 
 
 @HYPOTHESIS
+@given(degenerate_scenes())
+def test_antialiased_outputs_and_gradients_stay_finite(scene):
+    """The 2D mip filter on the same degenerate scenes (tiny Gaussians far below a pixel,
+    huge ones, flat ones): finite outputs and gradients, compensation in [0, 1]."""
+    rgb, depth, alpha, info, grads = _render_scene(scene, antialiased=True)
+    assert_all_finite(rgb, depth, alpha, info, grads)
+    base = scene["opacities"][None].expand_as(info["opacities"])
+    comp_opacity = info["opacities"].detach()
+    assert bool(torch.isfinite(comp_opacity).all())
+    assert bool(((comp_opacity >= 0) & (comp_opacity <= base)).all())
+
+
+@pytest.mark.parametrize("scales", [(1e-9, 1e-9, 1e-9), (1e-30, 5.0, 1e-30), (0.0, 0.0, 2.0),
+                                    (1e-5, 1e-5, 1e-5), (1e3, 1e3, 1e3), (1e12, 1e-12, 1.0)])
+def test_antialiased_tiny_flat_and_huge_gaussians(scales):
+    """A Gaussian far below a pixel is faded by the compensation (classic draws a 0.3 px^2
+    blob at full opacity); a flat one gets compensation 0; a huge one keeps its opacity."""
+    vm, K = _camera(32, 24)
+    out = render_and_backprop(*_one(scale=scales), vm, K, 32, 24, antialiased=True)
+    classic = render_and_backprop(*_one(scale=scales), vm, K, 32, 24)
+    assert_all_finite(*out)
+    if max(scales) < 1e-4 or min(scales) == 0.0 or scales[0] == scales[2] == 1e-30:
+        assert float(out[2].detach().max()) < 0.05 * max(float(classic[2].detach().max()), 1e-3) + 1e-6
+    if min(scales) >= 1e3:
+        torch.testing.assert_close(out[2].detach(), classic[2].detach(), atol=1e-4, rtol=0)
+
+
+@HYPOTHESIS
 @given(degenerate_scenes(), st.floats(0.0, 1.0, **finite_floats))
 def test_compositing_is_a_partition_of_unity(scene, value):
     """With every colour and the background equal to one value the image is that value:

@@ -10,7 +10,9 @@
                       sha256 and size. Written last.
     splat.ply         the trained Gaussians (Inria 3DGS PLY layout, copied unchanged)
     scene.json        pinhole intrinsics of the undistorted images, render defaults (size,
-                      near/far, background, depth validity), collision boxes (oriented, world
+                      near/far, background, depth validity, ``antialiasing``: ``mip`` when the
+                      splat was trained with Mip-Splatting's filters, i.e. its PLY has
+                      ``filter_3d``; absent in older bundles: ``classic``), collision boxes (oriented, world
                       frame), workspace bounds, camera collision radius, start-pose hints
     objects.json      one entry per annotated instance (``gt_id`` = the BOP ground-truth index):
                       ``obj_id`` (BOP), name, ``world_T_obj`` (metres), ``model`` (BOP PLY in mm),
@@ -71,6 +73,7 @@ from brave6d.core.transforms import check_rigid
 from brave6d.serve.geometry import DEFAULT_CAMERA_RADIUS, CollisionWorld, OrientedBox, Workspace
 from brave6d.serve.limits import MAX_HEIGHT, MAX_WIDTH, fit_image_size, image_size_error
 from brave6d.serve.splat_check import check_splat, ply_vertex_count
+from brave6d.training import ANTIALIASING_MODES
 
 log = logging.getLogger(__name__)
 
@@ -124,10 +127,16 @@ class RenderDefaults:
     # which depth a pixel reports: "median" (the surface that takes the transmittance across 0.5, as a
     # sensor sees one surface at an edge) or "expected" (alpha-weighted mean; a bundle without the key)
     depth_mode: str = "median"
+    # how the splat was trained and must be drawn: "mip" (Mip-Splatting's 2D mip filter, the rasterizer's
+    # antialiased mode; the PLY's filter_3d is applied whenever present) or "classic" (older bundles)
+    antialiasing: str = "classic"
 
     def __post_init__(self) -> None:
         if self.depth_mode not in DEPTH_MODES:
             raise DataError(f"render defaults: depth_mode must be one of {DEPTH_MODES}, got {self.depth_mode!r}")
+        if self.antialiasing not in ANTIALIASING_MODES:
+            raise BraveError(f"render.antialiasing must be one of {', '.join(ANTIALIASING_MODES)}, "
+                             f"got {self.antialiasing!r}")
         width, height = fit_image_size(self.width, self.height)
         if (width, height) != (self.width, self.height):
             log.warning("render defaults %dx%d exceed the server's image-size cap %dx%d: using %dx%d",
@@ -138,13 +147,14 @@ class RenderDefaults:
     def to_json(self) -> dict[str, Any]:
         return {"width": self.width, "height": self.height, "near": self.near, "far": self.far,
                 "background": list(self.background), "depth_alpha_min": self.depth_alpha_min,
-                "depth_mode": self.depth_mode}
+                "depth_mode": self.depth_mode, "antialiasing": self.antialiasing}
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> RenderDefaults:
         return cls(int(d["width"]), int(d["height"]), float(d.get("near", 0.01)), float(d.get("far", 100.0)),
                    tuple(float(x) for x in d.get("background", (0, 0, 0))),  # type: ignore[arg-type]
-                   float(d.get("depth_alpha_min", 0.5)), str(d.get("depth_mode", "expected")))
+                   float(d.get("depth_alpha_min", 0.5)), str(d.get("depth_mode", "expected")),
+                   str(d.get("antialiasing", "classic")))
 
 
 @dataclass(frozen=True)
@@ -510,7 +520,8 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
             "frame": "world = robot base frame; world_T_obj in metres maps model points (model file in mm "
                      "times 0.001) to the world; gt_id = index in BOP scene_gt lists",
             "objects": [o.to_json() for o in objects]})
-        render = RenderDefaults(camera.width, camera.height, near, far, tuple(background), depth_alpha_min)  # type: ignore[arg-type]
+        render = RenderDefaults(camera.width, camera.height, near, far, tuple(background), depth_alpha_min,  # type: ignore[arg-type]
+                                antialiasing="mip" if splat.filter_3d is not None else "classic")
         boxes = [OrientedBox(b.name, b.matrix(), b.size) for b in spec.collision_boxes]
         atomic_write_json(staging / SCENE, {
             "format": FORMAT, "name": spec.name, "camera": camera.to_json(), "render": render.to_json(),

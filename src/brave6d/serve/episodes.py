@@ -171,7 +171,8 @@ class SceneServer:
     def __init__(self, bundle: Bundle, device: str = "auto", renderer: SplatRenderer | None = None,
                  occlusion_tolerance: float = 0.015, visibility: bool = True) -> None:
         self.bundle = bundle
-        self.renderer = renderer if renderer is not None else SplatRenderer(bundle.splat_path, device)
+        self.renderer = renderer if renderer is not None else SplatRenderer(
+            bundle.splat_path, device, antialiasing=bundle.render.antialiasing)
         models = [load_model_m(bundle.model_path(o)) for o in bundle.objects]
         self.centres_world = []
         for o, (verts, _) in zip(bundle.objects, models):

@@ -14,6 +14,11 @@
   Gaussians whose screen footprint, bounded from above through the largest scale and the
   projection Jacobian (see :meth:`SplatRenderer._cull`), lies outside the image. Lossless
   too (the rasterizer would draw nothing of them); it saves their projection and binning.
+* Anti-aliasing (Mip-Splatting) as the splat was trained: the PLY's ``filter_3d`` (the 3D
+  smoothing filter) is folded into the scales and opacities at load
+  (:func:`brave6d.training.apply_filter_3d`, the trainer's function), and ``antialiasing="mip"``
+  renders with the rasterizer's 2D mip filter (``antialiased``). The server passes its bundle's
+  ``render.antialiasing``; left None, it follows the splat (``mip`` when it has ``filter_3d``).
 * SH bands that are all zero (a degree-2 model saved with 45 ``f_rest``) are not evaluated.
 * Renders run under ``torch.no_grad`` and one lock: the CPU kernels use every core, and
   concurrent renders would only slow each other down. ``render_ms`` is the wall time of the
@@ -74,36 +79,48 @@ class RenderOutput:
 class SplatRenderer:
     """The Gaussians of one splat PLY, ready to render (see the module docstring)."""
 
-    def __init__(self, splat_path: Path | str, device: str = "auto", cull: bool = True) -> None:
+    def __init__(self, splat_path: Path | str, device: str = "auto", cull: bool = True,
+                 antialiasing: str | None = None) -> None:
         from brave6d.training import read_ply
 
-        self._load(read_ply(splat_path), splat_path, device, cull)
+        self._load(read_ply(splat_path), splat_path, device, cull, antialiasing)
 
     @classmethod
     def from_splat(cls, splat: SplatData, device: str = "auto", cull: bool = True,
-                   source: str = "in-memory splat") -> SplatRenderer:
+                   source: str = "in-memory splat", antialiasing: str | None = None) -> SplatRenderer:
         """A renderer of ``splat`` as it is in memory (no PLY file); ``source`` names it in errors."""
         renderer = cls.__new__(cls)
-        renderer._load(splat, source, device, cull)
+        renderer._load(splat, source, device, cull, antialiasing)
         return renderer
 
-    def _load(self, splat: SplatData, source: Path | str, device: str, cull: bool) -> None:
+    def _load(self, splat: SplatData, source: Path | str, device: str, cull: bool,
+              antialiasing: str | None) -> None:
         import torch
 
-        from brave6d.training import resolve_device
+        from brave6d.training import ANTIALIASING_MODES, apply_filter_3d, resolve_device
 
+        if antialiasing is None:
+            antialiasing = "mip" if splat.filter_3d is not None else "classic"
+        if antialiasing not in ANTIALIASING_MODES:
+            raise BraveError(f"{source}: antialiasing must be one of {', '.join(ANTIALIASING_MODES)}, "
+                             f"got {antialiasing!r}")
+        self.antialiasing = antialiasing
         dev = resolve_device(device)
         self.device = dev.type
         check_splat(splat, source)  # NaN/inf, no Gaussians, nothing visible: refused with the source's name
-        opac = activated_opacity(splat)
-        keep = opac >= MIN_ALPHA
+        scales_all, opac_all = apply_filter_3d(
+            torch.from_numpy(np.exp(np.clip(splat.scales.astype(np.float64), -30, 30))),
+            torch.from_numpy(activated_opacity(splat)),
+            None if splat.filter_3d is None else torch.from_numpy(splat.filter_3d.astype(np.float64)))
+        opac = opac_all.numpy()
+        keep = opac >= MIN_ALPHA  # after the 3D filter: what the rasterizer would draw (still lossless)
         self.n_loaded = splat.num_gaussians
         self.n_pruned = int((~keep).sum())
         f32 = torch.float32
         quats = splat.quats[keep].astype(np.float64)
         norm = np.linalg.norm(quats, axis=1, keepdims=True)
         quats = np.where(norm > 1e-12, quats / np.maximum(norm, 1e-12), np.array([1.0, 0, 0, 0]))
-        scales = np.exp(np.clip(splat.scales[keep].astype(np.float64), -30, 30))
+        scales = scales_all.numpy()[keep]
         self.means = torch.as_tensor(splat.means[keep], dtype=f32, device=dev).contiguous()
         self.quats = torch.as_tensor(quats, dtype=f32, device=dev).contiguous()
         self.scales = torch.as_tensor(scales, dtype=f32, device=dev).contiguous()
@@ -185,7 +202,8 @@ class SplatRenderer:
                 colors, depth, alpha, info = rasterize(
                     *args, viewmat[None], K[None], camera.width, camera.height,
                     sh_degree=self.sh_degree, near_plane=near, far_plane=far, backgrounds=bg,
-                    backend="cuda" if dev.type == "cuda" else "cpu", median_depth=median)
+                    backend="cuda" if dev.type == "cuda" else "cpu", median_depth=median,
+                    antialiased=self.antialiasing == "mip")
                 if median:
                     depth = info["median_depth"]
                 rgb = (colors[0].clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8)

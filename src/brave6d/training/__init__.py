@@ -9,19 +9,23 @@ Other stages (serve, evaluation) import only these names:
 - the holdout split (:mod:`brave6d.training.holdout`, no torch): ``read_holdout`` (the one reader of
   ``splat/holdout.json``, every stage's), ``write_holdout``, ``HoldoutSplit``, ``HeldOutView``,
   ``holdout_split`` (the rule);
-- settings: ``Preset``, ``get_preset``, ``resolve_device`` (``auto``/``cpu``/``cuda`` -> torch device);
+- settings: ``Preset``, ``get_preset``, ``ANTIALIASING_MODES`` (``classic``, ``mip``), ``resolve_device`` (``auto``/``cpu``/``cuda`` -> torch device);
 - Gaussians: ``GaussianModel``, ``rasterize``, ``SplatData``, ``read_ply``, ``write_ply``, ``SH_C0``,
-  ``sh_degree_for``.
+  ``sh_degree_for``, ``apply_filter_3d`` / ``compute_filter_3d`` (Mip-Splatting's 3D filter: what every
+  renderer of a splat applies before ``rasterize``).
 """
 
 from brave6d.core.lazy import lazy_exports
 
-__all__ = ["SH_C0", "GaussianModel", "HeldOutView", "HoldoutPoint", "HoldoutSplit", "Preset", "SplatData", "TrainedSplat",
+__all__ = ["ANTIALIASING_MODES", "SH_C0", "GaussianModel", "apply_filter_3d", "compute_filter_3d", "HeldOutView", "HoldoutPoint", "HoldoutSplit", "Preset", "SplatData", "TrainedSplat",
            "evaluate_holdout", "get_preset", "holdout_split", "load_scene", "rasterize", "read_holdout", "read_ply",
            "resolve_device", "sh_degree_for", "train", "train_scene", "write_holdout", "write_ply"]
 
 _LAZY = {
     "rasterize": ".rasterizer",
+    "ANTIALIASING_MODES": ".presets",
+    "apply_filter_3d": ".filter3d",
+    "compute_filter_3d": ".filter3d",
     "train": ".training_run",
     "TrainedSplat": ".training_run",
     "HoldoutPoint": ".training_run",

@@ -61,9 +61,10 @@ def render_view(model: GaussianModel, view: View, data: TrainingData, sh_degree:
     device = model.device
     viewmat = torch.from_numpy(view.viewmat).float().to(device)[None]
     K = torch.from_numpy(data.camera.K).float().to(device)[None]
-    colors, _, _, _ = rasterize(model.means, model.quats, model.scales(), model.opacities(),
+    scales, opacities = model.render_scales_opacities()
+    colors, _, _, _ = rasterize(model.means, model.quats, scales, opacities,
                                 model.sh_coeffs(d), viewmat, K, data.camera.width,
-                                data.camera.height, sh_degree=d)
+                                data.camera.height, sh_degree=d, antialiased=model.antialiased)
     return colors[0].clamp(0.0, 1.0)
 
 

@@ -53,6 +53,9 @@ class GaussianModel:
 
     params: torch.nn.ParameterDict
     sh_degree: int
+    #: Mip-Splatting's 3D filter [N] (std, metres; :mod:`brave6d.training.filter3d`), not trained:
+    #: computed from the training cameras; None: no filter
+    filter_3d: Tensor | None = None
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -98,7 +101,10 @@ class GaussianModel:
     def from_splat(cls, splat: SplatData, device: torch.device | str = "cpu") -> GaussianModel:
         """A model from PLY data (see :func:`brave6d.training.ply.read_ply`)."""
         tensors = {name: torch.from_numpy(np.ascontiguousarray(getattr(splat, name))) for name in PARAM_NAMES}
-        return cls.from_tensors(tensors, splat.sh_degree, device)
+        model = cls.from_tensors(tensors, splat.sh_degree, device)
+        if splat.filter_3d is not None:
+            model.filter_3d = torch.as_tensor(np.asarray(splat.filter_3d, np.float32), device=device)
+        return model
 
     @classmethod
     def from_ply(cls, path: str | Path, device: torch.device | str = "cpu") -> GaussianModel:
@@ -112,7 +118,21 @@ class GaussianModel:
     def to_splat(self) -> SplatData:
         """The parameters as float32 NumPy arrays (for :func:`brave6d.training.ply.write_ply`)."""
         arrays = {name: self.params[name].detach().cpu().numpy().astype(np.float32, copy=False) for name in PARAM_NAMES}
-        return SplatData(**arrays)
+        f3d = None if self.filter_3d is None else self.filter_3d.detach().cpu().numpy().astype(np.float32)
+        return SplatData(**arrays, filter_3d=f3d)
+
+    @property
+    def antialiased(self) -> bool:
+        """Rendered with Mip-Splatting's filters (a model trained with them carries the 3D filter):
+        the rasterizer's ``antialiased`` mode besides :meth:`render_scales_opacities`."""
+        return self.filter_3d is not None
+
+    def render_scales_opacities(self) -> tuple[Tensor, Tensor]:
+        """Activated scales and opacities as the rasterizer draws them: through the 3D filter when
+        the model has one (:func:`brave6d.training.filter3d.apply_filter_3d`)."""
+        from brave6d.training.filter3d import apply_filter_3d
+
+        return apply_filter_3d(self.scales(), self.opacities(), self.filter_3d)
 
     # ------------------------------------------------------------------ activations
     @property

@@ -9,6 +9,10 @@ Opacity, scales and rotations are stored before activation (logit, log, raw w x 
 below 3 are written with zero-padded ``f_rest`` so that every viewer finds 45 of them.
 The reader also accepts PLYs from other trainers: fewer ``f_rest`` (lower SH degree), extra
 properties (ignored), missing normals, float64 properties.
+
+A splat trained with Mip-Splatting's 3D filter has one more property after those, ``filter_3d``
+(the filter's standard deviation in metres, :mod:`brave6d.training.filter3d`; Mip-Splatting's own
+name); viewers that do not know it ignore it, and a PLY without it reads as no filter.
 """
 
 from __future__ import annotations
@@ -52,6 +56,7 @@ class SplatData:
     opacities: NDArray[np.float32]
     scales: NDArray[np.float32]
     quats: NDArray[np.float32]
+    filter_3d: NDArray[np.float32] | None = None  # [N] 3D filter std (m); None: trained without
 
     @property
     def num_gaussians(self) -> int:
@@ -80,6 +85,8 @@ def write_ply(path: Path | str, splat: SplatData, pad_to_degree3: bool = True) -
         shN = np.concatenate([shN, np.zeros((n, N_REST_DEGREE3 // 3 - k, 3), np.float32)], axis=1)
         k = shN.shape[1]
     names = inria_attribute_names(3 * k)
+    if splat.filter_3d is not None:
+        names.append(FILTER_3D)
     columns = [
         np.asarray(splat.means, np.float32).reshape(n, 3),
         np.zeros((n, 3), np.float32),
@@ -89,6 +96,8 @@ def write_ply(path: Path | str, splat: SplatData, pad_to_degree3: bool = True) -
         np.asarray(splat.scales, np.float32).reshape(n, 3),
         np.asarray(splat.quats, np.float32).reshape(n, 4),
     ]
+    if splat.filter_3d is not None:
+        columns.append(np.asarray(splat.filter_3d, np.float32).reshape(n, 1))
     flat = np.concatenate(columns, axis=1)
     vertex = np.empty(n, dtype=[(name, "<f4") for name in names])
     for i, name in enumerate(names):
@@ -98,6 +107,8 @@ def write_ply(path: Path | str, splat: SplatData, pad_to_degree3: bool = True) -
 
 
 _REST = re.compile(r"^f_rest_(\d+)$")
+#: The vertex property of the 3D filter's standard deviation.
+FILTER_3D = "filter_3d"
 
 
 def read_ply(path: Path | str) -> SplatData:
@@ -142,7 +153,14 @@ def read_ply(path: Path | str) -> SplatData:
         opacities=cols(["opacity"]).reshape(n),
         scales=cols(["scale_0", "scale_1", "scale_2"]),
         quats=cols(["rot_0", "rot_1", "rot_2", "rot_3"]),
+        filter_3d=_filter_3d(p, cols([FILTER_3D]).reshape(n)) if FILTER_3D in present else None,
     )
+
+
+def _filter_3d(path: Path, values: NDArray[np.float32]) -> NDArray[np.float32]:
+    if not bool(np.all(np.isfinite(values) & (values >= 0))):
+        raise DataError(f"{path}: vertex property {FILTER_3D!r} must be finite and >= 0")
+    return values
 
 
 def trim_sh(splat: SplatData, degree: int) -> SplatData:
@@ -152,4 +170,5 @@ def trim_sh(splat: SplatData, degree: int) -> SplatData:
     shN = splat.shN[:, :k]
     if shN.shape[1] < k:
         shN = np.concatenate([shN, np.zeros((n, k - shN.shape[1], 3), np.float32)], axis=1)
-    return SplatData(splat.means, splat.sh0, np.ascontiguousarray(shN), splat.opacities, splat.scales, splat.quats)
+    return SplatData(splat.means, splat.sh0, np.ascontiguousarray(shN), splat.opacities, splat.scales, splat.quats,
+                     splat.filter_3d)

@@ -15,7 +15,8 @@ across the parts, and they are the keys of :meth:`Preset.to_json`, the same flat
 the parts (so ``metrics.json`` and benchmark JSON of older and newer runs compare key by key).
 
 ``default`` follows the Inria reference (30k steps, learning rates, densification schedule;
-see docs/ARCHITECTURE.md). ``quality`` trains longer (50k steps, densifying until 25k). ``fast`` is
+see docs/ARCHITECTURE.md). ``quality`` trains longer (50k steps, densifying until 25k) and with
+Mip-Splatting's anti-aliasing (:class:`Antialiasing`). ``fast`` is
 tuned for the CPU demo (2 cores, no GPU) to reach a given holdout PSNR in the least time: half-resolution
 images (320x200 for the demo), 2000 steps of which the first 600 on 2x2-averaged images
 (coarse-to-fine), densification from step 100 to 1200 every 50 steps without opacity reset, at most
@@ -183,6 +184,31 @@ class Densification:
 
 
 @dataclass(frozen=True)
+class Antialiasing:
+    """Anti-aliasing for views closer or farther than the training views (Mip-Splatting):
+    ``classic`` renders as gsplat's classic mode (the 0.3 px^2 dilation only); ``mip`` trains with
+    the 3D smoothing filter (variance ``filter_3d_scale / rate^2`` with ``rate`` the highest
+    sampling rate of the training cameras that see a Gaussian, recomputed every
+    ``filter_3d_every`` steps and after each densification) and the 2D mip filter (the
+    rasterizer's ``antialiased`` mode). The splat records it (the PLY's ``filter_3d``, the bundle's
+    ``render.antialiasing``), so that every renderer draws it as it was trained."""
+
+    antialiasing: str = "classic"
+    filter_3d_scale: float = 0.2
+    filter_3d_every: int = every(100)
+
+    def problems(self, steps: int) -> Problems:
+        if self.antialiasing not in ANTIALIASING_MODES:
+            yield "antialiasing", f"must be one of {', '.join(ANTIALIASING_MODES)}, got {self.antialiasing!r}"
+        if not (math.isfinite(self.filter_3d_scale) and self.filter_3d_scale > 0.0):
+            yield "filter_3d_scale", f"must be a finite number > 0, got {self.filter_3d_scale}"
+
+
+#: ``classic``: no anti-aliasing beyond gsplat's dilation; ``mip``: Mip-Splatting's 3D and 2D filters.
+ANTIALIASING_MODES = ("classic", "mip")
+
+
+@dataclass(frozen=True)
 class Preset:
     """Everything that shapes a training run (all steps count optimiser iterations); see the module doc."""
 
@@ -195,6 +221,7 @@ class Preset:
     learning_rates: LearningRates = field(default_factory=LearningRates)
     loss: Loss = field(default_factory=Loss)
     initialisation: Initialisation = field(default_factory=Initialisation)
+    antialias: Antialiasing = field(default_factory=Antialiasing)
     densification: Densification = field(default_factory=Densification)
 
     def __post_init__(self) -> None:
@@ -309,6 +336,7 @@ DEPTH_LAMBDA = 2.0
 QUALITY = Preset(
     name="quality", steps=50_000, densification=Densification(refine_stop=25_000),
     loss=Loss(depth_lambda=DEPTH_LAMBDA),
+    antialias=Antialiasing(antialiasing="mip"),
 )
 
 FAST = Preset(

@@ -152,6 +152,8 @@ class Trainer:
         self.valid = data.valid_tensor(self.device)
         self._coarse: CoarseLevel | None = None  # half-resolution copies, made when a coarse step first needs them
         self._depth_targets: list[DepthTarget | None] | None = None  # loaded when a depth step first needs them
+        self._filter_means: Tensor | None = None  # the means Parameter the 3D filter was computed for
+        self._filter_step = 0
 
     # ------------------------------------------------------------------ setup
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
@@ -174,14 +176,16 @@ class Trainer:
         (at the half resolution of ``level`` when given)."""
         from brave6d.training.rasterizer import rasterize
 
+        self.refresh_filter_3d()
         m = self.model
         d = m.sh_degree if sh_degree is None else sh_degree
         coeffs = m.sh_coeffs(d)
         cam = self.data.camera
         K, width, height = (self.K, cam.width, cam.height) if level is None else (level.K, level.width, level.height)
+        scales, opacities = m.render_scales_opacities()
         colors, depth, alphas, info = rasterize(
-            m.means, m.quats, m.scales(), m.opacities(), coeffs, viewmat[None], K[None],
-            width, height, sh_degree=d)
+            m.means, m.quats, scales, opacities, coeffs, viewmat[None], K[None],
+            width, height, sh_degree=d, antialiased=m.antialiased)
         info["render_depth"] = depth[0]
         return colors[0], alphas[0], info
 
@@ -190,6 +194,26 @@ class Trainer:
         if self._depth_targets is None:
             self._depth_targets = load_depth_targets(self.data, self.preset.loss.depth_edge_ratio, self.device)
         return self._depth_targets
+
+    def refresh_filter_3d(self, force: bool = False) -> None:
+        """With ``antialiasing: mip``, (re)compute the model's 3D filter from the training cameras
+        (at the training resolution): when missing, after densification replaced the Gaussians,
+        every ``filter_3d_every`` steps (the means move), or when ``force``d (the end of a run)."""
+        from brave6d.training.filter3d import compute_filter_3d
+
+        aa = self.preset.antialias
+        m = self.model
+        if aa.antialiasing != "mip":
+            m.filter_3d = None  # classic: no filter (not even one a loaded splat came with)
+            return
+        means = m.params["means"]
+        stale = (m.filter_3d is None or m.filter_3d.shape[0] != m.num_gaussians
+                 or self._filter_means is not means or self.step - self._filter_step >= aa.filter_3d_every)
+        if force or stale:
+            cam = self.data.camera
+            m.filter_3d = compute_filter_3d(means, self.viewmats, self.K, cam.width, cam.height,
+                                            aa.filter_3d_scale)
+            self._filter_means, self._filter_step = means, self.step
 
     def coarse_level(self) -> CoarseLevel:
         """The half-resolution training images, intrinsics and valid mask (made once)."""
@@ -303,6 +327,7 @@ class Trainer:
         finally:
             if bar is not None:
                 bar.close()
+        self.refresh_filter_3d(force=True)  # the exported filter matches the final means
         if self.checkpoint_dir is not None and stopped_by == "time budget":
             written.append(str(self.save_checkpoint()))
         return TrainResult(self.step, self.elapsed, self.model.num_gaussians, stopped_by, self.curve,

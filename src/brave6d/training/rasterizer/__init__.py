@@ -15,6 +15,9 @@
 * Intrinsics: ``Ks`` use OpenCV's pixel centres (integer coordinates, the project's ``K``);
   the principal point is moved +0.5 px into gsplat's convention once, for both backends
   (``_pixels``).
+* ``antialiased=True``: the 2D mip filter (Mip-Splatting; gsplat's ``rasterize_mode="antialiased"``),
+  each Gaussian's opacity times ``sqrt(max(det(cov2d) / det(cov2d + eps2d I), 0))`` per camera, in
+  both backends and the reference.
 * ``auto``: follows the tensors (CUDA tensors -> ``cuda``, CPU tensors -> ``cpu``).
 
 Public modules besides :func:`rasterize` (what tests and benchmarks use; the ``_``-prefixed

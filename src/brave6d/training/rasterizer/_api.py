@@ -44,6 +44,7 @@ def rasterize(
     backend: str = "auto",
     absgrad: bool = False,
     median_depth: bool = False,
+    antialiased: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
     """Render 3D Gaussians into one or more pinhole cameras (gsplat conventions).
 
@@ -74,6 +75,11 @@ def rasterize(
             where it never does. Unlike the expected depth it never lies between a foreground and
             a background surface (what a depth sensor reports at an edge). gsplat has no median
             depth: on ``cuda`` it comes from the CPU kernels on a CPU copy of the inputs.
+        antialiased: the 2D mip filter (Mip-Splatting; gsplat's ``rasterize_mode="antialiased"``):
+            besides the ``eps2d`` dilation, each Gaussian's opacity is multiplied per camera by
+            ``sqrt(max(det(cov2d) / det(cov2d + eps2d I), 0))``, so a Gaussian far below a pixel
+            fades instead of growing into a pixel-sized blob (``info['opacities']`` [C,N] holds
+            the compensated opacities).  False: gsplat's ``classic`` mode.
 
     Returns:
         ``(render_colors [C,H,W,3], render_depth [C,H,W,1], render_alphas [C,H,W,1], info)``.
@@ -95,7 +101,7 @@ def rasterize(
     inputs = prepare_inputs(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane,
-        backgrounds=backgrounds, eps2d=eps2d,
+        backgrounds=backgrounds, eps2d=eps2d, antialiased=antialiased,
     )
     name = resolve_backend(backend, inputs.means.device)
     if name == "cuda":

@@ -32,35 +32,41 @@ def _zeros_if_none(g: Tensor | None, like: Tensor) -> Tensor:
 
 
 class _Project(torch.autograd.Function):
-    """EWA projection of 3D Gaussians: -> radii, means2d, depths, conics."""
+    """EWA projection of 3D Gaussians: -> radii, means2d, depths, conics, compensations
+    (the 2D mip filter's opacity factor [C,N], 0 where culled; all ones unless ``antialiased``)."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, eps2d,
-                near_plane, far_plane):
+                near_plane, far_plane, antialiased):
+        c, n = viewmats.shape[0], means.shape[0]
+        comp = np.zeros((c, n), np.float32) if antialiased else None
         radii, means2d, depths, conics = K.project_fwd(
             _np(means), _np(quats), _np(scales), _np(opacities), True, _np(viewmats), _np(Ks),
-            width, height, eps2d, near_plane, far_plane,
+            width, height, eps2d, near_plane, far_plane, comp,
         )
         radii_t = torch.from_numpy(radii)
+        comp_t = torch.from_numpy(comp) if antialiased else torch.ones(c, n)
         ctx.save_for_backward(means, quats, scales, viewmats, Ks, radii_t)
-        ctx.cfg = (width, height, eps2d)
+        ctx.cfg = (width, height, eps2d, antialiased)
         ctx.mark_non_differentiable(radii_t)
-        return radii_t, torch.from_numpy(means2d), torch.from_numpy(depths), torch.from_numpy(conics)
+        return (radii_t, torch.from_numpy(means2d), torch.from_numpy(depths),
+                torch.from_numpy(conics), comp_t)
 
     @staticmethod
-    def backward(ctx, _v_radii, v_means2d, v_depths, v_conics):
+    def backward(ctx, _v_radii, v_means2d, v_depths, v_conics, v_comp):
         means, quats, scales, viewmats, Ks, radii = ctx.saved_tensors
-        width, height, eps2d = ctx.cfg
+        width, height, eps2d, antialiased = ctx.cfg
         c, n = radii.shape[:2]
         v_means2d = _zeros_if_none(v_means2d, torch.empty(c, n, 2))
         v_depths = _zeros_if_none(v_depths, torch.empty(c, n))
         v_conics = _zeros_if_none(v_conics, torch.empty(c, n, 3))
+        v_comp_np = _np(v_comp) if antialiased and v_comp is not None else None
         v_means, v_quats, v_scales = K.project_bwd(
             _np(means), _np(quats), _np(scales), _np(viewmats), _np(Ks), width, height, eps2d,
-            _np(radii), _np(v_means2d), _np(v_depths), _np(v_conics),
+            _np(radii), _np(v_means2d), _np(v_depths), _np(v_conics), v_comp_np,
         )
         return (torch.from_numpy(v_means), torch.from_numpy(v_quats), torch.from_numpy(v_scales),
-                None, None, None, None, None, None, None, None)
+                None, None, None, None, None, None, None, None, None)
 
 
 class _SphericalHarmonics(torch.autograd.Function):
@@ -169,10 +175,12 @@ def rasterize_cpu(inp: RasterInputs, absgrad: bool, median_depth: bool = False
     c, n = inp.n_cameras, inp.n_gaussians
     width, height = inp.width, inp.height
 
-    radii, means2d, depths, conics = _Project.apply(
+    radii, means2d, depths, conics, comp = _Project.apply(
         means, quats, scales, opacities.detach(), viewmats, Ks, width, height, inp.eps2d,
-        inp.near_plane, inp.far_plane,
+        inp.near_plane, inp.far_plane, inp.antialiased,
     )
+    # per-camera opacities [C, N]: times the 2D mip filter's compensation when antialiased
+    opacities = opacities[None] * comp if inp.antialiased else opacities[None].expand(c, n)
     colors = inp.colors.to(f32)
     if inp.sh_degree is not None:
         coeffs = colors if inp.per_camera_colors else colors[None]
@@ -192,7 +200,7 @@ def rasterize_cpu(inp: RasterInputs, absgrad: bool, median_depth: bool = False
         "radii": radii,
         "depths": depths,
         "conics": conics,
-        "opacities": opacities[None].expand(c, n),
+        "opacities": opacities,
         "visible": torch.from_numpy((radii_np > 0).all(axis=-1)),
         "width": width,
         "height": height,

@@ -51,6 +51,7 @@ def rasterize_cuda(inp: RasterInputs, absgrad: bool, median_depth: bool = False
         backgrounds=backgrounds,
         render_mode="RGB+ED",
         absgrad=absgrad,
+        rasterize_mode="antialiased" if inp.antialiased else "classic",
     )
     meta["backend"] = "cuda"
     meta["visible"] = (meta["radii"] > 0).all(dim=-1)

@@ -62,6 +62,7 @@ class RasterInputs:
     near_plane: float
     far_plane: float
     eps2d: float
+    antialiased: bool = False  # 2D mip filter: opacity times det(cov2d) / det(cov2d + eps2d I), sqrt
 
     @property
     def n_gaussians(self) -> int:
@@ -194,6 +195,7 @@ def prepare_inputs(
     far_plane: float,
     backgrounds: Tensor | None,
     eps2d: float,
+    antialiased: bool = False,
 ) -> RasterInputs:
     """Check every rasterizer argument and apply the neutralisation rules above."""
     named = {
@@ -236,6 +238,8 @@ def prepare_inputs(
         )
     if eps2d < 0.0:
         raise RasterInputError(f"rasterize: `eps2d` must be >= 0, got {eps2d}")
+    if not isinstance(antialiased, bool):
+        raise RasterInputError(f"rasterize: `antialiased` must be a bool, got {antialiased!r}")
 
     _require_shape("means", means, (None, 3))
     n = int(means.shape[0])
@@ -276,4 +280,5 @@ def prepare_inputs(
         near_plane=float(near_plane),
         far_plane=float(far_plane),
         eps2d=float(eps2d),
+        antialiased=antialiased,
     )

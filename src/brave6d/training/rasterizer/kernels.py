@@ -342,11 +342,15 @@ def _fits_f32(x):
 
 @njit(parallel=True, cache=True)
 def project_fwd(means, quats, scales, opacities, use_opacity, viewmats, Ks, width, height,
-                eps2d, near, far):
+                eps2d, near, far, compensations=None):
     """Project N Gaussians into C cameras.
 
     Returns radii [C,N,2] int32 (0 = culled), means2d [C,N,2], depths [C,N] and conics
     [C,N,3] (upper triangle of the inverse 2D covariance), float32; culled entries are 0.
+
+    With a ``compensations`` array [C,N] (the 2D mip filter, gsplat's ``antialiased`` mode)
+    it receives ``sqrt(max(det(cov2d) / det(cov2d + eps2d I), 0))``, the factor the caller
+    multiplies the opacity by, and the opacity-aware box uses the compensated opacity.
     """
     n = means.shape[0]
     n_cam = viewmats.shape[0]
@@ -376,14 +380,18 @@ def project_fwd(means, quats, scales, opacities, use_opacity, viewmats, Ks, widt
             cy = cams[c, 15]
             rz, rz2, tx, ty, _ix, _iy = _persp_terms(xc, yc, zc, cams, c)
             a, b, cc = _cov2d(sc, fx * rz, -fx * tx * rz2, fy * rz, -fy * ty * rz2)
+            det0 = a * cc - b * b
             a += eps2d
             cc += eps2d
             det = a * cc - b * b
             if not (det > 0.0):
                 continue
+            comp = 1.0
+            if compensations is not None:
+                comp = math.sqrt(min(max(det0 / det, 0.0), 1.0))
             extend = _FEXTEND
             if use_opacity:
-                op = opacities[g]
+                op = opacities[g] * _F32(comp)
                 if not (op >= _FALPHA_THR):
                     continue
                 extend = min(extend, math.sqrt(_F32(2.0) * math.log(op / _FALPHA_THR)))
@@ -409,13 +417,16 @@ def project_fwd(means, quats, scales, opacities, use_opacity, viewmats, Ks, widt
             conics[c, g, 0] = ca
             conics[c, g, 1] = cb
             conics[c, g, 2] = ccc
+            if compensations is not None:
+                compensations[c, g] = comp
     return radii, means2d, depths, conics
 
 
 @njit(parallel=True, cache=True)
 def project_bwd(means, quats, scales, viewmats, Ks, width, height, eps2d, radii,
-                v_means2d, v_depths, v_conics):
-    """Vector-Jacobian product of :func:`project_fwd` for means, quats and scales."""
+                v_means2d, v_depths, v_conics, v_compensations=None):
+    """Vector-Jacobian product of :func:`project_fwd` for means, quats and scales (and, given
+    ``v_compensations`` [C,N], through the 2D mip filter's opacity compensation)."""
     n = means.shape[0]
     n_cam = viewmats.shape[0]
     v_means = np.zeros((n, 3), np.float32)
@@ -451,9 +462,24 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, eps2d, radii,
             j11 = fy * rz
             j12 = -fy * ty * rz2
             a, b, cc = _cov2d(sc, j00, j02, j11, j12)
+            det0 = a * cc - b * b
             a += eps2d
             cc += eps2d
             det = a * cc - b * b
+            # compensation k = sqrt(r), r = det0 / det (clamped to [0, 1]): dk/d(a, b, c)
+            ka = 0.0
+            kb = 0.0
+            kc = 0.0
+            if v_compensations is not None:
+                r = det0 / det
+                vk = np.float64(v_compensations[c, g])
+                if r > 0.0 and r < 1.0 and vk != 0.0:
+                    vr = vk * 0.5 / math.sqrt(r)
+                    a0 = a - eps2d
+                    c0 = cc - eps2d
+                    ka = vr * (c0 - r * cc) / det
+                    kc = vr * (a0 - r * a) / det
+                    kb = vr * (-2.0 * b) * (1.0 - r) / det
             # conic P = inverse(cov2d); v_cov2d = -P vP P with vP symmetric
             p00 = cc / det
             p01 = -b / det
@@ -469,6 +495,9 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, eps2d, radii,
             g00 = -(p00 * t00 + p01 * t10)
             g01 = -(p00 * t01 + p01 * t11)
             g11 = -(p01 * t01 + p11 * t11)
+            g00 += ka
+            g01 += 0.5 * kb  # b is both off-diagonal entries of the symmetric cov2d
+            g11 += kc
             # v_Sigma_c += J^T G J (J rows: [j00, 0, j02], [0, j11, j12])
             s00 = j00 * j00 * g00
             s01 = j00 * j11 * g01
@@ -805,8 +834,9 @@ _N_REC = 16
 def prepare_splats(means2d, conics, rgb, depths, opacities):
     """Pack the per-(camera, Gaussian) inputs of compositing into [CN, 16] records.
 
-    ``means2d`` [C,N,2], ``conics`` [C,N,3], ``depths`` [C,N], ``opacities`` [N] and ``rgb``
-    [C,N,3] or [1,N,3] (one colour per Gaussian for all cameras).
+    ``means2d`` [C,N,2], ``conics`` [C,N,3], ``depths`` [C,N], ``opacities`` [N] or [C,N]
+    (per camera, as the 2D mip filter's compensation makes them) and ``rgb`` [C,N,3] or
+    [1,N,3] (one colour per Gaussian for all cameras).
 
     Footprint: alpha >= 1/255 needs sigma <= smax = log(255 * opacity), an ellipse with
     half-extents rx, ry (computed in float64).  ``pad`` (px) absorbs float32 rounding of
@@ -820,10 +850,12 @@ def prepare_splats(means2d, conics, rgb, depths, opacities):
     n = means2d.shape[1]
     shared = rgb.shape[0] == 1
     rec = np.zeros((n_cam * n, _N_REC), np.float32)
+    op_flat = opacities.reshape(opacities.size)
+    per_camera = op_flat.shape[0] != n
     for i in prange(n_cam * n):
         c = i // n
         g = i - c * n
-        op = opacities[g]
+        op = op_flat[i] if per_camera else op_flat[g]
         rec[i, _R_MX] = means2d[c, g, 0]
         rec[i, _R_MY] = means2d[c, g, 1]
         rec[i, _R_CA] = conics[c, g, 0]
@@ -1462,8 +1494,8 @@ def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
     [C,H,W,1]).
 
     Returns the gradients of means2d [C,N,2], conics [C,N,3], RGB [Cc,N,3] (``n_colour_cams``
-    Cc = 1: one colour per Gaussian, summed over cameras), depths [C,N], opacities [N]
-    (summed over cameras) and the per-pixel absolute means2d gradients [C,N,2] (zero unless
+    Cc = 1: one colour per Gaussian, summed over cameras), depths [C,N], opacities [C,N]
+    (per camera) and the per-pixel absolute means2d gradients [C,N,2] (zero unless
     ``with_abs`` is an array rather than None).  Tiles are taken dynamically; each writes
     one gradient row per intersection, and the rows of a Gaussian are summed in tile order,
     so the result does not depend on the schedule or the number of threads.
@@ -1494,7 +1526,7 @@ def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
     v_conics = np.empty((n_cam, n, 3), np.float32)
     v_colours = np.zeros((n_colour_cams, n, 3), np.float32)
     v_depths = np.empty((n_cam, n), np.float32)
-    v_opacities = np.zeros(n, np.float32)
+    v_opacities = np.empty((n_cam, n), np.float32)
     v_abs = np.empty((n_cam, n, 2), np.float32)
     for g in prange(n):
         for c in range(n_cam):
@@ -1505,7 +1537,7 @@ def rasterize_bwd(rec, backgrounds, width, height, tile_w, tile_h, tile_offsets,
             v_conics[c, g, 0] = total[cg, 2]
             v_conics[c, g, 1] = total[cg, 3]
             v_conics[c, g, 2] = total[cg, 4]
-            v_opacities[g] += total[cg, 5]
+            v_opacities[c, g] = total[cg, 5]
             v_colours[cc, g, 0] += total[cg, 6]
             v_colours[cc, g, 1] += total[cg, 7]
             v_colours[cc, g, 2] += total[cg, 8]

@@ -54,11 +54,16 @@ def project(
     eps2d: float = 0.3,
     near_plane: float = 0.01,
     far_plane: float = 1e10,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """EWA projection -> (radii [C,N,2] int32, means2d [C,N,2], depths [C,N], conics [C,N,3]).
+    antialiased: bool = False,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """EWA projection -> (radii [C,N,2] int32, means2d [C,N,2], depths [C,N], conics [C,N,3],
+    compensations [C,N]).
 
     With ``opacities`` the radius uses gsplat 1.5.3's opacity-aware bound and Gaussians
     with opacity below 1/255 are culled; without, the plain 3.33 sigma box.
+    ``compensations`` is the 2D mip filter's opacity factor
+    ``sqrt(clamp(det(cov2d) / det(cov2d + eps2d I), 0, 1))`` when ``antialiased`` (the box
+    then uses the compensated opacity), else ones.
     Culled entries are 0 and carry no gradient.
     """
     rot = quat_to_rotmat(quats)
@@ -96,13 +101,21 @@ def project(
     det = a * c - b * b
     valid = valid & (det > 0)
     det_safe = torch.where(valid, det, torch.ones_like(det))
+    comp = torch.ones_like(det)
+    if antialiased:
+        det0 = cov2d[..., 0, 0] * cov2d[..., 1, 1] - b * b
+        ratio = det0 / det_safe
+        inner = valid & (ratio > 0) & (ratio < 1)
+        ratio_safe = torch.where(inner, ratio, torch.ones_like(ratio))  # no inf gradient at 0
+        comp = torch.where(inner, torch.sqrt(ratio_safe),
+                           (ratio.detach() >= 1).to(ratio.dtype))
     conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
     means2d = torch.stack([fx * x / z_safe + cx, fy * y / z_safe + cy], dim=-1)
 
     with torch.no_grad():
         extend = torch.full_like(z, RADIUS_EXTEND)
         if opacities is not None:
-            op = opacities.to(torch.float32)[None].expand_as(z)
+            op = opacities.to(torch.float32)[None].expand_as(z) * comp.detach().to(torch.float32)
             thr = torch.tensor(ALPHA_THRESHOLD, dtype=torch.float32)
             valid = valid & (op >= thr)
             ratio = torch.clamp(op / thr, min=1.0)
@@ -123,7 +136,7 @@ def project(
     means2d = torch.where(keep, means2d, torch.zeros_like(means2d))
     conics = torch.where(keep, conics, torch.zeros_like(conics))
     depths = torch.where(valid, z, torch.zeros_like(z))
-    return radii, means2d, depths, conics
+    return radii, means2d, depths, conics, comp
 
 
 def sh_basis(degree: int, dirs: Tensor) -> Tensor:
@@ -310,21 +323,22 @@ def rasterize_reference(
     far_plane: float = 1e10,
     backgrounds: Tensor | None = None,
     eps2d: float = 0.3,
+    antialiased: bool = False,
     chunk_elems: int = 1 << 22,
 ) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
     """Same contract as :func:`brave6d.training.rasterizer.rasterize`, in pure torch (any float dtype)."""
     inp = prepare_inputs(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane,
-        backgrounds=backgrounds, eps2d=eps2d,
+        backgrounds=backgrounds, eps2d=eps2d, antialiased=antialiased,
     )
     dtype = inp.means.dtype
     c, n = inp.n_cameras, inp.n_gaussians
     viewmats = inp.viewmats.detach().to(dtype)
     Ks = inp.Ks.detach().to(dtype)
-    radii, means2d, depths, conics = project(
+    radii, means2d, depths, conics, comp = project(
         inp.means, inp.quats, inp.scales, inp.opacities, viewmats, Ks, width, height,
-        inp.eps2d, inp.near_plane, inp.far_plane,
+        inp.eps2d, inp.near_plane, inp.far_plane, inp.antialiased,
     )
     if inp.sh_degree is not None:
         rgb = sh_colors(inp.sh_degree, inp.means, inp.colors.to(dtype), viewmats, radii)
@@ -332,7 +346,7 @@ def rasterize_reference(
         rgb = inp.colors.to(dtype)
         rgb = rgb if inp.per_camera_colors else rgb[None].expand(c, n, 3)
     colors4 = torch.cat([rgb, depths[..., None]], dim=-1)
-    opac = inp.opacities.to(dtype)[None].expand(c, n)
+    opac = inp.opacities.to(dtype)[None].expand(c, n) * comp
     bg = None
     if inp.backgrounds is not None:
         bg = torch.cat([inp.backgrounds.to(dtype), torch.zeros(c, 1, dtype=dtype)], dim=-1)
@@ -340,5 +354,5 @@ def rasterize_reference(
                                     chunk_elems)
     depth = out[..., 3:4] / alphas.clamp(min=DEPTH_ALPHA_EPS)
     info = {"means2d": means2d, "radii": radii, "depths": depths, "conics": conics,
-            "visible": (radii > 0).all(dim=-1), "median_depth": median}
+            "opacities": opac, "visible": (radii > 0).all(dim=-1), "median_depth": median}
     return out[..., :3], depth, alphas, info

@@ -166,7 +166,7 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
             info = read_models_info(layout.models_info_path)
             ids = sorted({g.obj_id for i, _ in views for g in gts[i]})
             models = load_models(layout.models_dir, ids, info)
-            renderer = SplatRenderer(bundle.splat_path, device)
+            renderer = SplatRenderer(bundle.splat_path, device, antialiasing=bundle.render.antialiasing)
             state.update(renderer=renderer, scorer=ViewScorer(models), valid=raw_data_pixels(scene, size),
                          centres={k: model_centre_m(v.points) for k, v in models.items()},
                          estimator=StaticEstimator({k: (layout.model_path(k), float(info[k]["diameter"])) for k in ids}))
