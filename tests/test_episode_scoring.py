@@ -236,7 +236,7 @@ def test_bundle_found_from_the_logs(tmp_path: Path, bundle: Bundle) -> None:
 @pytest.mark.parametrize("text, match", [
     ('{"event": "move"}\n', "first record must be a 'reset'"),
     ('{"event": "reset", "episode_id": "x"}\n', r":1: 'reset' record does not match .* field 'bundle'"),
-    ('{"event": "reset", "format_version": 3}\n', r":1: episode log format version 3 is not supported"),
+    ('{"event": "reset", "format_version": 4}\n', r":1: episode log format version 4 is not supported"),
     ('{"event": "reset", "format_version": "1"}\n', r":1: episode log format version '1' is not supported"),
     ('{"event": "reset"}\nnot json\n{"event": "close"}\n', r":2: not valid JSON"),
 ])
