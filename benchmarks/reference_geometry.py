@@ -10,6 +10,12 @@ where that object is the first object hit. Reported per distance and setting: me
 build time.
 
     python benchmarks/reference_geometry.py SCENE_DIR [--voxels 0.001 0.002 0.004] [--views 12] [--json out.json]
+    python benchmarks/reference_geometry.py --latency BUNDLE [BUNDLE ...] [--views 12]
+
+``--latency`` times what the reference costs the server, per bundle (one with a reference, one
+without, side by side): the visible fractions of one observation (the reference is cast only on
+the objects' pixels) and the full test depth of a view (cast once per episode, at submit), medians
+over seeded start views at the bundle's camera.
 
 SCENE_DIR must hold a bundle (``SCENE_DIR/bundle``, for the camera and the objects); copy the demo
 scene first, the build writes the undistorted frames into it.
@@ -45,6 +51,35 @@ def viewpoints(centre: np.ndarray, distance: float, n: int, rng: np.random.Gener
     return out
 
 
+def latency(bundles: list[Path], views: int) -> int:
+    import statistics
+    import time
+
+    from brave6d.core.progress import format_table
+    from brave6d.serve import SceneServer, load_bundle
+
+    rows = []
+    for root in bundles:
+        bundle = load_bundle(root)
+        t = time.perf_counter()
+        server = SceneServer(bundle, device="cpu")
+        load_s = time.perf_counter() - t
+        rng = np.random.default_rng(0)
+        vis, test, render = [], [], []
+        for k in range(views):
+            o = bundle.objects[k % len(bundle.objects)]
+            view = server.observe(server.random_start(o, rng), bundle.camera, o.gt_id)
+            vis.append(view.timings_ms["visibility"])
+            render.append(view.timings_ms["render"])
+            t = time.perf_counter()
+            _ = view.test_depth
+            test.append((time.perf_counter() - t) * 1000.0)
+        rows.append([str(root), server.geometry, f"{load_s:.2f}", f"{statistics.median(render):.0f}",
+                     f"{statistics.median(vis):.1f}", f"{statistics.median(test):.1f}"])
+    print(format_table(["bundle", "geometry", "load s", "render ms", "visibility ms", "test depth ms"], rows))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     from brave6d.annotation import SilhouetteCaster
     from brave6d.core.progress import format_table
@@ -52,13 +87,18 @@ def main(argv: list[str] | None = None) -> int:
     from brave6d.serve.bundle import load_model_m
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("scene", type=Path)
+    ap.add_argument("scene", type=Path, nargs="?")
+    ap.add_argument("--latency", type=Path, nargs="+", metavar="BUNDLE")
     ap.add_argument("--voxels", type=float, nargs="+", default=[0.001, 0.002, 0.004])
     ap.add_argument("--trunc-voxels", type=float, default=4.0)
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    if args.latency:
+        return latency(args.latency, args.views)
+    if args.scene is None:
+        ap.error("SCENE_DIR is required (or --latency BUNDLE ...)")
 
     bundle = load_bundle(args.scene / "bundle")
     camera = bundle.camera

@@ -249,6 +249,8 @@ class ReferenceGeometry:
         self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
                                   o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)))
         self.triangles = len(faces)
+        # the first cast builds the scene's BVH: done here, at load, not in the first observation
+        self._scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 0, 0, 0, 1]], dtype=np.float32)))
         self._rays: dict[tuple[Any, ...], NDArray[np.float32]] = {}
         self._lock = threading.Lock()
 
