@@ -270,3 +270,19 @@ def test_settings_are_checked() -> None:
         ReferenceSettings(voxel_m=float("nan"))
     with pytest.raises(ReferenceGeometryError, match="depth_min_m .* must be below depth_max_m"):
         ReferenceSettings(depth_min_m=2.0, depth_max_m=1.0)
+
+
+def test_export_of_a_capture_without_valid_depth(tmp_path: Path) -> None:
+    """Depth recorded but none valid: export refuses naming the scene and the way out
+    (--no-reference), which then exports a bundle without a reference."""
+    from brave6d.core.atomic import write_png
+    from brave6d.serve import export_bundle, make_synthetic_scene
+
+    scene = make_synthetic_scene(tmp_path / "scene", n_gaussians=2000, n_views=4, depth=True)
+    for r in scene.frames():
+        write_png(scene.capture.file(r.depth), np.zeros((240, 320), dtype=np.uint16))
+    with pytest.raises(ReferenceGeometryError, match=r"scene .*scene: no depth frame has valid depth .*4 frame\(s\) "
+                                                     r"skipped.*--no-reference"):
+        export_bundle(scene.root)
+    result = export_bundle(scene.root, reference=False)
+    assert result.reference_triangles is None and load_bundle(result.root).reference_path is None
