@@ -11,11 +11,16 @@ build time.
 
     python benchmarks/reference_geometry.py SCENE_DIR [--voxels 0.001 0.002 0.004] [--views 12] [--json out.json]
     python benchmarks/reference_geometry.py --latency BUNDLE [BUNDLE ...] [--views 12]
+    python benchmarks/reference_geometry.py --rescore EPISODE_LOG_DIR --bundle BUNDLE_WITH_REFERENCE
 
 ``--latency`` times what the reference costs the server, per bundle (one with a reference, one
 without, side by side): the visible fractions of one observation (the reference is cast only on
 the objects' pixels) and the full test depth of a view (cast once per episode, at submit), medians
 over seeded start views at the bundle's camera.
+
+``--rescore`` scores the same episode logs (the same estimates) twice: on the final depth they were
+logged with (a bundle without a reference: the splat's) and on the reference's depth at each final
+pose, so that the table shows what the test depth alone changes in each agent's AR.
 
 SCENE_DIR must hold a bundle (``SCENE_DIR/bundle``, for the camera and the objects); copy the demo
 scene first, the build writes the undistorted frames into it.
@@ -80,6 +85,42 @@ def latency(bundles: list[Path], views: int) -> int:
     return 0
 
 
+def rescore(logs: Path, bundle_root: Path) -> int:
+    import shutil
+    import tempfile
+
+    from brave6d.core.atomic import depth_m_to_mm_u16, write_png
+    from brave6d.core.camera import PinholeCamera
+    from brave6d.core.progress import format_table
+    from brave6d.evaluation.metrics.episodes import models_from_bundle, read_episodes, score_episodes
+    from brave6d.serve import SubmitRecord, load_bundle, read_episode_log, read_reference
+
+    bundle = load_bundle(bundle_root)
+    if bundle.reference_path is None:
+        raise SystemExit(f"{bundle_root}: the bundle has no reference geometry")
+    ref = read_reference(bundle.reference_path)
+    models = models_from_bundle(bundle)
+    boards = {"logged": score_episodes(read_episodes([logs]), models)}
+    with tempfile.TemporaryDirectory() as tmp:
+        copy = Path(shutil.copytree(logs, Path(tmp) / "logs"))
+        for path in sorted(copy.glob("*.jsonl")):
+            sub = next((r for r in read_episode_log(path) if isinstance(r, SubmitRecord)), None)
+            if sub is None or sub.final_view.depth_file is None:
+                continue
+            v = sub.final_view
+            camera = PinholeCamera(v.width, v.height, v.K[0, 0], v.K[1, 1], v.K[0, 2], v.K[1, 2])
+            write_png(copy / v.depth_file, depth_m_to_mm_u16(ref.depth(v.world_T_cam, camera)))
+        boards["reference"] = score_episodes(read_episodes([copy]), models)
+    rows = []
+    for a in boards["logged"].agents:
+        b = next(x for x in boards["reference"].agents if x.agent == a.agent)
+        rows.append([a.agent, a.episodes, f"{a.ar:.3f}", f"{b.ar:.3f}", f"{a.ar_per_metric['vsd']:.3f}",
+                     f"{b.ar_per_metric['vsd']:.3f}", f"{a.ar_per_metric['mssd']:.3f}", f"{a.ar_per_metric['mspd']:.3f}"])
+    print(format_table(["agent", "episodes", "AR (logged depth)", "AR (reference)", "AR_VSD (logged)",
+                        "AR_VSD (reference)", "AR_MSSD", "AR_MSPD"], rows))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     from brave6d.annotation import SilhouetteCaster
     from brave6d.core.progress import format_table
@@ -89,6 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene", type=Path, nargs="?")
     ap.add_argument("--latency", type=Path, nargs="+", metavar="BUNDLE")
+    ap.add_argument("--rescore", type=Path, metavar="EPISODE_LOG_DIR")
+    ap.add_argument("--bundle", type=Path, help="with --rescore: the scene's bundle with a reference geometry")
     ap.add_argument("--voxels", type=float, nargs="+", default=[0.001, 0.002, 0.004])
     ap.add_argument("--trunc-voxels", type=float, default=4.0)
     ap.add_argument("--views", type=int, default=12)
@@ -97,6 +140,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.latency:
         return latency(args.latency, args.views)
+    if args.rescore:
+        if args.bundle is None:
+            ap.error("--rescore needs --bundle")
+        return rescore(args.rescore, args.bundle)
     if args.scene is None:
         ap.error("SCENE_DIR is required (or --latency BUNDLE ...)")
 
