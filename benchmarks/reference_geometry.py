@@ -88,18 +88,24 @@ def latency(bundles: list[Path], views: int) -> int:
 def rescore(logs: Path, bundle_root: Path) -> int:
     import shutil
     import tempfile
+    from functools import partial
 
     from brave6d.core.atomic import depth_m_to_mm_u16, write_png
     from brave6d.core.camera import PinholeCamera
     from brave6d.core.progress import format_table
     from brave6d.evaluation.metrics.episodes import models_from_bundle, read_episodes, score_episodes
     from brave6d.serve import SubmitRecord, load_bundle, read_episode_log, read_reference
+    from brave6d.serve.bundle import load_model_m
+    from brave6d.serve.visibility import VisibilityComputer
 
     bundle = load_bundle(bundle_root)
     if bundle.reference_path is None:
         raise SystemExit(f"{bundle_root}: the bundle has no reference geometry")
     ref = read_reference(bundle.reference_path)
     models = models_from_bundle(bundle)
+    visibility = VisibilityComputer([load_model_m(bundle.model_path(o)) for o in bundle.objects],
+                                    [o.world_T_obj for o in bundle.objects])
+    fraction_diffs = []
     boards = {"logged": score_episodes(read_episodes([logs]), models)}
     with tempfile.TemporaryDirectory() as tmp:
         copy = Path(shutil.copytree(logs, Path(tmp) / "logs"))
@@ -110,6 +116,9 @@ def rescore(logs: Path, bundle_root: Path) -> int:
             v = sub.final_view
             camera = PinholeCamera(v.width, v.height, v.K[0, 0], v.K[1, 1], v.K[0, 2], v.K[1, 2])
             write_png(copy / v.depth_file, depth_m_to_mm_u16(ref.depth(v.world_T_cam, camera)))
+            now = visibility.compute(v.world_T_cam, camera, None, partial(ref.depth_along, v.world_T_cam))
+            fraction_diffs += [abs(o.visib_fract - now[o.gt_id].visib_fract) for o in sub.objects
+                               if o.visib_fract is not None]
         boards["reference"] = score_episodes(read_episodes([copy]), models)
     rows = []
     for a in boards["logged"].agents:
@@ -118,6 +127,9 @@ def rescore(logs: Path, bundle_root: Path) -> int:
                      f"{b.ar_per_metric['vsd']:.3f}", f"{a.ar_per_metric['mssd']:.3f}", f"{a.ar_per_metric['mspd']:.3f}"])
     print(format_table(["agent", "episodes", "AR (logged depth)", "AR (reference)", "AR_VSD (logged)",
                         "AR_VSD (reference)", "AR_MSSD", "AR_MSPD"], rows))
+    d = np.asarray(fraction_diffs)
+    print(f"visible fractions of every object in the final views, logged vs on the reference: {len(d)} objects, "
+          f"|difference| median {np.median(d):.3f}, max {d.max():.3f}, share above 0.05 {np.mean(d > 0.05):.3f}")
     return 0
 
 
