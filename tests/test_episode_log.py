@@ -44,7 +44,8 @@ def records() -> list[ResetRecord | ActionRecord | SubmitRecord | CloseRecord]:
                      world_T_cam_before=POSE, world_T_cam=POSE, adjustments=0, move=None, timings_ms={}),
         SubmitRecord(episode_id="e1", agent="me", bundle="b", bundle_root="/x", target=TARGET,
                      estimates=[LoggedEstimate(obj_id=3, R=OBJ[:3, :3], t_m=OBJ[:3, 3], score=0.25)],
-                     final_view=FinalView(world_T_cam=POSE, K=K, width=320, height=240, depth_file="e1_d.png"),
+                     final_view=FinalView(world_T_cam=POSE, K=K, width=320, height=240, depth_file="e1_d.png",
+                                          depth_source="reference"),
                      objects=[obj], adjustments=0, steps=1, refusals=1, collisions=0, elapsed_s=2.0),
         CloseRecord(reason="submitted", steps=1, adjustments=0, refusals=1, collisions=0, duration_s=2.0,
                     render_ms_median=None, world_T_cam=POSE),
@@ -76,7 +77,7 @@ def test_log_keeps_the_version_one_layout(tmp_path: Path) -> None:
     line = json.loads(EpisodeLog.format(records()[2]))
     assert line["estimates"][0]["R"] == OBJ[:3, :3].reshape(-1).tolist()
     assert line["final_view"]["world_T_cam"] == POSE.tolist() and line["event"] == "submit"
-    assert json.loads(EpisodeLog.format(records()[0]))["format_version"] == LOG_FORMAT_VERSION == 2
+    assert json.loads(EpisodeLog.format(records()[0]))["format_version"] == LOG_FORMAT_VERSION == 3
 
 
 def test_version_one_log_reads_without_a_scene(tmp_path: Path) -> None:
@@ -90,6 +91,18 @@ def test_version_one_log_reads_without_a_scene(tmp_path: Path) -> None:
     assert back[0].target == records()[0].target
 
 
+def test_version_two_log_reads_without_a_depth_source(tmp_path: Path) -> None:
+    """Version 3 only added ``final_view.depth_source``: a version-2 log reads with it None (the splat's)."""
+    lines = [EpisodeLog.format(r) for r in records()]
+    head, submit = json.loads(lines[0]), json.loads(lines[2])
+    head["format_version"] = 2
+    del submit["final_view"]["depth_source"]
+    back = read_episode_log(write(tmp_path / "v2.jsonl", [json.dumps(head) + "\n", lines[1], json.dumps(submit) + "\n",
+                                                          lines[3]]))
+    assert back[0].format_version == 2 and back[2].final_view.depth_source is None
+    assert read_episode_log(write(tmp_path / "v3.jsonl", lines))[2].final_view.depth_source == "reference"
+
+
 def test_unversioned_log_reads_as_version_one(tmp_path: Path) -> None:
     lines = [EpisodeLog.format(r) for r in records()]
     head = json.loads(lines[0])
@@ -99,7 +112,7 @@ def test_unversioned_log_reads_as_version_one(tmp_path: Path) -> None:
     assert [r.model_dump(mode="json") for r in old] == [r.model_dump(mode="json") for r in new]
 
 
-@pytest.mark.parametrize("version", [0, 3, "1", True])
+@pytest.mark.parametrize("version", [0, 4, "1", True])
 def test_unknown_version_names_file_and_line(tmp_path: Path, version: object) -> None:
     lines = [EpisodeLog.format(r) for r in records()]
     head = {**json.loads(lines[0]), "format_version": version}

@@ -236,7 +236,7 @@ def test_bundle_found_from_the_logs(tmp_path: Path, bundle: Bundle) -> None:
 @pytest.mark.parametrize("text, match", [
     ('{"event": "move"}\n', "first record must be a 'reset'"),
     ('{"event": "reset", "episode_id": "x"}\n', r":1: 'reset' record does not match .* field 'bundle'"),
-    ('{"event": "reset", "format_version": 3}\n', r":1: episode log format version 3 is not supported"),
+    ('{"event": "reset", "format_version": 4}\n', r":1: episode log format version 4 is not supported"),
     ('{"event": "reset", "format_version": "1"}\n', r":1: episode log format version '1' is not supported"),
     ('{"event": "reset"}\nnot json\n{"event": "close"}\n', r":2: not valid JSON"),
 ])
@@ -318,7 +318,11 @@ def test_submission_is_logged_with_the_final_view(served, bundle: Bundle) -> Non
     np.testing.assert_array_equal(depth, depth_m_to_mm_u16(d_obs))
     ep = read_episode(log_dir / f"{eid}.jsonl")
     assert ep.agent == "oracle-1" and ep.adjustments == 1 and ep.submitted
-    assert score_episodes([ep], models_from_bundle(bundle)).agents[0].ar == 1.0
+    # a bundle without a reference geometry: scored on the splat's depth, and the score says so
+    assert sub.final_view.depth_source == "splat" and ep.test_depth == "splat"
+    board = score_episodes([ep], models_from_bundle(bundle))
+    assert board.agents[0].ar == 1.0 and board.to_json()["test_depth"] == ["splat"]
+    assert board.episodes[0].to_json()["test_depth"] == "splat"
     # the episode is over
     assert client.post(f"/episodes/{eid}/estimates", json={"estimates": []}).status_code == 409
     assert client.post(f"/episodes/{eid}/move", json={"linear": [0, 0, 0.01], "duration": 0.5}).status_code == 409

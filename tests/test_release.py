@@ -134,6 +134,13 @@ def test_release_holds_bop_splits_bundles_and_card(release: Path, workdir: Path)
     bundle_a = load_bundle(workdir / "scenes" / "scene_a" / "bundle")
     assert holdout_a["im_ids"] == sorted(h.index for h in bundle_a.holdout) == manifest["scenes"][0]["holdout_im_ids"]
     assert holdout_a["im_ids"]
+    # the reference geometry travels in the bundle zip of the scene with depth, with its manifest entry
+    with zipfile.ZipFile(release / f"{NAME}_bundle_000001.zip") as zf:
+        listed = json.loads(zf.read("bundles/000001/manifest.json"))["files"]
+        assert "reference.ply" in listed and "bundles/000001/reference.ply" in zf.namelist()
+        assert hashlib.sha256(zf.read("bundles/000001/reference.ply")).hexdigest() == listed["reference.ply"]["sha256"]
+    with zipfile.ZipFile(release / f"{NAME}_bundle_000002.zip") as zf:  # scene_b has no depth: no reference
+        assert not any(n.endswith("reference.ply") for n in zf.namelist())
     with zipfile.ZipFile(release / f"{NAME}_models.zip") as zf:
         assert sorted(zf.namelist()) == ["models/models_info.json", "models/obj_000001.ply", "models/obj_000002.ply"]
     with zipfile.ZipFile(release / f"{NAME}_base.zip") as zf:

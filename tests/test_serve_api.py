@@ -16,7 +16,7 @@ from brave6d.core.transforms import check_rigid, invert, look_at
 from brave6d.serve.app import ServerLimits, create_app
 from brave6d.serve.bundle import Bundle, load_bundle
 from brave6d.serve.client import decode_observation
-from brave6d.serve import SceneServer, read_episode_log
+from brave6d.serve import LOG_FORMAT_VERSION, SceneServer, read_episode_log
 from brave6d.serve.toy_scene import make_synthetic_bundle
 
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01))
@@ -446,7 +446,7 @@ def test_episode_log(client: TestClient, log_dir: Path) -> None:
     records = read_episode_log(log_dir / f"{eid}.jsonl")
     assert [r.event for r in records] == ["reset", "set_pose", "move", "close"]
     reset_rec, refused, moved, closed = records
-    assert reset_rec.format_version == 2 and reset_rec.scene == "synthetic_tabletop" and reset_rec.scene_id is None
+    assert reset_rec.format_version == LOG_FORMAT_VERSION and reset_rec.scene == "synthetic_tabletop" and reset_rec.scene_id is None
     assert reset_rec.target.name == "cube_red" and reset_rec.width == 320
     np.testing.assert_allclose(reset_rec.world_T_cam, FREE)
     assert refused.accepted is False and refused.refusal["box"] == "post"

@@ -26,13 +26,16 @@ a name is used). Other stages import only these names:
 - the episode log (:mod:`brave6d.serve.episode_log`, versioned): ``read_episode_log``, ``EpisodeLog``,
   ``ResetRecord``, ``ActionRecord``, ``SubmitRecord``, ``CloseRecord``, ``LoggedEstimate``,
   ``FinalView``, ``LOG_FORMAT_VERSION``, ``FINAL_DEPTH_SUFFIX``;
+- the reference geometry scores are measured against (:mod:`brave6d.serve.reference`):
+  ``build_scene_reference``, ``ReferenceSettings``, ``ReferenceGeometry`` (depth by ray casting),
+  ``read_reference``, ``ReferenceGeometryError``, ``REFERENCE`` (its file name in a bundle);
 - test scenes: ``make_synthetic_bundle``, ``make_synthetic_scene``.
 
 The modules behind them, one job each: ``bundle`` (export + verified load), ``limits`` (image-size
 cap, pose and twist bounds, the server's limits and the bounds of its flags), ``connections``
 (header/body timeouts, per-client connection cap), ``geometry`` (collisions, twist integration),
 ``renderer`` (the splat on cuda/cpu), ``catalog`` (the scenes of a server), ``splat_check``,
-``visibility`` (visible fractions), ``episodes`` (the episode state machine), ``episode_manager``
+``visibility`` (visible fractions), ``reference`` (the reference geometry), ``episodes`` (the episode state machine), ``episode_manager``
 (runs the episodes of a catalog), ``schema`` (wire
 models), ``episode_log`` (log schema, writer, reader), ``app`` (FastAPI: REST + WebSocket +
 viewer), ``client``, ``gym_env``, ``runner`` (uvicorn), ``cli`` and ``export_cli`` (``brave6d
@@ -60,6 +63,8 @@ _LAZY = {
     "ActionRecord": ".episode_log", "SubmitRecord": ".episode_log", "CloseRecord": ".episode_log",
     "LoggedEstimate": ".episode_log", "FinalView": ".episode_log", "LOG_FORMAT_VERSION": ".episode_log",
     "FINAL_DEPTH_SUFFIX": ".episode_log",
+    "build_scene_reference": ".reference", "ReferenceSettings": ".reference", "ReferenceGeometry": ".reference",
+    "ReferenceGeometryError": ".reference", "read_reference": ".reference", "REFERENCE": ".bundle",
     "make_synthetic_bundle": ".toy_scene", "make_synthetic_scene": ".toy_scene",
 }
 

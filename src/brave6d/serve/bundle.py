@@ -22,6 +22,12 @@
     holdout.json      the views held out of training: frame index, view id, ``world_T_cam``,
                       image file (``holdout/<name>.png``, undistorted) when present
     holdout/          the held-out undistorted RGB images
+    reference.ply     the reference geometry scores are measured against (VSD's test depth, the
+                      occluders of the visible fractions): a TSDF mesh of the captured depth at the
+                      calibrated poses, metres, world frame (:mod:`brave6d.serve.reference`); its
+                      build settings are ``scene.json``'s ``reference``. Absent when the capture
+                      has no depth (or ``--no-reference``): the server then falls back to the
+                      splat's depth and says so in every score
 
 The folder is built in a hidden sibling and renamed into place (all or nothing). Export
 replaces only what it made: an absent or empty folder, or a bundle (every file listed by its
@@ -72,6 +78,13 @@ from brave6d.core.provenance import software_versions
 from brave6d.core.transforms import check_rigid
 from brave6d.serve.geometry import DEFAULT_CAMERA_RADIUS, CollisionWorld, OrientedBox, Workspace
 from brave6d.serve.limits import MAX_HEIGHT, MAX_WIDTH, fit_image_size, image_size_error
+from brave6d.serve.reference import (
+    ReferenceGeometryError,
+    ReferenceMesh,
+    ReferenceSettings,
+    build_scene_reference,
+    write_reference,
+)
 from brave6d.serve.splat_check import check_splat, ply_vertex_count
 from brave6d.training import ANTIALIASING_MODES
 
@@ -85,6 +98,7 @@ OBJECTS = "objects.json"
 HOLDOUT = "holdout.json"
 HOLDOUT_IMAGES = "holdout"
 MODELS = "models"
+REFERENCE = "reference.ply"  # the reference geometry (brave6d.serve.reference); absent in older bundles
 REQUIRED = (SPLAT, SCENE, OBJECTS, HOLDOUT)
 
 Matrix4 = NDArray[np.float64]
@@ -208,6 +222,12 @@ class Bundle:
     @property
     def splat_path(self) -> Path:
         return self.root / SPLAT
+
+    @property
+    def reference_path(self) -> Path | None:
+        """The reference geometry's file when the manifest lists one; None for a bundle exported
+        without it (before it existed, or from a capture without depth)."""
+        return self.root / REFERENCE if REFERENCE in self.manifest.get("files", {}) else None
 
     @property
     def source(self) -> BundleSource:
@@ -414,6 +434,7 @@ class ExportResult:
     bytes: int
     models_from: str  # "bop" or "annotation"
     moved_aside: Path | None = None  # where ``force`` moved what was at ``root`` (it was not a bundle)
+    reference_triangles: int | None = None  # the reference geometry's size; None: the bundle has none
 
 
 def versions() -> dict[str, str]:
@@ -481,11 +502,13 @@ def check_out(target: Path, scene: SceneDir, force: bool) -> bool:
 def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, include_holdout_images: bool = True,
                   camera_radius: float = DEFAULT_CAMERA_RADIUS, width: int | None = None, height: int | None = None,
                   near: float = 0.01, far: float = 100.0, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                  depth_alpha_min: float = 0.5, force: bool = False) -> ExportResult:
+                  depth_alpha_min: float = 0.5, force: bool = False, reference: bool = True,
+                  reference_settings: ReferenceSettings | None = None) -> ExportResult:
     """Write the bundle of ``scene_dir`` (default ``<scene>/bundle``) atomically; see the module docstring.
 
     ``out`` is replaced only if it is absent, empty or a bundle; with ``force`` anything else there
     is moved aside (:func:`brave6d.core.atomic.move_aside`) once the new bundle is complete.
+    ``reference``: build the reference geometry (:func:`reference_mesh`) with ``reference_settings``.
     """
     from brave6d.training import read_ply
 
@@ -510,6 +533,7 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
         camera = camera.scaled(width or camera.width, height or camera.height)
     bop_models, bop_info = _bop_models(scene)
     frames = holdout_frames(scene)
+    ref_mesh = reference_mesh(scene, reference_settings) if reference else None
 
     moved: Path | None = None
     with staged_folder(target) as staging:
@@ -532,7 +556,10 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
                       "min_elevation_deg": spec.capture.min_elevation_deg,
                       "max_elevation_deg": spec.capture.max_elevation_deg,
                       "azimuth_range_deg": list(spec.capture.azimuth_range_deg)},
+            **({"reference": ref_mesh.record(REFERENCE)} if ref_mesh is not None else {}),
         })
+        if ref_mesh is not None:
+            write_reference(staging / REFERENCE, ref_mesh)
         holdout = []
         undistorted = _undistorted_rgb(scene) if include_holdout_images and frames else None
         for record, world_T_cam in frames:
@@ -557,7 +584,24 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
     size = sum(v["bytes"] for v in files.values())
     log.info("bundle written to %s (%d Gaussians, %d objects, %d holdout views, %.1f MB)", target,
              splat.num_gaussians, len(objects), len(holdout), size / 1e6)
-    return ExportResult(target, splat.num_gaussians, len(objects), len(holdout), size, models_from, moved)
+    return ExportResult(target, splat.num_gaussians, len(objects), len(holdout), size, models_from, moved,
+                        ref_mesh.stats.triangles if ref_mesh is not None else None)
+
+
+def reference_mesh(scene: SceneDir, settings: ReferenceSettings | None = None) -> ReferenceMesh | None:
+    """The scene's reference geometry (:func:`brave6d.serve.reference.build_scene_reference`), or
+    None with a warning when the capture recorded no depth at all (an RGB-only capture: its bundle
+    is scored on the splat's depth). A capture with depth that cannot be integrated is an error."""
+    records = scene.frames() if scene.frames_path.is_file() else []
+    if not any(r.depth for r in records):
+        log.warning("%s: the capture recorded no depth, so the bundle has no reference geometry; scores of "
+                    "its episodes use the splat's depth", scene.frames_path)
+        return None
+    try:
+        return build_scene_reference(scene.root, settings)
+    except ReferenceGeometryError as exc:
+        raise ReferenceGeometryError(f"{exc}; export with --no-reference to serve the scene without it "
+                                     "(scores then use the splat's depth)") from None
 
 
 def _source_record(scene: SceneDir, name: str, splat: Path, splat_sha256: str) -> BundleSource:

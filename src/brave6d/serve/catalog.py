@@ -43,6 +43,7 @@ from brave6d.core.errors import BraveError
 from brave6d.serve.bundle import (
     MANIFEST,
     MODELS,
+    REFERENCE,
     SCENE,
     SPLAT,
     Bundle,
@@ -58,8 +59,8 @@ from brave6d.serve.episodes import EpisodeError, EpisodeNotFound, InvalidAction,
 log = logging.getLogger(__name__)
 
 #: Estimated resident bytes of a loaded scene per byte of its splat PLY (the renderer keeps ~60
-#: float32 per Gaussian, the PLY stores 62), and per byte of its object models (mesh + ray-casting
-#: structure); plus a fixed part. ``benchmarks/serve_scenes.py`` measures the real figure.
+#: float32 per Gaussian, the PLY stores 62), and per byte of its object models and its reference
+#: geometry (mesh + ray-casting structure); plus a fixed part. ``benchmarks/serve_scenes.py`` measures the real figure.
 SPLAT_BYTES_FACTOR = 1.0
 MODEL_BYTES_FACTOR = 6.0
 SCENE_FIXED_BYTES = 8 * 2**20
@@ -125,7 +126,7 @@ def bundle_memory_bytes(folder: Path) -> int:
     """:func:`estimate_scene_bytes` of a bundle folder (from the sizes its manifest lists)."""
     files = read_bundle_manifest(folder)["files"]
     splat = files[SPLAT]["bytes"] if SPLAT in files else 0
-    models = sum(v["bytes"] for k, v in files.items() if k.startswith(f"{MODELS}/"))
+    models = sum(v["bytes"] for k, v in files.items() if k.startswith(f"{MODELS}/") or k == REFERENCE)
     return estimate_scene_bytes(splat, models)
 
 

@@ -14,7 +14,10 @@ Version 1 is the format the server has written since the first release; logs wri
 the version field existed carry no ``format_version`` and are exactly version 1, so they are
 read as version 1. Version 2 adds the served scene to ``reset`` (``scene``: its name on the
 server, ``scene_id``: its BOP scene id in a release, else null), since one server may serve
-every scene of a release; a version-1 log reads with both null. Any other version is refused with the file and line. A line that does not
+every scene of a release; a version-1 log reads with both null. Version 3 adds the submit's
+``final_view.depth_source``: the geometry the final depth (VSD's test depth) and the visible
+fractions were measured on, ``"reference"`` (the bundle's reference geometry) or ``"splat"`` (a
+bundle without one); older logs read with None, which means the splat. Any other version is refused with the file and line. A line that does not
 match the schema is an error naming the file, the line and the field; a partial last line (the
 server stopped mid-write) is ignored.
 """
@@ -36,9 +39,9 @@ from brave6d.serve.schema import Finite, Matrix3, Matrix4, ObjectState, TargetRe
 Rotation9 = matrix_type(3, 3, flat=True)
 
 #: The version every new log is written in (the ``format_version`` of its ``reset`` record).
-LOG_FORMAT_VERSION = 2
+LOG_FORMAT_VERSION = 3
 #: The versions :func:`read_episode_log` reads.
-READABLE_VERSIONS = (1, 2)
+READABLE_VERSIONS = (1, 2, 3)
 #: File name (beside the log) of the depth image of the view an episode's estimates refer to.
 FINAL_DEPTH_SUFFIX = "_final_depth.png"
 
@@ -115,6 +118,8 @@ class FinalView(WireModel):
     height: int
     depth_file: str | None
     depth_unit: Literal["mm"] = "mm"
+    #: what the depth file was measured on (version 3; None in older logs: the splat)
+    depth_source: Literal["reference", "splat"] | None = None
 
 
 class SubmitRecord(_Record):

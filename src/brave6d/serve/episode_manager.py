@@ -284,7 +284,7 @@ class EpisodeManager:
             known = {o.obj_id for o in scene.bundle.objects}
             clean = [check_estimate(i, e.get("obj_id", -1), e.get("R", ()), e.get("t_m", ()), e.get("score", 1.0),
                                     known) for i, e in enumerate(estimates)]
-            depth = depth_m_to_mm_u16(ep.last.depth)
+            depth = depth_m_to_mm_u16(ep.last.test_depth)  # the reference's depth when the bundle has one
             depth_file = f"{ep.id}{FINAL_DEPTH_SUFFIX}" if ep.log.path is not None else None
             name = agent if agent is not None else ep.agent
             line = ep.log.format(submission_record(ep, clean, scene.bundle, depth_file, name))

@@ -13,8 +13,10 @@ camera), the current camera pose ``world_T_cam`` and counters. Actions:
 * ``submit``: hand in the final pose estimates (camera frame of the current view) and end the
   episode. The log then holds everything scoring needs that only the server knows: the final
   view's pose, ``K``, image size, every object's ground-truth ``cam_T_obj`` and visible
-  fraction, and the final depth image (``<episode_id>_final_depth.png``, uint16 mm, beside the
-  log). See :func:`submission_record`. Observations leave the server as :mod:`brave6d.serve.schema` models.
+  fraction, and the final view's test depth (``<episode_id>_final_depth.png``, uint16 mm, beside
+  the log): the bundle's reference geometry ray cast at that pose, not the splat the agent saw
+  (a bundle without a reference: the splat's depth; ``final_view.depth_source`` says which).
+  See :func:`submission_record`. Observations leave the server as :mod:`brave6d.serve.schema` models.
 
 **Refusal** (AI2-THOR semantics): an action whose destination (``set_pose``) or first substep
 (``move``) is in collision or outside the workspace is refused with the reason; the camera
@@ -43,6 +45,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
+from functools import cached_property, partial
 from typing import Any
 
 import numpy as np
@@ -55,6 +58,7 @@ from brave6d.serve.bundle import Bundle, BundleObject, load_model_m
 from brave6d.serve.episode_log import EpisodeLog, FinalView, LoggedEstimate, SubmitRecord
 from brave6d.serve.geometry import Refusal
 from brave6d.serve.limits import MAX_ANGULAR_SPEED_RAD_S, MAX_COORD_M, MAX_LINEAR_SPEED_M_S, MAX_MOVE_DURATION_S
+from brave6d.serve.reference import SPLAT_GEOMETRY, ReferenceGeometry, bundle_reference
 from brave6d.serve.renderer import SplatRenderer
 from brave6d.serve.schema import ObjectState, TargetRef
 from brave6d.serve.visibility import Visibility, VisibilityComputer
@@ -136,7 +140,11 @@ def object_state(obj: BundleObject, cam_T_obj: Matrix4, visibility: Visibility |
 @dataclass(frozen=True)
 class RenderedView:
     """What the server rendered for one pose: the raw images (RGB uint8, depth float32 metres),
-    the camera, and every object's ground truth (:class:`brave6d.serve.schema.ObjectState`)."""
+    the camera, and every object's ground truth (:class:`brave6d.serve.schema.ObjectState`).
+
+    ``test_depth``: the depth the view is scored on (VSD's test depth; the occluders of the
+    visible fractions), from the scene's ``geometry``: ``"reference"`` (the bundle's reference
+    geometry) or ``"splat"`` (a bundle without one: the rendered depth itself)."""
 
     rgb: NDArray[np.uint8]
     depth: NDArray[np.float32]
@@ -144,6 +152,14 @@ class RenderedView:
     world_T_cam: Matrix4
     objects: tuple[ObjectState, ...]
     timings_ms: dict[str, float]
+    reference: ReferenceGeometry | None = None  # the scene's, when its bundle has one
+    geometry: str = SPLAT_GEOMETRY
+
+    @cached_property
+    def test_depth(self) -> NDArray[np.float32]:
+        """The depth scores are measured against (see the class docstring): the reference ray cast
+        at this view (once, when first asked: at submit), else the rendered depth."""
+        return self.depth if self.reference is None else self.reference.depth(self.world_T_cam, self.camera)
 
     def target(self) -> ObjectState | None:
         return next((o for o in self.objects if o.is_target), None)
@@ -166,7 +182,11 @@ class ActionResult:
 
 
 class SceneServer:
-    """Bundle + renderer + visibility: renders observations for any pose and image size."""
+    """Bundle + renderer + visibility: renders observations for any pose and image size.
+
+    The agent sees the splat; the score depth and the visible fractions come from the bundle's
+    reference geometry, loaded once here (an older bundle without one: the splat's depth, with
+    one warning, and ``geometry`` says so in every score)."""
 
     def __init__(self, bundle: Bundle, device: str = "auto", renderer: SplatRenderer | None = None,
                  occlusion_tolerance: float = 0.015, visibility: bool = True) -> None:
@@ -178,6 +198,8 @@ class SceneServer:
         for o, (verts, _) in zip(bundle.objects, models):
             c = 0.5 * (verts.min(axis=0) + verts.max(axis=0)) if len(verts) else np.zeros(3)
             self.centres_world.append(o.world_T_obj[:3, :3] @ c + o.world_T_obj[:3, 3])
+        self.reference: ReferenceGeometry | None = bundle_reference(bundle)
+        self.geometry = "reference" if self.reference is not None else SPLAT_GEOMETRY
         self.visibility: VisibilityComputer | None = None
         if visibility and bundle.objects:
             try:
@@ -204,14 +226,15 @@ class SceneServer:
         t1 = time.perf_counter()
         vis: list[Visibility | None] = [None] * len(self.bundle.objects)
         if self.visibility is not None:
-            vis = list(self.visibility.compute(world_T_cam, camera, out.depth))
+            occluders = partial(self.reference.depth_along, world_T_cam) if self.reference is not None else None
+            vis = list(self.visibility.compute(world_T_cam, camera, out.depth, occluders))
         t2 = time.perf_counter()
         cam_T_world = invert(world_T_cam)
         objects = tuple(object_state(o, cam_T_world @ o.world_T_obj, v, o.gt_id == target_gt_id)
                         for o, v in zip(self.bundle.objects, vis))
-        timings = {"render": out.render_ms, "render_queue": out.queue_ms, "visibility": (t2 - t1) * 1000.0,
-                   "observe": (t2 - t0) * 1000.0}
-        return RenderedView(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), objects, timings)
+        timings = {"render": out.render_ms, "render_queue": out.queue_ms, "visibility": (t2 - t1) * 1000.0, "observe": (t2 - t0) * 1000.0}
+        return RenderedView(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), objects, timings,
+                            self.reference, self.geometry)
 
     def random_start(self, target: BundleObject, rng: np.random.Generator, tries: int = 500) -> Matrix4:
         """A free pose on a spherical cap around the target, looking at its model centre."""
@@ -341,7 +364,7 @@ def submission_record(ep: Episode, estimates: list[LoggedEstimate], bundle: Bund
         episode_id=ep.id, agent=agent, bundle=bundle.name, bundle_root=str(bundle.root.resolve()),
         target=target_ref(ep.target), estimates=estimates,
         final_view=FinalView(world_T_cam=obs.world_T_cam, K=obs.camera.K, width=obs.camera.width,
-                             height=obs.camera.height, depth_file=depth_file),
+                             height=obs.camera.height, depth_file=depth_file, depth_source=obs.geometry),
         objects=list(obs.objects), adjustments=ep.adjustments, steps=ep.steps, refusals=ep.refusals,
         collisions=ep.collisions, elapsed_s=time.monotonic() - ep.created)
 

@@ -10,7 +10,9 @@
 * ``annotation/objects.json`` (``brave6d-annotation/1``) with the cubes' world poses;
 * ``calibration/intrinsics.json`` (no distortion) and ``handeye.json`` (identity), and
   ``capture/frames.jsonl`` with ``n_views`` views on a ring looking at the objects and plain
-  PNG frames, so that holdout views and the annotation's BOP export can be made from it.
+  PNG frames, so that holdout views and the annotation's BOP export can be made from it; with
+  ``depth=True`` also the true depth of every frame (:func:`true_mesh` ray cast at the frame's
+  pose, uint16 mm), so that the bundle gets a reference geometry whose truth is known.
 """
 
 from __future__ import annotations
@@ -72,6 +74,24 @@ def cube_mesh_mm(size: float = CUBE_MM) -> tuple[NDArray[np.float64], NDArray[np
 def world_T_cube(name: str) -> NDArray[np.float64]:
     xyz, rpy = CUBE_POSES[name]
     return make_transform(rpy_deg_to_matrix(rpy), xyz)
+
+
+def true_mesh() -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """The scene's true surfaces in metres, world frame: the collision boxes (table, wall, post)
+    and the two cubes at their poses."""
+    unit, faces = cube_mesh_mm(1.0)
+    unit = unit - [0.0, 0.0, 0.5]  # centred
+    parts = [(unit * b["size"] + b["center"], faces) for b in SPEC["collision_boxes"]]  # type: ignore[attr-defined]
+    v_mm, f = cube_mesh_mm()
+    for name in CUBE_POSES:
+        T = world_T_cube(name)
+        parts.append(((v_mm / 1000.0) @ T[:3, :3].T + T[:3, 3], f))
+    vertices, out, n = [], [], 0
+    for v, f in parts:
+        vertices.append(v)
+        out.append(f + n)
+        n += len(v)
+    return np.concatenate(vertices), np.concatenate(out)
 
 
 # ----------------------------------------------------------------------------- Gaussians
@@ -179,7 +199,8 @@ def ring_poses(n_views: int, distance: float = 0.3, elevation_deg: float = 50.0)
 
 
 def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree: int = 0, n_views: int = 10,
-                         width: int = 320, height: int = 240, seed: int = 0, volume_fraction: float = 0.0) -> SceneDir:
+                         width: int = 320, height: int = 240, seed: int = 0, volume_fraction: float = 0.0,
+                         depth: bool = False) -> SceneDir:
     """Write the synthetic scene directory (see the module docstring); returns it."""
     from brave6d.annotation import write_ply_mesh
     from brave6d.training import holdout_split, write_holdout, write_ply
@@ -191,6 +212,7 @@ def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree:
         write_ply_mesh(scene.asset_path(f"{name}.ply"), v, f)
     spec = json.loads(json.dumps(SPEC))
     spec["camera"].update({"width": width, "height": height})
+    spec["capture"]["depth"] = depth
     import yaml
 
     scene.spec_path.write_text(yaml.safe_dump(spec, sort_keys=False), encoding="utf-8")
@@ -202,11 +224,21 @@ def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree:
     if scene.frames_path.exists():
         scene.frames_path.unlink()
     grey = np.full((height, width, 3), 128, dtype=np.uint8)
+    truth = None
+    if depth:
+        from brave6d.core.atomic import depth_m_to_mm_u16
+        from brave6d.serve.reference import ReferenceGeometry
+
+        truth = ReferenceGeometry(*true_mesh())
     for k, T in enumerate(ring_poses(n_views)):
         rgb = f"rgb/{k:06d}.png"
         write_png(scene.capture.file(rgb), grey)
+        depth_file = None
+        if truth is not None:
+            depth_file = f"depth/{k:06d}.png"
+            write_png(scene.capture.file(depth_file), depth_m_to_mm_u16(truth.depth(T, camera)))
         frames.append(FrameRecord(index=k, view_id=f"d0_v{k:03d}", distance_level=0, distance_m=0.3, rgb=rgb,
-                                  depth=None, base_T_tcp=T.tolist(), joints=[0.0] * 6, timestamp=float(k)))
+                                  depth=depth_file, base_T_tcp=T.tolist(), joints=[0.0] * 6, timestamp=float(k)))
     write_ply(scene.splat_ply_path, synthetic_splat(n_gaussians, sh_degree, seed, volume_fraction))
     records = scene.frames()
     _, held_out = holdout_split(records)
@@ -227,12 +259,13 @@ def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree:
 
 def make_synthetic_bundle(root: Path | str, n_gaussians: int = 20_000, sh_degree: int = 0, n_views: int = 10,
                           width: int = 320, height: int = 240, bop: bool = False, seed: int = 0,
-                          volume_fraction: float = 0.0) -> Path:
+                          volume_fraction: float = 0.0, depth: bool = False) -> Path:
     """The synthetic scene under ``root`` and its bundle (``root/bundle``); ``bop`` also runs the
-    annotation stage's BOP export first (so the bundle takes BOP's models)."""
+    annotation stage's BOP export first (so the bundle takes BOP's models); ``depth``: the capture
+    records true depth, so the bundle has a reference geometry."""
     from brave6d.serve.bundle import export_bundle
 
-    scene = make_synthetic_scene(root, n_gaussians, sh_degree, n_views, width, height, seed, volume_fraction)
+    scene = make_synthetic_scene(root, n_gaussians, sh_degree, n_views, width, height, seed, volume_fraction, depth)
     if bop:
         from brave6d.annotation import export_bop
 

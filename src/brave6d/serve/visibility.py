@@ -11,18 +11,20 @@ Silhouettes, depths and mutual occlusion come from annotation's ray caster
 instance *i* counts as visible when
 
 1. among all object instances, *i* is hit first (exact mutual occlusion of the meshes), and
-2. the splat does not occlude it: the rendered splat depth (where the splat's alpha is at least
-   the render's ``depth_alpha_min``) is not nearer than the object's depth by more than
-   ``occlusion_tolerance`` (default 15 mm, the delta bop_toolkit uses when it estimates
-   visibility from a depth image). The splat stands in for everything that is not an
-   annotated object (table clutter, walls), because the bundle carries no other meshes.
-   Where the splat renders the object itself its depth matches the mesh (within the tolerance),
-   and silhouette edges blend towards the background (farther), so neither counts as occlusion.
+2. the scene does not occlude it: the occluder depth is not nearer than the object's depth by
+   more than ``occlusion_tolerance`` (default 15 mm, the delta bop_toolkit uses when it
+   estimates visibility from a depth image). The occluder depth stands in for everything that
+   is not an annotated object (table clutter, walls): the bundle's reference geometry ray cast
+   at the view (:mod:`brave6d.serve.reference`, fixed for the scene, so a re-trained splat does
+   not move the fractions), or, for an older bundle without one, the rendered splat depth (where
+   the splat's alpha is at least the render's ``depth_alpha_min``). Where the occluder depth is
+   the object itself it matches the mesh (within the tolerance), and silhouette edges blend
+   towards the background (farther), so neither counts as occlusion.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -68,8 +70,11 @@ class VisibilityComputer:
         self._caster = SilhouetteCaster(dict(enumerate(models)), list(enumerate(world_T_objs)))
 
     def compute(self, world_T_cam: NDArray[np.float64], camera: PinholeCamera,
-                splat_depth: NDArray[np.float32] | None = None) -> list[Visibility]:
-        """Visibility of every instance, in instance order. ``splat_depth``: (H, W) metres, 0 = no data."""
+                splat_depth: NDArray[np.float32] | None = None,
+                occluder_depth: Callable[[NDArray[np.float32]], NDArray[np.float32]] | None = None) -> list[Visibility]:
+        """Visibility of every instance, in instance order. Occluders (see the module docstring):
+        ``occluder_depth`` (camera-frame rays (N, 3) -> z-depth (N,), the reference geometry's) when
+        given, else ``splat_depth`` (H, W) metres; 0 = no data."""
         T = np.asarray(world_T_cam, dtype=np.float64)
         out = []
         for n, sil in enumerate(self._caster.silhouettes(T, camera)):
@@ -80,8 +85,9 @@ class VisibilityComputer:
             vis = np.zeros(0, dtype=bool)
             if seen.px_count_all:
                 vis = self._caster.first_instance(T, seen.rays) == n
-                if splat_depth is not None:
-                    sd = splat_depth[seen.ys, seen.xs]
+                sd = (occluder_depth(seen.rays) if occluder_depth is not None
+                      else splat_depth[seen.ys, seen.xs] if splat_depth is not None else None)
+                if sd is not None:
                     vis &= ~((sd > 0) & (sd < seen.depth - self.tol))
             px_vis = int(vis.sum())
             out.append(Visibility(sil.px_count_all, px_vis, px_vis / sil.px_count_all,

@@ -17,6 +17,12 @@ Targets (documented choices):
 * An episode that ended without a submission (closed, expired, log cut short) scores 0: its
   target counts, without estimates, at the last logged camera pose.
 
+VSD's test depth is the final depth the server logged: the bundle's reference geometry at the
+final pose (the geometry that the splat's training noise cannot move), or, for a bundle without
+one, the splat's depth (``final_view.depth_source``; older logs: the splat). Every episode's
+score says which (``test_depth``), the leaderboard lists the geometries it holds, and scoring
+episodes of both together is logged as a warning: their VSD is not measured on the same thing.
+
 Agent AR is BOP's AR over the agent's episodes (one call of :func:`evaluate_bop19` per episode,
 summed exactly: recall is matched targets / targets, so per-episode true-positive counts add up).
 The same exact sums give each agent's AR per scene (episodes of one served scene: the log's
@@ -27,6 +33,7 @@ the category, from the ``categories`` map ``obj_id -> category`` the bundles giv
 from __future__ import annotations
 
 import datetime as _dt
+import logging
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -49,6 +56,8 @@ from brave6d.serve import (
     SubmitRecord,
     read_episode_log,
 )
+
+log = logging.getLogger(__name__)
 
 UNKNOWN_AGENT = "unknown"
 UNKNOWN_SCENE = "unknown"
@@ -81,6 +90,8 @@ class EpisodeRecord:
     objects: tuple[ObjectState, ...]
     estimates: tuple[LoggedEstimate, ...]
     depth_path: Path | None
+    #: the geometry of the test depth: "reference" or "splat" (None: not submitted, no depth scored)
+    test_depth: str | None = None
 
 
 def find_episode_logs(paths: Iterable[Path | str]) -> list[Path]:
@@ -131,7 +142,8 @@ def read_episode(path: Path | str) -> EpisodeRecord:
             adjustments=submit.adjustments, steps=submit.steps, refusals=submit.refusals, wall_time_s=wall,
             K=view.K, width=view.width, height=view.height, objects=tuple(submit.objects),
             estimates=tuple(submit.estimates),
-            depth_path=p.with_name(view.depth_file) if view.depth_file else None)
+            depth_path=p.with_name(view.depth_file) if view.depth_file else None,
+            test_depth=view.depth_source or "splat")
     # No submission: the target counts with no estimate, at the last logged pose.
     last = next((r for r in reversed(records)
                  if isinstance(r, (ResetRecord, ActionRecord)) and r.target_cam_T_obj is not None), None)
@@ -233,7 +245,7 @@ class EpisodeScore:
                 "obj_id": e.target.obj_id, "seed": e.seed, "submitted": e.submitted, "estimates": len(e.estimates),
                 "n_targets": self.scores.n_targets, "ar": self.scores.ar, "ar_vsd": self.scores.ar_vsd,
                 "ar_mssd": self.scores.ar_mssd, "ar_mspd": self.scores.ar_mspd,
-                "adjustments": e.adjustments, "wall_time_s": e.wall_time_s,
+                "adjustments": e.adjustments, "wall_time_s": e.wall_time_s, "test_depth": e.test_depth,
                 "target_distance_m": float(np.linalg.norm(e.target.cam_T_obj[:3, 3])),
                 "target_visib_fract": e.target.visib_fract}
 
@@ -320,11 +332,16 @@ class Leaderboard:
     def to_json(self) -> dict[str, Any]:
         return {"format": "brave6d-leaderboard/1", "metrics": list(self.config.metrics),
                 "targets": "every visible instance" if self.all_objects else "the episode's target",
-                "visib_gt_min": self.config.visib_gt_min,
+                "visib_gt_min": self.config.visib_gt_min, "test_depth": test_depth_geometries(self.episodes),
                 "agents": [a.to_json() for a in self.agents],
                 "per_scene": [g.to_json("scene") for g in self.scenes],
                 "per_category": [g.to_json("category") for g in self.categories],
                 "episodes": [e.to_json() for e in self.episodes]}
+
+
+def test_depth_geometries(scored: Sequence[EpisodeScore]) -> list[str]:
+    """The geometries the scored episodes' test depths come from ("reference", "splat"), sorted."""
+    return sorted({s.episode.test_depth for s in scored if s.episode.test_depth is not None})
 
 
 def _cell(value: float | None) -> Any:
@@ -411,6 +428,13 @@ def score_episodes(episodes: Sequence[EpisodeRecord], models: Mapping[int, Objec
     module docstring. ``models`` in mm."""
     cfg = config or EvalConfig()
     ids = assign_image_ids(episodes)
+    used = {e.test_depth for e in episodes if e.test_depth is not None}
+    if len(used) > 1:
+        n_splat = sum(1 for e in episodes if e.test_depth == "splat")
+        log.warning("%d of %d submitted episodes were scored on the splat's depth (bundles without a reference "
+                    "geometry), the others on the reference geometry: their VSD is not measured on the same "
+                    "surface (see each episode's test_depth)", n_splat,
+                    sum(1 for e in episodes if e.test_depth is not None))
     ren = renderer if renderer is not None else (DepthRenderer() if "vsd" in cfg.metrics else None)
     scored = []
     for e in sorted(episodes, key=lambda e: ids[e.episode_id]):
@@ -439,7 +463,7 @@ def score_episodes(episodes: Sequence[EpisodeRecord], models: Mapping[int, Objec
 LEADERBOARD_COLUMNS = ("agent", "episodes", "submitted", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd",
                        "mean_adjustments", "mean_wall_time_s")
 EPISODE_COLUMNS = ("agent", "episode_id", "scene", "served_scene_id", "scene_id", "im_id", "target", "obj_id", "seed", "submitted", "estimates",
-                   "ar", "ar_vsd", "ar_mssd", "ar_mspd", "adjustments", "wall_time_s", "target_distance_m")
+                   "ar", "ar_vsd", "ar_mssd", "ar_mspd", "adjustments", "wall_time_s", "target_distance_m", "test_depth")
 GROUP_COLUMNS = ("episodes", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd", "mean_adjustments")
 OBJECT_COLUMNS = ("agent", "obj_id", "name", "episodes", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd",
                   "mean_adjustments")

@@ -6,7 +6,9 @@ at each distance, several azimuths and elevations drawn in the bundle's start ra
 looking at the object's model centre (as an episode's start view does), poses in collision
 redrawn. In each view the static estimator (:mod:`brave6d.evaluation.report.single_view`: the baseline's
 perception + registration, one view, no moves) estimates the object, and the estimate is scored
-with BOP's VSD/MSSD/MSPD against the bundle's ground truth. A view where the object is less than
+with BOP's VSD/MSSD/MSPD against the bundle's ground truth, as an episode is: the estimator sees
+the splat's depth, VSD's test depth and the visible fractions come from the bundle's reference
+geometry (the splat's depth for a bundle without one; each point records which). A view where the object is less than
 10 % visible is no BOP19 target and is left out of the AR. The object's pixel size (visible mask
 area, box diagonal) is recorded with each view; so are the render and estimator times.
 """
@@ -82,7 +84,8 @@ def measure_distance(inputs: MeasureInputs, sweep: DistanceSweep) -> Measurement
 
     device = str(resolve_device(sweep.device))
     bundle = load_bundle(scene.bundle_dir)
-    key = {"bundle": file_stamp(manifest), "sweep": asdict(sweep), "device": device}
+    key = {"bundle": file_stamp(manifest), "sweep": asdict(sweep), "device": device,
+           "test_depth": "reference" if bundle.reference_path is not None else "splat"}
     if (done := store.complete(NAME, key)) is not None:
         return done
     camera = bundle.camera
@@ -123,9 +126,12 @@ def measure_distance(inputs: MeasureInputs, sweep: DistanceSweep) -> Measurement
         if truth is None or not visib >= MIN_VISIB_FRACT:
             return {**point, "target": False}
         est = s["estimator"].estimate(view.depth, camera.K, T, obj.obj_id, (camera.cx, camera.cy))
+        # the estimator sees the splat's depth (as an agent); VSD is scored as an episode's: on the
+        # test depth of the scene's reference geometry (the splat's only for a bundle without one)
         score = s["scorer"].score(est, obj.obj_id, truth.cam_T_obj, camera.K, (camera.width, camera.height),
-                                  view.depth, visib)
+                                  view.test_depth, visib)
         return {**point, "target": True, "found": est.cam_T_obj is not None, "method": est.method,
+                "test_depth": view.geometry,
                 "estimate_s": est.seconds, **score.to_json()}
 
     items = [(f"o{o.obj_id}-g{o.gt_id}-d{round(d * 1000)}-v{k}", (o.gt_id, float(d), k))

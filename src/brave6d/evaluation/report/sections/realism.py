@@ -9,7 +9,10 @@ bundle by the server's renderer (:class:`brave6d.serve.SplatRenderer`) with the 
 depth stored as the capture's is (uint16 mm), so that both sides reach the estimator in one form.
 In every view each object at least 10 % visible is estimated by the static estimator
 (:mod:`brave6d.evaluation.report.single_view`, told where in the image the object is) on both images and
-scored against the export's ground truth with VSD/MSSD/MSPD. The gap is AR(real) - AR(splat);
+scored against the export's ground truth with VSD/MSSD/MSPD. Both sides are scored on the same
+test depth, the captured frame's (BOP's test depth of a captured image; the visible fractions are
+the export's), so the gap measures only what the estimator is given, never a change of the
+surface it is scored on. The gap is AR(real) - AR(splat);
 PSNR and SSIM compare the render with the captured image on the pixels the raw image covers (as
 the training stage scores its holdout).
 """
@@ -145,7 +148,7 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
            "scene_camera": file_stamp(layout.scene_camera_path), "scene_gt_info": file_stamp(layout.scene_gt_info_path),
            "frames": file_stamp(scene.frames_path), "intrinsics": file_stamp(scene.intrinsics_path),
            "images": images_stamp([p for i, _ in views for p in (layout.rgb_path(i), layout.depth_path(i))]),
-           "sweep": asdict(sweep), "device": device}
+           "sweep": asdict(sweep), "device": device, "test_depth": "captured"}
     if (done := store.complete(NAME, key)) is not None:
         return done
     names = {o.obj_id: o.name for o in bundle.objects}
@@ -178,7 +181,7 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
         return state
 
     def estimate_all(s: dict[str, Any], im_id: int, depth_m: NDArray[np.float32], K: NDArray[np.float64],
-                     world_T_cam: NDArray[np.float64]) -> list[dict[str, Any]]:
+                     world_T_cam: NDArray[np.float64], test_depth: NDArray[np.float32]) -> list[dict[str, Any]]:
         out = []
         for gt_id, (g, gi) in enumerate(zip(gts[im_id], infos[im_id])):
             if gi.visib_fract < MIN_VISIB_FRACT:
@@ -186,7 +189,7 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
             cam_T_obj = g.cam_T_model()
             centre = cam_T_obj[:3, :3] @ s["centres"][g.obj_id] + cam_T_obj[:3, 3]
             est = s["estimator"].estimate(depth_m, K, world_T_cam, g.obj_id, project(centre, K))
-            score = s["scorer"].score(est, g.obj_id, cam_T_obj, K, (depth_m.shape[1], depth_m.shape[0]), depth_m,
+            score = s["scorer"].score(est, g.obj_id, cam_T_obj, K, (depth_m.shape[1], depth_m.shape[0]), test_depth,
                                       gi.visib_fract)
             out.append({"gt_id": gt_id, "obj_id": g.obj_id, "visib_fract": gi.visib_fract,
                         "found": est.cam_T_obj is not None, "estimate_s": est.seconds, **score.to_json()})
@@ -212,8 +215,8 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
                                    depth_mode=bundle.render.depth_mode)
         rgb_splat = out.rgb[::step, ::step]
         depth_splat = depth_png_to_m(depth_m_to_mm_u16(out.depth)[::step, ::step], 1.0)
-        real = estimate_all(s, im_id, depth_real, K, world_T_cam)
-        splat = {o["gt_id"]: o for o in estimate_all(s, im_id, depth_splat, K, world_T_cam)}
+        real = estimate_all(s, im_id, depth_real, K, world_T_cam, depth_real)
+        splat = {o["gt_id"]: o for o in estimate_all(s, im_id, depth_splat, K, world_T_cam, depth_real)}
         info = infos[im_id]
         objects = []
         for r in real:
