@@ -271,6 +271,8 @@ class FidelityProbe:
                   **compare_target(view.rgb, truth.rgb, view.depth, depth_truth, mask)}
         state = view.target()
         visib = num(state.visib_fract) if state is not None else math.nan
+        if server.visibility is not None:  # visible in the truth (the served fraction is the splat's)
+            visib = num(server.visibility.compute(T, cam, depth_truth)[gt_id].visib_fract)
         target["visib_fract"] = visib
         if state is not None and visib >= MIN_VISIB_FRACT and target["px"] > 0:
             pixel = (cam.cx, cam.cy)
