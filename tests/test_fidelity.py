@@ -223,3 +223,19 @@ def test_benchmark_refuses_a_missing_bundle_by_name(tmp_path: Path, capsys: pyte
     with pytest.raises(SystemExit):
         bench.main([str(scene)])  # neither --bundle nor --a/--b
     assert bench.bundle_arg("new=/x/y") == ("new", Path("/x/y"))
+
+
+@pytest.mark.slow
+def test_benchmark_trains_two_configurations_and_measures_both(sim_scene: SceneDir, tmp_path: Path) -> None:
+    import json
+
+    out = tmp_path / "fidelity.json"
+    assert bench.main([str(sim_scene.root), "--a", "a=fast,steps=10,coarse_steps=0", "--b",
+                       "b=fast,steps=20,coarse_steps=0", "--views", "1", "--distances", "0.3", "--every", "10",
+                       "--chunk", "5", "--device", "cpu", "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    a, b = data["configurations"]
+    assert (a["name"], a["steps"], b["name"], b["steps"]) == ("a", 10, "b", 20)
+    assert a["train_s"] > 0 and b["train_s"] > 0 and a["source"]["preset"]["steps"] == 10
+    assert [r["distance_m"] for r in a["rows"]] == [0.3] and len(b["points"]) == 2
+    assert out.with_suffix(".png").is_file()
