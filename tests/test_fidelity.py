@@ -239,3 +239,27 @@ def test_benchmark_trains_two_configurations_and_measures_both(sim_scene: SceneD
     assert a["train_s"] > 0 and b["train_s"] > 0 and a["source"]["preset"]["steps"] == 10
     assert [r["distance_m"] for r in a["rows"]] == [0.3] and len(b["points"]) == 2
     assert out.with_suffix(".png").is_file()
+
+
+@pytest.mark.slow
+def test_captured_frames_that_are_the_splats_own_renders_score_perfect(tmp_path: Path) -> None:
+    """A captured scene: held-out frames (here the splat's own renders, depth in mm) against the splat."""
+    from test_report_realism import _splat_frames_as_capture
+
+    from brave6d.serve import load_bundle, make_synthetic_bundle
+
+    make_synthetic_bundle(tmp_path / "scene", n_gaussians=6000, n_views=6, bop=True)
+    scene = SceneDir(tmp_path / "scene")
+    _splat_frames_as_capture(scene)
+    probe = FidelityProbe(scene, load_bundle(scene.bundle_dir), FidelitySweep(holdout_per_level=2, device="cpu"))
+    assert probe.mode == "captured" and 1 <= len(probe.items()) <= 2
+    points = [probe.measure(item) for _, item in probe.items()]
+    targets = [t for p in points for t in p["targets"] if t["px"] > 0]
+    assert targets and all(p["holdout"] and p["psnr"] == 100.0 for p in points)
+    for t in targets:
+        assert t["box_psnr"] == 100.0 and t["no_depth"] == 0.0 and t["within_5mm"] == 1.0
+        assert t["depth_median_mm"] <= 0.5  # the capture's depth is the render's, rounded to mm
+        if "ar_truth" in t:
+            assert t["ar_truth"] == t["ar_splat"]
+    (row,) = fidelity_rows(points)
+    assert row["distance_m"] == 0.3 and row["scored"] >= 1 and row["ar_gap"] == 0.0
