@@ -46,6 +46,10 @@ from brave6d.core.errors import BraveError, DataError  # noqa: E402
 from brave6d.evaluation.report.fidelity import DISTANCES_M, FidelitySweep  # noqa: E402
 
 
+#: The default number of viewpoints per distance, over all objects (the issue's table: 12).
+VIEWS_PER_DISTANCE = 12
+
+
 def bundle_arg(text: str) -> tuple[str, Path]:
     """``[NAME=]PATH`` -> (name, path); the name defaults to the bundle folder's parent and name."""
     name, sep, path = text.partition("=")
@@ -153,8 +157,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--distances", type=distances_arg, default=DISTANCES_M,
                         help="simulated scenes: camera distances to the object's centre in metres "
                              f"(default {','.join(f'{d:g}' for d in DISTANCES_M)})")
-    parser.add_argument("--views", type=positive_int, default=FidelitySweep.views,
-                        help=f"simulated scenes: viewpoints per object and distance (default {FidelitySweep.views})")
+    parser.add_argument("--views", type=positive_int, default=None,
+                        help=f"simulated scenes: viewpoints per object and distance (default: about {VIEWS_PER_DISTANCE} "
+                             "per distance over all objects, 3 on the demo's 4)")
     parser.add_argument("--holdout-per-level", type=positive_int, default=FidelitySweep.holdout_per_level,
                         help="captured scenes: held-out frames per capture ring (default "
                              f"{FidelitySweep.holdout_per_level})")
@@ -195,9 +200,10 @@ def run(args: argparse.Namespace) -> int:
     if not scene.spec_path.is_file():
         raise DataError(f"{scene.spec_path}: no scene.yaml (is {scene.root} a scene directory?)")
     device = resolve_device(args.device)
-    sweep = FidelitySweep(distances_m=args.distances, views=args.views, holdout_per_level=args.holdout_per_level,
-                          seed=args.seed, device=str(device))
     configs = configurations(args, scene, device)
+    objects = max(1, len(configs[0]["bundle"].objects))
+    sweep = FidelitySweep(distances_m=args.distances, views=args.views or math.ceil(VIEWS_PER_DISTANCE / objects),
+                          holdout_per_level=args.holdout_per_level, seed=args.seed, device=str(device))
     measure(configs, scene, sweep)
     machine = machine_info(str(device))
     out: dict[str, Any] = {"scene": str(scene.root), "device": str(device), "machine": machine,
