@@ -89,6 +89,23 @@ def scene_bundle(scene: Any) -> Any:
     return load_bundle(scene.bundle_dir)
 
 
+def recorded_training(path: Path, bundle: Any) -> dict[str, Any]:
+    """A bundle's training time and holdout PSNR from the training's ``splat/metrics.json`` of the
+    scene directory holding it, when that file is the one the bundle records (same SHA-256); else None."""
+    import hashlib
+
+    from brave6d.core.atomic import read_json
+    from brave6d.core.layout import SceneDir
+
+    metrics = SceneDir(Path(path).resolve().parent).metrics_path
+    recorded = (bundle.manifest.get("source") or {}).get("metrics_sha256")
+    if not recorded or not metrics.is_file() or hashlib.sha256(metrics.read_bytes()).hexdigest() != recorded:
+        return {"train_s": None, "holdout_psnr": None}
+    data = read_json(metrics)
+    return {"train_s": data.get("train_time_s"), "train_cpu_s": data.get("train_cpu_s"),
+            "holdout_psnr": (data.get("holdout") or {}).get("psnr"), "steps": data.get("steps")}
+
+
 def configurations(args: argparse.Namespace, scene: Any, device: Any) -> list[dict[str, Any]]:
     """One entry per configuration: its name, what it is, its training figures and its renderer
     (None: the bundle's own splat) with the bundle it is measured with."""
@@ -101,7 +118,7 @@ def configurations(args: argparse.Namespace, scene: Any, device: Any) -> list[di
                 raise DataError(f"{path}: not a bundle (no {MANIFEST}; run 'brave6d export' first)")
             bundle = load_bundle(path)
             out.append({"name": name, "source": {"bundle": str(path)}, "bundle": bundle, "renderer": None,
-                        "train_s": None, "holdout_psnr": None, "gaussians": bundle.manifest.get("gaussians")})
+                        "gaussians": bundle.manifest.get("gaussians"), **recorded_training(path, bundle)})
         return out
     bundle = scene_bundle(scene)
     runs = []
@@ -215,7 +232,7 @@ def run(args: argparse.Namespace) -> int:
         rows = fidelity_rows(c["points"])
         headers, lines = fidelity_table(rows)
         trained = (f"trained {cell(c['train_s'], 0, ' s')}, holdout {cell(c['holdout_psnr'], 2, ' dB')}"
-                   if c["train_s"] is not None else "no training (a bundle)")
+                   if c["train_s"] is not None else "training time not recorded")
         print(f"\n{c['name']} ({c['mode']}, {trained}, {cell(c['gaussians'])} Gaussians)")
         print(format_table(headers, lines))
         levers.append([c["name"], cell(c["train_s"]), cell(c["holdout_psnr"], 2), cell(c["gaussians"]),

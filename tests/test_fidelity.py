@@ -263,3 +263,18 @@ def test_captured_frames_that_are_the_splats_own_renders_score_perfect(tmp_path:
             assert t["ar_truth"] == t["ar_splat"]
     (row,) = fidelity_rows(points)
     assert row["distance_m"] == 0.3 and row["scored"] >= 1 and row["ar_gap"] == 0.0
+
+
+def test_a_bundles_recorded_training_is_read_only_from_its_own_metrics(tmp_path: Path) -> None:
+    import hashlib
+    import json
+
+    scene = SceneDir(tmp_path / "scene")
+    scene.metrics_path.parent.mkdir(parents=True)
+    scene.metrics_path.write_text(json.dumps({"train_time_s": 105.0, "steps": 2000, "holdout": {"psnr": 32.19}}))
+    digest = hashlib.sha256(scene.metrics_path.read_bytes()).hexdigest()
+    bundle = SimpleNamespace(manifest={"source": {"metrics_sha256": digest}})
+    got = bench.recorded_training(scene.bundle_dir, bundle)
+    assert (got["train_s"], got["holdout_psnr"], got["steps"]) == (105.0, 32.19, 2000)
+    other = SimpleNamespace(manifest={"source": {"metrics_sha256": "0" * 64}})  # retrained since the export
+    assert bench.recorded_training(scene.bundle_dir, other) == {"train_s": None, "holdout_psnr": None}
