@@ -94,7 +94,7 @@ def advice_fidelity(rows: list[dict[str, Any]]) -> str:
             f"pixels at {fmt(worst['distance_m'] * 100, 1)} cm (the worst distance; median error "
             f"{fmt(worst['depth_median_mm'], 1)} mm)")
     text += (f", so every distance reaches the acceptance's {GOOD_WITHIN_5MM:.0%}" if worst["within_5mm"] >= GOOD_WITHIN_5MM
-             else f", short of the acceptance's {GOOD_WITHIN_5MM:.0%} at every distance")
+             else f", below the {GOOD_WITHIN_5MM:.0%} the acceptance asks at every distance")
     gaps = [r for r in rows if math.isfinite(r["ar_gap"])]
     if gaps:
         g = max(gaps, key=lambda r: abs(r["ar_gap"]))
