@@ -15,9 +15,9 @@ One comparison per view, the same for a simulated and a captured scene:
 
 Per view: PSNR/SSIM of the whole image (over the pixels the raw image covers) and of each target's
 bounding box, the depth error on the target's pixels (:func:`depth_errors`), and the static
-estimator (:mod:`brave6d.evaluation.report.single_view`) on the truth's depth and on the splat's, each
-scored with BOP19 against the ground truth (test depth: its own side's), for targets at least 10 %
-visible. :func:`fidelity_rows` pools the views per distance (medians; AR as the mean over targets,
+estimator (:mod:`brave6d.evaluation.report.single_view`) on the truth's depth and on the splat's, both
+scored with BOP19 against the ground truth with the truth's depth as VSD's test depth, for targets at
+least 10 % visible in the truth. :func:`fidelity_rows` pools the views per distance (medians; AR as the mean over targets,
 BOP's pooling), :func:`fidelity_table` lays them out with metrics as rows and distances as columns.
 """
 
@@ -233,13 +233,20 @@ class FidelityProbe:
             s["valid"] = raw_data_pixels(self.scene, (self.bundle.camera.width, self.bundle.camera.height))
         return s
 
-    def _estimates(self, depth_m: NDArray[np.floating], K: NDArray[np.float64], world_T_cam: NDArray[np.float64],
-                   obj_id: int, pixel: tuple[float, float], cam_T_obj: NDArray[np.float64], visib: float,
-                   side: str) -> dict[str, Any]:
+    def _estimates(self, sides: dict[str, NDArray[np.floating]], K: NDArray[np.float64],
+                   world_T_cam: NDArray[np.float64], obj_id: int, pixel: tuple[float, float],
+                   cam_T_obj: NDArray[np.float64], visib: float) -> dict[str, Any]:
+        """The static estimator on each side's depth (``truth``, ``splat``), both scored with the
+        truth's depth as VSD's test depth (as the realism section scores both on the captured depth)."""
         s = self._prepared()
-        est = s["estimator"].estimate(depth_m, K, world_T_cam, obj_id, pixel)
-        score = s["scorer"].score(est, obj_id, cam_T_obj, K, (depth_m.shape[1], depth_m.shape[0]), depth_m, visib)
-        return {f"ar_{side}": score.ar, f"found_{side}": est.cam_T_obj is not None}
+        test_depth = sides["truth"]
+        out: dict[str, Any] = {}
+        for side, depth_m in sides.items():
+            est = s["estimator"].estimate(depth_m, K, world_T_cam, obj_id, pixel)
+            score = s["scorer"].score(est, obj_id, cam_T_obj, K, (depth_m.shape[1], depth_m.shape[0]), test_depth,
+                                      visib)
+            out.update({f"ar_{side}": score.ar, f"found_{side}": est.cam_T_obj is not None})
+        return out
 
     def measure(self, item: Any) -> dict[str, Any]:
         """One view's point (see the module docstring)."""
@@ -275,9 +282,8 @@ class FidelityProbe:
             visib = num(server.visibility.compute(T, cam, depth_truth)[gt_id].visib_fract)
         target["visib_fract"] = visib
         if state is not None and visib >= MIN_VISIB_FRACT and target["px"] > 0:
-            pixel = (cam.cx, cam.cy)
-            target.update(self._estimates(depth_truth, cam.K, T, obj.obj_id, pixel, state.cam_T_obj, visib, "truth"))
-            target.update(self._estimates(view.depth, cam.K, T, obj.obj_id, pixel, state.cam_T_obj, visib, "splat"))
+            target.update(self._estimates({"truth": depth_truth, "splat": view.depth}, cam.K, T, obj.obj_id,
+                                          (cam.cx, cam.cy), state.cam_T_obj, visib))
         return {**point, "azimuth_deg": az, "elevation_deg": el, "psnr": psnr_img, "ssim": ssim_img,
                 "render_s": view.timings_ms["render"] / 1000.0, "truth_s": truth_s, "targets": [target]}
 
@@ -301,10 +307,8 @@ class FidelityProbe:
         h, w = rgb_truth.shape[:2]
         K = cam.cam_K
         world_T_cam = invert(cam.cam_T_world())
-        r = self.bundle.render
-        out = s["server"].renderer.render(world_T_cam, PinholeCamera(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
-                                          near=r.near, far=r.far, background=r.background,
-                                          depth_alpha_min=r.depth_alpha_min)
+        # the server's render (the bundle's render settings) at the frame's camera
+        out = s["server"].observe(world_T_cam, PinholeCamera(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2]), None)
         valid = s["valid"] if s["valid"] is not None and s["valid"].shape == (h, w) else None
         psnr_img, ssim_img = image_scores(out.rgb, rgb_truth, valid)
         names = {o.obj_id: o.name for o in self.bundle.objects}
@@ -322,12 +326,11 @@ class FidelityProbe:
                 cam_T_obj = g.cam_T_model()
                 verts = s["scorer"].models[g.obj_id].points
                 pixel = project(cam_T_obj[:3, :3] @ model_centre_m(verts) + cam_T_obj[:3, 3], K)
-                target.update(self._estimates(depth_truth, K, world_T_cam, g.obj_id, pixel, cam_T_obj,
-                                              gi.visib_fract, "truth"))
-                target.update(self._estimates(out.depth, K, world_T_cam, g.obj_id, pixel, cam_T_obj,
-                                              gi.visib_fract, "splat"))
+                target.update(self._estimates({"truth": depth_truth, "splat": out.depth}, K, world_T_cam, g.obj_id,
+                                              pixel, cam_T_obj, gi.visib_fract))
             targets.append(target)
-        return {**point, "psnr": psnr_img, "ssim": ssim_img, "render_s": out.render_ms / 1000.0, "targets": targets}
+        return {**point, "psnr": psnr_img, "ssim": ssim_img, "render_s": out.timings_ms["render"] / 1000.0,
+                "targets": targets}
 
 
 # ----------------------------------------------------------------------------- pooling per distance

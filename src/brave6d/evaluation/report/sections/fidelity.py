@@ -77,8 +77,9 @@ def render_fidelity(m: Measurement | None, out_dir: Path) -> RenderedSection:
                "data, left out), the BOP export's visible masks as the targets' pixels")
     body = (f"The served splat of `{m.summary.get('bundle')}` against {against}. Medians per distance; depth "
             "shares are of the target's pixels with truth depth (a pixel the splat gives no depth is not within); "
-            "AR: the static estimator on each side's depth, scored against the ground truth, mean over targets at "
-            f"least 10 % visible. `benchmarks/fidelity.py` runs the same for two trainings side by side.\n\n"
+            "AR: the static estimator on each side's depth, both scored against the ground truth with the "
+            "truth's depth as VSD's test depth, mean over targets at least 10 % visible in the truth. "
+            "`benchmarks/fidelity.py` runs the same for two trainings side by side.\n\n"
             f"![fidelity against distance]({png.name})\n\n" + format_table(headers, lines)
             + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted fidelity values"))
     return RenderedSection(TITLE, body, advice_fidelity(rows), [png])
