@@ -260,6 +260,34 @@ class Run:
         pass
 
 
+def local_run(config: str, scene: Any, every: int, device: Any, init_method: str) -> Run:
+    """A :class:`Run` in this process of the configuration ``NAME=PRESET[,field=value...]``."""
+    from brave6d.training import get_preset
+    from brave6d.training.presets import BENCHMARK_PRESETS
+
+    name, preset_name, overrides = parse_config(config)
+    return Run(name, configure(get_preset(preset_name, BENCHMARK_PRESETS), overrides), scene, every, device,
+               init_method)
+
+
+def interleave(runs: list[Any], chunk: int, desc: str = "interleaved training") -> None:
+    """Train ``runs`` (:class:`Run` or :class:`RemoteRun`) to their ends, ``chunk`` steps each in turn
+    (A, B, A, B, ...), so that all see the same machine load; a progress bar with ETA counts the steps."""
+    from brave6d.core.progress import progress_bar
+
+    bar = progress_bar(total=sum(r.steps for r in runs), desc=desc, unit="step",
+                       initial=sum(r.step for r in runs))
+    try:
+        while not all(r.done for r in runs):
+            for r in runs:  # one at a time: a worker trains only between a command and its answer
+                if not r.done:
+                    before = r.step
+                    r.advance(chunk)
+                    bar.update(r.step - before)
+    finally:
+        bar.close()
+
+
 # ----------------------------------------------------------------------------- A from another source tree
 class Source:
     """The source tree that trains configuration A (``--a-source``): its ``root``, the ``label`` the
@@ -539,22 +567,19 @@ def main(argv: list[str] | None = None) -> int:
 
     from brave6d.core.atomic import atomic_write_json
     from brave6d.core.layout import SceneDir
-    from brave6d.core.progress import format_table, progress_bar
+    from brave6d.core.progress import format_table
     from brave6d.core.runtime import prepare_process
 
     prepare_process()
-    from brave6d.training import get_preset, resolve_device
+    from brave6d.training import resolve_device
     from brave6d.training.holdout_eval import json_safe, peak_memory_mb
-    from brave6d.training.presets import BENCHMARK_PRESETS
 
     scene = SceneDir(args.scene_dir)
     device = resolve_device(args.device)
     here = {"dir": str(REPO)}
 
     def local(text: str) -> Run:
-        name, preset_name, overrides = parse_config(text)
-        return Run(name, configure(get_preset(preset_name, BENCHMARK_PRESETS), overrides), scene, args.every, device,
-                   args.init)
+        return local_run(text, scene, args.every, device, args.init)
 
     source = resolve_source(args.a_source) if args.a_source else None
     runs: list[Run | RemoteRun] = []
@@ -566,15 +591,7 @@ def main(argv: list[str] | None = None) -> int:
         for r in runs:
             if isinstance(r, Run):  # B's warm-up ran after A's: count from here
                 r.jit_baseline = jit_signatures()
-        total = sum(r.steps for r in runs)
-        bar = progress_bar(total=total, desc="interleaved training", unit="step")
-        while not all(r.done for r in runs):
-            for r in runs:  # one at a time: a worker trains only between a command and its answer
-                if not r.done:
-                    before = r.step
-                    r.advance(args.chunk)
-                    bar.update(r.step - before)
-        bar.close()
+        interleave(runs, args.chunk)
         a, b = runs
         sa, sb = a.summary(b.points[-1]["psnr"]), b.summary(a.points[-1]["psnr"])
     finally:

@@ -110,6 +110,13 @@ def fabricate(workdir: Path, nan: bool = False) -> MeasurementStore:
               "images_per_s": None if (nan and w == 640 and n == 2) else rate}
              for (w, h), n, rate in (((320, 240), 1, 4.0), ((320, 240), 2, 6.0), ((640, 480), 1, 1.0),
                                      ((640, 480), 2, 1.6))]
+    fid = [{"id": f"o1-d{round(d * 1000)}", "obj_id": 1, "object": "cup", "distance_m": d, "psnr": 30.0 - d,
+            "ssim": 0.95, "render_s": 0.1,
+            "targets": [{"obj_id": 1, "object": "cup", "px": round(400 / d), "visib_fract": 1.0, "box_psnr": 26.0 + 8 * d,
+                         "box_ssim": 0.9, "depth_px": round(400 / d), "depth_median_mm": None if (nan and d == 0.5) else 2.5,
+                         "within_5mm": 0.7, "within_15mm": 0.85, "no_depth": 0.0, "ar_truth": 0.8,
+                         "ar_splat": 0.3}]} for d in (0.1, 0.2, 0.5)]
+    _save(store, "fidelity", fid, {"bundle": "/x/bundle", "mode": "simulated"}, {"views": 1, "image": "160x100"})
     _save(store, "synthesis", synth, {"spec": "/x/scene.yaml", "objects": ["cup", "nut"]},
           {"sizes": ["320x240", "640x480"], "workers": [1, 2], "images": 8})
     return store
@@ -129,7 +136,7 @@ def test_report_from_fabricated_measurements(tmp_path: Path) -> None:
     md = result.markdown.read_text()
     assert [p.name for p in result.figures] == [s.figure for s in page_order()]
     assert {"training.png", "handeye.png", "latency.png", "views.png", "baseline.png", "distance.png",
-            "realism.png", "synthesis.png"} <= {p.name for p in result.figures}
+            "realism.png", "synthesis.png", "fidelity.png"} <= {p.name for p in result.figures}
     for png in result.figures:
         w, h = _valid_png(png)
         assert w > 400 and h > 250
