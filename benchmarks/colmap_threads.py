@@ -1,6 +1,6 @@
 """COLMAP triangulation (fixed poses) with one thread against all threads: time and repeatability.
 
-Extracts and matches the scene's training images once (``match_features``), then triangulates the
+Extracts, matches and triangulates the scene's training images once (``triangulate``), then triangulates the
 same database ``--repeats`` times per configuration, interleaved (1 thread, all threads, 1, all, ...),
 and prints the median seconds and how many different point sets each configuration produced (a
 hash of the points, their tracks and colours). The bundle adjustment inside the triangulation is
@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from brave6d.core.layout import SceneDir
     from brave6d.training import load_scene
-    from brave6d.training.colmap_init import ColmapOptions, match_features, triangulate_database
+    from brave6d.training.colmap_init import ColmapOptions, triangulate, triangulate_database
 
     data = load_scene(SceneDir(args.scene_dir), 2)
     if data.undistorted_root is None:
@@ -57,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     seconds: dict[str, list[float]] = {name: [] for name in configs}
     digests: dict[str, set[str]] = {name: set() for name in configs}
     with tempfile.TemporaryDirectory(prefix="colmap-threads-") as work:
-        db_path, n_pairs, _ = match_features(image_dir, camera, images, Path(work), ColmapOptions())
+        _, timings = triangulate(image_dir, camera, images, Path(work), ColmapOptions())
+        db_path, n_pairs = Path(work) / "database.db", timings["pairs"]
         for r in range(args.repeats):
             for name, threads in configs.items():
                 t0 = time.perf_counter()

@@ -196,32 +196,10 @@ def triangulate(
 ):  # type: ignore[no-untyped-def]
     """Extract, match and triangulate with fixed poses; returns the pycolmap Reconstruction and timings.
 
-    ``images``: ``(file name in image_dir, base_T_cam)``. ``work_dir`` holds the database.
-    """
-    t0 = time.perf_counter()
-    db_path, n_pairs, t_extract = match_features(image_dir, camera, images, work_dir, options)
-    t2 = time.perf_counter()
-    rec = triangulate_database(db_path, image_dir, images, work_dir / "triangulated", options)
-    t3 = time.perf_counter()
-    log.info("COLMAP: %d images, %d pairs, %d points (extract %.1f s, match %.1f s, triangulate %.1f s)",
-             len(images), n_pairs, rec.num_points3D(), t_extract, t2 - t0 - t_extract, t3 - t2)
-    rec_timings = {"extract_s": t_extract, "match_s": t2 - t0 - t_extract, "triangulate_s": t3 - t2,
-                   "pairs": n_pairs}
-    return rec, rec_timings
-
-
-def match_features(
-    image_dir: Path,
-    camera: PinholeCamera,
-    images: list[tuple[str, NDArray[np.float64]]],
-    work_dir: Path,
-    options: ColmapOptions = ColmapOptions(),
-) -> tuple[Path, int, float]:
-    """SIFT features of ``images`` and their verified matches with the nearest cameras, in a new
-    ``work_dir/database.db``; returns its path, the number of pairs and the extraction seconds.
-
+    ``images``: ``(file name in image_dir, base_T_cam)``. ``work_dir`` holds the database
+    (``database.db``, which :func:`triangulate_database` can triangulate again).
     Repeatable: images are imported in a fixed order, every pair's RANSAC is seeded
-    (``options.seed``) and runs on one thread, so the database does not depend on the threads.
+    (``options.seed``) and runs on one thread, and the bundle adjustment runs on one thread.
     """
     pc = _pycolmap()
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -241,7 +219,7 @@ def match_features(
     pc.import_images(db_path, image_dir, camera_mode=pc.CameraMode.SINGLE, image_names=names, options=reader)
     pc.extract_features(db_path, image_dir, image_names=names, camera_mode=pc.CameraMode.SINGLE,
                         reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
-    t_extract = time.perf_counter() - t0
+    t1 = time.perf_counter()
     centres = np.array([pose_of[n][:3, 3] for n in names])
     pairs = nearest_camera_pairs(centres, options.neighbours)
     pairs_path = work_dir / "pairs.txt"
@@ -255,22 +233,23 @@ def match_features(
     pc.match_image_pairs(db_path, matching_options=matching,
                          pairing_options=pc.ImportedPairingOptions(match_list_path=pairs_path),
                          verification_options=verification, device=pc.Device.cpu)
-    return db_path, len(pairs), t_extract
+    t2 = time.perf_counter()
+    rec = triangulate_database(db_path, image_dir, images, work_dir / "triangulated", options)
+    t3 = time.perf_counter()
+    log.info("COLMAP: %d images, %d pairs, %d points (extract %.1f s, match %.1f s, triangulate %.1f s)",
+             len(names), len(pairs), rec.num_points3D(), t1 - t0, t2 - t1, t3 - t2)
+    rec_timings = {"extract_s": t1 - t0, "match_s": t2 - t1, "triangulate_s": t3 - t2, "pairs": len(pairs)}
+    return rec, rec_timings
 
 
-def triangulate_database(
-    db_path: Path,
-    image_dir: Path,
-    images: list[tuple[str, NDArray[np.float64]]],
-    out_dir: Path,
-    options: ColmapOptions = ColmapOptions(),
-):  # type: ignore[no-untyped-def]
+def triangulate_database(db_path: Path, image_dir: Path, images: list[tuple[str, NDArray[np.float64]]],
+                         out_dir: Path, options: ColmapOptions = ColmapOptions()):  # type: ignore[no-untyped-def]
     """Triangulate the matches of ``db_path`` with the poses of ``images`` held fixed (``out_dir``:
     COLMAP's scratch folder); returns the pycolmap Reconstruction.
 
     ``options.triangulation_threads`` (None: 1) are the threads of the point-only bundle adjustment
     (Ceres). With more than one, Ceres sums the cost and gradient per thread over whichever residual
-    blocks each thread took, so the rounding can change from run to run, and a point whose
+    blocks each thread took, so the rounding can change between runs, and a point whose
     reprojection error is near a filter threshold (``merge_max_reproj_error``, ``max_reprojection_error``)
     can end in another track or be dropped. One thread makes it repeatable at no measurable cost
     (docs/BENCHMARKS.md, ``benchmarks/colmap_threads.py``).
