@@ -13,6 +13,11 @@ Other stages (serve, evaluation) import only these names:
 - Gaussians: ``GaussianModel``, ``rasterize``, ``SplatData``, ``read_ply``, ``write_ply``, ``SH_C0``,
   ``sh_degree_for``, ``apply_filter_3d`` / ``compute_filter_3d`` (Mip-Splatting's 3D filter: what every
   renderer of a splat applies before ``rasterize``).
+
+Repeatable: on the CPU, the same scene, preset and seed give a byte-identical ``point_cloud.ply``
+(same Gaussians) on the same machine and install at the same thread count, COLMAP's initial points
+included (seeded one-thread RANSAC, one-thread bundle adjustment), unless the time budget stops the
+run; CUDA training is not (gsplat sums gradients with atomics). See docs/ARCHITECTURE.md section 5.
 """
 
 from brave6d.core.lazy import lazy_exports

@@ -74,7 +74,7 @@ class ColmapOptions:
     max_reprojection_error: float = 2.0  # px; points above are dropped from the initialisation
     seed: int = 0  # RANSAC and triangulation seeds (repeatable points)
     match_threads: int | None = None  # matching + verification threads (None: num_threads)
-    triangulation_threads: int | None = None  # (None: num_threads)
+    triangulation_threads: int | None = None  # bundle adjustment threads (None: 1, repeatable; see triangulate_database)
 
 
 # ----------------------------------------------------------------------------- COLMAP model
@@ -194,9 +194,12 @@ def triangulate(
     work_dir: Path,
     options: ColmapOptions = ColmapOptions(),
 ):  # type: ignore[no-untyped-def]
-    """Extract, match and triangulate with fixed poses; returns the pycolmap Reconstruction.
+    """Extract, match and triangulate with fixed poses; returns the pycolmap Reconstruction and timings.
 
-    ``images``: ``(file name in image_dir, base_T_cam)``. ``work_dir`` holds the database.
+    ``images``: ``(file name in image_dir, base_T_cam)``. ``work_dir`` holds the database
+    (``database.db``, which :func:`triangulate_database` can triangulate again).
+    Repeatable: images are imported in a fixed order, every pair's RANSAC is seeded
+    (``options.seed``) and runs on one thread, and the bundle adjustment runs on one thread.
     """
     pc = _pycolmap()
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -225,11 +228,34 @@ def triangulate(
     matching.num_threads = options.num_threads if options.match_threads is None else options.match_threads
     verification = pc.TwoViewGeometryOptions()
     verification.ransac.random_seed = options.seed
+    verification.ransac.num_threads = 1  # COLMAP's parallel RANSAC keeps whichever thread's best model comes first
     pc.set_random_seed(options.seed)
     pc.match_image_pairs(db_path, matching_options=matching,
                          pairing_options=pc.ImportedPairingOptions(match_list_path=pairs_path),
                          verification_options=verification, device=pc.Device.cpu)
     t2 = time.perf_counter()
+    rec = triangulate_database(db_path, image_dir, images, work_dir / "triangulated", options)
+    t3 = time.perf_counter()
+    log.info("COLMAP: %d images, %d pairs, %d points (extract %.1f s, match %.1f s, triangulate %.1f s)",
+             len(names), len(pairs), rec.num_points3D(), t1 - t0, t2 - t1, t3 - t2)
+    rec_timings = {"extract_s": t1 - t0, "match_s": t2 - t1, "triangulate_s": t3 - t2, "pairs": len(pairs)}
+    return rec, rec_timings
+
+
+def triangulate_database(db_path: Path, image_dir: Path, images: list[tuple[str, NDArray[np.float64]]],
+                         out_dir: Path, options: ColmapOptions = ColmapOptions()):  # type: ignore[no-untyped-def]
+    """Triangulate the matches of ``db_path`` with the poses of ``images`` held fixed (``out_dir``:
+    COLMAP's scratch folder); returns the pycolmap Reconstruction.
+
+    ``options.triangulation_threads`` (None: 1) are the threads of the point-only bundle adjustment
+    (Ceres). With more than one, Ceres sums the cost and gradient per thread over whichever residual
+    blocks each thread took, so the rounding can change between runs, and a point whose
+    reprojection error is near a filter threshold (``merge_max_reproj_error``, ``max_reprojection_error``)
+    can end in another track or be dropped. One thread makes it repeatable at no measurable cost
+    (docs/BENCHMARKS.md, ``benchmarks/colmap_threads.py``).
+    """
+    pc = _pycolmap()
+    pose_of = dict(images)
     db = pc.Database.open(db_path)
     try:
         rec = pc.Reconstruction()
@@ -241,17 +267,11 @@ def triangulate(
     finally:
         db.close()
     pipeline = pc.IncrementalPipelineOptions()
-    pipeline.num_threads = options.num_threads if options.triangulation_threads is None else options.triangulation_threads
+    pipeline.num_threads = 1 if options.triangulation_threads is None else options.triangulation_threads
     pipeline.random_seed = options.seed
     pipeline.triangulation.random_seed = options.seed
-    out = work_dir / "triangulated"
-    out.mkdir(exist_ok=True)
-    rec = pc.triangulate_points(rec, db_path, image_dir, out, options=pipeline)
-    t3 = time.perf_counter()
-    log.info("COLMAP: %d images, %d pairs, %d points (extract %.1f s, match %.1f s, triangulate %.1f s)",
-             len(names), len(pairs), rec.num_points3D(), t1 - t0, t2 - t1, t3 - t2)
-    rec_timings = {"extract_s": t1 - t0, "match_s": t2 - t1, "triangulate_s": t3 - t2, "pairs": len(pairs)}
-    return rec, rec_timings
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return pc.triangulate_points(rec, db_path, image_dir, out_dir, options=pipeline)
 
 
 def points_of(rec: Any, max_error: float) -> InitPoints:
