@@ -124,9 +124,23 @@ def parse_config(text: str) -> tuple[str, str, dict[str, Any]]:
         key, _, value = pair.partition("=")
         if key not in keys:
             raise SystemExit(f"{text}: {key!r} is not a Preset field (fields: {', '.join(listed)})")
-        overrides[key] = None if value.lower() == "none" else json.loads(value) if value[:1] in "[{" else (
-            float(value) if "." in value or "e" in value.lower() else int(value))
+        overrides[key] = typed_value(value)
     return name, preset, overrides
+
+
+def typed_value(value: str) -> Any:
+    """A configuration's value: ``none``, a JSON list or object, an integer, a float, else the text
+    itself (``antialiasing=mip``); the preset checks it and names the field when it is wrong."""
+    if value.lower() == "none":
+        return None
+    if value[:1] in "[{":
+        return json.loads(value)
+    for number in (int, float):
+        try:
+            return number(value)
+        except ValueError:
+            pass
+    return value
 
 
 def time_to(points: list[dict[str, float]], level: float, clock: str) -> float | None:

@@ -30,6 +30,8 @@ def test_time_to_a_level_interpolates_between_evaluations() -> None:
 def test_configurations_parse_to_typed_preset_overrides() -> None:
     assert ttq.parse_config("new=fast,steps=1000,downscale=4,grow_grad2d=2e-4,max_gaussians=none") == (
         "new", "fast", {"steps": 1000, "downscale": 4, "grow_grad2d": 2e-4, "max_gaussians": None})
+    # a text value (failed before: int('mip') raised a ValueError traceback)
+    assert ttq.parse_config("mip=fast,antialiasing=mip,depth_lambda=0")[2] == {"antialiasing": "mip", "depth_lambda": 0}
     with pytest.raises(SystemExit, match="'stepz' is not a Preset field"):
         ttq.parse_config("x=fast,stepz=3")
     with pytest.raises(SystemExit, match="NAME=PRESET"):
