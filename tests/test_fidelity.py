@@ -19,8 +19,9 @@ from hypothesis.extra.numpy import arrays
 
 from brave6d.core.errors import DataError
 from brave6d.core.layout import SceneDir
-from brave6d.evaluation.report.fidelity import (FidelityProbe, FidelitySweep, depth_errors, fidelity_rows,
-                                                fidelity_table, image_scores, target_box)
+from brave6d.evaluation.report.fidelity import (FidelityProbe, FidelitySweep, TrainingSampling, depth_errors,
+                                                fidelity_rows, fidelity_table, image_scores, sampling_ceiling,
+                                                sampling_ratio, target_box, training_sampling)
 
 SPEC = importlib.util.spec_from_file_location(
     "fidelity_benchmark", Path(__file__).resolve().parent.parent / "benchmarks" / "fidelity.py")
@@ -106,6 +107,72 @@ def test_identical_and_constant_images_give_defined_scores(level: int) -> None:
     assert all(math.isnan(v) for v in image_scores(a, a, valid=nothing))
 
 
+# ----------------------------------------------------------------------------- the sampling ceiling
+def _checkerboard(h: int, w: int, cell: int) -> np.ndarray:
+    yy, xx = np.mgrid[0:h, 0:w]
+    board = (((yy // cell) + (xx // cell)) % 2 * 200 + 30).astype(np.uint8)
+    return np.repeat(board[..., None], 3, axis=2)
+
+
+def test_sampling_ceiling_loses_detail_finer_than_the_training_pixel_and_keeps_coarse_detail() -> None:
+    fine, coarse = _checkerboard(64, 80, 1), _checkerboard(64, 80, 16)
+    box = (slice(8, 56), slice(8, 72))
+    assert sampling_ceiling(fine, 2.0, box) < 12.0  # a 1-pixel pattern averages away at half the sampling
+    assert sampling_ceiling(coarse, 2.0, box) > sampling_ceiling(fine, 2.0, box) + 8.0
+    ceilings = [sampling_ceiling(coarse, r, box) for r in (2.0, 4.0, 8.0)]
+    assert all(a > b for a, b in zip(ceilings, ceilings[1:]))  # coarser training, lower ceiling
+    flat = np.full((40, 50, 3), 77, dtype=np.uint8)
+    assert sampling_ceiling(flat, 4.0) == 100.0  # nothing to lose: the PSNR of identical images
+
+
+@pytest.mark.parametrize("ratio", [1.0, 0.5, 0.0, -3.0, math.nan, math.inf])
+def test_sampling_ceiling_is_nan_where_the_training_sampled_at_least_as_finely(ratio: float) -> None:
+    assert math.isnan(sampling_ceiling(_checkerboard(16, 16, 1), ratio))
+
+
+@given(arrays(np.uint8, st.tuples(st.integers(1, 24), st.integers(1, 24), st.just(3))),
+       st.floats(0.0, 1e9, allow_nan=False), st.integers(0, 23), st.integers(0, 23))
+def test_sampling_ceiling_is_finite_or_nan_never_inf_for_any_image_and_ratio(img: np.ndarray, ratio: float, r0: int,
+                                                                             c0: int) -> None:
+    box = (slice(min(r0, img.shape[0] - 1), img.shape[0]), slice(min(c0, img.shape[1] - 1), img.shape[1]))
+    value = sampling_ceiling(img, ratio, box)
+    if ratio <= 1.0:
+        assert math.isnan(value)
+    else:
+        assert math.isfinite(value) and 0.0 <= value <= 100.0
+
+
+def test_sampling_ratio_compares_the_training_and_view_pixel_footprints() -> None:
+    train = TrainingSampling(nearest_m=0.2, focal_px=457.0 / 2)  # the demo: 20 cm ring, half resolution
+    assert sampling_ratio(0.1, 457.0, train) == pytest.approx(4.0)
+    assert sampling_ratio(0.2, 457.0, train) == pytest.approx(2.0)
+    assert sampling_ratio(0.5, 457.0, train) == pytest.approx(0.8)
+    assert sampling_ratio(0.2, 457.0 / 4, train) == pytest.approx(0.5)  # a quarter-size view is coarser
+    assert math.isnan(sampling_ratio(0.2, 457.0, None)) and math.isnan(sampling_ratio(0.0, 457.0, train))
+
+
+def test_training_sampling_reads_the_recorded_downscale_and_the_nearest_ring(tmp_path: Path) -> None:
+    import json
+
+    from brave6d.core.layout import FrameLog, FrameRecord
+
+    scene = SceneDir(tmp_path / "scene")
+    assert training_sampling(scene, 460.0) is None  # no training recorded
+    scene.metrics_path.parent.mkdir(parents=True)
+    scene.metrics_path.write_text(json.dumps({"preset_config": {"downscale": 4}}))
+    scene.frames_path.parent.mkdir(parents=True)
+    log = FrameLog(scene.frames_path)
+    for k, d in enumerate((0.4, 0.25, 0.3)):
+        log.append(FrameRecord(index=k, view_id=str(k), distance_level=k, distance_m=d, rgb=f"rgb/{k:06d}.png",
+                               base_T_tcp=np.eye(4).tolist(), joints=[0.0] * 6, timestamp=float(k)))
+    assert training_sampling(scene, 460.0) == TrainingSampling(0.25, 115.0)
+    scene.metrics_path.write_text(json.dumps({"images": {"downscale": 2}, "preset_config": {"downscale": 4}}))
+    assert training_sampling(scene, 460.0) == TrainingSampling(0.25, 230.0)  # the images' record first
+    assert training_sampling(scene, 460.0, downscale=1) == TrainingSampling(0.25, 460.0)  # a given one wins
+    with pytest.raises(DataError, match="downscale must be positive"):
+        training_sampling(scene, 460.0, downscale=0)
+
+
 # ----------------------------------------------------------------------------- pooling per distance
 def _target(px: int, **figures: float) -> dict:
     return {"obj_id": 1, "object": "cube", "px": px, **figures}
@@ -113,9 +180,10 @@ def _target(px: int, **figures: float) -> dict:
 
 def test_rows_and_table_stay_defined_with_invisible_targets_and_no_depth() -> None:
     good = _target(900, box_psnr=30.0, box_ssim=0.9, depth_px=900, depth_median_mm=2.0, within_5mm=0.8,
-                   within_15mm=0.95, no_depth=0.0, ar_truth=1.0, ar_splat=0.5)
+                   within_15mm=0.95, no_depth=0.0, ar_truth=1.0, ar_splat=0.5, sampling_ratio=4.0,
+                   box_psnr_ceiling=31.5)
     no_depth = _target(400, box_psnr=26.0, box_ssim=0.8, depth_px=0, depth_median_mm=None, within_5mm=None,
-                       within_15mm=None, no_depth=None)
+                       within_15mm=None, no_depth=None, sampling_ratio=0.8, box_psnr_ceiling=math.nan)
     points = [
         {"distance_m": 0.1, "psnr": 30.0, "ssim": 0.9, "targets": [good]},
         {"distance_m": 0.1, "psnr": 100.0, "ssim": 1.0, "targets": [_target(0)]},  # not visible
@@ -128,8 +196,13 @@ def test_rows_and_table_stay_defined_with_invisible_targets_and_no_depth() -> No
     assert near["box_psnr"] == 30.0 and near["within_5mm"] == 0.8  # ... but has no box or depth figures
     assert near["ar_gap"] == pytest.approx(0.5)
     assert far["box_psnr"] == 26.0 and math.isnan(far["depth_median_mm"]) and math.isnan(far["ar_gap"])
+    assert (near["box_psnr_ceiling"], near["sampling_ratio"], far["sampling_ratio"]) == (31.5, 4.0, 0.8)
+    assert math.isnan(far["box_psnr_ceiling"])  # r <= 1: no ceiling below the truth
     headers, lines = fidelity_table([near, far])
     assert headers == ["metric", "10 cm", "50 cm"]
+    by_label = {line[0]: line[1:] for line in lines}
+    assert by_label["box PSNR ceiling at the training's sampling (dB)"] == ["31.5", "n/a"]
+    assert by_label["sampling ratio r (training pixel / view pixel on the target)"] == ["4.00", "0.80"]
     text = " ".join(c for line in lines for c in line).lower()
     assert "nan" not in text and "inf" not in text and "n/a" in text
     assert fidelity_table(fidelity_rows([{**points[0], "distance_m": 0.125}]))[0][1] == "12.5 cm"
@@ -148,6 +221,8 @@ def sim_scene(tmp_path_factory: pytest.TempPathFactory) -> SceneDir:
     spec["simulation"] = {"true_tcp_T_camera": {"xyz": [0.0, -0.06, 0.03], "rpy_deg": [0.0, 0.0, 0.0]},
                           "background_rgb": [0, 0, 0]}
     scene.spec_path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    scene.metrics_path.parent.mkdir(parents=True, exist_ok=True)  # trained at 1/8: coarser than the quarter-size views
+    scene.metrics_path.write_text('{"images": {"downscale": 8}}')
     return scene
 
 
@@ -168,8 +243,15 @@ def test_probe_measures_a_simulated_scene_against_its_truth(sim_scene: SceneDir)
         assert t["visib_fract"] == 1.0  # nothing stands between the camera and the cube in the truth
         assert 0.0 <= t["ar_truth"] <= 1.0 and 0.0 <= t["ar_splat"] <= 1.0
         assert math.isfinite(p["psnr"]) and math.isfinite(t["box_psnr"])
+        # frames at 30 cm, trained at 1/8, viewed at 1/4: r = 0.3 * 8 / (d * 4)
+        assert t["sampling_ratio"] == pytest.approx(0.6 / p["distance_m"], rel=0.01)
+        assert 0.0 < t["box_psnr_ceiling"] <= 100.0
     near, far = fidelity_rows(points)
     assert near["px"] > far["px"]  # the cubes look larger from closer
+    assert probe.settings()["training_sampling"] == {"nearest_ring_m": 0.3, "focal_px": bundle.camera.fx / 8}
+    full = FidelityProbe(sim_scene, bundle, sweep, downscale=1)  # trained at full size: finer than these views
+    point = full.measure(full.items()[0][1])
+    assert point["targets"][0]["sampling_ratio"] < 1.0 and math.isnan(point["targets"][0]["box_psnr_ceiling"])
     # the same views of the splat lifted by 3 cm: the depth error on the targets grows by about that
     splat = read_ply(bundle.splat_path)
     splat.means[:, 2] += 0.03
@@ -195,6 +277,9 @@ def test_report_section_measures_and_renders(sim_scene: SceneDir, tmp_path: Path
     page = SECTION.render({"fidelity": m}, tmp_path)
     assert (tmp_path / "fidelity.png").is_file() and "depth error on the target's pixels" in page.body
     assert "nan" not in page.body.lower()
+    ceiling = next(line for line in page.body.splitlines() if "box PSNR ceiling at the training's sampling" in line)
+    assert "n/a" not in ceiling  # r = 0.3 * 8 / (0.2 * 4) = 3: a measured ceiling
+    assert "the splat cannot exceed what its training images sampled" in page.body
 
 
 def test_clear_errors_for_a_bundle_without_objects_or_a_spec_without_them(sim_scene: SceneDir,

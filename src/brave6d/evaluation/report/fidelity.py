@@ -17,7 +17,10 @@ Per view: PSNR/SSIM of the whole image (over the pixels the raw image covers) an
 bounding box, the depth error on the target's pixels (:func:`depth_errors`), and the static
 estimator (:mod:`brave6d.evaluation.report.single_view`) on the truth's depth and on the splat's, both
 scored with BOP19 against the ground truth with the truth's depth as VSD's test depth, for targets at
-least 10 % visible in the truth. :func:`fidelity_rows` pools the views per distance (medians; AR as the mean over targets,
+least 10 % visible in the truth. Beside the box PSNR, its **sampling ceiling**
+(:func:`sampling_ceiling`): the truth band-limited to what the training images could hold at that
+view (:class:`TrainingSampling`, :func:`sampling_ratio`) against the full truth, the best box PSNR a
+splat trained on those images can reach. :func:`fidelity_rows` pools the views per distance (medians; AR as the mean over targets,
 BOP's pooling), :func:`fidelity_table` lays them out with metrics as rows and distances as columns.
 """
 
@@ -127,15 +130,90 @@ def image_scores(splat: NDArray[np.uint8], truth: NDArray[np.uint8], valid: NDAr
     return psnr(a, b, v), ssim(a, b, v)
 
 
+# ----------------------------------------------------------------------------- the training's sampling
+@dataclass(frozen=True)
+class TrainingSampling:
+    """How finely the training images sampled the scene: the nearest capture ring (m) and the
+    training images' focal length (px: the capture's over the preset's downscale). A training
+    pixel covers ``nearest_m / focal_px`` metres on a target at the nearest ring, the finest it saw."""
+
+    nearest_m: float
+    focal_px: float
+
+    @property
+    def footprint_m(self) -> float:
+        return self.nearest_m / self.focal_px
+
+
+def recorded_downscale(metrics: dict[str, Any]) -> float:
+    """The training images' downscale recorded in a training's ``metrics.json`` (its ``images``
+    record, else its preset's); NaN when neither records one."""
+    return num((metrics.get("images") or {}).get("downscale") or (metrics.get("preset_config") or {}).get("downscale"))
+
+
+def training_sampling(scene: Any, focal_px: float, downscale: float | None = None) -> TrainingSampling | None:
+    """The scene's :class:`TrainingSampling` for a capture camera of focal ``focal_px`` (the bundle's):
+    ``downscale`` (None or NaN: the training's record, :func:`recorded_downscale` of ``splat/metrics.json``),
+    the nearest ring from the capture's frames (``distance_m``; else ``scene.yaml``'s
+    ``capture.distances_m``). None when the training or the rings are not recorded."""
+    if downscale is None or math.isnan(downscale):
+        if not scene.metrics_path.is_file():
+            return None
+        from brave6d.core.atomic import read_json
+
+        downscale = recorded_downscale(read_json(scene.metrics_path))
+        if not math.isfinite(downscale):
+            return None
+    if not (math.isfinite(downscale) and downscale > 0):
+        raise DataError(f"{scene.root}: the training's image downscale must be positive, got {downscale}")
+    if scene.frames_path.is_file():
+        rings = [r.distance_m for r in scene.frames()]
+    else:
+        capture = getattr(scene.load_spec(), "capture", None)
+        rings = list(capture.distances_m) if capture is not None else []
+    if not rings:
+        return None
+    return TrainingSampling(float(min(rings)), float(focal_px) / float(downscale))
+
+
+def sampling_ratio(view_distance_m: float, view_focal_px: float, sampling: TrainingSampling | None) -> float:
+    """r = the training's pixel footprint on the target / the view's (``view_distance_m /
+    view_focal_px``): above 1 the view resolves detail no training image held. NaN when unknown."""
+    if sampling is None or not (view_distance_m > 0 and view_focal_px > 0):
+        return math.nan
+    return sampling.footprint_m / (float(view_distance_m) / float(view_focal_px))
+
+
+def sampling_ceiling(truth: NDArray[np.uint8], ratio: float, box: tuple[slice, slice] | None = None,
+                     valid: NDArray[np.bool_] | None = None) -> float:
+    """PSNR (dB) in ``box`` of the truth band-limited to the training's sampling against the full
+    truth: the truth area-averaged to 1/``ratio`` of its size and bilinearly back, i.e. the best a
+    splat that only saw pixels ``ratio`` times coarser can match it (100 dB: no detail lost). NaN
+    when ``ratio`` <= 1 or unknown (no ceiling: the training sampled at least as finely) or the box
+    holds no valid pixel; never inf."""
+    import cv2
+
+    r = num(ratio)
+    if not (math.isfinite(r) and r > 1.0):
+        return math.nan
+    t = np.ascontiguousarray(truth)
+    h, w = t.shape[:2]
+    small = cv2.resize(t, (max(1, round(w / r)), max(1, round(h / r))), interpolation=cv2.INTER_AREA)
+    blurred = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR).reshape(t.shape)
+    return image_scores(blurred, t, valid, box)[0]
+
+
 def compare_target(rgb_splat: NDArray[np.uint8], rgb_truth: NDArray[np.uint8], depth_splat: NDArray[np.floating],
                    depth_truth: NDArray[np.floating], mask: NDArray[np.bool_],
-                   valid: NDArray[np.bool_] | None = None) -> dict[str, Any]:
-    """One target's image and depth figures: its pixels, box PSNR/SSIM and :class:`DepthErrors`."""
+                   valid: NDArray[np.bool_] | None = None, ratio: float = math.nan) -> dict[str, Any]:
+    """One target's image and depth figures: its pixels, box PSNR/SSIM, the box's
+    :func:`sampling_ceiling` at the sampling ratio ``ratio`` and :class:`DepthErrors`."""
     m = np.asarray(mask, dtype=bool) if valid is None else np.asarray(mask, dtype=bool) & np.asarray(valid, bool)
     box = target_box(m)
     box_psnr, box_ssim = image_scores(rgb_splat, rgb_truth, valid, box) if box is not None else (math.nan, math.nan)
-    return {"px": int(m.sum()), "box_psnr": box_psnr, "box_ssim": box_ssim,
-            **depth_errors(depth_splat, depth_truth, m).to_json()}
+    ceiling = sampling_ceiling(rgb_truth, ratio, box, valid) if box is not None else math.nan
+    return {"px": int(m.sum()), "box_psnr": box_psnr, "box_ssim": box_ssim, "sampling_ratio": num(ratio),
+            "box_psnr_ceiling": ceiling, **depth_errors(depth_splat, depth_truth, m).to_json()}
 
 
 # ----------------------------------------------------------------------------- the views of a scene
@@ -147,7 +225,8 @@ class FidelityProbe:
     (default: the bundle's). :meth:`items` lists ``(id, item)`` pairs, :meth:`measure` measures one.
     """
 
-    def __init__(self, scene: Any, bundle: Any, sweep: FidelitySweep, renderer: Any = None) -> None:
+    def __init__(self, scene: Any, bundle: Any, sweep: FidelitySweep, renderer: Any = None,
+                 downscale: float | None = None) -> None:
         if not bundle.objects:
             raise DataError(f"{bundle.root}: the bundle has no objects to look at")
         if sweep.views < 1 or not sweep.distances_m or any(not (d > 0 and math.isfinite(d)) for d in sweep.distances_m):
@@ -163,6 +242,8 @@ class FidelityProbe:
         if sweep.scale != 1.0:
             camera = camera.scaled(max(16, round(camera.width * sweep.scale)), max(16, round(camera.height * sweep.scale)))
         self.camera = camera
+        #: the training images' sampling (``downscale``: the training's, default the scene's record)
+        self.sampling = training_sampling(scene, bundle.camera.fx, downscale)
         self._items = self._sim_items() if self.simulated else self._captured_items()
 
     # ------------------------------------------------------------------ what is measured
@@ -171,7 +252,9 @@ class FidelityProbe:
 
     def settings(self) -> dict[str, Any]:
         s = self.sweep
-        out: dict[str, Any] = {"mode": self.mode, "device": s.device, "objects": len(self.bundle.objects)}
+        out: dict[str, Any] = {"mode": self.mode, "device": s.device, "objects": len(self.bundle.objects),
+                               "training_sampling": None if self.sampling is None else
+                               {"nearest_ring_m": self.sampling.nearest_m, "focal_px": self.sampling.focal_px}}
         if self.simulated:
             out.update(distances_m=list(s.distances_m), views=s.views, seed=s.seed,
                        image=f"{self.camera.width}x{self.camera.height}")
@@ -275,7 +358,8 @@ class FidelityProbe:
         psnr_img, ssim_img = image_scores(view.rgb, truth.rgb)
         mask = truth.object_ids == s["sim_index"][obj.name]
         target = {"obj_id": obj.obj_id, "object": obj.name,
-                  **compare_target(view.rgb, truth.rgb, view.depth, depth_truth, mask)}
+                  **compare_target(view.rgb, truth.rgb, view.depth, depth_truth, mask,
+                                   ratio=sampling_ratio(distance, cam.fx, self.sampling))}
         state = view.target()
         visib = num(state.visib_fract) if state is not None else math.nan
         if server.visibility is not None:  # visible in the truth (the served fraction is the splat's)
@@ -321,7 +405,8 @@ class FidelityProbe:
             if mask.ndim == 3:
                 mask = mask.any(axis=2)
             target = {"obj_id": g.obj_id, "object": names.get(g.obj_id, str(g.obj_id)), "visib_fract": gi.visib_fract,
-                      **compare_target(out.rgb, rgb_truth, out.depth, depth_truth, mask, valid)}
+                      **compare_target(out.rgb, rgb_truth, out.depth, depth_truth, mask, valid,
+                                       sampling_ratio(rec.distance_m, float(K[0, 0]), self.sampling))}
             if gi.visib_fract >= MIN_VISIB_FRACT and target["px"] > 0:
                 cam_T_obj = g.cam_T_model()
                 verts = s["scorer"].models[g.obj_id].points
@@ -341,6 +426,8 @@ ROWS: tuple[tuple[str, str, int], ...] = (
     ("psnr", "PSNR of the image (dB)", 1),
     ("ssim", "SSIM of the image", 3),
     ("box_psnr", "PSNR in the target's box (dB)", 1),
+    ("box_psnr_ceiling", "box PSNR ceiling at the training's sampling (dB)", 1),
+    ("sampling_ratio", "sampling ratio r (training pixel / view pixel on the target)", 2),
     ("box_ssim", "SSIM in the target's box", 3),
     ("depth_median_mm", "depth error on the target's pixels, median (mm)", 1),
     ("within_5mm", "share of target pixels within 5 mm", 2),
@@ -372,7 +459,8 @@ def fidelity_rows(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         row: dict[str, Any] = {"distance_m": d, "views": len(pts), "targets": len(tg), "scored": len(scored),
                                "px": median([t.get("px") for t in tg]),
                                "psnr": median([p.get("psnr") for p in pts]), "ssim": median([p.get("ssim") for p in pts])}
-        for k in ("box_psnr", "box_ssim", "depth_median_mm", "within_5mm", "within_15mm", "no_depth"):
+        for k in ("box_psnr", "box_psnr_ceiling", "sampling_ratio", "box_ssim", "depth_median_mm", "within_5mm",
+                  "within_15mm", "no_depth"):
             row[k] = median([t.get(k) for t in seen])
         row["ar_truth"], row["ar_splat"] = _mean([t["ar_truth"] for t in scored]), _mean([t["ar_splat"] for t in scored])
         row["ar_gap"] = row["ar_truth"] - row["ar_splat"] if scored else math.nan

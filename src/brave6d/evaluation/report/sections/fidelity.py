@@ -28,6 +28,14 @@ TITLE = f"{PAGE}. Fidelity where agents look: the splat against the truth from 1
 FIGURE = "fidelity.png"
 #: The issue's acceptance: depth on the target within 5 mm for this share of its pixels.
 GOOD_WITHIN_5MM = 0.9
+#: What closing the sampling gap costs (training at full resolution or from nearer rings): the lead's measured figure.
+CLOSE_RANGE_COST = "X"
+#: What the ceiling rows mean (the section's text).
+CEILING_NOTE = ("The ceiling rows: r is the training images' pixel footprint on the target (nearest capture ring / "
+                "training focal length) over this view's (distance / bundle focal length), and the ceiling the box "
+                "PSNR of the truth area-averaged to 1/r of its size and back against the truth itself (n/a where "
+                "r <= 1): the splat cannot exceed what its training images sampled, so close-range colour needs "
+                f"training at full resolution or nearer rings, which costs {CLOSE_RANGE_COST}.")
 
 
 def measure_fidelity(inputs: MeasureInputs, sweep: FidelitySweep) -> Measurement:
@@ -79,7 +87,7 @@ def render_fidelity(m: Measurement | None, out_dir: Path) -> RenderedSection:
             "shares are of the target's pixels with truth depth (a pixel the splat gives no depth is not within); "
             "AR: the static estimator on each side's depth, both scored against the ground truth with the "
             "truth's depth as VSD's test depth, mean over targets at least 10 % visible in the truth. "
-            "`benchmarks/fidelity.py` runs the same for two trainings side by side.\n\n"
+            "`benchmarks/fidelity.py` runs the same for two trainings side by side. " + CEILING_NOTE + "\n\n"
             f"![fidelity against distance]({png.name})\n\n" + format_table(headers, lines)
             + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted fidelity values"))
     return RenderedSection(TITLE, body, advice_fidelity(rows), [png])
@@ -96,6 +104,12 @@ def advice_fidelity(rows: list[dict[str, Any]]) -> str:
             f"{fmt(worst['depth_median_mm'], 1)} mm)")
     text += (f", so every distance reaches the acceptance's {GOOD_WITHIN_5MM:.0%}" if worst["within_5mm"] >= GOOD_WITHIN_5MM
              else f", below the {GOOD_WITHIN_5MM:.0%} the acceptance asks at every distance")
+    capped = [r for r in rows if math.isfinite(r.get("box_psnr_ceiling", math.nan)) and math.isfinite(r["box_psnr"])]
+    if capped:
+        c = min(capped, key=lambda r: r["box_psnr_ceiling"])
+        text += (f". At {fmt(c['distance_m'] * 100, 1)} cm the training images sampled the target {fmt(c['sampling_ratio'], 1)}x "
+                 f"coarser than the view: the box PSNR is {fmt(c['box_psnr'], 1)} dB under a ceiling of "
+                 f"{fmt(c['box_psnr_ceiling'], 1)} dB")
     gaps = [r for r in rows if math.isfinite(r["ar_gap"])]
     if gaps:
         g = max(gaps, key=lambda r: abs(r["ar_gap"]))
