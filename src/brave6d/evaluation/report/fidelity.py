@@ -190,7 +190,8 @@ def sampling_ceiling(truth: NDArray[np.uint8], ratio: float, box: tuple[slice, s
     truth: the truth area-averaged to 1/``ratio`` of its size and bilinearly back, i.e. the best a
     splat that only saw pixels ``ratio`` times coarser can match it (100 dB: no detail lost). NaN
     when ``ratio`` <= 1 or unknown (no ceiling: the training sampled at least as finely) or the box
-    holds no valid pixel; never inf."""
+    holds no valid pixel; never inf. An estimate, not a strict bound: bilinear is one reconstruction,
+    and many training views at sub-pixel offsets can recover a little finer detail."""
     import cv2
 
     r = num(ratio)
