@@ -279,7 +279,7 @@ def test_report_section_measures_and_renders(sim_scene: SceneDir, tmp_path: Path
     assert "nan" not in page.body.lower()
     ceiling = next(line for line in page.body.splitlines() if "box PSNR ceiling at the training's sampling" in line)
     assert "n/a" not in ceiling  # r = 0.3 * 8 / (0.2 * 4) = 3: a measured ceiling
-    assert "the splat cannot exceed what its training images sampled" in page.body
+    assert "an estimate of what the training images could hold" in page.body
 
 
 def test_clear_errors_for_a_bundle_without_objects_or_a_spec_without_them(sim_scene: SceneDir,

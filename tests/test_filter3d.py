@@ -94,9 +94,9 @@ def test_ply_carries_the_filter_and_an_older_ply_reads_as_none(tmp_path: Path) -
         read_ply(write_ply(tmp_path / "bad.ply", bad))
 
 
-def test_presets_default_classic_quality_mip_and_bad_values_named() -> None:
+def test_presets_default_classic_fast_and_quality_mip_and_bad_values_named() -> None:
     assert get_preset("default").antialias.antialiasing == "classic"
-    assert get_preset("fast").antialias.antialiasing == "classic"
+    assert get_preset("fast").antialias.antialiasing == "mip"
     assert get_preset("quality").antialias.antialiasing == "mip"
     assert Preset(name="x").with_values(antialiasing="mip", filter_3d_scale=0.1).to_json()["antialiasing"] == "mip"
     with pytest.raises(BraveError, match="antialias.antialiasing"):

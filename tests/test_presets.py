@@ -61,10 +61,10 @@ OLD: dict[str, dict[str, Any]] = {
     },
 }
 SHIPPED: dict[str, Preset] = {**BENCHMARK_PRESETS, QUICK.name: QUICK}
-#: Fields added since (issue 34): the anti-aliasing part (classic everywhere but ``quality``) and the
-#: depth loss (on in ``fast``, its quick run and ``quality``).
+#: Fields added since (issue 34): the anti-aliasing part and the depth loss (both on in ``fast``, its
+#: quick run and ``quality``).
 NEW_FIELDS: dict[str, dict[str, Any]] = {
-    name: {"antialiasing": "mip" if name == "quality" else "classic", "filter_3d_scale": 0.2,
+    name: {"antialiasing": "mip" if name in ("fast", "fast-quick", "quality") else "classic", "filter_3d_scale": 0.2,
            "filter_3d_every": 8 if name == "fast-quick" else 100,  # fast-quick: FAST.with_steps(150)
            "depth_lambda": 2.0 if name in ("fast", "fast-quick", "quality") else 0.0, "depth_edge_ratio": 0.02}
     for name in OLD}

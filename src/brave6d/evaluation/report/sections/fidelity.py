@@ -29,12 +29,15 @@ FIGURE = "fidelity.png"
 #: The issue's acceptance: depth on the target within 5 mm for this share of its pixels.
 GOOD_WITHIN_5MM = 0.9
 #: What closing the sampling gap costs (training at full resolution or from nearer rings): the lead's measured figure.
-CLOSE_RANGE_COST = "X"
+CLOSE_RANGE_COST = ("about 1.5x the training time on the demo (`fast` at the capture's 640x400 instead of 320x200: "
+                    "385 s vs 264 s interleaved, box PSNR 29.4-31.8 dB instead of 26.8-31.6 at 10-50 cm; "
+                    "docs/BENCHMARKS.md)")
 #: What the ceiling rows mean (the section's text).
 CEILING_NOTE = ("The ceiling rows: r is the training images' pixel footprint on the target (nearest capture ring / "
                 "training focal length) over this view's (distance / bundle focal length), and the ceiling the box "
                 "PSNR of the truth area-averaged to 1/r of its size and back against the truth itself (n/a where "
-                "r <= 1): the splat cannot exceed what its training images sampled, so close-range colour needs "
+                "r <= 1): an estimate of what the training images could hold (many slightly shifted views can "
+                "recover a little more), so close-range colour needs "
                 f"training at full resolution or nearer rings, which costs {CLOSE_RANGE_COST}.")
 
 
