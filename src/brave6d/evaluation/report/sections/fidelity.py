@@ -32,6 +32,13 @@ GOOD_WITHIN_5MM = 0.9
 CLOSE_RANGE_COST = ("about 1.5x the training time on the demo (`fast` at the capture's 640x400 instead of 320x200: "
                     "385 s vs 264 s interleaved, box PSNR 29.4-31.8 dB instead of 26.8-31.6 at 10-50 cm; "
                     "docs/BENCHMARKS.md)")
+#: What each fidelity lever cost and bought on the demo (interleaved runs; commands in docs/BENCHMARKS.md).
+LEVER_PRICES = ("Levers measured on the demo (docs/BENCHMARKS.md, interleaved runs): the captured depth in training "
+                "(`depth_lambda`) +11 % training time, target pixels within 5 mm 0.64 -> 0.93 at the worst "
+                "distance; the median depth when serving (`render.depth_mode`) computed in the same pass, within "
+                "15 mm 0.85-0.93 -> 0.99-1.00 on the same splat; Mip-Splatting's filters (`antialiasing: mip`) "
+                "+8 % training time, +1.0-1.7 dB image PSNR at 10-50 cm; full capture resolution "
+                "(`downscale` 1) 1.5x training time, target-box PSNR 26.8 -> 29.4 dB at 10 cm.")
 #: What the ceiling rows mean (the section's text).
 CEILING_NOTE = ("The ceiling rows: r is the training images' pixel footprint on the target (nearest capture ring / "
                 "training focal length) over this view's (distance / bundle focal length), and the ceiling the box "
@@ -90,7 +97,8 @@ def render_fidelity(m: Measurement | None, out_dir: Path) -> RenderedSection:
             "shares are of the target's pixels with truth depth (a pixel the splat gives no depth is not within); "
             "AR: the static estimator on each side's depth, both scored against the ground truth with the "
             "truth's depth as VSD's test depth, mean over targets at least 10 % visible in the truth. "
-            "`benchmarks/fidelity.py` runs the same for two trainings side by side. " + CEILING_NOTE + "\n\n"
+            "`benchmarks/fidelity.py` runs the same for two trainings side by side. " + CEILING_NOTE + " "
+            + LEVER_PRICES + "\n\n"
             f"![fidelity against distance]({png.name})\n\n" + format_table(headers, lines)
             + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted fidelity values"))
     return RenderedSection(TITLE, body, advice_fidelity(rows), [png])
