@@ -30,7 +30,7 @@ CHILD = textwrap.dedent("""
     scene = write_scene(sys.argv[1], cam, plane_views(cam, [0.45, 0.6], 5))
     preset = get_preset("fast").with_overrides(
         steps=30, coarse_steps=0, downscale=1, refine_start=5, refine_every=5, refine_stop=25, max_init_points=2000,
-        checkpoint_every=30, curve_every=1)
+        checkpoint_every=30, curve_every=1, depth_lambda=0.0)  # the colour loss's curve (the depth term: test_depth_loss)
     metrics = train_scene(scene, preset, device="cpu", init_method="depth", show_progress=False)
     splat = read_ply(scene.splat_dir / "point_cloud.ply")
     print(json.dumps({

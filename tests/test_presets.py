@@ -278,7 +278,7 @@ for name, preset in [*BENCHMARK_PRESETS.items(), ("fast-quick", quick)]:
     p = preset.with_steps(6).with_overrides(eval_every=2, max_init_points=800)
     if "depth_lambda" in p.to_json():  # added after the parts (issue 34): the same training without it
         p = p.with_values(depth_lambda=0.0)
-    if hasattr(p, "antialias"):  # quality's mip training is new (issue 34; tests/test_filter3d.py)
+    if hasattr(p, "antialias"):  # fast's and quality's mip training is new (issue 34; tests/test_filter3d.py)
         p = p.with_values(antialiasing="classic")
     run = train(load_scene(scene, p.downscale), p, "cpu", init_method="depth")
     out[name] = {"psnr": [h.psnr for h in run.holdout_curve], "ssim": [h.ssim for h in run.holdout_curve],
