@@ -72,7 +72,9 @@ def measure_fidelity(inputs: MeasureInputs, sweep: FidelitySweep) -> Measurement
     key = {"bundle": file_stamp(manifest), "spec": file_stamp(scene.spec_path), "sweep": asdict(sweep),
            "views": [i for i, _ in probe.items()]}
     if not probe.simulated:
-        key.update(scene_gt=file_stamp(probe.scene.bop_dir / "brave6d_export.json"))
+        from brave6d.annotation import BopLayout
+
+        key.update(scene_gt=file_stamp(BopLayout(probe.scene.bop_dir).info_path))
     if (done := store.complete(NAME, key)) is not None:
         return done
     m = store.resume(NAME, key, probe.settings(), machine_info(device))
