@@ -140,7 +140,8 @@ def test_presets_are_typed_and_scale_with_steps() -> None:
     # and fast before its learning-rate annealing: the same schedule with constant rates
     unannealed = get_preset("fast-2000", BENCHMARK_PRESETS)
     assert (unannealed.learning_rates.lr_decay_final, FAST.learning_rates.lr_decay_final) == (1.0, 0.1)
-    assert unannealed.with_values(name="fast", lr_decay_final=0.1, lr_decay_start=600) == FAST
+    assert unannealed.with_values(name="fast", lr_decay_final=0.1, lr_decay_start=600, depth_lambda=FAST.loss.depth_lambda,
+                                  antialiasing=FAST.antialias.antialiasing) == FAST
 
 
 def test_the_strategy_reads_the_presets_own_options() -> None:

@@ -63,7 +63,7 @@ def test_outputs_and_metrics(trained: SceneDir) -> None:
     assert split.indices == holdout_split(trained.frames())[1]
     assert (splat / "curves.png").stat().st_size > 1000
     names = [p.name for p in PlyData.read(str(splat / "point_cloud.ply"))["vertex"].properties]
-    assert names == inria_attribute_names()
+    assert names == inria_attribute_names() + ["filter_3d"]  # Inria's layout + the mip 3D filter of `fast`
     assert read_ply(splat / "point_cloud.ply").num_gaussians == metrics["num_gaussians"]
     pycolmap.Reconstruction(str(trained.sparse_dir / "0"))  # loads
 

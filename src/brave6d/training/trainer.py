@@ -311,6 +311,7 @@ class Trainer:
                 if schedule.eval_every and self.step % schedule.eval_every == 0 and self.eval_callback:
                     if self.curve[-1]["step"] != self.step:
                         self._record_curve()
+                    self.refresh_filter_3d()  # densification may have changed the Gaussians since the last render
                     self.curve[-1]["holdout_psnr"] = float(self.eval_callback(self))
                 if self.checkpoint_dir is not None and (self.step % schedule.checkpoint_every == 0
                                                         or self.step == self.preset.steps):
