@@ -15,9 +15,10 @@ from hypothesis.extra.numpy import arrays
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import BraveError, DataError
 from brave6d.training import GaussianModel, get_preset, load_scene
-from brave6d.training.depth_targets import DepthTarget, block_average, depth_loss, depth_target, drop_edges
+from brave6d.training.depth_targets import (DepthTarget, block_average, depth_loss, depth_target, drop_edges,
+                                            load_depth_targets)
 from brave6d.training.toy_scenes import plane_views, write_scene
-from brave6d.training.trainer import Trainer, load_depth_targets
+from brave6d.training.trainer import Trainer
 
 CAM = PinholeCamera.from_hfov(64, 48, 60.0)
 

@@ -10,10 +10,13 @@ edges. So a target pixel is used only where the sensor is trustworthy and the re
 
 The target is the mean of the block (the sensor's noise averages down with it). A frame without a
 depth file, or whose every pixel is left out, has no target (``None``) and trains on colour alone.
+:func:`load_depth_targets` makes every training view's target once (the trainer's, and the coarse
+level's halves of them).
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +25,9 @@ from numpy.typing import NDArray
 from torch import Tensor
 
 from brave6d.core.errors import DataError
+from brave6d.training.views import TrainingData, load_depth_m
+
+log = logging.getLogger(__name__)
 
 #: Default relative depth step (of the pixel's depth) above which a pixel counts as a depth edge.
 EDGE_RATIO = 0.02
@@ -110,6 +116,26 @@ def depth_target(depth_m: NDArray[np.floating] | None, width: int, height: int,
     if not valid.any():
         return None
     return DepthTarget(torch.from_numpy(np.where(valid, depth, 0.0).astype(np.float32)), torch.from_numpy(valid))
+
+
+def load_depth_targets(data: TrainingData, edge_ratio: float, device: torch.device | str = "cpu"
+                       ) -> list[DepthTarget | None]:
+    """The depth target of every training view at the training resolution (None: no usable depth).
+
+    Training views without depth train on colour alone; when no view has any, the run says so once.
+    """
+    cam = data.camera
+    targets: list[DepthTarget | None] = []
+    for view in data.train:
+        target = depth_target(load_depth_m(view, data.depth_camera), cam.width, cam.height, edge_ratio)
+        targets.append(None if target is None else target.to(device))
+    used = sum(t is not None for t in targets)
+    if used == 0:
+        log.warning("depth loss asked for, but none of the %d training views has usable depth; training on "
+                    "colour alone", len(targets))
+    elif used < len(targets):
+        log.info("depth loss on %d of %d training views (the others have no usable depth)", used, len(targets))
+    return targets
 
 
 def depth_loss(render_depth: Tensor, render_alpha: Tensor, target: DepthTarget, min_alpha: float = 0.5) -> Tensor:

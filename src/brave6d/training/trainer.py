@@ -37,9 +37,9 @@ from torch import Tensor
 from brave6d.core.atomic import atomic_write
 from brave6d.core.errors import BraveError, DataError
 from brave6d.core.progress import progress_bar
-from brave6d.training.views import TrainingData, image_tensor, load_depth_m
+from brave6d.training.views import TrainingData, image_tensor
 from brave6d.training.device import resolve_device  # noqa: F401 - also importable from here
-from brave6d.training.depth_targets import DepthTarget, depth_loss, depth_target
+from brave6d.training.depth_targets import DepthTarget, depth_loss, load_depth_targets
 from brave6d.training.losses import fill_invalid, photometric_loss, psnr
 from brave6d.training.model import PARAM_NAMES, GaussianModel
 from brave6d.training.presets import Preset
@@ -154,6 +154,7 @@ class Trainer:
         self._depth_targets: list[DepthTarget | None] | None = None  # loaded when a depth step first needs them
         self._filter_means: Tensor | None = None  # the means Parameter the 3D filter was computed for
         self._filter_step = 0
+        self.refresh_filter_3d()
 
     # ------------------------------------------------------------------ setup
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
@@ -176,7 +177,6 @@ class Trainer:
         (at the half resolution of ``level`` when given)."""
         from brave6d.training.rasterizer import rasterize
 
-        self.refresh_filter_3d()
         m = self.model
         d = m.sh_degree if sh_degree is None else sh_degree
         coeffs = m.sh_coeffs(d)
@@ -198,7 +198,9 @@ class Trainer:
     def refresh_filter_3d(self, force: bool = False) -> None:
         """With ``antialiasing: mip``, (re)compute the model's 3D filter from the training cameras
         (at the training resolution): when missing, after densification replaced the Gaussians,
-        every ``filter_3d_every`` steps (the means move), or when ``force``d (the end of a run)."""
+        every ``filter_3d_every`` steps (the means move), or when ``force``d (the end of a run).
+        Called wherever the Gaussians change (start, each step, a loaded checkpoint), so that every
+        render of the model, the trainer's or a holdout evaluation's, draws a filter that fits it."""
         from brave6d.training.filter3d import compute_filter_3d
 
         aa = self.preset.antialias
@@ -275,6 +277,7 @@ class Trainer:
                                          packed=False)
         self._check_params("after the optimiser step")
         self.step += 1
+        self.refresh_filter_3d()
         value = psnr(render, gt, valid)
         self.psnr_ema = value if self.psnr_ema is None else 0.9 * self.psnr_ema + 0.1 * value
         self.loss_ema = loss_value if self.loss_ema is None else 0.9 * self.loss_ema + 0.1 * loss_value
@@ -311,7 +314,6 @@ class Trainer:
                 if schedule.eval_every and self.step % schedule.eval_every == 0 and self.eval_callback:
                     if self.curve[-1]["step"] != self.step:
                         self._record_curve()
-                    self.refresh_filter_3d()  # densification may have changed the Gaussians since the last render
                     self.curve[-1]["holdout_psnr"] = float(self.eval_callback(self))
                 if self.checkpoint_dir is not None and (self.step % schedule.checkpoint_every == 0
                                                         or self.step == self.preset.steps):
@@ -393,6 +395,8 @@ class Trainer:
         self.psnr_ema, self.loss_ema = ckpt["ema"]
         self.curve = list(ckpt["curve"])
         self.extent = float(ckpt["extent"])
+        self._filter_means = None  # a new model: its filter is computed again
+        self.refresh_filter_3d()
 
     def save_checkpoint(self) -> Path:
         """Write ``ckpt_<step>.pt`` atomically (only from a finite state), prune old ones, call the hook.
@@ -531,26 +535,6 @@ class CoarseLevel:
             h, w = valid.shape[0] // 2 * 2, valid.shape[1] // 2 * 2
             valid = valid[:h, :w].reshape(h // 2, 2, w // 2, 2).all(dim=3).all(dim=1)
         return cls(small, half_intrinsics(K), valid, int(small[0].shape[1]), int(small[0].shape[0]), depths)
-
-
-def load_depth_targets(data: TrainingData, edge_ratio: float, device: torch.device | str = "cpu"
-                       ) -> list[DepthTarget | None]:
-    """The depth target of every training view at the training resolution (None: no usable depth).
-
-    Training views without depth train on colour alone; when no view has any, the run says so once.
-    """
-    cam = data.camera
-    targets: list[DepthTarget | None] = []
-    for view in data.train:
-        target = depth_target(load_depth_m(view, data.depth_camera), cam.width, cam.height, edge_ratio)
-        targets.append(None if target is None else target.to(device))
-    used = sum(t is not None for t in targets)
-    if used == 0:
-        log.warning("depth loss asked for, but none of the %d training views has usable depth; training on "
-                    "colour alone", len(targets))
-    elif used < len(targets):
-        log.info("depth loss on %d of %d training views (the others have no usable depth)", used, len(targets))
-    return targets
 
 
 def image_of(view_index: int, data: TrainingData, device: torch.device | str = "cpu") -> Tensor:
