@@ -146,11 +146,9 @@ class RenderDefaults:
     antialiasing: str = "classic"
 
     def __post_init__(self) -> None:
-        if self.depth_mode not in DEPTH_MODES:
-            raise DataError(f"render defaults: depth_mode must be one of {DEPTH_MODES}, got {self.depth_mode!r}")
-        if self.antialiasing not in ANTIALIASING_MODES:
-            raise BraveError(f"render.antialiasing must be one of {', '.join(ANTIALIASING_MODES)}, "
-                             f"got {self.antialiasing!r}")
+        for name, choices in (("depth_mode", DEPTH_MODES), ("antialiasing", ANTIALIASING_MODES)):
+            if (value := getattr(self, name)) not in choices:
+                raise DataError(f"render.{name} must be one of {', '.join(choices)}, got {value!r}")
         width, height = fit_image_size(self.width, self.height)
         if (width, height) != (self.width, self.height):
             log.warning("render defaults %dx%d exceed the server's image-size cap %dx%d: using %dx%d",
