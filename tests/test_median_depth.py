@@ -75,3 +75,24 @@ def test_bundles_record_the_depth_they_serve_and_older_ones_stay_expected() -> N
     assert RenderDefaults.from_json(older).depth_mode == "expected"
     with pytest.raises(DataError, match="depth_mode must be one of"):
         RenderDefaults.from_json({**older, "depth_mode": "mean"})
+
+
+def test_the_renderer_refuses_an_unknown_depth_mode() -> None:
+    """A misspelt mode used to render the expected depth without a word."""
+    import numpy as np
+
+    from brave6d.core.camera import PinholeCamera
+    from brave6d.core.errors import BraveError
+    from brave6d.serve.renderer import SplatRenderer
+    from brave6d.training import SplatData
+
+    n = 4
+    splat = SplatData(means=np.array([[0, 0, 1.0], [0.01, 0, 1.0], [0, 0.01, 1.0], [0, 0, 1.1]], np.float32),
+                      quats=np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1)),
+                      scales=np.full((n, 3), np.log(0.01), np.float32), opacities=np.full(n, 3.0, np.float32),
+                      sh0=np.zeros((n, 1, 3), np.float32), shN=np.zeros((n, 0, 3), np.float32))
+    renderer = SplatRenderer.from_splat(splat, "cpu")
+    camera = PinholeCamera(32, 24, 30.0, 30.0, 15.5, 11.5)
+    assert renderer.render(np.eye(4), camera, depth_mode="expected").depth.max() > 0
+    with pytest.raises(BraveError, match="depth_mode must be one of median, expected, got 'medain'"):
+        renderer.render(np.eye(4), camera, depth_mode="medain")

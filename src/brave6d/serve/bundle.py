@@ -85,6 +85,7 @@ from brave6d.serve.reference import (
     build_scene_reference,
     write_reference,
 )
+from brave6d.serve.renderer import DEPTH_MODES
 from brave6d.serve.splat_check import check_splat, ply_vertex_count
 from brave6d.training import ANTIALIASING_MODES
 
@@ -119,10 +120,6 @@ def is_bundle(path: Path | str) -> bool:
 
 
 # ----------------------------------------------------------------------------- typed bundle
-#: The depths a bundle may serve (see :class:`RenderDefaults`; ``brave6d.training.rasterize``'s median_depth).
-DEPTH_MODES = ("median", "expected")
-
-
 @dataclass(frozen=True)
 class RenderDefaults:
     """How views are rendered unless a request says otherwise.

@@ -47,6 +47,9 @@ from brave6d.core.errors import BraveError
 from brave6d.core.transforms import invert
 from brave6d.serve.splat_check import MIN_ALPHA, activated_opacity, check_splat
 
+#: The depths a render may report (the module docstring; ``brave6d.training.rasterize``'s median_depth).
+DEPTH_MODES = ("median", "expected")
+
 if TYPE_CHECKING:
     from brave6d.training import SplatData
 
@@ -182,6 +185,8 @@ class SplatRenderer:
 
         if camera.has_distortion:
             raise BraveError("the renderer draws pinhole images: give an undistorted camera")
+        if depth_mode not in DEPTH_MODES:
+            raise BraveError(f"render: depth_mode must be one of {', '.join(DEPTH_MODES)}, got {depth_mode!r}")
         dev = self.means.device
         viewmat = torch.as_tensor(invert(world_T_cam), dtype=torch.float32, device=dev)
         K = torch.as_tensor(camera.K, dtype=torch.float32, device=dev)
