@@ -45,3 +45,15 @@ def test_verify_names_a_missing_synthetic_mask(release: Path, tmp_path: Path) ->
     _resum(copy)
     with pytest.raises(ReleaseError, match=r"train_pbr/000000/mask/000001_000000.png: missing"):
         verify_release(copy)
+
+
+def test_a_zipped_scene_estimates_the_memory_of_its_unpacked_bundle(release: Path, tmp_path: Path) -> None:
+    """The serving budget sees the same bytes whether a scene comes zipped (estimated from the zip's
+    directory) or unpacked (from its manifest): the reference geometry counts in both."""
+    from brave6d.dataset.release import release_scene_sources
+    from brave6d.serve import REFERENCE, bundle_scene_source
+
+    sources = release_scene_sources(release, tmp_path / "cache")
+    assert any((s.locate() / REFERENCE).is_file() for s in sources)  # the case this test is about
+    for source in sources:
+        assert source.memory_bytes == bundle_scene_source(source.locate()).memory_bytes, source.name

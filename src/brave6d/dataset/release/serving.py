@@ -137,14 +137,16 @@ class _Unpacker:
         self._lock = threading.Lock()
 
     def sizes(self) -> tuple[int, int]:
-        """Uncompressed bytes of the splat and of the models (the zip's directory only, checked)."""
-        from brave6d.serve import SPLAT
+        """Uncompressed bytes of the splat and of what loads beside it, the models and the reference
+        geometry (the zip's directory only, checked)."""
+        from brave6d.serve import REFERENCE, SPLAT
 
         splat_member = f"{self.folder}/{SPLAT}"
         with open_zip(self.zip_path, inside=self.folder) as zf:
             self.bytes = sum(zf.size(n) for n in zf.names)
             splat = zf.size(splat_member) if splat_member in zf.names else 0
-            models = sum(zf.size(n) for n in zf.names if n.startswith(f"{self.folder}/models/"))
+            models = sum(zf.size(n) for n in zf.names
+                         if n.startswith(f"{self.folder}/models/") or n == f"{self.folder}/{REFERENCE}")
         if splat == 0:
             raise ReleaseError(f"{self.zip_path}: holds no {splat_member}")
         return splat, models
