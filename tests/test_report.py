@@ -454,7 +454,8 @@ def _plane_scene(root: Path) -> None:
     write_scene(root, camera, plane_views(camera, [0.3, 0.45], per_ring=5))
     g = {k: v.numpy() for k, v in random_gaussians(400, extent=0.1).items()}
     write_ply(root / "splat" / "point_cloud.ply", SplatData(g["means"], g["sh0"], g["shN"], g["opacities"],
-                                                            g["scales"], g["quats"]))
+                                                            g["scales"], g["quats"],  # trained with mip
+                                                            filter_3d=np.full(400, 1e-3, np.float32)))
 
 
 @pytest.mark.slow
@@ -485,6 +486,7 @@ def test_miniature_sweeps_measure_real_numbers(tmp_path: Path, demo_spec_path: P
     assert lat is not None and views is not None
     assert len(lat.points) == 4 and all(p["median_ms"] > 0 for p in lat.points)
     assert {p["gaussians"] for p in lat.points} == {200, 400}
+    assert {p["antialiasing"] for p in lat.points} == {"mip"}  # timed as served: with its 3D filter
     assert [p["views_per_level"] for p in views.points] == [[2, 2], [4, 4]]
     assert all(math.isfinite(p["psnr"]) and p["steps"] == 4 for p in views.points)
     assert views.summary["levels"]["0"]["capture_s_per_view"] == 1.0  # time stamps 0, 1, 2, ...

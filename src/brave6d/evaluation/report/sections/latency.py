@@ -94,7 +94,8 @@ def measure_latency(scene: SceneDir, store: MeasurementStore, sweep: LatencySwee
         if current.get("n") != n:
             keep = np.sort(np.random.default_rng(sweep.seed).choice(n_total, n, replace=False))
             subset = SplatData(splat.means[keep], splat.sh0[keep], splat.shN[keep], splat.opacities[keep],
-                               splat.scales[keep], splat.quats[keep])
+                               splat.scales[keep], splat.quats[keep],  # a mip splat keeps its 3D filter
+                               filter_3d=None if splat.filter_3d is None else splat.filter_3d[keep])
             current.update(n=n, renderer=SplatRenderer.from_splat(subset, device=device,
                                                                   source=f"{ply} ({n} of its Gaussians)"))
             current["renderer"].warm_up(camera, poses[0])
@@ -107,6 +108,7 @@ def measure_latency(scene: SceneDir, store: MeasurementStore, sweep: LatencySwee
         renderer.render(poses[0], cam)  # warm-up at this size (allocations, caches)
         outs = [renderer.render(T, cam) for _ in range(sweep.repeats) for T in poses]
         return {"gaussians": n, "loaded": renderer.num_gaussians, "width": w, "height": h,
+                "antialiasing": renderer.antialiasing,
                 "median_ms": median([o.render_ms for o in outs]), "p90_ms": quantile([o.render_ms for o in outs], 0.9),
                 "drawn": median([o.gaussians_drawn for o in outs]), "samples": len(outs)}
 
