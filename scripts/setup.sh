@@ -16,12 +16,28 @@ PYTHON="${PYTHON:-python3}"
 
 stamp=".venv/.brave6d-installed"
 want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
-if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
-  exit 0
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+  echo "setup: installing into .venv (about 3 GB; a few minutes the first time)" >&2
+  .venv/bin/python -m pip install -q --upgrade pip
+  # The CPU wheel of torch first, pinned: an unpinned torch would pull the multi-GB CUDA build.
+  .venv/bin/python -m pip install -q "torch==2.13.0"
+  .venv/bin/python -m pip install -q -e ".[test]"
+  echo "$want" > "$stamp"
 fi
-echo "setup: installing into .venv (about 3 GB; a few minutes the first time)" >&2
-.venv/bin/python -m pip install -q --upgrade pip
-# The CPU wheel of torch first, pinned: an unpinned torch would pull the multi-GB CUDA build.
-.venv/bin/python -m pip install -q "torch==2.13.0"
-.venv/bin/python -m pip install -q -e ".[test]"
-echo "$want" > "$stamp"
+
+# ROS 2 (brave6d ros2 and its tests) in its own venv layered over .venv: the rclpy wheels put ROS 2's
+# std_msgs, geometry_msgs ... at the top level, where they would shadow Debian's ROS 1 packages that
+# the ROS 1 node appends to sys.path. .venv-ros2 sees its own site-packages first, then .venv's.
+want_ros2="$want-ros2"
+stamp_ros2=".venv-ros2/.brave6d-installed"
+if [ ! -f "$stamp_ros2" ] || [ "$(cat "$stamp_ros2")" != "$want_ros2" ]; then
+  t0=$(date +%s%N)
+  [ -x .venv-ros2/bin/python ] || "$PYTHON" -m venv .venv-ros2
+  main_site="$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_path("purelib"))')"
+  ros2_site="$(.venv-ros2/bin/python -c 'import sysconfig; print(sysconfig.get_path("purelib"))')"
+  echo "import site; site.addsitedir('$main_site')" > "$ros2_site/_brave6d_main_venv.pth"
+  .venv-ros2/bin/python -m pip install -q -e ".[ros2]"
+  .venv-ros2/bin/python -m brave6d.ros_interface.ros2.interfaces
+  echo "setup: ROS 2 (rclpy wheels, brave6d_msgs) in .venv-ros2 in $(( ($(date +%s%N) - t0) / 1000000 )) ms" >&2
+  echo "$want_ros2" > "$stamp_ros2"
+fi
