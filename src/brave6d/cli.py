@@ -37,7 +37,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("serve", "brave6d.commands.serve", "serve a bundle to active-vision agents (HTTP + WebSocket, browser viewer)"),
     Command("release", "brave6d.dataset.release.cli", "build a dataset release (BOP zips, bundles, checksums, card) or verify one"),
     Command("ros1", "brave6d.commands.ros1", "serve a bundle or release as a ROS 1 node (topics, tf, services; rospy)"),
-    Command("ros2", "brave6d.commands.ros2", "serve a bundle or release as ROS 2 topics over DDS (Cyclone DDS; loopback by default)"),
+    Command("ros2", "brave6d.commands.ros2", "serve a bundle or release as a ROS 2 node (rclpy: services and topics; loopback by default)"),
     Command("evaluate", "brave6d.evaluation.cli", "score agent episodes (BOP Average Recall, adjustments) and print a leaderboard"),
     Command("report", "brave6d.evaluation.report.cli", "write the accuracy-vs-time report from real measurements"),
     Command("dataset", "brave6d.dataset.cli", "run every stage of every scene of a dataset (local or Slurm); show its status"),

@@ -7,7 +7,7 @@ building releases need. Users with other worlds add an extra (``pip install 'bra
 extra      packages                     needed by
 =========  ===========================  =======================================================
 robot      ur-rtde, depthai             ``--robot ur:HOST`` and ``--camera oak`` (the lab's rig)
-ros2       cyclonedds                   ``brave6d ros2`` (ROS 2 topics over DDS)
+ros2       ros-rclpy (ROS 2 wheels)     ``brave6d ros2`` (a ROS 2 node on rclpy)
 cluster    submitit                     ``brave6d dataset run`` (one job per scene, local or Slurm)
 cuda       gsplat                       training and rendering on a GPU (``--device cuda``)
 all        all of the above
@@ -25,7 +25,7 @@ from types import ModuleType
 from brave6d.core.errors import BraveError
 
 #: extra -> the distributions it installs (pyproject.toml's optional-dependencies say the versions).
-EXTRAS: dict[str, tuple[str, ...]] = {"robot": ("ur-rtde", "depthai"), "ros2": ("cyclonedds",),
+EXTRAS: dict[str, tuple[str, ...]] = {"robot": ("ur-rtde", "depthai"), "ros2": ("ros-rclpy", "ros-rmw-fastrtps-cpp", "ros-rosidl-cli"),
                                       "cluster": ("submitit",), "cuda": ("gsplat",)}
 
 

@@ -11,7 +11,7 @@ Public API (lazy: ``import ros_interface`` loads neither torch nor any ROS libra
   ``camera_info_arrays``, ``depth_to_rep118``, ``stamp_parts``.
 
 The nodes live in ``brave6d.ros_interface.ros1`` (rospy, ``brave6d ros1``) and ``brave6d.ros_interface.ros2``
-(DDS, ``brave6d ros2``); both build their messages from the bridge. See docs/ROS.md.
+(rclpy, ``brave6d ros2``); both build their messages from the bridge. See docs/ROS.md.
 """
 
 from brave6d.core.lazy import lazy_exports

@@ -9,7 +9,8 @@ a name is used). Other stages import only these names:
   ``is_bundle`` (the one test for a bundle folder), ``find_splat_ply``, ``MANIFEST`` and ``SPLAT``
   (the manifest's and the splat's file names inside a bundle: the bundle's names live in
   :mod:`brave6d.serve.bundle` only);
-- the server: ``create_app``, ``ServerLimits`` (its limits, checked when made: ``LimitError``;
+- the server: ``create_app``, ``validate_request`` (a request checked as HTTP checks it: same limits and
+  messages, for the ROS 2 node), ``ServerLimits`` (its limits, checked when made: ``LimitError``;
   ``limit_arg(name)``: the argparse type of the flag setting one), ``ServerThread`` (uvicorn in a
   background thread),
   ``SceneServer``, ``SplatRenderer``, ``EpisodeManager`` (episodes without HTTP);
@@ -48,7 +49,7 @@ from brave6d.core.lazy import lazy_exports
 _LAZY = {
     "export_bundle": ".bundle", "load_bundle": ".bundle", "Bundle": ".bundle", "BundleObject": ".bundle",
     "BundleError": ".bundle", "read_bundle_manifest": ".bundle", "find_splat_ply": ".bundle", "SPLAT": ".bundle",
-    "create_app": ".app", "ServerLimits": ".limits", "LimitError": ".limits", "limit_arg": ".limits",
+    "create_app": ".app", "validate_request": ".app", "ServerLimits": ".limits", "LimitError": ".limits", "limit_arg": ".limits",
     "ServerThread": ".runner", "SceneServer": ".episodes",
     "SplatRenderer": ".renderer", "EpisodeManager": ".episode_manager",
     "open_scenes": ".catalog", "SceneCatalog": ".catalog", "SceneSource": ".catalog", "SceneObject": ".catalog",

@@ -341,6 +341,21 @@ def validation_error_body(errors: list[dict[str, Any]]) -> tuple[int, str, str |
     return 422, f"{field}: {msg}" if field else msg, field or None
 
 
+#: The request models other front ends (the ROS 2 node) validate with, by action.
+REQUEST_MODELS: dict[str, type[BaseModel]] = {"reset": ResetRequest, "set_pose": SetPoseRequest,
+                                              "move": MoveRequest, "submit": SubmitRequest}
+
+
+def validate_request(action: str, fields: dict[str, Any], where: str | None = None) -> Any:
+    """``fields`` checked as the HTTP API checks the body of ``action`` (reset, set_pose, move,
+    submit): the same limits and the same one-line messages (``BraveError``, prefixed by ``where``)."""
+    try:
+        return REQUEST_MODELS[action].model_validate(fields)
+    except ValidationError as exc:
+        message = validation_error_body(list(exc.errors()))[1]
+        raise BraveError(f"{where}: {message}" if where else message) from None
+
+
 class BodyLimitMiddleware:
     """Refuse HTTP request bodies larger than ``limit`` bytes with 413 (checked on the declared
     length and on the bytes actually received; the body is buffered, then replayed)."""

@@ -1,9 +1,10 @@
-"""ROS 2 over DDS (``brave6d ros2``): the bridge's episodes as ROS 2 topics, spoken with Cyclone
-DDS directly (no ``rclpy``), byte-compatible with ROS 2 Humble/Jazzy.
+"""ROS 2 (``brave6d ros2``): the bridge's episodes as a real rclpy node (the ``ros2`` extra: ROS 2
+Kilted wheels, Fast DDS), services for commands and standard topics for what each step shows.
 
-Modules, one job each: ``messages`` (ROS 2 message types as Cyclone DDS structs, rmw type names),
-``dds`` (topic-name mangling, ROS 2 QoS profiles, a loopback-only domain), ``convert`` (bridge
-values <-> messages), ``node`` (the node: topics table, command handling), ``agent`` (a Python
-DDS agent of the node), ``example_agent`` (one episode end to end), ``cli`` (``brave6d ros2``).
-Loaded only when used: importing this package loads no DDS library.
+Modules, one job each: ``interfaces`` (generates and installs ``brave6d_msgs`` and ``tf2_msgs`` with
+the rosidl wheels), ``transport`` (where the node can be reached: loopback by default),
+``convert`` (bridge values <-> rclpy messages), ``node`` (the node: services and topics table,
+request checks), ``agent`` (a Python rclpy agent of the node), ``example_agent`` (the docs' minimal
+agent, plain rclpy), ``cli`` (``brave6d ros2``). Loaded only when used: importing this package loads
+no ROS library.
 """

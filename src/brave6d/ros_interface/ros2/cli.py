@@ -1,10 +1,10 @@
-"""``brave6d ros2 BUNDLE_OR_RELEASE``: serve a bundle's (or a release's) episodes as ROS 2 topics
-over DDS (Cyclone DDS; no ROS 2 installation needed on this side).
+"""``brave6d ros2 BUNDLE_OR_RELEASE``: serve a bundle's (or a release's) episodes as a ROS 2 node on
+rclpy (the ``ros2`` extra: ROS 2 Kilted wheels with Fast DDS; docs/ROS.md).
 
-Loopback by default: DDS is configured on 127.0.0.1 with multicast off, so only ROS 2 nodes on
-this machine (with ``ROS_LOCALHOST_ONLY=1`` or a loopback Cyclone configuration) see it. Another
-``--interface`` (an address or an interface name) needs ``--allow-remote``: every host on that
-network can then drive episodes and read the ground truth.
+Loopback by default (:mod:`brave6d.ros_interface.ros2.transport`): UDP on 127.0.0.1 and shared
+memory, discovery ``LOCALHOST``, so ROS 2 agents on this machine started with ROS 2's defaults
+see it and no other host does. ``--allow-remote`` keeps ROS 2's defaults (every interface,
+``SUBNET`` discovery): every host on the network can then drive episodes and read the ground truth.
 """
 
 from __future__ import annotations
@@ -12,8 +12,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import signal
-import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -26,29 +24,30 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+#: ROS 2's domain ids on one host (rmw: 0..232 with the default port mapping).
+MAX_DOMAIN_ID = 232
+
 
 def configure(parser: argparse.ArgumentParser) -> None:
     from brave6d.core.cli_types import int_in
-    from brave6d.ros_interface.ros2.dds import MAX_DOMAIN_ID
     from brave6d.ros_interface.ros2.defaults import DEFAULT_NAMESPACE, DEFAULT_TWIST_DURATION_S
     from brave6d.serve import limit_arg  # every number bounded at parse time, as the render server's flags
 
     parser.add_argument("scenes", type=Path, metavar="BUNDLE_OR_RELEASE",
                         help="a bundle folder ('brave6d export') or a dataset release ('brave6d release build')")
     parser.add_argument("--domain-id", type=int_in(0, MAX_DOMAIN_ID), default=None,
-                        help="DDS domain id, as ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID, else 0)")
-    parser.add_argument("--interface", default="127.0.0.1",
-                        help="network interface for DDS: an address or a name (default 127.0.0.1: this machine "
-                             "only; any other needs --allow-remote)")
+                        help="ROS 2 domain id (default: $ROS_DOMAIN_ID, else 0)")
     parser.add_argument("--allow-remote", action="store_true",
-                        help="allow a non-loopback --interface (every host on that network can use the node)")
+                        help="let other hosts reach the node (ROS 2's default discovery and interfaces; "
+                             "default: this machine only)")
     parser.add_argument("--peer", action="append", default=[], metavar="HOST",
-                        help="also discover DDS participants at HOST by unicast (repeatable; for networks "
-                             "without multicast)")
-    parser.add_argument("--namespace", default=DEFAULT_NAMESPACE, help=f"topic namespace (default {DEFAULT_NAMESPACE})")
+                        help="also discover participants at HOST by unicast (ROS_STATIC_PEERS; repeatable; a "
+                             "remote HOST needs --allow-remote)")
+    parser.add_argument("--namespace", default=DEFAULT_NAMESPACE,
+                        help=f"namespace of the topics and services (default {DEFAULT_NAMESPACE})")
     parser.add_argument("--twist-duration", type=limit_arg("move_duration_s"),
                         default=DEFAULT_TWIST_DURATION_S,
-                        help=f"seconds one cmd_twist message is applied (default {DEFAULT_TWIST_DURATION_S})")
+                        help=f"seconds a move with duration 0 lasts (default {DEFAULT_TWIST_DURATION_S})")
     parser.add_argument("--width", type=limit_arg("width"), default=None, help="image width (default: the bundle's)")
     parser.add_argument("--height", type=limit_arg("height"), default=None, help="image height (default: the bundle's)")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto", help="rasterizer device")
@@ -61,51 +60,58 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def domain_id_from(value: int | None, environ: dict[str, str] | None = None) -> int:
-    """``--domain-id``, else ``$ROS_DOMAIN_ID``, else 0 (checked by :func:`dds.check_domain_id`)."""
-    from brave6d.ros_interface.ros2.dds import check_domain_id
-
+    """``--domain-id``, else ``$ROS_DOMAIN_ID``, else 0; refused outside 0..232 naming the source."""
     if value is not None:
-        return check_domain_id(value)
-    env = os.environ if environ is None else environ
-    raw = env.get("ROS_DOMAIN_ID", "").strip()
-    if not raw:
-        return 0
+        source, raw = "--domain-id", str(value)
+    else:
+        source, raw = "$ROS_DOMAIN_ID", (os.environ if environ is None else environ).get("ROS_DOMAIN_ID", "").strip()
+        if not raw:
+            return 0
     try:
-        return check_domain_id(int(raw))
+        domain = int(raw)
     except ValueError:
-        raise BraveError(f"$ROS_DOMAIN_ID {raw!r}: not an integer") from None
+        raise BraveError(f"{source} {raw!r}: not an integer") from None
+    if not 0 <= domain <= MAX_DOMAIN_ID:
+        raise BraveError(f"{source} {domain}: must be in 0..{MAX_DOMAIN_ID}")
+    return domain
 
 
 def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
-    """Run the node on the scenes ``sources_of(args.scenes, None)`` gives (``brave6d.commands.ros2``
-    hands it: a bundle's or a release's)."""
+    """Run the node on the scenes ``sources_of(args.scenes, None)`` gives until SIGINT / SIGTERM."""
     quiet_openmp()
-    require("cyclonedds", "ros2", "brave6d ros2")
+    from brave6d.ros_interface.ros2.transport import apply_environment, node_environment
+
+    domain_id = domain_id_from(args.domain_id)
+    if not args.twist_duration > 0:
+        raise BraveError(f"--twist-duration must be > 0 seconds, got {args.twist_duration}")
+    apply_environment(node_environment(args.allow_remote, tuple(args.peer)))  # before rclpy loads the rmw
+    require("rclpy", "ros2", "brave6d ros2")
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
     from brave6d.ros_interface.bridge import EpisodeBridge
-    from brave6d.ros_interface.ros2.dds import DdsDomain, check_interface
     from brave6d.ros_interface.ros2.node import Ros2Node
     from brave6d.serve import EpisodeManager, open_scenes
 
-    domain_id = domain_id_from(args.domain_id)
-    check_interface(args.interface, args.allow_remote)
-    if not args.twist_duration > 0:
-        raise BraveError(f"--twist-duration must be > 0 seconds, got {args.twist_duration}")
     scenes = open_scenes(sources_of(args.scenes, None), device=args.device)
     log_dir = args.log_dir if args.log_dir is not None else Path(args.scenes).resolve().parent / "episodes"
     manager = EpisodeManager(scenes, log_dir, max_episodes=4, idle_timeout_s=args.idle_timeout)
     bridge = EpisodeBridge(manager, agent=args.agent, width=args.width, height=args.height)
-    dds = DdsDomain(domain_id, args.interface, allow_remote=args.allow_remote, peers=tuple(args.peer))
-    node = Ros2Node(bridge, dds, namespace=args.namespace, twist_duration_s=args.twist_duration,
-                    default_scene=args.scene).start()
-    print(f"brave6d ros2: {', '.join(map(str, scenes.names()))} on DDS domain {domain_id} ({args.interface}), "
-          f"topics under {node.namespace}/ and /tf; episode logs: {log_dir}", flush=True)
-    stop = threading.Event()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    node = Ros2Node(bridge, namespace=args.namespace, twist_duration_s=args.twist_duration,
+                    default_scene=args.scene, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node.node)
+    reach = "any host (--allow-remote)" if args.allow_remote else "this machine only"
+    print(f"brave6d ros2: {', '.join(map(str, scenes.names()))} on ROS 2 domain {domain_id} ({reach}), "
+          f"services and topics under {node.namespace}/ and /tf; episode logs: {log_dir}", flush=True)
     try:
-        stop.wait()
+        executor.spin()  # until SIGINT / SIGTERM (rclpy's handlers shut the context down)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
-        node.stop()
-        dds.close()
+        node.destroy()
+        executor.shutdown()
+        rclpy.try_shutdown(context=context)
     return 0

@@ -1,13 +1,21 @@
-"""Bridge values <-> ROS 2 messages: images, camera info and tf from a :class:`BridgeStep`, poses,
-twists and estimates from what an agent sends. Frames and conventions come from
-:mod:`brave6d.ros_interface.frames` (shared with ROS 1), so both generations publish the same numbers."""
+"""Bridge values <-> ROS 2 messages (rclpy's own classes): images, camera info, tf and the services'
+Step answer from a :class:`BridgeStep`; poses, twists and estimates from what an agent sends, as
+the fields the HTTP API validates. Frames and conventions come from
+:mod:`brave6d.ros_interface.frames` (shared with ROS 1), so both generations publish the same numbers.
+Import only where rclpy and the generated ``brave6d_msgs`` / ``tf2_msgs`` are installed."""
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point, Pose, Quaternion, Transform, TransformStamped, Vector3
 from numpy.typing import NDArray
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
+from tf2_msgs.msg import TFMessage
 
 from brave6d.core.errors import BraveError
 from brave6d.ros_interface.bridge import BridgeStep, Estimate
@@ -18,114 +26,137 @@ from brave6d.ros_interface.frames import (
     depth_to_rep118,
     matrix_to_pose,
     pose_to_matrix,
+    stamp_parts,
 )
-from brave6d.ros_interface.ros2 import messages as m
 
 
-def header(stamp_ns: int, frame_id: str) -> m.Header:
-    return m.Header(stamp=m.stamp_from_ns(stamp_ns), frame_id=frame_id)
+def stamp(stamp_ns: int) -> Time:
+    sec, nanosec = stamp_parts(stamp_ns)
+    return Time(sec=sec, nanosec=nanosec)
 
 
-def rgb_image(step: BridgeStep) -> m.Image:
+def stamp_to_ns(t: Time) -> int:
+    return int(t.sec) * 1_000_000_000 + int(t.nanosec)
+
+
+def header(stamp_ns: int, frame_id: str) -> Header:
+    return Header(stamp=stamp(stamp_ns), frame_id=frame_id)
+
+
+def rgb_image(step: BridgeStep) -> Image:
     """``rgb8`` image of the step, in the camera optical frame."""
     rgb = np.ascontiguousarray(step.rgb, dtype=np.uint8)
     h, w = rgb.shape[:2]
-    return m.Image(header=header(step.stamp_ns, FRAME_CAMERA_OPTICAL), height=h, width=w, encoding="rgb8",
-                   is_bigendian=0, step=3 * w, data=rgb.tobytes())
+    return Image(header=header(step.stamp_ns, FRAME_CAMERA_OPTICAL), height=h, width=w, encoding="rgb8",
+                 is_bigendian=0, step=3 * w, data=rgb.tobytes())
 
 
-def depth_image(step: BridgeStep) -> m.Image:
+def depth_image(step: BridgeStep) -> Image:
     """``32FC1`` depth in metres (REP 118: NaN where there is no data), little-endian."""
     depth = np.ascontiguousarray(depth_to_rep118(step.depth_m).astype("<f4"))
     h, w = depth.shape
-    return m.Image(header=header(step.stamp_ns, FRAME_CAMERA_OPTICAL), height=h, width=w, encoding="32FC1",
-                   is_bigendian=0, step=4 * w, data=depth.tobytes())
+    return Image(header=header(step.stamp_ns, FRAME_CAMERA_OPTICAL), height=h, width=w, encoding="32FC1",
+                 is_bigendian=0, step=4 * w, data=depth.tobytes())
 
 
-def camera_info(step: BridgeStep) -> m.CameraInfo:
+def camera_info(step: BridgeStep) -> CameraInfo:
     """The pinhole camera of the step's images (undistorted: plumb_bob with zero distortion)."""
     a = camera_info_arrays(step.K)
-    return m.CameraInfo(header=header(step.stamp_ns, FRAME_CAMERA_OPTICAL), height=step.height, width=step.width,
-                        distortion_model=a["distortion_model"], d=list(a["D"]), k=list(a["K"]), r=list(a["R"]),
-                        p=list(a["P"]))
+    return CameraInfo(header=header(step.stamp_ns, FRAME_CAMERA_OPTICAL), height=step.height, width=step.width,
+                      distortion_model=a["distortion_model"], d=[float(v) for v in a["D"]],
+                      k=[float(v) for v in a["K"]], r=[float(v) for v in a["R"]], p=[float(v) for v in a["P"]])
 
 
-def transform_stamped(T: Any, parent: str, child: str, stamp_ns: int) -> m.TransformStamped:
+def pose_msg(T: Any) -> Pose:
     position, q = matrix_to_pose(T)
-    return m.TransformStamped(
-        header=header(stamp_ns, parent), child_frame_id=child,
-        transform=m.Transform(translation=m.Vector3(*map(float, position)), rotation=m.Quaternion(*map(float, q))))
+    x, y, z = map(float, position)
+    qx, qy, qz, qw = map(float, q)
+    return Pose(position=Point(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
 
 
-def tf_message(step: BridgeStep) -> m.TFMessage:
+def transform_stamped(T: Any, parent: str, child: str, stamp_ns: int) -> TransformStamped:
+    p = pose_msg(T)
+    return TransformStamped(header=header(stamp_ns, parent), child_frame_id=child,
+                            transform=Transform(translation=Vector3(x=p.position.x, y=p.position.y, z=p.position.z),
+                                                rotation=p.orientation))
+
+
+def tf_message(step: BridgeStep) -> TFMessage:
     """``world -> brave6d_camera_optical_frame`` and ``world -> gt/<name>_<gt_id>`` per object."""
     transforms = [transform_stamped(step.world_T_cam, FRAME_WORLD, FRAME_CAMERA_OPTICAL, step.stamp_ns)]
     transforms += [transform_stamped(o.world_T_obj, FRAME_WORLD, o.frame, step.stamp_ns) for o in step.objects]
-    return m.TFMessage(transforms=transforms)
+    return TFMessage(transforms=transforms)
 
 
-def pose_to_msg(T: Any) -> m.Pose:
-    position, q = matrix_to_pose(T)
-    return m.Pose(position=m.Point(*map(float, position)), orientation=m.Quaternion(*map(float, q)))
+def fill_step(msg: Any, step: BridgeStep) -> Any:
+    """Fill a ``brave6d_msgs/Step`` from the bridge's step (the status JSON included)."""
+    target = step.target()
+    msg.episode_id = step.episode_id
+    msg.step = int(step.step)
+    msg.accepted = bool(step.accepted)
+    msg.collided = bool(step.collided)
+    msg.refusal = step.refusal or ""
+    msg.adjustments = int(step.adjustments)
+    msg.stamp = stamp(step.stamp_ns)
+    msg.camera_pose = pose_msg(step.world_T_cam)
+    msg.target_frame = "" if target is None else target.frame
+    msg.target_obj_id = -1 if target is None else int(target.obj_id)
+    msg.status_json = json.dumps(step.status())
+    return msg
 
 
-def pose_from_msg(pose: m.Pose, field: str) -> NDArray[np.float64]:
+def pose_fields(pose: Pose) -> dict[str, list[float]]:
+    """A ``geometry_msgs/Pose`` as the HTTP API's pose (position + quaternion_wxyz), to validate."""
     p, q = pose.position, pose.orientation
-    return pose_to_matrix((p.x, p.y, p.z), (q.x, q.y, q.z, q.w), field)
+    return {"position": [p.x, p.y, p.z], "quaternion_wxyz": [q.w, q.x, q.y, q.z]}
 
 
-def camera_pose_from_msg(msg: m.PoseStamped, topic: str) -> NDArray[np.float64]:
-    """``world_T_cam`` from a ``PoseStamped`` in ``world`` (an empty frame_id means world)."""
-    frame = msg.header.frame_id.lstrip("/")
-    if frame not in ("", FRAME_WORLD):
-        raise BraveError(f"{topic}: header.frame_id {msg.header.frame_id!r}: camera poses are given in "
-                         f"{FRAME_WORLD!r} (no tf lookup is done)")
-    return pose_from_msg(msg.pose, f"{topic}.pose")
+def check_frame(frame_id: str, allowed: dict[str, str], where: str) -> str:
+    """The meaning of ``frame_id`` in ``allowed`` (frame -> meaning), else one line naming the field."""
+    frame = frame_id.lstrip("/")
+    if frame not in allowed:
+        names = " or ".join(repr(f) for f in allowed if f) + (" (or empty)" if "" in allowed else "")
+        raise BraveError(f"{where}: header.frame_id {frame_id[:80]!r}: must be {names}")
+    return allowed[frame]
 
 
+#: Frames of a set_pose and what they mean.
+POSE_FRAMES = {"": "world", FRAME_WORLD: "world"}
 #: Twist frames accepted by the node and the ``move`` frame each means.
 TWIST_FRAMES = {"": "camera", FRAME_CAMERA_OPTICAL: "camera", FRAME_WORLD: "world"}
+#: Frames of submitted estimates.
+ESTIMATE_FRAMES = {"": "camera", FRAME_CAMERA_OPTICAL: "camera"}
 
 
-def twist_from_msg(msg: m.TwistStamped, topic: str) -> tuple[list[float], list[float], str]:
-    """(linear m/s, angular rad/s, move frame) from a ``TwistStamped`` in the camera optical frame
-    (empty frame_id) or in ``world``."""
-    frame = msg.header.frame_id.lstrip("/")
-    if frame not in TWIST_FRAMES:
-        raise BraveError(f"{topic}: header.frame_id {msg.header.frame_id!r}: must be {FRAME_CAMERA_OPTICAL!r} "
-                         f"(or empty) or {FRAME_WORLD!r}")
-    lin, ang = msg.twist.linear, msg.twist.angular
-    return [lin.x, lin.y, lin.z], [ang.x, ang.y, ang.z], TWIST_FRAMES[frame]
+def estimate_fields(e: Any, where: str) -> dict[str, Any]:
+    """One ``brave6d_msgs/ObjectEstimate`` as the HTTP API's estimate (R row-major, t_m, score);
+    a quaternion that is not unit (or not finite) is refused naming the estimate."""
+    p, q = e.pose.position, e.pose.orientation
+    try:
+        T = pose_to_matrix((p.x, p.y, p.z), (q.x, q.y, q.z, q.w), where)
+    except (TypeError, ValueError) as exc:
+        raise BraveError(str(exc) if str(exc).startswith(where) else f"{where}: {exc}") from None
+    return {"obj_id": int(e.obj_id), "R": T[:3, :3].reshape(-1).tolist(), "t_m": T[:3, 3].tolist(),
+            "score": float(e.score)}
 
 
-def estimates_from_msg(msg: m.ObjectEstimateArray, topic: str) -> list[Estimate]:
-    """Estimates in the camera optical frame of the current view (the header's frame; empty = that)."""
-    frame = msg.header.frame_id.lstrip("/")
-    if frame not in ("", FRAME_CAMERA_OPTICAL):
-        raise BraveError(f"{topic}: header.frame_id {msg.header.frame_id!r}: estimates are given in "
-                         f"{FRAME_CAMERA_OPTICAL!r}")
-    return [Estimate(int(e.obj_id), pose_from_msg(e.pose, f"{topic}.estimates.{i}.pose"), float(e.score))
-            for i, e in enumerate(msg.estimates)]
+def estimates_to_msgs(estimates: list[Estimate], cls: type) -> list[Any]:
+    """``brave6d_msgs/ObjectEstimate`` messages (``cls``) of bridge estimates."""
+    return [cls(obj_id=int(e.obj_id), pose=pose_msg(e.cam_T_obj), score=float(e.score)) for e in estimates]
 
 
-def estimates_to_msg(estimates: list[Estimate], stamp_ns: int = 0) -> m.ObjectEstimateArray:
-    return m.ObjectEstimateArray(header=header(stamp_ns, FRAME_CAMERA_OPTICAL),
-                               estimates=[m.ObjectEstimate(obj_id=int(e.obj_id), pose=pose_to_msg(e.cam_T_obj),
-                                                         score=float(e.score)) for e in estimates])
-
-
-def image_to_array(msg: m.Image) -> NDArray[Any]:
+def image_to_array(msg: Image) -> NDArray[Any]:
     """An ``rgb8`` (HxWx3 uint8) or ``32FC1`` (HxW float32) image message as an array."""
+    data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
     if msg.encoding == "rgb8":
-        return np.frombuffer(msg.data, dtype=np.uint8).reshape(msg.height, msg.step)[:, :3 * msg.width].reshape(
-            msg.height, msg.width, 3)
+        return data.reshape(msg.height, msg.step)[:, :3 * msg.width].reshape(msg.height, msg.width, 3)
     if msg.encoding == "32FC1":
         dtype = ">f4" if msg.is_bigendian else "<f4"
-        rows = np.frombuffer(msg.data, dtype=np.uint8).reshape(msg.height, msg.step)[:, :4 * msg.width]
+        rows = data.reshape(msg.height, msg.step)[:, :4 * msg.width]
         return rows.copy().view(dtype).reshape(msg.height, msg.width).astype(np.float32)
     raise BraveError(f"image encoding {msg.encoding!r}: only rgb8 and 32FC1 are read here")
 
 
-def transform_to_matrix(t: m.TransformStamped) -> NDArray[np.float64]:
+def transform_to_matrix(t: TransformStamped) -> NDArray[np.float64]:
     tr, q = t.transform.translation, t.transform.rotation
     return pose_to_matrix((tr.x, tr.y, tr.z), (q.x, q.y, q.z, q.w), f"tf {t.child_frame_id}")

@@ -1,51 +1,108 @@
-"""An example ROS 2 agent over DDS: one episode end to end against ``brave6d ros2``.
+"""The minimal ROS 2 agent of docs/ROS.md: plain rclpy and the node's own interfaces, nothing else
+from brave6d. Against ``brave6d ros2 BUNDLE`` on this machine, with no ROS variable set:
 
-    brave6d ros2 BUNDLE &                       # the node (loopback, domain 0)
-    python -m brave6d.ros_interface.ros2.example_agent  # this agent
+    python -m brave6d.ros_interface.ros2.example_agent      # or copy this file and run it
 
-It resets, reads the first view (RGB, depth, camera info, tf), steps back along the optical axis
-with one ``cmd_twist``, then submits the target's pose taken from the ground-truth tf frame
-``gt/<name>_<gt_id>``: an oracle that shows the plumbing, not a pose estimator (a real agent
-estimates from the images; the ground truth is in its own ``gt/`` namespace for scoring and
-debugging). Prints the scored result as JSON.
+It resets, waits for the first view's images (RGB and depth, sensor-data QoS), backs off 5 cm
+along the optical axis with one ``move``, then submits the target's pose taken from its
+ground-truth tf frame ``gt/<name>_<gt_id>``: an oracle that shows the plumbing, not a pose
+estimator (a real agent estimates from the images). Prints the scored result as JSON.
 """
 
-from __future__ import annotations
-
-import argparse
 import json
 import sys
+import threading
 
-from brave6d.ros_interface.bridge import Estimate
-from brave6d.ros_interface.ros2.agent import Ros2Agent
-from brave6d.ros_interface.ros2.cli import domain_id_from
-from brave6d.ros_interface.ros2.dds import DdsDomain
-from brave6d.ros_interface.ros2.defaults import DEFAULT_NAMESPACE
+import numpy as np
+import rclpy
+from brave6d_msgs.msg import ObjectEstimate
+from brave6d_msgs.srv import Move, Reset, Submit
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import Image
+from tf2_msgs.msg import TFMessage
 
-
-def run_episode(agent: Ros2Agent, seed: int = 0) -> dict:
-    """Reset, one twist, submit the target's ground-truth pose; the node's result."""
-    first = agent.reset(seed=seed)
-    target = first.status["target"]
-    print(f"episode {first.status['episode_id']}: target {target['name']} (obj_id {target['obj_id']}), "
-          f"image {first.rgb.shape[1]}x{first.rgb.shape[0]}, fx {first.K[0, 0]:.1f}", file=sys.stderr)
-    view = agent.twist([0.0, 0.0, -0.05], [0.0, 0.0, 0.0])  # back off 5 cm/s along the optical axis
-    print(f"twist: accepted {view.status['accepted']}, adjustments {view.status['adjustments']}", file=sys.stderr)
-    estimate = Estimate(target["obj_id"], view.cam_T_gt(target["frame"]), 1.0)
-    return agent.submit([estimate])
+NS = "/brave6d_sim"
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--domain-id", type=int, default=None, help="DDS domain id (default $ROS_DOMAIN_ID, else 0)")
-    parser.add_argument("--namespace", default=DEFAULT_NAMESPACE)
-    parser.add_argument("--seed", type=int, default=0, help="seed of the episode's start pose")
-    parser.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for each answer")
-    args = parser.parse_args(argv)
-    with DdsDomain(domain_id_from(args.domain_id)) as dds:
-        agent = Ros2Agent(dds, args.namespace, timeout_s=args.timeout)
-        agent.wait_until_connected(timeout_s=args.timeout)
-        print(json.dumps(run_episode(agent, args.seed), indent=2))
+def matrix(t, q):
+    """4x4 from a translation (x, y, z) and a unit quaternion (x, y, z, w)."""
+    x, y, z, w = q.x, q.y, q.z, q.w
+    T = np.eye(4)
+    T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    T[:3, 3] = [t.x, t.y, t.z]
+    return T
+
+
+def main() -> int:
+    rclpy.init()
+    node = rclpy.create_node("minimal_agent")
+    seen = {}  # stamp -> {"rgb": Image, "depth": Image, "tf": {frame: 4x4}}
+    arrived = threading.Condition()
+
+    def keep(part, stamp, value):
+        with arrived:
+            seen.setdefault((stamp.sec, stamp.nanosec), {})[part] = value
+            arrived.notify_all()
+
+    node.create_subscription(Image, f"{NS}/rgb/image_raw", lambda m: keep("rgb", m.header.stamp, m),
+                             qos_profile_sensor_data)
+    node.create_subscription(Image, f"{NS}/depth/image_raw", lambda m: keep("depth", m.header.stamp, m),
+                             qos_profile_sensor_data)
+    node.create_subscription(TFMessage, "/tf", lambda m: keep("tf", m.transforms[0].header.stamp, {
+        t.child_frame_id: matrix(t.transform.translation, t.transform.rotation) for t in m.transforms}), 100)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+
+    def call(srv_type, name, request):
+        client = node.create_client(srv_type, f"{NS}/{name}")
+        if not client.wait_for_service(timeout_sec=30.0):
+            sys.exit(f"no service {NS}/{name}: is 'brave6d ros2 BUNDLE' running?")
+        response = client.call(request, timeout_sec=60.0)
+        if response is None or not response.success:
+            sys.exit(f"{name} refused: {getattr(response, 'message', 'no answer')}")
+        return response
+
+    def view(step):
+        key = (step.stamp.sec, step.stamp.nanosec)
+        with arrived:
+            if not arrived.wait_for(lambda: len(seen.get(key, {})) == 3, timeout=30.0):
+                sys.exit(f"step {step.step}: images or tf did not arrive")
+            return seen[key]
+
+    first = call(Reset, "reset", Reset.Request()).step
+    images = view(first)
+    rgb = np.frombuffer(images["rgb"].data, np.uint8).reshape(images["rgb"].height, images["rgb"].width, 3)
+    print(f"episode {first.episode_id}: target {first.target_frame}, image {rgb.shape[1]}x{rgb.shape[0]}",
+          file=sys.stderr)
+    request = Move.Request(duration=1.0)
+    request.twist.twist.linear.z = -0.05  # back off 5 cm/s for 1 s along the optical axis
+    step = call(Move, "move", request).step
+    tf = view(step)["tf"]
+    cam_T_obj = np.linalg.inv(tf["brave6d_camera_optical_frame"]) @ tf[step.target_frame]
+    estimate = ObjectEstimate(obj_id=step.target_obj_id, score=1.0)
+    estimate.pose.position.x, estimate.pose.position.y, estimate.pose.position.z = cam_T_obj[:3, 3]
+    w = np.sqrt(max(0.0, 1.0 + np.trace(cam_T_obj[:3, :3]))) / 2  # rotation -> quaternion (w > 0 here)
+    R = cam_T_obj[:3, :3]
+    if w > 1e-3:
+        q = [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w), w]
+    else:  # a half turn: take the axis from the largest diagonal entry
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        v = np.zeros(3)
+        v[i] = np.sqrt(max(0.0, 1.0 + R[i, i] - R[j, j] - R[k, k])) / 2
+        v[j], v[k] = (R[j, i] + R[i, j]) / (4 * v[i]), (R[k, i] + R[i, k]) / (4 * v[i])
+        q = [*v, (R[k, j] - R[j, k]) / (4 * v[i])]
+    o = estimate.pose.orientation
+    o.x, o.y, o.z, o.w = map(float, q)
+    result = call(Submit, "submit", Submit.Request(estimates=[estimate]))
+    print(json.dumps(json.loads(result.result_json), indent=2))
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.shutdown()
     return 0
 
 
