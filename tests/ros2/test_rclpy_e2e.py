@@ -173,3 +173,24 @@ def test_an_agent_that_leaves_mid_episode_leaves_the_node_serving(node: NodeProc
     view = agent.reset(target="cube_red", start=FREE)
     assert view.step.accepted and agent.submit([])["submitted"] == 0
     assert "Traceback" not in node.output()
+
+
+def test_a_mismatched_subscriber_gets_rclpys_warning_naming_the_policy(node: NodeProcess) -> None:
+    """A latched (TRANSIENT_LOCAL) image subscriber, as a ROS 1 habit, cannot match the node's volatile
+    publisher: rclpy says so, naming the policy, instead of silently receiving nothing."""
+    script = textwrap.dedent("""
+        import time, rclpy
+        from rclpy.qos import DurabilityPolicy, QoSProfile
+        from sensor_msgs.msg import Image
+        rclpy.init()
+        n = rclpy.create_node("latched_agent")
+        n.create_subscription(Image, "/brave6d_sim/rgb/image_raw", lambda m: None,
+                              QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        end = time.monotonic() + 8
+        while time.monotonic() < end:
+            rclpy.spin_once(n, timeout_sec=0.2)
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    text = out.stdout + out.stderr
+    assert "incompatible QoS" in text and "DURABILITY" in text, text[-2000:]
