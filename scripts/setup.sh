@@ -32,6 +32,12 @@ want_ros2="$want-ros2"
 stamp_ros2=".venv-ros2/.brave6d-installed"
 if [ ! -f "$stamp_ros2" ] || [ "$(cat "$stamp_ros2")" != "$want_ros2" ]; then
   t0=$(date +%s%N)
+  # brave6d_msgs is compiled from rosidl's C/C++ sources at install
+  if ! command -v gcc >/dev/null 2>&1 || ! command -v g++ >/dev/null 2>&1; then
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    echo "setup: installing the Debian packages gcc g++ (brave6d_msgs is built from rosidl's sources)" >&2
+    $SUDO apt-get update -qq && $SUDO apt-get install -y -qq gcc g++ >/dev/null
+  fi
   [ -x .venv-ros2/bin/python ] || "$PYTHON" -m venv .venv-ros2
   main_site="$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_path("purelib"))')"
   ros2_site="$(.venv-ros2/bin/python -c 'import sysconfig; print(sysconfig.get_path("purelib"))')"
