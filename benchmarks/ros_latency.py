@@ -1,4 +1,4 @@
-"""Per-step latency of the ROS interface vs HTTP on the same bundle and the same poses.
+"""Per-step latency of the ROS interfaces vs HTTP on the same bundle and the same poses.
 
 One step = an agent sends a camera pose and waits for the image of that pose:
 
@@ -8,21 +8,32 @@ One step = an agent sends a camera pose and waits for the image of that pose:
   ``sensor_msgs/Image`` (rgb8) with that step's stamp reaches the agent's callback (rosmaster and
   ``brave6d ros1`` on loopback, the agent a separate rospy process; column ``depth``: the 32FC1
   image's arrival);
-* ``ros2``: the same over ROS 2 topics on DDS (``brave6d ros2`` on loopback with a random domain
-  id, its own process; the agent a Cyclone DDS participant in this process,
-  ``brave6d.ros_interface.ros2.agent.Ros2Agent``): ``PoseStamped`` published on ``/brave6d_sim/set_pose``
-  until the rgb8 image with that step's stamp is taken from its reader (``depth``: the 32FC1 one).
+* ``ros2``: the ``set_pose`` service (``brave6d_msgs/srv/SetPose``) of ``brave6d ros2`` (rclpy on
+  Fast DDS, its own process, the node's loopback profile: UDP on 127.0.0.1 and shared memory) called
+  by ``brave6d.ros_interface.ros2.agent.Ros2Agent`` (an rclpy node, sensor-data QoS) until the rgb8
+  image with the answer's stamp has arrived at the agent (``depth``: the 32FC1 one). The node
+  publishes the images before it answers; the answer's arrival is in the JSON
+  (``answer_median_ms``). Node and agent run with ROS 2's defaults (every ``ROS_*``, ``RMW_*``,
+  ``FASTDDS_*`` / ``FASTRTPS_*`` variable removed) on a random domain id (100..229) given to both,
+  so other ROS 2 processes on the machine neither see nor disturb them.
+
+rclpy lives in the layered ROS 2 venv, not in the one that runs this script (docs/ROS.md), so
+``ros2`` re-runs this script in ``$BRAVE6D_ROS2_PYTHON`` (default ``<repo>/.venv-ros2/bin/python``)
+with an internal flag that measures ros2 only, on the same bundle and poses, and writes its samples
+as JSON; the column is skipped, saying why, when that python or its rclpy is missing.
 
 Every transport sees the same ``--steps`` free poses around the target (after ``--warmup`` steps
 that are not counted); ``server ms`` is the episode log's own time for the step (render, ground
 truth and visible fractions), so ``latency - server`` is the transport's cost. Medians and p90
 are printed as a table; ``--json`` writes them.
 
-    python benchmarks/ros_latency.py [--bundle DIR] [--device cpu|cuda|auto] [--steps 30] [--json out.json]
+    python benchmarks/ros_latency.py [--bundle DIR | --gaussians N --width W --height H]
+        [--device cpu|cuda|auto] [--steps 30] [--transports http ros1 ros2] [--json out.json]
 
-Without ``--bundle``, a synthetic bundle (``brave6d.serve.make_synthetic_bundle``) is built in a temporary
-folder. ROS 1 needs Debian's packages (see docs/ROS.md); its column is skipped, saying why, without
-them. Transports are registered in ``TRANSPORTS`` (name -> function), so a new one is one entry.
+Without ``--bundle``, a synthetic bundle (``brave6d.serve.make_synthetic_bundle``, ``--gaussians``
+at ``--width`` x ``--height``) is built in a temporary folder. ROS 1 needs Debian's packages (see
+docs/ROS.md); its column is skipped, saying why, without them. Transports are registered in
+``TRANSPORTS`` (name -> function), so a new one is one entry.
 """
 
 from __future__ import annotations
@@ -112,7 +123,7 @@ def measure_ros1(bundle_dir: Path, views: list[np.ndarray], args: argparse.Names
     actions = [{"op": "reset", "start": views[0].tolist()}] + [{"op": "set_pose", "world_T_cam": T.tolist()}
                                                              for T in views[1:]]
     (work / "ros1_actions.json").write_text(json.dumps({"actions": actions, "timeout_s": 300}), encoding="utf-8")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO / "src"), os.environ.get("PYTHONPATH")]))}
     with RosMaster(log_file=work / "rosmaster.log") as master:
         env.update(loopback_environment(master.uri))
         node = subprocess.Popen(
@@ -136,44 +147,111 @@ def measure_ros1(bundle_dir: Path, views: list[np.ndarray], args: argparse.Names
             "server_ms": server_step_ms(log_dir)}
 
 
+ROS_ENV_PREFIXES = ("ROS_", "RMW_", "FASTDDS_", "FASTRTPS_")
+#: The internal flag of the child that measures ros2 in the ROS 2 python (value: its work folder).
+ROS2_CHILD_FLAG = "--ros2-child"
+
+
+def ros2_python() -> Path:
+    """The python of the ROS 2 venv: ``$BRAVE6D_ROS2_PYTHON``, else ``<repo>/.venv-ros2/bin/python``."""
+    return Path(os.environ.get("BRAVE6D_ROS2_PYTHON") or REPO / ".venv-ros2" / "bin" / "python")
+
+
+def ros_free_environment() -> dict[str, str]:
+    """This process's environment without ROS 2 / DDS settings (ROS 2's defaults), ``src`` first on the path."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(ROS_ENV_PREFIXES)}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO / "src"), os.environ.get("PYTHONPATH")]))
+    return env
+
+
 def measure_ros2(bundle_dir: Path, views: list[np.ndarray], args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    """Run :func:`measure_ros2_here` in the ROS 2 python (this script with ``--ros2-child``) and read its samples."""
+    python = ros2_python()
+    if not python.exists():
+        return {"skipped": f"no ROS 2 python at {python} (scripts/setup.sh makes .venv-ros2; or set "
+                           "BRAVE6D_ROS2_PYTHON)"}
+    (work / "views.json").write_text(json.dumps([T.tolist() for T in views]), encoding="utf-8")
+    cmd = [str(python), str(Path(__file__).resolve()), ROS2_CHILD_FLAG, str(work), "--bundle", str(bundle_dir),
+           "--device", args.device]
+    child = subprocess.run(cmd, env=ros_free_environment(), cwd=REPO, capture_output=True, text=True, timeout=1800)
+    if child.returncode != 0:
+        raise SystemExit(f"the ROS 2 measurement failed ({' '.join(cmd)}):\n{child.stdout[-2000:]}\n"
+                         f"{child.stderr[-3000:]}")
+    return json.loads((work / "samples.json").read_text(encoding="utf-8"))
+
+
+def measure_ros2_here(bundle_dir: Path, views: list[np.ndarray], args: argparse.Namespace,
+                      work: Path) -> dict[str, Any]:
+    """The ros2 samples, measured in this (ROS 2) python: node as a process, rclpy agent here."""
+    for key in [k for k in os.environ if k.startswith(ROS_ENV_PREFIXES)]:
+        del os.environ[key]  # ROS 2's defaults, read by rclpy.init below
     try:
-        import cyclonedds  # noqa: F401
-    except ImportError:
-        return {"skipped": "Cyclone DDS not installed: pip install cyclonedds==11.0.1"}
+        import rclpy
+    except ImportError as exc:
+        return {"skipped": f"rclpy not importable in {sys.executable}: {exc} (pip install -e '.[ros2]' there)"}
     import random
 
     from brave6d.ros_interface.ros2.agent import Ros2Agent
-    from brave6d.ros_interface.ros2.dds import DdsDomain
+    from brave6d.ros_interface.ros2.interfaces import ensure_interfaces
 
+    class TimedAgent(Ros2Agent):
+        """Records when each service answer reached the agent."""
+
+        answered = 0.0
+
+        def call(self, name: str, request: Any) -> Any:
+            response = super().call(name, request)
+            self.answered = time.perf_counter()
+            return response
+
+    ensure_interfaces()  # brave6d_msgs for the agent (the node does the same)
     log_dir = work / "ros2_episodes"
     domain_id = random.randrange(100, 230)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
-    node = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from brave6d.cli import main; sys.exit(main(sys.argv[1:]))", "ros2",
-         str(bundle_dir), "--domain-id", str(domain_id), "--device", args.device, "--log-dir", str(log_dir),
-         "--agent", "bench-ros2"], env=env, cwd=REPO, stdout=open(work / "ros2_node.log", "wb"),
-        stderr=subprocess.STDOUT)
-    rgb_s, depth_s = [], []
+    node_log = work / "ros2_node.log"
+    with open(node_log, "wb") as out:
+        node = subprocess.Popen(
+            [sys.executable, "-m", "brave6d.cli", "ros2", str(bundle_dir), "--domain-id", str(domain_id),
+             "--device", args.device, "--log-dir", str(log_dir), "--agent", "bench-ros2"],
+            env=ros_free_environment(), cwd=REPO, stdout=out, stderr=subprocess.STDOUT)
+    rgb_s, depth_s, answer_s = [], [], []
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain_id)
     try:
-        with DdsDomain(domain_id) as dds:
-            agent = Ros2Agent(dds, timeout_s=300)
+        agent = TimedAgent(timeout_s=300, context=context, node_name="brave6d_bench_agent")
+        try:
             agent.wait_until_connected(timeout_s=300)
             agent.reset(start=views[0])
             for T in views[1:]:
                 t0 = time.perf_counter()
                 obs = agent.set_pose(T)
-                assert obs.status["accepted"]
+                assert obs.step.accepted, obs.status
                 rgb_s.append(obs.received["rgb"] - t0)
                 depth_s.append(obs.received["depth"] - t0)
+                answer_s.append(agent.answered - t0)
             agent.close()
+        finally:
+            agent.destroy()
+    except Exception as exc:
+        raise SystemExit(f"{type(exc).__name__}: {exc}\nnode output:\n"
+                         f"{node_log.read_text(errors='replace')[-3000:]}") from exc
     finally:
+        rclpy.try_shutdown(context=context)
         node.terminate()
         try:
             node.wait(timeout=30)
         except subprocess.TimeoutExpired:
             node.kill()
-    return {"image_s": rgb_s, "depth_s": depth_s, "server_ms": server_step_ms(log_dir)}
+            node.wait()
+    return {"image_s": rgb_s, "depth_s": depth_s, "answer_s": answer_s, "server_ms": server_step_ms(log_dir),
+            "domain_id": domain_id}
+
+
+def ros2_child(work: Path, args: argparse.Namespace) -> int:
+    """``--ros2-child WORK``: measure ros2 on ``WORK/views.json``, write ``WORK/samples.json``."""
+    views = [np.asarray(T, dtype=np.float64) for T in json.loads((work / "views.json").read_text(encoding="utf-8"))]
+    samples = measure_ros2_here(args.bundle, views, args, work)
+    (work / "samples.json").write_text(json.dumps(samples), encoding="utf-8")
+    return 0
 
 
 #: name -> function(bundle_dir, views (the first is the reset's start), args, work dir) -> samples.
@@ -196,6 +274,9 @@ def summarise(samples: dict[str, Any], warmup: int) -> dict[str, Any]:
     if "depth_s" in samples:
         depth = np.asarray(samples["depth_s"][warmup:]) * 1000.0
         out["depth_median_ms"], out["depth_p90_ms"] = float(np.median(depth)), float(np.percentile(depth, 90))
+    if "answer_s" in samples:
+        answer = np.asarray(samples["answer_s"][warmup:]) * 1000.0
+        out["answer_median_ms"], out["answer_p90_ms"] = float(np.median(answer)), float(np.percentile(answer, 90))
     return out
 
 
@@ -206,8 +287,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=30, help="timed steps per transport (default 30)")
     parser.add_argument("--warmup", type=int, default=3, help="untimed steps first (default 3)")
     parser.add_argument("--transports", nargs="+", default=list(TRANSPORTS), choices=list(TRANSPORTS))
+    parser.add_argument("--gaussians", type=int, default=20_000, help="synthetic bundle: Gaussians (default 20000)")
+    parser.add_argument("--width", type=int, default=320, help="synthetic bundle: image width (default 320)")
+    parser.add_argument("--height", type=int, default=240, help="synthetic bundle: image height (default 240)")
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
+    parser.add_argument(ROS2_CHILD_FLAG, type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.ros2_child is not None:
+        return ros2_child(args.ros2_child, args)
     from brave6d.core.progress import format_table
 
     with tempfile.TemporaryDirectory(prefix="brave6d_ros_latency_") as tmp:
@@ -216,7 +303,8 @@ def main(argv: list[str] | None = None) -> int:
         if bundle_dir is None:
             from brave6d.serve import make_synthetic_bundle
 
-            bundle_dir = make_synthetic_bundle(work / "scene")
+            bundle_dir = make_synthetic_bundle(work / "scene", n_gaussians=args.gaussians, width=args.width,
+                                               height=args.height)
         views = free_views(bundle_dir, 1 + args.warmup + args.steps)
         results = {}
         for name in args.transports:
