@@ -100,11 +100,12 @@ def handeye_motions(
     pairs: PairMode = "all",
     thresholds: ConditioningThresholds | None = None,
     names: Sequence[str] | None = None,
+    setup: str = "eye-in-hand",
 ) -> tuple[Array, Array, ConditioningReport]:
     """``(A, B, report)``: the motions of :func:`motion_pairs` for poses that pass
     :func:`~brave6d.calibration.conditioning.check_handeye_conditioning`, which raises naming the cause
     otherwise. The one gate between poses and every closed-form solver."""
-    report = check_handeye_conditioning(base_T_tcp, cam_T_board, thresholds, names)
+    report = check_handeye_conditioning(base_T_tcp, cam_T_board, thresholds, names, setup)
     A, B = motion_pairs(base_T_tcp, cam_T_board, pairs)
     return A, B, report
 

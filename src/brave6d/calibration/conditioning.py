@@ -158,20 +158,35 @@ def _max_axis_angle_deg(axes: NDArray[np.float64]) -> float:
     return float(np.degrees(np.arccos(cos.min())))
 
 
+#: Per set-up: the frame the robot motions' axes are expressed in, and how the camera is mounted.
+SETUPS = {
+    "eye-in-hand": ("TCP frame", "that the camera is mounted on the tool (eye-in-hand; a static camera looking at "
+                                 "a board on the tool is eye-to-hand)"),
+    "eye-to-hand": ("base frame", "that the camera is static and the board is on the tool (eye-to-hand; a camera "
+                                  "on the tool is eye-in-hand)"),
+}
+
+
 def check_handeye_conditioning(
     base_T_tcp: Sequence[ArrayLike],
     cam_T_board: Sequence[ArrayLike] | None = None,
     thresholds: ConditioningThresholds | None = None,
     names: Sequence[str] | None = None,
+    setup: str = "eye-in-hand",
 ) -> ConditioningReport:
     """Raise :class:`DegenerateGeometryError` naming the cause if the poses cannot determine
     ``tcp_T_cam`` reliably; otherwise return the measured figures and soft warnings.
 
     ``base_T_tcp``: the robot poses of the usable views; ``cam_T_board``: the board poses
     seen by the camera in the same views (optional; enables the robot-vs-camera check);
-    ``names``: view names used in messages (default: the indices).
+    ``names``: view names used in messages (default: the indices); ``setup``: the words of the
+    messages (``"eye-to-hand"``: the poses are the inverted robot poses of a static camera,
+    their motion axes lie in the base frame).
     """
     th = thresholds or ConditioningThresholds()
+    if setup not in SETUPS:
+        raise ValueError(f"setup must be one of {sorted(SETUPS)}, got {setup!r}")
+    frame, mounting = SETUPS[setup]
     n = len(base_T_tcp)
     label = list(names) if names is not None else [str(k) for k in range(n)]
     if n < th.min_poses:
@@ -223,7 +238,7 @@ def check_handeye_conditioning(
     if weak < th.min_weakest_rotation_deg:
         raise DegenerateGeometryError(
             f"near-parallel rotation axes: the robot motions turn the direction {np.round(weak_dir, 2).tolist()} "
-            f"(TCP frame) by only {weak:.2f} deg (RMS over view pairs) < {th.min_weakest_rotation_deg:g} deg, nearly "
+            f"({frame}) by only {weak:.2f} deg (RMS over view pairs) < {th.min_weakest_rotation_deg:g} deg, nearly "
             "all rotations are about it, so the camera offset along it is poorly determined (noise amplified "
             f"{1.0 / max(weak_rad, 1e-12):.0f}x); add rotations about an axis perpendicular to it"
         )
@@ -241,8 +256,7 @@ def check_handeye_conditioning(
             raise DegenerateGeometryError(
                 f"robot and camera motions disagree: the median difference between the rotation angles of "
                 f"robot and camera motions is {mismatch:.1f} deg > {th.max_angle_mismatch_deg:g} deg; check that "
-                "images and robot poses are paired correctly, the pose units (m, rad) and that the camera "
-                "is mounted on the tool (eye-in-hand)"
+                f"images and robot poses are paired correctly, the pose units (m, rad) and {mounting}"
             )
         worst = int(np.argmax(diff))
         if diff[worst] > th.max_angle_mismatch_deg:
@@ -261,7 +275,7 @@ def check_handeye_conditioning(
         )
     if weak < th.recommended_weakest_deg:
         warnings.append(
-            f"the motions turn the direction {np.round(weak_dir, 2).tolist()} (TCP frame) by only {weak:.1f} deg "
+            f"the motions turn the direction {np.round(weak_dir, 2).tolist()} ({frame}) by only {weak:.1f} deg "
             f"(RMS; recommended {th.recommended_weakest_deg:g} deg+): rotate more about axes perpendicular to it"
         )
     return ConditioningReport(n, span, axis_angle, mismatch, tuple(warnings), weak)

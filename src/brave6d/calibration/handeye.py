@@ -15,7 +15,15 @@
    configured sigmas are starting values; a robot 10x noisier than configured no longer makes
    the answer worse than the closed forms, nor its 1-sigma too small);
 5. residuals in px, mm and deg, a 1-sigma uncertainty, per-view reports. A result whose
-   uncertainty exceeds ``max_sigma_mm``/``max_sigma_deg`` raises instead of being returned.
+   uncertainty exceeds ``max_sigma_mm``/``max_sigma_deg`` raises
+   :class:`~brave6d.calibration.refusal.HandEyeRefusedError` instead of being returned, naming the
+   dominant cause (intrinsics uncertainty, pose conditioning, detection count, reprojection error)
+   with its share (:mod:`brave6d.calibration.refusal`).
+
+The intrinsics are held fixed, their uncertainty propagated (``intrinsics_cov``, or
+``intrinsics_std`` taken as independent), unless ``refine_intrinsics`` names parameters to solve
+jointly (:mod:`brave6d.calibration.refine`). A static camera looking at a board on the tool is
+calibrated by :func:`~brave6d.calibration.eye_to_hand.calibrate_eye_to_hand` with the same steps.
 
 A view with part of the board hidden contributes fewer residuals (natural down-weighting);
 a view that disagrees with the rest (bad detection, robot pose error) is down-weighted by the
@@ -45,6 +53,7 @@ from brave6d.calibration.handeye_result import (
     MethodResult,
     ViewReport,
 )
+from brave6d.calibration.intrinsics_covariance import IntrinsicsCovariance
 from brave6d.calibration.refine import (
     CornerData,
     Refinement,
@@ -58,8 +67,9 @@ from brave6d.calibration.refine import (
     reprojection_errors,
     solution_uncertainty,
 )
+from brave6d.calibration.refusal import HandEyeRefusedError, explain_uncertainty
 
-__all__ = ["HandEyeOptions", "HandEyeView", "calibrate_handeye", "estimate_board_pose"]
+__all__ = ["HandEyeOptions", "HandEyeView", "calibrate_handeye", "estimate_board_pose", "solve_handeye"]
 
 Array = NDArray[np.float64]
 
@@ -94,7 +104,11 @@ class HandEyeOptions:
     ``min_corners``: fewer corners in a view -> view skipped. ``max_pnp_rms_px``: a view whose
     own PnP fit is worse is skipped (wrong detection or wrong intrinsics).
     ``max_sigma_mm``/``max_sigma_deg``: a result whose 1-sigma uncertainty (norm over the axes)
-    exceeds these raises :class:`DegenerateGeometryError` (None: no limit).
+    exceeds these raises :class:`~brave6d.calibration.refusal.HandEyeRefusedError`, a
+    :class:`DegenerateGeometryError` naming the dominant cause (None: no limit).
+    ``refine_intrinsics``: intrinsic parameters (``"fx"``, ``"fy"``, ``"cx"``, ``"cy"``, ``"k1"``, ...)
+    solved jointly with the hand-eye transform (the robot's motions constrain them too); empty:
+    held as given.
     ``downweight_flag``: used views whose mean robust weight falls below it are flagged.
     ``max_correction_sigma``/``max_outlier_fraction``: with the robot model, a view whose robot
     pose needs a correction above this many sigmas (RMS over the 6 components) and above 3x
@@ -121,14 +135,17 @@ class HandEyeOptions:
     max_correction_sigma: float = 4.0
     max_outlier_fraction: float = 0.25
     refine: bool = True
+    refine_intrinsics: tuple[str, ...] = ()
 
-    def refine_settings(self, robot: bool = True, intrinsics_std: Mapping[str, float] | None = None) -> RefineSettings:
+    def refine_settings(self, robot: bool = True, intrinsics_std: Mapping[str, float] | None = None,
+                        intrinsics_cov: IntrinsicsCovariance | None = None) -> RefineSettings:
         return RefineSettings(
             loss=self.loss, f_scale_px=self.f_scale_px,
             robot_sigma_mm=self.robot_sigma_mm if robot else None,
             robot_sigma_deg=self.robot_sigma_deg if robot else None,
             pixel_sigma_px=self.pixel_sigma_px, max_nfev=self.max_nfev, intrinsics_std=intrinsics_std,
-            estimate_robot_sigma=self.estimate_robot_noise,
+            estimate_robot_sigma=self.estimate_robot_noise, intrinsics_cov=intrinsics_cov,
+            refine_intrinsics=tuple(self.refine_intrinsics) if robot else (),
         )
 
 
@@ -232,15 +249,33 @@ def calibrate_handeye(
     dist: ArrayLike = (),
     options: HandEyeOptions | None = None,
     intrinsics_std: Mapping[str, float] | None = None,
+    intrinsics_cov: IntrinsicsCovariance | None = None,
 ) -> HandEyeResult:
     """Eye-in-hand calibration from robot poses and ChArUco corners (see the module docstring).
 
     ``object_points``: (M, 3) board corners, row = corner id (e.g.
     :func:`~brave6d.calibration.board.board_corner_points`); ``K``, ``dist``: camera intrinsics (OpenCV);
-    ``intrinsics_std``: their 1-sigma (:attr:`IntrinsicsResult.std`), added to the uncertainty.
+    ``intrinsics_cov``: their covariance (:attr:`IntrinsicsResult.covariance`) or ``intrinsics_std``
+    their 1-sigma (:attr:`IntrinsicsResult.std`, taken as independent), added to the uncertainty.
     Raises :class:`DegenerateGeometryError` naming the cause when the usable views cannot
-    determine ``tcp_T_cam`` reliably.
+    determine ``tcp_T_cam`` reliably (:class:`~brave6d.calibration.refusal.HandEyeRefusedError` when
+    its uncertainty exceeds the options' limits).
     """
+    return solve_handeye(views, object_points, K, dist, options, intrinsics_std, intrinsics_cov, "eye-in-hand")
+
+
+def solve_handeye(
+    views: Sequence[HandEyeView],
+    object_points: ArrayLike,
+    K: ArrayLike,
+    dist: ArrayLike,
+    options: HandEyeOptions | None,
+    intrinsics_std: Mapping[str, float] | None,
+    intrinsics_cov: IntrinsicsCovariance | None,
+    setup: str,
+) -> HandEyeResult:
+    """:func:`calibrate_handeye`'s steps for ``setup`` (``"eye-in-hand"``; ``"eye-to-hand"``: the views
+    carry the inverted robot poses, :func:`~brave6d.calibration.eye_to_hand.calibrate_eye_to_hand`)."""
     opts = options or HandEyeOptions()
     if not opts.methods:
         raise ValueError("HandEyeOptions.methods must name at least one closed-form method")
@@ -263,7 +298,7 @@ def calibrate_handeye(
             f"{opts.conditioning.min_poses} needed (skipped: {reasons})"
         )
     names = [r.name for r in reports if r.used]
-    A, B, conditioning = handeye_motions(list(data.G), list(data.C), opts.pairs, opts.conditioning, names)
+    A, B, conditioning = handeye_motions(list(data.G), list(data.C), opts.pairs, opts.conditioning, names, setup)
 
     t_start = time.perf_counter()
     rows = _closed_form_rows(A, B, data, K_arr, dist_arr, opts)
@@ -275,12 +310,12 @@ def calibrate_handeye(
     start = min(good, key=lambda r: r.residuals.reprojection_rms_px)  # type: ignore[union-attr]
     assert start.tcp_T_cam is not None and start.base_T_board is not None
 
-    settings = opts.refine_settings(robot=opts.refine, intrinsics_std=intrinsics_std)
+    settings = opts.refine_settings(robot=opts.refine, intrinsics_std=intrinsics_std, intrinsics_cov=intrinsics_cov)
     kept = list(range(data.n_views))
     dropped: dict[int, str] = {}
     if opts.refine:
         ref, kept, dropped = _refine_dropping_outliers(start.tcp_T_cam, start.base_T_board, data, K_arr, dist_arr,
-                                                       settings, opts, names)
+                                                       settings, opts, names, setup)
         robot_text = "with per-view robot pose corrections" if settings.models_robot else "robot poses exact"
         method_name = f"refined ({opts.loss} loss, {robot_text}; start: {start.method})"
     else:
@@ -289,21 +324,23 @@ def calibrate_handeye(
     final_data = data.subset(kept) if dropped else data
     if dropped:  # judge every method on the views that were finally kept
         conditioning = check_handeye_conditioning(list(final_data.G), list(final_data.C), opts.conditioning,
-                                                  [names[v] for v in kept])
+                                                  [names[v] for v in kept], setup)
         rows = [_rejudge(r, final_data, K_arr, dist_arr, opts) for r in rows]
     X, W, unc = ref.tcp_T_cam, ref.base_T_board, ref.uncertainty
-    residuals = evaluate(X, W, final_data, K_arr, dist_arr)
+    K_fit = ref.K if ref.K is not None else K_arr
+    dist_fit = ref.dist if ref.dist is not None else dist_arr
+    residuals = evaluate(X, W, final_data, K_fit, dist_fit)
     if opts.refine:
         rows.append(MethodResult("refined", X, W, residuals, time.perf_counter() - t_start))
-    if (opts.max_sigma_mm is not None and unc.translation_sigma_norm_mm > opts.max_sigma_mm) or (
-        opts.max_sigma_deg is not None and unc.rotation_sigma_norm_deg > opts.max_sigma_deg
-    ):
-        raise DegenerateGeometryError(
-            f"hand-eye result is poorly determined: 1-sigma uncertainty {unc.translation_sigma_norm_mm:.2f} mm / "
-            f"{unc.rotation_sigma_norm_deg:.3f} deg exceeds {opts.max_sigma_mm} mm / {opts.max_sigma_deg} deg "
-            f"(reprojection RMS {residuals.reprojection_rms_px:.2f} px); add poses with larger rotations about "
-            "different axes, or check the detections and robot poses"
-        )
+    breakdown = explain_uncertainty(
+        unc, limit_mm=opts.max_sigma_mm, limit_deg=opts.max_sigma_deg, pixel_sigma_px=ref.pixel_sigma_px,
+        n_corners=len(final_data.obj), n_views=final_data.n_views, n_input_views=len(views),
+        board_corners=len(obj_pts), weakest_rotation_deg=conditioning.weakest_rotation_deg or 0.0,
+        recommended_views=opts.conditioning.recommended_poses,
+        recommended_weakest_deg=opts.conditioning.recommended_weakest_deg,
+    )
+    if breakdown.exceeded:
+        raise HandEyeRefusedError(breakdown)
 
     warnings = list(conditioning.warnings)
     robot = settings.models_robot
@@ -349,7 +386,8 @@ def calibrate_handeye(
     return HandEyeResult(
         method=method_name, tcp_T_cam=X, base_T_board=W, residuals=residuals, fit=fit, uncertainty=unc,
         methods=tuple(rows), views=tuple(final[k] for k in sorted(final)), conditioning=conditioning,
-        K=K_arr, dist=dist_arr, loss=opts.loss, f_scale_px=opts.f_scale_px, warnings=tuple(warnings),
+        K=K_fit, dist=dist_fit, loss=opts.loss, f_scale_px=opts.f_scale_px, warnings=tuple(warnings),
+        intrinsics_std=ref.intrinsics_std,
     )
 
 
@@ -411,7 +449,7 @@ def _robot_noise_warnings(ref: Refinement, corr_sigma: Array, opts: HandEyeOptio
 
 def _refine_dropping_outliers(
     X0: Array, W0: Array, data: CornerData, K: Array, dist: Array, settings: RefineSettings,
-    opts: HandEyeOptions, names: list[str],
+    opts: HandEyeOptions, names: list[str], setup: str = "eye-in-hand",
 ) -> tuple[Refinement, list[int], dict[int, str]]:
     """Refine; while the worst view needs a robot pose correction far beyond the error model
     (``max_correction_sigma`` and 3x the median view), drop it with a reason and refine again.
@@ -444,6 +482,6 @@ def _refine_dropping_outliers(
         kept = [k for k in kept if k != v]
         X0, W0 = ref.tcp_T_cam, ref.base_T_board
         check_handeye_conditioning([data.G[k] for k in kept], [data.C[k] for k in kept], opts.conditioning,
-                                   [names[k] for k in kept])
+                                   [names[k] for k in kept], setup)
 
 

@@ -10,7 +10,8 @@ where the key says deg):
 * ``uncertainty``: :class:`Uncertainty` (1-sigma, mm and deg, with the 6x6 covariances);
 * ``methods``: one :class:`MethodResult` per closed-form method and one for ``refined``;
 * ``views`` / ``skipped_views``: per input view, used or skipped with the reason;
-* ``conditioning``, ``intrinsics`` (K, dist used), ``loss``, ``f_scale_px``, ``warnings``.
+* ``conditioning``, ``intrinsics`` (K, dist used; with ``std``, their 1-sigma, when they were refined
+  jointly with the hand-eye transform), ``loss``, ``f_scale_px``, ``warnings``.
 """
 
 from __future__ import annotations
@@ -235,7 +236,10 @@ class ViewReport:
 
 @dataclass(frozen=True)
 class HandEyeResult:
-    """Result of :func:`~brave6d.calibration.handeye.calibrate_handeye` (see the module docstring)."""
+    """Result of :func:`~brave6d.calibration.handeye.calibrate_handeye` (see the module docstring).
+
+    ``K``, ``dist``: the intrinsics of the result (refined jointly when ``intrinsics_std`` is set,
+    their 1-sigma from that solve; else as given)."""
 
     method: str
     tcp_T_cam: Array
@@ -251,6 +255,7 @@ class HandEyeResult:
     loss: str
     f_scale_px: float
     warnings: tuple[str, ...] = ()
+    intrinsics_std: dict[str, float] | None = None
 
     @property
     def skipped_views(self) -> list[ViewReport]:
@@ -289,7 +294,8 @@ class HandEyeResult:
             "skipped_views": [{"index": v.index, "name": v.name, "reason": v.reason} for v in self.skipped_views],
             "views": [v.to_json() for v in self.views],
             "conditioning": self.conditioning.to_json(),
-            "intrinsics": {"K": self.K.tolist(), "dist": self.dist.tolist()},
+            "intrinsics": {"K": self.K.tolist(), "dist": self.dist.tolist(),
+                           **({} if self.intrinsics_std is None else {"std": dict(self.intrinsics_std)})},
             "loss": self.loss,
             "f_scale_px": self.f_scale_px,
             "warnings": list(self.warnings),
@@ -314,6 +320,8 @@ class HandEyeResult:
                 np.asarray(d["intrinsics"]["K"], dtype=np.float64).reshape(3, 3),
                 np.asarray(d["intrinsics"]["dist"], dtype=np.float64).reshape(-1),
                 str(d["loss"]), float(d["f_scale_px"]), tuple(str(w) for w in d.get("warnings", ())),
+                None if d["intrinsics"].get("std") is None
+                else {str(k): float(v) for k, v in d["intrinsics"]["std"].items()},
             )
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise DataError(f"hand-eye result: missing or malformed field ({type(exc).__name__}: {exc})") from None

@@ -39,6 +39,7 @@ from brave6d.core.calibration_io import write_intrinsics_file
 from brave6d.core.camera import CameraError, PinholeCamera
 from brave6d.core.errors import DataError, DegenerateGeometryError
 from brave6d.calibration.board import CharucoDetection
+from brave6d.calibration.intrinsics_covariance import INTRINSIC_NAMES, IntrinsicsCovariance, intrinsics_covariance
 
 __all__ = [
     "DISTORTION_MODELS",
@@ -96,7 +97,9 @@ class IntrinsicsResult:
     ``source``: ``"charuco"`` (calibrated) or ``"factory"`` (given, only evaluated);
     ``rms_px``: overall corner reprojection RMS of the used views; ``std``: 1-sigma of
     fx, fy, cx, cy and the distortion coefficients from OpenCV (empty for ``factory``);
-    ``notes``: how the model was chosen (:func:`calibrate_intrinsics_auto`).
+    ``notes``: how the model was chosen (:func:`calibrate_intrinsics_auto`);
+    ``covariance``: the full covariance of the estimated parameters, correlations included
+    (:mod:`brave6d.calibration.intrinsics_covariance`; None for ``factory`` or a fixed aspect ratio).
     """
 
     source: str
@@ -111,6 +114,7 @@ class IntrinsicsResult:
     rounds: int
     warnings: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
+    covariance: IntrinsicsCovariance | None = None
 
     @property
     def dropped_views(self) -> list[IntrinsicsView]:
@@ -134,6 +138,7 @@ class IntrinsicsResult:
             "dropped_views": [{"index": v.index, "name": v.name, "reason": v.reason} for v in self.dropped_views],
             "warnings": list(self.warnings),
             "notes": list(self.notes),
+            "covariance": None if self.covariance is None else self.covariance.to_json(),
         }
 
     @staticmethod
@@ -148,6 +153,7 @@ class IntrinsicsResult:
                 float(d["rms_px"]), tuple(IntrinsicsView.from_json(v) for v in d["views"]),
                 {str(k): float(v) for k, v in d.get("std", {}).items()}, int(d["rounds"]),
                 tuple(str(w) for w in d.get("warnings", ())), tuple(str(n) for n in d.get("notes", ())),
+                None if d.get("covariance") is None else IntrinsicsCovariance.from_json(d["covariance"]),
             )
         except CameraError as exc:
             raise DataError(f"intrinsics: field 'camera.{exc.field}': {exc.problem}") from None
@@ -269,7 +275,7 @@ def calibrate_intrinsics(
         objs = [matched[k][0] for k in active]
         imgs = [matched[k][1] for k in active]
         try:
-            rms, K, dist, _, _, std_i, _, per = cv2.calibrateCameraExtended(
+            rms, K, dist, rvecs, tvecs, std_i, _, per = cv2.calibrateCameraExtended(
                 objs, imgs, (w, h), None if K0 is None else K0.copy(), dist0.copy(), flags=flags,
                 criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12),
             )
@@ -307,8 +313,17 @@ def calibrate_intrinsics(
     if std["fx"] > 0.01 * K[0, 0] or std["fy"] > 0.01 * K[1, 1]:
         warnings.append(f"focal length poorly determined (1-sigma fx {std['fx']:.1f} px, fy {std['fy']:.1f} px): "
                         "add views with the board tilted 30-45 deg in different directions")
+    covariance = None
+    if not fix_aspect_ratio:  # a tied fy is not a parameter of its own: keep OpenCV's 1-sigmas only
+        free = [n for n in INTRINSIC_NAMES[: 4 + n_coef] if std.get(n, 0.0) > 0.0]
+        try:
+            covariance = intrinsics_covariance([matched[k][0] for k in active], [matched[k][1] for k in active], K,
+                                               dist, rvecs, tvecs, free)
+        except np.linalg.LinAlgError:
+            warnings.append("the intrinsics' covariance could not be computed (singular); 1-sigmas only")
     # The overall RMS over the finally used views (OpenCV's value is over corners of those views).
-    return IntrinsicsResult("charuco", w, h, K, dist, distortion, float(rms), tuple(views), std, rounds, tuple(warnings))
+    return IntrinsicsResult("charuco", w, h, K, dist, distortion, float(rms), tuple(views), std, rounds, tuple(warnings),
+                            covariance=covariance)
 
 
 def calibrate_intrinsics_auto(

@@ -39,7 +39,7 @@ from brave6d.core.layout import CaptureLayout, FrameRecord, SceneDir
 from brave6d.core.progress import progress
 from brave6d.core.spec import SceneSpec
 from brave6d.calibration.board import CharucoDetection, board_corner_points, detect_charuco
-from brave6d.calibration.handeye import HandEyeView, calibrate_handeye
+from brave6d.calibration.handeye import HandEyeOptions, HandEyeView, calibrate_handeye
 from brave6d.calibration.handeye_result import HandEyeResult
 from brave6d.calibration.intrinsics import (
     IntrinsicsResult,
@@ -195,13 +195,14 @@ def _load_intrinsics(scene: SceneDir) -> IntrinsicsResult:
 
 
 def calibrate_scene_handeye(scene: SceneDir, spec: SceneSpec, frames: BoardFrames,
-                            intrinsics: IntrinsicsResult) -> HandEyeResult:
-    """Hand-eye calibration from the frames' robot poses and detections; write ``handeye.json``."""
+                            intrinsics: IntrinsicsResult, options: HandEyeOptions | None = None) -> HandEyeResult:
+    """Hand-eye calibration from the frames' robot poses and detections; write ``handeye.json``.
+    The intrinsics' uncertainty is propagated with its correlations when their covariance is known."""
     views = [HandEyeView.from_detection(r.base_T_tcp_matrix, d, r.rgb)
              for r, d in zip(frames.records, frames.detections, strict=True)]
     with _located(frames.layout.root):
-        result = calibrate_handeye(views, board_corner_points(spec.board), intrinsics.K, intrinsics.dist,
-                                   intrinsics_std=intrinsics.std or None)
+        result = calibrate_handeye(views, board_corner_points(spec.board), intrinsics.K, intrinsics.dist, options,
+                                   intrinsics_std=intrinsics.std or None, intrinsics_cov=intrinsics.covariance)
     details: dict[str, Any] = {"intrinsics_source": intrinsics.source}
     truth = simulation_truth(scene, spec)
     if truth is not None:
@@ -215,13 +216,15 @@ def calibrate_scene_handeye(scene: SceneDir, spec: SceneSpec, frames: BoardFrame
 
 
 def calibrate_scene(scene: SceneDir, spec: SceneSpec, *, intrinsics: bool = True, handeye: bool = True,
-                    factory_intrinsics: bool = False, distortion: str = "auto") -> CalibrationRun:
+                    factory_intrinsics: bool = False, distortion: str = "auto",
+                    options: HandEyeOptions | None = None) -> CalibrationRun:
     """Detect the board, then calibrate the intrinsics and/or the hand-eye transform, write the
-    files and the report. ``handeye`` alone uses the intrinsics already in ``intrinsics.json``."""
+    files and the report. ``handeye`` alone uses the intrinsics already in ``intrinsics.json``;
+    ``options``: the hand-eye settings (acceptance limits)."""
     frames = detect_board_frames(scene, spec)
     intr = (calibrate_scene_intrinsics(scene, spec, frames, factory_intrinsics, distortion) if intrinsics
             else _load_intrinsics(scene))
-    he = calibrate_scene_handeye(scene, spec, frames, intr) if handeye else None
+    he = calibrate_scene_handeye(scene, spec, frames, intr, options) if handeye else None
     if he is None and scene.handeye_path.is_file():
         log.warning("%s was made with the previous intrinsics; run 'brave6d calibrate handeye' again",
                     scene.handeye_path)

@@ -30,10 +30,20 @@ for chi-square with 3 degrees of freedom; the solve is repeated until they chang
 steps up to 31 views and LSMR steps beyond. With the robot sigmas set to None the model is
 the plain 12-unknown one.
 
+Intrinsics. Held fixed (default), their own uncertainty (``intrinsics_cov``: the full covariance
+of :mod:`brave6d.calibration.intrinsics_covariance`, or ``intrinsics_std``: 1-sigmas taken as
+independent) is propagated to first order. With ``refine_intrinsics`` (parameter names, e.g.
+``("fx", "fy", "cx", "cy", "k1", "k2", "k3")``) they are unknowns of the same solve instead: the
+robot's motions then constrain them too (how far the board moved is known in metres, which pins
+the focal length), and the uncertainty they add is the difference between the covariance of
+``tcp_T_cam`` with them free and with them held (the real 16-view eye-to-hand set of the tests:
+1-sigma 2.4 mm held and propagated, 0.9 mm refined jointly, of which 0.6 mm with the intrinsics
+held; ``benchmarks/handeye_folder.py``).
+
 Uncertainty (:class:`~brave6d.calibration.handeye_result.Uncertainty`): the per-view corrections are
 eliminated exactly (Schur complement of the normal matrix); reported are the Gauss-Newton
-covariance scaled by the residual variance, a sandwich covariance clustered by view, and,
-when the intrinsics' 1-sigma is given, their first-order contribution.
+covariance scaled by the residual variance, a sandwich covariance clustered by view (both with
+the intrinsics as they are), and the contribution of the intrinsics' uncertainty.
 """
 
 from __future__ import annotations
@@ -53,6 +63,7 @@ from brave6d.core.errors import DegenerateGeometryError
 from brave6d.core.transforms import invert, make_transform, rotation_distance
 from brave6d.calibration.closed_form import motion_pairs
 from brave6d.calibration.handeye_result import Residuals, Uncertainty
+from brave6d.calibration.intrinsics_covariance import INTRINSIC_NAMES, IntrinsicsCovariance
 
 __all__ = [
     "CornerData",
@@ -231,8 +242,11 @@ class RefineSettings:
     None = estimated from the per-view PnP residuals (which no robot error can reach).
     ``robot_sigma_mm``/``robot_sigma_deg``: robot pose error per axis (None = exact poses).
     ``intrinsics_std``: 1-sigma of the intrinsics (``fx, fy, cx, cy, k1, ...`` as in
-    :attr:`~brave6d.calibration.intrinsics.IntrinsicsResult.std`); their effect is added to the
-    uncertainty of ``tcp_T_cam`` (a principal point error of 1 px turns the camera by 1/f rad).
+    :attr:`~brave6d.calibration.intrinsics.IntrinsicsResult.std`), taken as independent;
+    ``intrinsics_cov``: their full covariance (wins over ``intrinsics_std``); the effect of either is
+    added to the uncertainty of ``tcp_T_cam`` (a principal point error of 1 px turns the camera by
+    1/f rad). ``refine_intrinsics``: intrinsic parameters solved jointly instead (see the module
+    docstring); their effect on the uncertainty then comes from the joint solve.
     ``estimate_robot_sigma``: the robot sigmas are starting values, re-estimated from the
     corrections (see the module docstring); False keeps them fixed.
     """
@@ -245,6 +259,8 @@ class RefineSettings:
     max_nfev: int = 100
     intrinsics_std: Mapping[str, float] | None = None
     estimate_robot_sigma: bool = True
+    intrinsics_cov: IntrinsicsCovariance | None = None
+    refine_intrinsics: tuple[str, ...] = ()
 
     @property
     def models_robot(self) -> bool:
@@ -257,7 +273,9 @@ class Refinement:
     (rotation vector rad, translation m, TCP frame; zeros without the robot model);
     ``fit_errors_px`` (M,) and ``weights`` (M,) per corner, with those corrections applied;
     ``robot_sigma_mm``/``robot_sigma_deg``: the robot error model of the final solve (estimated
-    when ``estimate_robot_sigma``; None without the robot model)."""
+    when ``estimate_robot_sigma``; None without the robot model); ``K``, ``dist``: the intrinsics
+    of the solution (refined with ``refine_intrinsics``, else as given) and ``intrinsics_std`` the
+    1-sigma of the refined ones from the joint solve (None when they were held)."""
 
     tcp_T_cam: Array
     base_T_board: Array
@@ -269,6 +287,9 @@ class Refinement:
     nfev: int
     robot_sigma_mm: float | None = None
     robot_sigma_deg: float | None = None
+    K: Array | None = None
+    dist: Array | None = None
+    intrinsics_std: dict[str, float] | None = None
 
 
 #: Floor of the estimated pixel noise (noise-free synthetic data would otherwise give 0).
@@ -286,12 +307,13 @@ def pixel_noise_from_pnp(data: CornerData, K: Array, dist: Array) -> float:
 
 
 class _Problem:
-    """Whitened residuals of the unknowns ``p = [tcp_T_cam (6), base_T_board (6), corrections (6 V)]``.
+    """Whitened residuals of the unknowns ``p = [tcp_T_cam (6), base_T_board (6), intrinsics (I),
+    corrections (6 V)]`` (``I`` = number of ``refine_intrinsics``; the first ``12 + I`` are shared).
 
     Rows: pixel residuals / ``sigma`` (2 per corner), then with the robot model the priors
     ``correction / robot_sigma`` (6 per view). The corrections are TCP-frame poses ``E_v``
     (``base_T_tcp_v @ E_v`` is the true TCP pose). The Jacobian is sparse: a view's pixels
-    depend on the 12 shared unknowns and on its own 6 corrections only.
+    depend on the shared unknowns and on its own 6 corrections only.
     """
 
     def __init__(self, X0: Array, W0: Array, data: CornerData, K: Array, dist: Array,
@@ -300,7 +322,17 @@ class _Problem:
         self.sigma = sigma_px
         self.robot = settings.models_robot
         self.V, self.M = data.n_views, len(data.obj)
-        self.n = 12 + (6 * self.V if self.robot else 0)
+        self.intrinsics = tuple(settings.refine_intrinsics)
+        for name in self.intrinsics:
+            if name not in INTRINSIC_NAMES[: 4 + len(dist)]:
+                raise ValueError(f"refine_intrinsics: {name!r} is not a parameter of this camera model "
+                                 f"({', '.join(INTRINSIC_NAMES[: 4 + len(dist)])})")
+        self.ns = 12 + len(self.intrinsics)
+        self.theta0 = _intrinsic_values(K, dist, self.intrinsics)
+        # Forward-difference steps: 1e-6 of a focal length in px, 1e-6 for distortion coefficients.
+        self.theta_step = np.array([1e-6 * max(abs(float(K[0, 0])), 1.0) if n in ("fx", "fy", "cx", "cy") else 1e-6
+                                    for n in self.intrinsics])
+        self.n = self.ns + (6 * self.V if self.robot else 0)
         self.m = 2 * self.M + (6 * self.V if self.robot else 0)
         self.G_inv = _inv_batch(data.G)
         self.row_view = np.repeat(data.view_of, 2)
@@ -310,38 +342,46 @@ class _Problem:
                                              [1.0 / (settings.robot_sigma_mm * 1e-3)] * 3], self.V)
 
     def unpack(self, p: Array) -> tuple[Array, Array, Array]:
-        D = p[12:].reshape(self.V, 6) if self.robot else np.zeros((self.V, 6))
+        D = p[self.ns:].reshape(self.V, 6) if self.robot else np.zeros((self.V, 6))
         return _perturb(self.X0, p[:6]), _perturb(self.W0, p[6:12]), D
+
+    def camera(self, p: Array) -> tuple[Array, Array]:
+        """``(K, dist)`` at ``p`` (the given ones unless intrinsics are refined)."""
+        if not self.intrinsics:
+            return self.K, self.dist
+        return _with_intrinsics(self.K, self.dist, self.intrinsics, self.theta0 + p[12:self.ns])
 
     def pixel_residuals(self, p: Array) -> Array:
         X, W, D = self.unpack(p)
+        K, dist = self.camera(p)
         G_inv = _inv_batch(_corrections(D)) @ self.G_inv if self.robot else self.G_inv
-        return (_project(_camera_points(X, W, G_inv, self.data), self.K, self.dist) - self.data.img).ravel()
+        return (_project(_camera_points(X, W, G_inv, self.data), K, dist) - self.data.img).ravel()
 
     def residuals(self, p: Array) -> Array:
         r = self.pixel_residuals(p) / self.sigma
-        return np.concatenate([r, p[12:] * self.prior_scale]) if self.robot else r
+        return np.concatenate([r, p[self.ns:] * self.prior_scale]) if self.robot else r
 
     def jacobian(self, p: Array) -> sparse.csr_matrix:
-        """Forward differences, 12 + 6 evaluations (views do not interact)."""
+        """Forward differences, 12 + I + 6 evaluations (views do not interact)."""
         r0 = self.pixel_residuals(p) / self.sigma
         px_rows = np.arange(2 * self.M)
         rows, cols, vals = [], [], []
-        for k in range(12):
+        for k in range(self.ns):
+            step = _FD_STEP if k < 12 else float(self.theta_step[k - 12])
             q = p.copy()
-            q[k] += _FD_STEP
+            q[k] += step
             rows.append(px_rows)
             cols.append(np.full(2 * self.M, k))
-            vals.append((self.pixel_residuals(q) / self.sigma - r0) / _FD_STEP)
+            vals.append((self.pixel_residuals(q) / self.sigma - r0) / step)
         if self.robot:
             for k in range(6):
                 q = p.copy()
-                q[12 + k::6] += _FD_STEP
+                q[self.ns + k::6] += _FD_STEP
                 rows.append(px_rows)
-                cols.append(12 + 6 * self.row_view + k)
+                cols.append(self.ns + 6 * self.row_view + k)
                 vals.append((self.pixel_residuals(q) / self.sigma - r0) / _FD_STEP)
             rows.append(2 * self.M + np.arange(6 * self.V))
-            cols.append(12 + np.arange(6 * self.V))
+            cols.append(self.ns + np.arange(6 * self.V))
             vals.append(self.prior_scale)
         return sparse.csr_matrix(
             (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(self.m, self.n)
@@ -361,42 +401,53 @@ class _Problem:
         return np.concatenate([self.row_view, np.repeat(np.arange(self.V), 6)]) if self.robot else self.row_view
 
 
+def _schur_complement(H: Array, ns: int, problem: _Problem) -> tuple[Array, Array | None, Array | None]:
+    """``(S, BD, D^-1)`` of a normal matrix ``H`` whose first ``ns`` unknowns are shared: the Schur
+    complement ``S`` for them, eliminating the per-view corrections (block-diagonal ``D``, 6 x 6 per
+    view) exactly, with ``BD = B D^-1`` per view ((V, ns, 6); None without the robot model)."""
+    A = H[:ns, :ns]
+    if not problem.robot:
+        return A, None, None
+    V = problem.V
+    idx = ns + np.arange(6 * V).reshape(V, 6)
+    D_inv = np.linalg.inv(H[idx[:, :, None], idx[:, None, :]])  # (V, 6, 6)
+    B = H[:ns, ns:].reshape(ns, V, 6).transpose(1, 0, 2)  # (V, ns, 6)
+    BD = np.einsum("vij,vjk->vik", B, D_inv)
+    return A - np.einsum("vik,vlk->il", BD, B), BD, D_inv
+
+
 def _schur(J: sparse.csr_matrix, w: Array, problem: _Problem) -> tuple[Array, Array | None, Array | None]:
-    """``(S^-1, BD, D^-1)`` of ``H = J^T W J``: the inverse of the 12 x 12 Schur complement for the
-    shared unknowns, eliminating the per-view corrections (block-diagonal ``D``, 6 x 6 per view)
-    exactly, with ``BD = B D^-1`` per view ((V, 12, 6); None without the robot model); raises when
-    ``(tcp_T_cam, base_T_board)`` is undetermined."""
+    """``(S^-1, BD, D^-1)`` of ``H = J^T W J`` for the shared unknowns (:func:`_schur_complement`);
+    raises when ``(tcp_T_cam, base_T_board)`` is undetermined, or the refined intrinsics with them."""
     H = (J.T @ sparse.diags(w) @ J).toarray()
-    A = H[:12, :12]
-    BD = D_inv = None
-    if problem.robot:
-        V = problem.V
-        idx = 12 + np.arange(6 * V).reshape(V, 6)
-        D_inv = np.linalg.inv(H[idx[:, :, None], idx[:, None, :]])  # (V, 6, 6)
-        B = H[:12, 12:].reshape(12, V, 6).transpose(1, 0, 2)  # (V, 12, 6)
-        BD = np.einsum("vij,vjk->vik", B, D_inv)
-        S = A - np.einsum("vik,vlk->il", BD, B)
-    else:
-        S = A
-    # Judge the rank in (deg, mm) units: rad and m differ by 1e3 in size.
+    S, BD, D_inv = _schur_complement(H, problem.ns, problem)
+    # Judge the rank of the hand-eye unknowns in (deg, mm) units: rad and m differ by 1e3 in size.
     scale = np.tile(np.r_[[math.radians(1.0)] * 3, [1e-3] * 3], 2)
-    Ss = S * np.outer(scale, scale)
-    ev = np.linalg.eigvalsh(0.5 * (Ss + Ss.T))
+    _check_rank(S[:12, :12] * np.outer(scale, scale), "tcp_T_cam and the board pose together (rotations about a "
+                                                      "single axis?); add poses rotated about different axes")
+    if not problem.intrinsics:
+        return np.linalg.inv(S * np.outer(scale, scale)) * np.outer(scale, scale), BD, D_inv
+    # With intrinsics (px and unitless distortion, strongly correlated): judge and invert the
+    # correlation matrix, which no choice of units changes.
+    d = 1.0 / np.sqrt(np.maximum(np.diag(S), 1e-300))
+    Sn = S * np.outer(d, d)
+    _check_rank(Sn, "the intrinsics refined with the hand-eye transform; hold them fixed")
+    return np.linalg.inv(Sn) * np.outer(d, d), BD, D_inv
+
+
+def _check_rank(S: Array, what: str) -> None:
+    ev = np.linalg.eigvalsh(0.5 * (S + S.T))
     if not np.all(np.isfinite(ev)) or ev[0] <= 1e-10 * max(ev[-1], 1e-300):
-        raise DegenerateGeometryError(
-            "hand-eye refinement is rank deficient: the views do not determine tcp_T_cam and the board pose "
-            "together (rotations about a single axis?); add poses rotated about different axes"
-        )
-    return np.linalg.inv(Ss) * np.outer(scale, scale), BD, D_inv
+        raise DegenerateGeometryError(f"hand-eye refinement is rank deficient: the views do not determine {what}")
 
 
 def _inverse_rows(J: sparse.csr_matrix, w: Array, problem: _Problem) -> tuple[Array, Array]:
-    """``(S^-1, R)``: the inverse of the Schur complement (:func:`_schur`) and the first 12 rows
+    """``(S^-1, R)``: the inverse of the Schur complement (:func:`_schur`) and the first ``ns`` rows
     ``R`` of ``H^-1``."""
     S_inv, BD, _ = _schur(J, w, problem)
     if BD is None:
         return S_inv, S_inv
-    R = np.concatenate([S_inv, -np.einsum("ij,vjk->ivk", S_inv, BD).reshape(12, -1)], axis=1)
+    R = np.concatenate([S_inv, -np.einsum("ij,vjk->ivk", S_inv, BD).reshape(problem.ns, -1)], axis=1)
     return S_inv, R
 
 
@@ -439,58 +490,100 @@ def _rescaled_robot_sigmas(s: RefineSettings, factors: tuple[float, float], conf
                    robot_sigma_mm=rescale(s.robot_sigma_mm, factors[1], configured.robot_sigma_mm))
 
 
-#: Names of the OpenCV distortion coefficients, in order.
-DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tx", "ty")
+
+
+def _intrinsic_values(K: Array, dist: Array, names: Sequence[str]) -> Array:
+    """The values of the named intrinsic parameters (:data:`INTRINSIC_NAMES`)."""
+    flat = np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist]
+    return np.array([flat[INTRINSIC_NAMES.index(n)] for n in names], dtype=np.float64)
+
+
+def _with_intrinsics(K: Array, dist: Array, names: Sequence[str], values: Array) -> tuple[Array, Array]:
+    """``(K, dist)`` with the named parameters set to ``values``."""
+    K2, d2 = K.copy(), dist.copy()
+    for name, v in zip(names, values, strict=True):
+        i = INTRINSIC_NAMES.index(name)
+        if i < 4:
+            K2[((0, 0), (1, 1), (0, 2), (1, 2))[i]] = v
+        else:
+            d2[i - 4] = v
+    return K2, d2
+
+
+def _propagated_intrinsics(problem: _Problem, s: RefineSettings) -> IntrinsicsCovariance | None:
+    """The intrinsics' covariance to propagate: the full one, else the 1-sigmas as independent,
+    restricted to parameters of this camera model."""
+    cov = s.intrinsics_cov if s.intrinsics_cov is not None else (
+        IntrinsicsCovariance.from_std(dict(s.intrinsics_std)) if s.intrinsics_std else None)
+    if cov is None:
+        return None
+    keep = [i for i, n in enumerate(cov.names) if INTRINSIC_NAMES.index(n) < 4 + len(problem.dist)]
+    if not keep:
+        return None
+    return IntrinsicsCovariance(tuple(cov.names[i] for i in keep), cov.matrix[np.ix_(keep, keep)])
 
 
 def _intrinsics_covariance(problem: _Problem, p: Array, J: sparse.csr_matrix, w: Array, R6: Array,
-                           intrinsics_std: Mapping[str, float]) -> Array:
-    """6x6 covariance of ``tcp_T_cam`` caused by the intrinsics' own uncertainty (1-sigma per
-    parameter, correlations ignored), by first-order propagation ``dp/dtheta = -H^-1 J^T W J_theta``."""
-    cols, var = [], []
-    for name, std in intrinsics_std.items():
-        if not std or not math.isfinite(std):
-            continue
-        K_idx = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.get(name)
-        d_idx = DIST_NAMES.index(name) if name in DIST_NAMES else None
-        if K_idx is None and (d_idx is None or d_idx >= len(problem.dist)):
-            continue
-        step = 1e-3 if K_idx is not None else 1e-6
+                           cov: IntrinsicsCovariance) -> Array:
+    """6x6 covariance of ``tcp_T_cam`` caused by the intrinsics' own uncertainty ``cov`` (held
+    intrinsics), by first-order propagation ``dp/dtheta = -H^-1 J^T W J_theta``."""
+    theta = _intrinsic_values(problem.K, problem.dist, cov.names)
+    cols = []
+    for k, name in enumerate(cov.names):
+        step = 1e-3 if INTRINSIC_NAMES.index(name) < 4 else 1e-6
         out = []
         for sign in (1.0, -1.0):
-            K2, d2 = problem.K.copy(), problem.dist.copy()
-            if K_idx is not None:
-                K2[K_idx] += sign * step
-            else:
-                d2[d_idx] += sign * step
-            out.append(problem.residuals_with(p, K2, d2))
+            shifted = theta.copy()
+            shifted[k] += sign * step
+            out.append(problem.residuals_with(p, *_with_intrinsics(problem.K, problem.dist, cov.names, shifted)))
         cols.append((out[0] - out[1]) / (2.0 * step))
-        var.append(float(std) ** 2)
-    if not cols:
-        return np.zeros((6, 6))
     J_theta = np.stack(cols, axis=1)
     dp = -R6 @ (J.T @ (w[:, None] * J_theta))
-    return (dp * np.asarray(var)) @ dp.T
+    return dp @ cov.matrix @ dp.T
 
 
-def _uncertainty(problem: _Problem, p: Array, s: RefineSettings) -> tuple[Uncertainty, Array]:
-    """Uncertainty of ``tcp_T_cam`` at ``p`` and the mean robust weight of each corner."""
+def _held_rows(J: sparse.csr_matrix, w: Array, problem: _Problem) -> tuple[Array, Array, sparse.csr_matrix]:
+    """``(S^-1, R, J)`` of the problem with the refined intrinsics held at ``p``: their columns
+    dropped, the first 12 rows ``R`` of that problem's ``H^-1``."""
+    keep = np.r_[np.arange(12), np.arange(problem.ns, problem.n)]
+    J_held = J[:, keep].tocsr()
+    H = (J_held.T @ sparse.diags(w) @ J_held).toarray()
+    S, BD, _ = _schur_complement(H, 12, problem)
+    S_inv = np.linalg.inv(S)
+    R = S_inv if BD is None else np.concatenate([S_inv, -np.einsum("ij,vjk->ivk", S_inv, BD).reshape(12, -1)], axis=1)
+    return S_inv, R, J_held
+
+
+def _uncertainty(problem: _Problem, p: Array, s: RefineSettings) -> tuple[Uncertainty, Array, dict[str, float] | None]:
+    """Uncertainty of ``tcp_T_cam`` at ``p``, the mean robust weight of each corner and, with
+    refined intrinsics, their 1-sigma from the joint solve."""
     J = problem.jacobian(p)
     r = problem.residuals(p)
     w = loss_weights(r, s.loss, s.f_scale_px / problem.sigma)
     S_inv, R = _inverse_rows(J, w, problem)
-    R6 = R[:6]
     s2 = float(np.sum(w * r * r)) / max(len(r) - problem.n, 1)
-    cov_model = s2 * S_inv[:6, :6]
+    intrinsics_std = None
+    if problem.intrinsics:  # model and sandwich with the intrinsics held; their share from the joint solve
+        S_inv_held, R_held, J_held = _held_rows(J, w, problem)
+        cov_joint = s2 * S_inv[:6, :6]
+        cov_model = s2 * S_inv_held[:6, :6]
+        cov_intr = cov_joint - cov_model
+        R6, J_sandwich = R_held[:6], J_held
+        var = np.maximum(s2 * np.diag(S_inv)[12:problem.ns], 0.0)
+        intrinsics_std = {n: float(np.sqrt(v)) for n, v in zip(problem.intrinsics, var, strict=True)}
+    else:
+        R6, J_sandwich = R[:6], J
+        cov_model = s2 * S_inv[:6, :6]
+        held = _propagated_intrinsics(problem, s)
+        cov_intr = _intrinsics_covariance(problem, p, J, w, R6, held) if held is not None else None
     # Sandwich clustered by view: sum over views of (R g_v)(R g_v)^T, g_v = J_v^T W_v r_v.
     cluster = problem.cluster_of_rows()
     indicator = sparse.csr_matrix((np.ones(len(r)), (cluster, np.arange(len(r)))), shape=(problem.V, len(r)))
-    G = (indicator @ J.multiply((w * r)[:, None]).tocsr()).toarray()  # (V, n)
+    G = (indicator @ J_sandwich.multiply((w * r)[:, None]).tocsr()).toarray()  # (V, n)
     RG = R6 @ G.T
     cov_cluster = RG @ RG.T * (problem.V / max(problem.V - 1, 1))
-    cov_intr = _intrinsics_covariance(problem, p, J, w, R6, s.intrinsics_std) if s.intrinsics_std else None
     unc = Uncertainty.from_covariances(cov_model, cov_cluster, cov_intr)
-    return unc, w[: 2 * problem.M].reshape(-1, 2).mean(axis=1)
+    return unc, w[: 2 * problem.M].reshape(-1, 2).mean(axis=1), intrinsics_std
 
 
 def _solve(problem: _Problem, p0: Array, s: RefineSettings) -> tuple[Array, int]:
@@ -548,13 +641,17 @@ def refine_handeye(
     X, W, D = problem.unpack(p)
     if not (np.all(np.isfinite(X)) and np.all(np.isfinite(W))):
         raise DegenerateGeometryError("hand-eye refinement diverged (non-finite result)")
-    unc, weights = _uncertainty(problem, p, s)
+    K_fit, dist_fit = problem.camera(p)
+    if not (np.all(np.isfinite(K_fit)) and np.all(np.isfinite(dist_fit))):
+        raise DegenerateGeometryError("hand-eye refinement diverged (non-finite intrinsics)")
+    unc, weights, intrinsics_std = _uncertainty(problem, p, s)
     fit = problem.pixel_residuals(p).reshape(-1, 2)
     return Refinement(
         tcp_T_cam=X, base_T_board=W, corrections=D, fit_errors_px=np.linalg.norm(fit, axis=1), weights=weights,
         pixel_sigma_px=sigma, uncertainty=unc, nfev=nfev,
         robot_sigma_mm=s.robot_sigma_mm if problem.robot else None,
         robot_sigma_deg=s.robot_sigma_deg if problem.robot else None,
+        K=K_fit, dist=dist_fit, intrinsics_std=intrinsics_std,
     )
 
 
@@ -566,5 +663,6 @@ def solution_uncertainty(
     used to rate a closed-form answer returned without refinement."""
     s = settings or RefineSettings()
     sigma = max(float(s.pixel_sigma_px), MIN_PIXEL_SIGMA_PX) if s.pixel_sigma_px else pixel_noise_from_pnp(data, K, dist)
-    problem = _Problem(tcp_T_cam, base_T_board, data, K, dist, s, sigma)
-    return _uncertainty(problem, np.zeros(problem.n), s)
+    problem = _Problem(tcp_T_cam, base_T_board, data, K, dist, replace(s, refine_intrinsics=()), sigma)
+    unc, weights, _ = _uncertainty(problem, np.zeros(problem.n), s)
+    return unc, weights

@@ -67,27 +67,30 @@ def intrinsics_markdown(result: IntrinsicsResult) -> list[str]:
     return lines
 
 
-def handeye_markdown(result: HandEyeResult, truth_tcp_T_cam: ArrayLike | None = None) -> list[str]:
-    """Markdown lines of the hand-eye section (method table, residuals, uncertainty, views)."""
+def handeye_markdown(result: HandEyeResult, truth_tcp_T_cam: ArrayLike | None = None,
+                     setup: str = "eye-in-hand") -> list[str]:
+    """Markdown lines of the hand-eye section (method table, residuals, uncertainty, views);
+    ``setup="eye-to-hand"``: ``result`` is an eye-to-hand solution (its ``tcp_T_cam`` is ``base_T_cam``)."""
+    name, axes = ("base_T_cam", "base") if setup == "eye-to-hand" else ("tcp_T_cam", "TCP")
     X = result.tcp_T_cam
     t_mm = 1000.0 * X[:3, 3]
     rpy = matrix_to_rpy_deg(X[:3, :3])
     unc = result.uncertainty
     errors = result.errors_against(truth_tcp_T_cam) if truth_tcp_T_cam is not None else {}
     lines = [
-        "## Hand-eye (eye-in-hand)",
+        f"## Hand-eye ({setup})",
         "",
         f"Result: **{result.method}**",
         "",
-        f"- tcp_T_cam translation: [{t_mm[0]:.3f}, {t_mm[1]:.3f}, {t_mm[2]:.3f}] mm",
-        f"- tcp_T_cam rotation (roll, pitch, yaw about x, y, z, extrinsic): [{rpy[0]:.4f}, {rpy[1]:.4f}, {rpy[2]:.4f}] deg",
+        f"- {name} translation: [{t_mm[0]:.3f}, {t_mm[1]:.3f}, {t_mm[2]:.3f}] mm",
+        f"- {name} rotation (roll, pitch, yaw about x, y, z, extrinsic): [{rpy[0]:.4f}, {rpy[1]:.4f}, {rpy[2]:.4f}] deg",
     ]
     if unc is not None:
         ts, rs = unc.translation_sigma_mm, unc.rotation_sigma_deg
         lines.append(
             f"- 1-sigma uncertainty: translation [{ts[0]:.3f}, {ts[1]:.3f}, {ts[2]:.3f}] mm "
             f"(norm {unc.translation_sigma_norm_mm:.3f}), rotation [{rs[0]:.4f}, {rs[1]:.4f}, {rs[2]:.4f}] deg "
-            f"(norm {unc.rotation_sigma_norm_deg:.4f}), about the TCP axes"
+            f"(norm {unc.rotation_sigma_norm_deg:.4f}), about the {axes} axes"
         )
     r = result.residuals
     lines += [
@@ -116,7 +119,7 @@ def handeye_markdown(result: HandEyeResult, truth_tcp_T_cam: ArrayLike | None = 
         "",
         "### Methods",
         "",
-        ("Residuals of every method are measured the same way: its tcp_T_cam, its best board pose, the robot "
+        (f"Residuals of every method are measured the same way: its {name}, its best board pose, the robot "
          "poses as reported."),
         "",
     ]
@@ -200,14 +203,16 @@ def write_report(
     intrinsics: IntrinsicsResult | None = None,
     truth_tcp_T_cam: ArrayLike | None = None,
     stem: str = "report",
+    setup: str = "eye-in-hand",
 ) -> ReportPaths:
-    """Write ``<stem>.md`` and ``<stem>_residuals.png`` into ``out_dir`` (atomically)."""
+    """Write ``<stem>.md`` and ``<stem>_residuals.png`` into ``out_dir`` (atomically); ``setup`` as
+    for :func:`handeye_markdown`."""
     folder = Path(out_dir)
     lines = ["# Calibration report", ""]
     if intrinsics is not None:
         lines += intrinsics_markdown(intrinsics) + [""]
     if handeye is not None:
-        lines += handeye_markdown(handeye, truth_tcp_T_cam) + [""]
+        lines += handeye_markdown(handeye, truth_tcp_T_cam, setup) + [""]
     plot = None
     if handeye is not None or intrinsics is not None:
         plot = atomic_write_bytes(folder / f"{stem}_residuals.png", plot_residuals(handeye, intrinsics))

@@ -1,8 +1,9 @@
 """Read and write the calibration results every later stage uses.
 
 ``calibration/intrinsics.json`` holds ``{"camera": PinholeCamera.to_json(), ...}`` and
-``calibration/handeye.json`` holds ``{"tcp_T_cam": 4x4, ...}``; other keys (residuals, method,
-uncertainty) are calibration's own. Stages read only through these functions, so they depend on
+``calibration/handeye.json`` holds ``{"tcp_T_cam": 4x4, ...}`` (a camera on the tool), or, for a
+static camera calibrated eye-to-hand, ``{"setup": "eye-to-hand", "base_T_cam": 4x4, ...}`` and no
+``tcp_T_cam``; other keys (residuals, method, uncertainty) are calibration's own. Stages read only through these functions, so they depend on
 the kernel, not on calibration's internals, and never on the simulator's truth.
 """
 
@@ -61,9 +62,19 @@ def write_handeye_file(path: Path | str, tcp_T_cam: NDArray[np.float64], **detai
     return atomic_write_json(path, {"tcp_T_cam": T.tolist(), **details})
 
 
+def write_eye_to_hand_file(path: Path | str, base_T_cam: NDArray[np.float64], **details: Any) -> Path:
+    """The hand-eye file of a static camera: ``{"setup": "eye-to-hand", "base_T_cam": 4x4 (checked
+    rigid), **details}``, atomically."""
+    T = check_rigid(base_T_cam, "base_T_cam")
+    return atomic_write_json(path, {**details, "setup": "eye-to-hand", "base_T_cam": T.tolist()})
+
+
 def read_handeye(scene: SceneDir) -> NDArray[np.float64]:
-    """The calibrated ``tcp_T_cam``; errors name the file."""
+    """The calibrated ``tcp_T_cam``; errors name the file (and refuse a static camera's file)."""
     data = read_json(scene.handeye_path)
+    if isinstance(data, dict) and data.get("setup") == "eye-to-hand":
+        raise DataError(f"{scene.handeye_path}: an eye-to-hand calibration (a static camera, field 'base_T_cam'); "
+                        "scenes are captured with the camera on the tool: calibrate eye-in-hand (tcp_T_cam)")
     if "tcp_T_cam" not in data:
         raise DataError(f"{scene.handeye_path}: field 'tcp_T_cam' is missing")
     try:
