@@ -141,6 +141,16 @@ class SceneDir:
     def depth_dir(self) -> Path:
         return self.capture.depth_dir
 
+    @property
+    def import_record_path(self) -> Path:
+        """What ``brave6d import`` brought in from a capture made elsewhere, and how (its world, scale, up)."""
+        return self.capture.root / "import.json"
+
+    @property
+    def imported_points_path(self) -> Path:
+        """The sparse points an imported capture brought (PLY, world frame, metres): the pose check's reference."""
+        return self.capture.root / "imported_points.ply"
+
     # calibration/
     @property
     def calibration_dir(self) -> Path:

@@ -10,6 +10,12 @@ Other stages (serve, evaluation) import only these names:
   ``splat/holdout.json``, every stage's), ``write_holdout``, ``HoldoutSplit``, ``HeldOutView``,
   ``holdout_split`` (the rule);
 - settings: ``Preset``, ``get_preset``, ``ANTIALIASING_MODES`` (``classic``, ``mip``), ``resolve_device`` (``auto``/``cpu``/``cuda`` -> torch device);
+- training data in memory: ``TrainingData`` (a shared camera, train and holdout ``View`` lists) and ``View``
+  (one frame: pose, image), what ``load_scene`` returns and ``train`` takes;
+- captures made elsewhere (``brave6d import``): ``import_capture``, ``ImportOptions``, ``ImportResult``,
+  ``read_source`` (a COLMAP model or a transforms.json as an ``ImportedCapture``), ``ScaleChoice``,
+  ``UpChoice``; the pose sanity check run at import and at the start of training:
+  ``check_camera_poses``, ``check_scene_poses``, ``PoseCheck``, ``PoseCheckError``;
 - Gaussians: ``GaussianModel``, ``rasterize``, ``SplatData``, ``read_ply``, ``write_ply``, ``SH_C0``,
   ``sh_degree_for``, ``apply_filter_3d`` / ``compute_filter_3d`` (Mip-Splatting's 3D filter: what every
   renderer of a splat applies before ``rasterize``).
@@ -22,7 +28,10 @@ run; CUDA training is not (gsplat sums gradients with atomics). See docs/ARCHITE
 
 from brave6d.core.lazy import lazy_exports
 
-__all__ = ["ANTIALIASING_MODES", "SH_C0", "GaussianModel", "apply_filter_3d", "compute_filter_3d", "HeldOutView", "HoldoutPoint", "HoldoutSplit", "Preset", "SplatData", "TrainedSplat",
+__all__ = ["ImportOptions", "ImportResult", "ImportedCapture", "PoseCheck", "PoseCheckError", "ScaleChoice",
+           "TrainingData", "UpChoice", "View", "check_camera_poses", "check_scene_poses", "import_capture",
+           "read_source",
+           "ANTIALIASING_MODES", "SH_C0", "GaussianModel", "apply_filter_3d", "compute_filter_3d", "HeldOutView", "HoldoutPoint", "HoldoutSplit", "Preset", "SplatData", "TrainedSplat",
            "evaluate_holdout", "get_preset", "holdout_split", "load_scene", "rasterize", "read_holdout", "read_ply",
            "resolve_device", "sh_degree_for", "train", "train_scene", "write_holdout", "write_ply"]
 
@@ -47,6 +56,19 @@ _LAZY = {
     "HoldoutSplit": ".holdout",
     "HeldOutView": ".holdout",
     "load_scene": ".views",
+    "TrainingData": ".views",
+    "View": ".views",
+    "import_capture": ".importing.importer",
+    "ImportOptions": ".importing.importer",
+    "ImportResult": ".importing.importer",
+    "read_source": ".importing.importer",
+    "ImportedCapture": ".importing.source",
+    "ScaleChoice": ".importing.world",
+    "UpChoice": ".importing.world",
+    "check_camera_poses": ".pose_check",
+    "PoseCheck": ".pose_check",
+    "PoseCheckError": ".pose_check",
+    "check_scene_poses": ".scene_pose_check",
     "evaluate_holdout": ".holdout_eval",
     "Preset": ".presets",
     "get_preset": ".presets",

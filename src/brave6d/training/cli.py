@@ -31,9 +31,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "once the new one has written its first checkpoint")
     parser.add_argument("--skip-bad-frames", action="store_true",
                         help="leave out missing or corrupt frames (listed in metrics.json) instead of stopping")
-    parser.add_argument("--init", choices=["auto", "colmap", "depth", "random"], default="auto",
-                        help="initial points: auto = COLMAP, else depth frames, else random (default: %(default)s)")
+    parser.add_argument("--init", choices=["auto", "imported", "colmap", "depth", "random"], default="auto",
+                        help="initial points: auto = COLMAP, else depth frames, else random; imported = the sparse "
+                             "points of an imported capture (made from all its images), then that chain "
+                             "(default: %(default)s)")
     parser.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's, 0)")
+    parser.add_argument("--skip-pose-check", action="store_true",
+                        help="train even when cameras do not see the scene (the check names them; not recommended)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -51,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
     if args.time_budget is not None:
         preset = preset.with_overrides(time_budget_s=args.time_budget)
     metrics = train_scene(scene, preset, device=args.device, resume=args.resume,
-                          skip_bad_frames=args.skip_bad_frames, init_method=args.init)
+                          skip_bad_frames=args.skip_bad_frames, init_method=args.init,
+                          check_poses=not args.skip_pose_check)
     print(summary(metrics))
     print(f"\nsplat: {metrics['outputs']['ply']}\nmetrics: {scene.metrics_path}")
     previous = metrics["outputs"].get("previous_training") or []

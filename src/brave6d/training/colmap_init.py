@@ -419,7 +419,10 @@ def initial_points(
 ) -> InitPoints:
     """COLMAP points (writing ``sparse/0``), else depth back-projection, else random points.
 
-    ``method``: ``auto`` (that chain), ``colmap``, ``depth`` or ``random`` (start the chain there).
+    ``method``: ``auto`` (that chain), ``colmap``, ``depth`` or ``random`` (start the chain there), or
+    ``imported``: the sparse points an imported capture brought (``capture/imported_points.ply``),
+    then the chain. The source made those from all its images, the holdout views included (as the
+    usual COLMAP-initialised benchmarks do), so ``auto`` does not use them.
     Whatever the source, ``sparse/0`` receives all cameras and the points used (when ``scene``
     is given), so other 3DGS tools start from the same model.
     """
@@ -427,20 +430,23 @@ def initial_points(
     names = {v.index: Path(v.rgb_path).name if v.rgb_path else f"{v.index:06d}.png" for v in data.views}
     train_images = [(names[v.index], v.base_T_cam) for v in data.train]
     test_images = [(names[v.index], v.base_T_cam) for v in data.test]
-    chain = ["colmap", "depth", "random"]
+    chain = ["imported", "colmap", "depth", "random"]
     if method not in ("auto", *chain):
-        raise BraveError(f"unknown initialisation {method!r}; choose auto, colmap, depth or random")
-    chain = chain[chain.index(method):] if method != "auto" else chain
+        raise BraveError(f"unknown initialisation {method!r}; choose auto, imported, colmap, depth or random")
+    chain = chain[chain.index(method):] if method != "auto" else chain[1:]
     rec = None
     result: InitPoints | None = None
     notes: dict[str, Any] = {}
     t0 = time.perf_counter()
+    if "imported" in chain:
+        result = _imported_points(scene, notes)
+        chain = ["imported"] if result is not None else chain[1:]  # found: no triangulation (sparse/0 gets them)
     stamp = model_stamp(full, train_images + test_images, options, image_contents(data))
-    reused = _reusable_colmap(scene, stamp, options) if "colmap" in chain and scene is not None else None
+    reused = _reusable_colmap(scene, stamp, options) if chain[0] == "colmap" and scene is not None else None
     if reused is not None and scene is not None and len(reused) >= options.min_points:
         log.info("reusing the COLMAP points of %s (same images, poses and camera)", scene.sparse_model_dir)
         return _drop_far_points(reused, data).subsample(max_points, seed)
-    if "colmap" in chain:
+    if "colmap" in chain and result is None:
         if data.undistorted_root is None:
             notes["colmap"] = "skipped: no undistorted image files (in-memory undistortion)"
         else:
@@ -482,6 +488,20 @@ def initial_points(
         result.details["sparse_model"] = str(model)
     result.details["seconds"] = time.perf_counter() - t0
     return result.subsample(max_points, seed)
+
+
+def _imported_points(scene: SceneDir | None, notes: dict[str, Any]) -> InitPoints | None:
+    """The imported capture's sparse points, or None (noted) when the scene has none."""
+    from brave6d.training.importing.scene_files import read_imported_points
+
+    found = read_imported_points(scene) if scene is not None else None
+    if found is None or len(found[0]) == 0:
+        notes["imported"] = "no imported points (capture/imported_points.ply)"
+        return None
+    xyz, rgb = found
+    return InitPoints(xyz, (rgb.astype(np.float32) / 255.0).astype(np.float32), "imported",
+                      {"file": str(scene.imported_points_path) if scene is not None else None,
+                       "note": "the source's points, made from all its images (holdout views included)"})
 
 
 def _drop_far_points(init: InitPoints, data: TrainingData, factor: float = 10.0) -> InitPoints:

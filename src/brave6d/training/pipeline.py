@@ -105,10 +105,12 @@ def train_scene(
     init_method: str = "auto",
     colmap: ColmapOptions | None = None,
     show_progress: bool = True,
+    check_poses: bool = True,
 ) -> dict[str, Any]:
     """Train ``scene`` with ``preset`` and write the ``splat/`` outputs; returns the metrics.
 
-    See the module docstring for what happens to a previous training.
+    See the module docstring for what happens to a previous training. ``check_poses``: refuse
+    cameras that do not see the scene (:func:`brave6d.training.check_scene_poses`) before training.
     """
     t_start = time.perf_counter()
     dev = resolve_device(device)
@@ -125,7 +127,8 @@ def train_scene(
     try:
         trained = train(data, preset, dev, scene=scene, init_method=init_method, colmap=colmap,
                         checkpoint_dir=ckpt_dir if run is None else run.staging, resume=continuing,
-                        checkpoint_hook=None if run is None else run.take_place, show_progress=show_progress)
+                        checkpoint_hook=None if run is None else run.take_place, show_progress=show_progress,
+                        check_poses=check_poses)
         if run is not None:
             run.finish()  # a run without any checkpoint (no steps) still replaces the outputs
     finally:
@@ -168,7 +171,9 @@ def train_scene(
         "images": {"undistorted_once": True, "how": data.undistortion, "width": data.camera.width,
                    "height": data.camera.height, "downscale": data.downscale,
                    "metrics_resolution": f"{data.camera.width}x{data.camera.height}"},
-        "poses": "base_T_tcp (robot) @ tcp_T_cam (calibrated, calibration/handeye.json)",
+        "poses": ("world_T_cam imported (capture/import.json; handeye.json is the identity)"
+                  if scene.import_record_path.is_file() else
+                  "base_T_tcp (robot) @ tcp_T_cam (calibrated, calibration/handeye.json)"),
         "init": trained.init,
         "outputs": {"ply": str(ply_path), "curves": str(scene.curves_path),
                     "holdout_split": str(scene.holdout_split_path),

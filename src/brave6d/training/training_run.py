@@ -27,6 +27,7 @@ from brave6d.training.holdout_eval import evaluate_holdout
 from brave6d.training.model import GaussianModel
 from brave6d.training.ply import SplatData
 from brave6d.training.presets import Preset
+from brave6d.training.scene_pose_check import check_scene_poses
 from brave6d.training.trainer import Trainer, TrainResult, list_checkpoints, set_seed
 
 log = logging.getLogger(__name__)
@@ -79,6 +80,7 @@ def train(
     resume: bool = False,
     checkpoint_hook: Callable[[Trainer], None] | None = None,
     show_progress: bool = False,
+    check_poses: bool = True,
 ) -> TrainedSplat:
     """Train a splat on ``data.train`` with ``preset``; the holdout is scored every
     ``preset.schedule.eval_every`` steps.
@@ -87,8 +89,12 @@ def train(
     nothing is written and COLMAP is skipped unless ``data`` has undistorted image files).
     ``resume``: continue from the newest checkpoint in ``checkpoint_dir`` (the model comes
     from it; without a checkpoint there a new run starts). ``checkpoint_hook`` is called after
-    each checkpoint is written.
+    each checkpoint is written. ``check_poses``: first check that the cameras see the scene
+    (:func:`brave6d.training.check_scene_poses`; a :class:`~brave6d.training.PoseCheckError` names the
+    views that do not).
     """
+    if check_poses:
+        check_scene_poses(data, scene)
     dev = resolve_device(device)
     set_seed(preset.seed)
     t0 = time.perf_counter()

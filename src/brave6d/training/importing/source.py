@@ -1,0 +1,146 @@
+"""A capture made elsewhere, as read from its files, before it becomes a scene directory.
+
+Both readers (:mod:`.colmap_source`, :mod:`.transforms_source`) return an :class:`ImportedCapture`:
+frames with their image file, camera and pose, the source's sparse points if it has any, and what
+the source says about its world. Conventions are settled here, once:
+
+- poses are ``world_T_cam`` with OpenCV camera axes (x right, y down, z forward), in the source's
+  world and units (the readers convert OpenGL axes);
+- cameras are in COLMAP's terms (:class:`SourceCamera`: a COLMAP model name and its parameters,
+  pixel (0, 0) centred at (0.5, 0.5)), so that pycolmap projects every model, fisheye included.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.core.camera import CORNER_ORIGIN_OFFSET, PinholeCamera
+from brave6d.core.errors import DataError
+
+#: COLMAP camera models -> their parameter names (COLMAP's order).
+CAMERA_MODELS: dict[str, tuple[str, ...]] = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+    "OPENCV_FISHEYE": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
+    "SIMPLE_RADIAL_FISHEYE": ("f", "cx", "cy", "k"),
+    "RADIAL_FISHEYE": ("f", "cx", "cy", "k1", "k2"),
+    "THIN_PRISM_FISHEYE": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "sx1", "sy1"),
+    "FOV": ("fx", "fy", "cx", "cy", "omega"),
+}
+
+
+@dataclass(frozen=True)
+class SourceCamera:
+    """One camera as COLMAP describes it: ``model`` (a :data:`CAMERA_MODELS` name), image size and
+    ``params`` in COLMAP's order and pixel convention (pixel (0, 0) centred at (0.5, 0.5))."""
+
+    model: str
+    width: int
+    height: int
+    params: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        names = CAMERA_MODELS.get(self.model)
+        if names is None:
+            raise DataError(f"camera model {self.model!r} is not supported (known: {', '.join(CAMERA_MODELS)})")
+        if len(self.params) != len(names):
+            raise DataError(f"camera model {self.model} needs {len(names)} parameters ({', '.join(names)}), "
+                            f"got {len(self.params)}")
+        for name, value in zip(names, self.params):
+            if not np.isfinite(value):
+                raise DataError(f"camera {self.model}: parameter {name} must be finite, got {value}")
+        for name, value in zip(names, self.params):
+            if name in ("f", "fx", "fy") and value <= 0:
+                raise DataError(f"camera {self.model}: focal length {name} must be positive, got {value}")
+        if self.width < 1 or self.height < 1:
+            raise DataError(f"camera {self.model}: image size must be positive, got {self.width}x{self.height}")
+
+    @property
+    def named(self) -> dict[str, float]:
+        return dict(zip(CAMERA_MODELS[self.model], self.params))
+
+    def opencv(self) -> PinholeCamera | None:
+        """The same camera as the project's :class:`PinholeCamera` (OpenCV's K and distortion), or
+        None when OpenCV's radial-tangential model cannot express it (fisheye models)."""
+        p = self.named
+        fx = p.get("fx", p.get("f"))
+        fy = p.get("fy", p.get("f"))
+        assert fx is not None and fy is not None
+        if self.model in ("SIMPLE_PINHOLE", "PINHOLE"):
+            dist: tuple[float, ...] = ()
+        elif self.model == "SIMPLE_RADIAL":
+            dist = (p["k"], 0.0, 0.0, 0.0)
+        elif self.model == "RADIAL":
+            dist = (p["k1"], p["k2"], 0.0, 0.0)
+        elif self.model == "OPENCV":
+            dist = (p["k1"], p["k2"], p["p1"], p["p2"])
+        elif self.model == "FULL_OPENCV":
+            dist = tuple(p[k] for k in ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"))
+        else:
+            return None
+        if dist and not any(dist):
+            dist = ()
+        return PinholeCamera(self.width, self.height, float(fx), float(fy), p["cx"] - CORNER_ORIGIN_OFFSET,
+                             p["cy"] - CORNER_ORIGIN_OFFSET, dist)
+
+    def pinhole(self) -> PinholeCamera:
+        """The pinhole part (focal lengths and principal point, OpenCV convention), no distortion."""
+        p = self.named
+        fx = p.get("fx", p.get("f"))
+        fy = p.get("fy", p.get("f"))
+        assert fx is not None and fy is not None
+        return PinholeCamera(self.width, self.height, float(fx), float(fy), p["cx"] - CORNER_ORIGIN_OFFSET,
+                             p["cy"] - CORNER_ORIGIN_OFFSET)
+
+    def same_as(self, other: SourceCamera, rtol: float = 1e-6) -> bool:
+        return (self.model == other.model and (self.width, self.height) == (other.width, other.height)
+                and np.allclose(self.params, other.params, rtol=rtol, atol=1e-9))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"model": self.model, "width": self.width, "height": self.height, "params": self.named,
+                "pixel_convention": "COLMAP (pixel (0, 0) centred at (0.5, 0.5))"}
+
+
+@dataclass(frozen=True)
+class SourceFrame:
+    """One frame: its name in the source, its image file, its camera and ``world_T_cam`` (OpenCV axes)."""
+
+    name: str
+    image: Path
+    camera: SourceCamera
+    world_T_cam: NDArray[np.float64]
+
+
+@dataclass
+class ImportedCapture:
+    """Everything a reader found: frames in source order, frames listed without an image file
+    (``missing``), sparse points and colours (may be empty) and notes about the source."""
+
+    format: str  # "colmap" | "transforms.json"
+    source: Path
+    frames: list[SourceFrame]
+    missing: list[str] = field(default_factory=list)
+    points: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    colors: NDArray[np.uint8] = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
+    points_from: str | None = None  # where the points came from (a file), None without points
+    scene_box: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None  # a box the source says holds the scene
+    details: dict[str, Any] = field(default_factory=dict)  # format-specific keys kept for the record
+
+    def __post_init__(self) -> None:
+        self.points = np.asarray(self.points, np.float64).reshape(-1, 3)
+        self.colors = np.asarray(self.colors, np.uint8).reshape(-1, 3)
+        if len(self.colors) != len(self.points):  # no (or mismatched) colours: grey
+            self.colors = np.full((len(self.points), 3), 128, np.uint8)
+        keep = np.isfinite(self.points).all(axis=1)
+        if not keep.all():
+            self.details["non_finite_points_dropped"] = int((~keep).sum())
+            self.points, self.colors = self.points[keep], self.colors[keep]

@@ -1,0 +1,232 @@
+"""Read a nerfstudio / instant-ngp ``transforms.json`` (the NeRF "Blender" layout and its descendants).
+
+What the file holds, as those tools write it:
+
+- ``frames``: ``file_path`` (relative to the file; may lack its extension, as the NeRF Blender
+  scenes do) and ``transform_matrix``, camera-to-world with **OpenGL** camera axes (x right, y up,
+  z backwards). The reader right-multiplies ``diag(1, -1, -1, 1)`` to get OpenCV axes.
+- intrinsics shared at the top level or per frame (a frame's key wins): ``fl_x``, ``fl_y`` (else
+  ``camera_angle_x`` / ``camera_angle_y``), ``cx``, ``cy`` (default: the image centre), ``w``,
+  ``h`` (default: the image's size), distortion ``k1 k2 k3 k4 p1 p2`` and ``camera_model``
+  (``OPENCV``, ``OPENCV_FISHEYE``, ``PINHOLE``, ``SIMPLE_PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL``; instant-ngp's
+  ``is_fisheye: true`` means ``OPENCV_FISHEYE``). ``cx``/``cy`` are in the corner-origin convention
+  (pixel (0, 0) centred at (0.5, 0.5)): nerfstudio copies COLMAP's, instant-ngp and nerfstudio cast
+  rays through ``pixel + 0.5``. A perspective camera's radial terms are OpenCV's ``k1 k2 k3``;
+  ``k4`` (nerfstudio's r^8 term) has no OpenCV equivalent and is refused.
+- optional: ``ply_file_path`` (nerfstudio's sparse points, same world as the poses),
+  ``applied_transform`` (nerfstudio's world change from COLMAP's, kept for the record), and
+  instant-ngp's ``aabb_scale``, ``scale``, ``offset`` (how it maps the poses into its unit cube:
+  ``p_ngp = cycle(p * scale + offset)``, axes cycled x->z, y->x, z->y). With no points, the centre of
+  that unit cube is the scene's reference for the pose check.
+
+A frame whose image file is missing is reported in ``missing`` (by its ``file_path``), not an error.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.core.errors import DataError, NonRigidTransformError
+from brave6d.core.transforms import check_rigid
+from brave6d.training.importing.source import ImportedCapture, SourceCamera, SourceFrame
+from brave6d.training.pose_check import GL_TO_CV
+
+_CAMERA_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2", "camera_model",
+                "camera_angle_x", "camera_angle_y", "is_fisheye")
+_PERSPECTIVE = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
+_FISHEYE = ("OPENCV_FISHEYE",)
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+#: instant-ngp's defaults for ``scale`` and ``offset``.
+NGP_SCALE, NGP_OFFSET = 0.33, (0.5, 0.5, 0.5)
+
+
+def find_transforms(source: Path) -> Path:
+    """``source`` itself when it is a file, else ``source/transforms.json``."""
+    path = source / "transforms.json" if source.is_dir() else source
+    if not path.is_file():
+        raise DataError(f"{path}: not found (a transforms.json file, or a folder that holds one)")
+    return path
+
+
+def read_transforms(source: Path | str) -> ImportedCapture:
+    """Frames, cameras, poses (OpenCV axes) and points of a ``transforms.json`` (see the module docstring)."""
+    path = find_transforms(Path(source))
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DataError(f"{path}: not a JSON file ({exc})") from None
+    if not isinstance(data, dict):
+        raise DataError(f"{path}: expected a JSON object at the top level, got {type(data).__name__}")
+    listed = data.get("frames")
+    if not isinstance(listed, list) or not listed:
+        raise DataError(f"{path}: field 'frames': a non-empty list of frames is required")
+    frames, missing = [], []
+    shared = {k: data[k] for k in _CAMERA_KEYS if k in data}
+    for i, item in enumerate(listed):
+        where = f"{path}: field 'frames[{i}]'"
+        if not isinstance(item, dict):
+            raise DataError(f"{where}: an object is required, got {type(item).__name__}")
+        name = item.get("file_path")
+        if not isinstance(name, str) or not name:
+            raise DataError(f"{where}.file_path: a file path (string) is required")
+        image = _image_file(path.parent, name)
+        if image is None:
+            missing.append(name)
+            continue
+        camera = _camera({**shared, **{k: item[k] for k in _CAMERA_KEYS if k in item}}, image, f"{where} ({name})")
+        frames.append(SourceFrame(name, image, camera, _pose(item.get("transform_matrix"), f"{where} ({name})")))
+    points, colors, points_from = _points(path, data)
+    details: dict[str, Any] = {k: data[k] for k in ("aabb_scale", "scale", "offset", "applied_transform") if k in data}
+    return ImportedCapture("transforms.json", path, frames, missing, points, colors, points_from,
+                           _ngp_unit_cube(data, path), details)
+
+
+def _image_file(root: Path, name: str) -> Path | None:
+    """The image ``name`` relative to ``root``; a name without an extension tries the usual ones."""
+    path = root / name
+    if path.is_file():
+        return path
+    if not path.suffix:
+        for suffix in _IMAGE_SUFFIXES:
+            if path.with_name(path.name + suffix).is_file():
+                return path.with_name(path.name + suffix)
+    return None
+
+
+def _number(values: dict[str, Any], key: str, where: str, default: float | None = None) -> float:
+    value = values.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise DataError(f"{where}: field '{key}': a finite number is required, got {value!r}")
+    return float(value)
+
+
+def _camera(values: dict[str, Any], image: Path, where: str) -> SourceCamera:
+    """The frame's camera from its merged keys (see the module docstring)."""
+    if "w" in values and "h" in values:
+        w, h = _number(values, "w", where), _number(values, "h", where)
+        if not (w.is_integer() and h.is_integer() and w >= 1 and h >= 1):
+            raise DataError(f"{where}: fields 'w', 'h': whole numbers of pixels are required, got {w}, {h}")
+        width, height = int(w), int(h)
+    else:
+        width, height = _image_size(image)
+    if "fl_x" in values:
+        fx = _number(values, "fl_x", where)
+    elif "camera_angle_x" in values:
+        fx = 0.5 * width / math.tan(0.5 * _angle(values, "camera_angle_x", where))
+    else:
+        raise DataError(f"{where}: no focal length: give 'fl_x' or 'camera_angle_x'")
+    if "fl_y" in values:
+        fy = _number(values, "fl_y", where)
+    elif "camera_angle_y" in values:
+        fy = 0.5 * height / math.tan(0.5 * _angle(values, "camera_angle_y", where))
+    else:
+        fy = fx
+    cx = _number(values, "cx", where, width / 2.0)
+    cy = _number(values, "cy", where, height / 2.0)
+    k = {key: _number(values, key, where, 0.0) for key in ("k1", "k2", "k3", "k4", "p1", "p2")}
+    model = values.get("camera_model")
+    if model is None:
+        model = "OPENCV_FISHEYE" if values.get("is_fisheye") is True else "OPENCV"
+    if model in _FISHEYE:
+        if k["p1"] or k["p2"]:
+            raise DataError(f"{where}: OPENCV_FISHEYE has no tangential terms, but p1/p2 are {k['p1']}/{k['p2']}")
+        return _source_camera("OPENCV_FISHEYE", width, height, (fx, fy, cx, cy, k["k1"], k["k2"], k["k3"], k["k4"]), where)
+    if model not in _PERSPECTIVE:
+        raise DataError(f"{where}: field 'camera_model': {model!r} is not supported "
+                        f"(supported: {', '.join(_PERSPECTIVE + _FISHEYE)})")
+    if k["k4"]:
+        raise DataError(f"{where}: field 'k4' = {k['k4']} on a perspective camera (nerfstudio's r^8 radial term) "
+                        "has no OpenCV equivalent; undistort the images first")
+    if k["k3"]:
+        return _source_camera("FULL_OPENCV", width, height,
+                              (fx, fy, cx, cy, k["k1"], k["k2"], k["p1"], k["p2"], k["k3"], 0.0, 0.0, 0.0), where)
+    return _source_camera("OPENCV", width, height, (fx, fy, cx, cy, k["k1"], k["k2"], k["p1"], k["p2"]), where)
+
+
+def _source_camera(model: str, width: int, height: int, params: tuple[float, ...], where: str) -> SourceCamera:
+    try:
+        return SourceCamera(model, width, height, params)
+    except DataError as exc:
+        raise DataError(f"{where}: {exc}") from None
+
+
+def _angle(values: dict[str, Any], key: str, where: str) -> float:
+    angle = _number(values, key, where)
+    if not 0.0 < angle < math.pi:
+        raise DataError(f"{where}: field '{key}': a field of view in (0, pi) radians is required, got {angle}")
+    return angle
+
+
+def _image_size(image: Path) -> tuple[int, int]:
+    """(width, height) as stored in the file (EXIF orientation not applied: what w/h would describe)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(image) as im:
+            return im.size
+    except (OSError, UnidentifiedImageError) as exc:
+        raise DataError(f"{image}: cannot read the image's size ({exc})") from None
+
+
+def _pose(value: Any, where: str) -> NDArray[np.float64]:
+    """``world_T_cam`` with OpenCV axes from an OpenGL camera-to-world ``transform_matrix`` (4x4 or 3x4)."""
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{where}.transform_matrix: a 4x4 matrix of numbers is required") from None
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    if m.shape != (4, 4):
+        raise DataError(f"{where}.transform_matrix: a 4x4 (or 3x4) matrix is required, got shape {m.shape}")
+    try:
+        check_rigid(m, "transform_matrix", atol=1e-4)
+    except NonRigidTransformError as exc:
+        raise DataError(f"{where}: {exc}") from None
+    return m @ GL_TO_CV
+
+
+def _points(path: Path, data: dict[str, Any]) -> tuple[NDArray[np.float64], NDArray[np.uint8], str | None]:
+    """nerfstudio's ``ply_file_path`` points (x, y, z and red, green, blue when present)."""
+    name = data.get("ply_file_path")
+    if name is None:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), None
+    if not isinstance(name, str):
+        raise DataError(f"{path}: field 'ply_file_path': a file path (string) is required")
+    ply = path.parent / name
+    from plyfile import PlyData
+
+    try:
+        vertex = PlyData.read(str(ply))["vertex"]
+        xyz = np.stack([np.asarray(vertex[c], np.float64) for c in ("x", "y", "z")], axis=1)
+    except FileNotFoundError:
+        raise DataError(f"{path}: field 'ply_file_path': {ply} not found") from None
+    except (KeyError, ValueError, OSError, IndexError) as exc:
+        raise DataError(f"{ply}: not a point cloud PLY with x, y, z ({type(exc).__name__}: {exc})") from None
+    names = vertex.data.dtype.names or ()
+    if all(c in names for c in ("red", "green", "blue")):
+        rgb = np.stack([np.asarray(vertex[c]) for c in ("red", "green", "blue")], axis=1).clip(0, 255).astype(np.uint8)
+    else:
+        rgb = np.full((len(xyz), 3), 128, np.uint8)
+    return xyz, rgb, name
+
+
+def _ngp_unit_cube(data: dict[str, Any], path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """instant-ngp's unit cube in the file's coordinates, when the file carries its keys."""
+    if not any(k in data for k in ("aabb_scale", "scale", "offset")):
+        return None
+    scale = _number(data, "scale", str(path), NGP_SCALE)
+    if scale <= 0:
+        raise DataError(f"{path}: field 'scale': instant-ngp's scale must be positive, got {scale}")
+    offset = data.get("offset", list(NGP_OFFSET))
+    if not (isinstance(offset, list) and len(offset) == 3):
+        raise DataError(f"{path}: field 'offset': three numbers are required, got {offset!r}")
+    off = np.array([_number({"offset": v}, "offset", str(path)) for v in offset])
+    # p_ngp = (y, z, x) * scale + offset: file x <- ngp z, file y <- ngp x, file z <- ngp y
+    per_axis = np.array([off[2], off[0], off[1]])
+    return (0.0 - per_axis) / scale, (1.0 - per_axis) / scale
