@@ -306,3 +306,32 @@ def test_the_check_names_exactly_the_flipped_cameras(n: int, flip: list[bool], r
         assert err.value.failing == flipped
     else:
         assert not check_camera_poses(cam, named, points, "points").failing
+
+
+@pytest.mark.parametrize("ngp", [True, False])
+def test_without_points_the_ngp_cube_or_the_axes_meeting_point_is_the_reference(tmp_path: Path, ngp: bool) -> None:
+    camera = {**CAMERA, **({"aabb_scale": 16, "scale": 0.5, "offset": [0.4, 0.55, 0.35]} if ngp else {})}
+    # instant-ngp's cube centre in file coordinates: ((0.5 - offset) / scale) with the axes cycled (x <- z, y <- x, z <- y)
+    target = np.array([(0.5 - 0.35) / 0.5, (0.5 - 0.4) / 0.5, (0.5 - 0.55) / 0.5]) if ngp else np.array([0.3, -0.2, 0.1])
+    poses = ring(8, 2.0, target=tuple(target))
+    good = [gl_camera_to_world(T[:3, 3], target) for T in poses]
+    result = import_capture(write_transforms(tmp_path / "a", good, camera), tmp_path / "ok", options())
+    assert result.pose_check is not None
+    assert ("instant-ngp's unit cube" if ngp else "optical axes meet") in result.pose_check.reference
+    with pytest.raises(PoseCheckError, match="OpenGL"):
+        import_capture(write_transforms(tmp_path / "b", poses, camera), tmp_path / "bad", options())
+
+
+def test_training_falls_back_to_the_imported_points_when_colmap_finds_too_few(tmp_path: Path) -> None:
+    from brave6d.training.colmap_init import ColmapOptions, initial_points
+
+    source, _ = object_capture(tmp_path / "src")  # noise images: nothing for COLMAP to triangulate
+    import_capture(source, tmp_path / "scene", options())
+    scene = SceneDir(tmp_path / "scene")
+    data = load_scene(scene)
+    init = initial_points(scene, data, ColmapOptions(max_features=256, neighbours=2), max_points=3000)
+    assert init.source == "imported" and len(init) == 200
+    assert "points (< 1000)" in init.details["colmap"]
+    np.testing.assert_allclose(np.linalg.norm(init.points, axis=1), 0.1, rtol=1e-6)  # the sphere of radius 0.2 x 0.5
+    explicit = initial_points(scene, data, method="imported", max_points=3000)
+    assert explicit.source == "imported" and "colmap" not in explicit.details

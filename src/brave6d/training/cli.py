@@ -32,9 +32,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--skip-bad-frames", action="store_true",
                         help="leave out missing or corrupt frames (listed in metrics.json) instead of stopping")
     parser.add_argument("--init", choices=["auto", "imported", "colmap", "depth", "random"], default="auto",
-                        help="initial points: auto = COLMAP, else depth frames, else random; imported = the sparse "
-                             "points of an imported capture (made from all its images), then that chain "
-                             "(default: %(default)s)")
+                        help="initial points: auto = COLMAP (training views), else an imported capture's sparse "
+                             "points, else depth frames, else random; imported = the imported points first (the "
+                             "source made them from all its images, holdout included) (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's, 0)")
     parser.add_argument("--skip-pose-check", action="store_true",
                         help="train even when cameras do not see the scene (the check names them; not recommended)")

@@ -417,12 +417,14 @@ def initial_points(
     seed: int = 0,
     method: str = "auto",
 ) -> InitPoints:
-    """COLMAP points (writing ``sparse/0``), else depth back-projection, else random points.
+    """COLMAP points (writing ``sparse/0``), else an imported capture's points, else depth
+    back-projection, else random points.
 
     ``method``: ``auto`` (that chain), ``colmap``, ``depth`` or ``random`` (start the chain there), or
-    ``imported``: the sparse points an imported capture brought (``capture/imported_points.ply``),
+    ``imported``: first the sparse points an imported capture brought (``capture/imported_points.ply``),
     then the chain. The source made those from all its images, the holdout views included (as the
-    usual COLMAP-initialised benchmarks do), so ``auto`` does not use them.
+    usual COLMAP-initialised benchmarks do), so ``auto`` takes them only when COLMAP, which
+    triangulates the training views alone, finds too few points.
     Whatever the source, ``sparse/0`` receives all cameras and the points used (when ``scene``
     is given), so other 3DGS tools start from the same model.
     """
@@ -430,16 +432,17 @@ def initial_points(
     names = {v.index: Path(v.rgb_path).name if v.rgb_path else f"{v.index:06d}.png" for v in data.views}
     train_images = [(names[v.index], v.base_T_cam) for v in data.train]
     test_images = [(names[v.index], v.base_T_cam) for v in data.test]
-    chain = ["imported", "colmap", "depth", "random"]
-    if method not in ("auto", *chain):
+    chains = {"auto": ["colmap", "imported", "depth", "random"], "colmap": ["colmap", "imported", "depth", "random"],
+              "imported": ["imported", "colmap", "depth", "random"], "depth": ["depth", "random"], "random": ["random"]}
+    if method not in chains:
         raise BraveError(f"unknown initialisation {method!r}; choose auto, imported, colmap, depth or random")
-    chain = chain[chain.index(method):] if method != "auto" else chain[1:]
+    chain = chains[method]
     rec = None
     result: InitPoints | None = None
     notes: dict[str, Any] = {}
     t0 = time.perf_counter()
-    if "imported" in chain:
-        result = _imported_points(scene, notes)
+    if chain[0] == "imported":
+        result = _imported_points(scene, data, notes)
         chain = ["imported"] if result is not None else chain[1:]  # found: no triangulation (sparse/0 gets them)
     stamp = model_stamp(full, train_images + test_images, options, image_contents(data))
     reused = _reusable_colmap(scene, stamp, options) if chain[0] == "colmap" and scene is not None else None
@@ -460,10 +463,13 @@ def initial_points(
                     notes["colmap"] = f"failed: {exc}"
                     rec = None
             if result is not None and len(result) < options.min_points:
-                log.warning("COLMAP triangulated only %d points (< %d); falling back to depth frames",
-                            len(result), options.min_points)
+                imported = "imported" in chain and scene is not None and scene.imported_points_path.is_file()
+                log.warning("COLMAP triangulated only %d points (< %d); falling back to %s", len(result),
+                            options.min_points, "the imported capture's points" if imported else "depth frames")
                 notes["colmap"] = f"{len(result)} points (< {options.min_points})"
                 result = None
+    if result is None and "imported" in chain and chain[0] != "imported":
+        result = _imported_points(scene, data, notes)
     if result is None and "depth" in chain:
         result = backproject_depth(data.train, full, data.depth_camera, max_points=max_points)
         if len(result) < 100:
@@ -490,18 +496,33 @@ def initial_points(
     return result.subsample(max_points, seed)
 
 
-def _imported_points(scene: SceneDir | None, notes: dict[str, Any]) -> InitPoints | None:
-    """The imported capture's sparse points, or None (noted) when the scene has none."""
+def _imported_points(scene: SceneDir | None, data: TrainingData, notes: dict[str, Any],
+                     min_views: int = 2) -> InitPoints | None:
+    """The imported capture's sparse points inside the view of at least ``min_views`` training
+    views, or None (noted) when the scene has none.
+
+    The source made its points from all its images: a point only the holdout views see would never
+    be trained and would float, as initialised, in front of those views; so it is left out.
+    """
     from brave6d.training.importing.scene_files import read_imported_points
+    from brave6d.training.pose_check import visible_mask
 
     found = read_imported_points(scene) if scene is not None else None
     if found is None or len(found[0]) == 0:
         notes["imported"] = "no imported points (capture/imported_points.ply)"
         return None
     xyz, rgb = found
-    return InitPoints(xyz, (rgb.astype(np.float32) / 255.0).astype(np.float32), "imported",
-                      {"file": str(scene.imported_points_path) if scene is not None else None,
-                       "note": "the source's points, made from all its images (holdout views included)"})
+    seen = np.zeros(len(xyz), dtype=np.int64)
+    for view in data.train:
+        seen += visible_mask(data.camera, view.base_T_cam, xyz, margin=0.0)
+    keep = seen >= min(min_views, len(data.train))
+    if not keep.any():
+        notes["imported"] = f"none of the {len(xyz)} imported points is in view of {min_views} training views"
+        return None
+    return InitPoints(xyz[keep], (rgb[keep].astype(np.float32) / 255.0).astype(np.float32), "imported",
+                      {"file": str(scene.imported_points_path) if scene is not None else None, "imported": len(xyz),
+                       "kept_in_view_of_training": int(keep.sum()),
+                       "note": "the source's points (made from all its images) that training views see"})
 
 
 def _drop_far_points(init: InitPoints, data: TrainingData, factor: float = 10.0) -> InitPoints:

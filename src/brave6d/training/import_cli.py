@@ -83,8 +83,7 @@ def summary(result) -> str:  # type: ignore[no-untyped-def]
         lines.append(f"{len(result.missing)} frames listed without an image file, left out: {shown}")
     if rec["exif_orientation_applied"]:
         lines.append(f"EXIF orientation applied to {len(rec['exif_orientation_applied'])} photos")
-    lines.append(result.pose_check.summary() if result.pose_check is not None else
-                 f"pose check: {rec['pose_check'] or 'skipped (no points, and the optical axes do not meet)'}")
+    lines.append(result.pose_check.summary() if result.pose_check is not None else f"pose check: {rec['pose_check']}")
     if result.moved_aside is not None:
         lines.append(f"the previous {result.scene.root} was moved aside to {result.moved_aside}")
     lines.append(f"record: {result.scene.import_record_path}\nnext: brave6d train {result.scene.root} --preset fast")

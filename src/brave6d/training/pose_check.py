@@ -80,6 +80,19 @@ def visible_shares(camera: PinholeCamera, world_T_cam: ArrayLike, points: ArrayL
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(pts) == 0:
         return 0.0, 0.0
+    inside, front = _visibility(camera, world_T_cam, pts, margin)
+    n = float(len(pts))
+    return float(inside.sum()) / n, float(front.sum()) / n
+
+
+def visible_mask(camera: PinholeCamera, world_T_cam: ArrayLike, points: ArrayLike,
+                 margin: float = 0.0) -> NDArray[np.bool_]:
+    """Which of ``points`` (N, 3, world) are in front of the camera and inside its image (+ ``margin``)."""
+    return _visibility(camera, world_T_cam, np.asarray(points, dtype=np.float64).reshape(-1, 3), margin)[0]
+
+
+def _visibility(camera: PinholeCamera, world_T_cam: ArrayLike, pts: NDArray[np.float64],
+                margin: float) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     T = np.asarray(world_T_cam, dtype=np.float64)
     R, t = T[:3, :3], T[:3, 3]
     with np.errstate(invalid="ignore", over="ignore"):
@@ -92,8 +105,7 @@ def visible_shares(camera: PinholeCamera, world_T_cam: ArrayLike, points: ArrayL
         v = camera.fy * cam[:, 1] / zs + camera.cy
     mu, mv = margin * camera.width, margin * camera.height
     inside = front & (u >= -0.5 - mu) & (u <= camera.width - 0.5 + mu) & (v >= -0.5 - mv) & (v <= camera.height - 0.5 + mv)
-    n = float(len(pts))
-    return float(inside.sum()) / n, float(front.sum()) / n
+    return inside, front
 
 
 def check_camera_poses(camera: PinholeCamera, poses: Sequence[tuple[str, ArrayLike]], points: ArrayLike,

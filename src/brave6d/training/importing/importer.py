@@ -345,8 +345,15 @@ def _record(capture: ImportedCapture, options: ImportOptions, plan: CameraPlan, 
         "camera": {"images": plan.how, "downscale": plan.downscale, "sources": [c.to_json() for c in plan.sources]},
         "world": change.to_json(),
         "points": {"count": n_points, "from": capture.points_from},
-        "pose_check": (None if check is None else {
-            "reference": check.reference, "min_share": check.min_share, "summary": check.summary(),
-            "least_share": min(f.visible for f in check.frames)}) if options.pose_check else "skipped (--skip-pose-check)",
-        "pose_check_reference": None if reference is None else reference[1],
+        "pose_check": _check_record(check, reference, options.pose_check),
     }
+
+
+def _check_record(check: PoseCheck | None, reference: tuple[NDArray[np.float64], str] | None,
+                  asked: bool) -> dict[str, Any] | str:
+    if not asked:
+        return "skipped (--skip-pose-check)"
+    if check is None:
+        return "skipped: no sparse points, no scene box, and the optical axes do not meet"
+    return {"reference": check.reference, "min_share": check.min_share, "summary": check.summary(),
+            "least_share": min(f.visible for f in check.frames)}

@@ -83,6 +83,9 @@ def read_transforms(source: Path | str) -> ImportedCapture:
         frames.append(SourceFrame(name, image, camera, _pose(item.get("transform_matrix"), f"{where} ({name})")))
     points, colors, points_from = _points(path, data)
     details: dict[str, Any] = {k: data[k] for k in ("aabb_scale", "scale", "offset", "applied_transform") if k in data}
+    with_depth = sum(1 for f in listed if isinstance(f, dict) and ("depth_file_path" in f or "depth_path" in f))
+    if with_depth:
+        details["depth_not_imported"] = f"{with_depth} frames list a depth map; depth is not imported (RGB only)"
     return ImportedCapture("transforms.json", path, frames, missing, points, colors, points_from,
                            _ngp_unit_cube(data, path), details)
 
