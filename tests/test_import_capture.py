@@ -136,7 +136,7 @@ def test_per_frame_intrinsics_win_and_different_cameras_are_resampled_to_one(tmp
 def test_the_cli_imports_and_says_where_scale_and_up_came_from(tmp_path: Path, capsys) -> None:
     source, _ = object_capture(tmp_path / "src")
     code = cli_main(["import", str(source), str(tmp_path / "scene"), "--scale-from-distance", "images/f000.png",
-                     "images/f006.png", "2.0", "--up", "auto"])
+                     "f006", "2.0", "--up", "auto"])  # a frame by its source name, or its file name's stem
     out = capsys.readouterr().out
     assert code == 0, out
     assert "--scale-from-distance images/f000.png images/f006.png 2 m" in out and "--up auto" in out

@@ -26,7 +26,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
                        help="metres per source unit (1 when the source's poses are in metres)")
     scale.add_argument("--scale-from-distance", nargs=3, default=None, metavar=("FRAME_A", "FRAME_B", "METRES"),
                        help="the real distance in metres between the camera centres of two frames (named as in "
-                            "the source: COLMAP image name or transforms.json file_path)")
+                            "the source: COLMAP image name or transforms.json file_path; or by their file name)")
     parser.add_argument("--up", default=None, metavar="x,y,z|auto",
                         help="the world's up direction in the source's coordinates, or 'auto': the mean of the "
                              "cameras' up vectors (photos taken upright)")

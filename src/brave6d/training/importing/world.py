@@ -114,25 +114,38 @@ def camera_centres(poses: Sequence[NDArray[np.float64]]) -> NDArray[np.float64]:
     return np.array([np.asarray(T)[:3, 3] for T in poses], np.float64).reshape(-1, 3)
 
 
-def resolve_scale(choice: ScaleChoice, poses: dict[str, NDArray[np.float64]]) -> float:
-    """Metres per source unit; ``--scale-from-distance`` errors name a frame that is not there."""
+def resolve_scale(choice: ScaleChoice, poses: dict[str, NDArray[np.float64]]) -> tuple[float, str]:
+    """Metres per source unit and how it was found; ``--scale-from-distance`` errors name a frame
+    that is not there."""
     if choice.factor is not None:
         if not (np.isfinite(choice.factor) and choice.factor > 0):
             raise DataError(f"--scale: a positive number of metres per source unit is required, got {choice.factor}")
-        return float(choice.factor)
+        return float(choice.factor), choice.describe()
     assert choice.distance is not None
     a, b, metres = choice.distance
-    for name in (a, b):
-        if name not in poses:
-            raise DataError(f"--scale-from-distance: no imported frame named {name!r} "
-                            f"(frames are named as in the source, e.g. {next(iter(poses))!r})")
+    a, b = _frame_named(a, poses), _frame_named(b, poses)
     if not (np.isfinite(metres) and metres > 0):
         raise DataError(f"--scale-from-distance: the distance must be a positive number of metres, got {metres}")
     d = float(np.linalg.norm(poses[a][:3, 3] - poses[b][:3, 3]))
     if not np.isfinite(d) or d < 1e-9:
         raise DataError(f"--scale-from-distance: frames {a} and {b} have the same camera centre in the source; "
                         "pick two frames taken apart")
-    return metres / d
+    return metres / d, ScaleChoice(distance=(a, b, metres)).describe()
+
+
+def _frame_named(name: str, poses: dict[str, NDArray[np.float64]]) -> str:
+    """The frame ``name`` names: its name in the source, else its file name or the file name
+    without extension when exactly one frame has it."""
+    from pathlib import PurePosixPath
+
+    if name in poses:
+        return name
+    for key in (lambda n: PurePosixPath(n).name, lambda n: PurePosixPath(n).stem):
+        hits = [n for n in poses if key(n) == name]
+        if len(hits) == 1:
+            return hits[0]
+    raise DataError(f"--scale-from-distance: no imported frame named {name!r} (frames are named as in the source, "
+                    f"e.g. {next(iter(poses))!r}, or by its file name)")
 
 
 def resolve_up(choice: UpChoice, poses: Sequence[NDArray[np.float64]]) -> tuple[NDArray[np.float64], str]:
@@ -190,11 +203,11 @@ def scene_centre(poses: Sequence[NDArray[np.float64]], points: NDArray[np.float6
 def world_change(poses: dict[str, NDArray[np.float64]], points: NDArray[np.float64], scale: ScaleChoice,
                  up: UpChoice) -> WorldChange:
     """The similarity that makes the imported world metric, z-up and centred (module docstring)."""
-    factor = resolve_scale(scale, poses)
+    factor, scale_from = resolve_scale(scale, poses)
     up_source, up_from = resolve_up(up, list(poses.values()))
     R = _rotation_onto_z(up_source)
     centre, centre_from = scene_centre(list(poses.values()), points)
-    return WorldChange(factor, R, centre, scale.describe(), up_source, up_from, centre_from)
+    return WorldChange(factor, R, centre, scale_from, up_source, up_from, centre_from)
 
 
 def _rotation_onto_z(up: NDArray[np.float64]) -> NDArray[np.float64]:
