@@ -9,6 +9,11 @@ Public API (imported lazily, so ``import brave6d.evaluation.agents`` stays cheap
 - The baseline's parts: :class:`BaselineAgent` with a :class:`CameraPolicy`
   (:class:`StaticPolicy`, :class:`ActivePolicy`), :func:`perceive`, :func:`register_model`,
   :func:`register_views`, :func:`sample_model`, :func:`read_model_ply` and their options.
+- The static estimator on any RGB-D frame (no server, no world pose): :func:`estimate_pose` with a
+  :class:`PixelHint` or :class:`BoxHint`, the model from :func:`prepare_model` (PLY or points, mm or
+  m), :class:`FrameOptions`; it returns a :class:`FramePose` or raises :class:`EstimateRefused`
+  (``cause`` in :data:`REFUSAL_CAUSES`); :func:`read_depth_png` (16-bit PNG + BOP ``depth_scale`` ->
+  metres), :func:`perceive_up` (perception given "up" in the camera frame), :func:`table_plane`.
 
 A new agent: a module in this package implementing :class:`Agent` (or a new :class:`CameraPolicy`
 for the baseline), a factory and its entry in :data:`POLICIES` (docs/ARCHITECTURE.md, section 6).
@@ -28,12 +33,14 @@ if TYPE_CHECKING:
 ACTIVE_AGENT = "baseline-active"
 STATIC_AGENT = "baseline-static"
 
-__all__ = ["ACTIVE_AGENT", "POLICIES", "STATIC_AGENT", "ActiveOptions", "ActivePolicy", "Agent", "BaselineAgent",
-           "BaselineOptions", "CameraPolicy", "Cluster", "EpisodeOutcome", "EpisodeState", "ModelCloud",
-           "ModelOptions", "Perception", "PerceptionOptions", "Plane", "Registration", "RegistrationOptions",
-           "StaticPolicy", "Submission", "View", "ViewScene", "make_agent", "multiview_icp", "one_thread",
-           "perceive", "perceive_near", "read_model_ply", "register_model", "register_scene", "register_views",
-           "run_episode", "sample_model", "standoff_m", "view_scene", "view_weights", "voxel_size"]
+__all__ = ["ACTIVE_AGENT", "POLICIES", "REFUSAL_CAUSES", "STATIC_AGENT", "ActiveOptions", "ActivePolicy", "Agent",
+           "BaselineAgent", "BaselineOptions", "BoxHint", "CameraPolicy", "Cluster", "EpisodeOutcome", "EpisodeState",
+           "EstimateRefused", "FrameOptions", "FramePose", "ModelCloud", "ModelOptions", "Perception",
+           "PerceptionOptions", "PixelHint", "Plane", "Registration", "RegistrationOptions", "StaticPolicy",
+           "Submission", "View", "ViewScene", "estimate_pose", "make_agent", "multiview_icp", "one_thread",
+           "perceive", "perceive_near", "perceive_up", "prepare_model", "read_depth_png", "read_model_ply",
+           "register_model", "register_scene", "register_views", "run_episode", "sample_model", "standoff_m",
+           "table_plane", "view_scene", "view_weights", "voxel_size"]
 
 _LAZY = {
     "Agent": ".protocol", "Submission": ".protocol",
@@ -45,6 +52,10 @@ _LAZY = {
     "ModelCloud": ".model", "ModelOptions": ".model", "sample_model": ".model", "read_model_ply": ".model",
     "Perception": ".perception", "PerceptionOptions": ".perception", "Plane": ".perception",
     "Cluster": ".perception", "View": ".perception", "perceive": ".perception", "perceive_near": ".perception",
+    "perceive_up": ".perception",
+    "estimate_pose": ".frame", "prepare_model": ".frame", "read_depth_png": ".frame", "table_plane": ".frame",
+    "FrameOptions": ".frame", "FramePose": ".frame", "PixelHint": ".frame", "BoxHint": ".frame",
+    "EstimateRefused": ".frame", "REFUSAL_CAUSES": ".frame",
     "Registration": ".registration", "RegistrationOptions": ".registration", "ViewScene": ".registration",
     "register_model": ".registration", "register_scene": ".registration", "view_scene": ".registration",
     "voxel_size": ".registration",

@@ -1,7 +1,8 @@
 """Perception: find the target's cluster of points above the table in one depth image.
 
 Back-project the depth image, fit the table plane with RANSAC (a plane whose normal is near world
-up, which the agent knows from its own ``world_T_cam``) around where the target is expected, keep
+up, which the agent knows from its own ``world_T_cam``; :func:`perceive_up` takes up in the camera
+frame, as the single-frame estimator has it from the table) around where the target is expected, keep
 the points a little above it, cluster them with DBSCAN, and pick the cluster near that place whose
 extent best fits the target's model. The plane is then refitted around the chosen cluster and the
 segmentation repeated: splat depth is not flat over a whole table (each Gaussian has one depth).
@@ -29,6 +30,9 @@ class PerceptionOptions:
 
     plane_ransac_m: float = 0.003  # inlier distance of the table plane fit
     seed: int = 0  # RANSAC seed
+    max_tilt_deg: float = 30.0  # the table's normal within this angle of world up
+    plane_voxel_m: float = 0.0  # the cloud is thinned to this before the plane fit (0: plane_ransac_m)
+    plane_iterations: int = 500  # RANSAC iterations of each plane fit
 
 
 @dataclass(frozen=True)
@@ -97,19 +101,19 @@ def backproject(depth: NDArray[np.floating], K: Array) -> tuple[Array, NDArray[n
 
 
 def fit_table_plane(points: Array, up_cam: Array, distance: float, seed: int = 0, max_planes: int = 3,
-                    max_tilt_deg: float = 30.0) -> Plane | None:
+                    max_tilt_deg: float = 30.0, voxel: float = 0.0, iterations: int = 500) -> Plane | None:
     """The largest RANSAC plane whose normal is within ``max_tilt_deg`` of ``up_cam`` (world up in
     the camera frame), among up to ``max_planes`` planes peeled off in turn; None if none fits."""
     o3d = open3d()
     if len(points) < 50:
         return None
-    pcd = point_cloud(points).voxel_down_sample(max(distance, 1e-4))
+    pcd = point_cloud(points).voxel_down_sample(max(voxel if voxel > 0 else distance, 1e-4))
     cos_max = math.cos(math.radians(max_tilt_deg))
     for _ in range(max_planes):
         if len(pcd.points) < 50:
             return None
         o3d.utility.random.seed(seed)
-        model, inliers = pcd.segment_plane(distance, 3, 500)
+        model, inliers = pcd.segment_plane(distance, 3, int(iterations))
         n = np.asarray(model[:3], dtype=np.float64)
         norm = float(np.linalg.norm(n))
         if norm > 0 and len(inliers) >= 30:
@@ -161,8 +165,16 @@ def perceive(depth: NDArray[np.floating], K: Array, world_T_cam: Array, model: M
     ``prior_cam``: where the target is expected (camera frame); None: on the optical axis (the
     start view looks at the target). The plane is fitted locally: around the prior, then around
     the cluster."""
+    up_cam = np.asarray(world_T_cam, dtype=np.float64)[2, :3]  # world +z in the camera frame
+    return perceive_up(depth, K, up_cam, model, prior_cam, options)
+
+
+def perceive_up(depth: NDArray[np.floating], K: Array, up_cam: Array, model: ModelCloud, prior_cam: Array | None,
+                options: PerceptionOptions = PerceptionOptions()) -> Perception:
+    """:func:`perceive` given the world's up direction in the camera frame (unit ``up_cam``)
+    instead of the camera's world pose: what a frame without a world pose has (its table's normal)."""
     with one_thread():
-        return _perceive(depth, K, world_T_cam, model, prior_cam, options)
+        return _perceive(depth, K, np.asarray(up_cam, dtype=np.float64), model, prior_cam, options)
 
 
 def perceive_near(observation: Any, target_w: Array, model: ModelCloud,
@@ -185,19 +197,20 @@ def axis_anchor(points: Array, pixels: NDArray[np.int64], K: Array) -> Array:
     return np.array([0.0, 0.0, z])
 
 
-def _perceive(depth: NDArray[np.floating], K: Array, world_T_cam: Array, model: ModelCloud,
+def _perceive(depth: NDArray[np.floating], K: Array, up_cam: Array, model: ModelCloud,
               prior_cam: Array | None, options: PerceptionOptions) -> Perception:
     points, pixels = backproject(depth, K)
     min_h = float(np.clip(0.15 * model.diameter_m, 0.002, 0.006))
     if len(points) < 50:
         return Perception(None, None, 0, min_h)
-    up_cam = np.asarray(world_T_cam, dtype=np.float64)[2, :3]  # world +z in the camera frame
     anchor = np.asarray(prior_cam, dtype=np.float64) if prior_cam is not None else axis_anchor(points, pixels, K)
     max_h = 1.5 * model.diameter_m + min_h
     plane, chosen, candidates = None, None, 0
     for radius in (4.0 * model.diameter_m, 8.0 * model.diameter_m, math.inf):
         near = np.linalg.norm(points - anchor, axis=1) < radius
-        plane = fit_table_plane(points[near], up_cam, options.plane_ransac_m, options.seed)
+        plane = fit_table_plane(points[near], up_cam, options.plane_ransac_m, options.seed,
+                                max_tilt_deg=options.max_tilt_deg, voxel=options.plane_voxel_m,
+                                iterations=options.plane_iterations)
         if plane is None:
             continue
         clusters = clusters_above(points[near], pixels[near], plane, K, min_h, max_h)
@@ -209,7 +222,9 @@ def _perceive(depth: NDArray[np.floating], K: Array, world_T_cam: Array, model: 
         return Perception(plane, None, candidates, min_h)
     centre = chosen.centroid  # refit the plane around the chosen cluster and segment again
     near = np.linalg.norm(points - centre, axis=1) < 3.0 * model.diameter_m
-    local = fit_table_plane(points[near], up_cam, options.plane_ransac_m, options.seed)
+    local = fit_table_plane(points[near], up_cam, options.plane_ransac_m, options.seed,
+                            max_tilt_deg=options.max_tilt_deg, voxel=options.plane_voxel_m,
+                            iterations=options.plane_iterations)
     if local is not None:
         refined = select_cluster(clusters_above(points[near], pixels[near], local, K, min_h, max_h), model, centre,
                                  model.diameter_m)

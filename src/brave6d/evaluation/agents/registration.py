@@ -35,6 +35,7 @@ class RegistrationOptions:
     ransac_seeds: tuple[int, ...] = (0, 1, 2, 3)
     ransac_iterations: int = 20_000
     yaw_steps: int = 8  # resting hypotheses: 6 up-axes x yaw_steps
+    icp_iterations: int = 30  # per ICP round (two rounds per hypothesis)
 
 
 @dataclass(frozen=True)
@@ -99,7 +100,7 @@ def register_scene(model: ModelCloud, scene: ViewScene, options: RegistrationOpt
                    for R in _resting_rotations(scene.plane, options.yaw_steps)]
     best: Registration | None = None
     for method, T0 in hypotheses:
-        T = icp(model, T0, scene, voxel) if len(scene.points) >= 6 else T0
+        T = icp(model, T0, scene, voxel, options.icp_iterations) if len(scene.points) >= 6 else T0
         score, fitness = score_pose(model, T, scene)
         if best is None or score > best.score + 1e-12:
             best = Registration(T, score, fitness, method, len(hypotheses))
@@ -140,13 +141,13 @@ def score_pose(model: ModelCloud, T: Array, scene: ViewScene) -> tuple[float, fl
     return fitness - below - _free_space(pts, scene) - UPRIGHT_WEIGHT * _tilt(T, scene.plane), fitness
 
 
-def icp(model: ModelCloud, T: Array, scene: ViewScene, voxel: float) -> Array:
+def icp(model: ModelCloud, T: Array, scene: ViewScene, voxel: float, iterations: int = 30) -> Array:
     """Point-to-plane ICP of the view's cluster onto the visible model points; the refined ``cam_T_obj``."""
-    return icp_rounds(model, T, scene.cloud, lambda T_now: visible_points(model, T_now), voxel)
+    return icp_rounds(model, T, scene.cloud, lambda T_now: visible_points(model, T_now), voxel, iterations)
 
 
 def icp_rounds(model: ModelCloud, T: Array, source: Any, facing: Callable[[Array], NDArray[np.int64]],
-               voxel: float) -> Array:
+               voxel: float, iterations: int = 30) -> Array:
     """Two rounds of point-to-plane ICP of the ``source`` cloud onto the model points that
     ``facing(T)`` selects for the current pose, shrinking the correspondence distance."""
     reg = open3d().pipelines.registration
@@ -154,7 +155,7 @@ def icp_rounds(model: ModelCloud, T: Array, source: Any, facing: Callable[[Array
         vis = facing(T)
         target = point_cloud(model.points[vis], model.normals[vis])
         res = reg.registration_icp(source, target, dist, invert(T), reg.TransformationEstimationPointToPlane(),
-                                   reg.ICPConvergenceCriteria(max_iteration=30))
+                                   reg.ICPConvergenceCriteria(max_iteration=int(iterations)))
         if res.fitness > 0 and np.all(np.isfinite(res.transformation)):
             T = invert(np.asarray(res.transformation))
     return T

@@ -1,0 +1,140 @@
+"""The single-frame estimator over a BOP split: one estimate per ground-truth box, as a BOP results CSV.
+
+For every image of every scene folder of a BOP split (``test/000002/...``): the depth
+(``depth/{im_id:06d}.png`` at the image's ``depth_scale``), ``cam_K`` (``scene_camera.json``, read by
+``annotation``), and one hint per instance of ``scene_gt.json`` whose ``visib_fract`` reaches BOP19's
+0.1, its box from ``scene_gt_info.json`` (``bbox_visib``, or ``bbox_obj``). The boxes and object ids
+come from the ground truth: an oracle detector, as BOP's "GT boxes" runs use; a method with its own
+detections calls :func:`brave6d.evaluation.agents.estimate_pose` with them.
+
+Refusals are counted by cause and leave no line (BOP scores a missing estimate as a miss). Every
+estimate of one image reports the image's total estimation time (BOP wants one time per image).
+The CSV is written by the one owner of that format, :func:`brave6d.evaluation.metrics.write_bop_results`.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.core.errors import DataError
+from brave6d.evaluation.agents.frame import (
+    BoxHint,
+    EstimateRefused,
+    FrameOptions,
+    estimate_pose,
+    prepare_model,
+    read_depth_png,
+)
+from brave6d.evaluation.agents.model import ModelCloud
+from brave6d.evaluation.metrics.recall import Estimate
+
+#: BOP19 targets: instances at least this visible.
+MIN_VISIB_FRACT = 0.1
+HINT_BOXES = ("bbox_visib", "bbox_obj")
+
+
+@dataclass
+class SplitRun:
+    """What :func:`estimate_bop_split` did: the estimates (BOP units), the refusals by cause and the
+    ``(scene_id, im_id, obj_id, cause, message)`` of each, the images and instances seen."""
+
+    estimates: list[Estimate] = field(default_factory=list)
+    refusals: list[tuple[int, int, int, str, str]] = field(default_factory=list)
+    images: int = 0
+    instances: int = 0
+    skipped_no_model: int = 0
+
+    @property
+    def refused_by_cause(self) -> dict[str, int]:
+        return dict(Counter(r[3] for r in self.refusals))
+
+
+def scene_folders(split_dir: Path | str, scene_ids: Iterable[int] | None = None) -> list[Path]:
+    """The six-digit scene folders of a BOP split folder (all, or those of ``scene_ids``)."""
+    d = Path(split_dir)
+    if not d.is_dir():
+        raise DataError(f"{d}: split folder not found")
+    scenes = sorted(p for p in d.iterdir() if p.is_dir() and re.fullmatch(r"\d{6}", p.name))
+    if scene_ids is not None:
+        wanted = {int(s) for s in scene_ids}
+        missing = wanted - {int(p.name) for p in scenes}
+        if missing:
+            raise DataError(f"{d}: no scene folder for scene id(s) {sorted(missing)}")
+        scenes = [p for p in scenes if int(p.name) in wanted]
+    if not scenes:
+        raise DataError(f"{d}: no scene folders (000000, 000001, ...)")
+    return scenes
+
+
+def estimate_bop_split(split_dir: Path | str, models_dir: Path | str, *, scene_ids: Iterable[int] | None = None,
+                       im_ids: Iterable[int] | None = None, obj_ids: Iterable[int] | None = None,
+                       hint_box: str = "bbox_visib", options: FrameOptions = FrameOptions(), model_points: int = 2000,
+                       progress: Callable[[str], None] | None = None) -> SplitRun:
+    """Estimate every visible ground-truth instance of a BOP split (see the module docstring).
+
+    ``models_dir``: ``models_info.json`` (diameters) and ``obj_{id:06d}.ply`` in mm; ``scene_ids`` /
+    ``im_ids`` / ``obj_ids`` restrict the run; ``hint_box``: which ``scene_gt_info`` box is the hint."""
+    from brave6d.annotation import model_file, read_models_info, read_scene_camera, read_scene_gt, read_scene_gt_info
+
+    if hint_box not in HINT_BOXES:
+        raise DataError(f"hint_box must be one of {HINT_BOXES}, got {hint_box!r}")
+    mdir = Path(models_dir)
+    info = read_models_info(mdir / "models_info.json")
+    wanted_objs = None if obj_ids is None else {int(o) for o in obj_ids}
+    wanted_ims = None if im_ids is None else {int(i) for i in im_ids}
+    clouds: dict[int, ModelCloud] = {}
+    run = SplitRun()
+    for scene in scene_folders(split_dir, scene_ids):
+        scene_id = int(scene.name)
+        cams = read_scene_camera(scene / "scene_camera.json")
+        gt = read_scene_gt(scene / "scene_gt.json")
+        gt_info = read_scene_gt_info(scene / "scene_gt_info.json")
+        for im_id in sorted(gt):
+            if wanted_ims is not None and im_id not in wanted_ims:
+                continue
+            if im_id not in cams or im_id not in gt_info or len(gt_info[im_id]) != len(gt[im_id]):
+                raise DataError(f"{scene}: image {im_id} of scene_gt.json lacks a matching scene_camera.json "
+                                "or scene_gt_info.json entry")
+            targets = [(g, gi) for g, gi in zip(gt[im_id], gt_info[im_id])
+                       if gi.visib_fract >= MIN_VISIB_FRACT and (wanted_objs is None or g.obj_id in wanted_objs)]
+            if not targets:
+                continue
+            cam = cams[im_id]
+            depth = read_depth_png(scene / "depth" / f"{im_id:06d}.png", cam.depth_scale)
+            run.images += 1
+            image_estimates: list[tuple[int, float, NDArray[np.float64], NDArray[np.float64]]] = []
+            t_image = time.perf_counter()
+            for g, gi in targets:
+                run.instances += 1
+                if g.obj_id not in info:
+                    run.skipped_no_model += 1
+                    continue
+                box = getattr(gi, hint_box)
+                if box is None:
+                    raise DataError(f"{scene / 'scene_gt_info.json'}: image {im_id}: an instance of object "
+                                    f"{g.obj_id} has no {hint_box}")
+                if g.obj_id not in clouds:
+                    clouds[g.obj_id] = prepare_model(model_file(mdir, g.obj_id), "mm", obj_id=g.obj_id,
+                                                     diameter=float(info[g.obj_id]["diameter"]), points=model_points)
+                try:
+                    pose = estimate_pose(depth, cam.cam_K, clouds[g.obj_id], BoxHint(*(float(v) for v in box)),
+                                         options=options)
+                except EstimateRefused as exc:
+                    run.refusals.append((scene_id, im_id, g.obj_id, exc.cause, str(exc)))
+                    continue
+                image_estimates.append((g.obj_id, pose.score, pose.R, pose.t_mm))
+            seconds = time.perf_counter() - t_image
+            run.estimates += [Estimate(scene_id, im_id, obj_id, score, R, t, seconds)
+                              for obj_id, score, R, t in image_estimates]
+            if progress is not None:
+                progress(f"scene {scene_id} image {im_id}: {len(image_estimates)}/{len(targets)} estimated "
+                         f"in {seconds:.1f} s")
+    return run
