@@ -347,6 +347,14 @@ def test_cli_frame_prints_the_pose_and_bop_writes_a_results_csv_that_scores(tmp_
     assert "1 estimates, refused: none" in out.stdout
     ar = float(out.stdout.split("AR ")[1].split()[0])
     assert ar >= 0.75
+    # brave6d evaluate reads the same CSV (scored against the whole split: the driller had no estimate)
+    scored = _cli("evaluate", str(csv), "--split", str(DATA / "test"), "--models", str(DATA / "models_eval"))
+    assert scored.returncode == 0, scored.stderr
+    line = scored.stdout.strip().splitlines()[-1]
+    assert line.startswith(f"{csv}: AR ") and "over 2 targets in 1 images" in line
+    assert float(line.split(": AR ")[1].split()[0]) == pytest.approx(ar / 2, abs=1e-3)
+    refused = _cli("evaluate", str(csv))
+    assert refused.returncode == 2 and "pass --split DATA/test and --models DATA/models" in refused.stderr
 
 
 def test_cli_refusal_is_one_line_with_its_cause_and_status_2() -> None:

@@ -1,4 +1,6 @@
-"""``brave6d evaluate EPISODE_LOGS... [--bundle BUNDLE] [--out DIR]``: score agent episodes.
+"""``brave6d evaluate EPISODE_LOGS... [--bundle BUNDLE] [--out DIR]``: score agent episodes; or
+``brave6d evaluate RESULTS.csv... --split DATA/test --models DATA/models``: score BOP results CSVs
+(``brave6d estimate bop``'s, or any method's in BOP's format) against a BOP split's ground truth.
 
 Reads the render server's episode logs (JSONL files or folders of them), scores every episode
 with BOP's Average Recall against the ground truth the server logged with the submission, and
@@ -25,7 +27,12 @@ from brave6d.evaluation.metrics import EpisodeRecord
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("episode_logs", nargs="+", type=Path, metavar="EPISODE_LOGS",
-                        help="episode logs (*.jsonl) or folders holding them")
+                        help="episode logs (*.jsonl) or folders holding them; or BOP results CSV files "
+                             "(scene_id,im_id,obj_id,score,R,t,time) with --split and --models")
+    parser.add_argument("--split", type=Path, default=None,
+                        help="for BOP results CSVs: the BOP split folder (scene folders with scene_gt.json)")
+    parser.add_argument("--models", type=Path, default=None,
+                        help="for BOP results CSVs: the models folder (models_info.json, obj_XXXXXX.ply in mm)")
     parser.add_argument("--bundle", type=Path, default=None,
                         help="the bundle the episodes ran on (default: recorded in the logs, or 'bundle' "
                              "beside the log folder)")
@@ -93,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
     from brave6d.serve import load_bundle
 
     paths = list(args.episode_logs)
+    if any(p.suffix.lower() == ".csv" for p in paths):
+        return score_csvs(paths, args.split, args.models)
     episodes = read_episodes(paths)
     bundles = [load_bundle(p) for p in resolve_bundles(episodes, paths, args.bundle)]
     if args.bundle is not None:
@@ -109,4 +118,19 @@ def run(args: argparse.Namespace) -> int:
     scenes = sorted({e.scene for e in episodes})
     print(f"\n{len(episodes)} episodes on {len(scenes)} scene(s) ({', '.join(scenes)}); written: "
           + ", ".join(str(p) for p in written))
+    return 0
+
+
+def score_csvs(paths: Sequence[Path], split: Path | None, models: Path | None) -> int:
+    """One AR line per BOP results CSV, against ``split``'s ground truth with ``models``."""
+    from brave6d.evaluation.estimate_bop import score_results_csv
+
+    if not all(p.suffix.lower() == ".csv" for p in paths):
+        raise DataError("give either episode logs or BOP results CSV files, not both: "
+                        + ", ".join(str(p) for p in paths))
+    if split is None or models is None:
+        raise DataError(f"{paths[0]}: a BOP results CSV is scored against a BOP split: pass --split DATA/test "
+                        "and --models DATA/models")
+    for p in paths:
+        print(f"{p}: {score_results_csv(p, split, models)}")
     return 0

@@ -138,3 +138,25 @@ def estimate_bop_split(split_dir: Path | str, models_dir: Path | str, *, scene_i
                 progress(f"scene {scene_id} image {im_id}: {len(image_estimates)}/{len(targets)} estimated "
                          f"in {seconds:.1f} s")
     return run
+
+
+def score_results_csv(csv: Path | str, split: Path | str, models: Path | str, scenes: Iterable[int] | None = None,
+                      images: Iterable[int] | None = None, objects: Iterable[int] | None = None) -> str:
+    """One line: BOP19 AR of a BOP results CSV against a split's ground truth (optionally restricted
+    to scenes, images and objects; always to the objects with a model), the CSV read through its one
+    reader. ``brave6d estimate bop --score`` and ``brave6d evaluate RESULTS.csv`` print it."""
+    from brave6d.annotation import read_models_info
+    from brave6d.evaluation.metrics import evaluate_bop19, load_models, load_scene_gt_instances, read_bop_results
+
+    image_ids = None if images is None else set(images)
+    object_ids = None if objects is None else set(objects)
+    known = read_models_info(Path(models) / "models_info.json")
+    gts = [g for s in scene_folders(split, scenes) for g in load_scene_gt_instances(s)
+           if (image_ids is None or g.im_id in image_ids) and (object_ids is None or g.obj_id in object_ids)
+           and g.obj_id in known]
+    if not gts:
+        raise DataError(f"{split}: no ground-truth instance to score (with a model in {models})")
+    models_by_id = load_models(Path(models), sorted({g.obj_id for g in gts}))
+    scores = evaluate_bop19(gts, read_bop_results(Path(csv)), models_by_id)
+    parts = ", ".join(f"AR_{name.upper()} {m.ar:.3f}" for name, m in scores.metrics.items())
+    return f"AR {scores.ar:.3f} ({parts}) over {scores.n_targets} targets in {scores.n_images} images"

@@ -169,7 +169,7 @@ def _run_frame(args: argparse.Namespace) -> int:
 
 
 def _run_bop(args: argparse.Namespace) -> int:
-    from brave6d.evaluation.estimate_bop import estimate_bop_split
+    from brave6d.evaluation.estimate_bop import estimate_bop_split, score_results_csv
     from brave6d.evaluation.metrics import write_bop_results
 
     run = estimate_bop_split(args.split, args.models, scene_ids=args.scenes, im_ids=args.images, obj_ids=args.objects,
@@ -180,25 +180,8 @@ def _run_bop(args: argparse.Namespace) -> int:
     print(f"{run.images} images, {run.instances} instances: {len(run.estimates)} estimates, refused: {refused}"
           + (f", {run.skipped_no_model} without a model" if run.skipped_no_model else "") + f"; wrote {written}")
     if args.score:
-        print(score_results(written, args.split, args.models, args.scenes, args.images, args.objects))
+        print(score_results_csv(written, args.split, args.models, args.scenes, args.images, args.objects))
     return 0
-
-
-def score_results(csv: Path, split: Path, models: Path, scenes: list[int] | None = None,
-                  images: list[int] | None = None, objects: list[int] | None = None) -> str:
-    """One line: BOP19 AR of the results CSV ``csv`` against the split's ground truth (restricted
-    like the run, and to the objects with a model), the CSV read back through its one reader."""
-    from brave6d.annotation import read_models_info
-    from brave6d.evaluation.estimate_bop import scene_folders
-    from brave6d.evaluation.metrics import evaluate_bop19, load_models, load_scene_gt_instances, read_bop_results
-
-    known = read_models_info(Path(models) / "models_info.json")
-    gts = [g for s in scene_folders(split, scenes) for g in load_scene_gt_instances(s)
-           if (images is None or g.im_id in images) and (objects is None or g.obj_id in objects) and g.obj_id in known]
-    models_by_id = load_models(models, sorted({g.obj_id for g in gts}))
-    scores = evaluate_bop19(gts, read_bop_results(csv), models_by_id)
-    parts = ", ".join(f"AR_{name.upper()} {m.ar:.3f}" for name, m in scores.metrics.items())
-    return f"AR {scores.ar:.3f} ({parts}) over {scores.n_targets} targets in {scores.n_images} images"
 
 
 def run(args: argparse.Namespace) -> int:
