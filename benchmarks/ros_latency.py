@@ -168,7 +168,7 @@ def measure_ros2(bundle_dir: Path, views: list[np.ndarray], args: argparse.Names
     """Run :func:`measure_ros2_here` in the ROS 2 python (this script with ``--ros2-child``) and read its samples."""
     python = ros2_python()
     if not python.exists():
-        return {"skipped": f"no ROS 2 python at {python} (scripts/setup.sh makes .venv-ros2; or set "
+        return {"skipped": f"no ROS 2 python at {python} (scripts/setup.sh --with-ros2 makes .venv-ros2; or set "
                            "BRAVE6D_ROS2_PYTHON)"}
     (work / "views.json").write_text(json.dumps([T.tolist() for T in views]), encoding="utf-8")
     cmd = [str(python), str(Path(__file__).resolve()), ROS2_CHILD_FLAG, str(work), "--bundle", str(bundle_dir),

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
 # Create or update .venv with everything BRAVE-6D needs, on a fresh Linux machine (CPU).
+# --with-ros2 also makes .venv-ros2 (brave6d ros2 and its tests; scripts/test.sh asks for it).
 # Idempotent: a second run with an unchanged pyproject.toml only checks and returns.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -28,6 +29,7 @@ fi
 # ROS 2 (brave6d ros2 and its tests) in its own venv layered over .venv: the rclpy wheels put ROS 2's
 # std_msgs, geometry_msgs ... at the top level, where they would shadow Debian's ROS 1 packages that
 # the ROS 1 node appends to sys.path. .venv-ros2 sees its own site-packages first, then .venv's.
+[ "${1:-}" = "--with-ros2" ] || exit 0
 want_ros2="$want-ros2"
 stamp_ros2=".venv-ros2/.brave6d-installed"
 if [ ! -f "$stamp_ros2" ] || [ "$(cat "$stamp_ros2")" != "$want_ros2" ]; then

@@ -11,7 +11,7 @@ ros2       ros-rclpy, rosidl (ROS 2)    ``brave6d ros2`` (a ROS 2 node on rclpy;
 cluster    submitit                     ``brave6d dataset run`` (one job per scene, local or Slurm)
 cuda       gsplat                       training and rendering on a GPU (``--device cuda``)
 all        robot, cluster, cuda         everything but ros2, whose top-level std_msgs ... would
-                                        shadow Debian's ROS 1 (scripts/setup.sh: .venv-ros2)
+                                        shadow Debian's ROS 1 (setup.sh --with-ros2: .venv-ros2)
 =========  ===========================  =======================================================
 
 A command that needs a missing one stops with :class:`MissingExtra`, one line naming the extra
