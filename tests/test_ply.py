@@ -146,3 +146,23 @@ def test_model_roundtrip_through_ply(tmp_path: Path) -> None:
         assert np.array_equal(bits(p.detach().numpy()), bits(back.params[name].detach().numpy())), name
     rgb = 0.5 + SH_C0 * back.params["sh0"].detach().numpy()[:, 0]
     assert np.allclose(rgb, 0.25, atol=1e-6)
+
+
+def test_a_subset_keeps_every_per_gaussian_field() -> None:
+    """Indices or a mask select the same Gaussians in every field, the mip 3D filter included
+    (the report's latency section once dropped it by copying the fields one by one)."""
+    import dataclasses
+
+    rng = np.random.default_rng(0)
+    n = 7
+    splat = SplatData(rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=(n, 1, 3)).astype(np.float32),
+                      rng.normal(size=(n, 3, 3)).astype(np.float32), rng.normal(size=n).astype(np.float32),
+                      rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
+                      filter_3d=rng.random(n).astype(np.float32))
+    keep = np.array([5, 1, 2])
+    mask = np.zeros(n, bool)
+    mask[keep] = True
+    for picked, rows in ((splat.subset(keep), keep), (splat.subset(mask), np.sort(keep))):
+        for f in dataclasses.fields(SplatData):
+            np.testing.assert_array_equal(getattr(picked, f.name), getattr(splat, f.name)[rows], err_msg=f.name)
+    assert dataclasses.replace(splat, filter_3d=None).subset(keep).filter_3d is None

@@ -18,7 +18,7 @@ name); viewers that do not know it ignore it, and a PLY without it reads as no f
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +65,12 @@ class SplatData:
     @property
     def sh_degree(self) -> int:
         return sh_degree_for(self.shN.shape[1])
+
+    def subset(self, keep: NDArray[np.integer] | NDArray[np.bool_]) -> SplatData:
+        """The Gaussians ``keep`` selects (indices or a mask), every per-Gaussian field with them
+        (``filter_3d`` included when present), so no field can be left behind."""
+        return replace(self, **{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[keep]
+                                for f in fields(self)})
 
 
 def sh_degree_for(n_rest_coeffs: int) -> int:
@@ -170,5 +176,4 @@ def trim_sh(splat: SplatData, degree: int) -> SplatData:
     shN = splat.shN[:, :k]
     if shN.shape[1] < k:
         shN = np.concatenate([shN, np.zeros((n, k - shN.shape[1], 3), np.float32)], axis=1)
-    return SplatData(splat.means, splat.sh0, np.ascontiguousarray(shN), splat.opacities, splat.scales, splat.quats,
-                     splat.filter_3d)
+    return replace(splat, shN=np.ascontiguousarray(shN))

@@ -67,7 +67,7 @@ def measure_latency(scene: SceneDir, store: MeasurementStore, sweep: LatencySwee
         return absent
     from brave6d.core.calibration_io import camera_poses, read_intrinsics
     from brave6d.serve import SplatRenderer
-    from brave6d.training import SplatData, read_ply, resolve_device
+    from brave6d.training import read_ply, resolve_device
 
     device = str(resolve_device(sweep.device))
     key = {"splat": file_stamp(ply), "frames": file_stamp(scene.frames_path),
@@ -93,10 +93,7 @@ def measure_latency(scene: SceneDir, store: MeasurementStore, sweep: LatencySwee
     def renderer_for(n: int) -> Any:
         if current.get("n") != n:
             keep = np.sort(np.random.default_rng(sweep.seed).choice(n_total, n, replace=False))
-            subset = SplatData(splat.means[keep], splat.sh0[keep], splat.shN[keep], splat.opacities[keep],
-                               splat.scales[keep], splat.quats[keep],  # a mip splat keeps its 3D filter
-                               filter_3d=None if splat.filter_3d is None else splat.filter_3d[keep])
-            current.update(n=n, renderer=SplatRenderer.from_splat(subset, device=device,
+            current.update(n=n, renderer=SplatRenderer.from_splat(splat.subset(keep), device=device,
                                                                   source=f"{ply} ({n} of its Gaussians)"))
             current["renderer"].warm_up(camera, poses[0])
         return current["renderer"]
