@@ -21,7 +21,10 @@ import logging
 from dataclasses import dataclass
 from typing import Any, Callable
 
+import numpy as np
+
 from brave6d.core.errors import BraveError
+from brave6d.core.transforms import make_transform
 from brave6d.ros_interface.bridge import BridgeStep, EpisodeBridge, Estimate
 from brave6d.ros_interface.ros2 import convert
 from brave6d.ros_interface.ros2.defaults import DEFAULT_NAMESPACE, DEFAULT_TWIST_DURATION_S
@@ -100,13 +103,15 @@ class Ros2Node:
     def __init__(self, bridge: EpisodeBridge, *, namespace: str = DEFAULT_NAMESPACE,
                  twist_duration_s: float = DEFAULT_TWIST_DURATION_S, default_scene: str | None = None,
                  context: Any = None) -> None:
-        from rclpy.node import Node
-        from std_msgs.msg import String
-
         from brave6d.ros_interface.ros2.interfaces import ensure_interfaces
 
         ensure_interfaces()  # brave6d_msgs and tf2_msgs, generated at install (built here if missing)
         import brave6d_msgs.srv
+        from rclpy.node import Node
+        from sensor_msgs.msg import CameraInfo, Image
+        from std_msgs.msg import String
+        from std_srvs.srv import Trigger
+        from tf2_msgs.msg import TFMessage
 
         if not namespace.startswith("/"):
             raise BraveError(f"--namespace {namespace!r}: must start with '/'")
@@ -119,10 +124,6 @@ class Ros2Node:
         self.srv = brave6d_msgs.srv
         self.node = Node(NODE_NAME, context=context)
         qos = _qos()
-        from sensor_msgs.msg import CameraInfo, Image
-        from std_srvs.srv import Trigger
-        from tf2_msgs.msg import TFMessage
-
         self._String = String
         self._pub = {
             "rgb": self.node.create_publisher(Image, self.name("rgb/image_raw"), qos["image"]),
@@ -217,7 +218,8 @@ class Ros2Node:
         validate_request("submit", {"estimates": [_PLACEHOLDER] * len(estimates)}, where)
         r = validate_request("submit", {"estimates": [convert.estimate_fields(e, f"{where}.estimates.{i}.pose")
                                                       for i, e in enumerate(estimates)]}, where)
-        result = self.bridge.submit([Estimate(e.obj_id, _matrix(e.R, e.t_m), e.score) for e in r.estimates])
+        result = self.bridge.submit([Estimate(e.obj_id, make_transform(np.reshape(e.R, (3, 3)), e.t_m), e.score)
+                                     for e in r.estimates])
         out = result.to_json()
         resp.episode_id = result.episode_id
         for key in ("ar", "ar_vsd", "ar_mssd", "ar_mspd"):
@@ -229,9 +231,9 @@ class Ros2Node:
         self._pub["status"].publish(self._String(data=json.dumps({"action": "submit", "result": out})))
 
     def _close(self, req: Any, resp: Any, where: str) -> None:
-        out = self.bridge.close()
-        resp.message = json.dumps({k: v for k, v in out.items() if _jsonable(v)})
-        self._pub["status"].publish(self._String(data=json.dumps({"action": "close", **json.loads(resp.message)})))
+        out = {k: v for k, v in self.bridge.close().items() if _jsonable(v)}
+        resp.message = json.dumps(out)
+        self._pub["status"].publish(self._String(data=json.dumps({"action": "close", **out})))
 
     # ------------------------------------------------------------------ answers
     def _answer_step(self, step: BridgeStep, resp: Any) -> None:
@@ -246,15 +248,6 @@ class Ros2Node:
         self._pub["status"].publish(self._String(data=resp.step.status_json))
         if not step.accepted and step.refusal:
             resp.message = clip(step.refusal)
-
-
-def _matrix(R: list[float], t: list[float]) -> Any:
-    import numpy as np
-
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(R, dtype=np.float64).reshape(3, 3)
-    T[:3, 3] = t
-    return T
 
 
 def _jsonable(value: Any) -> bool:
