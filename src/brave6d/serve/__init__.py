@@ -18,7 +18,8 @@ a name is used). Other stages import only these names:
   folder), ``SourcesOf`` (what the command line hands a serving command: path -> sources; a release's
   come from ``brave6d.dataset``, which serve never imports),
   ``SceneCatalog`` (lazy loading within a memory bound), ``SceneSource``, ``SceneObject``,
-  ``bundle_scene_source``, ``estimate_scene_bytes``, ``SceneCacheFull``, ``SceneUnavailable`` (503:
+  ``bundle_scene_source``, ``estimate_scene_bytes``, ``listed_scene_bytes`` (which files count),
+  ``SceneCacheFull``, ``SceneUnavailable`` (503:
   a scene whose files cannot be located, unpacked or verified, even after ``SceneSource.refresh``);
 - the client: ``BraveClient``, ``PoseEstimate``, ``ServerError``, ``Observation``, ``StepResult``,
   ``decode_observation``, and ``BraveEnv`` (a ``gymnasium.Env``);
@@ -53,7 +54,8 @@ _LAZY = {
     "ServerThread": ".runner", "SceneServer": ".episodes",
     "SplatRenderer": ".renderer", "EpisodeManager": ".episode_manager",
     "open_scenes": ".catalog", "SceneCatalog": ".catalog", "SceneSource": ".catalog", "SceneObject": ".catalog",
-    "bundle_scene_source": ".catalog", "estimate_scene_bytes": ".catalog", "SceneCacheFull": ".catalog",
+    "bundle_scene_source": ".catalog", "estimate_scene_bytes": ".catalog", "listed_scene_bytes": ".catalog",
+    "SceneCacheFull": ".catalog",
     "SourcesOf": ".catalog", "is_bundle": ".bundle", "MANIFEST": ".bundle",
     "SceneUnavailable": ".catalog",
     "BraveClient": ".client", "PoseEstimate": ".client", "ServerError": ".client", "Observation": ".client",

@@ -32,7 +32,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -69,6 +69,15 @@ SCENE_FIXED_BYTES = 8 * 2**20
 def estimate_scene_bytes(splat_bytes: int, model_bytes: int) -> int:
     """The memory a loaded scene is expected to hold, from its file sizes (see the factors above)."""
     return int(SPLAT_BYTES_FACTOR * splat_bytes + MODEL_BYTES_FACTOR * model_bytes + SCENE_FIXED_BYTES)
+
+
+def listed_scene_bytes(sizes: Mapping[str, int]) -> int:
+    """:func:`estimate_scene_bytes` of a bundle's files listed as path inside the bundle -> bytes (its
+    manifest, or a release zip's directory): the splat, and what loads beside it, the object models
+    and the reference geometry. The one place that says which files count."""
+    splat = sizes.get(SPLAT, 0)
+    beside = sum(b for name, b in sizes.items() if name.startswith(f"{MODELS}/") or name == REFERENCE)
+    return estimate_scene_bytes(splat, beside)
 
 
 class SceneCacheFull(EpisodeError):
@@ -124,10 +133,7 @@ SourcesOf = Callable[[Path, Path | None], Sequence[SceneSource]]
 
 def bundle_memory_bytes(folder: Path) -> int:
     """:func:`estimate_scene_bytes` of a bundle folder (from the sizes its manifest lists)."""
-    files = read_bundle_manifest(folder)["files"]
-    splat = files[SPLAT]["bytes"] if SPLAT in files else 0
-    models = sum(v["bytes"] for k, v in files.items() if k.startswith(f"{MODELS}/") or k == REFERENCE)
-    return estimate_scene_bytes(splat, models)
+    return listed_scene_bytes({name: v["bytes"] for name, v in read_bundle_manifest(folder)["files"].items()})
 
 
 def bundle_scene_source(folder: Path | str, scene_id: int | None = None) -> SceneSource:

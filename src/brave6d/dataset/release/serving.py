@@ -78,7 +78,7 @@ def _scene_objects(scene: dict[str, Any], categories: dict[int, str | None]) -> 
 
 
 def _zipped_sources(base: Path, cache_dir: Path | None) -> list[Any]:
-    from brave6d.serve import SceneSource, estimate_scene_bytes
+    from brave6d.serve import SceneSource, listed_scene_bytes
 
     manifest = read_manifest(base / MANIFEST)
     sums = read_sha256sums(base / SUMS)
@@ -96,10 +96,10 @@ def _zipped_sources(base: Path, cache_dir: Path | None) -> list[Any]:
         if not zip_path.is_file():
             raise ReleaseError(f"{zip_path}: the bundle of scene {scene['name']!r} is missing from the release")
         unpacker = _Unpacker(zip_path, sums[zip_path.name], bundle_folder(sid), cache)
-        splat, models = unpacker.sizes()
+        memory = listed_scene_bytes(unpacker.sizes())
         unpackers.append(unpacker)
         out.append(SceneSource(str(scene["name"]), sid, _scene_objects(scene, categories),
-                               estimate_scene_bytes(splat, models), unpacker, str(zip_path), refresh=unpacker.refresh))
+                               memory, unpacker, str(zip_path), refresh=unpacker.refresh))
     _check_cache(root, max((u for u in unpackers if not u.unpacked()), key=lambda u: u.bytes, default=None))
     return out
 
@@ -136,20 +136,18 @@ class _Unpacker:
         self.bytes = 0  # unpacked size, from the zip's directory (sizes())
         self._lock = threading.Lock()
 
-    def sizes(self) -> tuple[int, int]:
-        """Uncompressed bytes of the splat and of what loads beside it, the models and the reference
-        geometry (the zip's directory only, checked)."""
-        from brave6d.serve import REFERENCE, SPLAT
+    def sizes(self) -> dict[str, int]:
+        """Uncompressed bytes of each member, by its path inside the bundle folder (the zip's
+        directory only, checked); a zip without the splat is refused."""
+        from brave6d.serve import SPLAT
 
-        splat_member = f"{self.folder}/{SPLAT}"
+        prefix = f"{self.folder}/"
         with open_zip(self.zip_path, inside=self.folder) as zf:
+            sizes = {n[len(prefix):]: zf.size(n) for n in zf.names if n.startswith(prefix)}
             self.bytes = sum(zf.size(n) for n in zf.names)
-            splat = zf.size(splat_member) if splat_member in zf.names else 0
-            models = sum(zf.size(n) for n in zf.names
-                         if n.startswith(f"{self.folder}/models/") or n == f"{self.folder}/{REFERENCE}")
-        if splat == 0:
-            raise ReleaseError(f"{self.zip_path}: holds no {splat_member}")
-        return splat, models
+        if not sizes.get(SPLAT):
+            raise ReleaseError(f"{self.zip_path}: holds no {prefix}{SPLAT}")
+        return sizes
 
     def unpacked(self) -> bool:
         """The folder was unpacked from this very zip (its stamp says so)."""
