@@ -68,12 +68,20 @@ def main() -> int:
     node.create_subscription(TFMessage, "/tf", lambda m: keep("tf", m.transforms[0].header.stamp, {
         t.child_frame_id: matrix(t.transform.translation, t.transform.rotation) for t in m.transforms}), 100)
 
-    def call(srv_type, name, request):
-        client = node.create_client(srv_type, f"{NS}/{name}")
+    clients = {name: node.create_client(srv_type, f"{NS}/{name}")
+               for name, srv_type in (("reset", Reset), ("move", Move), ("submit", Submit))}
+    for name, client in clients.items():
         if not client.wait_for_service(timeout_sec=30.0):
             raise SystemExit(f"no service {NS}/{name}: is 'brave6d ros2 BUNDLE' running?")
-        future = client.call_async(request)
-        rclpy.spin_until_future_complete(node, future, timeout_sec=60.0)
+    # a service can be listed a moment before its answers reach this client (DDS matches the reply
+    # channel separately): let discovery settle before the first request
+    settle = time.monotonic() + 1.0
+    while time.monotonic() < settle:
+        rclpy.spin_once(node, timeout_sec=0.1)
+
+    def call(name, request, timeout_s=60.0):
+        future = clients[name].call_async(request)
+        rclpy.spin_until_future_complete(node, future, timeout_sec=timeout_s)
         response = future.result()
         if response is None or not response.success:
             raise SystemExit(f"{name} refused: {getattr(response, 'message', 'no answer')}")
@@ -89,21 +97,21 @@ def main() -> int:
             rclpy.spin_once(node, timeout_sec=0.1)
         return seen[key]
 
-    first = call(Reset, "reset", Reset.Request()).step
+    first = call("reset", Reset.Request()).step
     images = view(first)
     rgb = np.frombuffer(images["rgb"].data, np.uint8).reshape(images["rgb"].height, images["rgb"].width, 3)
     print(f"episode {first.episode_id}: target {first.target_frame}, image {rgb.shape[1]}x{rgb.shape[0]}",
           file=sys.stderr)
     request = Move.Request(duration=1.0)
     request.twist.twist.linear.z = -0.05  # back off 5 cm/s for 1 s along the optical axis
-    step = call(Move, "move", request).step
+    step = call("move", request).step
     tf = view(step)["tf"]
     cam_T_obj = np.linalg.inv(tf["brave6d_camera_optical_frame"]) @ tf[step.target_frame]
     estimate = ObjectEstimate(obj_id=step.target_obj_id, score=1.0)
     estimate.pose.position.x, estimate.pose.position.y, estimate.pose.position.z = map(float, cam_T_obj[:3, 3])
     o = estimate.pose.orientation
     o.x, o.y, o.z, o.w = quaternion(cam_T_obj[:3, :3])
-    result = call(Submit, "submit", Submit.Request(estimates=[estimate]))
+    result = call("submit", Submit.Request(estimates=[estimate]))
     print(json.dumps(json.loads(result.result_json), indent=2))
     node.destroy_node()
     rclpy.shutdown()
