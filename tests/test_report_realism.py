@@ -4,6 +4,7 @@ sees it. Also the view choice and the image metrics."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -118,3 +119,24 @@ def test_realism_advice_says_which_way_psnr_and_the_gap_go(gaps: list[float], sa
     text = advice_realism(rows, [])
     assert says in text
     assert sum(s in text for s in ("larger gap", "smaller gap", "alone does not predict")) == 1
+
+
+def test_gap_rows_give_the_paired_standard_error_of_the_gap() -> None:
+    """Two targets per level, differences 0.6 and 0.0: mean 0.3, SE = std(ddof=1) / sqrt(2) = 0.3."""
+    points = [{"level": 0, "distance_m": 0.3, "holdout": True, "objects": [
+        {"obj_id": 1, "real_ar": 1.0, "splat_ar": 0.4}, {"obj_id": 2, "real_ar": 0.5, "splat_ar": 0.5}]}]
+    (row,) = gap_rows(points)
+    assert row["gap"] == pytest.approx(0.3) and row["gap_se"] == pytest.approx(0.3)
+    one = [{"level": 0, "distance_m": 0.3, "objects": [{"obj_id": 1, "real_ar": 1.0, "splat_ar": 0.4}]}]
+    assert math.isnan(gap_rows(one)[0]["gap_se"])
+
+
+@pytest.mark.parametrize(("gap", "se", "unresolved"), [(0.109, 0.039, True), (0.09, 0.039, True),
+                                                       (0.109, 0.004, False), (0.02, 0.03, False)])
+def test_realism_advice_names_a_gap_its_targets_cannot_place_against_the_limit(gap: float, se: float,
+                                                                             unresolved: bool) -> None:
+    from brave6d.evaluation.report.sections.realism import advice_realism
+
+    rows = [{"distance_m": 0.3, "gap": gap, "gap_se": se, "targets": 48, "psnr": 30.0, "estimate_s": 1.0,
+             "render_s": 0.1}]
+    assert ("cannot tell which side" in advice_realism(rows, [])) is unresolved

@@ -247,6 +247,23 @@ def mean_of(rows: Sequence[dict[str, Any]], key: str) -> float:
     return float(np.mean(values)) if values else math.nan
 
 
+def paired_standard_error(differences: Sequence[float]) -> float:
+    """Standard error of the mean of per-target differences (real - splat on the same target): how
+    finely a level's gap is resolved; NaN with fewer than two finite differences."""
+    d = np.asarray([x for x in differences if math.isfinite(x)], dtype=np.float64)
+    return float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) >= 2 else math.nan
+
+
+def resolution_note(row: dict[str, Any]) -> str:
+    """Whether a level's gap is told apart from ``LARGE_GAP`` by two standard errors ('' when it is)."""
+    gap, se = abs(num(row.get("gap"))), num(row.get("gap_se"))
+    if not (math.isfinite(gap) and math.isfinite(se)) or abs(gap - LARGE_GAP) >= 2.0 * se:
+        return ""
+    return (f"{fmt(num(row.get('distance_m')) * 100, 0)} cm's gap {fmt(gap, 3)} is within two standard errors "
+            f"({fmt(2.0 * se, 3)}) of {fmt(LARGE_GAP, 2)}: its {row.get('targets')} targets cannot tell which side it is "
+            "on (`benchmarks/realism.py` with more views per level can)")
+
+
 def gap_rows(points: Sequence[dict[str, Any]], obj_id: int | None = None) -> list[dict[str, Any]]:
     """Per distance level: views, PSNR/SSIM, AR on real and splat images, the gap, times."""
     views: dict[int, list[dict[str, Any]]] = defaultdict(list)
@@ -267,6 +284,7 @@ def gap_rows(points: Sequence[dict[str, Any]], obj_id: int | None = None) -> lis
         for k in ("ar_vsd", "ar_mssd", "ar_mspd"):
             row[f"{k}_real"], row[f"{k}_splat"] = mean_of(tg, f"real_{k}"), mean_of(tg, f"splat_{k}")
         row["gap"] = row["ar_real"] - row["ar_splat"]
+        row["gap_se"] = paired_standard_error([num(t.get("real_ar")) - num(t.get("splat_ar")) for t in tg])
         rows.append(row)
     return rows
 
@@ -311,7 +329,7 @@ def render_realism(m: Measurement | None, out_dir: Path) -> RenderedSection:
     png = save_figure(fig, out_dir / FIGURE, "Static estimator on captured frames vs the splat's renders of the same poses",
                       describe_machine(m.machine), settings_line(m))
     table = [(fmt(r["distance_m"] * 100, 0), f"{r['views']} ({r['holdout_views']} held out)", r["targets"],
-              fmt(r["psnr"], 2), fmt(r["ssim"], 3), fmt(r["ar_real"], 3), fmt(r["ar_splat"], 3), fmt(r["gap"], 3),
+              fmt(r["psnr"], 2), fmt(r["ssim"], 3), fmt(r["ar_real"], 3), fmt(r["ar_splat"], 3), f"{fmt(r['gap'], 3)} ± {fmt(r['gap_se'], 3)}",
               f"{r['found_real']}/{r['found_splat']}", fmt(r["estimate_s"], 2), fmt(r["render_s"], 3)) for r in rows]
     obj_table = []
     for oid, name in objects:
@@ -330,9 +348,10 @@ def render_realism(m: Measurement | None, out_dir: Path) -> RenderedSection:
             "makes the estimator worse than the camera does. **What \"real\" means here:** in the demo the captured "
             "frames come from the simulated camera (the project's CPU renderer of the scene's meshes with its camera "
             "effects), so the gap measures how far the splat is from that simulator; on a real capture the same code "
-            "measures the gap to real images.\n\n"
+            "measures the gap to real images. SE: the standard error of the mean of the per-target differences (one "
+            "target moves a level's AR by about 1 / targets).\n\n"
             f"![AR real vs splat]({png.name})\n\n"
-            + format_table(["cm", "views", "targets", "PSNR [dB]", "SSIM", "AR real", "AR splat", "gap",
+            + format_table(["cm", "views", "targets", "PSNR [dB]", "SSIM", "AR real", "AR splat", "gap ± SE",
                             "found real/splat", "estimator s/view", "render s/view"], table)
             + "\n\nAR gap per object and distance level (cm):\n\n"
             + format_table(["object", *(fmt(r["distance_m"] * 100, 0) for r in rows)], obj_table)
@@ -358,6 +377,9 @@ def advice_realism(rows: list[dict[str, Any]], gaps: list[dict[str, Any]]) -> st
     else:
         text += (f"; trust splat scores least at {', '.join(sorted({fmt(c['distance_m'] * 100, 0) + ' cm' for c in gaps}))}"
                  + (f" (largest: {gaps[0]['object']})" if gaps else ""))
+    unresolved = [note for r in ok if (note := resolution_note(r))]
+    if unresolved:
+        text += "; " + "; ".join(unresolved)
     psnrs = [r["psnr"] for r in ok if math.isfinite(r["psnr"])]
     if len(ok) > 2 and len(psnrs) == len(ok) and np.std(psnrs) > 0 and np.std([r["gap"] for r in ok]) > 0:
         corr = float(np.corrcoef(psnrs, [abs(r["gap"]) for r in ok])[0, 1])
