@@ -363,3 +363,12 @@ def test_a_bundles_recorded_training_is_read_only_from_its_own_metrics(tmp_path:
     assert (got["train_s"], got["holdout_psnr"], got["steps"]) == (105.0, 32.19, 2000)
     other = SimpleNamespace(manifest={"source": {"metrics_sha256": "0" * 64}})  # retrained since the export
     assert bench.recorded_training(scene.bundle_dir, other) == {"train_s": None, "holdout_psnr": None}
+
+
+def test_rows_give_the_ar_gap_with_the_standard_error_of_its_paired_differences() -> None:
+    """Targets with truth - splat differences 1.0, 0.0, 0.5: mean 0.5, SE = 0.5 / sqrt(3)."""
+    targets = [_target(900, ar_truth=1.0, ar_splat=0.0), _target(900, ar_truth=0.5, ar_splat=0.5),
+               _target(900, ar_truth=1.0, ar_splat=0.5)]
+    (row,) = fidelity_rows([{"distance_m": 0.3, "psnr": 30.0, "ssim": 0.9, "targets": targets}])
+    assert row["ar_gap"] == pytest.approx(0.5) and row["ar_gap_se"] == pytest.approx(0.5 / math.sqrt(3.0))
+    assert "its standard error (per-target differences)" in [line[0] for line in fidelity_table([row])[1]]

@@ -41,6 +41,13 @@ def fmt(value: Any, digits: int = 2) -> str:
     return "n/a" if not math.isfinite(v) else f"{v:.{digits}f}"
 
 
+def paired_standard_error(differences: Sequence[float]) -> float:
+    """Standard error of the mean of paired per-target differences (AR on the capture, or the truth,
+    minus AR on the splat, same target): how finely a gap is resolved; NaN with fewer than two."""
+    d = np.asarray([x for x in differences if math.isfinite(x)], dtype=np.float64)
+    return float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) >= 2 else math.nan
+
+
 def finite(values: Sequence[Any]) -> np.ndarray:
     """The finite values of ``values`` as a float array (None and NaN dropped)."""
     arr = np.array([num(v) for v in values], dtype=np.float64)

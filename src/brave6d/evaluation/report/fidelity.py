@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.core.errors import DataError
-from brave6d.evaluation.report.common import fmt, median, num
+from brave6d.evaluation.report.common import fmt, median, num, paired_standard_error
 
 #: The agent's range: the capture's rings and closer than the nearest one (m).
 DISTANCES_M = (0.10, 0.125, 0.15, 0.20, 0.30, 0.40, 0.50)
@@ -437,6 +437,7 @@ ROWS: tuple[tuple[str, str, int], ...] = (
     ("ar_truth", "static estimator AR on the truth", 2),
     ("ar_splat", "static estimator AR on the splat", 2),
     ("ar_gap", "AR gap (truth - splat)", 2),
+    ("ar_gap_se", "its standard error (per-target differences)", 2),
 )
 
 
@@ -465,6 +466,7 @@ def fidelity_rows(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             row[k] = median([t.get(k) for t in seen])
         row["ar_truth"], row["ar_splat"] = _mean([t["ar_truth"] for t in scored]), _mean([t["ar_splat"] for t in scored])
         row["ar_gap"] = row["ar_truth"] - row["ar_splat"] if scored else math.nan
+        row["ar_gap_se"] = paired_standard_error([num(t["ar_truth"]) - num(t["ar_splat"]) for t in scored])
         row["render_s"] = median([p.get("render_s") for p in pts])
         rows.append(row)
     return rows

@@ -127,7 +127,8 @@ def advice_fidelity(rows: list[dict[str, Any]]) -> str:
     if gaps:
         g = max(gaps, key=lambda r: abs(r["ar_gap"]))
         text += (f". The estimator's AR differs most at {fmt(g['distance_m'] * 100, 1)} cm: "
-                 f"{fmt(g['ar_truth'], 2)} on the truth, {fmt(g['ar_splat'], 2)} on the splat")
+                 f"{fmt(g['ar_truth'], 2)} on the truth, {fmt(g['ar_splat'], 2)} on the splat (gap "
+                 f"{fmt(g['ar_gap'], 2)} ± {fmt(g.get('ar_gap_se'), 2)}, one standard error over {g['scored']} targets)")
     return text + "."
 
 

@@ -30,7 +30,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.core.progress import format_table
-from brave6d.evaluation.report.common import RenderedSection, fmt, median, nan_note, num, provenance, settings_line, unavailable
+from brave6d.evaluation.report.common import RenderedSection, fmt, median, nan_note, num, paired_standard_error, provenance
+from brave6d.evaluation.report.common import settings_line, unavailable
 from brave6d.evaluation.report.measurements import Measurement, describe_machine, file_stamp, machine_info, run_sweep
 from brave6d.evaluation.report.plots import legend, new_figure, plot_line, save_figure
 from brave6d.evaluation.report.protocol import MeasureInputs
@@ -245,13 +246,6 @@ def mean_of(rows: Sequence[dict[str, Any]], key: str) -> float:
     values = [num(r.get(key)) for r in rows]
     values = [v for v in values if math.isfinite(v)]
     return float(np.mean(values)) if values else math.nan
-
-
-def paired_standard_error(differences: Sequence[float]) -> float:
-    """Standard error of the mean of per-target differences (real - splat on the same target): how
-    finely a level's gap is resolved; NaN with fewer than two finite differences."""
-    d = np.asarray([x for x in differences if math.isfinite(x)], dtype=np.float64)
-    return float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) >= 2 else math.nan
 
 
 def resolution_note(row: dict[str, Any]) -> str:
