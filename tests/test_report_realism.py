@@ -140,3 +140,14 @@ def test_realism_advice_names_a_gap_its_targets_cannot_place_against_the_limit(g
     rows = [{"distance_m": 0.3, "gap": gap, "gap_se": se, "targets": 48, "psnr": 30.0, "estimate_s": 1.0,
              "render_s": 0.1}]
     assert ("cannot tell which side" in advice_realism(rows, [])) is unresolved
+
+
+def test_realism_advice_claims_stand_in_scores_only_when_every_level_is_resolved() -> None:
+    from brave6d.evaluation.report.sections.realism import advice_realism
+
+    def rows(se: float) -> list[dict]:
+        return [{"distance_m": d, "gap": 0.05, "gap_se": se, "targets": 16, "psnr": 30.0, "estimate_s": 1.0,
+                 "render_s": 0.1} for d in (0.2, 0.3)]
+    assert "stand in for scores on the capture" in advice_realism(rows(0.01), [])
+    vague = advice_realism(rows(0.07), [])
+    assert "stand in" not in vague and "cannot tell which side of 0.10 the gap is on at 20 cm, 30 cm" in vague

@@ -248,14 +248,32 @@ def mean_of(rows: Sequence[dict[str, Any]], key: str) -> float:
     return float(np.mean(values)) if values else math.nan
 
 
-def resolution_note(row: dict[str, Any]) -> str:
-    """Whether a level's gap is told apart from ``LARGE_GAP`` by two standard errors ('' when it is)."""
-    gap, se = abs(num(row.get("gap"))), num(row.get("gap_se"))
-    if not (math.isfinite(gap) and math.isfinite(se)) or abs(gap - LARGE_GAP) >= 2.0 * se:
+def unresolved(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Levels whose gap lies within two standard errors of ``LARGE_GAP`` (their targets cannot tell
+    which side of the limit the gap is on)."""
+    out = []
+    for r in rows:
+        gap, se = abs(num(r.get("gap"))), num(r.get("gap_se"))
+        if math.isfinite(gap) and math.isfinite(se) and abs(gap - LARGE_GAP) < 2.0 * se:
+            out.append(r)
+    return out
+
+
+def resolution_note(rows: Sequence[dict[str, Any]]) -> str:
+    """One sentence naming the levels :func:`unresolved` returns ('' when every level is resolved)."""
+    open_rows = unresolved(rows)
+    if not open_rows:
         return ""
-    return (f"{fmt(num(row.get('distance_m')) * 100, 0)} cm's gap {fmt(gap, 3)} is within two standard errors "
-            f"({fmt(2.0 * se, 3)}) of {fmt(LARGE_GAP, 2)}: its {row.get('targets')} targets cannot tell which side it is "
-            "on (`benchmarks/realism.py` with more views per level can)")
+    levels = ", ".join(f"{fmt(num(r.get('distance_m')) * 100, 0)} cm" for r in open_rows)
+    def span(values: list[float], digits: int) -> str:
+        low, high = fmt(min(values), digits), fmt(max(values), digits)
+        return low if low == high else f"{low}-{high}"
+
+    counts = [float(r.get("targets", 0)) for r in open_rows]
+    spans = [2.0 * num(r.get("gap_se")) for r in open_rows]
+    return (f"the sweep's {span(counts, 0)} targets per level resolve a gap only to ±{span(spans, 3)} (two standard errors), "
+            f"so they cannot tell which side of {fmt(LARGE_GAP, 2)} the gap is on at {levels} "
+            "(`benchmarks/realism.py` with more views per level can)")
 
 
 def gap_rows(points: Sequence[dict[str, Any]], obj_id: int | None = None) -> list[dict[str, Any]]:
@@ -366,14 +384,13 @@ def advice_realism(rows: list[dict[str, Any]], gaps: list[dict[str, Any]]) -> st
     text = (f"**Splat realism:** over all levels the estimator's AR differs between captured frames and splat renders "
             f"by at most {fmt(abs(worst['gap']), 3)} (at {fmt(worst['distance_m'] * 100, 0)} cm, PSNR "
             f"{fmt(worst['psnr'], 1)} dB)")
+    note = resolution_note(ok)
     if abs(worst["gap"]) < LARGE_GAP:
-        text += f", under {fmt(LARGE_GAP, 2)}: scores on the splat stand in for scores on the capture at every distance"
+        text += (f", under {fmt(LARGE_GAP, 2)} in this sweep; but " + note if note else
+                 f", under {fmt(LARGE_GAP, 2)}: scores on the splat stand in for scores on the capture at every distance")
     else:
         text += (f"; trust splat scores least at {', '.join(sorted({fmt(c['distance_m'] * 100, 0) + ' cm' for c in gaps}))}"
-                 + (f" (largest: {gaps[0]['object']})" if gaps else ""))
-    unresolved = [note for r in ok if (note := resolution_note(r))]
-    if unresolved:
-        text += "; " + "; ".join(unresolved)
+                 + (f" (largest: {gaps[0]['object']})" if gaps else "") + ("; " + note if note else ""))
     psnrs = [r["psnr"] for r in ok if math.isfinite(r["psnr"])]
     if len(ok) > 2 and len(psnrs) == len(ok) and np.std(psnrs) > 0 and np.std([r["gap"] for r in ok]) > 0:
         corr = float(np.corrcoef(psnrs, [abs(r["gap"]) for r in ok])[0, 1])
