@@ -36,7 +36,7 @@ from brave6d.serve import (
     read_episode_log,
     read_reference,
 )
-from brave6d.serve.reference import check_mesh, integrate_depth
+from brave6d.serve.reference import canonical_order, check_mesh, integrate_depth
 from brave6d.serve.toy_scene import CUBE_POSES, TARGET, ring_poses, true_mesh
 from brave6d.training import read_ply, write_ply
 
@@ -286,3 +286,29 @@ def test_export_of_a_capture_without_valid_depth(tmp_path: Path) -> None:
         export_bundle(scene.root)
     result = export_bundle(scene.root, reference=False)
     assert result.reference_triangles is None and load_bundle(result.root).reference_path is None
+
+
+def _triangles(vertices: np.ndarray, faces: np.ndarray) -> set[tuple]:
+    """Each triangle as its corner coordinates, started at the smallest corner (winding kept)."""
+    out = set()
+    for corners in vertices[faces].tolist():
+        k = corners.index(min(corners))
+        out.add(tuple(map(tuple, corners[k:] + corners[:k])))
+    return out
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_canonical_order_is_the_same_for_any_vertex_and_face_order_and_keeps_the_surface(seed: int) -> None:
+    """Open3D's threaded extraction emits one surface in varying orders; after canonical_order any
+    permutation of vertices, of faces and of each face's starting corner gives the same arrays, and
+    every triangle (with its winding) is the one it was."""
+    rng = np.random.default_rng(seed)
+    mesh = integrate_depth(iter(plane_frames([0.3, 0.4])), CAM, COARSE, "scene toy")
+    v, f = mesh.vertices, mesh.faces
+    perm = rng.permutation(len(v))
+    inverse = np.argsort(perm)
+    shuffled_v, shuffled_f = v[perm], np.roll(inverse[f][rng.permutation(len(f))], int(rng.integers(0, 3)), axis=1)
+    v2, f2 = canonical_order(shuffled_v, shuffled_f)
+    assert np.array_equal(v2, v) and np.array_equal(f2, f)  # integrate_depth returns the canonical order too
+    assert _triangles(v2, f2) == _triangles(shuffled_v, shuffled_f)

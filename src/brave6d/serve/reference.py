@@ -153,8 +153,28 @@ def integrate_depth(frames: Iterable[tuple[NDArray[np.floating] | None, NDArray[
     except RuntimeError:  # Open3D raises on an empty extraction (no zero crossing)
         vertices, faces = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
     check_mesh(vertices, faces, where)
+    vertices, faces = canonical_order(vertices, faces)
     stats = ReferenceStats(used, skipped, len(vertices), len(faces), time.perf_counter() - t0)
     return ReferenceMesh(vertices, faces, settings, stats)
+
+
+def canonical_order(vertices: NDArray[np.float64], faces: NDArray[np.int64]
+                    ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """The same mesh in one order: vertices sorted by (x, y, z), each face turned to start at its
+    smallest index (winding kept), faces sorted. Open3D's extraction runs on several threads and
+    emits the same surface in a different order each time; sorting makes ``reference.ply`` and its
+    checksum the same for every export of one scene."""
+    if len(vertices) == 0:
+        return vertices, faces
+    order = np.lexsort((vertices[:, 2], vertices[:, 1], vertices[:, 0]))
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    f = rank[faces]
+    if len(f):
+        start = np.argmin(f, axis=1)
+        f = np.take_along_axis(f, (start[:, None] + np.arange(3)[None, :]) % 3, axis=1)
+        f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
+    return vertices[order], f
 
 
 def check_mesh(vertices: NDArray[np.float64], faces: NDArray[np.int64], where: str) -> None:
