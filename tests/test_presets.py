@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from dataclasses import asdict, dataclass, field, make_dataclass
@@ -289,6 +290,12 @@ print(json.dumps(out))
 """
 
 
+#: Files of today's tree that the old tree trains with: the fused SSIM blurs its moments in float64 since
+#: issue 34's follow-up (a float32 cancellation on flat images, tests/test_fused_ssim.py), which changes
+#: every training in the last digits; the presets' composition is what is compared.
+SHARED_KERNELS = ("src/brave6d/training/fused_ssim.py", "src/brave6d/training/ssim_window.py")
+
+
 def _train_in(tree: Path) -> dict[str, Any]:
     env = {**os.environ, "PYTHONPATH": str(tree / "src")}
     done = subprocess.run([sys.executable, "-c", TRAIN], capture_output=True, text=True, env=env, cwd=tree,
@@ -314,6 +321,8 @@ def test_shipped_presets_train_bit_for_bit_as_before_the_parts(tmp_path: Path) -
     old.mkdir()
     git = subprocess.Popen(["git", "-C", str(REPO), "archive", "--format=tar", before], stdout=subprocess.PIPE)
     assert subprocess.run(["tar", "-x", "-C", str(old)], stdin=git.stdout).returncode == 0 and git.wait() == 0
+    for kernel in SHARED_KERNELS:  # numerics fixed since the parts, not part of what this test guards
+        shutil.copyfile(REPO / kernel, old / kernel)
     was, now = _train_in(old), _train_in(REPO)
     assert set(now) == set(SHIPPED)
     assert now == was
