@@ -120,3 +120,17 @@ def test_json_round_trip_and_kernel_reader(tmp_path, detections) -> None:
     path.write_text(json.dumps({**doc, "camera": {**doc["camera"], "K": [[1, 2], [3, 4]]}}))
     with pytest.raises(BraveError, match="intrinsics.json"):
         IntrinsicsResult.load(path)
+
+
+def test_the_same_views_give_the_same_bits_every_time() -> None:
+    """Detection and calibration run OpenCV on one thread: with its thread pool, identical board
+    images gave intrinsics that differed in the 10th-13th digit from run to run, and those digits
+    reached the trained splat of the next stages (docs/BENCHMARKS.md)."""
+    import cv2
+
+    threads = cv2.getNumThreads()
+    results = [calibrate_intrinsics(_render_views(12, DIST_TRUE), OBJ, SIZE) for _ in range(4)]
+    first = results[0]
+    for other in results[1:]:
+        assert first.K.tobytes() == other.K.tobytes() and first.dist.tobytes() == other.dist.tobytes()
+    assert cv2.getNumThreads() == threads  # the pool is given back

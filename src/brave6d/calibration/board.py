@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from brave6d.core.board import board_size_m, chessboard_corners, make_charuco_board
 from brave6d.core.errors import BraveError
 from brave6d.core.spec import BoardSpec
+from brave6d.calibration.opencv_threads import on_one_opencv_thread
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -78,6 +79,7 @@ def _detector(spec: BoardSpec) -> cv2.aruco.CharucoDetector:
     return cv2.aruco.CharucoDetector(make_charuco_board(spec))
 
 
+@on_one_opencv_thread
 def detect_charuco(image: NDArray[np.uint8], spec: BoardSpec) -> CharucoDetection:
     """ChArUco corners of ``spec``'s board in an 8-bit grey, RGB or RGBA image.
 

@@ -67,6 +67,7 @@ from brave6d.calibration.refine import (
     reprojection_errors,
     solution_uncertainty,
 )
+from brave6d.calibration.opencv_threads import on_one_opencv_thread
 from brave6d.calibration.refusal import HandEyeRefusedError, explain_uncertainty
 
 __all__ = ["HandEyeOptions", "HandEyeView", "calibrate_handeye", "estimate_board_pose", "solve_handeye"]
@@ -150,6 +151,7 @@ class HandEyeOptions:
 
 
 # ----------------------------------------------------------------------------- per-view PnP
+@on_one_opencv_thread
 def _pnp(obj: Array, img: Array, K: Array, dist: Array) -> tuple[Array, float] | None:
     try:
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)

@@ -40,6 +40,7 @@ from brave6d.core.camera import CameraError, PinholeCamera
 from brave6d.core.errors import DataError, DegenerateGeometryError
 from brave6d.calibration.board import CharucoDetection
 from brave6d.calibration.intrinsics_covariance import INTRINSIC_NAMES, IntrinsicsCovariance, intrinsics_covariance
+from brave6d.calibration.opencv_threads import on_one_opencv_thread
 
 __all__ = [
     "DISTORTION_MODELS",
@@ -215,6 +216,7 @@ def _names(n: int, names: Sequence[str] | None) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- calibration
+@on_one_opencv_thread
 def calibrate_intrinsics(
     detections: Sequence[CharucoDetection],
     object_points: ArrayLike,
