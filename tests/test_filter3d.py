@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import BraveError, DataError
 from brave6d.training import apply_filter_3d, compute_filter_3d, read_ply, write_ply
+from brave6d.training.filter3d import scale_range
 from brave6d.training.holdout_eval import render_view
 from brave6d.training.model import GaussianModel
 from brave6d.training.presets import Preset, get_preset
@@ -62,19 +63,43 @@ def test_apply_filter_3d_widens_and_keeps_the_integral() -> None:
         apply_filter_3d(torch.ones(2, 3), torch.ones(2), torch.ones(3))
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.lists(st.floats(0.0, 1e4), min_size=3, max_size=3), st.floats(0.0, 1.0), st.floats(0.0, 10.0))
-def test_apply_filter_3d_is_finite_for_tiny_and_huge_gaussians(scale, opacity, filt) -> None:
-    """Gaussians far smaller than the filter, zero scales, huge ones: finite values and gradients,
-    opacity factor in [0, 1], scales never below the filter."""
+def _finite_values_and_gradients(scale: list[float], opacity: float, filt: float) -> tuple[torch.Tensor, torch.Tensor]:
     scales = torch.tensor([scale], dtype=torch.float32, requires_grad=True)
     opac = torch.tensor([opacity], requires_grad=True)
     s_eff, o_eff = apply_filter_3d(scales, opac, torch.tensor([filt]))
     (s_eff.sum() + o_eff.sum()).backward()
-    assert bool(torch.isfinite(s_eff).all() and torch.isfinite(o_eff).all())
-    assert bool(torch.isfinite(scales.grad).all() and torch.isfinite(opac.grad).all())
+    assert bool(torch.isfinite(s_eff).all() and torch.isfinite(o_eff).all()), (s_eff, o_eff)
+    assert bool(torch.isfinite(scales.grad).all() and torch.isfinite(opac.grad).all()), (scales.grad, opac.grad)
     assert 0.0 <= float(o_eff.detach()) <= opacity + 1e-7
     assert bool((s_eff >= filt * (1 - 1e-6)).all())
+    return s_eff.detach(), o_eff.detach()
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.one_of(st.floats(0.0, 1e4, width=32), st.floats(0.0, float(torch.finfo(torch.float32).max), width=32)), min_size=3, max_size=3),
+       st.floats(0.0, 1.0), st.floats(0.0, 10.0))
+def test_apply_filter_3d_is_finite_for_tiny_and_huge_gaussians(scale, opacity, filt) -> None:
+    """Gaussians far smaller than the filter, zero and subnormal scales, scales up to float32's
+    largest: finite values and gradients, opacity factor in [0, 1], scales never below the filter,
+    and within the filter's scale range exactly ``sqrt(scale^2 + filter^2)`` (no silent change)."""
+    s_eff, _ = _finite_values_and_gradients(scale, opacity, filt)
+    lo, hi = scale_range(torch.float32)
+    f32 = float(torch.tensor(filt, dtype=torch.float32))
+    for axis, s in enumerate(scale):
+        if lo <= s <= hi:
+            assert float(s_eff[0, axis]) == pytest.approx(math.hypot(s, f32), rel=1e-6)
+
+
+def test_apply_filter_3d_gradients_stay_finite_at_subnormal_and_overflowing_scales() -> None:
+    """Hypothesis's find in CI: a subnormal square (1.1e-20 squared) with no filter made
+    ``1 / (s^2 + f^2)`` overflow and the scale's gradient NaN; squares past float32's largest
+    made the values inf and NaN."""
+    for scale, filt in [([0.0, 0.0, 1.0865952303180257e-20], 0.0), ([1e-20] * 3, 1e-20),
+                        ([1e-45] * 3, 1e-45), ([3e38, 1.0, 1e-3], 0.01), ([1e20] * 3, 1.0)]:
+        s_eff, o_eff = _finite_values_and_gradients(scale, 0.5, filt)
+        assert float(s_eff.max()) <= scale_range(torch.float32)[1] * (1 + 1e-6)
+    _, o_eff = _finite_values_and_gradients([0.0, 0.0, 0.0], 0.5, 0.01)
+    assert float(o_eff) < 1e-18, "a zero-size Gaussian under a filter keeps (almost) none of its opacity"
 
 
 def test_ply_carries_the_filter_and_an_older_ply_reads_as_none(tmp_path: Path) -> None:

@@ -64,20 +64,33 @@ def compute_filter_3d(means: Tensor, viewmats: Tensor, Ks: Tensor, width: int, h
     return (scale ** 0.5 / rate).to(means.dtype)
 
 
+def scale_range(dtype: torch.dtype) -> tuple[float, float]:
+    """The scales ``(lo, hi)`` the filter works within for ``dtype``: squares of scales in it, and
+    their sums with a squared filter, stay normal numbers, so every value and gradient is finite
+    (the gradient in the scale is at most about ``1 / lo``). Far outside any scene: float32 gives
+    about 4e-19 to 5e18 world units."""
+    info = torch.finfo(dtype)
+    return 4.0 * info.tiny ** 0.5, 0.25 * info.max ** 0.5
+
+
 def apply_filter_3d(scales: Tensor, opacities: Tensor, filter_3d: Tensor | None) -> tuple[Tensor, Tensor]:
     """Effective ``(scales [N, 3], opacities [N])`` of activated scales and opacities convolved with
     an isotropic Gaussian of standard deviation ``filter_3d`` [N] (None: returned unchanged).
-    Differentiable in ``scales`` and ``opacities``; finite for zero scales (opacity factor 0)."""
+
+    Differentiable in ``scales`` and ``opacities``. Scales and the filter are taken within
+    :func:`scale_range` first: a zero or subnormal scale acts as the range's floor (a point far below
+    any pixel) and a scale whose square would overflow as its ceiling (the rasterizer could not draw
+    it either), so values and gradients stay finite for any input."""
     if filter_3d is None:
         return scales, opacities
     if filter_3d.shape != opacities.shape:
         raise ValueError(f"apply_filter_3d: filter_3d has shape {tuple(filter_3d.shape)}, "
                          f"expected {tuple(opacities.shape)} (one value per Gaussian)")
-    s2 = scales.square()
-    f2 = filter_3d.to(scales.dtype).square()[:, None]
+    lo, hi = scale_range(scales.dtype)
+    s2 = scales.clamp(lo, hi).square()
+    f2 = filter_3d.to(scales.dtype).clamp(0.0, hi).square()[:, None]
     total = s2 + f2
-    # prod(s2 / (s2 + f2)) per axis: stays in [0, 1]; a zero axis with a zero filter keeps factor 1
-    ratio = torch.where(total > 0, s2 / torch.where(total > 0, total, torch.ones_like(total)),
-                        torch.ones_like(total))
+    # prod(s2 / (s2 + f2)) per axis: stays in [0, 1]
+    ratio = s2 / total
     tiny = torch.finfo(scales.dtype).tiny  # keeps sqrt's gradient finite at 0
-    return torch.sqrt(total.clamp_min(tiny)), opacities * torch.sqrt(ratio.prod(dim=-1).clamp_min(tiny))
+    return torch.sqrt(total), opacities * torch.sqrt(ratio.prod(dim=-1).clamp_min(tiny))
