@@ -150,9 +150,10 @@ def test_model_sample_is_on_the_surface_with_outward_normals(tmp_path: Path) -> 
     np.testing.assert_array_equal(flipped.normals, m.normals)
     np.testing.assert_array_equal(sample_model(1, v, f, 34.64, 1000, seed=3).points, m.points)
     write_ply_mesh(tmp_path / "cube.ply", v, f)
-    verts, faces = read_model_ply((tmp_path / "cube.ply").read_bytes())
+    verts, faces, colors = read_model_ply((tmp_path / "cube.ply").read_bytes())
     np.testing.assert_allclose(verts, v)
     np.testing.assert_array_equal(faces, f)
+    assert colors is None and m.colors is None, "a model without vertex colours samples none"
 
 
 def test_perception_finds_the_object_above_the_table() -> None:

@@ -1,7 +1,8 @@
 """The single-frame estimator over a BOP split: one estimate per ground-truth box, as a BOP results CSV.
 
 For every image of every scene folder of a BOP split (``test/000002/...``): the depth
-(``depth/{im_id:06d}.png`` at the image's ``depth_scale``), ``cam_K`` (``scene_camera.json``, read by
+(``depth/{im_id:06d}.png`` at the image's ``depth_scale``), the colour image when there is a PNG
+(``rgb/{im_id:06d}.png``: with models that have vertex colours it tells a flip apart), ``cam_K`` (``scene_camera.json``, read by
 ``annotation``), and one hint per instance of ``scene_gt.json`` whose ``visib_fract`` reaches BOP19's
 0.1, its box from ``scene_gt_info.json`` (``bbox_visib``, or ``bbox_obj``). The boxes and object ids
 come from the ground truth: an oracle detector, as BOP's "GT boxes" runs use; a method with its own
@@ -24,6 +25,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from brave6d.core.atomic import read_png
 from brave6d.core.errors import DataError
 from brave6d.evaluation.agents.frame import (
     BoxHint,
@@ -109,6 +111,8 @@ def estimate_bop_split(split_dir: Path | str, models_dir: Path | str, *, scene_i
                 continue
             cam = cams[im_id]
             depth = read_depth_png(scene / "depth" / f"{im_id:06d}.png", cam.depth_scale)
+            rgb_path = scene / "rgb" / f"{im_id:06d}.png"  # colour tells a flip apart when the models have it
+            rgb = read_png(rgb_path, "rgb") if rgb_path.is_file() else None
             run.images += 1
             image_estimates: list[tuple[int, float, NDArray[np.float64], NDArray[np.float64]]] = []
             t_image = time.perf_counter()
@@ -126,7 +130,7 @@ def estimate_bop_split(split_dir: Path | str, models_dir: Path | str, *, scene_i
                                                      diameter=float(info[g.obj_id]["diameter"]), points=model_points)
                 try:
                     pose = estimate_pose(depth, cam.cam_K, clouds[g.obj_id], BoxHint(*(float(v) for v in box)),
-                                         options=options)
+                                         rgb=rgb, options=options)
                 except EstimateRefused as exc:
                     run.refusals.append((scene_id, im_id, g.obj_id, exc.cause, str(exc)))
                     continue

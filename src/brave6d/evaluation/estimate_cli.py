@@ -76,7 +76,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     frame.add_argument("--depth-scale", type=float_in(0.0, None, low_open=True), default=None,
                        help="mm per depth unit (BOP's depth_scale: 1 = mm, 0.1 = tenths of a mm; default 1, or the "
                             "image's depth_scale of --scene-camera)")
-    frame.add_argument("--rgb", type=Path, default=None, help="RGB image (checked against the depth's size only)")
+    frame.add_argument("--rgb", type=Path, default=None,
+                       help="RGB image of the same frame: with a model that has vertex colours it tells a "
+                            "near-symmetric object from its flip (default: depth alone)")
     frame.add_argument("--K", type=_numbers((4, 9), "--K"), default=None, dest="K",
                        help="fx,fy,cx,cy or 9 values row-major, OpenCV convention (pixel centres at integers)")
     frame.add_argument("--scene-camera", type=Path, default=None,

@@ -2,7 +2,8 @@
 
 Nothing is learned and nothing is downloaded; every step is classical geometry (Open3D):
 :mod:`~brave6d.evaluation.agents.perception` finds the target's cluster above the table,
-:mod:`~brave6d.evaluation.agents.registration` fits the model to it, a camera policy
+:mod:`~brave6d.evaluation.agents.registration` fits the model to it (on depth, with the model's
+colours against the colour image to tell a near-symmetric object from its flip), a camera policy
 (:mod:`~brave6d.evaluation.agents.static`, :mod:`~brave6d.evaluation.agents.active`) decides where to look, and
 :mod:`~brave6d.evaluation.agents.fusion` combines the views into the estimate, given in the camera frame
 of the view the policy ends in. With no cluster at all the estimate is a guess where the target
@@ -74,10 +75,10 @@ class BaselineAgent:
             if info is None:
                 raise BraveError(f"the server knows no object with obj_id {obj_id}")
             scene = getattr(self.client, "scene", None)  # a dataset keeps one model per obj_id across scenes
-            verts, faces = read_model_ply(self.client.model(obj_id, scene) if scene is not None
-                                          else self.client.model(obj_id))
+            verts, faces, colors = read_model_ply(self.client.model(obj_id, scene) if scene is not None
+                                                  else self.client.model(obj_id))
             self._models[obj_id] = sample_model(obj_id, verts, faces, float(info["diameter_mm"]),
-                                                self.options.model.points, self.options.model.seed)
+                                                self.options.model.points, self.options.model.seed, colors)
         return self._models[obj_id]
 
     def observe(self, step: Any) -> None:
@@ -102,7 +103,7 @@ class BaselineAgent:
             registration = register_views(episode.model, episode.views, self.options.registration, final=(obs, seen))
         elif seen.cluster is not None:
             registration = register_model(episode.model, seen.cluster, seen.plane, obs.depth, obs.K,
-                                          self.options.registration, seen.min_height)
+                                          self.options.registration, seen.min_height, getattr(obs, "rgb", None))
         else:
             registration = None
         if registration is None:  # nothing found: a guess where the target was last seen

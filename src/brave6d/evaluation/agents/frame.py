@@ -18,8 +18,9 @@ a hint where the object is (:class:`PixelHint` or :class:`BoxHint`). Steps:
    under ``min_score`` is refused.
 
 Nothing is returned silently empty: every way to find nothing raises :class:`EstimateRefused`,
-whose ``cause`` (one of :data:`REFUSAL_CAUSES`) names the step. The RGB image, when given, is only checked
-against the depth's size: the baseline is depth-only. Deterministic (seeded, Open3D on one thread).
+whose ``cause`` (one of :data:`REFUSAL_CAUSES`) names the step. The RGB image, when given, must match the
+depth's size; with a model that has vertex colours it scores each pose's colours too, which tells a
+near-symmetric object from its flip. Deterministic (seeded, Open3D on one thread).
 """
 
 from __future__ import annotations
@@ -163,9 +164,11 @@ def prepare_model(source: str | Path | ArrayLike, units: str = "mm", *, faces: A
         mesh = read_ply_mesh(source)
         vertices = np.asarray(mesh.vertices, dtype=np.float64)
         tri = mesh.faces if len(mesh.faces) else None
+        colors = mesh.vertex_colors
     else:
         vertices = np.asarray(source, dtype=np.float64)
         tri = None if faces is None else np.asarray(faces, dtype=np.int64)
+        colors = None
     if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) < 3:
         raise EstimateRefused("bad_input", f"{label}: expected vertices of shape (N>=3, 3), got {vertices.shape}")
     if not np.all(np.isfinite(vertices)):
@@ -188,7 +191,7 @@ def prepare_model(source: str | Path | ArrayLike, units: str = "mm", *, faces: A
         raise EstimateRefused("bad_input", f"{label}: model diameter {diameter_mm:.4g} mm (units {units!r}) is outside "
                                            f"{lo:g}..{hi:g} mm: are the model's units {other!r}?")
     try:
-        return sample_model(int(obj_id), vertices_mm, tri, diameter_mm, int(points), int(seed))
+        return sample_model(int(obj_id), vertices_mm, tri, diameter_mm, int(points), int(seed), colors)
     except BraveError as exc:
         raise EstimateRefused("bad_input", f"{label}: {exc}") from None
 
@@ -326,7 +329,8 @@ def estimate_pose(depth_m: ArrayLike, K: ArrayLike, model: ModelCloud, hint: Hin
 
     ``depth_m``: (H, W) float metres, 0 / NaN = no depth; ``K``: 3x3, OpenCV convention;
     ``hint``: :class:`PixelHint` or :class:`BoxHint`; ``up``: world up in the camera frame
-    (``world_T_cam[2, :3]``), None to take it from the table plane; ``rgb``: (H, W, 3), checked only."""
+    (``world_T_cam[2, :3]``), None to take it from the table plane; ``rgb``: (H, W, 3), which
+    breaks the ties between the object and its flip when the model has colours (None: depth alone)."""
     t0 = time.perf_counter()
     depth = _check_depth(depth_m)
     k = _check_K(K)
@@ -372,7 +376,8 @@ def estimate_pose(depth_m: ArrayLike, K: ArrayLike, model: ModelCloud, hint: Hin
     span = cluster.pixels.max(axis=0) - cluster.pixels.min(axis=0) + 1
     _check_scale(float(np.hypot(*span)), "the object found at the hint", model, k,
                  float(np.median(cluster.points[:, 2])))
-    reg = register_model(model, cluster, seen.plane, depth, k, options.registration, seen.min_height)
+    reg = register_model(model, cluster, seen.plane, depth, k, options.registration, seen.min_height,
+                         None if rgb is None else np.asarray(rgb))
     if not (np.all(np.isfinite(reg.cam_T_obj)) and math.isfinite(reg.score)):
         raise EstimateRefused("no_fit", "the registration gave no finite pose")
     if reg.score < options.min_score:

@@ -47,7 +47,8 @@ def register_views(model: ModelCloud, views: Sequence[View], options: Registrati
     final_obs, final_seen = final if final is not None else views[-1]
     with one_thread():
         voxel = voxel_size(model, options)
-        scenes = [view_scene(p.cluster, p.plane, p.min_height, o.depth, o.K, voxel) for o, p in found]
+        scenes = [view_scene(p.cluster, p.plane, p.min_height, o.depth, o.K, voxel, getattr(o, "rgb", None))
+                  for o, p in found]
         cams_T_world = [invert(np.asarray(o.world_T_cam, dtype=np.float64)) for o, _ in found]
         regs = [register_scene(model, scene, options, voxel) for scene in scenes]
         weights = view_weights([r.score for r in regs])
@@ -55,7 +56,7 @@ def register_views(model: ModelCloud, views: Sequence[View], options: Registrati
 
         def mean_score(cam_T_obj: Array) -> float:  # a pose in the final view's frame
             world_T_obj = world_T_ref @ cam_T_obj
-            return float(np.dot(weights, [score_pose(model, cam_T_world @ world_T_obj, scene)[0]
+            return float(np.dot(weights, [score_pose(model, cam_T_world @ world_T_obj, scene, options.color_weight)[0]
                                           for scene, cam_T_world in zip(scenes, cams_T_world)]))
 
         refs_T_cam = [invert(world_T_ref) @ np.asarray(o.world_T_cam, dtype=np.float64) for o, _ in found]
@@ -66,7 +67,8 @@ def register_views(model: ModelCloud, views: Sequence[View], options: Registrati
             own, cam_T_obj = regs[i_final], in_final[i_final]
         elif final_seen.cluster is not None:
             own = register_scene(model, view_scene(final_seen.cluster, final_seen.plane, final_seen.min_height,
-                                                   final_obs.depth, final_obs.K, voxel), options, voxel)
+                                                   final_obs.depth, final_obs.K, voxel, getattr(final_obs, "rgb", None)),
+                                 options, voxel)
             cam_T_obj = own.cam_T_obj
         else:
             score, cam_T_obj, best = max(((mean_score(T), T, r) for T, r in zip(in_final, regs)), key=lambda c: c[0])

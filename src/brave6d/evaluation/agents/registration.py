@@ -4,7 +4,10 @@ The model (a surface sample, metres) is aligned to the cluster with FPFH + RANSA
 seeds, plus "resting on the table" hypotheses (each model axis up, at several yaws). Every
 hypothesis is refined with point-to-plane ICP on the model points facing the camera and scored by
 how well the model and the cluster explain each other, minus clear penetration of the table,
-model points in observed free space and (weakly) tilt. Voxel sizes are fractions of the model
+model points in observed free space, (weakly) tilt and, when the view has colour and the model
+colours, how badly the image's colours match the model's under the pose
+(:mod:`~brave6d.evaluation.agents.appearance`: it breaks the ties between an object and its
+180 degree flip that depth leaves to noise). Voxel sizes are fractions of the model
 diameter, so tiny objects work alike. The best hypothesis wins; its score is the confidence.
 """
 
@@ -18,13 +21,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from brave6d.core.errors import BraveError
 from brave6d.core.transforms import invert, make_transform
+from brave6d.evaluation.agents.appearance import color_disagreement
 from brave6d.evaluation.agents.model import ModelCloud
 from brave6d.evaluation.agents.perception import Cluster, Plane
 from brave6d.evaluation.agents.pointclouds import one_thread, open3d, point_cloud
 
 Array = NDArray[np.float64]
 UPRIGHT_WEIGHT = 0.1  # weight of the "resting on a face" prior in the score
+COLOR_WEIGHT = 0.1  # weight of the colour disagreement: set by benchmarks/flip_colour.py
 
 
 @dataclass(frozen=True)
@@ -36,6 +42,7 @@ class RegistrationOptions:
     ransac_iterations: int = 20_000
     yaw_steps: int = 8  # resting hypotheses: 6 up-axes x yaw_steps
     icp_iterations: int = 30  # per ICP round (two rounds per hypothesis)
+    color_weight: float = COLOR_WEIGHT  # weight of the colour disagreement (in [-1, 1]) in the score
 
 
 @dataclass(frozen=True)
@@ -53,7 +60,8 @@ class Registration:
 @dataclass
 class ViewScene:
     """What registration and scoring need about one view: the thinned cluster (as points, a
-    KD-tree and an Open3D cloud), the table plane, the segmentation cut and the depth image."""
+    KD-tree and an Open3D cloud), the table plane, the segmentation cut, the depth image and the
+    colour image (None: scored on depth alone)."""
 
     points: Array
     tree: Any  # scipy cKDTree of points
@@ -63,6 +71,7 @@ class ViewScene:
     depth: NDArray[np.floating]
     K: Array
     tol: float
+    rgb: NDArray[np.uint8] | None = None
 
 
 def voxel_size(model: ModelCloud, options: RegistrationOptions) -> float:
@@ -71,24 +80,31 @@ def voxel_size(model: ModelCloud, options: RegistrationOptions) -> float:
 
 
 def view_scene(cluster: Cluster, plane: Plane | None, min_height: float, depth: NDArray[np.floating], K: Array,
-               voxel: float) -> ViewScene:
+               voxel: float, rgb: NDArray[np.uint8] | None = None) -> ViewScene:
     """The :class:`ViewScene` of a cluster thinned to half a voxel (all its points when that
-    leaves fewer than 5)."""
+    leaves fewer than 5); ``rgb`` (H, W, 3) uint8 of the same size as ``depth``, or None."""
     from scipy.spatial import cKDTree
 
     cloud = point_cloud(cluster.points).voxel_down_sample(0.5 * voxel)
     if len(cloud.points) < 5:
         cloud = point_cloud(cluster.points)
     pts = np.asarray(cloud.points)
-    return ViewScene(pts, cKDTree(pts), cloud, plane, min_height, np.asarray(depth), np.asarray(K), 1.5 * voxel)
+    depth = np.asarray(depth)
+    if rgb is not None:
+        rgb = np.asarray(rgb)
+        if rgb.shape[:2] != depth.shape or rgb.ndim != 3 or rgb.shape[2] < 3:
+            raise BraveError(f"the colour image is {rgb.shape}, the depth image {depth.shape}: not one view")
+    return ViewScene(pts, cKDTree(pts), cloud, plane, min_height, depth, np.asarray(K), 1.5 * voxel, rgb)
 
 
 def register_model(model: ModelCloud, cluster: Cluster, plane: Plane | None, depth: NDArray[np.floating], K: Array,
-                   options: RegistrationOptions = RegistrationOptions(), min_height: float = 0.0) -> Registration:
-    """The model's pose in the camera frame from the cluster of one view (see the module docstring)."""
+                   options: RegistrationOptions = RegistrationOptions(), min_height: float = 0.0,
+                   rgb: NDArray[np.uint8] | None = None) -> Registration:
+    """The model's pose in the camera frame from the cluster of one view (see the module
+    docstring); ``rgb``: the view's colour image (None: depth alone)."""
     with one_thread():
         voxel = voxel_size(model, options)
-        return register_scene(model, view_scene(cluster, plane, min_height, depth, K, voxel), options, voxel)
+        return register_scene(model, view_scene(cluster, plane, min_height, depth, K, voxel, rgb), options, voxel)
 
 
 def register_scene(model: ModelCloud, scene: ViewScene, options: RegistrationOptions, voxel: float) -> Registration:
@@ -101,7 +117,7 @@ def register_scene(model: ModelCloud, scene: ViewScene, options: RegistrationOpt
     best: Registration | None = None
     for method, T0 in hypotheses:
         T = icp(model, T0, scene, voxel, options.icp_iterations) if len(scene.points) >= 6 else T0
-        score, fitness = score_pose(model, T, scene)
+        score, fitness = score_pose(model, T, scene, options.color_weight)
         if best is None or score > best.score + 1e-12:
             best = Registration(T, score, fitness, method, len(hypotheses))
     if best is None or not np.all(np.isfinite(best.cam_T_obj)):  # pragma: no cover - defensive
@@ -119,12 +135,13 @@ def visible_points(model: ModelCloud, cam_T_obj: Array) -> NDArray[np.int64]:
     return idx if len(idx) >= 10 else np.arange(len(model.points))
 
 
-def score_pose(model: ModelCloud, T: Array, scene: ViewScene) -> tuple[float, float]:
+def score_pose(model: ModelCloud, T: Array, scene: ViewScene, color_weight: float = COLOR_WEIGHT) -> tuple[float, float]:
     """(score, fitness) of ``cam_T_obj = T``. Fitness: mean of the fraction of cluster points near
     the model and the fraction of visible model points above the segmentation cut near the
     cluster. Score: fitness minus the fractions of model points deep below the table (splat tables
     look higher than they are, so only clear penetration counts) and of visible model points in
-    observed free space (the depth image sees through them), and a small penalty for tilt."""
+    observed free space (the depth image sees through them), a small penalty for tilt and
+    ``color_weight`` times the colour disagreement (when the view has colour)."""
     from scipy.spatial import cKDTree
 
     vis = visible_points(model, T)
@@ -138,7 +155,10 @@ def score_pose(model: ModelCloud, T: Array, scene: ViewScene) -> tuple[float, fl
         below = float(np.mean(scene.plane.height(all_pts) < -(0.25 * model.diameter_m + scene.tol)))
     coverage = float(np.mean(scene.tree.query(covered)[0] < scene.tol)) if len(covered) else 0.0
     fitness = 0.5 * (float(np.mean(d_scene < scene.tol)) + coverage)
-    return fitness - below - _free_space(pts, scene) - UPRIGHT_WEIGHT * _tilt(T, scene.plane), fitness
+    score = fitness - below - _free_space(pts, scene) - UPRIGHT_WEIGHT * _tilt(T, scene.plane)
+    if scene.rgb is not None and color_weight != 0.0:
+        score -= color_weight * color_disagreement(model, T, vis, scene.rgb, scene.depth, scene.K, scene.tol)
+    return score, fitness
 
 
 def icp(model: ModelCloud, T: Array, scene: ViewScene, voxel: float, iterations: int = 30) -> Array:

@@ -317,16 +317,17 @@ class FidelityProbe:
             s["valid"] = raw_data_pixels(self.scene, (self.bundle.camera.width, self.bundle.camera.height))
         return s
 
-    def _estimates(self, sides: dict[str, NDArray[np.floating]], K: NDArray[np.float64],
+    def _estimates(self, sides: dict[str, tuple[NDArray[np.floating], NDArray[np.uint8]]], K: NDArray[np.float64],
                    world_T_cam: NDArray[np.float64], obj_id: int, pixel: tuple[float, float],
                    cam_T_obj: NDArray[np.float64], visib: float) -> dict[str, Any]:
-        """The static estimator on each side's depth (``truth``, ``splat``), both scored with the
-        truth's depth as VSD's test depth (as the realism section scores both on the captured depth)."""
+        """The static estimator on each side's depth and colour (``truth``, ``splat``), both scored
+        with the truth's depth as VSD's test depth (as the realism section scores both on the
+        captured depth)."""
         s = self._prepared()
-        test_depth = sides["truth"]
+        test_depth = sides["truth"][0]
         out: dict[str, Any] = {}
-        for side, depth_m in sides.items():
-            est = s["estimator"].estimate(depth_m, K, world_T_cam, obj_id, pixel)
+        for side, (depth_m, rgb) in sides.items():
+            est = s["estimator"].estimate(depth_m, K, world_T_cam, obj_id, pixel, rgb)
             score = s["scorer"].score(est, obj_id, cam_T_obj, K, (depth_m.shape[1], depth_m.shape[0]), test_depth,
                                       visib)
             out.update({f"ar_{side}": score.ar, f"found_{side}": est.cam_T_obj is not None})
@@ -367,7 +368,8 @@ class FidelityProbe:
             visib = num(server.visibility.compute(T, cam, depth_truth)[gt_id].visib_fract)
         target["visib_fract"] = visib
         if state is not None and visib >= MIN_VISIB_FRACT and target["px"] > 0:
-            target.update(self._estimates({"truth": depth_truth, "splat": view.depth}, cam.K, T, obj.obj_id,
+            target.update(self._estimates({"truth": (depth_truth, truth.rgb), "splat": (view.depth, view.rgb)},
+                                          cam.K, T, obj.obj_id,
                                           (cam.cx, cam.cy), state.cam_T_obj, visib))
         return {**point, "azimuth_deg": az, "elevation_deg": el, "psnr": psnr_img, "ssim": ssim_img,
                 "render_s": view.timings_ms["render"] / 1000.0, "truth_s": truth_s, "targets": [target]}
@@ -412,8 +414,8 @@ class FidelityProbe:
                 cam_T_obj = g.cam_T_model()
                 verts = s["scorer"].models[g.obj_id].points
                 pixel = project(cam_T_obj[:3, :3] @ model_centre_m(verts) + cam_T_obj[:3, 3], K)
-                target.update(self._estimates({"truth": depth_truth, "splat": out.depth}, K, world_T_cam, g.obj_id,
-                                              pixel, cam_T_obj, gi.visib_fract))
+                target.update(self._estimates({"truth": (depth_truth, rgb_truth), "splat": (out.depth, out.rgb)}, K,
+                                              world_T_cam, g.obj_id, pixel, cam_T_obj, gi.visib_fract))
             targets.append(target)
         return {**point, "psnr": psnr_img, "ssim": ssim_img, "render_s": out.timings_ms["render"] / 1000.0,
                 "targets": targets}

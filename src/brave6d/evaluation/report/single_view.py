@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -93,13 +93,20 @@ def anchor_on_ray(depth_m: NDArray[np.floating], K: Array, pixel: tuple[float, f
 class StaticEstimator:
     """The static agent's perception + registration on single views (see the module docstring).
 
-    ``models``: ``obj_id -> (model PLY in mm, diameter in mm)``, as the server sends them.
+    ``models``: ``obj_id -> (model PLY in mm, diameter in mm)``, as the server sends them;
+    ``color_weight``: the registration's weight of colour (None: the agents' default, 0: depth alone).
     """
 
-    def __init__(self, models: Mapping[int, tuple[Path, float]]) -> None:
-        from brave6d.evaluation.agents import BaselineOptions
+    #: What the estimator looks at; part of the stored measurements' keys, so results of an
+    #: earlier estimator (depth alone) are measured again rather than reused.
+    SIGNALS = "depth+colour"
+
+    def __init__(self, models: Mapping[int, tuple[Path, float]], color_weight: float | None = None) -> None:
+        from brave6d.evaluation.agents import BaselineOptions, RegistrationOptions
 
         self.options = BaselineOptions()
+        if color_weight is not None:  # the agents' default otherwise
+            self.options = replace(self.options, registration=RegistrationOptions(color_weight=float(color_weight)))
         self._sources = {int(k): (Path(p), float(d)) for k, (p, d) in models.items()}
         self._clouds: dict[int, Any] = {}
 
@@ -111,14 +118,15 @@ class StaticEstimator:
             if obj_id not in self._sources:
                 raise DataError(f"no model for object {obj_id} (known: {sorted(self._sources)})")
             path, diameter = self._sources[obj_id]
-            verts, faces = read_model_ply(path.read_bytes())
+            verts, faces, colors = read_model_ply(path.read_bytes())
             self._clouds[obj_id] = sample_model(obj_id, verts, faces, diameter, self.options.model.points,
-                                                self.options.model.seed)
+                                                self.options.model.seed, colors)
         return self._clouds[obj_id]
 
     def estimate(self, depth_m: NDArray[np.floating], K: Array, world_T_cam: Array, obj_id: int,
-                 target_px: tuple[float, float]) -> ViewEstimate:
-        """The estimate of ``obj_id`` in one view whose target is expected at pixel ``target_px``."""
+                 target_px: tuple[float, float], rgb: NDArray[np.uint8] | None = None) -> ViewEstimate:
+        """The estimate of ``obj_id`` in one view whose target is expected at pixel ``target_px``
+        (``rgb``: the view's colour image, which breaks flip ties; None: depth alone)."""
         from brave6d.evaluation.agents import perceive, register_model
 
         model = self.cloud(obj_id)
@@ -127,7 +135,8 @@ class StaticEstimator:
         seen = perceive(depth_m, K, world_T_cam, model, prior, self.options.perception)
         if seen.cluster is None:
             return ViewEstimate(None, 0.0, time.perf_counter() - t0, "none")
-        reg = register_model(model, seen.cluster, seen.plane, depth_m, K, self.options.registration, seen.min_height)
+        reg = register_model(model, seen.cluster, seen.plane, depth_m, K, self.options.registration, seen.min_height,
+                             rgb)
         return ViewEstimate(reg.cam_T_obj, float(np.clip(reg.score, 0.0, 1.0)), time.perf_counter() - t0, reg.method)
 
 

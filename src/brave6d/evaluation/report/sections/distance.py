@@ -85,7 +85,8 @@ def measure_distance(inputs: MeasureInputs, sweep: DistanceSweep) -> Measurement
     device = str(resolve_device(sweep.device))
     bundle = load_bundle(scene.bundle_dir)
     key = {"bundle": file_stamp(manifest), "sweep": asdict(sweep), "device": device,
-           "test_depth": "reference" if bundle.reference_path is not None else "splat"}
+           "test_depth": "reference" if bundle.reference_path is not None else "splat",
+           "estimator": StaticEstimator.SIGNALS}
     if (done := store.complete(NAME, key)) is not None:
         return done
     camera = bundle.camera
@@ -125,7 +126,7 @@ def measure_distance(inputs: MeasureInputs, sweep: DistanceSweep) -> Measurement
                      bbox_diag_px=bbox_diagonal(truth.bbox_obj) if truth is not None else None)
         if truth is None or not visib >= MIN_VISIB_FRACT:
             return {**point, "target": False}
-        est = s["estimator"].estimate(view.depth, camera.K, T, obj.obj_id, (camera.cx, camera.cy))
+        est = s["estimator"].estimate(view.depth, camera.K, T, obj.obj_id, (camera.cx, camera.cy), view.rgb)
         # the estimator sees the splat's depth (as an agent); VSD is scored as an episode's: on the
         # test depth of the scene's reference geometry (the splat's only for a bundle without one)
         score = s["scorer"].score(est, obj.obj_id, truth.cam_T_obj, camera.K, (camera.width, camera.height),

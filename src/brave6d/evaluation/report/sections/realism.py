@@ -50,12 +50,14 @@ LARGE_GAP = 0.1
 class RealismSweep:
     """Views per distance level (held-out first, then training views), an integer image stride
     (1: the captured size; ``s``: every ``s``-th pixel of the captured frame and of the render,
-    which is made at the captured size) and the render device."""
+    which is made at the captured size), the render device and the estimator's colour weight
+    (None: the agents' default; 0: depth alone; ``benchmarks/flip_colour.py`` compares weights)."""
 
     holdout_per_level: int = 3  # with train_per_level: 16 views on the demo's 4 rings (about 1 minute)
     train_per_level: int = 1
     stride: int = 1
     device: str = "auto"
+    color_weight: float | None = None
 
 
 def evenly_spaced(items: Sequence[Any], k: int) -> list[Any]:
@@ -149,7 +151,8 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
            "scene_camera": file_stamp(layout.scene_camera_path), "scene_gt_info": file_stamp(layout.scene_gt_info_path),
            "frames": file_stamp(scene.frames_path), "intrinsics": file_stamp(scene.intrinsics_path),
            "images": images_stamp([p for i, _ in views for p in (layout.rgb_path(i), layout.depth_path(i))]),
-           "sweep": asdict(sweep), "device": device, "test_depth": "captured"}
+           "sweep": asdict(sweep), "device": device, "test_depth": "captured",
+           "estimator": StaticEstimator.SIGNALS}
     if (done := store.complete(NAME, key)) is not None:
         return done
     names = {o.obj_id: o.name for o in bundle.objects}
@@ -173,7 +176,8 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
             renderer = SplatRenderer(bundle.splat_path, device, antialiasing=bundle.render.antialiasing)
             state.update(renderer=renderer, scorer=ViewScorer(models), valid=raw_data_pixels(scene, size),
                          centres={k: model_centre_m(v.points) for k, v in models.items()},
-                         estimator=StaticEstimator({k: (layout.model_path(k), float(info[k]["diameter"])) for k in ids}))
+                         estimator=StaticEstimator({k: (layout.model_path(k), float(info[k]["diameter"])) for k in ids},
+                                                   sweep.color_weight))
             if views:  # compiles the kernels outside the first point's render time
                 c = cams[views[0][0]]
                 Kc = c.cam_K
@@ -181,15 +185,16 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
                                  invert(c.cam_T_world()))
         return state
 
-    def estimate_all(s: dict[str, Any], im_id: int, depth_m: NDArray[np.float32], K: NDArray[np.float64],
-                     world_T_cam: NDArray[np.float64], test_depth: NDArray[np.float32]) -> list[dict[str, Any]]:
+    def estimate_all(s: dict[str, Any], im_id: int, depth_m: NDArray[np.float32], rgb: NDArray[np.uint8],
+                     K: NDArray[np.float64], world_T_cam: NDArray[np.float64],
+                     test_depth: NDArray[np.float32]) -> list[dict[str, Any]]:
         out = []
         for gt_id, (g, gi) in enumerate(zip(gts[im_id], infos[im_id])):
             if gi.visib_fract < MIN_VISIB_FRACT:
                 continue
             cam_T_obj = g.cam_T_model()
             centre = cam_T_obj[:3, :3] @ s["centres"][g.obj_id] + cam_T_obj[:3, 3]
-            est = s["estimator"].estimate(depth_m, K, world_T_cam, g.obj_id, project(centre, K))
+            est = s["estimator"].estimate(depth_m, K, world_T_cam, g.obj_id, project(centre, K), rgb)
             score = s["scorer"].score(est, g.obj_id, cam_T_obj, K, (depth_m.shape[1], depth_m.shape[0]), test_depth,
                                       gi.visib_fract)
             out.append({"gt_id": gt_id, "obj_id": g.obj_id, "visib_fract": gi.visib_fract,
@@ -216,8 +221,8 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
                                    depth_mode=bundle.render.depth_mode)
         rgb_splat = out.rgb[::step, ::step]
         depth_splat = depth_png_to_m(depth_m_to_mm_u16(out.depth)[::step, ::step], 1.0)
-        real = estimate_all(s, im_id, depth_real, K, world_T_cam, depth_real)
-        splat = {o["gt_id"]: o for o in estimate_all(s, im_id, depth_splat, K, world_T_cam, depth_real)}
+        real = estimate_all(s, im_id, depth_real, rgb_real, K, world_T_cam, depth_real)
+        splat = {o["gt_id"]: o for o in estimate_all(s, im_id, depth_splat, rgb_splat, K, world_T_cam, depth_real)}
         info = infos[im_id]
         objects = []
         for r in real:
