@@ -170,3 +170,9 @@ def test_a_colour_image_of_another_size_is_refused() -> None:
     with pytest.raises(BraveError, match=r"colour image is \(120, 160, 3\), the depth image \(240, 320\)"):
         register_model(model, seen.cluster, seen.plane, depth, K, RegistrationOptions(), seen.min_height,
                        rgb[::2, ::2])
+
+
+@pytest.mark.parametrize("weight", [-0.1, math.nan, math.inf])
+def test_a_colour_weight_that_is_not_a_finite_non_negative_number_is_refused(weight: float) -> None:
+    with pytest.raises(BraveError, match="RegistrationOptions.color_weight must be a finite number >= 0"):
+        RegistrationOptions(color_weight=weight)

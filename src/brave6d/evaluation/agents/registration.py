@@ -44,6 +44,11 @@ class RegistrationOptions:
     icp_iterations: int = 30  # per ICP round (two rounds per hypothesis)
     color_weight: float = COLOR_WEIGHT  # weight of the colour disagreement (in [-1, 1]) in the score
 
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.color_weight) and self.color_weight >= 0.0):
+            raise BraveError(f"RegistrationOptions.color_weight must be a finite number >= 0 (0: depth alone), "
+                             f"got {self.color_weight}")
+
 
 @dataclass(frozen=True)
 class Registration:
