@@ -51,6 +51,26 @@ def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.mark.slow
+def test_flip_colour_benchmark_prints_each_weight_per_ring_and_times_them_interleaved(workdir: Path) -> None:
+    """benchmarks/flip_colour.py end to end (before the test below changes the frames): each weight's
+    rows, a zero gap for both (the frames are the splat's renders), and the interleaved timing."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, str(root / "benchmarks" / "flip_colour.py"), str(workdir), "--weights", "0,0.1",
+                          "--holdout-per-level", "1", "--train-per-level", "1", "--device", "cpu", "--time-every", "2"],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = [line.split("|")[1:-1] for line in out.stdout.splitlines() if line.startswith("| 0")]
+    assert {r[0].strip() for r in rows} == {"0", "0.1"} and len(rows) % 2 == 0 and rows
+    assert all(r[5].strip() == "0.000 ± 0.000" for r in rows), rows
+    timing = [line for line in out.stdout.splitlines() if line.startswith("weight ")]
+    assert len(timing) == 2 and "median ratio to weight 0: 1.000" in timing[0], timing
+    assert int(timing[1].split(": ")[1].split()[0]) > 0
+
+
+@pytest.mark.slow
 def test_gap_is_zero_when_the_real_frames_are_the_splats_own_renders(workdir: Path) -> None:
     scene = SceneDir(workdir / "scene")
     store = MeasurementStore(workdir / "report" / "measurements")
