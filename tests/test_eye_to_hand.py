@@ -10,7 +10,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
@@ -125,6 +125,8 @@ def test_eye_to_hand_agrees_with_opencvs_independent_solvers() -> None:
 
 
 @given(cone_deg=st.floats(0.0, 20.0), n=st.integers(0, 8), duplicate=st.booleans(), seed=st.integers(0, 500))
+@example(cone_deg=0.0, n=4, duplicate=False, seed=6)  # CI's find: img2 and img3 drawn 8 um and 0.036 deg apart
+@example(cone_deg=0.0, n=4, duplicate=True, seed=6)
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 def test_eye_to_hand_hard_cases_give_a_clear_error_or_a_finite_answer(cone_deg, n, duplicate, seed) -> None:
     """Near-parallel rotation axes, too few poses, duplicated poses."""
@@ -146,8 +148,14 @@ def test_eye_to_hand_hard_cases_give_a_clear_error_or_a_finite_answer(cone_deg, 
         text = str(exc)
         assert any(c in text for c in ("too few poses", "duplicated poses", "near-parallel", "rotation span",
                                        "pure translations", "poorly determined", "rank deficient")), text
-        if "duplicated" in text:
-            assert "copy_of_img1" in text and "img1" in text
+        if "duplicated" in text:  # the copy, or two random poses that fell within the thresholds by chance
+            by_name = {v.name: v.base_T_tcp for v in views}
+            listed = text.split("views ", 1)[1].split(" have the same", 1)[0].split(" (and ")[0]
+            for pair in listed.split("; "):
+                first, second = (by_name[name] for name in pair.split(" and "))
+                rel = invert(first) @ second
+                assert np.linalg.norm(rel[:3, 3]) <= 0.0005 and Rotation.from_matrix(rel[:3, :3]).magnitude() <= \
+                    math.radians(0.1), f"{pair} named as duplicates but they differ"
         if "turn the direction" in text:
             assert "(base frame)" in text and "TCP" not in text  # eye-to-hand motions lie in the base frame
         return
