@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from brave6d.evaluation.agents.model import ModelCloud
+from brave6d.evaluation.agents.perception import pixels_of
 
 Array = NDArray[np.float64]
 MIN_POINTS = 10  # fewer confirmed points than this: no verdict
@@ -25,31 +25,23 @@ MIN_MODEL_STD = 0.02  # a channel whose model colours vary less (0..1) carries n
 MIN_IMAGE_STD = 1e-3  # a channel of the image this flat (0..1) carries none either
 
 
-def color_disagreement(model: ModelCloud, cam_T_obj: Array, visible: NDArray[np.int64], rgb: NDArray[Any],
-                       depth: NDArray[np.floating], K: Array, tol: float) -> float:
-    """Minus the mean Pearson correlation, over the channels in which the model's colours vary,
-    between the model's colours at the ``visible`` points (indices into ``model.points``) and the
-    image's colours where ``cam_T_obj`` projects them, counting only points whose depth the image
-    confirms within ``tol`` (m). ``rgb``: (H, W, 3) integers over their full range, or floats in
+def color_disagreement(colors: Array | None, points: Array, rgb: NDArray[Any], depth: NDArray[np.floating],
+                       K: Array, tol: float) -> float:
+    """Minus the mean Pearson correlation, over the channels in which the model's ``colors`` (N, 3)
+    in [0, 1] vary, between them and the image's colours where their camera-frame ``points`` (N, 3;
+    the model points facing the camera under the pose) project, counting only points whose depth the
+    image confirms within ``tol`` (m). ``rgb``: (H, W, 3) integers over their full range, or floats in
     [0, 1]. In [-1, 1]; 0 when it cannot tell (see the module docstring)."""
-    if model.colors is None or len(visible) == 0:
+    if colors is None or len(points) == 0:
         return 0.0
-    pts = model.points[visible] @ cam_T_obj[:3, :3].T + cam_T_obj[:3, 3]
-    z = pts[:, 2]
-    front = np.isfinite(z) & (z > 1e-3)
-    if not np.any(front):
-        return 0.0
-    pts, idx, z = pts[front], np.asarray(visible)[front], z[front]
-    h, w = depth.shape
-    u = np.rint(K[0, 0] * pts[:, 0] / z + K[0, 2])
-    v = np.rint(K[1, 1] * pts[:, 1] / z + K[1, 2])
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    u, v, idx, z = u[inside].astype(np.int64), v[inside].astype(np.int64), idx[inside], z[inside]
+    u, v, inside = pixels_of(points, K, depth.shape)
+    inside &= np.isfinite(points[:, 2]) & (points[:, 2] > 1e-3)
+    u, v, z = u[inside], v[inside], points[inside, 2]
     observed = np.asarray(depth, dtype=np.float64)[v, u]
     confirmed = (observed > 0) & (np.abs(observed - z) < tol)
     if int(confirmed.sum()) < MIN_POINTS:
         return 0.0
-    expected = model.colors[idx[confirmed]]
+    expected = np.asarray(colors)[inside][confirmed]
     image = np.asarray(rgb)
     full = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
     seen = image[v[confirmed], u[confirmed], :3].astype(np.float64) / full

@@ -100,6 +100,19 @@ def backproject(depth: NDArray[np.floating], K: Array) -> tuple[Array, NDArray[n
     return np.stack([x, y, z], axis=1), np.stack([cols, rows], axis=1).astype(np.int64)
 
 
+def pixels_of(points: Array, K: Array, shape: tuple[int, ...]) -> tuple[NDArray[np.int64], NDArray[np.int64],
+                                                                     NDArray[np.bool_]]:
+    """The inverse of :func:`backproject`: each camera-frame point's nearest pixel (column ``u``, row
+    ``v``) and whether it lies in front of the camera and inside an image of ``shape`` (H, W, ...);
+    ``u`` and ``v`` are 0 where it does not (NaN and inf points included)."""
+    z = points[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        u = np.rint(K[0, 0] * points[:, 0] / z + K[0, 2])
+        v = np.rint(K[1, 1] * points[:, 1] / z + K[1, 2])
+    inside = (z > 0) & (u >= 0) & (u < shape[1]) & (v >= 0) & (v < shape[0])
+    return np.where(inside, u, 0).astype(np.int64), np.where(inside, v, 0).astype(np.int64), inside
+
+
 def fit_table_plane(points: Array, up_cam: Array, distance: float, seed: int = 0, max_planes: int = 3,
                     max_tilt_deg: float = 30.0, voxel: float = 0.0, iterations: int = 500) -> Plane | None:
     """The largest RANSAC plane whose normal is within ``max_tilt_deg`` of ``up_cam`` (world up in

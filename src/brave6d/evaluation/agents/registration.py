@@ -25,7 +25,7 @@ from brave6d.core.errors import BraveError
 from brave6d.core.transforms import invert, make_transform
 from brave6d.evaluation.agents.appearance import color_disagreement
 from brave6d.evaluation.agents.model import ModelCloud
-from brave6d.evaluation.agents.perception import Cluster, Plane
+from brave6d.evaluation.agents.perception import Cluster, Plane, pixels_of
 from brave6d.evaluation.agents.pointclouds import one_thread, open3d, point_cloud
 
 Array = NDArray[np.float64]
@@ -162,7 +162,8 @@ def score_pose(model: ModelCloud, T: Array, scene: ViewScene, color_weight: floa
     fitness = 0.5 * (float(np.mean(d_scene < scene.tol)) + coverage)
     score = fitness - below - _free_space(pts, scene) - UPRIGHT_WEIGHT * _tilt(T, scene.plane)
     if scene.rgb is not None and color_weight != 0.0:
-        score -= color_weight * color_disagreement(model, T, vis, scene.rgb, scene.depth, scene.K, scene.tol)
+        colors = model.colors[vis] if model.colors is not None else None
+        score -= color_weight * color_disagreement(colors, pts, scene.rgb, scene.depth, scene.K, scene.tol)
     return score, fitness
 
 
@@ -215,10 +216,7 @@ def _free_space(pts: Array, scene: ViewScene) -> float:
     z = pts[:, 2]
     if np.any(z <= 1e-3):
         return 1.0
-    h, w = scene.depth.shape
-    u = np.rint(scene.K[0, 0] * pts[:, 0] / z + scene.K[0, 2]).astype(np.int64)
-    v = np.rint(scene.K[1, 1] * pts[:, 1] / z + scene.K[1, 2]).astype(np.int64)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    u, v, inside = pixels_of(pts, scene.K, scene.depth.shape)
     observed = scene.depth[v[inside], u[inside]]
     valid = observed > 0
     if not np.any(valid):
