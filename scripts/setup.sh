@@ -13,16 +13,30 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
 fi
 
 PYTHON="${PYTHON:-python3}"
-[ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
+
+# Refuse early, naming the folder and the shortfall, when the disk cannot hold the install (pip would
+# stop half way with "No space left on device"). .venv takes 3.3 GB, pip unpacks wheels beside it.
+need_free_space() {  # need_free_space DIR MB
+  local free_mb
+  free_mb=$(df -Pm "$1" | awk 'NR == 2 {print $4}')
+  if [ -n "$free_mb" ] && [ "$free_mb" -lt "$2" ]; then
+    echo "setup: $(cd "$1" && pwd) has ${free_mb} MB free; the install needs about $2 MB there" \
+         "(BRAVE6D_SETUP_FREE_MB sets the check). Free some space and run this again." >&2
+    exit 1
+  fi
+}
 
 stamp=".venv/.brave6d-installed"
 want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
-  echo "setup: installing into .venv (about 3 GB; a few minutes the first time)" >&2
-  .venv/bin/python -m pip install -q --upgrade pip
+  need_free_space . "${BRAVE6D_SETUP_FREE_MB:-4000}"
+  [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
+  echo "setup: installing into .venv (about 3.3 GB; a few minutes the first time)" >&2
+  # --no-cache-dir: pip's cache would hold a second copy of every downloaded wheel (about 1 GB).
+  .venv/bin/python -m pip install -q --no-cache-dir --upgrade pip
   # The CPU wheel of torch first, pinned: an unpinned torch would pull the multi-GB CUDA build.
-  .venv/bin/python -m pip install -q "torch==2.13.0"
-  .venv/bin/python -m pip install -q -e ".[test]"
+  .venv/bin/python -m pip install -q --no-cache-dir "torch==2.13.0"
+  .venv/bin/python -m pip install -q --no-cache-dir -e ".[test]"
   echo "$want" > "$stamp"
 fi
 
@@ -40,11 +54,12 @@ if [ ! -f "$stamp_ros2" ] || [ "$(cat "$stamp_ros2")" != "$want_ros2" ]; then
     echo "setup: installing the Debian packages gcc g++ (brave6d_msgs is built from rosidl's sources)" >&2
     $SUDO apt-get update -qq && $SUDO apt-get install -y -qq gcc g++ >/dev/null
   fi
+  need_free_space . "${BRAVE6D_SETUP_FREE_MB_ROS2:-400}"
   [ -x .venv-ros2/bin/python ] || "$PYTHON" -m venv .venv-ros2
   main_site="$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_path("purelib"))')"
   ros2_site="$(.venv-ros2/bin/python -c 'import sysconfig; print(sysconfig.get_path("purelib"))')"
   echo "import site; site.addsitedir('$main_site')" > "$ros2_site/_brave6d_main_venv.pth"
-  .venv-ros2/bin/python -m pip install -q -e ".[ros2]"
+  .venv-ros2/bin/python -m pip install -q --no-cache-dir -e ".[ros2]"
   .venv-ros2/bin/python -m brave6d.ros_interface.ros2.interfaces
   echo "setup: ROS 2 (rclpy wheels, brave6d_msgs) in .venv-ros2 in $(( ($(date +%s%N) - t0) / 1000000 )) ms" >&2
   echo "$want_ros2" > "$stamp_ros2"
