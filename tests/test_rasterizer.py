@@ -282,16 +282,52 @@ def test_antialiased_compensation_is_gsplats_definition():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 @pytest.mark.parametrize("seed, scale_px, antialiased", [(80, (0.7, 6.0), False), (81, (0.05, 5.0), False),
                                                          (81, (0.05, 5.0), True)])
-def test_cuda_backend_matches_cpu(seed, scale_px, antialiased):
-    """gsplat's classic and antialiased modes against the CPU kernels (sub-pixel Gaussians too)."""
+def test_cuda_backend_matches_cpu(seed, scale_px, antialiased, record_property):
+    """gsplat's classic and antialiased modes against the CPU kernels (sub-pixel Gaussians too);
+    the largest differences go into the JUnit XML (benchmarks/gpu_checks.py reports them)."""
     scene = {**make_scene(seed, n=300, sh_degree=3, scale_px=scale_px), "antialiased": antialiased}
     cuda = {k: (v.cuda() if torch.is_tensor(v) else v) for k, v in scene.items()}
     rgb, depth, alpha, _ = _call(rasterize, scene)
     rgb_c, depth_c, alpha_c, info_c = _call(rasterize, cuda)
     assert info_c["backend"] == "cuda"
+    for name, a, b in (("rgb", rgb_c, rgb), ("alpha", alpha_c, alpha), ("depth", depth_c, depth)):
+        record_property(f"max_abs_diff_{name}", float((a.cpu() - b).abs().max()))
     torch.testing.assert_close(rgb_c.cpu(), rgb, atol=FWD_ATOL, rtol=0)
     torch.testing.assert_close(alpha_c.cpu(), alpha, atol=FWD_ATOL, rtol=0)
     torch.testing.assert_close(depth_c.cpu(), depth, atol=FWD_ATOL, rtol=FWD_ATOL)
+
+
+CUDA_GRAD_RTOL = 5e-3  # float32 on both sides, and gsplat's backward sums with atomics in any order
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("seed, antialiased", [(82, False), (83, True)])
+def test_cuda_gradients_match_cpu(seed, antialiased, record_property):
+    """gsplat's backward against the CPU kernels' (whose gradients match float64 autograd of the
+    reference, above), with the same random linear loss on RGB, depth and alpha; each relative
+    error goes into the JUnit XML (benchmarks/gpu_checks.py reports them)."""
+    scene = {**make_scene(seed, n=200, sh_degree=2), "antialiased": antialiased}
+    names = ["means", "quats", "scales", "opacities", "colors", "backgrounds"]
+    g = torch.Generator().manual_seed(98)
+    c, h, w = scene["viewmats"].shape[0], scene["height"], scene["width"]
+    weights = [torch.randn(c, h, w, k, generator=g, dtype=torch.float64) for k in (3, 1, 1)]
+
+    def grads(device: str) -> dict[str, torch.Tensor]:
+        on = {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in scene.items()}
+        leaves = {k: on[k].clone().requires_grad_(True) for k in names}
+        outs = _call(rasterize, on, **leaves)
+        loss = sum((o.double() * wt.to(device)).sum() for o, wt in zip(outs[:3], weights))
+        loss.backward()
+        return {k: v.grad.detach().cpu() for k, v in leaves.items()}
+
+    g_cpu, g_cuda = grads("cpu"), grads("cuda")
+    errors = {k: _rel_err(g_cuda[k], g_cpu[k]) for k in names}
+    for k, err in errors.items():
+        record_property(f"grad_rel_err_{k}", err)
+    for k in names:
+        assert g_cpu[k].norm() > 0, f"{k}: CPU gradient is zero, test is vacuous"
+        assert torch.isfinite(g_cuda[k]).all(), f"{k}: non-finite CUDA gradient"
+    assert max(errors.values()) < CUDA_GRAD_RTOL, errors
 
 
 # ---------------------------------------------------------------- gsplat's own functions

@@ -1,0 +1,285 @@
+"""What only a CUDA GPU can show, prepared as one short run for a session that is lent one.
+
+The GPU machine's image has torch (CUDA), numpy, scipy, OpenCV, numba, pytest and hypothesis, but
+not gsplat nor the rest of brave6d's dependencies, and it cannot download; open3d (400 MB) is too
+big to carry there, so these checks use only what the rasterizer, the trainer and the renderer
+need. Two steps:
+
+    python benchmarks/gpu_checks.py prepare        # here: wheels for the GPU's Python 3.12 -> .whl/
+    bash benchmarks/gpu_checks.sh                  # there: install .whl, run the checks into $OUT
+
+``run`` (what gpu_checks.sh calls) does, each step timed, and writes ``gpu_checks.json`` and
+``gpu_checks.md`` into ``--out``:
+
+1. builds gsplat's CUDA extension (gsplat compiles it on first use);
+2. runs the CUDA tests (``tests/test_rasterizer.py``: gsplat's classic and antialiased modes against
+   the CPU kernels, renders and gradients; the trainer and renderer tests) and counts what ran;
+3. trains a synthetic textured-plane scene (``brave6d.training.toy_scenes``) with the fast preset
+   on the GPU and on the CPU (``benchmarks/training.py``): seconds per step and holdout PSNR;
+4. renders a 100k-Gaussian splat for serving on each device: median ms per frame.
+
+Without a GPU the CUDA parts are reported as not run (so the wiring is tested on the CPU).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT / "src") not in sys.path:  # the package, also without an install
+    sys.path.insert(0, str(ROOT / "src"))
+
+#: What the GPU image lacks for the checks, at the versions CI tests (read from this environment).
+CARRIED = ("gsplat", "pydantic", "pydantic-core", "annotated-types", "typing-inspection", "plyfile", "trimesh",
+           "pycolmap", "fastapi", "starlette", "uvicorn", "websockets", "gymnasium", "farama-notifications")
+GPU_PYTHON = "3.12"
+PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64",
+             "manylinux1_x86_64", "manylinux_2_5_x86_64")
+#: the tests that run only on a CUDA GPU (the rest of CUDA_TESTS runs everywhere)
+GPU_ONLY_TESTS = ("test_cuda_backend_matches_cpu", "test_cuda_gradients_match_cpu")
+CUDA_TESTS = ("tests/test_rasterizer.py", "tests/test_train_pipeline.py", "tests/test_serve_renderer.py")
+
+
+def prepare(dest: Path) -> list[Path]:
+    """Download the wheels in ``CARRIED`` (this environment's versions) for the GPU's Python into ``dest``."""
+    pins = []
+    for name in CARRIED:
+        try:
+            pins.append(f"{name}=={importlib.metadata.version(name)}")
+        except importlib.metadata.PackageNotFoundError as err:
+            raise SystemExit(f"gpu_checks prepare: {name} is not installed here (run bash scripts/setup.sh)") from err
+    dest.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:", "--python-version",
+           GPU_PYTHON, "--implementation", "cp", "-d", str(dest)]
+    for p in PLATFORMS:
+        cmd += ["--platform", p]
+    subprocess.run(cmd + pins, check=True)
+    wheels = sorted(dest.glob("*.whl"))
+    size_mb = sum(w.stat().st_size for w in wheels) / 1e6
+    print(f"{len(wheels)} wheels, {size_mb:.1f} MB in {dest} (the device carries at most 64 MiB with the tree)")
+    return wheels
+
+
+def _cuda() -> dict[str, Any] | None:
+    import torch
+
+    if not torch.cuda.is_available():
+        return None
+    return {"name": torch.cuda.get_device_name(0), "torch": torch.__version__, "cuda": torch.version.cuda}
+
+
+def build_gsplat() -> dict[str, Any]:
+    """Import gsplat's CUDA extension (JIT-compiled on first use); seconds it took."""
+    t0 = time.perf_counter()
+    try:
+        from gsplat.cuda._backend import _C  # noqa: F401  (gsplat's own build trigger)
+    except Exception as err:  # noqa: BLE001 - the report says why
+        return {"ok": False, "seconds": time.perf_counter() - t0, "error": f"{type(err).__name__}: {err}"}
+    return {"ok": _C is not None, "seconds": time.perf_counter() - t0, "gsplat": importlib.metadata.version("gsplat")}
+
+
+def run_tests(out: Path, tests: tuple[str, ...]) -> dict[str, Any]:
+    """The CUDA tests (and their CPU neighbours) under pytest; counts from its JUnit XML."""
+    import xml.etree.ElementTree as ET
+
+    xml = out / "pytest.xml"
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rs", f"--junitxml={xml}",
+                           "-o", "junit_family=xunit1", *tests], cwd=ROOT, capture_output=True, text=True)
+    (out / "pytest.log").write_text(proc.stdout + proc.stderr)
+    counts: dict[str, Any] = {"exit": proc.returncode, "seconds": time.perf_counter() - t0}
+    if xml.is_file():
+        suite = ET.parse(xml).getroot()
+        suite = suite if suite.tag == "testsuite" else suite[0]
+        counts.update({k: int(suite.get(k, 0)) for k in ("tests", "failures", "errors", "skipped")})
+        cuda_cases = [c for c in suite.iter("testcase") if c.get("name", "").startswith(GPU_ONLY_TESTS)]
+        counts["cuda_tests_run"] = sum(1 for c in cuda_cases if c.find("skipped") is None)
+        counts["cuda_tests_skipped"] = sum(1 for c in cuda_cases if c.find("skipped") is not None)
+        counts["cuda_tests_failed"] = [c.get("name") for c in cuda_cases
+                                       if c.find("failure") is not None or c.find("error") is not None]
+        # what the GPU-only tests measured (record_property): render differences, gradient errors
+        counts["measured"] = {c.get("name"): {p.get("name"): float(p.get("value")) for p in c.iter("property")}
+                              for c in cuda_cases if c.find("properties") is not None}
+    return counts
+
+
+def train_toy(out: Path, device: str, steps: int, every: int, width: int, views_per_ring: int) -> dict[str, Any]:
+    """The fast preset for ``steps`` on a synthetic textured plane (``benchmarks/training.py``), scored
+    every ``every`` steps (the CPU's shorter run is compared with the GPU's at the same step)."""
+    from brave6d.core.camera import PinholeCamera
+    from brave6d.training.toy_scenes import plane_views, write_scene
+
+    scene_dir = out / f"toy_scene_{width}"
+    if not (scene_dir / "capture").exists():
+        height = round(width * 0.625)
+        cam = PinholeCamera(width, height, 0.8 * width, 0.8 * width, (width - 1) / 2, (height - 1) / 2)
+        write_scene(scene_dir, cam, plane_views(cam, [0.25, 0.35, 0.45], views_per_ring))
+    js = out / f"training_{device}.json"
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "training.py"), str(scene_dir), "--preset", "fast",
+                           "--steps", str(steps), "--every", str(every), "--device", device, "--init", "random",
+                           "--json", str(js), "--png", str(out / f"training_{device}.png")],
+                          cwd=ROOT, capture_output=True, text=True)
+    (out / f"training_{device}.log").write_text(proc.stdout + proc.stderr)
+    if proc.returncode != 0 or not js.is_file():
+        return {"ok": False, "exit": proc.returncode, "seconds": time.perf_counter() - t0}
+    report = json.loads(js.read_text())
+    last = report["points"][-1]
+    return {"ok": True, "steps": report["steps"], "train_s": last["train_time_s"],
+            "s_per_step": last["train_time_s"] / max(1, report["steps"]), "holdout_psnr": last["holdout_psnr"],
+            "gaussians": last["num_gaussians"], "image_size": report["image_size"], "memory": report.get("memory"),
+            "points": [{k: p[k] for k in ("step", "train_time_s", "holdout_psnr")} for p in report["points"]]}
+
+
+def same_step_ratio(training: dict[str, Any]) -> dict[str, Any] | None:
+    """CPU over GPU training seconds at the last step both runs scored (the same work on each)."""
+    cuda, cpu = training.get("cuda", {}), training.get("cpu", {})
+    if not (cuda.get("ok") and cpu.get("ok")):
+        return None
+    at_gpu = {p["step"]: p for p in cuda["points"]}
+    shared = [p for p in cpu["points"] if p["step"] in at_gpu and p["step"] > 0]
+    if not shared:
+        return None
+    step = shared[-1]["step"]
+    g, c = at_gpu[step], shared[-1]
+    return {"step": step, "cpu_s": c["train_time_s"], "cuda_s": g["train_time_s"],
+            "speedup": c["train_time_s"] / max(g["train_time_s"], 1e-9),
+            "psnr_cpu": c["holdout_psnr"], "psnr_cuda": g["holdout_psnr"]}
+
+
+def render_timing(device: str, n_gaussians: int, repeats: int) -> dict[str, Any]:
+    """Median ms per 640x400 frame of a synthetic splat through the serving renderer."""
+    import numpy as np
+
+    from brave6d.core.camera import PinholeCamera
+    from brave6d.core.transforms import look_at
+    from brave6d.serve.renderer import SplatRenderer
+    from brave6d.serve.toy_scene import synthetic_splat
+
+    renderer = SplatRenderer.from_splat(synthetic_splat(n_gaussians, seed=1), device=device)
+    cam = PinholeCamera(640, 400, 500.0, 500.0, 319.5, 199.5)
+    times = []
+    for i in range(repeats + 2):  # two warm-ups
+        angle = 2 * np.pi * i / max(1, repeats)
+        pose = look_at(np.array([0.35 * np.cos(angle), 0.35 * np.sin(angle), 0.3]), np.zeros(3))
+        t0 = time.perf_counter()
+        frame = renderer.render(pose, cam)
+        if device == "cuda":
+            import torch
+
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+        if not np.isfinite(np.asarray(frame.rgb, dtype=np.float64)).all():
+            return {"ok": False, "error": f"non-finite pixels in frame {i}"}
+    return {"ok": True, "gaussians": n_gaussians, "ms_median": 1000 * statistics.median(times[2:]),
+            "repeats": repeats}
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """The report as a short page (what a session pastes into its note and docs/BENCHMARKS.md)."""
+    cuda = report["cuda"]
+    lines = [f"# GPU checks ({cuda['name'] if cuda else 'no CUDA GPU: CUDA parts not run'})", "",
+             f"torch {report['torch']}, Python {report['python']}, commit {report['commit']}", ""]
+    if report.get("gsplat_build"):
+        b = report["gsplat_build"]
+        lines.append(f"- gsplat CUDA extension: {'built' if b['ok'] else 'FAILED'} in {b['seconds']:.0f} s"
+                     + ("" if b["ok"] else f" ({b['error']})"))
+    if report.get("tests"):
+        t = report["tests"]
+        lines.append(f"- tests: {t.get('tests')} ({t.get('failures')} failed, {t.get('errors')} errors, "
+                     f"{t.get('skipped')} skipped); CUDA tests run {t.get('cuda_tests_run')}, skipped "
+                     f"{t.get('cuda_tests_skipped')}; exit {t['exit']} in {t['seconds']:.0f} s")
+        if t.get("cuda_tests_failed"):
+            lines.append(f"- CUDA tests FAILED: {', '.join(t['cuda_tests_failed'])}")
+        for name, props in (t.get("measured") or {}).items():
+            lines.append(f"  - {name}: " + ", ".join(f"{k} {v:.2e}" for k, v in props.items()))
+    rows = [(d, r) for d, r in report.get("training", {}).items() if r.get("ok")]
+    if rows:
+        lines += ["", "| training (toy plane, fast preset) | steps | s/step | holdout PSNR (dB) | Gaussians |",
+                  "|---|---|---|---|---|"]
+        lines += [f"| {d} | {r['steps']} | {r['s_per_step']:.4f} | {r['holdout_psnr']:.2f} | {r['gaussians']} |"
+                  for d, r in rows]
+    same = report.get("same_step")
+    if same:
+        lines.append(f"\nAt step {same['step']}: CPU {same['cpu_s']:.1f} s, GPU {same['cuda_s']:.1f} s "
+                     f"({same['speedup']:.1f}x); holdout PSNR {same['psnr_cpu']:.2f} / {same['psnr_cuda']:.2f} dB")
+    rows = [(d, r) for d, r in report.get("render", {}).items() if r.get("ok")]
+    if rows:
+        lines += ["", "| serving render, 640x400 | Gaussians | ms per frame (median) |", "|---|---|---|"]
+        lines += [f"| {d} | {r['gaussians']} | {r['ms_median']:.1f} |" for d, r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    cuda = _cuda()
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    report: dict[str, Any] = {"cuda": cuda, "torch": torch.__version__, "python": platform.python_version(),
+                              "commit": commit.stdout.strip() or "unknown", "training": {}, "render": {}}
+    devices = ["cuda", "cpu"] if cuda else ["cpu"]
+
+    def save() -> None:
+        (out / "gpu_checks.json").write_text(json.dumps(report, indent=2))
+        (out / "gpu_checks.md").write_text(markdown(report))
+
+    if cuda:
+        report["gsplat_build"] = build_gsplat()
+        save()
+        print(markdown(report), flush=True)
+    if not args.skip_tests:
+        report["tests"] = run_tests(out, CUDA_TESTS)
+        save()
+        print(markdown(report), flush=True)
+    for device in devices:
+        steps = args.steps if device == "cuda" else args.cpu_steps
+        report["training"][device] = train_toy(out, device, steps, args.cpu_steps, args.width, args.views_per_ring)
+        report["same_step"] = same_step_ratio(report["training"])
+        save()
+        print(markdown(report), flush=True)
+    for device in devices:
+        report["render"][device] = render_timing(device, args.gaussians, args.repeats)
+    save()
+    print(markdown(report), flush=True)
+    failed = (report.get("gsplat_build", {"ok": True})["ok"] is False
+              or report.get("tests", {"exit": 0})["exit"] != 0
+              or not all(r.get("ok") for part in ("training", "render") for r in report[part].values()))
+    return 1 if failed else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("prepare", help="download the wheels the GPU image lacks (run here)")
+    p.add_argument("--dest", type=Path, default=ROOT / ".whl")
+    r = sub.add_parser("run", help="run the checks (on the GPU machine: bash benchmarks/gpu_checks.sh)")
+    r.add_argument("--out", type=Path, required=True, help="folder for the report and logs")
+    r.add_argument("--steps", type=int, default=2000, help="GPU training steps")
+    r.add_argument("--cpu-steps", type=int, default=300, help="CPU training steps (the same schedule, cut short)")
+    r.add_argument("--width", type=int, default=640, help="toy scene image width (the fast preset halves it)")
+    r.add_argument("--views-per-ring", type=int, default=16)
+    r.add_argument("--gaussians", type=int, default=100_000, help="splat size for the render timing")
+    r.add_argument("--repeats", type=int, default=20, help="timed renders per device")
+    r.add_argument("--skip-tests", action="store_true", help="leave out step 2 (pytest)")
+    args = ap.parse_args(argv)
+    if args.command == "prepare":
+        prepare(args.dest)
+        return 0
+    return run(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# The GPU checks (benchmarks/gpu_checks.py) on a lent GPU machine, in one call of the device tool:
+#   here:   python benchmarks/gpu_checks.py prepare     (wheels into .whl/, ignored by git)
+#   device: run(command="bash benchmarks/gpu_checks.sh", carry=[".whl"], timeout_s=540)
+# Extra arguments go to `gpu_checks.py run` (e.g. --steps 1000 --skip-tests).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+out="${OUT:-/tmp/gpu_checks}"
+mkdir -p "$out"
+if compgen -G ".whl/*.whl" >/dev/null; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
+  export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
+fi
+export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+# gsplat compiles its CUDA extension on first use: for this GPU only, with every core
+export MAX_JOBS="${MAX_JOBS:-$(nproc)}" FAST_COMPILE="${FAST_COMPILE:-1}"
+if [ -z "${TORCH_CUDA_ARCH_LIST:-}" ]; then
+  TORCH_CUDA_ARCH_LIST="$(python3 -c 'import torch; c = torch.cuda.get_device_capability() if torch.cuda.is_available() else None; print(f"{c[0]}.{c[1]}" if c else "")')"
+  [ -n "$TORCH_CUDA_ARCH_LIST" ] && export TORCH_CUDA_ARCH_LIST || unset TORCH_CUDA_ARCH_LIST
+fi
+set -o pipefail
+python3 benchmarks/gpu_checks.py run --out "$out" "$@" 2>&1 | tee "$out/gpu_checks.log"

@@ -1,0 +1,82 @@
+"""benchmarks/gpu_checks.py, the prepared run for a session lent a GPU: its wiring end to end on the
+CPU (the CUDA parts reported as not run), how it reads the GPU-only tests' results, and its report."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+_spec = importlib.util.spec_from_file_location("gpu_checks_benchmark", ROOT / "benchmarks" / "gpu_checks.py")
+gpu_checks = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(gpu_checks)
+
+
+@pytest.mark.slow
+def test_the_run_trains_and_renders_on_the_cpu_and_says_the_cuda_parts_did_not_run(tmp_path: Path) -> None:
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is present: the CPU-only report does not apply")
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_checks.py"), "run", "--out", str(out),
+                           "--skip-tests", "--steps", "6", "--cpu-steps", "6", "--width", "160",
+                           "--views-per-ring", "3", "--gaussians", "2000", "--repeats", "2"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    report = json.loads((out / "gpu_checks.json").read_text())
+    assert report["cuda"] is None and "gsplat_build" not in report and "tests" not in report
+    assert set(report["training"]) == {"cpu"} and set(report["render"]) == {"cpu"}
+    train = report["training"]["cpu"]
+    assert train["ok"] and train["steps"] == 6 and train["image_size"] == [80, 50]
+    assert math.isfinite(train["holdout_psnr"]) and train["s_per_step"] > 0
+    render = report["render"]["cpu"]
+    assert render["ok"] and render["gaussians"] == 2000 and render["ms_median"] > 0
+    page = (out / "gpu_checks.md").read_text()
+    assert "no CUDA GPU: CUDA parts not run" in page and "| cpu | 6 |" in page
+    assert report["same_step"] is None  # nothing to compare without a GPU
+
+
+def test_the_gpu_only_tests_are_counted_and_their_measurements_read(tmp_path: Path) -> None:
+    """run_tests reads pytest's JUnit XML: which GPU-only tests ran, failed or skipped, and what
+    they recorded; a test of another name does not count as a GPU test."""
+    (tmp_path / "test_fake_gpu.py").write_text(
+        "import pytest\n"
+        "def test_cuda_backend_matches_cpu(record_property):\n"
+        "    record_property('max_abs_diff_rgb', 2.5e-6)\n"
+        "def test_cuda_gradients_match_cpu(record_property):\n"
+        "    record_property('grad_rel_err_means', 0.02)\n"
+        "    assert False, 'too far'\n"
+        "@pytest.mark.skip(reason='needs a CUDA GPU')\n"
+        "def test_cuda_gradients_match_cpu_again():\n"
+        "    pass\n"
+        "def test_cuda_without_gpu_is_a_clear_error():\n"
+        "    pass\n")
+    counts = gpu_checks.run_tests(tmp_path, (str(tmp_path / "test_fake_gpu.py"),))
+    assert counts["exit"] == 1 and counts["tests"] == 4 and counts["failures"] == 1 and counts["skipped"] == 1
+    assert counts["cuda_tests_run"] == 2 and counts["cuda_tests_skipped"] == 1
+    assert counts["cuda_tests_failed"] == ["test_cuda_gradients_match_cpu"]
+    assert counts["measured"] == {"test_cuda_backend_matches_cpu": {"max_abs_diff_rgb": 2.5e-6},
+                                  "test_cuda_gradients_match_cpu": {"grad_rel_err_means": 0.02}}
+    page = gpu_checks.markdown({"cuda": {"name": "NVIDIA H100"}, "torch": "2.11", "python": "3.12", "commit": "abc",
+                                "tests": counts, "training": {}, "render": {}})
+    assert "CUDA tests FAILED: test_cuda_gradients_match_cpu" in page and "grad_rel_err_means 2.00e-02" in page
+
+
+def test_cpu_and_gpu_training_are_compared_at_the_same_step() -> None:
+    """The CPU's shorter run against the GPU's at the last step both scored, not at their ends."""
+    gpu = {"ok": True, "points": [{"step": 0, "train_time_s": 0.0, "holdout_psnr": 10.0},
+                                  {"step": 300, "train_time_s": 6.0, "holdout_psnr": 20.0},
+                                  {"step": 600, "train_time_s": 12.0, "holdout_psnr": 24.0}]}
+    cpu = {"ok": True, "points": [{"step": 0, "train_time_s": 0.0, "holdout_psnr": 10.0},
+                                  {"step": 300, "train_time_s": 90.0, "holdout_psnr": 20.1}]}
+    same = gpu_checks.same_step_ratio({"cuda": gpu, "cpu": cpu})
+    assert same == {"step": 300, "cpu_s": 90.0, "cuda_s": 6.0, "speedup": 15.0, "psnr_cpu": 20.1, "psnr_cuda": 20.0}
+    assert gpu_checks.same_step_ratio({"cuda": {**gpu, "ok": False}, "cpu": cpu}) is None
+    assert gpu_checks.same_step_ratio({"cuda": gpu, "cpu": {**cpu, "points": cpu["points"][:1]}}) is None
