@@ -1,9 +1,11 @@
 """Multi-view fusion: one pose from the registrations of every view of an episode.
 
 The submitted pose is expressed in the final view's camera frame (where VSD and MSPD are scored):
-that view's own registration, refined by point-to-plane ICP on the clusters of every view at once
-(the views see more sides of the object than one) and kept when it explains the views at least as
-well. Views are weighed by reliability: each by how well its own best registration explains it, so
+of that view's own registration and the other views' registrations that put the object at the same
+place, the one that explains every view best (a nearer or side view may show how the object is
+turned where the final view cannot), refined by point-to-plane ICP on the clusters of every view at
+once (the views see more sides of the object than one) and kept when it explains the views at least
+as well. Views are weighed by reliability: each by how well its own best registration explains it, so
 a view no model pose explains (a splat artefact, a neighbour taken for the target) votes less.
 """
 
@@ -31,6 +33,9 @@ from brave6d.evaluation.agents.registration import (
 )
 
 Array = NDArray[np.float64]
+#: Another view's fit competes with the final view's own when the model's centroid lies within this
+#: many model diameters under both (the same object, however each turned it).
+SAME_PLACE_DIAMETERS = 0.5
 
 
 def register_views(model: ModelCloud, views: Sequence[View], options: RegistrationOptions = RegistrationOptions(),
@@ -38,8 +43,9 @@ def register_views(model: ModelCloud, views: Sequence[View], options: Registrati
     """The target's pose in the camera frame of ``final`` (default: the last of ``views``) from
     every view with a cluster, each candidate judged by its weighted mean score over all those
     views (:func:`view_weights`). With a cluster in the final view: its own registration (not
-    redone when ``final`` is one of ``views``), refined on all the views at once when that scores
-    no worse. Without one: the views' registration with the best weighted mean. None when no view
+    redone when ``final`` is one of ``views``) or another view's that puts the model's centroid
+    within ``SAME_PLACE_DIAMETERS`` of it, whichever has the best weighted mean (the own one on a
+    tie), refined on all the views at once when that scores no worse. Without one: the views' registration with the best weighted mean. None when no view
     has a cluster."""
     found = [v for v in views if v.perception.cluster is not None]
     if not found:
@@ -73,13 +79,26 @@ def register_views(model: ModelCloud, views: Sequence[View], options: Registrati
         else:
             score, cam_T_obj, best = max(((mean_score(T), T, r) for T, r in zip(in_final, regs)), key=lambda c: c[0])
             return Registration(cam_T_obj, score, best.fitness, best.method, best.hypotheses)
-        score = mean_score(cam_T_obj)
+        # The other views' fits that put the object where the final view sees it compete on how it
+        # is turned: a nearer or side view may show what the final view cannot (a cup's handle a few
+        # pixels wide); a fit elsewhere (a neighbour, an artefact) does not compete.
+        near = SAME_PLACE_DIAMETERS * model.diameter_m
+        rivals = [(T, r) for i, (T, r) in enumerate(zip(in_final, regs))
+                  if i != i_final and _centre_distance(model, T, cam_T_obj) <= near]
+        score, cam_T_obj, own = max([(mean_score(cam_T_obj), cam_T_obj, own)] +
+                                    [(mean_score(T), T, r) for T, r in rivals], key=lambda c: c[0])
         if len(found) > 1:
             refined = multiview_icp(model, cam_T_obj, scenes, refs_T_cam, voxel)
             refined_score = mean_score(refined)
             if refined_score >= score:
                 score, cam_T_obj = refined_score, refined
     return Registration(cam_T_obj, score, own.fitness, own.method, own.hypotheses)
+
+
+def _centre_distance(model: ModelCloud, a_T_obj: Array, b_T_obj: Array) -> float:
+    """Distance (m) between the model's centroid under two poses."""
+    centre = model.points.mean(axis=0)
+    return float(np.linalg.norm((a_T_obj[:3, :3] - b_T_obj[:3, :3]) @ centre + a_T_obj[:3, 3] - b_T_obj[:3, 3]))
 
 
 def view_weights(own_scores: Sequence[float]) -> Array:
