@@ -160,6 +160,7 @@ def same_step_ratio(training: dict[str, Any]) -> dict[str, Any] | None:
 def render_timing(device: str, n_gaussians: int, repeats: int) -> dict[str, Any]:
     """Median ms per 640x400 frame of a synthetic splat through the serving renderer."""
     import numpy as np
+    import torch
 
     from brave6d.core.camera import PinholeCamera
     from brave6d.core.transforms import look_at
@@ -175,8 +176,6 @@ def render_timing(device: str, n_gaussians: int, repeats: int) -> dict[str, Any]
         t0 = time.perf_counter()
         frame = renderer.render(pose, cam)
         if device == "cuda":
-            import torch
-
             torch.cuda.synchronize()
         times.append(time.perf_counter() - t0)
         if not np.isfinite(np.asarray(frame.rgb, dtype=np.float64)).all():
@@ -232,27 +231,26 @@ def run(args: argparse.Namespace) -> int:
     devices = ["cuda", "cpu"] if cuda else ["cpu"]
 
     def save() -> None:
+        """After each step: what is known so far on disk and on screen (a run cut short keeps it)."""
+        page = markdown(report)
         (out / "gpu_checks.json").write_text(json.dumps(report, indent=2))
-        (out / "gpu_checks.md").write_text(markdown(report))
+        (out / "gpu_checks.md").write_text(page)
+        print(page, flush=True)
 
     if cuda:
         report["gsplat_build"] = build_gsplat()
         save()
-        print(markdown(report), flush=True)
     if not args.skip_tests:
         report["tests"] = run_tests(out, CUDA_TESTS)
         save()
-        print(markdown(report), flush=True)
     for device in devices:
         steps = args.steps if device == "cuda" else args.cpu_steps
         report["training"][device] = train_toy(out, device, steps, args.cpu_steps, args.width, args.views_per_ring)
         report["same_step"] = same_step_ratio(report["training"])
         save()
-        print(markdown(report), flush=True)
     for device in devices:
         report["render"][device] = render_timing(device, args.gaussians, args.repeats)
     save()
-    print(markdown(report), flush=True)
     failed = (report.get("gsplat_build", {"ok": True})["ok"] is False
               or report.get("tests", {"exit": 0})["exit"] != 0
               or not all(r.get("ok") for part in ("training", "render") for r in report[part].values()))

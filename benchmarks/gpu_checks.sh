@@ -18,5 +18,4 @@ if [ -z "${TORCH_CUDA_ARCH_LIST:-}" ]; then
   TORCH_CUDA_ARCH_LIST="$(python3 -c 'import torch; c = torch.cuda.get_device_capability() if torch.cuda.is_available() else None; print(f"{c[0]}.{c[1]}" if c else "")')"
   [ -n "$TORCH_CUDA_ARCH_LIST" ] && export TORCH_CUDA_ARCH_LIST || unset TORCH_CUDA_ARCH_LIST
 fi
-set -o pipefail
 python3 benchmarks/gpu_checks.py run --out "$out" "$@" 2>&1 | tee "$out/gpu_checks.log"

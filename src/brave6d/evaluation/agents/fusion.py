@@ -45,8 +45,8 @@ def register_views(model: ModelCloud, views: Sequence[View], options: Registrati
     views (:func:`view_weights`). With a cluster in the final view: its own registration (not
     redone when ``final`` is one of ``views``) or another view's that puts the model's centroid
     within ``SAME_PLACE_DIAMETERS`` of it, whichever has the best weighted mean (the own one on a
-    tie), refined on all the views at once when that scores no worse. Without one: the views' registration with the best weighted mean. None when no view
-    has a cluster."""
+    tie), refined on all the views at once when that scores no worse. Without one: the views'
+    registration with the best weighted mean. None when no view has a cluster."""
     found = [v for v in views if v.perception.cluster is not None]
     if not found:
         return None
@@ -82,9 +82,9 @@ def register_views(model: ModelCloud, views: Sequence[View], options: Registrati
         # The other views' fits that put the object where the final view sees it compete on how it
         # is turned: a nearer or side view may show what the final view cannot (a cup's handle a few
         # pixels wide); a fit elsewhere (a neighbour, an artefact) does not compete.
-        near = SAME_PLACE_DIAMETERS * model.diameter_m
+        near, centre = SAME_PLACE_DIAMETERS * model.diameter_m, model.points.mean(axis=0)
         rivals = [(T, r) for i, (T, r) in enumerate(zip(in_final, regs))
-                  if i != i_final and _centre_distance(model, T, cam_T_obj) <= near]
+                  if i != i_final and _distance_of(centre, T, cam_T_obj) <= near]
         score, cam_T_obj, own = max([(mean_score(cam_T_obj), cam_T_obj, own)] +
                                     [(mean_score(T), T, r) for T, r in rivals], key=lambda c: c[0])
         if len(found) > 1:
@@ -95,9 +95,8 @@ def register_views(model: ModelCloud, views: Sequence[View], options: Registrati
     return Registration(cam_T_obj, score, own.fitness, own.method, own.hypotheses)
 
 
-def _centre_distance(model: ModelCloud, a_T_obj: Array, b_T_obj: Array) -> float:
-    """Distance (m) between the model's centroid under two poses."""
-    centre = model.points.mean(axis=0)
+def _distance_of(centre: Array, a_T_obj: Array, b_T_obj: Array) -> float:
+    """Distance (m) between where two poses put the model-frame point ``centre``."""
     return float(np.linalg.norm((a_T_obj[:3, :3] - b_T_obj[:3, :3]) @ centre + a_T_obj[:3, 3] - b_T_obj[:3, 3]))
 
 
