@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import importlib.util
+import json
 import logging
+import shutil
+import sqlite3
 import struct
 from pathlib import Path
 
@@ -14,7 +18,9 @@ from brave6d.core.camera import PinholeCamera
 from brave6d.training.colmap_init import (
     ColmapOptions,
     colmap_pinhole_params,
+    extract_features,
     initial_points,
+    match_pairs,
     nearest_camera_pairs,
     random_points,
     voxel_downsample,
@@ -202,3 +208,53 @@ def test_new_image_contents_are_triangulated_again(plane_scene, tmp_path: Path,
     monkeypatch.setattr(ci, "triangulate", counted)
     initial_points(scene, load_scene(scene), OPTS, max_points=1000)
     assert calls == [1]
+
+
+def _colmap_threads_benchmark():  # type: ignore[no-untyped-def]
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "colmap_threads.py"
+    spec = importlib.util.spec_from_file_location("colmap_threads_benchmark", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow
+def test_matching_the_same_features_again_gives_the_same_matches(plane_scene, tmp_path: Path) -> None:
+    """The default matching (one thread, seeded RANSAC) is repeatable on one database; several
+    matching threads were not always (see match_pairs), which the fresh-process training test met."""
+    scene, data, _ = plane_scene
+    images = [(v.rgb_path.name, v.base_T_cam) for v in data.train]
+    features = tmp_path / "features.db"
+    extract_features(features, data.undistorted_root / "rgb", data.full_camera or data.camera,
+                     [n for n, _ in images], OPTS)
+    digests = set()
+    for r in range(3):
+        db = tmp_path / f"{r}.db"
+        shutil.copy(features, db)
+        assert match_pairs(db, images, tmp_path / "pairs.txt", OPTS) == len(nearest_camera_pairs(
+            np.array([T[:3, 3] for _, T in images]), OPTS.neighbours))
+        with sqlite3.connect(db) as con:
+            verified = con.execute("SELECT SUM(rows) FROM two_view_geometries").fetchone()[0]
+        assert verified > 1000  # real matches on the textured plane, not empty tables
+        digests.add(_colmap_threads_benchmark().matches_digest(db))
+    assert len(digests) == 1
+    listed = (tmp_path / "pairs.txt").read_text().split("\n")
+    assert len([line for line in listed if line]) == len(nearest_camera_pairs(
+        np.array([T[:3, 3] for _, T in images]), OPTS.neighbours))
+
+
+@pytest.mark.slow
+def test_colmap_threads_benchmark_prices_both_stages(plane_scene, tmp_path: Path) -> None:
+    scene, _, _ = plane_scene
+    out = tmp_path / "threads.json"
+    assert _colmap_threads_benchmark().main([str(scene.root), "--repeats", "2", "--threads", "2",
+                                             "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["pairs"] > 0 and result["extract_s"] > 0
+    for stage in ("match", "triangulate"):
+        for name in ("1 thread", "2 threads"):
+            entry = result[stage][name]
+            assert len(entry["seconds"]) == 2 and entry["median_s"] > 0
+            assert entry["different_results"] == len(entry["results"]) >= 1
+    assert result["match"]["1 thread"]["different_results"] == 1  # the default is repeatable
+    assert result["triangulate"]["1 thread"]["different_results"] == 1

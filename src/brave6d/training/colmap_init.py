@@ -69,11 +69,11 @@ class ColmapOptions:
 
     max_features: int = 4096
     neighbours: int = 8  # each image is matched with this many nearest cameras
-    num_threads: int = -1
+    num_threads: int = -1  # feature extraction threads (-1: every core; the features do not depend on it)
     min_points: int = 1000  # fewer triangulated points -> depth fallback
     max_reprojection_error: float = 2.0  # px; points above are dropped from the initialisation
     seed: int = 0  # RANSAC and triangulation seeds (repeatable points)
-    match_threads: int | None = None  # matching + verification threads (None: num_threads)
+    match_threads: int = 1  # matching + verification threads; 1: repeatable (see match_pairs)
     triangulation_threads: int | None = None  # bundle adjustment threads (None: 1, repeatable; see triangulate_database)
 
 
@@ -198,34 +198,64 @@ def triangulate(
 
     ``images``: ``(file name in image_dir, base_T_cam)``. ``work_dir`` holds the database
     (``database.db``, which :func:`triangulate_database` can triangulate again).
-    Repeatable: images are imported in a fixed order, every pair's RANSAC is seeded
-    (``options.seed``) and runs on one thread, and the bundle adjustment runs on one thread.
+    Repeatable: see :func:`extract_features`, :func:`match_pairs` and :func:`triangulate_database`.
     """
-    pc = _pycolmap()
     work_dir.mkdir(parents=True, exist_ok=True)
     db_path = work_dir / "database.db"
-    if db_path.exists():
-        db_path.unlink()
-    names = [n for n, _ in images]
-    pose_of = dict(images)
+    t0 = time.perf_counter()
+    extract_features(db_path, image_dir, camera, [n for n, _ in images], options)
+    t1 = time.perf_counter()
+    n_pairs = match_pairs(db_path, images, work_dir / "pairs.txt", options)
+    t2 = time.perf_counter()
+    rec = triangulate_database(db_path, image_dir, images, work_dir / "triangulated", options)
+    t3 = time.perf_counter()
+    log.info("COLMAP: %d images, %d pairs, %d points (extract %.1f s, match %.1f s, triangulate %.1f s)",
+             len(images), n_pairs, rec.num_points3D(), t1 - t0, t2 - t1, t3 - t2)
+    rec_timings = {"extract_s": t1 - t0, "match_s": t2 - t1, "triangulate_s": t3 - t2, "pairs": n_pairs}
+    return rec, rec_timings
+
+
+def extract_features(db_path: Path, image_dir: Path, camera: PinholeCamera, names: list[str],
+                     options: ColmapOptions = ColmapOptions()) -> None:
+    """A new COLMAP database at ``db_path`` (an old one is replaced) with the SIFT features of ``names``.
+
+    The images are imported first, on one thread and in the given order, so that image ids do not
+    depend on thread timing; the extraction itself runs on ``options.num_threads`` (each image's
+    features are the same whichever thread extracts them).
+    """
+    pc = _pycolmap()
+    db_path.parent.mkdir(parents=True, exist_ok=True)
+    db_path.unlink(missing_ok=True)
     reader = pc.ImageReaderOptions(camera_model="PINHOLE",
                                    camera_params=",".join(repr(p) for p in colmap_pinhole_params(camera)))
     extraction = pc.FeatureExtractionOptions()
     extraction.num_threads = options.num_threads
     extraction.sift.max_num_features = options.max_features
-    t0 = time.perf_counter()
-    # import first (one thread, fixed order) so that image ids do not depend on thread timing
     pc.Database.open(db_path).close()
     pc.import_images(db_path, image_dir, camera_mode=pc.CameraMode.SINGLE, image_names=names, options=reader)
     pc.extract_features(db_path, image_dir, image_names=names, camera_mode=pc.CameraMode.SINGLE,
                         reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
-    t1 = time.perf_counter()
-    centres = np.array([pose_of[n][:3, 3] for n in names])
+
+
+def match_pairs(db_path: Path, images: list[tuple[str, NDArray[np.float64]]], pairs_path: Path,
+                options: ColmapOptions = ColmapOptions()) -> int:
+    """Match each image of ``images`` (name, base_T_cam) with its ``options.neighbours`` nearest cameras
+    and verify each pair's geometry, into ``db_path``; returns the number of pairs (listed in ``pairs_path``).
+
+    Repeatable at ``options.match_threads = 1`` (the default): every pair's RANSAC is seeded
+    (``options.seed``) and runs on one thread. With several matching threads, COLMAP's CPU matchers
+    search the shared per-image descriptor indexes (FAISS, over the OpenBLAS built into pycolmap)
+    at the same time, and now and then a pair's matches differ between runs of the same database:
+    3 of 150 repeated matchings of the test plane scene at 8 threads, none of 150 at 1
+    (``benchmarks/colmap_threads.py --stage match``, which also prices the thread count).
+    """
+    pc = _pycolmap()
+    names = [n for n, _ in images]
+    centres = np.array([T[:3, 3] for _, T in images])
     pairs = nearest_camera_pairs(centres, options.neighbours)
-    pairs_path = work_dir / "pairs.txt"
-    pairs_path.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in pairs))
+    atomic_write_text(pairs_path, "".join(f"{names[i]} {names[j]}\n" for i, j in pairs))
     matching = pc.FeatureMatchingOptions()
-    matching.num_threads = options.num_threads if options.match_threads is None else options.match_threads
+    matching.num_threads = options.match_threads
     verification = pc.TwoViewGeometryOptions()
     verification.ransac.random_seed = options.seed
     verification.ransac.num_threads = 1  # COLMAP's parallel RANSAC keeps whichever thread's best model comes first
@@ -233,13 +263,7 @@ def triangulate(
     pc.match_image_pairs(db_path, matching_options=matching,
                          pairing_options=pc.ImportedPairingOptions(match_list_path=pairs_path),
                          verification_options=verification, device=pc.Device.cpu)
-    t2 = time.perf_counter()
-    rec = triangulate_database(db_path, image_dir, images, work_dir / "triangulated", options)
-    t3 = time.perf_counter()
-    log.info("COLMAP: %d images, %d pairs, %d points (extract %.1f s, match %.1f s, triangulate %.1f s)",
-             len(names), len(pairs), rec.num_points3D(), t1 - t0, t2 - t1, t3 - t2)
-    rec_timings = {"extract_s": t1 - t0, "match_s": t2 - t1, "triangulate_s": t3 - t2, "pairs": len(pairs)}
-    return rec, rec_timings
+    return len(pairs)
 
 
 def triangulate_database(db_path: Path, image_dir: Path, images: list[tuple[str, NDArray[np.float64]]],
