@@ -227,20 +227,20 @@ def test_matching_the_same_features_again_gives_the_same_matches(plane_scene, tm
     features = tmp_path / "features.db"
     extract_features(features, data.undistorted_root / "rgb", data.full_camera or data.camera,
                      [n for n, _ in images], OPTS)
+    n_pairs = len(nearest_camera_pairs(np.array([T[:3, 3] for _, T in images]), OPTS.neighbours))
+    matches_digest = _colmap_threads_benchmark().matches_digest
     digests = set()
     for r in range(3):
         db = tmp_path / f"{r}.db"
         shutil.copy(features, db)
-        assert match_pairs(db, images, tmp_path / "pairs.txt", OPTS) == len(nearest_camera_pairs(
-            np.array([T[:3, 3] for _, T in images]), OPTS.neighbours))
+        assert match_pairs(db, images, tmp_path / "pairs.txt", OPTS) == n_pairs
         with sqlite3.connect(db) as con:
             verified = con.execute("SELECT SUM(rows) FROM two_view_geometries").fetchone()[0]
         assert verified > 1000  # real matches on the textured plane, not empty tables
-        digests.add(_colmap_threads_benchmark().matches_digest(db))
+        digests.add(matches_digest(db))
     assert len(digests) == 1
     listed = (tmp_path / "pairs.txt").read_text().split("\n")
-    assert len([line for line in listed if line]) == len(nearest_camera_pairs(
-        np.array([T[:3, 3] for _, T in images]), OPTS.neighbours))
+    assert len([line for line in listed if line]) == n_pairs
 
 
 @pytest.mark.slow

@@ -200,8 +200,7 @@ def triangulate(
     (``database.db``, which :func:`triangulate_database` can triangulate again).
     Repeatable: see :func:`extract_features`, :func:`match_pairs` and :func:`triangulate_database`.
     """
-    work_dir.mkdir(parents=True, exist_ok=True)
-    db_path = work_dir / "database.db"
+    db_path = work_dir / "database.db"  # extract_features makes work_dir
     t0 = time.perf_counter()
     extract_features(db_path, image_dir, camera, [n for n, _ in images], options)
     t1 = time.perf_counter()
