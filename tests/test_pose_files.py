@@ -101,7 +101,7 @@ def test_bad_files_are_named_with_the_cause(tmp_path, text, fmt, message) -> Non
 
 
 def test_bad_json_yaml_and_npy_are_named(tmp_path) -> None:
-    for name, text, message in [("a.json", "{", "invalid JSON"), ("b.yaml", "x: [1, 2", "invalid YAML"),
+    for name, text, message in [("a.json", "{", "not valid JSON"), ("b.yaml", "x: [1, 2", "invalid YAML"),
                                 ("c.yaml", "x: 1\nx: 2\n", "duplicate key"),
                                 ("u.yaml", "x: 1\ny: 2\nz: 3\nrx: 0\nry: 0\nrz: 0\n", "rx ry rz are ambiguous"),
                                 ("d.json", json.dumps({"x": 1, "y": 2, "z": 3, "qx": 0, "qy": 0, "qz": 0, "qw": "NaN"}),

@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import DataError, DegenerateGeometryError
-from brave6d.core.png_check import MAX_PIXELS, png_problem
+from brave6d.core.png_check import check_image_header, png_problem
 from brave6d.core.progress import progress
 from brave6d.core.spec import BoardSpec
 from brave6d.core.transforms import invert, matrix_to_rpy_deg
@@ -102,11 +102,13 @@ def read_calibration_image(path: Path, size: tuple[int, int] | None = None) -> N
         problem = png_problem(path, "any", check="header")
         if problem is not None:
             raise DataError(f"{path}: {problem}")
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    check_image_header(path)  # any format: the pixel limit from the header, before decoding
+    try:
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    except cv2.error:
+        image = None
     if image is None or image.size == 0:
         raise DataError(f"{path}: cannot be decoded as an image")
-    if image.size > MAX_PIXELS:
-        raise DataError(f"{path}: {image.shape[1]}x{image.shape[0]} pixels, more than {MAX_PIXELS} accepted")
     if size is not None and (image.shape[1], image.shape[0]) != size:
         raise DataError(f"{path}: image is {image.shape[1]}x{image.shape[0]}, the first image is {size[0]}x{size[1]}; "
                         "calibrate one camera at one resolution")

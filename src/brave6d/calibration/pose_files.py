@@ -25,7 +25,6 @@ ambiguous form, a bad quaternion or matrix.
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -37,6 +36,8 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from brave6d.core.errors import DataError, NonRigidTransformError
+from brave6d.core.json_input import read_json_file
+from brave6d.core.npy_check import read_npy
 from brave6d.core.transforms import check_rigid, orthonormalize
 from brave6d.core.yaml_io import read_yaml
 
@@ -237,20 +238,20 @@ def _load(path: Path) -> Any:
     suffix = path.suffix.lower()
     if suffix == ".npy":
         try:
-            return np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as exc:
-            raise PoseFileError(f"{path}: not a NumPy array file ({exc})") from None
+            return read_npy(path, MAX_FILE_BYTES)  # the header checked before anything is allocated
+        except DataError as exc:
+            raise PoseFileError(str(exc)) from None
     if suffix in (".yaml", ".yml"):
         return read_yaml(path, error=PoseFileError)
+    if suffix == ".json":
+        try:
+            return read_json_file(path)  # the one JSON reader: size, depth and number limits
+        except DataError as exc:
+            raise PoseFileError(str(exc)) from None
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise PoseFileError(f"{path}: cannot read as UTF-8 text ({exc})") from None
-    if suffix == ".json":
-        try:
-            return json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise PoseFileError(f"{path}:{exc.lineno}:{exc.colno}: invalid JSON: {exc.msg}") from None
     return _text_rows(path, text)
 
 

@@ -23,7 +23,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.core.errors import DataError
+from brave6d.core.json_input import read_json_file
 from brave6d.core.locks import FileLock, LockHeld, read_holder
+from brave6d.core.png_check import check_image_header
 
 log = logging.getLogger(__name__)
 
@@ -251,16 +253,9 @@ def _json_default(obj: Any) -> Any:
 
 
 def read_json(path: Path | str) -> Any:
-    """Read a JSON file; a missing or corrupt file raises :class:`DataError` naming it."""
-    p = Path(path)
-    try:
-        return json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DataError(f"{p}: file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(f"{p}: not valid JSON ({exc})") from None
-    except RecursionError:
-        raise DataError(f"{p}: JSON nested too deeply to read") from None
+    """Read a JSON file through the one JSON reader (:mod:`brave6d.core.json_input`: size, depth and
+    number limits); a missing, corrupt or over-limit file raises :class:`DataError` naming it."""
+    return read_json_file(path)
 
 
 def read_json_as(path: Path | str, parse: Callable[[Any], T]) -> T:
@@ -303,7 +298,11 @@ def read_png(path: Path | str, expect: str = "any", size: tuple[int, int] | None
     p = Path(path)
     if not p.is_file():
         raise DataError(f"{p}: image not found")
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    check_image_header(p)  # the pixel limit, before anything is decoded
+    try:
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        img = None
     if img is None:
         raise DataError(f"{p}: cannot decode image (corrupt or not a PNG)")
     if img.ndim == 3:

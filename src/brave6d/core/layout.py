@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import filecmp
 import hashlib
-import json
 import logging
 import os
 import shutil
@@ -23,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from brave6d.core.atomic import atomic_write_text
 from brave6d.core.errors import DataError, NonRigidTransformError, validation_error_field
+from brave6d.core.json_input import parse_json
 from brave6d.core.spec import SceneSpec, load_scene_spec, spec_to_yaml
 from brave6d.core.transforms import check_rigid
 
@@ -424,9 +424,7 @@ class FrameLog:
             if not line.strip():
                 continue
             try:
-                yield FrameRecord.model_validate(json.loads(line))
-            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-                raise DataError(f"{self.path}:{number}: not a JSON record ({exc})") from None
+                yield FrameRecord.model_validate(parse_json(line, f"{self.path}:{number}: not a JSON record"))
             except ValidationError as exc:
                 where, msg = validation_error_field(exc.errors(include_url=False), dotted=True)
                 raise DataError(f"{self.path}:{number}: field '{where}': {msg}") from None

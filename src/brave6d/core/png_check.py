@@ -14,6 +14,12 @@ image that declares more than ``MAX_PIXELS`` pixels is refused before anything i
 - ``decode``: ``crc``, then a full decode (OpenCV). Also finds compressed data that does not
   inflate to the image, which only a forged file (with recomputed CRCs) has.
 
+Every image that enters from elsewhere, in any format, is first held to ``MAX_PIXELS`` from its
+header alone (:func:`image_header_problem`, :func:`check_image_header`): ``read_png``, the
+importers (Pillow), ``calibrate folder``, ``estimate frame``, the BOP results reader. A header that
+claims 100000 x 100000 pixels is one line naming the file, never an allocation or an OpenCV /
+Pillow exception.
+
 Cost per 640x480 image (rgb, depth and ~4 objects' masks: 9 PNGs, 0.65 MiB; one thread, files in
 the page cache; ``benchmarks/synth.py --check-images 300`` on a busy 2-core machine): ``header``
 0.45 .. 0.6 ms, ``crc`` 1.2 .. 2.1 ms, ``decode`` 19 .. 38 ms; rendering the image takes ~500 ms.
@@ -41,6 +47,73 @@ FOLDER_KINDS = {"rgb": "rgb", "depth": "depth", "mask": "mask", "mask_visib": "m
 #: Larger images are refused before they are decoded (8192 x 8192).
 MAX_PIXELS = 1 << 26
 _COLOUR_WORDS = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
+
+
+def image_header_problem(source: bytes | Path, max_pixels: int = MAX_PIXELS) -> str | None:
+    """Why the image ``source`` (its bytes, or a file) must not be decoded: no image header that
+    Pillow or this module reads, or more than ``max_pixels`` pixels declared; None when it may be.
+
+    A PNG's IHDR is read here (its CRC checked); other formats' headers by Pillow, which reads the
+    header only (``Image.open`` is lazy) and whose own decompression-bomb limit is never reached
+    first (its error is no ``OSError``)."""
+    try:
+        if isinstance(source, Path):
+            with open(source, "rb") as handle:
+                head = handle.read(_HEAD)
+        else:
+            head = bytes(source[:_HEAD])
+    except FileNotFoundError:
+        return "missing"
+    except OSError as exc:
+        return f"cannot read ({exc.strerror or exc})"
+    if head.startswith(SIGNATURE):  # the IHDR alone (the file's end is the decoder's business)
+        return _header_problem(head, IEND, _HEAD + len(IEND), "any", None, max_pixels)
+    size = _pillow_size(source, max_pixels)
+    if isinstance(size, str):
+        return size
+    return _pixels_problem(*size, max_pixels)
+
+
+def check_image_header(path: Path | str, max_pixels: int = MAX_PIXELS) -> tuple[int, int]:
+    """(width, height) of the image file ``path`` from its header (:func:`image_header_problem`);
+    ``DataError`` naming the file when it must not be decoded."""
+    from brave6d.core.errors import DataError
+
+    p = Path(path)
+    problem = image_header_problem(p, max_pixels)
+    if problem is not None:
+        raise DataError(f"{p}: {'image not found' if problem == 'missing' else problem}")
+    with open(p, "rb") as handle:
+        head = handle.read(24)
+    if head.startswith(SIGNATURE):
+        return png_size(head)
+    size = _pillow_size(p)
+    assert not isinstance(size, str)
+    return size
+
+
+def _pillow_size(source: bytes | Path, max_pixels: int = MAX_PIXELS) -> tuple[int, int] | str:
+    """(width, height) from Pillow's reading of the header, or why it cannot be read."""
+    import io
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(source if isinstance(source, Path) else io.BytesIO(source)) as im:
+                return int(im.size[0]), int(im.size[1])
+    except Image.DecompressionBombError as exc:
+        return f"declares too many pixels (at most {max_pixels} are read): {exc}"
+    except (OSError, ValueError, SyntaxError, EOFError, struct.error) as exc:  # UnidentifiedImageError: an OSError
+        return f"not an image this program reads ({exc})"
+
+
+def _pixels_problem(width: int, height: int, max_pixels: int) -> str | None:
+    if not 0 < width * height <= max_pixels:
+        return f"declares {width}x{height} pixels (at most {max_pixels} are read)"
+    return None
 
 
 def folder_kind(relative: str) -> str | None:
@@ -92,7 +165,8 @@ def _ends(path: Path) -> tuple[bytes, bytes, int]:
         return head, handle.read(), length
 
 
-def _header_problem(head: bytes, tail: bytes, length: int, kind: str, size: tuple[int, int] | None) -> str | None:
+def _header_problem(head: bytes, tail: bytes, length: int, kind: str, size: tuple[int, int] | None,
+                    max_pixels: int = MAX_PIXELS) -> str | None:
     if not head:
         return "empty file"
     if not SIGNATURE.startswith(head[:len(SIGNATURE)]):
@@ -105,8 +179,9 @@ def _header_problem(head: bytes, tail: bytes, length: int, kind: str, size: tupl
     if zlib.crc32(head[12:29]) != struct.unpack(">I", head[29:33])[0]:
         return "damaged (IHDR CRC mismatch)"
     width, height, depth, colour, compression, filtering, interlace = struct.unpack(">IIBBBBB", head[16:29])
-    if not 0 < width * height <= MAX_PIXELS:
-        return f"declares {width}x{height} pixels (at most {MAX_PIXELS} are read)"
+    too_many = _pixels_problem(width, height, max_pixels)
+    if too_many is not None:
+        return too_many
     if size is not None and (width, height) != tuple(size):
         return f"image is {width}x{height}, expected {size[0]}x{size[1]}"
     want_depth, want_colours, words = KINDS[kind]

@@ -19,6 +19,7 @@ from yaml.constructor import ConstructorError
 from yaml.nodes import MappingNode, Node
 
 from brave6d.core.errors import BraveError, DataError
+from brave6d.core.json_input import DEFAULT_LIMITS
 
 #: Deepest nesting accepted (scene specs and 3D-DAT files use fewer than ten levels).
 MAX_DEPTH = 100
@@ -59,6 +60,28 @@ class StrictLoader(yaml.SafeLoader):
                                        f"duplicate key {key!r} (first at line {seen})", key_node.start_mark)
             first_line[key] = key_node.start_mark.line + 1
         return super().construct_mapping(node, deep=deep)
+
+    def construct_yaml_int(self, node: Node) -> int:
+        """An integer, its literal no longer than JSON's limit (CPython refuses >4300 digits with a ValueError)."""
+        _check_number(node)
+        return super().construct_yaml_int(node)  # type: ignore[no-any-return]
+
+    def construct_yaml_float(self, node: Node) -> float:
+        """A float, its literal no longer than JSON's limit."""
+        _check_number(node)
+        return super().construct_yaml_float(node)  # type: ignore[no-any-return]
+
+
+def _check_number(node: Node) -> None:
+    """Refuse a number literal longer than the JSON reader's limit (:mod:`brave6d.core.json_input`)."""
+    limit = DEFAULT_LIMITS.max_number_chars
+    if len(str(node.value)) > limit:
+        raise ConstructorError(None, None, f"a number of {len(str(node.value))} characters (at most {limit} are read)",
+                               node.start_mark)
+
+
+StrictLoader.add_constructor("tag:yaml.org,2002:int", StrictLoader.construct_yaml_int)
+StrictLoader.add_constructor("tag:yaml.org,2002:float", StrictLoader.construct_yaml_float)
 
 
 def parse_yaml(text: str) -> Any:

@@ -59,7 +59,7 @@ import json
 import logging
 import secrets
 import time
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Callable, Coroutine, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -69,6 +69,7 @@ import cv2
 import numpy as np
 from fastapi import FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
+from fastapi.routing import APIRoute
 from fastapi.responses import FileResponse, JSONResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -78,6 +79,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.websockets import WebSocketClose
 
 from brave6d.core.errors import BraveError, NonRigidTransformError, validation_error_field
+from brave6d.core.json_input import JsonInputError, JsonLimits, parse_json
 from brave6d.core.transforms import check_rigid, look_at, make_transform, orthonormalize
 from brave6d.serve.bundle import Bundle, load_bundle
 from brave6d.serve.limits import (
@@ -346,6 +348,36 @@ REQUEST_MODELS: dict[str, type[BaseModel]] = {"reset": ResetRequest, "set_pose":
                                               "move": MoveRequest, "submit": SubmitRequest}
 
 
+def request_json_limits(limits: ServerLimits) -> JsonLimits:
+    """The JSON limits of a request body or WebSocket message: the body size, and NaN / inf let
+    through to the fields' validators (which name the field: 422)."""
+    return JsonLimits(max_bytes=limits.max_body_bytes, finite=False)
+
+
+class _JsonRequest(Request):
+    """A request whose JSON body is read by the one JSON reader (:mod:`brave6d.core.json_input`):
+    a body over its depth or number limits is 400 naming the place, never 500."""
+
+    async def json(self) -> Any:
+        if not hasattr(self, "_json"):
+            try:
+                self._json = parse_json(await self.body(), "body", request_json_limits(self.app.state.limits))
+            except JsonInputError as exc:
+                raise StarletteHTTPException(400, f"malformed JSON: {str(exc).removeprefix('body: ')}") from None
+        return self._json
+
+
+class _JsonRoute(APIRoute):
+    """The routes' class: each handler gets a :class:`_JsonRequest`."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def route(request: Request) -> Response:
+            return await handler(_JsonRequest(request.scope, request.receive))
+        return route
+
+
 def validate_request(action: str, fields: dict[str, Any], where: str | None = None) -> Any:
     """``fields`` checked as the HTTP API checks the body of ``action`` (reset, set_pose, move,
     submit): the same limits and the same one-line messages (``BraveError``, prefixed by ``where``)."""
@@ -502,6 +534,7 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
                     "ground-truth object poses. World = robot base frame, metres, OpenCV camera axes; "
                     "errors are {error, field, status}. See serve/app.py.",
     )
+    app.router.route_class = _JsonRoute  # every route below reads its body through the one JSON reader
     app.state.manager = manager
     app.state.scenes = catalog
     app.state.scene = scene if not isinstance(bundle, SceneCatalog) else None
@@ -700,15 +733,14 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
             return {"error": f"message larger than {limits.max_body_bytes} bytes", "field": "message", "status": 413}
         request_id = None
         try:
-            raw = json.loads(text)
+            raw = parse_json(text, "message", request_json_limits(limits))  # the one JSON reader
             request_id = echo_request_id(raw)
             msg = WsMessage.model_validate(raw)
-        except ValidationError as exc:  # (before ValueError: it is one)
+        except ValidationError as exc:
             status, m, field = validation_error_body(exc.errors(include_url=False))
             return {"error": m, "field": field, "status": status, "request_id": request_id}
-        except (ValueError, RecursionError) as exc:  # json.JSONDecodeError, too many digits, too deep
-            why = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
-            return {"error": f"malformed JSON: {why}", "field": "message", "status": 400}
+        except JsonInputError as exc:
+            return {"error": f"malformed JSON: {str(exc).removeprefix('message: ')}", "field": "message", "status": 400}
         try:
             if msg.op == "get":
                 ep = manager.get(episode_id)

@@ -74,6 +74,7 @@ from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import BraveError, DataError
 from brave6d.core.layout import FrameRecord, SceneDir
 from brave6d.core.names import relative_path_problem
+from brave6d.core.png_check import png_problem
 from brave6d.core.provenance import software_versions
 from brave6d.core.transforms import check_rigid
 from brave6d.serve.geometry import DEFAULT_CAMERA_RADIUS, CollisionWorld, OrientedBox, Workspace
@@ -803,6 +804,19 @@ def verify_manifest(root: Path | str) -> dict[str, Any]:
     return manifest
 
 
+def _check_holdout_images(base: Path, holdout: tuple[HoldoutView, ...], listed: set[str]) -> None:
+    """Every holdout image is a file the manifest lists and a whole 8-bit RGB PNG (header, pixel
+    limit and every chunk's CRC: :mod:`brave6d.core.png_check`), else :class:`BundleError` naming it."""
+    for h in holdout:
+        if h.image is None:
+            continue
+        if not isinstance(h.image, str) or h.image not in listed:
+            raise BundleError(f"{base / HOLDOUT}: holdout view {h.index}: image {h.image!r} is not in the manifest")
+        problem = png_problem(base / h.image, "rgb", check="crc")
+        if problem is not None:
+            raise BundleError(f"{base / h.image}: holdout image of view {h.index}: {problem}")
+
+
 def load_bundle(root: Path | str, verify: bool = True) -> Bundle:
     """Load a bundle; with ``verify`` (default) every checksum is checked first."""
     base = Path(root)
@@ -842,4 +856,6 @@ def load_bundle(root: Path | str, verify: bool = True) -> Bundle:
     for o in objects:
         if verify and o.model not in listed:
             raise BundleError(f"{base}: model {o.model} of object {o.name} is not in the manifest")
+    if verify:
+        _check_holdout_images(base, holdout, listed)
     return Bundle(base, manifest, name, camera, render, world, objects, holdout, start)

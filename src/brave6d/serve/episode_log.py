@@ -33,6 +33,7 @@ from typing import IO, Annotated, Any, Literal
 from pydantic import Field, TypeAdapter, ValidationError
 
 from brave6d.core.errors import DataError, validation_error_field
+from brave6d.core.json_input import JsonInputError, parse_json
 from brave6d.serve.schema import Finite, Matrix3, Matrix4, ObjectState, TargetRef, Vector3, WireModel, matrix_type
 
 #: A rotation as an array, written as 9 numbers row-major (as the log has always held it).
@@ -224,11 +225,11 @@ def read_episode_log(path: Path | str) -> list[ResetRecord | ActionRecord | Subm
         if not line.strip():
             continue
         try:
-            raw = json.loads(line)
-        except json.JSONDecodeError as exc:
-            if n == len(lines):  # a partial last line: the server was stopped mid-write
+            raw = parse_json(line, f"{p}:{n}")  # the one JSON reader: size, depth and number limits
+        except JsonInputError as exc:
+            if n == len(lines) and exc.syntax:  # a partial last line: the server was stopped mid-write
                 break
-            raise DataError(f"{p}:{n}: not valid JSON ({exc.msg})") from None
+            raise
         if not isinstance(raw, dict):
             raise DataError(f"{p}:{n}: a record must be a JSON object")
         raws.append((n, raw))

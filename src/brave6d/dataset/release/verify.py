@@ -32,7 +32,7 @@ from brave6d.core.progress import progress
 from brave6d.dataset.release.formats import (CAMERA, DATASET_INFO, HOLDOUT, MANIFEST, SUMS, TARGETS, TARGETS_HOLDOUT,
                                      base_zip, bundle_folder, bundle_zip, models_zip, read_holdout,
                                      read_sha256sums, read_targets, scene_folder, test_zip, train_pbr_zip)
-from brave6d.dataset.release.images import decode_zip_images
+from brave6d.dataset.release.images import decode_png, decode_zip_images, image_kind
 from brave6d.dataset.release.manifest import read_manifest
 from brave6d.dataset.release.source import ReleaseError
 from brave6d.dataset.release.train_pbr import check_train_pbr_zip
@@ -192,6 +192,7 @@ def _check_bundle(base: Path, zip_name: str, scene: dict[str, Any], library: dic
     """A bundle zip: its ``manifest.json`` read by serve's one reader, every member listed by it and
     matching its size and sha256 (streamed); then ``brave6d.serve.load_bundle`` on its JSON files and the
     splat's PLY header."""
+    from brave6d.serve import HOLDOUT_IMAGES as BUNDLE_HOLDOUT_IMAGES
     from brave6d.serve import MANIFEST as BUNDLE_MANIFEST
     from brave6d.serve import SPLAT, load_bundle
 
@@ -207,6 +208,9 @@ def _check_bundle(base: Path, zip_name: str, scene: dict[str, Any], library: dic
             if digest != entry["sha256"]:
                 raise ReleaseError(f"{zip_name}:{member}: sha256 {digest[:12]}... does not match "
                                    f"{folder}/{BUNDLE_MANIFEST} ({str(entry['sha256'])[:12]}...); the bundle was altered")
+        for member in listed:  # the holdout images: decoded (kind and pixel limit from the header first)
+            if member.startswith(f"{folder}/{BUNDLE_HOLDOUT_IMAGES}/") and image_kind(member) is not None:
+                decode_png(zf.read(member), "rgb", f"{zip_name}:{member}")
         small = [m for m in listed if m.count("/") == folder.count("/") + 1 and m.endswith(".json")]
         zf.extract(target, small, strip=folder)
         (target / SPLAT).write_bytes(head[:head.find(b"end_header\n") + 11] if b"end_header\n" in head else head)

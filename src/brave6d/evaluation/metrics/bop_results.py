@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from brave6d.annotation import dataset_image_size, model_file, read_models_info, read_scene_camera, read_scene_gt, read_scene_gt_info
 from brave6d.core.atomic import atomic_write_text, read_png
 from brave6d.core.errors import DataError
+from brave6d.core.png_check import check_image_header
 from brave6d.evaluation.metrics.recall import Estimate, GTInstance, ObjectModel
 
 RESULTS_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
@@ -159,16 +160,11 @@ def _image_size_of(scene_dir: Path, im_ids: Sequence[int]) -> tuple[int, int] | 
     size = dataset_image_size(scene_dir.parent.parent)
     if size is not None:
         return size
-    import cv2
-
     for im_id in im_ids[:1]:
         for sub, ext in (("depth", "png"), ("rgb", "png"), ("rgb", "jpg"), ("gray", "png")):
             f = scene_dir / sub / f"{im_id:06d}.{ext}"
             if f.is_file():
-                img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
-                if img is None:
-                    raise DataError(f"{f}: cannot decode image")
-                return int(img.shape[1]), int(img.shape[0])
+                return check_image_header(f)  # the size from the header: nothing decoded
     return None
 
 

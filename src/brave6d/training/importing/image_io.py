@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from brave6d.core.camera import CORNER_ORIGIN_OFFSET, PinholeCamera
 from brave6d.core.errors import DataError
+from brave6d.core.png_check import check_image_header
 from brave6d.training.importing.source import SourceCamera
 
 _EXIF_ORIENTATION = 0x0112
@@ -38,6 +39,10 @@ def read_frame_image(path: Path, size: tuple[int, int], name: str) -> FrameImage
     """Decode ``path`` for the camera size ``size`` (width, height); errors name the frame ``name``."""
     from PIL import Image, ImageOps, UnidentifiedImageError
 
+    try:
+        check_image_header(path)  # the pixel limit, from the header, before Pillow decodes anything
+    except DataError as exc:
+        raise DataError(f"frame {name}: {exc}") from None
     try:
         with Image.open(path) as im:
             im.load()
@@ -58,7 +63,7 @@ def read_frame_image(path: Path, size: tuple[int, int], name: str) -> FrameImage
                 raise DataError(f"frame {name}: {path}: the image is {stored[0]}x{stored[1]}{also}, its camera says "
                                 f"{size[0]}x{size[1]}")
             rgb = _to_rgb8(chosen, path, name, notes)
-    except (OSError, UnidentifiedImageError, ValueError) as exc:
+    except (OSError, UnidentifiedImageError, ValueError, Image.DecompressionBombError) as exc:
         raise DataError(f"frame {name}: {path}: cannot decode the image ({exc})") from None
     return FrameImage(rgb, exif_turned, "; ".join(notes) or None)
 

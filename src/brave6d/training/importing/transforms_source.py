@@ -24,7 +24,6 @@ A frame whose image file is missing is reported in ``missing`` (by its ``file_pa
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -32,7 +31,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from brave6d.core.atomic import read_json
 from brave6d.core.errors import DataError, NonRigidTransformError
+from brave6d.core.png_check import check_image_header
 from brave6d.core.transforms import check_rigid
 from brave6d.training.importing.source import ImportedCapture, SourceCamera, SourceFrame
 from brave6d.training.pose_check import GL_TO_CV
@@ -57,10 +58,7 @@ def find_transforms(source: Path) -> Path:
 def read_transforms(source: Path | str) -> ImportedCapture:
     """Frames, cameras, poses (OpenCV axes) and points of a ``transforms.json`` (see the module docstring)."""
     path = find_transforms(Path(source))
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"{path}: not a JSON file ({exc})") from None
+    data = read_json(path)  # the one JSON reader: size, depth and number limits
     if not isinstance(data, dict):
         raise DataError(f"{path}: expected a JSON object at the top level, got {type(data).__name__}")
     listed = data.get("frames")
@@ -167,14 +165,9 @@ def _angle(values: dict[str, Any], key: str, where: str) -> float:
 
 
 def _image_size(image: Path) -> tuple[int, int]:
-    """(width, height) as stored in the file (EXIF orientation not applied: what w/h would describe)."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(image) as im:
-            return im.size
-    except (OSError, UnidentifiedImageError) as exc:
-        raise DataError(f"{image}: cannot read the image's size ({exc})") from None
+    """(width, height) as stored in the file (EXIF orientation not applied: what w/h would describe),
+    from its header; one held to the pixel limit (:func:`brave6d.core.png_check.check_image_header`)."""
+    return check_image_header(image)
 
 
 def _pose(value: Any, where: str) -> NDArray[np.float64]:
