@@ -93,12 +93,18 @@ def test_an_agent_that_never_moves_submits_right_after_the_reset() -> None:
     assert outcome.refused == 0 and outcome.target == "hex_nut"
 
 
-def test_registry_names_the_baselines_in_the_order_the_demo_runs_them() -> None:
+def test_registry_names_the_baselines_in_the_order_the_demo_runs_them(tmp_path) -> None:
+    from brave6d.evaluation.agents import AgentSetup
+    from brave6d.evaluation.learned import get_learn_preset
+    from brave6d.evaluation.learned.model_file import write_model
+    from learned_helpers import untrained_model
+
     # the two baselines come first (the demo runs them first); agents added later follow them
     assert list(POLICIES)[:2] == [STATIC_AGENT, ACTIVE_AGENT] == ["baseline-static", "baseline-active"]
     client = SimpleNamespace()
+    write_model(tmp_path, untrained_model(get_learn_preset("tiny"), [1, 2]))  # what the learned agents load
     for name in POLICIES:
-        agent = make_agent(name, client)
+        agent = make_agent(name, client, AgentSetup(learned_model=tmp_path))
         assert agent.name == name and callable(agent.observe) and callable(agent.decide) and callable(agent.submit)
     with pytest.raises(BraveError, match="no agent named 'nope'.*baseline-static, baseline-active"):
         make_agent("nope", client)

@@ -18,6 +18,7 @@ STAGE_NAMES = ("capture", "calibration", "annotation", "training", "serve", "eva
                "ros_interface", "synth")
 STAGES = tuple(f"brave6d.{s}" for s in STAGE_NAMES)
 PACKAGES = (*STAGES, "brave6d.evaluation.metrics", "brave6d.evaluation.agents", "brave6d.evaluation.report",
+            "brave6d.evaluation.learned", "brave6d.evaluation.agents.learned",
             "brave6d.dataset.release")
 #: The floor above the stages: the command line and the pipeline that drives the stages.
 TOP = ("brave6d.cli", "brave6d.init_cli", "brave6d.spec_cli", "brave6d.pipeline", "brave6d.commands")

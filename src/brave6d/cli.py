@@ -40,6 +40,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("ros1", "brave6d.commands.ros1", "serve a bundle or release as a ROS 1 node (topics, tf, services; rospy)"),
     Command("ros2", "brave6d.commands.ros2", "serve a bundle or release as a ROS 2 node (rclpy: services and topics; loopback by default)"),
     Command("evaluate", "brave6d.evaluation.cli", "score agent episodes (BOP Average Recall, adjustments) and print a leaderboard"),
+    Command("learn", "brave6d.evaluation.learned.cli", "train the learned baseline (detector + pose network) on a synthetic train_pbr, or score it on held-out images"),
     Command("estimate", "brave6d.evaluation.estimate_cli", "estimate an object's pose in any RGB-D frame (or over a BOP split: results CSV)"),
     Command("report", "brave6d.evaluation.report.cli", "write the accuracy-vs-time report from real measurements"),
     Command("dataset", "brave6d.dataset.cli", "run every stage of every scene of a dataset (local or Slurm); show its status"),

@@ -59,12 +59,12 @@ def clear_logs(folder: Path) -> None:
 
 def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: int = 0,
                   width: int = IMAGE_WIDTH, episodes_per_object: int = 1,
-                  agents: Sequence[str] | None = None) -> BaselineRun:
-    """Serve ``bundle_dir`` on loopback, run the registered ``agents`` (default: all, in registry
-    order) on every object, ``episodes_per_object`` times from seeded random starts (seed
-    ``seed + gt_id + 1000 r`` for repeat ``r``: every agent starts alike), score the logs; writes
-    nothing but the logs."""
-    from brave6d.evaluation.agents import POLICIES, make_agent, run_episode
+                  agents: Sequence[str] | None = None, learned_model: Path | None = None) -> BaselineRun:
+    """Serve ``bundle_dir`` on loopback, run the registered ``agents`` (default: every agent that can
+    run, in registry order: the learned ones only with ``learned_model``) on every object,
+    ``episodes_per_object`` times from seeded random starts (seed ``seed + gt_id + 1000 r`` for
+    repeat ``r``: every agent starts alike), score the logs; writes nothing but the logs."""
+    from brave6d.evaluation.agents import LEARNED_AGENTS, AgentSetup, make_agent, run_episode, runnable_agents
     from brave6d.evaluation.metrics import models_from_bundle, read_episodes, score_episodes
     from brave6d.serve import BraveClient, ServerThread, create_app, load_bundle
 
@@ -77,7 +77,10 @@ def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: i
     app = create_app(bundle, device=device, log_dir=logs)
     outcomes = []
     with ServerThread(app) as server, BraveClient(server.url) as client:
-        players = [make_agent(name, client) for name in (agents if agents is not None else POLICIES)]
+        setup = AgentSetup(learned_model)
+        if agents is None and learned_model is None:
+            log.info("no learned model given: the learned agents (%s) do not play", ", ".join(LEARNED_AGENTS))
+        players = [make_agent(name, client, setup) for name in (agents if agents is not None else runnable_agents(setup))]
         for repeat in range(episodes_per_object):
             for obj in bundle.objects:
                 for agent in players:
@@ -99,7 +102,7 @@ def agent_runs_of(run: BaselineRun) -> AgentRuns:
 def stage_evaluate(ctx: RunContext) -> StageResult:
     """Demo stage: run and score the registered agents on every demo object (see the module docstring)."""
     from brave6d.core.progress import StageResult
-    from brave6d.evaluation.agents import ACTIVE_AGENT, STATIC_AGENT
+    from brave6d.evaluation.agents import ACTIVE_AGENT, LEARNED_ACTIVE_AGENT, LEARNED_STATIC_AGENT, STATIC_AGENT
     from brave6d.evaluation.metrics import agent_runs_path, write_agent_runs, write_leaderboard
 
     from brave6d.serve import is_bundle
@@ -107,17 +110,25 @@ def stage_evaluate(ctx: RunContext) -> StageResult:
     bundle_dir = ctx.scene.bundle_dir
     if not is_bundle(bundle_dir):
         raise BraveError(f"{bundle_dir}: no bundle; run the export stage first")
+    from brave6d.evaluation.learned.demo import demo_model_dir
+
     out = ctx.workdir / "evaluation"
+    model = demo_model_dir(ctx.workdir)
     run = run_baselines(bundle_dir, out, device=ctx.device,
-                        episodes_per_object=1 if ctx.quick else EPISODES_PER_OBJECT)
+                        episodes_per_object=1 if ctx.quick else EPISODES_PER_OBJECT,
+                        learned_model=model if (model / "model.pt").is_file() else None)
     write_leaderboard(run.board, out)
     write_agent_runs(agent_runs_path(ctx.workdir), agent_runs_of(run))
     log.info("baseline leaderboard:\n%s\n%s", run.board.table(), run.board.object_table())
     scores = {a.agent: a for a in run.board.agents}
     active, static = scores.get(ACTIVE_AGENT), scores.get(STATIC_AGENT)
+    l_active, l_static = scores.get(LEARNED_ACTIVE_AGENT), scores.get(LEARNED_STATIC_AGENT)
     return StageResult("evaluate", figures={
         "episodes": len(run.board.episodes),
         "AR active": active.ar if active else "n/a",
         "AR static": static.ar if static else "n/a",
         "mean adjustments": active.mean_adjustments if active else "n/a",
+        "AR learned-active": l_active.ar if l_active else "n/a",
+        "AR learned-static": l_static.ar if l_static else "n/a",
+        "learned-active adjustments": l_active.mean_adjustments if l_active else "n/a",
     })

@@ -4,8 +4,10 @@ Public API (imported lazily, so ``import brave6d.evaluation.agents`` stays cheap
 
 - :class:`Agent` (observe, decide, submit), :class:`Submission`, :func:`run_episode` (the episode
   loop, written once for any agent) and :class:`EpisodeOutcome`.
-- :data:`POLICIES`: agent name -> factory ``(client) -> Agent``; the demo and the benchmarks run
-  every registered agent. :func:`make_agent` builds one by name.
+- :data:`POLICIES`: agent name -> factory ``(client, setup) -> Agent``; the demo and the benchmarks
+  run every registered agent. :func:`make_agent` builds one by name; :class:`AgentSetup` carries
+  what some agents need beyond the client (the learned agents: a trained model folder), and
+  :data:`LEARNED_AGENTS` names those that need one (:mod:`brave6d.evaluation.agents.learned`).
 - The baseline's parts: :class:`BaselineAgent` with a :class:`CameraPolicy`
   (:class:`StaticPolicy`, :class:`ActivePolicy`), :func:`perceive`, :func:`register_model`,
   :func:`register_views`, :func:`sample_model`, :func:`read_model_ply` and their options.
@@ -22,6 +24,9 @@ for the baseline), a factory and its entry in :data:`POLICIES` (docs/ARCHITECTUR
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from brave6d.core.errors import BraveError
@@ -32,8 +37,15 @@ if TYPE_CHECKING:
 
 ACTIVE_AGENT = "baseline-active"
 STATIC_AGENT = "baseline-static"
+LEARNED_STATIC_AGENT = "learned-static"
+LEARNED_ACTIVE_AGENT = "learned-active"
+LEARNED_STATIC_DEPTH_AGENT = "learned-static-depth"
+LEARNED_ACTIVE_DEPTH_AGENT = "learned-active-depth"
+#: The agents that need a trained model (``AgentSetup.learned_model``): RGB-only, then depth-refined.
+LEARNED_AGENTS = (LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT, LEARNED_STATIC_DEPTH_AGENT, LEARNED_ACTIVE_DEPTH_AGENT)
 
-__all__ = ["ACTIVE_AGENT", "POLICIES", "REFUSAL_CAUSES", "STATIC_AGENT", "ActiveOptions", "ActivePolicy", "Agent",
+__all__ = ["ACTIVE_AGENT", "LEARNED_ACTIVE_AGENT", "LEARNED_ACTIVE_DEPTH_AGENT", "LEARNED_AGENTS",
+           "LEARNED_STATIC_AGENT", "LEARNED_STATIC_DEPTH_AGENT", "POLICIES", "AgentSetup", "runnable_agents", "REFUSAL_CAUSES", "STATIC_AGENT", "ActiveOptions", "ActivePolicy", "Agent",
            "BaselineAgent", "BaselineOptions", "BoxHint", "CameraPolicy", "Cluster", "EpisodeOutcome", "EpisodeState",
            "EstimateRefused", "FrameOptions", "FramePose", "ModelCloud", "ModelOptions", "Perception",
            "PerceptionOptions", "PixelHint", "Plane", "Registration", "RegistrationOptions", "StaticPolicy",
@@ -64,34 +76,73 @@ _LAZY = {
 }
 
 
-def _static_baseline(client: Any) -> Agent:
+@dataclass(frozen=True)
+class AgentSetup:
+    """What agents may need besides the client: ``learned_model``, a folder with a trained
+    ``model.pt`` (``brave6d learn train``) for the learned agents; ``device`` for their networks."""
+
+    learned_model: Path | None = None
+    device: str = "cpu"
+
+
+def _static_baseline(client: Any, setup: AgentSetup) -> Agent:
     from brave6d.evaluation.agents.baseline import BaselineAgent
     from brave6d.evaluation.agents.static import StaticPolicy
 
     return BaselineAgent(client, StaticPolicy(), STATIC_AGENT)
 
 
-def _active_baseline(client: Any) -> Agent:
+def _active_baseline(client: Any, setup: AgentSetup) -> Agent:
     from brave6d.evaluation.agents.active import ActivePolicy
     from brave6d.evaluation.agents.baseline import BaselineAgent
 
     return BaselineAgent(client, ActivePolicy(), ACTIVE_AGENT)
 
 
-#: Agent name (as the episode logs and leaderboards show it) -> factory ``(client) -> Agent``,
+@lru_cache(maxsize=4)
+def _estimator(model_dir: Path, device: str) -> Any:
+    from brave6d.evaluation.learned import LearnedEstimator
+
+    return LearnedEstimator.load(model_dir, device)
+
+
+def _learned(name: str, active: bool, use_depth: bool) -> Callable[[Any, AgentSetup], Agent]:
+    def factory(client: Any, setup: AgentSetup) -> Agent:
+        from brave6d.evaluation.agents.learned import LearnedAgent
+
+        if setup.learned_model is None:
+            raise BraveError(f"agent {name!r} needs a trained model: give its folder (brave6d learn train ... --out "
+                             "MODEL_DIR) as AgentSetup(learned_model=MODEL_DIR) or --learned-model MODEL_DIR")
+        return LearnedAgent(client, _estimator(Path(setup.learned_model).resolve(), setup.device), name, active,
+                            use_depth)
+
+    return factory
+
+
+#: Agent name (as the episode logs and leaderboards show it) -> factory ``(client, setup) -> Agent``,
 #: in the order the demo runs them on each start.
-POLICIES: dict[str, Callable[[Any], Agent]] = {
+POLICIES: dict[str, Callable[[Any, AgentSetup], Agent]] = {
     STATIC_AGENT: _static_baseline,
     ACTIVE_AGENT: _active_baseline,
+    LEARNED_STATIC_AGENT: _learned(LEARNED_STATIC_AGENT, active=False, use_depth=False),
+    LEARNED_ACTIVE_AGENT: _learned(LEARNED_ACTIVE_AGENT, active=True, use_depth=False),
+    LEARNED_STATIC_DEPTH_AGENT: _learned(LEARNED_STATIC_DEPTH_AGENT, active=False, use_depth=True),
+    LEARNED_ACTIVE_DEPTH_AGENT: _learned(LEARNED_ACTIVE_DEPTH_AGENT, active=True, use_depth=True),
 }
 
 
-def make_agent(name: str, client: Any) -> Agent:
+def runnable_agents(setup: AgentSetup | None = None) -> list[str]:
+    """The registered agents ``setup`` can build, in registry order (the learned ones need a model)."""
+    setup = setup or AgentSetup()
+    return [n for n in POLICIES if n not in LEARNED_AGENTS or setup.learned_model is not None]
+
+
+def make_agent(name: str, client: Any, setup: AgentSetup | None = None) -> Agent:
     """The registered agent ``name`` playing through ``client`` (``serve``'s ``BraveClient``)."""
     factory = POLICIES.get(name)
     if factory is None:
         raise BraveError(f"no agent named {name!r}; registered: {', '.join(POLICIES)}")
-    return factory(client)
+    return factory(client, setup or AgentSetup())
 
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY)

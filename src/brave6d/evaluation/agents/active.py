@@ -131,17 +131,26 @@ class ActivePolicy:
         return (yield from _look_from(target_w, goal, _azimuth(eye, target_w), elevation))
 
 
-def _look_from(target_w: Array, distance: float, azimuth: float, elevation_deg: float) -> Look:
-    """Teleport to look at ``target_w`` from ``distance``, ``azimuth`` (rad), ``elevation_deg``
-    (kept within 5..88 degrees); a refused pose is retried 10 degrees higher and lower, then 40 %
-    farther. Returns the accepted step (None if every try was refused)."""
+def look_candidates(target_w: Array, distance: float, azimuth: float, elevation_deg: float) -> list[Array]:
+    """Camera poses looking at ``target_w`` from ``distance``, ``azimuth`` (rad), ``elevation_deg``
+    (kept within 5..88 degrees), then 10 degrees higher and lower, then the same 40 % farther: the
+    order to try them in when the server refuses a pose."""
+    poses = []
     for scale in (1.0, 1.4):
         for delta in (0.0, 10.0, -10.0):
             el = math.radians(float(np.clip(elevation_deg + delta, 5.0, 88.0)))
             d = np.array([math.cos(el) * math.cos(azimuth), math.cos(el) * math.sin(azimuth), math.sin(el)])
-            step = yield look_at(target_w + d * distance * scale, target_w)
-            if step.accepted:
-                return step
+            poses.append(look_at(target_w + d * distance * scale, target_w))
+    return poses
+
+
+def _look_from(target_w: Array, distance: float, azimuth: float, elevation_deg: float) -> Look:
+    """Teleport to look at ``target_w`` (:func:`look_candidates`, tried in order). Returns the
+    accepted step (None if every try was refused)."""
+    for pose in look_candidates(target_w, distance, azimuth, elevation_deg):
+        step = yield pose
+        if step.accepted:
+            return step
     return None
 
 

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from brave6d.core.errors import BraveError
 from brave6d.core.transforms import invert
+from brave6d.evaluation.agents.episode import scene_bundle
 from brave6d.evaluation.agents.fusion import register_views
 from brave6d.evaluation.agents.model import ModelCloud, ModelOptions, read_model_ply, sample_model
 from brave6d.evaluation.agents.perception import PerceptionOptions, View, axis_anchor, backproject, perceive
@@ -63,10 +64,7 @@ class BaselineAgent:
     @property
     def bundle_info(self) -> dict[str, Any]:
         """``GET /bundle`` of the current episode's scene (fetched once per scene)."""
-        scene = getattr(self.client, "scene", None)
-        if scene not in self._bundles:
-            self._bundles[scene] = self.client.bundle(scene) if scene is not None else self.client.bundle()
-        return self._bundles[scene]
+        return scene_bundle(self.client, self._bundles)
 
     def model(self, obj_id: int) -> ModelCloud:
         """The target's model cloud from the server (``GET /bundle`` diameter, model PLY)."""

@@ -27,6 +27,15 @@ class EpisodeOutcome:
     submission: dict[str, Any] = field(default_factory=dict)  # the server's reply to the submission
 
 
+def scene_bundle(client: Any, cache: dict[Any, dict[str, Any]]) -> dict[str, Any]:
+    """``GET /bundle`` of the client's current scene (what a benchmark user is given about it),
+    fetched once per scene into ``cache``."""
+    scene = getattr(client, "scene", None)
+    if scene not in cache:
+        cache[scene] = client.bundle(scene) if scene is not None else client.bundle()
+    return cache[scene]
+
+
 def run_episode(client: Any, agent: Agent, target: int | str, *, seed: int, width: int, height: int,
                 scene: str | int | None = None) -> EpisodeOutcome:
     """Reset an episode on ``client`` (``serve``'s ``BraveClient``) for ``target`` (gt_id or

@@ -1,0 +1,179 @@
+"""The learned agent (see the package docstring).
+
+Every view: detect the target (the episode names its obj_id), keep the best detection of it.
+The static agent submits from the start view. The active agent moves while its detection is
+missing, unsure (score below ``confident_score``) or small (box below ``min_box_px``): towards
+the target seen (its RGB pose's translation, or the served depth with ``use_depth``) so the box
+grows to about ``approach_box_px``, never nearer than the nearest capture ring or 3 diameters;
+with no detection, along its optical axis (the episode starts looking at the target) to a
+fraction of the assumed distance. It submits from the last accepted view. A view without a
+detection of the target gives no estimate: the submission is empty and its notes name the cause.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.core.errors import BraveError
+from brave6d.evaluation.agents.active import look_candidates
+from brave6d.evaluation.agents.episode import scene_bundle
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LearnedAgentOptions:
+    """Thresholds in [0, 1] and pixels of the episode's images; distances in metres."""
+
+    min_score: float = 0.3  # detections below are ignored
+    confident_score: float = 0.5  # the active agent stops once its detection scores this ...
+    min_box_px: float = 36.0  # ... and its box (geometric mean of w, h) is at least this large
+    approach_box_px: float = 48.0  # a move aims for about this box size
+    max_moves: int = 4
+    blind_step: float = 0.6  # no detection: move to this fraction of the assumed distance
+
+
+class LearnedAgent:
+    """An :class:`~brave6d.evaluation.agents.Agent` over a :class:`~brave6d.evaluation.learned.LearnedEstimator`."""
+
+    def __init__(self, client: Any, estimator: Any, name: str, active: bool, use_depth: bool,
+                 options: LearnedAgentOptions = LearnedAgentOptions()) -> None:
+        self.client, self.estimator, self.name = client, estimator, name
+        self.active, self.use_depth, self.options = active, use_depth, options
+        self._bundles: dict[Any, dict[str, Any]] = {}
+        self._reset_state()
+
+    def _reset_state(self) -> None:
+        self.obj_id = 0
+        self.diameter_m = 0.0
+        self.moves = 0
+        self.views: list[dict[str, Any]] = []
+        self.current: dict[str, Any] | None = None
+        self.refused = 0
+        self._next: Array | None = None
+        self._candidates: list[Array] = []
+
+    @property
+    def bundle_info(self) -> dict[str, Any]:
+        """``GET /bundle`` of the current episode's scene (fetched once per scene)."""
+        return scene_bundle(self.client, self._bundles)
+
+    def observe(self, step: Any) -> None:
+        if step.action == "reset":
+            self._reset_state()
+            self.obj_id = int(step.target["obj_id"])
+            info = next((o for o in self.bundle_info.get("objects", []) if int(o["obj_id"]) == self.obj_id), {})
+            self.diameter_m = float(info.get("diameter_mm", 30.0)) / 1000.0
+        elif not step.accepted:  # refused (a collision box): the next candidate pose, if any is left
+            self.refused += 1
+            self._next = self._candidates.pop(0) if self._candidates else None
+            return
+        self.current = self._look(step.observation)
+        self.views.append(self.current)
+        self._next = self._plan() if self.active else None
+
+    def decide(self) -> Array | None:
+        return self._next
+
+    def submit(self) -> Any:
+        from brave6d.evaluation.agents.protocol import Submission
+        from brave6d.serve import PoseEstimate
+
+        view = self.current
+        if view is None:
+            raise BraveError(f"{self.name}: submit before any view was seen")
+        notes: dict[str, Any] = {"views": len(self.views), "moves": self.moves, "refused_poses": self.refused,
+                                 "detection_score_start": self.views[0]["score"],
+                                 "box_px_start": self.views[0]["size_px"],
+                                 "detection_score_final": view["score"], "box_px_final": view["size_px"]}
+        pose = view["pose"]
+        if pose is None:
+            notes["refused"] = view["cause"]
+            notes["refusal"] = view["message"]
+            return Submission([], notes)
+        notes.update(inliers=pose.inliers, correspondences=pose.correspondences, depth_scale=pose.depth_scale)
+        return Submission([PoseEstimate(self.obj_id, pose.cam_T_obj, pose.score)], notes)
+
+    # ------------------------------------------------------------------ perception
+    def _look(self, obs: Any) -> dict[str, Any]:
+        """Detect and estimate the target in ``obs``; a failure is recorded with its cause."""
+        from brave6d.evaluation.learned import LearnedRefused
+
+        view: dict[str, Any] = {"obs": obs, "detection": None, "pose": None, "score": 0.0, "size_px": 0.0,
+                                "cause": None, "message": None}
+        try:
+            det = self.estimator.best_detection(obs.rgb, obs.K, self.obj_id, self.options.min_score)
+            view.update(detection=det, score=det.score, size_px=det.size_px)
+            view["pose"] = self.estimator.estimate(obs.rgb, obs.K, self.obj_id, det.box,
+                                                   obs.depth if self.use_depth else None, det.score)
+        except LearnedRefused as exc:
+            view.update(cause=exc.cause, message=str(exc))
+        return view
+
+    # ------------------------------------------------------------------ moves
+    def _plan(self) -> Array | None:
+        """The next camera pose of the active agent, or None when it is done (module docstring)."""
+        o, view = self.options, self.current
+        if view is None or self.moves >= o.max_moves:
+            return None
+        if view["detection"] is not None and view["score"] >= o.confident_score and view["size_px"] >= o.min_box_px:
+            return None
+        if view["cause"] == "unknown-object":
+            return None  # no move can help
+        obs = view["obs"]
+        eye = obs.world_T_cam[:3, 3]
+        target_w, dist = self._target(view)
+        near = max(self._standoff(), 3.0 * self.diameter_m)
+        if view["detection"] is not None:
+            goal = dist * min(view["size_px"] / o.approach_box_px, 1.0)
+        else:
+            goal = dist * o.blind_step
+        goal = max(goal, near)
+        if goal > 0.9 * dist:
+            return None  # too little to gain for an adjustment
+        self.moves += 1
+        v = eye - target_w
+        azimuth = math.atan2(float(v[1]), float(v[0]))
+        elevation = math.degrees(math.atan2(float(v[2]), float(np.hypot(v[0], v[1]))))
+        first, *self._candidates = look_candidates(target_w, goal, azimuth, max(elevation, 0.0))
+        return first
+
+    def _target(self, view: dict[str, Any]) -> tuple[Array, float]:
+        """Where the target is (world frame) and how far. With a detection: on the ray through its
+        box centre, at its pose's depth when that agrees with the box's size (within 2x of
+        ``f * 0.7 diameter / size``), else at that size's depth; without one: on the optical axis at
+        the served depth (``use_depth``) or the middle capture ring."""
+        obs = view["obs"]
+        world_T_cam, K = obs.world_T_cam, np.asarray(obs.K, dtype=np.float64)
+        det = view["detection"]
+        if det is not None:
+            u, v = (det.box[0] + det.box[2]) / 2.0 - 0.5, (det.box[1] + det.box[3]) / 2.0 - 0.5
+            ray = np.array([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], 1.0])
+            z = K[0, 0] * 0.7 * self.diameter_m / max(det.size_px, 1.0)
+            if view["pose"] is not None and 0.5 * z <= view["pose"].cam_T_obj[2, 3] <= 2.0 * z:
+                z = float(view["pose"].cam_T_obj[2, 3])
+            p_cam = ray * z
+        else:
+            p_cam = np.array([0.0, 0.0, self._assumed_distance(obs)])
+        p_w = world_T_cam[:3, :3] @ p_cam + world_T_cam[:3, 3]
+        return p_w, float(np.linalg.norm(p_cam))
+
+    def _assumed_distance(self, obs: Any) -> float:
+        if self.use_depth and obs.depth is not None:
+            h, w = obs.depth.shape
+            patch = obs.depth[h // 2 - 2:h // 2 + 3, w // 2 - 2:w // 2 + 3]
+            valid = patch[np.isfinite(patch) & (patch > 0)]
+            if valid.size:
+                return float(np.median(valid))
+        rings = (self.bundle_info.get("start") or {}).get("distances_m") or [0.2, 0.5]
+        return float(np.mean([min(rings), max(rings)]))
+
+    def _standoff(self) -> float:
+        rings = (self.bundle_info.get("start") or {}).get("distances_m") or []
+        return float(min(rings)) if rings else 0.10
+

@@ -1,0 +1,35 @@
+"""The learned estimator: a detector and a pose network in GDR-Net's spirit, trained from scratch
+on a dataset's own synthetic ``train_pbr`` (``brave6d synth``), no downloaded weights.
+
+Public API (imported lazily: ``import brave6d.evaluation.learned`` loads no torch):
+
+- training: ``train_learned`` (``brave6d learn train``), ``LearnResult``, ``LearnPreset``,
+  ``get_learn_preset``, ``PRESETS``;
+- the trained model: ``read_model``, ``LearnedModel`` (``model.pt``), ``write_card`` /
+  ``read_card`` (``card.json``, ``MODEL_CARD.md``);
+- inference: ``LearnedEstimator`` (``detect``, ``best_detection``, ``estimate``), ``Detection``,
+  ``LearnedPose``, ``LearnedRefused`` (``cause`` in ``REFUSAL_CAUSES``), ``solve_pnp``;
+- held-out figures: ``score_heldout``, ``HeldoutScores``; the data: ``load_training_data``,
+  ``TrainingData``.
+
+Modules, one job each: ``data`` (train_pbr -> images, boxes, model coordinates), ``crops`` (zoomed-in
+crops), ``targets`` (training batches), ``networks``, ``losses``, ``training``, ``model_file``
+(the model and checkpoint files), ``inference``, ``heldout``, ``card``, ``cli``.
+"""
+
+from brave6d.core.lazy import lazy_exports
+
+_LAZY = {
+    "train_learned": ".training", "LearnResult": ".training",
+    "LearnPreset": ".presets", "get_learn_preset": ".presets", "PRESETS": ".presets",
+    "read_model": ".model_file", "LearnedModel": ".model_file",
+    "write_card": ".card", "read_card": ".card",
+    "LearnedEstimator": ".inference", "Detection": ".inference", "LearnedPose": ".inference",
+    "LearnedRefused": ".inference", "REFUSAL_CAUSES": ".inference", "solve_pnp": ".inference",
+    "score_heldout": ".heldout", "HeldoutScores": ".heldout",
+    "load_training_data": ".data", "TrainingData": ".data",
+}
+
+__all__ = sorted(_LAZY)
+
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

@@ -1,0 +1,55 @@
+"""``brave6d learn``: train the learned estimator on a train_pbr split, or score one on its held-out images.
+
+    brave6d learn train TRAIN_PBR --models MODELS_DIR --out MODEL_DIR [--preset fast|paper] [--device ...] [--resume]
+    brave6d learn heldout MODEL_DIR TRAIN_PBR --models MODELS_DIR
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from brave6d.core.cli_types import int_in
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    train = sub.add_parser("train", help="train the detector and the coordinate net on a train_pbr split")
+    train.add_argument("train_pbr", type=Path, metavar="TRAIN_PBR",
+                       help="the split: a train_pbr folder, or the folder 'brave6d synth' wrote")
+    train.add_argument("--models", type=Path, required=True, metavar="MODELS_DIR",
+                       help="BOP models folder (models_info.json, obj_XXXXXX.ply in mm)")
+    train.add_argument("--out", type=Path, required=True, metavar="MODEL_DIR", help="where model.pt and its card go")
+    train.add_argument("--preset", default="fast", help="fast (2-core CPU, minutes), paper (GPU), tiny (tests)")
+    train.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    train.add_argument("--seed", type=int_in(0, 2**31 - 1), default=None, help="seed (default: the preset's, 0)")
+    train.add_argument("--resume", action="store_true", help="continue the run whose checkpoint.pt is in MODEL_DIR")
+    train.add_argument("--no-heldout", action="store_true", help="skip the held-out figures of the card")
+    heldout = sub.add_parser("heldout", help="score a trained model on the held-out images of its train_pbr")
+    heldout.add_argument("model_dir", type=Path, metavar="MODEL_DIR")
+    heldout.add_argument("train_pbr", type=Path, metavar="TRAIN_PBR")
+    heldout.add_argument("--models", type=Path, required=True, metavar="MODELS_DIR")
+
+
+def run(args: argparse.Namespace) -> int:
+    from brave6d.evaluation.learned.pipeline import heldout_only, learn_and_card
+
+    if args.action == "train":
+        from brave6d.evaluation.learned.presets import get_learn_preset
+
+        preset = get_learn_preset(args.preset)
+        if args.seed is not None:
+            preset = preset.with_overrides(seed=args.seed)
+        card = learn_and_card(args.train_pbr, args.models, args.out, preset, args.device, args.resume,
+                              heldout=not args.no_heldout)
+        print(f"learn: model in {args.out / 'model.pt'} ({card['train_seconds']:.0f} s of training on "
+              f"{card['device']}); card: {args.out / 'MODEL_CARD.md'}")
+    else:
+        card = heldout_only(args.model_dir, args.train_pbr, args.models)
+    h = card.get("heldout")
+    if h:
+        print(f"held-out: {h['images']} images; pose AR true box {h['pose_ar']['true_box_rgb']:.3f} "
+              f"(+ depth {h['pose_ar']['true_box_depth']:.3f}), detected {h['pose_ar']['detected_rgb']:.3f} "
+              f"(+ depth {h['pose_ar']['detected_depth']:.3f}); detection recall "
+              + ", ".join(f"obj {k}: {v:.2f}" for k, v in h["detection_recall_iou50"].items()))
+    return 0

@@ -1,0 +1,174 @@
+"""Held-out figures of a trained estimator on the train_pbr images it never trained on.
+
+- detection, per object: recall at IoU 0.5 among the detections scoring at least the agents'
+  threshold, and AP at IoU 0.5 (all-point interpolated, every detection above 0.05);
+- pose, per object and overall: BOP19 AR (the project's metrics, the split's own depth for VSD)
+  given the true visible box and given the detected box, each RGB-only and refined with the
+  split's depth.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.evaluation.learned.data import MIN_VISIB_FRACT, TrainingData
+from brave6d.evaluation.learned.inference import Detection, LearnedEstimator, LearnedRefused
+
+log = logging.getLogger(__name__)
+#: Detections scoring below this are not used by the agents (nor counted for recall).
+DETECTION_THRESHOLD = 0.3
+IOU = 0.5
+POSE_VARIANTS = ("true_box_rgb", "true_box_depth", "detected_rgb", "detected_depth")
+
+
+@dataclass
+class HeldoutScores:
+    """Per object: detection recall / AP at IoU 0.5; per variant: pose AR overall and per object;
+    refusals per variant by cause; seconds per estimate (median)."""
+
+    images: int
+    instances: int
+    recall: dict[int, float]
+    ap: dict[int, float]
+    pose_ar: dict[str, float]
+    pose_ar_per_object: dict[str, dict[int, float]]
+    refusals: dict[str, dict[str, int]] = field(default_factory=dict)
+    seconds_per_estimate: float = 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        return {"images": self.images, "instances": self.instances,
+                "detection_recall_iou50": {str(k): v for k, v in self.recall.items()},
+                "detection_ap_iou50": {str(k): v for k, v in self.ap.items()},
+                "pose_ar": dict(self.pose_ar),
+                "pose_ar_per_object": {v: {str(k): x for k, x in d.items()} for v, d in self.pose_ar_per_object.items()},
+                "refusals": self.refusals, "seconds_per_estimate": self.seconds_per_estimate,
+                "detection_threshold": DETECTION_THRESHOLD}
+
+
+def iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
+    """Intersection over union of two (x0, y0, x1, y1) boxes (0 for empty ones)."""
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    if w <= 0 or h <= 0:
+        return 0.0
+    inter = w * h
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+def average_precision(scores: list[float], hits: list[bool], n_gt: int) -> float:
+    """All-point interpolated AP of detections (``scores``, whether each is a true positive) against ``n_gt``."""
+    if n_gt == 0:
+        return float("nan")
+    if not scores:
+        return 0.0
+    order = np.argsort(-np.asarray(scores), kind="stable")
+    tp = np.cumsum(np.asarray(hits, dtype=np.float64)[order])
+    fp = np.cumsum(1.0 - np.asarray(hits, dtype=np.float64)[order])
+    recall = tp / n_gt
+    precision = tp / np.maximum(tp + fp, 1e-12)
+    r = np.concatenate([[0.0], recall, [recall[-1]]])
+    p = np.concatenate([[1.0], precision, [0.0]])
+    p = np.maximum.accumulate(p[::-1])[::-1]
+    return float(np.sum((r[1:] - r[:-1]) * p[1:]))
+
+
+def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: Path | str,
+                  max_images: int | None = None, show_progress: bool = True,
+                  images: list[int] | None = None) -> HeldoutScores:
+    """Score ``estimator`` on the held-out images of ``data`` (module docstring); ``images``: other
+    image indices instead (the tests score training images to see what a model learnt)."""
+    import cv2
+
+    from brave6d.core.atomic import read_png
+    from brave6d.core.progress import progress
+    from brave6d.evaluation.metrics import DepthRenderer, Estimate, GTInstance, evaluate_bop19, load_models
+
+    images = (data.split(True) if images is None else list(images))[:max_images]
+    models = load_models(models_dir, sorted(data.objects))
+    obj_ids = sorted(data.objects)
+    det_scores: dict[int, list[float]] = {o: [] for o in obj_ids}
+    det_hits: dict[int, list[bool]] = {o: [] for o in obj_ids}
+    n_gt = {o: 0 for o in obj_ids}
+    found = {o: 0 for o in obj_ids}
+    gts: list[Any] = []
+    estimates: dict[str, list[Any]] = {v: [] for v in POSE_VARIANTS}
+    refusals: dict[str, dict[str, int]] = {v: {} for v in POSE_VARIANTS}
+    times: list[float] = []
+    n_instances = 0
+    for i in progress(images, total=len(images), desc="learn: held-out", unit="img", disable=not show_progress):
+        record = data.images[i]
+        depth_full_mm = read_png(record.depth_path, expect="depth").astype(np.float64)
+        h, w = record.rgb.shape[:2]
+        depth_work = cv2.resize(depth_full_mm, (w, h), interpolation=cv2.INTER_NEAREST) / 1000.0
+        detections = estimator.detect(record.rgb, record.K, min_score=0.05)
+        instances = [data.instances[k] for k in record.instances]
+        n_instances += len(instances)
+        _match_detections(detections, instances, det_scores, det_hits, n_gt, found)
+        counts: dict[int, int] = {}
+        for inst in instances:
+            counts[inst.obj_id] = counts.get(inst.obj_id, 0) + 1
+            gts.append(GTInstance(record.scene_id, record.im_id, inst.obj_id, inst.R, inst.t_mm,
+                                  max(inst.visib_fract, MIN_VISIB_FRACT), record.K_full, record.size_full,
+                                  depth_full_mm))
+        for inst in instances:
+            confident = [d for d in detections if d.obj_id == inst.obj_id and d.score >= DETECTION_THRESHOLD]
+            matched = max(confident, key=lambda d: iou(d.box, inst.box), default=None)
+            boxes = {"true_box": (inst.box, 1.0),
+                     "detected": (matched.box, matched.score) if matched is not None else None}
+            for variant in POSE_VARIANTS:
+                kind, mode = variant.rsplit("_", 1)
+                if boxes[kind] is None:
+                    refusals[variant]["no-detection"] = refusals[variant].get("no-detection", 0) + 1
+                    continue
+                box, score = boxes[kind]
+                t0 = time.perf_counter()
+                try:
+                    pose = estimator.estimate(record.rgb, record.K, inst.obj_id, box,
+                                              depth_work if mode == "depth" else None, score)
+                except LearnedRefused as exc:
+                    refusals[variant][exc.cause] = refusals[variant].get(exc.cause, 0) + 1
+                    continue
+                times.append(time.perf_counter() - t0)
+                estimates[variant].append(Estimate(record.scene_id, record.im_id, inst.obj_id, pose.score,
+                                                   pose.cam_T_obj[:3, :3], pose.cam_T_obj[:3, 3] * 1000.0))
+    renderer = DepthRenderer()
+    pose_ar, per_object = {}, {}
+    for variant in POSE_VARIANTS:
+        scores = evaluate_bop19(gts, estimates[variant], models, renderer=renderer, keep_errors=False)
+        pose_ar[variant] = float(scores.ar)
+        per_object[variant] = {int(o): float(s.ar) for o, s in scores.per_object.items()}
+    return HeldoutScores(len(images), n_instances, {o: found[o] / n_gt[o] if n_gt[o] else float("nan") for o in obj_ids},
+                         {o: average_precision(det_scores[o], det_hits[o], n_gt[o]) for o in obj_ids},
+                         pose_ar, per_object, refusals, float(np.median(times)) if times else 0.0)
+
+
+def _match_detections(detections: list[Detection], instances: list[Any], det_scores: dict[int, list[float]],
+                      det_hits: dict[int, list[bool]], n_gt: dict[int, int], found: dict[int, int]) -> None:
+    """Greedy matching by score (VOC): each true instance takes the best detection of its object at IoU >= 0.5."""
+    taken: set[int] = set()
+    for inst in instances:
+        n_gt[inst.obj_id] += 1
+    for d in detections:  # best first
+        best, best_iou = None, IOU
+        for k, inst in enumerate(instances):
+            if k in taken or inst.obj_id != d.obj_id:
+                continue
+            overlap = iou(d.box, inst.box)
+            if overlap >= best_iou:
+                best, best_iou = k, overlap
+        hit = best is not None
+        if hit:
+            taken.add(best)  # type: ignore[arg-type]
+            if d.score >= DETECTION_THRESHOLD:
+                found[d.obj_id] += 1
+        if d.obj_id in det_scores:
+            det_scores[d.obj_id].append(d.score)
+            det_hits[d.obj_id].append(hit)

@@ -1,0 +1,248 @@
+"""The learned estimator at work: detect, crop, regress coordinates, PnP-RANSAC, optionally
+refine the translation with a depth image.
+
+:class:`LearnedEstimator` takes any RGB image and its K (resized to the model's working width
+internally) and answers in the image's own pixels and camera frame. Every failure is a
+:class:`LearnedRefused` whose ``cause`` is one of :data:`REFUSAL_CAUSES`; a pose it returns is
+finite, in front of the camera and rigid.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brave6d.core.errors import BraveError
+from brave6d.evaluation.learned.crops import box_crop, crop_to_image, normalise, warp_rgb
+from brave6d.evaluation.learned.data import resize_to_width
+from brave6d.evaluation.learned.model_file import LearnedModel, read_model
+from brave6d.evaluation.learned.networks import DETECTOR_STRIDE
+
+Array = NDArray[np.float64]
+
+#: Why an estimate can fail, as :attr:`LearnedRefused.cause` names it.
+REFUSAL_CAUSES = ("unknown-object", "no-detection", "few-correspondences", "degenerate-correspondences",
+                  "pnp-failed", "bad-input")
+#: PnP needs at least this many visible pixels with coordinates.
+MIN_CORRESPONDENCES = 6
+#: Second singular value of the centred 3D (and 2D) points, relative to the first, below which
+#: they are taken as collinear.
+MIN_SPREAD = 0.05
+_MAX_DETECTIONS = 20
+
+
+class LearnedRefused(BraveError):
+    """The learned estimator cannot give a pose; ``cause`` is one of :data:`REFUSAL_CAUSES`."""
+
+    def __init__(self, cause: str, message: str) -> None:
+        super().__init__(message)
+        self.cause = cause
+
+
+@dataclass(frozen=True)
+class Detection:
+    """A detected object: its obj_id, box (x0, y0, x1, y1; pixel edges of the input image) and score in [0, 1]."""
+
+    obj_id: int
+    box: tuple[float, float, float, float]
+    score: float
+
+    @property
+    def size_px(self) -> float:
+        """Geometric mean of the box's width and height."""
+        return math.sqrt(max(self.box[2] - self.box[0], 0.0) * max(self.box[3] - self.box[1], 0.0))
+
+
+@dataclass(frozen=True)
+class LearnedPose:
+    """A pose (``cam_T_obj``, metres, the input image's camera frame), its score, the PnP inliers
+    and correspondences, and whether depth refined it (``depth_scale``: the factor applied to t)."""
+
+    cam_T_obj: Array
+    score: float
+    inliers: int
+    correspondences: int
+    depth_scale: float | None = None
+
+
+class LearnedEstimator:
+    """A trained model ready to detect and estimate (see the module docstring)."""
+
+    def __init__(self, model: LearnedModel, device: str = "cpu") -> None:
+        import torch
+
+        from brave6d.evaluation.learned.networks import CoordinateNet, Detector
+
+        self.model = model
+        self.preset = model.preset
+        self.device = torch.device(device)
+        classes = len(model.objects)
+        self.detector = Detector(classes, int(self.preset["detector_width"]))
+        self.detector.load_state_dict(model.detector_state)
+        self.pose = CoordinateNet(classes, int(self.preset["pose_width"]))
+        self.pose.load_state_dict(model.pose_state)
+        self.detector.to(self.device).eval()
+        self.pose.to(self.device).eval()
+        self._by_class = {o.class_index: o for o in model.objects.values()}
+
+    @classmethod
+    def load(cls, model_dir: Path | str, device: str = "cpu") -> LearnedEstimator:
+        """The estimator of ``model_dir/model.pt``."""
+        return cls(read_model(model_dir), device)
+
+    @property
+    def obj_ids(self) -> list[int]:
+        return self.model.classes
+
+    def _work(self, rgb: NDArray[np.uint8], K: Array) -> tuple[NDArray[np.uint8], Array, float]:
+        rgb = np.asarray(rgb)
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8 or min(rgb.shape[:2]) < 16:
+            raise LearnedRefused("bad-input", f"learned estimator: expected an 8-bit RGB image of at least 16x16, "
+                                              f"got {rgb.dtype} {rgb.shape}")
+        K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise LearnedRefused("bad-input", "learned estimator: K must be a finite 3x3 matrix with positive focal "
+                                              "lengths")
+        return resize_to_width(rgb, K, int(self.preset["work_width"]))
+
+    def detect(self, rgb: NDArray[np.uint8], K: Array, min_score: float = 0.05,
+               obj_id: int | None = None) -> list[Detection]:
+        """The detections scoring at least ``min_score`` (of ``obj_id`` only, when given), best first,
+        at most 20 (boxes in ``rgb``'s pixels)."""
+        import torch
+        from torch.nn import functional as F
+
+        work, _, s = self._work(rgb, K)
+        with torch.no_grad():
+            x = torch.from_numpy(normalise(work)[None]).to(self.device)
+            heat, size, offset = self.detector(x)
+            p = torch.sigmoid(heat)[0]
+            if obj_id is not None:
+                keep = torch.zeros_like(p[:, :1, :1])
+                keep[self.model.objects[int(obj_id)].class_index] = 1.0
+                p = p * keep
+            peaks = (p == F.max_pool2d(p[None], 3, 1, 1)[0]) & (p >= min_score)
+            scores = p[peaks]
+            order = torch.argsort(scores, descending=True)[:_MAX_DETECTIONS]
+            idx = peaks.nonzero()[order].cpu().numpy()
+            scores = scores[order].cpu().numpy()
+            size, offset = size[0].cpu().numpy(), offset[0].cpu().numpy()
+        out = []
+        for (c, gy, gx), score in zip(idx, scores):
+            cx = (gx + offset[0, gy, gx]) * DETECTOR_STRIDE
+            cy = (gy + offset[1, gy, gx]) * DETECTOR_STRIDE
+            w, h = (math.exp(float(np.clip(v, -5.0, 8.0))) for v in size[:, gy, gx])
+            box = ((cx - w / 2) / s, (cy - h / 2) / s, (cx + w / 2) / s, (cy + h / 2) / s)
+            if all(math.isfinite(b) for b in box):
+                out.append(Detection(self._by_class[int(c)].obj_id, box, float(score)))
+        return out
+
+    def best_detection(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, min_score: float = 0.05) -> Detection:
+        """The highest-scoring detection of ``obj_id`` (refused naming the cause when there is none)."""
+        self._check_object(obj_id)
+        found = self.detect(rgb, K, min_score, obj_id)
+        if not found:
+            raise LearnedRefused("no-detection", f"learned estimator: no detection of object {obj_id} scoring "
+                                                 f">= {min_score}")
+        return found[0]
+
+    def _check_object(self, obj_id: int) -> None:
+        if int(obj_id) not in self.model.objects:
+            raise LearnedRefused("unknown-object", f"learned estimator: object {obj_id} was not in the training "
+                                                   f"split (the model knows {', '.join(map(str, self.obj_ids))})")
+
+    def estimate(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, box: tuple[float, float, float, float],
+                 depth_m: NDArray[np.floating] | None = None, score: float = 1.0) -> LearnedPose:
+        """The pose of ``obj_id`` inside ``box`` (``rgb``'s pixels); ``depth_m`` (metres, 0 = none, same
+        size as ``rgb``) scales the translation so the object's points meet the measured depth."""
+        import torch
+
+        self._check_object(obj_id)
+        obj = self.model.objects[int(obj_id)]
+        work, K_work, s = self._work(rgb, K)
+        box_w = tuple(float(b) * s for b in box)
+        if not all(math.isfinite(b) for b in box_w) or box_w[2] <= box_w[0] or box_w[3] <= box_w[1]:
+            raise LearnedRefused("bad-input", f"learned estimator: box {tuple(box)} is empty or not finite")
+        crop_px = int(self.preset["crop_px"])
+        centre, side = box_crop(box_w)
+        crop = warp_rgb(work, centre, side, crop_px)
+        with torch.no_grad():
+            coords, mask = self.pose(torch.from_numpy(normalise(crop)[None]).to(self.device),
+                                     torch.tensor([obj.class_index], device=self.device))
+        coords = coords[0].cpu().numpy().astype(np.float64)
+        visible = torch.sigmoid(mask[0, 0]).cpu().numpy() >= 0.5
+        out_px = coords.shape[-1]
+        ys, xs = np.nonzero(visible)
+        points_2d = crop_to_image(np.stack([xs, ys], axis=1).astype(np.float64), centre, side, out_px)
+        points_3d = (coords[:, ys, xs].T * obj.radius_mm + obj.centre_mm) / 1000.0
+        R, t, inliers = solve_pnp(points_3d, points_2d, K_work, obj_id)
+        depth_scale = None
+        if depth_m is not None:
+            t, depth_scale = _depth_scaled(R, t, points_3d[inliers], (points_2d[inliers] + 0.5) / s - 0.5, depth_m)
+        cam_T_obj = np.eye(4)
+        cam_T_obj[:3, :3], cam_T_obj[:3, 3] = R, t
+        ratio = len(inliers) / max(len(points_3d), 1)
+        return LearnedPose(cam_T_obj, float(np.clip(score * ratio, 0.0, 1.0)), len(inliers), len(points_3d),
+                           depth_scale)
+
+
+def solve_pnp(points_3d: Array, points_2d: Array, K: Array, obj_id: int = 0,
+              reprojection_px: float = 2.0) -> tuple[Array, Array, NDArray[np.int64]]:
+    """PnP-RANSAC (OpenCV EPnP, then Levenberg-Marquardt on the inliers): rotation, translation (the
+    units of ``points_3d``) and inlier indices; refused with a named cause when the correspondences
+    are too few, degenerate (collinear), or no finite pose in front of the camera comes out."""
+    import cv2
+
+    n = len(points_3d)
+    if n < MIN_CORRESPONDENCES:
+        raise LearnedRefused("few-correspondences", f"learned estimator: object {obj_id}: {n} correspondences, "
+                                                    f"PnP needs at least {MIN_CORRESPONDENCES}")
+    p3 = np.asarray(points_3d, dtype=np.float64)
+    p2 = np.asarray(points_2d, dtype=np.float64)
+    if not (np.all(np.isfinite(p3)) and np.all(np.isfinite(p2))):
+        raise LearnedRefused("bad-input", f"learned estimator: object {obj_id}: non-finite correspondences")
+    for what, pts in (("3D", p3), ("2D", p2)):
+        sv = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
+        if not sv[0] > 0 or sv[1] < MIN_SPREAD * sv[0]:
+            raise LearnedRefused("degenerate-correspondences",
+                                 f"learned estimator: object {obj_id}: the {what} points are collinear or coincide "
+                                 f"(spread {sv[1] / sv[0] if sv[0] > 0 else 0.0:.3g} < {MIN_SPREAD})")
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(p3, p2, K, None, iterationsCount=100,
+                                                 reprojectionError=reprojection_px, confidence=0.99,
+                                                 flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inliers is None or len(inliers) < MIN_CORRESPONDENCES:
+        raise LearnedRefused("pnp-failed", f"learned estimator: object {obj_id}: PnP-RANSAC found no pose with "
+                                           f">= {MIN_CORRESPONDENCES} inliers among {n} correspondences")
+    inliers = inliers.reshape(-1)
+    rvec, tvec = cv2.solvePnPRefineLM(p3[inliers], p2[inliers], K, None, rvec, tvec)
+    R = cv2.Rodrigues(rvec)[0]
+    t = tvec.reshape(3)
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))) or t[2] <= 0:
+        raise LearnedRefused("pnp-failed", f"learned estimator: object {obj_id}: PnP gave no finite pose in front "
+                                           f"of the camera (t = {t.tolist()})")
+    return R, t, inliers
+
+
+def _depth_scaled(R: Array, t: Array, points_3d: Array, points_2d: Array,
+                  depth_m: NDArray[np.floating]) -> tuple[Array, float | None]:
+    """``t`` scaled along its ray so the inliers' depths meet ``depth_m`` (median ratio), and the
+    factor; unchanged (None) where the depth has nothing at those pixels."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    u = np.rint(points_2d[:, 0]).astype(np.int64)
+    v = np.rint(points_2d[:, 1]).astype(np.int64)
+    inside = (u >= 0) & (v >= 0) & (u < depth.shape[1]) & (v < depth.shape[0])
+    if not inside.any():
+        return t, None
+    z_obs = depth[v[inside], u[inside]]
+    z_pred = (points_3d[inside] @ R.T + t)[:, 2]
+    good = np.isfinite(z_obs) & (z_obs > 0) & (z_pred > 0)
+    if good.sum() < MIN_CORRESPONDENCES:
+        return t, None
+    ratio = float(np.median(z_obs[good] / z_pred[good]))
+    if not (math.isfinite(ratio) and 0.5 < ratio < 2.0):
+        return t, None
+    return t * ratio, ratio

@@ -1,0 +1,84 @@
+"""Training presets of the learned estimator: what a run trains, how long, on what images.
+
+``fast`` is sized for a 2-core CPU (the demo's few minutes); ``paper`` for a GPU. Every field is
+a plain number so a card records the preset as it ran; ``with_overrides`` changes named fields
+(benchmarks price a setting this way).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
+
+from brave6d.core.errors import BraveError
+
+
+@dataclass(frozen=True)
+class LearnPreset:
+    """``work_width``: the width the networks see (images are resized to it, K scaled; the demo's
+    episodes are 320 wide); ``detector_patch``: the detector trains on square patches of this many
+    pixels around objects (it is fully convolutional; whole images cost 4x more); ``crop_px``: the coordinate net's zoomed-in crop; ``*_steps``,
+    ``*_batch``, ``*_lr``, ``*_width``: each network's schedule and size (base channels);
+    ``heldout_every``: every n-th train_pbr image is held out (never trained on); ``checkpoint_every``:
+    steps between checkpoints (a stopped run resumes there)."""
+
+    name: str
+    work_width: int = 320
+    crop_px: int = 64
+    detector_steps: int = 1500
+    detector_batch: int = 8
+    detector_patch: int = 128
+    detector_lr: float = 2e-3
+    detector_width: int = 16
+    pose_steps: int = 1500
+    pose_batch: int = 32
+    pose_lr: float = 2e-3
+    pose_width: int = 16
+    heldout_every: int = 10
+    checkpoint_every: int = 100
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "name":
+                continue
+            if isinstance(value, float) and not (math.isfinite(value) and value > 0):
+                raise BraveError(f"learn preset {self.name!r}: field '{f.name}' must be a positive finite number, "
+                                 f"got {value}")
+            if isinstance(value, int) and value < (0 if f.name == "seed" else 1):
+                raise BraveError(f"learn preset {self.name!r}: field '{f.name}' must be >= 1, got {value}")
+        if self.work_width < 64 or self.crop_px < 32 or self.crop_px % 16 or self.detector_patch % 16:
+            raise BraveError(f"learn preset {self.name!r}: work_width >= 64, crop_px and detector_patch "
+                             f"multiples of 16 are needed, got {self.work_width}, {self.crop_px}, {self.detector_patch}")
+        if self.heldout_every < 2:
+            raise BraveError(f"learn preset {self.name!r}: heldout_every must be >= 2 (1 would hold out everything)")
+
+    def with_overrides(self, **changes: Any) -> LearnPreset:
+        """This preset with ``changes`` (field name -> value), validated again."""
+        known = {f.name for f in fields(self)}
+        unknown = sorted(set(changes) - known)
+        if unknown:
+            raise BraveError(f"learn preset: no field {', '.join(unknown)}; fields: {', '.join(sorted(known))}")
+        return replace(self, **changes)
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+PRESETS: dict[str, LearnPreset] = {
+    "fast": LearnPreset("fast"),
+    "paper": LearnPreset("paper", work_width=640, crop_px=128, detector_steps=20000, detector_batch=32,
+                         detector_width=32, pose_steps=40000, pose_batch=64, pose_width=32, checkpoint_every=1000),
+    # the miniature runs of the tests: a few hundred steps
+    "tiny": LearnPreset("tiny", detector_steps=200, pose_steps=200, detector_width=8, pose_width=8,
+                        checkpoint_every=50),
+}
+
+
+def get_learn_preset(name: str) -> LearnPreset:
+    """The preset ``name`` (``fast``, ``paper``, ``tiny``)."""
+    if name not in PRESETS:
+        raise BraveError(f"no learn preset named {name!r}; presets: {', '.join(PRESETS)}")
+    return PRESETS[name]

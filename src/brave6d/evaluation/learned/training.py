@@ -1,0 +1,243 @@
+"""``brave6d learn train``: train the detector, then the coordinate net, on a train_pbr split.
+
+Seeded and resumable: the NumPy generator that draws every batch, torch's generator, the
+networks and their optimisers are checkpointed every ``checkpoint_every`` steps
+(``checkpoint.pt``, written atomically); ``resume=True`` continues from there and ends with the
+same weights as an uninterrupted run (CPU, same machine and thread count). A finished model whose
+inputs (train_pbr digest, models, preset, device kind) are unchanged is not trained again.
+A non-finite loss stops the run naming the network and the step; the last checkpoint stays.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from brave6d.core.errors import BraveError
+from brave6d.evaluation.learned.data import TrainingData, load_training_data, split_digest
+from brave6d.evaluation.learned.model_file import CHECKPOINT, FORMAT, MODEL, LearnedModel, ObjectNorm, load_torch, \
+    save_torch, write_model
+from brave6d.evaluation.learned.presets import LearnPreset
+
+log = logging.getLogger(__name__)
+_WARMUP = 50
+
+
+@dataclass(frozen=True)
+class LearnResult:
+    """What a run did: the model folder, whether it was trained now (False: up to date), seconds
+    per phase, the final losses and the model (None when ``stop_after_steps`` stopped the run
+    early: its checkpoint is in ``out``, and ``resume=True`` continues it)."""
+
+    out: Path
+    trained: bool
+    seconds: dict[str, float]
+    losses: dict[str, float]
+    model: LearnedModel | None
+    data: TrainingData | None
+
+
+def inputs_key(train_pbr_digest: str, models_dir: Path, preset: LearnPreset, device_kind: str) -> str:
+    """The digest a finished model is reused by: the split, the models, the preset and the device kind."""
+    models_digest, _ = split_digest(models_dir)
+    text = json.dumps({"train_pbr": train_pbr_digest, "models": models_digest, "preset": preset.to_json(),
+                       "device": device_kind, "format": FORMAT}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def train_learned(train_pbr: Path | str, models_dir: Path | str, out: Path | str, preset: LearnPreset,
+                  device: str = "auto", resume: bool = False, show_progress: bool = True,
+                  stop_after_steps: int | None = None) -> LearnResult:
+    """Train (or reuse, or resume) the learned estimator of ``train_pbr`` into ``out`` (module
+    docstring); ``stop_after_steps`` stops after that many steps of this call with a checkpoint
+    (a job with a time slot; the tests' interruption)."""
+    import torch
+
+    from brave6d.core.atomic import move_aside
+    from brave6d.evaluation.learned.model_file import read_model
+    from brave6d.training import resolve_device
+
+    dev = resolve_device(device)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise BraveError(f"{out}: --out is a file; give a folder")
+    t0 = time.perf_counter()
+    data = load_training_data(train_pbr, models_dir, preset.work_width, preset.heldout_every,
+                              show_progress=show_progress)
+    key = inputs_key(data.digest, Path(models_dir), preset, dev.type)
+    seconds = {"read": time.perf_counter() - t0}
+    if (out / MODEL).is_file():
+        existing = read_model(out)
+        if existing.inputs_key == key:
+            log.info("%s: the model is up to date with its inputs; not trained again", out)
+            return LearnResult(out, False, seconds, {}, existing, data)
+        if not resume:
+            moved = move_aside(out, "replaced")
+            log.warning("%s: trained from other inputs; moved aside to %s", out, moved)
+    state = _resume_state(out, key) if resume else None
+    if state is None and (out / CHECKPOINT).is_file():
+        moved = move_aside(out / CHECKPOINT, "stale")
+        log.warning("%s: a checkpoint from an earlier run was moved aside to %s (use --resume to continue one)",
+                    out, moved)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(preset.seed)
+    trainer = _Trainer(data, preset, dev, out, key, show_progress, stop_after_steps)
+    finished = trainer.run(state)
+    seconds.update(trainer.seconds)
+    if not finished:
+        trainer.save()
+        return LearnResult(out, True, seconds, trainer.losses, None, data)
+    model = LearnedModel(preset.to_json(), _norms(data), _cpu_state(trainer.detector), _cpu_state(trainer.pose), key)
+    write_model(out, model)
+    (out / CHECKPOINT).unlink(missing_ok=True)
+    return LearnResult(out, True, seconds, trainer.losses, model, data)
+
+
+def _norms(data: TrainingData) -> dict[int, ObjectNorm]:
+    return {o.obj_id: ObjectNorm(o.obj_id, o.class_index, o.centre_mm, o.radius_mm, o.diameter_mm)
+            for o in data.objects.values()}
+
+
+def _cpu_state(module: Any) -> dict[str, Any]:
+    return {k: v.detach().to("cpu").clone() for k, v in module.state_dict().items()}
+
+
+def _resume_state(out: Path, key: str) -> dict[str, Any] | None:
+    path = out / CHECKPOINT
+    if not path.is_file():
+        log.info("%s: no checkpoint to resume; training from the start", out)
+        return None
+    state = load_torch(path)
+    if state.get("inputs_key") != key:
+        raise BraveError(f"{path}: the checkpoint was made from other inputs (train_pbr, models, preset or device); "
+                         "train without --resume to start again (the checkpoint is moved aside)")
+    return state
+
+
+def learning_rate(step: int, steps: int, base: float) -> float:
+    """Linear warm-up over the first 50 steps, then a cosine decay to 5 % of ``base``."""
+    if step < _WARMUP:
+        return base * (step + 1) / _WARMUP
+    progress = (step - _WARMUP) / max(1, steps - _WARMUP)
+    return base * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0))))
+
+
+class _Trainer:
+    """Both phases with one NumPy generator; checkpoint and resume."""
+
+    def __init__(self, data: TrainingData, preset: LearnPreset, device: Any, out: Path, key: str,
+                 show_progress: bool, stop_after_steps: int | None = None) -> None:
+        import torch
+
+        from brave6d.evaluation.learned.networks import CoordinateNet, Detector
+
+        self.data, self.preset, self.device, self.out, self.key = data, preset, device, out, key
+        self.show_progress = show_progress
+        classes = len(data.objects)
+        self.detector = Detector(classes, preset.detector_width).to(device)
+        self.pose = CoordinateNet(classes, preset.pose_width).to(device)
+        self.opt_det = torch.optim.AdamW(self.detector.parameters(), lr=preset.detector_lr, weight_decay=1e-4)
+        self.opt_pose = torch.optim.AdamW(self.pose.parameters(), lr=preset.pose_lr, weight_decay=1e-4)
+        self.rng = np.random.default_rng(preset.seed)
+        self.phase, self.step = "detector", 0
+        self.seconds: dict[str, float] = {"detector": 0.0, "pose": 0.0}
+        self.losses: dict[str, float] = {}
+        self.budget = stop_after_steps
+
+    def run(self, state: dict[str, Any] | None) -> bool:
+        """Train what is left; False when the step budget stopped it first."""
+        if state is not None:
+            self._load(state)
+        train_images = self.data.split(False)
+        train_instances = self.data.instances_of(False)
+        if self.phase == "detector":
+            if not self._phase("detector", self.preset.detector_steps, train_images):
+                return False
+            self.phase, self.step = "pose", 0
+        return self._phase("pose", self.preset.pose_steps, train_instances)
+
+    def _phase(self, phase: str, steps: int, pool: list[int]) -> bool:
+        import torch
+
+        from brave6d.core.progress import progress_bar
+        from brave6d.evaluation.learned.losses import detector_loss, pose_loss
+        from brave6d.evaluation.learned.targets import detector_batch, pose_batch
+
+        net, opt = (self.detector, self.opt_det) if phase == "detector" else (self.pose, self.opt_pose)
+        base_lr = self.preset.detector_lr if phase == "detector" else self.preset.pose_lr
+        net.train()
+        bar = progress_bar(steps, desc=f"learn: {phase}", unit="step", initial=self.step) if self.show_progress else None
+        recent: list[float] = []
+        start = time.perf_counter()
+        while self.step < steps:
+            if self.budget is not None:
+                if self.budget <= 0:
+                    break
+                self.budget -= 1
+            for group in opt.param_groups:
+                group["lr"] = learning_rate(self.step, steps, base_lr)
+            if phase == "detector":
+                batch = detector_batch(self.data, pool, self.rng, self.preset.detector_batch, self.preset.detector_patch)
+                t = {k: torch.from_numpy(v).to(self.device) for k, v in batch.items()}
+                loss = detector_loss(*net(t["images"]), t)
+            else:
+                batch = pose_batch(self.data, pool, self.rng, self.preset.pose_batch, self.preset.crop_px)
+                t = {k: torch.from_numpy(v).to(self.device) for k, v in batch.items()}
+                loss = pose_loss(*net(t["crops"], t["classes"]), t)
+            value = float(loss.detach())
+            if not math.isfinite(value):
+                raise BraveError(f"learn: the {phase} loss is {value} at step {self.step}; training stopped "
+                                 f"(the last checkpoint is {self.out / CHECKPOINT}; lower the learning rate "
+                                 f"'{phase}_lr' of preset {self.preset.name!r})")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            self.step += 1
+            recent = (recent + [value])[-50:]
+            if bar is not None:
+                bar.update(1)
+                if self.step % 10 == 0:
+                    bar.set_postfix(loss=f"{np.mean(recent):.3f}")
+            if self.step % self.preset.checkpoint_every == 0 and self.step < steps:
+                self.seconds[phase] += time.perf_counter() - start
+                start = time.perf_counter()
+                self.save()
+        if bar is not None:
+            bar.close()
+        self.seconds[phase] += time.perf_counter() - start
+        self.losses[phase] = float(np.mean(recent)) if recent else float("nan")
+        net.eval()
+        return self.step >= steps
+
+    def save(self) -> None:
+        """Write the checkpoint (atomically)."""
+        import torch
+
+        save_torch(self.out / CHECKPOINT, {
+            "format": FORMAT, "inputs_key": self.key, "phase": self.phase, "step": self.step,
+            "detector": _cpu_state(self.detector), "pose": _cpu_state(self.pose),
+            "opt_det": self.opt_det.state_dict(), "opt_pose": self.opt_pose.state_dict(),
+            "rng": json.dumps(self.rng.bit_generator.state), "torch_rng": torch.get_rng_state(),
+            "seconds": dict(self.seconds), "losses": dict(self.losses)})
+
+    def _load(self, state: dict[str, Any]) -> None:
+        import torch
+
+        self.detector.load_state_dict(state["detector"])
+        self.pose.load_state_dict(state["pose"])
+        self.opt_det.load_state_dict(state["opt_det"])
+        self.opt_pose.load_state_dict(state["opt_pose"])
+        self.rng.bit_generator.state = json.loads(state["rng"])
+        torch.set_rng_state(state["torch_rng"])
+        self.phase, self.step = str(state["phase"]), int(state["step"])
+        self.seconds = {k: float(v) for k, v in state["seconds"].items()}
+        self.losses = {k: float(v) for k, v in state["losses"].items()}
+        log.info("%s: resuming the %s phase at step %d", self.out, self.phase, self.step)

@@ -1,0 +1,97 @@
+"""The learned estimator end to end in miniature: a tiny train_pbr of the demo scene, a few hundred
+steps, held-out scoring, the card, resuming bit for bit, reuse by checksum, the command line."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, read_card, read_model, score_heldout, \
+    train_learned
+from brave6d.evaluation.learned.data import load_training_data
+from brave6d.evaluation.learned.pipeline import learn_and_card
+from brave6d.synth import SynthOptions, synthesize
+from learned_helpers import DEMO_SPEC, untrained_model, write_models
+
+pytestmark = pytest.mark.slow
+PRESET = get_learn_preset("tiny").with_overrides(detector_steps=160, pose_steps=160, checkpoint_every=40)
+
+
+@pytest.fixture(scope="module")
+def split(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("learned")
+    synthesize(DEMO_SPEC, root / "synth", SynthOptions(images=30, seed=0, workers=2, width=320, height=200))
+    return root / "synth", write_models(DEMO_SPEC, root / "models")
+
+
+@pytest.fixture(scope="module")
+def trained(split: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("model") / "model"
+    learn_and_card(split[0], split[1], out, PRESET, device="cpu", show_progress=False)
+    return out
+
+
+def _scores(estimator: LearnedEstimator, split: tuple[Path, Path]) -> object:
+    data = load_training_data(split[0], split[1], PRESET.work_width, PRESET.heldout_every, show_progress=False)
+    return score_heldout(estimator, data, split[1], show_progress=False, images=data.split(False)[:12])
+
+
+def test_training_learns_what_an_untrained_model_cannot(split: tuple[Path, Path], trained: Path) -> None:
+    learnt = _scores(LearnedEstimator.load(trained), split)
+    blank = _scores(LearnedEstimator(untrained_model(PRESET, [1, 2, 3, 4])), split)
+    assert np.mean(list(learnt.recall.values())) >= 0.5 > np.mean(list(blank.recall.values())) + 0.3
+    assert learnt.pose_ar["true_box_depth"] >= blank.pose_ar["true_box_depth"] + 0.1
+    assert learnt.pose_ar["true_box_rgb"] >= blank.pose_ar["true_box_rgb"] + 0.05
+
+
+def test_the_card_names_the_split_the_steps_and_the_heldout_figures(split: tuple[Path, Path], trained: Path) -> None:
+    card = read_card(trained)
+    assert card["images"] == 30 and card["heldout_images"] == 3 and card["trained_on_images"] == 27
+    assert card["objects"] == [1, 2, 3, 4] and card["preset"]["detector_steps"] == 160
+    assert len(card["train_pbr_sha256"]) == 64 and card["device"] == "cpu" and card["train_seconds"] > 0
+    held = card["heldout"]
+    assert held["images"] == 3 and set(held["pose_ar"]) == {"true_box_rgb", "true_box_depth", "detected_rgb",
+                                                             "detected_depth"}
+    assert all(0.0 <= v <= 1.0 for v in held["pose_ar"].values())
+    text = (trained / "MODEL_CARD.md").read_text()
+    assert "detection recall" in text and card["model_sha256"] in text
+
+
+def test_a_stopped_run_resumes_to_the_same_weights(split: tuple[Path, Path], tmp_path: Path) -> None:
+    preset = get_learn_preset("tiny").with_overrides(detector_steps=30, pose_steps=30, checkpoint_every=10)
+    whole = train_learned(split[0], split[1], tmp_path / "whole", preset, "cpu", show_progress=False).model
+    for stop in (25, 45):  # inside the detector's phase, then inside the coordinate net's
+        out = tmp_path / f"stopped{stop}"
+        first = train_learned(split[0], split[1], out, preset, "cpu", show_progress=False, stop_after_steps=stop)
+        assert first.model is None and (out / "checkpoint.pt").is_file() and not (out / "model.pt").exists()
+        resumed = train_learned(split[0], split[1], out, preset, "cpu", resume=True, show_progress=False).model
+        assert resumed is not None and not (out / "checkpoint.pt").exists()
+        for part in ("detector_state", "pose_state"):
+            a, b = getattr(whole, part), getattr(resumed, part)
+            assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), (stop, part)
+
+
+def test_a_finished_model_is_reused_and_other_inputs_move_it_aside(split: tuple[Path, Path], tmp_path: Path) -> None:
+    preset = get_learn_preset("tiny").with_overrides(detector_steps=4, pose_steps=4)
+    out = tmp_path / "m"
+    first = train_learned(split[0], split[1], out, preset, "cpu", show_progress=False)
+    again = train_learned(split[0], split[1], out, preset, "cpu", show_progress=False)
+    assert first.trained and not again.trained and again.model.inputs_key == first.model.inputs_key
+    other = train_learned(split[0], split[1], out, preset.with_overrides(seed=1), "cpu", show_progress=False)
+    assert other.trained and other.model.inputs_key != first.model.inputs_key
+    moved = [p for p in tmp_path.iterdir() if p.name.startswith("m.replaced-")]
+    assert len(moved) == 1 and read_model(moved[0]).inputs_key == first.model.inputs_key
+
+
+def test_the_command_line_trains_and_refuses_bad_input_in_one_line(split: tuple[Path, Path], tmp_path: Path) -> None:
+    cmd = [sys.executable, "-m", "brave6d.cli", "learn", "train", str(split[0]), "--models", str(split[1]),
+           "--out", str(tmp_path / "cli"), "--preset", "tiny", "--device", "cpu", "--no-heldout"]
+    missing = subprocess.run(cmd[:6] + [str(tmp_path / "nowhere")] + cmd[7:], capture_output=True, text=True)
+    assert missing.returncode == 2 and "Traceback" not in missing.stderr and "nowhere" in missing.stderr
+    unknown = subprocess.run(cmd[:-5] + ["--preset", "huge"] + cmd[-3:], capture_output=True, text=True)
+    assert unknown.returncode == 2 and "no learn preset named 'huge'" in unknown.stderr

@@ -1,0 +1,108 @@
+"""The learned agents through the registry on a served synthetic bundle: no detection (the static
+agent refuses, the active one moves, adjustments counted), an object the model never saw, a
+confident large detection (no move) and a small one (moves closer); no NaN or inf pose is ever
+submitted and every refusal names its cause."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from brave6d.core.errors import BraveError
+from brave6d.evaluation.agents import LEARNED_ACTIVE_AGENT, LEARNED_AGENTS, LEARNED_STATIC_AGENT, POLICIES, AgentSetup, \
+    make_agent, run_episode, runnable_agents
+from brave6d.evaluation.learned import REFUSAL_CAUSES, get_learn_preset
+from brave6d.evaluation.learned.model_file import write_model
+from brave6d.serve import BraveClient, ServerThread, create_app, load_bundle, make_synthetic_bundle
+from learned_helpers import untrained_model
+
+pytestmark = pytest.mark.slow
+PRESET = get_learn_preset("tiny")
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory: pytest.TempPathFactory):
+    return load_bundle(make_synthetic_bundle(tmp_path_factory.mktemp("learned_agents"), n_gaussians=20_000))
+
+
+def _model_dir(root: Path, obj_ids: list[int], name: str, detector_bias: tuple[float, float] | None = None) -> Path:
+    """An untrained model; ``detector_bias`` = (heatmap logit, box side px) makes its detector see
+    every object everywhere with that confidence and size."""
+    model = untrained_model(PRESET, obj_ids)
+    if detector_bias is not None:
+        logit, side = detector_bias
+        state = dict(model.detector_state)
+        bias = state["heads.bias"].clone()
+        weight = torch.zeros_like(state["heads.weight"])
+        c = len(obj_ids)
+        bias[:c], bias[c:c + 2], bias[c + 2:] = logit, math.log(side), 0.0
+        state["heads.bias"], state["heads.weight"] = bias, weight
+        model.detector_state = state
+    folder = root / name
+    folder.mkdir()
+    write_model(folder, model)
+    return folder
+
+
+def _play(bundle, tmp_path: Path, model: Path, names: list[str], seed: int = 3):
+    app = create_app(bundle, device="cpu", log_dir=tmp_path / "episodes", warm_up=False)
+    target = bundle.objects[0]
+    with ServerThread(app) as server, BraveClient(server.url) as client:
+        out = {}
+        for name in names:
+            agent = make_agent(name, client, AgentSetup(learned_model=model))
+            out[name] = run_episode(client, agent, target.gt_id, seed=seed, width=160, height=120)
+    return out
+
+
+def _check_finite(outcome) -> None:
+    for est in outcome.estimates:
+        assert np.all(np.isfinite(est.cam_T_obj)) and math.isfinite(est.score)
+    if not outcome.estimates:
+        assert outcome.notes["refused"] in REFUSAL_CAUSES and outcome.notes["refusal"]
+
+
+def test_the_registry_lists_the_learned_agents_and_needs_a_model() -> None:
+    assert list(POLICIES)[2:] == list(LEARNED_AGENTS) and len(LEARNED_AGENTS) == 4
+    assert runnable_agents() == ["baseline-static", "baseline-active"]
+    assert runnable_agents(AgentSetup(learned_model=Path("m"))) == list(POLICIES)
+    with pytest.raises(BraveError, match="needs a trained model"):
+        make_agent(LEARNED_STATIC_AGENT, object())
+
+
+def test_no_detection_static_refuses_active_moves_and_counts_adjustments(bundle, tmp_path: Path) -> None:
+    ids = sorted(o.obj_id for o in bundle.objects)
+    model = _model_dir(tmp_path, ids, "blind")  # an untrained detector scores 0.01 everywhere
+    out = _play(bundle, tmp_path, model, list(LEARNED_AGENTS))
+    for name, outcome in out.items():
+        _check_finite(outcome)
+        assert outcome.estimates == [] and outcome.notes["refused"] == "no-detection", name
+        assert outcome.submission["submitted"]
+    assert out[LEARNED_STATIC_AGENT].adjustments == 0
+    assert 1 <= out[LEARNED_ACTIVE_AGENT].adjustments <= 4 == out[LEARNED_ACTIVE_AGENT].notes["moves"] or \
+        out[LEARNED_ACTIVE_AGENT].adjustments == out[LEARNED_ACTIVE_AGENT].notes["moves"] >= 1
+
+
+def test_an_object_the_model_never_saw_is_refused_without_moving(bundle, tmp_path: Path) -> None:
+    model = _model_dir(tmp_path, [901, 902], "other_library", detector_bias=(6.0, 60.0))
+    out = _play(bundle, tmp_path, model, [LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT])
+    for outcome in out.values():
+        assert outcome.estimates == [] and outcome.notes["refused"] == "unknown-object"
+        assert outcome.adjustments == 0
+
+
+def test_a_confident_large_detection_stops_the_active_agent_and_a_small_one_moves_it(bundle, tmp_path: Path) -> None:
+    ids = sorted(o.obj_id for o in bundle.objects)
+    large = _play(bundle, tmp_path, _model_dir(tmp_path, ids, "large", (6.0, 120.0)), [LEARNED_ACTIVE_AGENT])
+    small = _play(bundle, tmp_path, _model_dir(tmp_path, ids, "small", (6.0, 8.0)), [LEARNED_ACTIVE_AGENT])
+    for outcome in (*large.values(), *small.values()):
+        _check_finite(outcome)
+        assert outcome.notes["detection_score_start"] > 0.99
+    assert large[LEARNED_ACTIVE_AGENT].adjustments == 0 == large[LEARNED_ACTIVE_AGENT].notes["moves"]
+    moved = small[LEARNED_ACTIVE_AGENT]  # its box (a corner cell of a flat heatmap) points off the table:
+    assert moved.notes["moves"] >= 1 and moved.adjustments + moved.refused >= 1  # the server may refuse it
+    assert moved.refused == moved.notes["refused_poses"]

@@ -1,0 +1,161 @@
+"""Hard cases of the learned estimator: PnP with few, collinear or non-finite correspondences, crops
+at the image border, objects the model never saw, empty or NaN inputs, a NaN loss in training.
+No NaN or inf pose ever comes out; every failure is a LearnedRefused naming its cause."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from brave6d.core.errors import BraveError
+from brave6d.evaluation.learned import REFUSAL_CAUSES, LearnedEstimator, LearnedRefused, get_learn_preset, solve_pnp
+from learned_helpers import untrained_model
+
+K = np.array([[228.0, 0.0, 159.5], [0.0, 228.0, 99.5], [0.0, 0.0, 1.0]])
+PRESET = get_learn_preset("tiny")
+
+
+@pytest.fixture(scope="module")
+def estimator() -> LearnedEstimator:
+    return LearnedEstimator(untrained_model(PRESET, [1, 2]))
+
+
+def _project(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    cam = points @ R.T + t
+    return np.stack([K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2], K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]], axis=1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(rotvec=st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3), depth=st.floats(0.1, 2.0),
+       seed=st.integers(0, 2**16), n=st.integers(8, 200))
+def test_pnp_recovers_a_pose_from_clean_correspondences(rotvec: list[float], depth: float, seed: int, n: int) -> None:
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-0.015, 0.015, size=(n, 3))
+    R, t = Rotation.from_rotvec(rotvec).as_matrix(), np.array([0.01, -0.005, depth])
+    R_est, t_est, inliers = solve_pnp(points, _project(points, R, t), K)
+    assert np.all(np.isfinite(R_est)) and np.all(np.isfinite(t_est))
+    assert np.linalg.norm(t_est - t) < 1e-4 * max(1.0, depth) and np.abs(R_est - R).max() < 1e-3
+    assert len(inliers) >= 0.9 * n
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(0, 5), seed=st.integers(0, 2**16))
+def test_pnp_with_too_few_correspondences_is_refused(n: int, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    with pytest.raises(LearnedRefused) as info:
+        solve_pnp(rng.normal(size=(n, 3)), rng.normal(size=(n, 2)) * 50 + 100, K)
+    assert info.value.cause == "few-correspondences"
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(6, 100), seed=st.integers(0, 2**16), noise=st.sampled_from([0.0, 1e-9, 1e-6]))
+def test_collinear_or_coincident_points_are_refused_not_solved(n: int, seed: int, noise: float) -> None:
+    rng = np.random.default_rng(seed)
+    line = np.outer(rng.uniform(-0.02, 0.02, size=n), rng.normal(size=3)) + rng.normal(0.0, noise, size=(n, 3))
+    image = _project(line, np.eye(3), np.array([0.0, 0.0, 0.4]))
+    with pytest.raises(LearnedRefused) as info:
+        solve_pnp(line, image, K)
+    assert info.value.cause == "degenerate-correspondences"
+    same = np.repeat(rng.normal(size=(1, 3)), n, axis=0)
+    with pytest.raises(LearnedRefused) as info:
+        solve_pnp(same, rng.normal(size=(n, 2)) * 30 + 100, K)
+    assert info.value.cause == "degenerate-correspondences"
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_correspondences_are_refused(bad: float) -> None:
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-0.01, 0.01, size=(20, 3))
+    image = _project(points, np.eye(3), np.array([0.0, 0.0, 0.3]))
+    image[3, 1] = bad
+    with pytest.raises(LearnedRefused) as info:
+        solve_pnp(points, image, K)
+    assert info.value.cause == "bad-input"
+
+
+def test_random_correspondences_give_a_finite_pose_or_a_named_refusal() -> None:
+    rng = np.random.default_rng(1)
+    for _ in range(60):
+        n = int(rng.integers(6, 80))
+        try:
+            R, t, _ = solve_pnp(rng.normal(0, 0.01, size=(n, 3)), rng.uniform(0, 320, size=(n, 2)), K)
+        except LearnedRefused as exc:
+            assert exc.cause in REFUSAL_CAUSES
+        else:
+            assert np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and t[2] > 0
+            assert math.isclose(np.linalg.det(R), 1.0, abs_tol=1e-6)
+
+
+@settings(max_examples=30, deadline=None)
+@given(x0=st.floats(-400.0, 400.0), y0=st.floats(-300.0, 300.0), w=st.floats(0.5, 300.0), h=st.floats(0.5, 300.0),
+       use_depth=st.booleans(), value=st.integers(0, 255))
+def test_any_box_even_off_the_image_gives_a_finite_pose_or_a_named_refusal(estimator: LearnedEstimator, x0: float,
+                                                                            y0: float, w: float, h: float,
+                                                                            use_depth: bool, value: int) -> None:
+    rgb = np.full((200, 320, 3), value, np.uint8)  # a constant image, too
+    depth = np.full((200, 320), 0.4, np.float32) if use_depth else None
+    try:
+        pose = estimator.estimate(rgb, K, 1, (x0, y0, x0 + w, y0 + h), depth)
+    except LearnedRefused as exc:
+        assert exc.cause in REFUSAL_CAUSES
+    else:
+        assert np.all(np.isfinite(pose.cam_T_obj)) and pose.cam_T_obj[2, 3] > 0 and 0.0 <= pose.score <= 1.0
+
+
+def test_an_object_the_model_never_saw_is_refused_naming_it(estimator: LearnedEstimator) -> None:
+    rgb = np.zeros((200, 320, 3), np.uint8)
+    for call in (lambda: estimator.best_detection(rgb, K, 7), lambda: estimator.estimate(rgb, K, 7, (10, 10, 40, 40))):
+        with pytest.raises(LearnedRefused) as info:
+            call()
+        assert info.value.cause == "unknown-object" and "object 7" in str(info.value) and "1, 2" in str(info.value)
+
+
+@pytest.mark.parametrize("rgb, K_, cause", [
+    (np.zeros((8, 8, 3), np.uint8), K, "bad-input"),
+    (np.zeros((200, 320), np.uint8), K, "bad-input"),
+    (np.zeros((200, 320, 3), np.float32), K, "bad-input"),
+    (np.zeros((200, 320, 3), np.uint8), np.full((3, 3), np.nan), "bad-input"),
+    (np.zeros((200, 320, 3), np.uint8), np.zeros((3, 3)), "bad-input"),
+])
+def test_bad_images_and_cameras_are_refused(estimator: LearnedEstimator, rgb: np.ndarray, K_: np.ndarray,
+                                            cause: str) -> None:
+    with pytest.raises(LearnedRefused) as info:
+        estimator.detect(rgb, K_)
+    assert info.value.cause == cause
+
+
+def test_an_empty_or_non_finite_box_is_refused(estimator: LearnedEstimator) -> None:
+    rgb = np.zeros((200, 320, 3), np.uint8)
+    for box in ((10, 10, 10, 40), (10, 10, 5, 5), (np.nan, 0, 10, 10), (0, 0, np.inf, 10)):
+        with pytest.raises(LearnedRefused) as info:
+            estimator.estimate(rgb, K, 1, box)
+        assert info.value.cause == "bad-input"
+
+
+def test_detections_on_constant_and_noise_images_are_finite(estimator: LearnedEstimator) -> None:
+    rng = np.random.default_rng(0)
+    for rgb in (np.zeros((200, 320, 3), np.uint8), np.full((400, 640, 3), 255, np.uint8),
+                rng.integers(0, 256, size=(123, 77, 3), dtype=np.uint8)):
+        for d in estimator.detect(rgb, K, min_score=0.0):
+            assert all(math.isfinite(b) for b in d.box) and 0.0 <= d.score <= 1.0 and d.obj_id in (1, 2)
+
+
+def test_a_non_finite_loss_stops_training_naming_the_network_and_step(tmp_path, monkeypatch) -> None:
+    import torch
+
+    from brave6d.evaluation.learned import losses, training
+    from learned_helpers import DEMO_SPEC, write_models
+    from brave6d.synth import SynthOptions, synthesize
+
+    synthesize(DEMO_SPEC, tmp_path / "synth", SynthOptions(images=3, seed=0, width=160, height=100))
+    models = write_models(DEMO_SPEC, tmp_path / "models")
+    monkeypatch.setattr(losses, "pose_loss", lambda *a, **k: torch.tensor(float("nan"), requires_grad=True))
+    preset = PRESET.with_overrides(detector_steps=3, pose_steps=3, work_width=160)
+    with pytest.raises(BraveError, match=r"the pose loss is nan at step 0"):
+        training.train_learned(tmp_path / "synth", models, tmp_path / "out", preset, "cpu", show_progress=False)
+    assert not (tmp_path / "out" / "model.pt").exists()
