@@ -86,12 +86,20 @@ def test_quick_demo_runs_every_stage(tmp_path: Path) -> None:
     start_m, final_m = (float(d) for d in serve["distance m"].split("->"))
     assert final_m < start_m  # it approached the target
 
+    learn = fig["learn"]  # a tiny train_pbr rendered and a model trained on it, scored on its held-out images
+    from brave6d.evaluation.learned.demo import QUICK_IMAGES
+
+    assert int(learn["train_pbr images"]) == QUICK_IMAGES == int(learn["rendered"]) and learn["preset"] == "tiny"
+    assert 0.0 <= float(learn["held-out AR true box"]) <= 1.0 and float(learn["train s"]) > 0
+    assert (tmp_path / "learned" / "model" / "model.pt").is_file() and (tmp_path / "learned" / "model" / "card.json").is_file()
+
     evaluate = fig["evaluate"]
     from brave6d.evaluation.agents import POLICIES
 
     assert int(evaluate["episodes"]) == len(POLICIES) * n_objects  # every registered agent, one episode per object
     assert 0.2 < float(evaluate["AR active"]) <= 1.0 and 0.2 < float(evaluate["AR static"]) <= 1.0
     assert float(evaluate["mean adjustments"]) > 0  # the active agent moved the camera
+    assert 0.0 <= float(evaluate["AR learned-active"]) <= 1.0 and 0.0 <= float(evaluate["AR learned-static"]) <= 1.0
 
     assert fig["report"]["incomplete"] == "none"
     assert (tmp_path / "report" / "report.md").is_file()

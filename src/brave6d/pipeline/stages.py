@@ -55,8 +55,10 @@ STAGES: tuple[Stage, ...] = (
     Stage("train", "brave6d.training.demo:stage_train", "train the 3DGS scene on the CPU and evaluate the holdout"),
     Stage("export", "brave6d.serve.demo:stage_export", "write the scene bundle"),
     Stage("serve", "brave6d.serve.demo:stage_serve", "serve the bundle on loopback and run one scripted episode"),
+    Stage("learn", "brave6d.evaluation.learned.demo:stage_learn",
+          "render a synthetic train_pbr and train the learned baseline (detector + pose network) on it"),
     Stage("evaluate", "brave6d.evaluation.demo:stage_evaluate",
-          "run the active and static baselines on every object and score them"),
+          "run the baselines (weight-free and learned) on every object and score them"),
     Stage("report", "brave6d.evaluation.report.build:stage_report", "write the accuracy-vs-time report"),
 )
 

@@ -26,12 +26,12 @@ class LearnPreset:
     name: str
     work_width: int = 320
     crop_px: int = 64
-    detector_steps: int = 1500
+    detector_steps: int = 1000
     detector_batch: int = 8
     detector_patch: int = 128
     detector_lr: float = 2e-3
     detector_width: int = 16
-    pose_steps: int = 1500
+    pose_steps: int = 1000
     pose_batch: int = 32
     pose_lr: float = 2e-3
     pose_width: int = 16
