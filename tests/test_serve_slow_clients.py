@@ -27,7 +27,7 @@ from brave6d.serve import SceneServer, ServerLimits, ServerThread, create_app, l
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01))
 SLOW_PEER = "127.0.0.2"  # Linux routes all of 127/8 to loopback
 CAP = 32
-LIMITS = ServerLimits(header_timeout_s=1.0, body_timeout_s=1.0, max_connections_per_client=CAP)
+LIMITS = ServerLimits(header_timeout_s=1.0, body_timeout_s=1.0, max_connections_per_client=CAP, write_timeout_s=1.0)
 WAIT_S = 15.0  # how long a test waits for the server to act (far beyond the 1 s timeouts)
 REPLY_S = 120.0  # how long a normal request may take (a first render may compile kernels)
 
@@ -201,3 +201,41 @@ def _listening(address: tuple[str, int]) -> bool:
         return True
     except OSError:
         return False
+
+
+# ------------------------------------------------------------------ clients that never read (issue #44 class 4)
+def _non_reading_benchmark():  # type: ignore[no-untyped-def]
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("brave6d_non_reading_clients",
+                                                  Path(__file__).resolve().parents[1] / "benchmarks" / "non_reading_clients.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow  # a real server, 64 connections, waits for its 1 s write timeout
+def test_a_connection_that_does_not_read_is_closed_after_the_write_timeout(server: ServerThread) -> None:
+    bench = _non_reading_benchmark()
+    with httpx.Client(base_url=server.url, timeout=REPLY_S) as c:
+        eid = bench.new_episode(c, 1280, 960)
+        socks = [bench.non_reading((server.host, server.port), eid, 20) for _ in range(8)]
+        try:
+            wait_for(lambda: server.clients.count(bench.PEER) == 0, "closing the connections that do not read")
+            assert all(bench.closed_by_server(s) for s in socks)  # reset by the server, not left half open
+            assert c.get("/health").status_code == 200
+        finally:
+            for s in socks:
+                s.close()
+
+
+@pytest.mark.slow  # brave6d serve in a process of its own, 64 connections pipelining 20 GETs of 8.6 MB each
+def test_clients_that_never_read_cannot_hold_the_servers_memory() -> None:
+    """Issue #44's acceptance: 64 connections from one address, each pipelining 20 GETs of a
+    1280 x 960 observation.npz and never reading: the server grows by at most 200 MB, returns it
+    within 30 s of their closing, and serves another client within 2x its latency (before the fix:
+    1207 MB, 626 MB still held 30 s later)."""
+    bench = _non_reading_benchmark()
+    r = bench.measure(connections=64, requests=20, hold_s=5.0, after_s=30.0)
+    assert not bench.acceptance_failures(r), r

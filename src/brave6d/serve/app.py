@@ -59,7 +59,8 @@ import json
 import logging
 import secrets
 import time
-from collections.abc import AsyncIterator, Callable, Coroutine, Sequence
+import weakref
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -70,7 +71,7 @@ import numpy as np
 from fastapi import FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
 from fastapi.routing import APIRoute
-from fastapi.responses import FileResponse, JSONResponse, RedirectResponse, Response
+from fastapi.responses import FileResponse, JSONResponse, RedirectResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from starlette.datastructures import Headers, QueryParams
@@ -289,14 +290,46 @@ def step_json(result: ActionResult, opts: ObsOptions, t_start: float) -> dict[st
         observation=obs, timings_ms=timings).model_dump()
 
 
+#: Bytes of an ``observation.npz`` reply handed to the connection at a time (see
+#: :func:`npz_reply_chunks` and :mod:`brave6d.serve.connections`).
+NPZ_CHUNK_BYTES = 256 * 1024
+
+
 def observation_npz(obs: RenderedView) -> bytes:
     buf = io.BytesIO()
-    np.savez(buf, rgb=obs.rgb, depth=obs.depth.astype(np.float32), K=obs.camera.K, world_T_cam=obs.world_T_cam,
+    np.savez(buf, rgb=obs.rgb, depth=obs.depth.astype(np.float32, copy=False), K=obs.camera.K,
+             world_T_cam=obs.world_T_cam,
              cam_T_obj=np.stack([o.cam_T_obj for o in obs.objects]) if obs.objects else np.zeros((0, 4, 4)),
              gt_id=np.array([o.gt_id for o in obs.objects], dtype=np.int64),
              obj_id=np.array([o.obj_id for o in obs.objects], dtype=np.int64),
              visib_fract=np.array([o.visib_fract if o.visib_fract is not None else np.nan for o in obs.objects]))
     return buf.getvalue()
+
+
+class NpzFiles:
+    """``observation.npz`` of each observation that is asked for, made once and kept while the
+    observation lives (an episode's last view): concurrent requests for it share one copy."""
+
+    def __init__(self) -> None:
+        self._files: dict[int, tuple[weakref.ref[RenderedView], bytes]] = {}
+
+    def get(self, obs: RenderedView) -> bytes:
+        held = self._files.get(id(obs))
+        if held is not None and held[0]() is obs:
+            return held[1]
+        data = observation_npz(obs)
+        self._files[id(obs)] = (weakref.ref(obs), data)
+        weakref.finalize(obs, self._files.pop, id(obs), None)
+        return data
+
+
+def npz_reply_chunks(data: bytes, chunk: int = NPZ_CHUNK_BYTES) -> Iterator[memoryview]:
+    """``data`` in views of ``chunk`` bytes (no copies): a reply streamed this way leaves the bytes
+    shared by every connection that asks for them, and a connection whose client does not read
+    holds one chunk in its buffer, not a copy of the whole file."""
+    view = memoryview(data)
+    for i in range(0, len(view), chunk):
+        yield view[i:i + chunk]
 
 
 # ----------------------------------------------------------------------------- WebSocket messages
@@ -519,6 +552,7 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
     manager = EpisodeManager(catalog, log_dir, max_episodes=limits.max_episodes,
                              idle_timeout_s=limits.idle_timeout_s, lock_timeout_s=limits.request_timeout_s)
     executor = ThreadPoolExecutor(max_workers=limits.workers, thread_name_prefix="brave6d-serve")
+    npz_files = NpzFiles()
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
@@ -697,8 +731,10 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
         ep = manager.get(episode_id)
         if ep.last is None:
             return _error(409, "no observation yet")
-        return Response(observation_npz(ep.last), media_type="application/octet-stream",
-                        headers={"Content-Disposition": f'attachment; filename="{episode_id}.npz"'})
+        data = npz_files.get(ep.last)
+        return StreamingResponse(npz_reply_chunks(data), media_type="application/octet-stream",
+                                 headers={"Content-Disposition": f'attachment; filename="{episode_id}.npz"',
+                                          "Content-Length": str(len(data))})
 
     @app.websocket("/episodes/{episode_id}/ws")
     async def ws(websocket: WebSocket, episode_id: str) -> None:

@@ -15,7 +15,8 @@ their ``Host`` header (127.0.0.1, localhost, [::1], the bound address, ``--allow
 a web page that rebinds its own DNS name to this machine gets 400. Slow clients cannot hold the
 server's connections (:mod:`brave6d.serve.connections`): a request's headers must come within
 ``--header-timeout`` (10 s), its body within ``--body-timeout`` (30 s), and one client address
-holds at most ``--max-client-connections`` (64) of the server's 256 connections. Every number is
+holds at most ``--max-client-connections`` (64) of the server's 256 connections; a client that does
+not read its replies is cut after ``--write-timeout`` (20 s) or ``--max-unsent-bytes``. Every number is
 bounded when the flags are parsed (:data:`brave6d.serve.limits.BOUNDS`): a value outside (NaN, inf,
 negative, too large) ends the command with a line naming the flag, exit status 2.
 """
@@ -95,6 +96,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         default=d.max_connections_per_client,
                         help="open connections (HTTP and WebSocket) one client address may hold; more get 429 "
                              f"(default {d.max_connections_per_client}, of {MAX_CONNECTIONS} in all)")
+    parser.add_argument("--write-timeout", type=limit_arg("write_timeout_s"), default=d.write_timeout_s,
+                        help="seconds a client that has a reply waiting may go without taking any of it; else the "
+                             f"connection is closed (default {d.write_timeout_s:g})")
+    parser.add_argument("--max-unsent-bytes", type=limit_arg("max_unsent_bytes"), default=d.max_unsent_bytes,
+                        help="reply bytes one connection may have waiting in the server; more and it is closed "
+                             f"(default {d.max_unsent_bytes}; a connection's next request is read once its "
+                             "reply has gone)")
 
 
 @dataclass(frozen=True)
@@ -152,7 +160,8 @@ def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
     limits = ServerLimits(max_body_bytes=args.max_body_bytes, request_timeout_s=args.request_timeout,
                           max_episodes=args.max_episodes, idle_timeout_s=args.idle_timeout,
                           header_timeout_s=args.header_timeout, body_timeout_s=args.body_timeout,
-                          max_connections_per_client=args.max_client_connections)
+                          max_connections_per_client=args.max_client_connections,
+                          write_timeout_s=args.write_timeout, max_unsent_bytes=args.max_unsent_bytes)
     access = access_for(args.host, args.allow_remote, args.token, args.allow_host)
     if not is_loopback(args.host) and not args.allow_host:
         log.warning("binding to %s: only requests whose Host header names %s are accepted; add --allow-host NAME "

@@ -4,7 +4,7 @@ uvicorn closes a kept-alive connection that sends nothing for 5 s and answers 50
 beyond its connection limit (:data:`brave6d.serve.limits.MAX_CONNECTIONS`), but a connection that sends
 half a request line and stops (slowloris), or a body a byte at a time, is held for as long as
 the client likes: 257 of them lock every other client out, before any token check. So the server
-runs uvicorn's h11 protocol with three limits (:class:`brave6d.serve.limits.ServerLimits`):
+runs uvicorn's h11 protocol with these limits (:class:`brave6d.serve.limits.ServerLimits`):
 
 * **header timeout**: the request line and headers must arrive within ``header_timeout_s`` of the
   connection opening, or of the previous response on a kept-alive connection; else the
@@ -16,8 +16,17 @@ runs uvicorn's h11 protocol with three limits (:class:`brave6d.serve.limits.Serv
   ``max_connections_per_client`` open connections, HTTP and WebSocket together; a connection
   beyond it gets ``429`` and is closed at once.
 
+* **replies the client does not read**: a connection's next request (pipelined or not) is read
+  only once the previous reply has left the server's buffer (down to the transport's low-water
+  mark), so a connection holds at most one reply; a reply waiting to be sent must make way (some of
+  it taken by the client) within ``write_timeout_s``, and one connection may have at most
+  ``max_unsent_bytes`` of it buffered; else the connection is aborted and its buffer dropped at
+  once (closing it would wait for the buffer to drain, which a client that does not read never
+  lets happen). Large replies are streamed (``observation.npz``), so a stalled one holds a chunk.
+
 A WebSocket (``/episodes/{id}/ws``) counts toward its client's cap from its first byte until it
-closes; after the upgrade the HTTP timeouts no longer apply (websockets' pings keep it honest).
+closes; after the upgrade the HTTP timeouts no longer apply (websockets' pings keep it honest: a
+client that does not read does not answer them and is closed after uvicorn's ping interval and timeout).
 Error replies are the API's JSON error objects. :func:`guarded_protocols` makes the protocol
 classes of one server; :func:`brave6d.serve.runner.uvicorn_config` gives them to uvicorn, for the CLI
 server and :class:`brave6d.serve.runner.ServerThread` alike.
@@ -26,9 +35,13 @@ server and :class:`brave6d.serve.runner.ServerThread` alike.
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import ctypes.util
 import ipaddress
 import json
 import logging
+import socket
+import struct
 from collections import Counter
 from dataclasses import dataclass
 from typing import Any
@@ -42,6 +55,19 @@ log = logging.getLogger(__name__)
 
 #: Seconds a refused connection is given to read its 429 before it is closed.
 REFUSED_GRACE_S = 1.0
+
+
+#: Seconds after the last aborted connection before the freed memory is handed back to the system.
+TRIM_DELAY_S = 1.0
+
+
+def return_free_memory() -> None:
+    """Hand the C heap's free pages back to the system (glibc's ``malloc_trim``; elsewhere nothing):
+    the replies of aborted connections are freed in many threads' arenas, which glibc keeps."""
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def client_key(host: str | None) -> str:
@@ -131,6 +157,7 @@ def guarded_protocols(limits: ServerLimits) -> GuardedProtocols:
     from uvicorn.protocols.websockets.auto import AutoWebSocketsProtocol
 
     clients = ClientConnections(limits.max_connections_per_client)
+    trim: list[asyncio.TimerHandle] = []  # the pending return_free_memory, once a connection was aborted
     ws_class: Any = None
     if AutoWebSocketsProtocol is not None:  # else uvicorn has no WebSocket library: no upgrades
 
@@ -158,6 +185,8 @@ def guarded_protocols(limits: ServerLimits) -> GuardedProtocols:
             self.timer: asyncio.TimerHandle | None = None
             self.waiting_for: str | None = None  # "headers", "body" or None (the app has the request)
             self.request_started = False  # bytes of the awaited request have come
+            self.write_timer: asyncio.TimerHandle | None = None  # while a reply waits to be sent
+            self.reply_pending = False  # a reply is complete but not yet sent: the next request waits
 
         # ---------------------------------------------------------------- connection
         def connection_made(self, transport: asyncio.BaseTransport) -> None:  # type: ignore[override]
@@ -193,6 +222,12 @@ def guarded_protocols(limits: ServerLimits) -> GuardedProtocols:
 
         def connection_lost(self, exc: Exception | None) -> None:
             self._stop_timer()
+            if self.write_timer is not None:
+                self.write_timer.cancel()
+            if self.flow is not None and self.flow.write_paused:  # a reply was left unsent: return its memory
+                if trim:
+                    trim.pop().cancel()
+                trim.append(self.loop.call_later(TRIM_DELAY_S, return_free_memory))
             if self.refused:
                 return
             try:
@@ -210,10 +245,54 @@ def guarded_protocols(limits: ServerLimits) -> GuardedProtocols:
                 ws.seat, self.seat = self.seat, None  # the WebSocket holds this connection's seat now
 
         def on_response_complete(self) -> None:
+            if self.flow.write_paused and not self.transport.is_closing():
+                self.reply_pending = True  # the next request is read once this reply has left (resume_writing)
+                return
             super().on_response_complete()
             if not self.transport.is_closing() and self.transport.get_protocol() is self:
                 self._await("headers")  # the next request on this kept-alive connection
                 self._track()
+
+        # ---------------------------------------------------------------- replies the client does not read
+        def pause_writing(self) -> None:
+            """The transport's buffer passed its high-water mark: the reply must now make way."""
+            super().pause_writing()
+            self._check_unsent()
+            self._watch_writes(self.transport.get_write_buffer_size())
+
+        def resume_writing(self) -> None:
+            super().resume_writing()
+            if self.write_timer is not None:
+                self.write_timer.cancel()
+                self.write_timer = None
+            if self.reply_pending:
+                self.reply_pending = False
+                self.on_response_complete()
+
+        def _watch_writes(self, unsent: int) -> None:
+            self.write_timer = self.loop.call_later(limits.write_timeout_s, self._write_expired, unsent)
+
+        def _write_expired(self, unsent_before: int) -> None:
+            self.write_timer = None
+            if self.transport.is_closing() or not self.flow.write_paused:
+                return
+            unsent = self.transport.get_write_buffer_size()
+            if unsent >= unsent_before:
+                self._abort(f"took none of its reply within {limits.write_timeout_s:g} s ({unsent} bytes unsent)")
+            else:
+                self._watch_writes(unsent)
+
+        def _check_unsent(self) -> None:
+            unsent = self.transport.get_write_buffer_size()
+            if unsent > limits.max_unsent_bytes:
+                self._abort(f"has {unsent} reply bytes unsent (at most {limits.max_unsent_bytes})")
+
+        def _abort(self, why: str) -> None:
+            log.info("closing a connection from %s: it %s", self.seat.key if self.seat else "?", why)
+            sock = self.transport.get_extra_info("socket")
+            if sock is not None:  # a reset: the kernel drops what it holds for the client too
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            self.loop.call_soon(self.transport.abort)  # drops the buffer; close() would wait for it to drain
 
         # ---------------------------------------------------------------- timeouts
         def _track(self) -> None:

@@ -89,6 +89,8 @@ BOUNDS: dict[str, Bound] = {
     "header_timeout_s": Bound(0, 600, low_open=True),
     "body_timeout_s": Bound(0, 3600, low_open=True),
     "max_connections_per_client": Bound(1, MAX_CONNECTIONS, integer=True),
+    "write_timeout_s": Bound(0, 3600, low_open=True),
+    "max_unsent_bytes": Bound(64 * 1024, 2**30, integer=True),
     "port": Bound(0, 65535, integer=True),
     "max_loaded_scenes": Bound(1, 10_000, integer=True),
     "max_memory_mb": Bound(0, 2**24, low_open=True),  # 16 TiB
@@ -111,8 +113,10 @@ class ServerLimits:
     ``header_timeout_s``: the request line and headers must arrive within it of the connection
     opening (or of the previous response on a kept-alive connection); ``body_timeout_s``: a
     declared body must arrive within it of the headers; ``max_connections_per_client``: open
-    connections (HTTP and WebSocket) one client address may hold (an IPv6 client: its /64).
-    See :mod:`brave6d.serve.connections`.
+    connections (HTTP and WebSocket) one client address may hold (an IPv6 client: its /64);
+    ``write_timeout_s``: a connection with a reply waiting to be sent must take some of it within
+    this time; ``max_unsent_bytes``: the reply bytes one HTTP connection may have waiting in the
+    server. See :mod:`brave6d.serve.connections`.
     """
 
     max_body_bytes: int = 64 * 1024
@@ -123,6 +127,8 @@ class ServerLimits:
     header_timeout_s: float = 10.0
     body_timeout_s: float = 30.0
     max_connections_per_client: int = 64
+    write_timeout_s: float = 20.0
+    max_unsent_bytes: int = 16 * 2**20
 
     def __post_init__(self) -> None:
         for f in fields(self):
