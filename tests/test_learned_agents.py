@@ -102,7 +102,8 @@ def test_a_confident_large_detection_stops_the_active_agent_and_a_small_one_move
     for outcome in (*large.values(), *small.values()):
         _check_finite(outcome)
         assert outcome.notes["detection_score_start"] > 0.99
-    assert large[LEARNED_ACTIVE_AGENT].adjustments == 0 == large[LEARNED_ACTIVE_AGENT].notes["moves"]  # no return
+    stayed = large[LEARNED_ACTIVE_AGENT]  # no approach: only the orbit's two looks and the way back
+    assert stayed.notes["moves"] == 0 and stayed.adjustments + stayed.refused <= 3 and stayed.notes["views"] >= 1
     moved = small[LEARNED_ACTIVE_AGENT]  # its box (a corner cell of a flat heatmap) points off the table:
     assert moved.notes["moves"] >= 1 and moved.adjustments + moved.refused >= 1  # the server may refuse it
     assert moved.refused == moved.notes["refused_poses"]

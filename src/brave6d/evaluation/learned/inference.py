@@ -21,6 +21,7 @@ from brave6d.evaluation.learned.crops import box_crop, crop_to_image, normalise,
 from brave6d.evaluation.learned.data import resize_to_width
 from brave6d.evaluation.learned.model_file import LearnedModel, read_model
 from brave6d.evaluation.learned.networks import DETECTOR_STRIDE
+from brave6d.evaluation.learned.refine import Surface, box_points, icp_refine, sample_surface
 
 Array = NDArray[np.float64]
 
@@ -60,13 +61,16 @@ class Detection:
 @dataclass(frozen=True)
 class LearnedPose:
     """A pose (``cam_T_obj``, metres, the input image's camera frame), its score, the PnP inliers
-    and correspondences, and whether depth refined it (``depth_scale``: the factor applied to t)."""
+    and correspondences, and how depth refined it (``depth_scale``: the factor applied to t;
+    ``icp``: ICP onto the model's surface kept its result)."""
 
     cam_T_obj: Array
     score: float
     inliers: int
     correspondences: int
     depth_scale: float | None = None
+    icp: bool = False  # depth refined the pose by ICP too
+    fit: float | None = None  # fraction of the box's depth points on the posed surface (with depth and a surface)
 
 
 class LearnedEstimator:
@@ -88,11 +92,25 @@ class LearnedEstimator:
         self.detector.to(self.device).eval()
         self.pose.to(self.device).eval()
         self._by_class = {o.class_index: o for o in model.objects.values()}
+        self.surfaces: dict[int, Surface] = {}
 
     @classmethod
-    def load(cls, model_dir: Path | str, device: str = "cpu") -> LearnedEstimator:
-        """The estimator of ``model_dir/model.pt``."""
-        return cls(read_model(model_dir), device)
+    def load(cls, model_dir: Path | str, device: str = "cpu", models_dir: Path | str | None = None) -> LearnedEstimator:
+        """The estimator of ``model_dir/model.pt``; ``models_dir`` (a BOP models folder) gives it the
+        surfaces the depth refinement fits (agents give them with :meth:`set_surface`)."""
+        estimator = cls(read_model(model_dir), device)
+        if models_dir is not None:
+            from brave6d.evaluation.metrics import load_models
+
+            for obj_id, m in load_models(models_dir, estimator.obj_ids).items():
+                if m.faces is not None:
+                    estimator.set_surface(obj_id, m.points / 1000.0, m.faces)
+        return estimator
+
+    def set_surface(self, obj_id: int, vertices_m: Array, faces: NDArray[np.int64]) -> None:
+        """The mesh of ``obj_id`` (metres, model frame): with it, depth refines the pose by ICP too."""
+        self._check_object(obj_id)
+        self.surfaces[int(obj_id)] = sample_surface(vertices_m, faces, self.model.objects[int(obj_id)].diameter_mm / 1000.0)
 
     @property
     def obj_ids(self) -> list[int]:
@@ -180,14 +198,19 @@ class LearnedEstimator:
         points_2d = crop_to_image(np.stack([xs, ys], axis=1).astype(np.float64), centre, side, out_px)
         points_3d = (coords[:, ys, xs].T * obj.radius_mm + obj.centre_mm) / 1000.0
         R, t, inliers = solve_pnp(points_3d, points_2d, K_work, obj_id)
-        depth_scale = None
+        depth_scale, refined, fit = None, False, None
         if depth_m is not None:
             t, depth_scale = _depth_scaled(R, t, points_3d[inliers], (points_2d[inliers] + 0.5) / s - 0.5, depth_m)
         cam_T_obj = np.eye(4)
         cam_T_obj[:3, :3], cam_T_obj[:3, 3] = R, t
+        surface = self.surfaces.get(int(obj_id))
+        if depth_m is not None and surface is not None and depth_scale is not None:
+            d = surface.diameter_m
+            points = box_points(depth_m, np.asarray(K, dtype=np.float64), box, t[2] - d, t[2] + d)
+            cam_T_obj, refined, fit = icp_refine(cam_T_obj, points, surface)
         ratio = len(inliers) / max(len(points_3d), 1)
         return LearnedPose(cam_T_obj, float(np.clip(score * ratio, 0.0, 1.0)), len(inliers), len(points_3d),
-                           depth_scale)
+                           depth_scale, refined, fit)
 
 
 def solve_pnp(points_3d: Array, points_2d: Array, K: Array, obj_id: int = 0,

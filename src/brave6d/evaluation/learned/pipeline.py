@@ -57,4 +57,5 @@ def _heldout(model_dir: Path, data: Any, models_dir: Path | str, show_progress: 
     from brave6d.evaluation.learned.heldout import score_heldout
     from brave6d.evaluation.learned.inference import LearnedEstimator
 
-    return score_heldout(LearnedEstimator.load(model_dir), data, models_dir, show_progress=show_progress).to_json()
+    estimator = LearnedEstimator.load(model_dir, models_dir=models_dir)
+    return score_heldout(estimator, data, models_dir, show_progress=show_progress).to_json()

@@ -40,6 +40,8 @@ class LearnedAgentOptions:
     max_moves: int = 4
     blind_step: float = 0.6  # no detection: move to this fraction of the assumed distance
     return_to_start: bool = True  # submit from the start view (where MSPD's pixels are fewer)
+    nearest_m: float | None = None  # nearest approach; None: the nearest capture ring (or 3 diameters)
+    orbit_deg: tuple[float, ...] = (35.0, -35.0)  # then look from these azimuth offsets too
 
 
 class LearnedAgent:
@@ -59,7 +61,8 @@ class LearnedAgent:
         self.views: list[dict[str, Any]] = []
         self.current: dict[str, Any] | None = None
         self.refused = 0
-        self._returning = False
+        self._phase = "approach"
+        self._orbit: list[Array] = []
         self._next: Array | None = None
         self._candidates: list[Array] = []
 
@@ -74,6 +77,8 @@ class LearnedAgent:
             self.obj_id = int(step.target["obj_id"])
             info = next((o for o in self.bundle_info.get("objects", []) if int(o["obj_id"]) == self.obj_id), {})
             self.diameter_m = float(info.get("diameter_mm", 30.0)) / 1000.0
+            if self.use_depth:
+                self._give_surface()
         elif not step.accepted:  # refused (a collision box): the next candidate pose, if any is left
             self.refused += 1
             self._next = self._candidates.pop(0) if self._candidates else None
@@ -105,13 +110,30 @@ class LearnedAgent:
             notes["refused"] = view["cause"]
             notes["refusal"] = view["message"]
             return Submission([], notes)
-        notes.update(inliers=pose.inliers, correspondences=pose.correspondences, depth_scale=pose.depth_scale)
+        notes.update(inliers=pose.inliers, correspondences=pose.correspondences, depth_scale=pose.depth_scale,
+                     icp=pose.icp)
         cam_T_obj = invert(final["obs"].world_T_cam) @ view["obs"].world_T_cam @ pose.cam_T_obj
         return Submission([PoseEstimate(self.obj_id, cam_T_obj, pose.score)], notes)
 
-    def _rank(self, view: dict[str, Any]) -> tuple[bool, bool, float]:
-        """Views with a pose first, then confident detections, then the larger box (the nearer view)."""
-        return view["pose"] is not None, view["score"] >= self.options.confident_score, view["size_px"]
+    def _rank(self, view: dict[str, Any]) -> tuple[bool, float, float]:
+        """Views with a pose first; then, with depth, the one whose pose explains the most depth
+        points of its box (ICP's fit); then the pose's score (detection score x PnP inlier ratio)."""
+        pose = view["pose"]
+        if pose is None:
+            return False, 0.0, 0.0
+        return True, (pose.fit or 0.0) if self.use_depth else 0.0, pose.score
+
+    def _give_surface(self) -> None:
+        """Hand the estimator the target's mesh from the server (``GET /models``) for its depth ICP."""
+        from brave6d.evaluation.agents.model import read_model_ply
+
+        if self.obj_id in self.estimator.surfaces or self.obj_id not in self.estimator.model.objects:
+            return
+        scene = getattr(self.client, "scene", None)
+        data = self.client.model(self.obj_id, scene) if scene is not None else self.client.model(self.obj_id)
+        vertices_mm, faces, _ = read_model_ply(data)
+        if faces is not None and len(faces):
+            self.estimator.set_surface(self.obj_id, np.asarray(vertices_mm) / 1000.0, faces)
 
     # ------------------------------------------------------------------ perception
     def _look(self, obs: Any) -> dict[str, Any]:
@@ -131,15 +153,37 @@ class LearnedAgent:
 
     # ------------------------------------------------------------------ moves
     def _plan(self) -> Array | None:
-        """The next camera pose of the active agent: closer while it needs to, then back to the start
-        view; None when it is done (module docstring)."""
-        if self._returning:
-            return None
-        step = self._approach()
-        if step is None and self.options.return_to_start and len(self.views) > 1:
-            self._returning, self._candidates = True, []
-            return np.asarray(self.views[0]["obs"].world_T_cam, dtype=np.float64)
-        return step
+        """The next camera pose of the active agent: closer while it needs to, then the orbit's
+        looks from the sides, then back to the start view; None when it is done (module docstring)."""
+        if self._phase == "approach":
+            step = self._approach()
+            if step is not None:
+                return step
+            self._phase, self._orbit = "orbit", self._orbit_poses()
+        if self._phase == "orbit":
+            if self._orbit:
+                self._candidates = []
+                return self._orbit.pop(0)
+            self._phase = "return"
+            if self.options.return_to_start and len(self.views) > 1:
+                self._candidates = []
+                return np.asarray(self.views[0]["obs"].world_T_cam, dtype=np.float64)
+        return None
+
+    def _orbit_poses(self) -> list[Array]:
+        """Looks at the target from ``orbit_deg`` azimuth offsets at the current distance (none when
+        the target was never seen)."""
+        view = self.current
+        if view is None or view["detection"] is None or not self.options.orbit_deg:
+            return []
+        target_w, _ = self._target(view)
+        eye = view["obs"].world_T_cam[:3, 3]
+        v = eye - target_w
+        dist = float(np.linalg.norm(v))
+        azimuth = math.atan2(float(v[1]), float(v[0]))
+        elevation = math.degrees(math.atan2(float(v[2]), float(np.hypot(v[0], v[1]))))
+        return [look_candidates(target_w, dist, azimuth + math.radians(a), max(elevation, 0.0))[0]
+                for a in self.options.orbit_deg]
 
     def _approach(self) -> Array | None:
         """The next pose towards the target, or None when the view is good enough or nothing is gained."""
@@ -153,7 +197,7 @@ class LearnedAgent:
         obs = view["obs"]
         eye = obs.world_T_cam[:3, 3]
         target_w, dist = self._target(view)
-        near = max(self._standoff(), 3.0 * self.diameter_m)
+        near = max(self._standoff() if o.nearest_m is None else o.nearest_m, 3.0 * self.diameter_m)
         if view["detection"] is not None:
             goal = dist * min(view["size_px"] / o.approach_box_px, 1.0)
         else:
