@@ -8,6 +8,7 @@ margin over the static one, and the pooled figures. The episode logs of each set
 ``<out>/set_<offset>/``.
 
     python benchmarks/baselines.py [--bundle DIR] [--offsets 0 50000 90000 130000] [--json out.json]
+        [--learned-model MODEL_DIR]   # also the four learned agents (brave6d learn train), and their margin
 
 Default bundle: ``runs/demo/scene/bundle`` (what ``bash scripts/demo.sh`` writes).
 """
@@ -29,7 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT / "src") not in sys.path:  # the package, also without an install
     sys.path.insert(0, str(ROOT / "src"))
 
-from brave6d.evaluation.agents import ACTIVE_AGENT, POLICIES, STATIC_AGENT
+from brave6d.evaluation.agents import ACTIVE_AGENT, LEARNED_ACTIVE_AGENT, LEARNED_STATIC_AGENT, STATIC_AGENT, \
+    AgentSetup, runnable_agents
 from brave6d.evaluation.demo import EPISODES_PER_OBJECT, run_baselines
 
 DEFAULT_BUNDLE = ROOT / "runs" / "demo" / "scene" / "bundle"
@@ -43,18 +45,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--episodes", type=int, default=EPISODES_PER_OBJECT, help="episodes per object and set")
     ap.add_argument("--out", type=Path, default=None, help="where the episode logs go (default: a temp folder)")
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
+    ap.add_argument("--learned-model", type=Path, default=None,
+                    help="a trained model folder: the learned agents play too (default: the weight-free ones only)")
     args = ap.parse_args(argv)
     if not (args.bundle / "manifest.json").is_file():
         ap.error(f"{args.bundle}: no bundle (run `bash scripts/demo.sh` first, or pass --bundle)")
     out_root = args.out or Path(tempfile.mkdtemp(prefix="brave6d_baselines_"))
-    names = list(POLICIES)
+    names = runnable_agents(AgentSetup(learned_model=args.learned_model))
     rows = []
     print(f"{'seed offset':>11} | " + " | ".join(f"{name:>15}" for name in names) +
           f" | {'active - static':>15} | {'adjustments':>11} | {'seconds':>7}", flush=True)
     for offset in args.offsets:
         t0 = time.perf_counter()
         run = run_baselines(args.bundle, out_root / f"set_{offset}", device="cpu", seed=offset,
-                            episodes_per_object=args.episodes)
+                            episodes_per_object=args.episodes, learned_model=args.learned_model)
         agents = {a.agent: a for a in run.board.agents}
         static, active = agents[STATIC_AGENT], agents[ACTIVE_AGENT]
         row = {"offset": offset, "episodes": static.episodes, "ar": {name: agents[name].ar for name in names},
@@ -68,6 +72,12 @@ def main(argv: list[str] | None = None) -> int:
     pooled = {k: sum(r[k] * r["episodes"] for r in rows) / n for k in ("static_ar", "active_ar")}
     pooled_ar = {name: sum(r["ar"][name] * r["episodes"] for r in rows) / n for name in names}
     wins = sum(r["active_ar"] > r["static_ar"] for r in rows)
+    if LEARNED_ACTIVE_AGENT in names:
+        for suffix in ("", "-depth"):
+            a, st = pooled_ar[LEARNED_ACTIVE_AGENT + suffix], pooled_ar[LEARNED_STATIC_AGENT + suffix]
+            print(f"learned{suffix}: active - static {a - st:+.3f} (pooled), higher in "
+                  f"{sum(r['ar'][LEARNED_ACTIVE_AGENT + suffix] > r['ar'][LEARNED_STATIC_AGENT + suffix] for r in rows)}"
+                  f" of {len(rows)} sets")
     print(f"pooled over {n} episodes per agent: " + ", ".join(f"{name} {ar:.3f}" for name, ar in pooled_ar.items()) +
           f" (active - static {pooled['active_ar'] - pooled['static_ar']:+.3f}); active higher in {wins} of "
           f"{len(rows)} sets")

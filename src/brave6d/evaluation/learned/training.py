@@ -55,10 +55,11 @@ def inputs_key(train_pbr_digest: str, models_dir: Path, preset: LearnPreset, dev
 
 def train_learned(train_pbr: Path | str, models_dir: Path | str, out: Path | str, preset: LearnPreset,
                   device: str = "auto", resume: bool = False, show_progress: bool = True,
-                  stop_after_steps: int | None = None) -> LearnResult:
+                  stop_after_steps: int | None = None, max_images: int | None = None) -> LearnResult:
     """Train (or reuse, or resume) the learned estimator of ``train_pbr`` into ``out`` (module
     docstring); ``stop_after_steps`` stops after that many steps of this call with a checkpoint
-    (a job with a time slot; the tests' interruption)."""
+    (a job with a time slot; the tests' interruption); ``max_images`` trains on the split's first n
+    images only (the benchmarks' accuracy against the split's size)."""
     import torch
 
     from brave6d.core.atomic import move_aside
@@ -71,8 +72,8 @@ def train_learned(train_pbr: Path | str, models_dir: Path | str, out: Path | str
         raise BraveError(f"{out}: --out is a file; give a folder")
     t0 = time.perf_counter()
     data = load_training_data(train_pbr, models_dir, preset.work_width, preset.heldout_every,
-                              show_progress=show_progress)
-    key = inputs_key(data.digest, Path(models_dir), preset, dev.type)
+                              max_images=max_images, show_progress=show_progress)
+    key = inputs_key(f"{data.digest}:{len(data.images)}", Path(models_dir), preset, dev.type)
     seconds = {"read": time.perf_counter() - t0}
     if (out / MODEL).is_file():
         existing = read_model(out)
