@@ -97,3 +97,22 @@ def test_the_command_line_trains_and_refuses_bad_input_in_one_line(split: tuple[
     assert missing.returncode == 2 and "Traceback" not in missing.stderr and "nowhere" in missing.stderr
     unknown = subprocess.run(cmd[:-5] + ["--preset", "huge"] + cmd[-3:], capture_output=True, text=True)
     assert unknown.returncode == 2 and "no learn preset named 'huge'" in unknown.stderr
+
+
+def test_the_cost_benchmark_prices_images_and_steps(tmp_path: Path) -> None:
+    import importlib.util
+    import json
+
+    from learned_helpers import ROOT
+
+    spec = importlib.util.spec_from_file_location("learned_cost", ROOT / "benchmarks" / "learned_cost.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    models = write_models(DEMO_SPEC, tmp_path / "models")
+    assert bench.main([str(DEMO_SPEC), str(models), str(tmp_path / "out"), "--points", "10:3,20:4", "--workers", "1"]) == 0
+    report = json.loads((tmp_path / "out" / "learned_cost.json").read_text())
+    assert report["synth_images_per_s"] > 0 and (tmp_path / "out" / "learned_cost.png").is_file()
+    assert [(p["images"], p["steps"]) for p in report["points"]] == [(10, 3), (20, 4)]
+    for p in report["points"]:
+        assert p["heldout_images"] == p["images"] // 10 and p["train_s"] > 0 and p["synth_s"] > 0
+        assert set(p["heldout_ar"]) == {"true_box_rgb", "true_box_depth", "detected_rgb", "detected_depth"}
