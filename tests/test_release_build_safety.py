@@ -70,6 +70,16 @@ def test_a_listed_bundle_file_that_is_a_link_is_refused(work: Path, tmp_path: Pa
     assert not (tmp_path / "out").exists()
 
 
+def test_a_bundle_folder_that_is_a_link_is_refused(work: Path, tmp_path: Path) -> None:
+    """Issue #44, class 6: the folder itself linked to a copy elsewhere (every file inside verifies)."""
+    bundle = work / "scenes" / "scene_a" / "bundle"
+    shutil.move(bundle, tmp_path / "elsewhere")
+    bundle.symlink_to(tmp_path / "elsewhere")
+    with pytest.raises(ReleaseError, match=rf"{bundle}: is a symbolic link \(to {tmp_path / 'elsewhere'}\)"):
+        build_release(work, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("victim", ["rgb image", "mask", "rgb folder", "scene_gt.json", "model"])
 def test_a_link_in_the_bop_export_is_refused(work: Path, tmp_path: Path, victim: str) -> None:
     lay = _bop(work)

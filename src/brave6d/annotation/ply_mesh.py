@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from brave6d.core.atomic import atomic_write_bytes
 from brave6d.core.errors import DataError
+from brave6d.core.ply_check import check_ply_header
 
 _FACE_LISTS = ("vertex_indices", "vertex_index")
 #: plyfile memory-maps a binary face element whose lists all have this length (fast on big models).
@@ -60,6 +61,10 @@ def read_ply_mesh(source: Path | str | bytes, name: str | None = None) -> MeshDa
     label = name or str(path)
     if not path.is_file():
         raise DataError(f"{label}: mesh file not found")
+    try:
+        check_ply_header(path, name=label)  # element counts against the file's size, before plyfile allocates
+    except DataError as exc:
+        raise DataError(f"{label}: cannot read the PLY mesh ({str(exc).removeprefix(label + ': ')})") from None
     try:
         ply = _read_plydata(path)
         vertex = ply["vertex"].data

@@ -11,6 +11,7 @@ import hashlib
 import logging
 import os
 import shutil
+import tempfile
 from collections import defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -20,7 +21,7 @@ from typing import Annotated
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from brave6d.core.atomic import atomic_write_text
+from brave6d.core.atomic import atomic_write_text, staged_folder
 from brave6d.core.errors import DataError, NonRigidTransformError, validation_error_field
 from brave6d.core.json_input import parse_json
 from brave6d.core.spec import SceneSpec, load_scene_spec, spec_to_yaml
@@ -291,10 +292,33 @@ def init_scene_dir(root: Path | str, spec_file: Path | str) -> SceneDir:
     The copied ``scene.yaml`` names the meshes relative to the scene directory, so the folder is
     self-contained and can be moved to another machine. Each mesh lands where
     :func:`asset_paths` puts it, so two different meshes never share a file.
+
+    Nothing is left behind on failure: a new (or empty) ``root`` is built in a staging folder and
+    renamed into place at the end; into an existing scene directory the assets and ``scene.yaml``
+    are first made and checked in a staging folder inside it, then moved in (``scene.yaml`` last).
     """
     spec = load_scene_spec(spec_file)
     scene = SceneDir(root)
-    scene.root.mkdir(parents=True, exist_ok=True)
+    if scene.root.exists() and not scene.root.is_dir():
+        raise DataError(f"{scene.root}: is a file, not a scene directory")
+    if not scene.root.is_dir() or next(scene.root.iterdir(), None) is None:
+        with staged_folder(scene.root) as staging:
+            _write_scene_files(SceneDir(staging), spec)
+        return scene
+    with tempfile.TemporaryDirectory(dir=scene.root, prefix=".init-") as tmp:
+        staged = SceneDir(tmp)
+        _write_scene_files(staged, spec)
+        made = sorted(p for p in staged.assets_dir.rglob("*") if p.is_file())
+        for path in made:
+            target = scene.asset_path(path.relative_to(staged.assets_dir).as_posix())
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(path, target)
+        os.replace(staged.spec_path, scene.spec_path)
+    return scene
+
+
+def _write_scene_files(scene: SceneDir, spec: SceneSpec) -> None:
+    """``scene.yaml`` and ``assets/`` of ``spec`` in ``scene`` (the meshes copied, the copy checked)."""
     placed = asset_paths(spec)
     rewritten: dict[str, list[dict]] = {}
     data = spec.model_dump(mode="json", exclude={"source"})
@@ -311,7 +335,6 @@ def init_scene_dir(root: Path | str, spec_file: Path | str) -> SceneDir:
 
     atomic_write_text(scene.spec_path, yaml.safe_dump(data, sort_keys=False))
     load_scene_spec(scene.spec_path)  # the copy must validate exactly like the source
-    return scene
 
 
 def mesh_files(src: Path) -> list[Path]:

@@ -7,12 +7,17 @@ cache's ``<name>-<version>-<digest>/``). A name with a slash, ``..`` or a leadin
 that folder somewhere else; so every such name passes :func:`folder_name_problem` first.
 
 A relative path read from a file someone else made (a zip member's name, a file a bundle's
-manifest lists) passes :func:`relative_path_problem` before it is joined to a folder.
+manifest lists) passes :func:`relative_path_problem` before it is joined to a folder; a path that
+is then opened on disk (an import's images and points file, a bundle folder a release packs)
+goes through :func:`contained_path`, the one containment rule: the name passes
+:func:`relative_path_problem`, no part of the path below its folder is a symbolic link, and the
+result resolves inside the folder.
 """
 
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from typing import Annotated
 
 from pydantic import AfterValidator
@@ -85,3 +90,26 @@ def relative_path_problem(path: object, *, folder_slash: bool = False) -> str | 
         if len(part.encode("utf-8", "surrogatepass")) > 255:
             return "a path part longer than 255 bytes"
     return None
+
+
+def contained_path(root: Path | str, name: object, where: str) -> Path:
+    """``root / name`` once it cannot lead outside ``root``: ``name`` passes
+    :func:`relative_path_problem` (no absolute path, no ``..``), no part of the path below
+    ``root`` is a symbolic link (whether it exists or not), and it resolves inside ``root``. Else
+    :class:`DataError` naming ``where`` (the file and field that named it). ``root`` itself is
+    the caller's (a folder the user named) and may be a link."""
+    problem = relative_path_problem(name)
+    if problem is not None:
+        shown = repr(name) if not isinstance(name, str) or len(name) <= 80 else repr(name[:77] + "...")
+        raise DataError(f"{where}: {shown} has {problem}; only files inside {root} are read")
+    assert isinstance(name, str)
+    base = Path(root)
+    path = base
+    for part in name.split("/"):
+        path = path / part
+        if path.is_symlink():
+            raise DataError(f"{where}: {path} is a symbolic link; only files inside {root} are read, "
+                            "put the file itself there")
+    if not path.resolve().is_relative_to(base.resolve()):
+        raise DataError(f"{where}: {path} lies outside {root}; only files inside it are read")
+    return path

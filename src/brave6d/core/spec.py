@@ -120,6 +120,10 @@ class SymmetrySpec(_Strict):
         return value
 
 
+#: The mesh formats a spec may name (what trimesh loads by the file's extension).
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf")
+
+
 class MeshSpec(_Strict):
     """A mesh placed in the world: file (relative to the spec), unit scale to metres, pose."""
 
@@ -127,6 +131,13 @@ class MeshSpec(_Strict):
     mesh: Path
     scale: PositiveFloat = 1.0
     pose: Pose = Pose()
+
+    @field_validator("mesh")
+    @classmethod
+    def _mesh_format(cls, value: Path) -> Path:
+        if value.suffix.lower() not in MESH_SUFFIXES:
+            raise ValueError(f"{str(value)[:100]!r} is not a mesh file (a {', '.join(MESH_SUFFIXES)} file is required)")
+        return value
 
 
 class ObjectSpec(MeshSpec):

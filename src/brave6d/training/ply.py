@@ -27,6 +27,7 @@ from plyfile import PlyData, PlyElement
 
 from brave6d.core.atomic import atomic_write
 from brave6d.core.errors import DataError
+from brave6d.core.ply_check import check_ply_header
 
 #: SH coefficient of degree 0 (rgb = 0.5 + SH_C0 * f_dc).
 SH_C0 = 0.28209479177387814
@@ -120,6 +121,7 @@ FILTER_3D = "filter_3d"
 def read_ply(path: Path | str) -> SplatData:
     """Read a 3DGS PLY (this project's or another trainer's); errors name the file and field."""
     p = Path(path)
+    check_ply_header(p)  # element counts against the file's size, before plyfile allocates anything
     try:
         ply = PlyData.read(str(p))
     except FileNotFoundError:

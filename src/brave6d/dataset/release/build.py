@@ -151,6 +151,11 @@ def _confined(files: list[tuple[Path, str]], root: Path) -> list[tuple[Path, str
 
 
 def _refuse_links(paths: Iterable[Path], root: Path) -> None:
+    """Refuse ``root`` when it is itself a symbolic link (a bundle folder linked to one elsewhere
+    would pass every check below), and each of ``paths`` that is a link or resolves outside it."""
+    if root.is_symlink():
+        raise ReleaseError(f"{root}: is a symbolic link (to {os.readlink(root)}); a release packs only the "
+                           "scene's own files: put the folder itself there")
     base = root.resolve()
     for path in paths:
         if path.is_symlink():

@@ -3,7 +3,9 @@
 pycolmap reads the model (the format's own reader, binary or text alike). COLMAP's poses are
 ``cam_from_world`` with OpenCV camera axes, its cameras already in :class:`SourceCamera`'s terms, so
 nothing is converted but the pose's direction. Only registered images (with a pose) become frames;
-an image the model names but the images folder lacks is reported in ``missing``.
+an image the model names but the images folder lacks is reported in ``missing``. An image name is
+a path inside the images folder (:func:`brave6d.core.names.contained_path`: no absolute name, no
+``..``, no symbolic link).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from brave6d.core.errors import DataError
+from brave6d.core.names import contained_path
 from brave6d.core.transforms import invert
 from brave6d.training.importing.source import CAMERA_MODELS, ImportedCapture, SourceCamera, SourceFrame
 
@@ -69,7 +72,7 @@ def read_colmap(source: Path | str, images: Path | str | None = None) -> Importe
     frames, missing = [], []
     for image_id in sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name):
         image = rec.images[image_id]
-        path = image_dir / image.name
+        path = contained_path(image_dir, image.name, f"{model}: image {image_id}: name")
         if not path.is_file():
             missing.append(image.name)
             continue

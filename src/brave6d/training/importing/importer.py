@@ -42,7 +42,8 @@ from brave6d.core.progress import progress
 from brave6d.core.spec import SceneSpec
 from brave6d.training.importing.image_io import Resampler, read_frame_image
 from brave6d.training.importing.scene_files import write_import_record, write_imported_points
-from brave6d.training.importing.source import ImportedCapture, SourceCamera, SourceFrame
+from brave6d.training.importing.source import (MAX_COORDINATE, ImportedCapture, SourceCamera, SourceFrame,
+                                                bounded_rows, check_pose)
 from brave6d.training.importing.world import ScaleChoice, UpChoice, WorldChange, world_change
 from brave6d.training.pose_check import MIN_VISIBLE_SHARE, PoseCheck, check_camera_poses
 
@@ -134,7 +135,14 @@ def import_capture(source: Path | str, scene_dir: Path | str, options: ImportOpt
     change = world_change({f.name: f.world_T_cam for f in capture.frames}, capture.points, options.scale, options.up)
     plan = _camera_plan(capture.frames, options.downscale)
     poses = [change.pose(f.world_T_cam) for f in capture.frames]
-    points = change.points(capture.points)
+    for frame, pose in zip(capture.frames, poses):
+        check_pose(pose, f"{capture.source}: frame {frame.name!r} after the world change ({change.scale_from})",
+                   "metres")
+    points, colors = change.points(capture.points), capture.colors
+    keep = bounded_rows(points)
+    if not keep.all():
+        log.warning("dropped %d sparse points beyond %g m after the world change", int((~keep).sum()), MAX_COORDINATE)
+        points, colors = points[keep], colors[keep]
     check = None
     reference = _reference(capture, change, points)
     if options.pose_check and reference is not None:
@@ -155,7 +163,7 @@ def import_capture(source: Path | str, scene_dir: Path | str, options: ImportOpt
         write_spec(out, spec)
         _write_empty_annotation(out, capture)
         if len(points):
-            write_imported_points(out, points, capture.colors)
+            write_imported_points(out, points, colors)
         record = _record(capture, options, plan, change, check, reference, exif, len(points))
         write_import_record(out, record)
         if _has_content(scene.root):

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from brave6d.core.atomic import atomic_write_bytes, atomic_write_json, read_json
 from brave6d.core.errors import DataError
 from brave6d.core.layout import SceneDir
+from brave6d.core.ply_check import check_ply_header
 
 IMPORT_FORMAT = "brave6d-import/1"
 
@@ -64,6 +65,7 @@ def read_imported_points(scene: SceneDir) -> tuple[NDArray[np.float64], NDArray[
     path = scene.imported_points_path
     if not path.is_file():
         return None
+    check_ply_header(path)
     try:
         vertex = PlyData.read(str(path))["vertex"]
         xyz = np.stack([np.asarray(vertex[c], np.float64) for c in "xyz"], axis=1)

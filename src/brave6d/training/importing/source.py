@@ -8,6 +8,10 @@ the source says about its world. Conventions are settled here, once:
   world and units (the readers convert OpenGL axes);
 - cameras are in COLMAP's terms (:class:`SourceCamera`: a COLMAP model name and its parameters,
   pixel (0, 0) centred at (0.5, 0.5)), so that pycolmap projects every model, fisheye included.
+
+Every number that becomes a pose or a point is finite and within :data:`MAX_COORDINATE`
+(:func:`check_pose`): a frame whose pose is not is refused, naming it; such points are dropped and
+counted (``details["points_dropped"]``), as structure from motion leaves a few stray ones.
 """
 
 from __future__ import annotations
@@ -21,6 +25,10 @@ from numpy.typing import NDArray
 
 from brave6d.core.camera import CORNER_ORIGIN_OFFSET, PinholeCamera
 from brave6d.core.errors import DataError
+
+#: The largest coordinate of a camera position or a point, in the source's units when read and in
+#: metres after the world change (a float32 PLY holds it exactly enough; a tabletop is a metre).
+MAX_COORDINATE = 1e6
 
 #: COLMAP camera models -> their parameter names (COLMAP's order).
 CAMERA_MODELS: dict[str, tuple[str, ...]] = {
@@ -140,7 +148,28 @@ class ImportedCapture:
         self.colors = np.asarray(self.colors, np.uint8).reshape(-1, 3)
         if len(self.colors) != len(self.points):  # no (or mismatched) colours: grey
             self.colors = np.full((len(self.points), 3), 128, np.uint8)
-        keep = np.isfinite(self.points).all(axis=1)
+        for frame in self.frames:
+            check_pose(frame.world_T_cam, f"{self.source}: frame {frame.name!r}", "source units")
+        keep = bounded_rows(self.points)
         if not keep.all():
-            self.details["non_finite_points_dropped"] = int((~keep).sum())
+            self.details["points_dropped"] = (f"{int((~keep).sum())} points not finite or beyond "
+                                              f"{MAX_COORDINATE:g} source units (MAX_COORDINATE)")
             self.points, self.colors = self.points[keep], self.colors[keep]
+
+
+def bounded_rows(values: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Which rows of ``values`` are finite and within :data:`MAX_COORDINATE` in every column."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(values).all(axis=1) & (np.abs(values) <= MAX_COORDINATE).all(axis=1)
+
+
+def check_pose(pose: NDArray[np.float64], where: str, units: str) -> None:
+    """A 4x4 pose whose numbers are finite and whose position is within :data:`MAX_COORDINATE`
+    ``units``; else :class:`DataError` naming ``where`` and the bound."""
+    m = np.asarray(pose, np.float64)
+    if not np.isfinite(m).all():
+        raise DataError(f"{where}: the pose holds a number that is not finite")
+    if not bounded_rows(m[None, :3, 3]).all():
+        shown = ", ".join(f"{v:.6g}" for v in m[:3, 3])
+        raise DataError(f"{where}: the camera position ({shown}) has a coordinate beyond +-{MAX_COORDINATE:g} "
+                        f"{units} (MAX_COORDINATE)")

@@ -20,6 +20,9 @@ What the file holds, as those tools write it:
   that unit cube is the scene's reference for the pose check.
 
 A frame whose image file is missing is reported in ``missing`` (by its ``file_path``), not an error.
+Every path the file names (``file_path``, ``ply_file_path``) must lie inside the file's folder
+(:func:`brave6d.core.names.contained_path`: no absolute path, no ``..``, no symbolic link); the
+points file's header is checked before it is read (:func:`brave6d.core.ply_check.check_ply_header`).
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ from numpy.typing import NDArray
 
 from brave6d.core.atomic import read_json
 from brave6d.core.errors import DataError, NonRigidTransformError
+from brave6d.core.names import contained_path
+from brave6d.core.ply_check import check_ply_header
 from brave6d.core.png_check import check_image_header
 from brave6d.core.transforms import check_rigid
 from brave6d.training.importing.source import ImportedCapture, SourceCamera, SourceFrame
@@ -73,7 +78,7 @@ def read_transforms(source: Path | str) -> ImportedCapture:
         name = item.get("file_path")
         if not isinstance(name, str) or not name:
             raise DataError(f"{where}.file_path: a file path (string) is required")
-        image = _image_file(path.parent, name)
+        image = _image_file(path.parent, name, f"{where}.file_path")
         if image is None:
             missing.append(name)
             continue
@@ -88,15 +93,17 @@ def read_transforms(source: Path | str) -> ImportedCapture:
                            _ngp_unit_cube(data, path), details)
 
 
-def _image_file(root: Path, name: str) -> Path | None:
-    """The image ``name`` relative to ``root``; a name without an extension tries the usual ones."""
-    path = root / name
+def _image_file(root: Path, name: str, where: str) -> Path | None:
+    """The image ``name`` inside ``root`` (:func:`brave6d.core.names.contained_path`: no ``..``, no
+    absolute path, no link); a name without an extension tries the usual ones."""
+    path = contained_path(root, name, where)
     if path.is_file():
         return path
     if not path.suffix:
         for suffix in _IMAGE_SUFFIXES:
-            if path.with_name(path.name + suffix).is_file():
-                return path.with_name(path.name + suffix)
+            candidate = contained_path(root, name + suffix, where)
+            if candidate.is_file():
+                return candidate
     return None
 
 
@@ -194,14 +201,15 @@ def _points(path: Path, data: dict[str, Any]) -> tuple[NDArray[np.float64], NDAr
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), None
     if not isinstance(name, str):
         raise DataError(f"{path}: field 'ply_file_path': a file path (string) is required")
-    ply = path.parent / name
+    ply = contained_path(path.parent, name, f"{path}: field 'ply_file_path'")
+    if not ply.is_file():
+        raise DataError(f"{path}: field 'ply_file_path': {ply} not found")
+    check_ply_header(ply)  # the element counts against the file's size, before plyfile allocates anything
     from plyfile import PlyData
 
     try:
         vertex = PlyData.read(str(ply))["vertex"]
         xyz = np.stack([np.asarray(vertex[c], np.float64) for c in ("x", "y", "z")], axis=1)
-    except FileNotFoundError:
-        raise DataError(f"{path}: field 'ply_file_path': {ply} not found") from None
     except (KeyError, ValueError, OSError, IndexError) as exc:
         raise DataError(f"{ply}: not a point cloud PLY with x, y, z ({type(exc).__name__}: {exc})") from None
     names = vertex.data.dtype.names or ()
