@@ -142,6 +142,27 @@ def test_colmap_image_names_outside_the_images_folder_are_refused(tmp_path: Path
     assert re.search(r"sparse/0: image 4: name: .*images/v03.png is a symbolic link", line), line
 
 
+@pytest.mark.parametrize("linked", ["images folder", "cameras.txt", "sparse folder", "transforms.json"])
+def test_a_linked_model_file_or_folder_in_the_source_is_refused(tmp_path: Path, outside: Path,
+                                                                capsys: pytest.CaptureFixture[str], linked: str) -> None:
+    if linked == "transforms.json":
+        source, _ = object_capture(tmp_path / "src")
+        real = outside / "transforms.json"
+        source.rename(real)
+        source.symlink_to(real)
+        source, expected = tmp_path / "src", "src/transforms.json is a symbolic link"
+    else:
+        source = _colmap_text_model(tmp_path / "src", [f"v{i:02d}.png" for i in range(8)])
+        victim = {"images folder": source / "images", "cameras.txt": source / "sparse" / "0" / "cameras.txt",
+                  "sparse folder": source / "sparse"}[linked]
+        victim.rename(outside / victim.name)
+        victim.symlink_to(outside / victim.name)
+        expected = {"images folder": "src/images: the images folder is a symbolic link",
+                    "cameras.txt": "sparse/0/cameras.txt is a symbolic link",
+                    "sparse folder": "src/sparse is a symbolic link"}[linked]
+    assert expected in _import_refused(capsys, source, tmp_path / "scene")
+
+
 @settings(max_examples=60, deadline=None)
 @given(name=st.one_of(
     st.lists(st.sampled_from(["..", ".", "", "a", "b.png", "/", "\\", "c:", "d\x00", "e ", "f."]), min_size=1,

@@ -28,9 +28,14 @@ def is_colmap_model(folder: Path) -> bool:
 
 
 def find_model(source: Path) -> Path:
-    """The model folder of ``source``: itself, or ``sparse/0``, ``sparse`` or ``colmap/sparse/0`` inside it."""
-    for folder in (source, source / "sparse" / "0", source / "sparse", source / "colmap" / "sparse" / "0"):
+    """The model folder of ``source``: itself, or ``sparse/0``, ``sparse`` or ``colmap/sparse/0`` inside it
+    (none of them, nor a model file in it, a symbolic link: :func:`brave6d.core.names.contained_path`)."""
+    for rel in ("", "sparse/0", "sparse", "colmap/sparse/0"):
+        folder = contained_path(source, rel, f"{source}: the COLMAP model folder") if rel else source
         if is_colmap_model(folder):
+            for name in _MODEL_FILES:
+                for ext in (".bin", ".txt"):
+                    contained_path(folder, name + ext, f"{folder}: the COLMAP model file")
             return folder
     raise DataError(f"{source}: no COLMAP model (cameras.bin and images.bin, or cameras.txt and images.txt) "
                     "in it or in its sparse/0, sparse or colmap/sparse/0")
@@ -40,6 +45,9 @@ def find_images(source: Path, model: Path) -> Path:
     """The images folder: ``<source>/images``, else ``images`` next to the model's ``sparse`` folder."""
     candidates = [source / "images", model.parent.parent / "images", model.parent / "images"]
     for folder in candidates:
+        if folder.is_symlink():
+            raise DataError(f"{folder}: the images folder is a symbolic link; an import reads only its source's "
+                            "own files: put the folder itself there, or name it with --images")
         if folder.is_dir():
             return folder
     raise DataError(f"{source}: no images folder found (looked in {', '.join(str(c) for c in candidates)}); "

@@ -54,7 +54,7 @@ NGP_SCALE, NGP_OFFSET = 0.33, (0.5, 0.5, 0.5)
 
 def find_transforms(source: Path) -> Path:
     """``source`` itself when it is a file, else ``source/transforms.json``."""
-    path = source / "transforms.json" if source.is_dir() else source
+    path = contained_path(source, "transforms.json", str(source)) if source.is_dir() else source
     if not path.is_file():
         raise DataError(f"{path}: not found (a transforms.json file, or a folder that holds one)")
     return path
