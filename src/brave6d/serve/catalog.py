@@ -227,7 +227,7 @@ class SceneCatalog:
             if (isinstance(key, str) and s.name == key) or (isinstance(key, int) and not isinstance(key, bool)
                                                            and s.scene_id == key):
                 return s
-        if isinstance(key, str) and key.isdigit():
+        if isinstance(key, str) and key.isascii() and key.isdigit():  # "²".isdigit(), but int("²") fails
             return self.source(int(key))
         raise EpisodeNotFound(f"no scene {key!r} on this server (scenes: {self.names()})", "scene")
 

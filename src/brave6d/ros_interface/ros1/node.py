@@ -32,7 +32,7 @@ def _target_arg(text: str) -> int | str | None:
     text = text.strip()
     if not text:
         return None
-    return int(text) if text.isdigit() else text
+    return int(text) if text.isascii() and text.isdigit() else text  # "²".isdigit(), but int("²") fails
 
 
 class Ros1Node:

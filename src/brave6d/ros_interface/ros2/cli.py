@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -85,6 +86,9 @@ def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
     if not args.twist_duration > 0:
         raise BraveError(f"--twist-duration must be > 0 seconds, got {args.twist_duration}")
     require("rclpy", "ros2", "brave6d ros2")
+    from brave6d.ros_interface.ros2.node import check_namespace
+
+    check_namespace(args.namespace)  # before the scenes load: a one-line refusal, not rclpy's traceback
     apply_environment(node_environment(args.allow_remote, tuple(args.peer)))  # before rclpy.init reads them
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -106,12 +110,41 @@ def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
     reach = "any host (--allow-remote)" if args.allow_remote else "this machine only"
     print(f"brave6d ros2: {', '.join(map(str, scenes.names()))} on ROS 2 domain {domain_id} ({reach}), "
           f"services and topics under {node.namespace}/ and /tf; episode logs: {log_dir}", flush=True)
+    stop = _StopOnSignals()
     try:
-        executor.spin()  # until SIGINT / SIGTERM (rclpy's handlers shut the context down)
+        while not stop.signal and context.ok():  # rcl_wait returns every SPIN_S, so Python's handlers run
+            executor.spin_once(timeout_sec=SPIN_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        node.destroy()
+        stop.restore()
+        node.destroy()  # closes the open episode (its log's close record)
         executor.shutdown()
         rclpy.try_shutdown(context=context)
+    if stop.signal is not None:
+        log.info("brave6d ros2: %s: closed the open episode and stopped", signal.Signals(stop.signal).name)
     return 0
+
+
+#: Seconds the executor waits for work before it looks at the signals that came.
+SPIN_S = 0.1
+
+
+class _StopOnSignals:
+    """SIGINT and SIGTERM ask the node to stop (the open episode is closed, then the command returns).
+
+    rclpy installs no signal handlers for a context of its own, and ``executor.spin()`` blocks in
+    ``rcl_wait``, where Python's handlers never run: the node spins in steps of :data:`SPIN_S`."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.signal: int | None = None
+        self.previous = {s: signal.signal(s, self._handle) for s in self.SIGNALS}
+
+    def _handle(self, signum: int, frame: object) -> None:
+        self.signal = signum
+
+    def restore(self) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler)

@@ -77,6 +77,29 @@ TOPICS: tuple[Topic, ...] = (
 TF_TOPIC = "/tf"
 
 
+def check_namespace(namespace: str) -> None:
+    """:class:`BraveError` (one line naming ``--namespace``) unless every topic and service name
+    under ``namespace`` is a valid ROS 2 name (characters, tokens, length: rclpy's own check)."""
+    from rclpy.exceptions import NameValidationException
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+
+    shown = namespace if len(namespace) <= 60 else f"{namespace[:60]}... ({len(namespace)} characters)"
+    if not namespace.startswith("/"):
+        raise BraveError(f"--namespace {shown!r}: must start with '/'")
+    names = [(t.suffix, False) for t in TOPICS] + [(s.suffix, True) for s in SERVICES]
+    for suffix, is_service in names:
+        try:
+            validate_full_topic_name(topic_name(namespace, suffix), is_service=is_service)
+        except NameValidationException as exc:
+            reason = str(exc).split(":\n", 1)[0].removeprefix("Invalid topic name: ")
+            raise BraveError(f"--namespace {shown!r}: {reason} (in {suffix!r} under it)") from None
+
+
+def _decimal(text: str) -> bool:
+    """Whether ``text`` is a decimal id that ``int`` reads (``"²".isdigit()`` is true, ``int("²")`` fails)."""
+    return text.isascii() and text.isdigit()
+
+
 def topic_name(namespace: str, suffix: str) -> str:
     return f"{namespace.rstrip('/')}/{suffix}"
 
@@ -113,8 +136,7 @@ class Ros2Node:
         from std_srvs.srv import Trigger
         from tf2_msgs.msg import TFMessage
 
-        if not namespace.startswith("/"):
-            raise BraveError(f"--namespace {namespace!r}: must start with '/'")
+        check_namespace(namespace)
         if not twist_duration_s > 0:
             raise BraveError(f"twist duration must be > 0 s, got {twist_duration_s}")
         self.bridge = bridge
@@ -178,11 +200,11 @@ class Ros2Node:
 
         fields: dict[str, Any] = {}
         if req.scene:
-            fields["scene"] = int(req.scene) if req.scene.isdigit() and len(req.scene) < 12 else req.scene
+            fields["scene"] = int(req.scene) if _decimal(req.scene) and len(req.scene) < 12 else req.scene
         if req.target:
             if len(req.target) > 128:
                 raise BraveError(f"{where}: target: at most 128 characters, got {len(req.target)}")
-            fields["target"] = int(req.target) if req.target.isdigit() else req.target
+            fields["target"] = int(req.target) if _decimal(req.target) else req.target
         if req.use_seed:
             fields["seed"] = int(req.seed)
         if req.use_start:
