@@ -272,6 +272,16 @@ def test_points_beyond_the_bound_are_dropped_and_counted(tmp_path: Path) -> None
     assert len(vertex) == 50 and all(np.isfinite(vertex[c]).all() for c in "xyz")
 
 
+def test_a_camera_larger_than_the_pixel_limit_is_refused_before_anything_is_allocated(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Most frames declare 100000x100000 (their images are never read: frame 0's is, and the
+    resampling maps into the most common camera would have been 10^10 pixels)."""
+    source, _ = object_capture(tmp_path / "src", per_frame={i: {"w": 100000, "h": 100000} for i in range(1, 12)})
+    line = _import_refused(capsys, source, tmp_path / "scene", "--skip-pose-check")
+    assert re.search(r"frames\[1\]'? \(images/f001.png\): camera OPENCV: image size 100000x100000 is more than the "
+                     r"67108864 pixels", line), line
+
+
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(value=st.floats(allow_nan=False, allow_infinity=False), row=st.integers(0, 2), frame=st.integers(0, 11),
        scale=st.sampled_from([1e-3, 1.0, 1e3, 1e9]))

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from brave6d.core.camera import CORNER_ORIGIN_OFFSET, PinholeCamera
 from brave6d.core.errors import DataError
+from brave6d.core.png_check import MAX_PIXELS
 
 #: The largest coordinate of a camera position or a point, in the source's units when read and in
 #: metres after the world change (a float32 PLY holds it exactly enough; a tabletop is a metre).
@@ -71,6 +72,9 @@ class SourceCamera:
                 raise DataError(f"camera {self.model}: focal length {name} must be positive, got {value}")
         if self.width < 1 or self.height < 1:
             raise DataError(f"camera {self.model}: image size must be positive, got {self.width}x{self.height}")
+        if self.width * self.height > MAX_PIXELS:  # the images' own limit: the resampling maps are this size
+            raise DataError(f"camera {self.model}: image size {self.width}x{self.height} is more than the "
+                            f"{MAX_PIXELS} pixels an image may have (MAX_PIXELS)")
 
     @property
     def named(self) -> dict[str, float]:
