@@ -84,11 +84,22 @@ def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: i
         for repeat in range(episodes_per_object):
             for obj in bundle.objects:
                 for agent in players:
+                    w, h = _image_size(agent, width, height, bundle)
                     outcomes.append(run_episode(client, agent, obj.gt_id, seed=seed + obj.gt_id + 1000 * repeat,
-                                                width=width, height=height))
+                                                width=w, height=h))
     episodes = read_episodes([logs])
     board = score_episodes(episodes, models_from_bundle(bundle, {o.obj_id for o in bundle.objects}))
     return BaselineRun(outcomes, board, width, height, bundle.name)
+
+
+def _image_size(agent: object, width: int, height: int, bundle: object) -> tuple[int, int]:
+    """The episode images of ``agent``: its own ``image_width`` when it asks for one (the learned
+    agents: the resolution their pose network was trained at), else ``width`` x ``height``."""
+    own = getattr(agent, "image_width", None)
+    if not own:
+        return width, height
+    render = bundle.render  # type: ignore[attr-defined]
+    return int(own), max(16, round(int(own) * render.height / render.width))
 
 
 def agent_runs_of(run: BaselineRun) -> AgentRuns:

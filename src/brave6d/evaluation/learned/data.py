@@ -58,9 +58,10 @@ class ObjectInfo:
 
 @dataclass
 class Instance:
-    """One annotated object in one image (working resolution). ``box``: visible box (x0, y0, x1, y1),
-    pixel edges; ``region``: (x0, y0) of ``coords`` / ``mask`` in the image; ``coords``: normalised
-    canonical model coordinates (h, w, 3) float16; ``mask``: visible pixels of the object."""
+    """One annotated object in one image. ``box``: visible box (x0, y0, x1, y1; pixel edges) in the
+    detector's working resolution, ``box_crop`` in the crops' source resolution, where ``region``
+    ((x0, y0) of ``coords`` / ``mask``), ``coords`` (normalised canonical model coordinates, (h, w, 3)
+    float16) and ``mask`` (visible pixels of the object) lie too."""
 
     image: int
     obj_id: int
@@ -72,12 +73,14 @@ class Instance:
     region: tuple[int, int]
     coords: NDArray[np.float16]
     mask: NDArray[np.bool_]
+    box_crop: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
 
 
 @dataclass
 class ImageRecord:
-    """One image: where it came from, the working-resolution RGB and K, the original K and size
-    (scores use them), whether it is held out, and its instances' indices."""
+    """One image: where it came from, the detector's working-resolution RGB and K, the crops' source
+    RGB and K (``rgb_crop``, ``K_crop``), the original K and size (scores use them), whether it is
+    held out, and its instances' indices."""
 
     scene_id: int
     im_id: int
@@ -88,6 +91,8 @@ class ImageRecord:
     heldout: bool
     depth_path: Path
     instances: list[int] = field(default_factory=list)
+    rgb_crop: NDArray[np.uint8] | None = None
+    K_crop: Array | None = None
 
 
 @dataclass
@@ -161,8 +166,10 @@ def scene_folders(root: Path | str) -> list[Path]:
 
 
 def load_training_data(train_pbr: Path | str, models_dir: Path | str, work_width: int, heldout_every: int,
-                       max_images: int | None = None, show_progress: bool = True) -> TrainingData:
-    """Read ``train_pbr`` and the models (see the module docstring); ``max_images`` reads the first n only."""
+                       max_images: int | None = None, show_progress: bool = True,
+                       crop_width: int | None = None) -> TrainingData:
+    """Read ``train_pbr`` and the models (see the module docstring); ``max_images`` reads the first n
+    only; ``crop_width``: the crops' source width (default ``work_width``)."""
     from brave6d.annotation import BopLayout, read_scene_camera, read_scene_gt, read_scene_gt_info
     from brave6d.core.progress import progress
 
@@ -189,8 +196,8 @@ def load_training_data(train_pbr: Path | str, models_dir: Path | str, work_width
     data = TrainingData(root, [], [], objects, digest)
     for n, (layout, im_id, cam, gts, infos) in enumerate(progress(entries, total=len(entries), desc="learn: read",
                                                                   unit="img", disable=not show_progress)):
-        _add_image(data, casters, layout, im_id, cam, gts, infos, work_width, heldout=(n % heldout_every
-                                                                                        == heldout_every - 1))
+        _add_image(data, casters, layout, im_id, cam, gts, infos, work_width, crop_width or work_width,
+                   heldout=(n % heldout_every == heldout_every - 1))
     if not data.instances_of(False):
         raise DataError(f"{train_pbr}: no object instance at least {MIN_VISIB_FRACT:.0%} visible to train on")
     return data
@@ -220,15 +227,17 @@ def resize_to_width(rgb: NDArray[np.uint8], K: Array, width: int) -> tuple[NDArr
 
 
 def _add_image(data: TrainingData, casters: _Casters, layout: object, im_id: int, cam: object, gts: list, infos: list,
-               work_width: int, heldout: bool) -> None:
+               work_width: int, crop_width: int, heldout: bool) -> None:
     import cv2
 
     from brave6d.core.atomic import read_png
 
     rgb_full = read_png(layout.rgb_path(im_id), expect="rgb")  # type: ignore[attr-defined]
-    rgb, K, s = resize_to_width(rgb_full, cam.cam_K, work_width)  # type: ignore[attr-defined]
-    record = ImageRecord(int(layout.scene_id), im_id, rgb, K, np.asarray(cam.cam_K), (rgb_full.shape[1],  # type: ignore[attr-defined]
-                         rgb_full.shape[0]), heldout, layout.depth_path(im_id))  # type: ignore[attr-defined]
+    rgb_work, K_work, s_work = resize_to_width(rgb_full, cam.cam_K, work_width)  # type: ignore[attr-defined]
+    rgb, K, s = resize_to_width(rgb_full, cam.cam_K, crop_width)  # type: ignore[attr-defined]
+    record = ImageRecord(int(layout.scene_id), im_id, rgb_work, K_work, np.asarray(cam.cam_K),  # type: ignore[attr-defined]
+                         (rgb_full.shape[1], rgb_full.shape[0]), heldout, layout.depth_path(im_id),  # type: ignore[attr-defined]
+                         rgb_crop=rgb, K_crop=K)
     data.images.append(record)
     h, w = rgb.shape[:2]
     for gt_id, (gt, info) in enumerate(zip(gts, infos)):
@@ -237,7 +246,8 @@ def _add_image(data: TrainingData, casters: _Casters, layout: object, im_id: int
         mask_full = read_png(layout.mask_visib_path(im_id, gt_id))  # type: ignore[attr-defined]
         visible = cv2.resize((mask_full > 0).astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
         bx, by, bw, bh = info.bbox_visib
-        box = (bx * s, by * s, (bx + bw + 1) * s, (by + bh + 1) * s)
+        box = (bx * s, by * s, (bx + bw + 1) * s, (by + bh + 1) * s)  # crop-source pixels
+        box_work = tuple(b * s_work / s for b in box)
         ox, oy, ow, oh = info.bbox_obj
         mx, my = _REGION_MARGIN * ow * s, _REGION_MARGIN * oh * s
         x0, y0 = max(0, int(math.floor(ox * s - mx))), max(0, int(math.floor(oy * s - my)))
@@ -254,8 +264,8 @@ def _add_image(data: TrainingData, casters: _Casters, layout: object, im_id: int
         if mask.sum() < 4:
             continue
         data.instances.append(Instance(len(data.images) - 1, gt.obj_id, obj.class_index, R, t_mm,
-                                       float(info.visib_fract), box, (x0, y0),
-                                       np.where(mask[..., None], q, 0.0).astype(np.float16), mask))
+                                       float(info.visib_fract), box_work, (x0, y0),  # type: ignore[arg-type]
+                                       np.where(mask[..., None], q, 0.0).astype(np.float16), mask, box))
         record.instances.append(len(data.instances) - 1)
 
 

@@ -105,10 +105,11 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
     n_instances = 0
     for i in progress(images, total=len(images), desc="learn: held-out", unit="img", disable=not show_progress):
         record = data.images[i]
+        rgb, K = (record.rgb_crop, record.K_crop) if record.rgb_crop is not None else (record.rgb, record.K)
         depth_full_mm = read_png(record.depth_path, expect="depth").astype(np.float64)
-        h, w = record.rgb.shape[:2]
+        h, w = rgb.shape[:2]
         depth_work = cv2.resize(depth_full_mm, (w, h), interpolation=cv2.INTER_NEAREST) / 1000.0
-        detections = estimator.detect(record.rgb, record.K, min_score=0.05)
+        detections = estimator.detect(rgb, K, min_score=0.05)  # boxes in rgb's (the crops' source) pixels
         instances = [data.instances[k] for k in record.instances]
         n_instances += len(instances)
         _match_detections(detections, instances, det_scores, det_hits, n_gt, found)
@@ -120,8 +121,8 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
                                   depth_full_mm))
         for inst in instances:
             confident = [d for d in detections if d.obj_id == inst.obj_id and d.score >= DETECTION_THRESHOLD]
-            matched = max(confident, key=lambda d: iou(d.box, inst.box), default=None)
-            boxes = {"true_box": (inst.box, 1.0),
+            matched = max(confident, key=lambda d: iou(d.box, inst.box_crop), default=None)
+            boxes = {"true_box": (inst.box_crop, 1.0),
                      "detected": (matched.box, matched.score) if matched is not None else None}
             for variant in POSE_VARIANTS:
                 kind, mode = variant.rsplit("_", 1)
@@ -131,7 +132,7 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
                 box, score = boxes[kind]
                 t0 = time.perf_counter()
                 try:
-                    pose = estimator.estimate(record.rgb, record.K, inst.obj_id, box,
+                    pose = estimator.estimate(rgb, K, inst.obj_id, box,
                                               depth_work if mode == "depth" else None, score)
                 except LearnedRefused as exc:
                     refusals[variant][exc.cause] = refusals[variant].get(exc.cause, 0) + 1
@@ -161,7 +162,7 @@ def _match_detections(detections: list[Detection], instances: list[Any], det_sco
         for k, inst in enumerate(instances):
             if k in taken or inst.obj_id != d.obj_id:
                 continue
-            overlap = iou(d.box, inst.box)
+            overlap = iou(d.box, inst.box_crop)
             if overlap >= best_iou:
                 best, best_iou = k, overlap
         hit = best is not None

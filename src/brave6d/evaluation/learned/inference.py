@@ -116,7 +116,12 @@ class LearnedEstimator:
     def obj_ids(self) -> list[int]:
         return self.model.classes
 
-    def _work(self, rgb: NDArray[np.uint8], K: Array) -> tuple[NDArray[np.uint8], Array, float]:
+    @property
+    def crop_source_width(self) -> int:
+        """Width of the images the coordinate net's crops come from (the learned agents' episode width)."""
+        return int(self.preset.get("crop_source_width", self.preset["work_width"]))
+
+    def _work(self, rgb: NDArray[np.uint8], K: Array, width: int | None = None) -> tuple[NDArray[np.uint8], Array, float]:
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8 or min(rgb.shape[:2]) < 16:
             raise LearnedRefused("bad-input", f"learned estimator: expected an 8-bit RGB image of at least 16x16, "
@@ -125,7 +130,7 @@ class LearnedEstimator:
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise LearnedRefused("bad-input", "learned estimator: K must be a finite 3x3 matrix with positive focal "
                                               "lengths")
-        return resize_to_width(rgb, K, int(self.preset["work_width"]))
+        return resize_to_width(rgb, K, int(self.preset["work_width"]) if width is None else width)
 
     def detect(self, rgb: NDArray[np.uint8], K: Array, min_score: float = 0.05,
                obj_id: int | None = None) -> list[Detection]:
@@ -181,7 +186,7 @@ class LearnedEstimator:
 
         self._check_object(obj_id)
         obj = self.model.objects[int(obj_id)]
-        work, K_work, s = self._work(rgb, K)
+        work, K_work, s = self._work(rgb, K, self.crop_source_width)
         box_w = tuple(float(b) * s for b in box)
         if not all(math.isfinite(b) for b in box_w) or box_w[2] <= box_w[0] or box_w[3] <= box_w[1]:
             raise LearnedRefused("bad-input", f"learned estimator: box {tuple(box)} is empty or not finite")

@@ -45,7 +45,8 @@ def heldout_only(model_dir: Path | str, train_pbr: Path | str, models_dir: Path 
     from brave6d.evaluation.learned.model_file import read_model
 
     model = read_model(model_dir)
-    data = load_training_data(train_pbr, models_dir, int(model.preset["work_width"]), int(model.preset["heldout_every"]))
+    data = load_training_data(train_pbr, models_dir, int(model.preset["work_width"]), int(model.preset["heldout_every"]),
+                              crop_width=int(model.preset.get("crop_source_width", model.preset["work_width"])))
     card = read_card(model_dir)
     card.pop("format", None)
     card["heldout"] = _heldout(Path(model_dir), data, models_dir, True)

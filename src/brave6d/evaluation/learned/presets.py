@@ -17,7 +17,10 @@ from brave6d.core.errors import BraveError
 @dataclass(frozen=True)
 class LearnPreset:
     """``work_width``: the width the networks see (images are resized to it, K scaled; the demo's
-    episodes are 320 wide); ``detector_patch``: the detector trains on square patches of this many
+    episodes are 320 wide); ``crop_source_width``: the width of the images the coordinate net's crops
+    are cut from (the camera's own resolution: a near object then shows more detail than a far one,
+    which is what an active agent comes closer for; the learned agents ask for episodes this wide);
+    ``detector_patch``: the detector trains on square patches of this many
     pixels around objects (it is fully convolutional; whole images cost 4x more); ``crop_px``: the coordinate net's zoomed-in crop; ``*_steps``,
     ``*_batch``, ``*_lr``, ``*_width``: each network's schedule and size (base channels);
     ``heldout_every``: every n-th train_pbr image is held out (never trained on); ``checkpoint_every``:
@@ -25,6 +28,7 @@ class LearnPreset:
 
     name: str
     work_width: int = 320
+    crop_source_width: int = 640
     crop_px: int = 64
     detector_steps: int = 1000
     detector_batch: int = 8
@@ -49,6 +53,9 @@ class LearnPreset:
                                  f"got {value}")
             if isinstance(value, int) and value < (0 if f.name == "seed" else 1):
                 raise BraveError(f"learn preset {self.name!r}: field '{f.name}' must be >= 1, got {value}")
+        if self.crop_source_width < self.work_width:
+            raise BraveError(f"learn preset {self.name!r}: crop_source_width ({self.crop_source_width}) must be at "
+                             f"least work_width ({self.work_width})")
         if self.work_width < 64 or self.crop_px < 32 or self.crop_px % 16 or self.detector_patch % 16:
             raise BraveError(f"learn preset {self.name!r}: work_width >= 64, crop_px and detector_patch "
                              f"multiples of 16 are needed, got {self.work_width}, {self.crop_px}, {self.detector_patch}")
@@ -69,11 +76,11 @@ class LearnPreset:
 
 PRESETS: dict[str, LearnPreset] = {
     "fast": LearnPreset("fast"),
-    "paper": LearnPreset("paper", work_width=640, crop_px=128, detector_steps=20000, detector_batch=32,
+    "paper": LearnPreset("paper", work_width=640, crop_source_width=640, crop_px=128, detector_steps=20000, detector_batch=32,
                          detector_width=32, pose_steps=40000, pose_batch=64, pose_width=32, checkpoint_every=1000),
     # the miniature runs of the tests: a few hundred steps
-    "tiny": LearnPreset("tiny", detector_steps=200, pose_steps=200, detector_width=8, pose_width=8,
-                        checkpoint_every=50),
+    "tiny": LearnPreset("tiny", crop_source_width=320, detector_steps=200, pose_steps=200, detector_width=8,
+                        pose_width=8, checkpoint_every=50),
 }
 
 

@@ -113,8 +113,8 @@ def pose_batch(data: TrainingData, instances: list[int], rng: np.random.Generato
     for b, k in enumerate(picks):
         inst = data.instances[int(k)]
         record = data.images[inst.image]
-        centre, side = jittered_crop(inst.box, rng)
-        crops[b] = _augmented_crop(record.rgb, centre, side, crop_px, rng)
+        centre, side = jittered_crop(inst.box_crop, rng)
+        crops[b] = _augmented_crop(record.rgb_crop, centre, side, crop_px, rng)
         A = crop_affine(centre, side, out_px)
         A[:, 2] += A[:, :2] @ np.asarray(inst.region, dtype=np.float64)  # region pixels -> crop pixels
         warp = dict(dsize=(out_px, out_px), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -72,7 +72,7 @@ def train_learned(train_pbr: Path | str, models_dir: Path | str, out: Path | str
         raise BraveError(f"{out}: --out is a file; give a folder")
     t0 = time.perf_counter()
     data = load_training_data(train_pbr, models_dir, preset.work_width, preset.heldout_every,
-                              max_images=max_images, show_progress=show_progress)
+                              max_images=max_images, show_progress=show_progress, crop_width=preset.crop_source_width)
     key = inputs_key(f"{data.digest}:{len(data.images)}", Path(models_dir), preset, dev.type)
     seconds = {"read": time.perf_counter() - t0}
     if (out / MODEL).is_file():

@@ -29,9 +29,13 @@ from brave6d.evaluation.agents.episode import scene_bundle
 Array = NDArray[np.float64]
 
 
+#: The options' pixel sizes are those of an image this wide (they scale with the episode's width).
+PIXELS_AT_WIDTH = 320
+
+
 @dataclass(frozen=True)
 class LearnedAgentOptions:
-    """Thresholds in [0, 1] and pixels of the episode's images; distances in metres."""
+    """Thresholds in [0, 1]; sizes in pixels of a 320-wide image (scaled to the episode's); distances in metres."""
 
     min_score: float = 0.3  # detections below are ignored
     confident_score: float = 0.5  # the active agent stops once its detection scores this ...
@@ -50,6 +54,8 @@ class LearnedAgent:
     def __init__(self, client: Any, estimator: Any, name: str, active: bool, use_depth: bool,
                  options: LearnedAgentOptions = LearnedAgentOptions()) -> None:
         self.client, self.estimator, self.name = client, estimator, name
+        #: episodes this agent plays ask for images this wide (its pose network's training resolution)
+        self.image_width = int(getattr(estimator, "crop_source_width", 0)) or None
         self.active, self.use_depth, self.options = active, use_depth, options
         self._bundles: dict[Any, dict[str, Any]] = {}
         self._reset_state()
@@ -190,7 +196,8 @@ class LearnedAgent:
         o, view = self.options, self.current
         if view is None or self.moves >= o.max_moves:
             return None
-        if view["detection"] is not None and view["score"] >= o.confident_score and view["size_px"] >= o.min_box_px:
+        k = view["obs"].rgb.shape[1] / PIXELS_AT_WIDTH  # the options' pixels are a 320-wide image's
+        if view["detection"] is not None and view["score"] >= o.confident_score and view["size_px"] >= o.min_box_px * k:
             return None
         if view["cause"] == "unknown-object":
             return None  # no move can help
@@ -199,7 +206,7 @@ class LearnedAgent:
         target_w, dist = self._target(view)
         near = max(self._standoff() if o.nearest_m is None else o.nearest_m, 3.0 * self.diameter_m)
         if view["detection"] is not None:
-            goal = dist * min(view["size_px"] / o.approach_box_px, 1.0)
+            goal = dist * min(view["size_px"] / (o.approach_box_px * k), 1.0)
         else:
             goal = dist * o.blind_step
         goal = max(goal, near)
