@@ -170,8 +170,8 @@ def test_serve_closes_open_episodes_and_exits_within_2_s_of_a_signal(bundle_dir:
     """Issue #44's acceptance: Ctrl-C (SIGINT at its default, as in a terminal; a process started in the
     background of a non-interactive shell has it ignored) or SIGTERM on `brave6d serve` with an open
     episode: the episode's log ends with its close record, written within 2 s of the signal, and the
-    process is gone (the interpreter's finalisation of torch and numba after that takes 0.4-1.5 s
-    on a loaded 2-core machine, so the exit itself is held to EXIT_S)."""
+    process is gone within 2 s too (the console script skips the interpreter's teardown of torch and
+    numba, 0.4-1.5 s on a loaded 2-core machine, once a server has stopped: brave6d.cli.console)."""
     proc = subprocess.Popen([sys.executable, "-m", "brave6d.cli", "serve", str(bundle_dir), "--port", "0", "--device",
                              "cpu", "--log-dir", str(tmp_path / "episodes")], env=_child_env(), cwd=tmp_path,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -186,6 +186,7 @@ def test_serve_closes_open_episodes_and_exits_within_2_s_of_a_signal(bundle_dir:
         t0 = time.time()
         proc.send_signal(sig)
         proc.wait(timeout=EXIT_S)
+        exited = time.time() - t0
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -195,3 +196,4 @@ def test_serve_closes_open_episodes_and_exits_within_2_s_of_a_signal(bundle_dir:
     assert json.loads(logs[0].read_text().splitlines()[-1])["event"] == "close"
     closed = logs[0].stat().st_mtime - t0
     assert closed <= 2.0, f"brave6d serve closed the episode {closed:.2f} s after {sig.name}"
+    assert exited <= 2.0, f"brave6d serve exited {exited:.2f} s after {sig.name}"  # it skips the teardown (cli.console)

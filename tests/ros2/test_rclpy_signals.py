@@ -56,6 +56,7 @@ def test_a_signal_closes_the_open_episode_and_ends_the_node_within_2_s(
         node.proc.send_signal(signum)
         try:
             node.proc.wait(timeout=30)
+            exited = time.time() - t0
         except subprocess.TimeoutExpired:
             pytest.fail(f"the node ignored {signal.Signals(signum).name} for 30 s:\n{node.output()[-2000:]}")
     finally:
@@ -68,10 +69,11 @@ def test_a_signal_closes_the_open_episode_and_ends_the_node_within_2_s(
     assert len(logs) == 1, logs
     events = [json.loads(line).get("event") for line in logs[0].read_text().splitlines()]
     assert events[-1] == "close", events
-    # the episode is closed and the node stopped within 2 s; the interpreter's finalisation (torch,
-    # numba) after that takes 0.4-1.5 s more on a loaded 2-core machine
+    # the episode is closed and the process gone within 2 s (the console script skips the interpreter's
+    # teardown of torch and numba once the node has stopped: brave6d.cli.console)
     closed = logs[0].stat().st_mtime - t0
     assert closed <= EXIT_S, f"the node closed the episode {closed:.2f} s after the signal"
+    assert exited <= EXIT_S, f"the node exited {exited:.2f} s after the signal"
 
 
 @pytest.mark.parametrize("namespace", ["/a b", "/" + "n" * 300, "/1st", "relative"])
