@@ -18,6 +18,8 @@ from brave6d.evaluation.learned.data import TrainingData
 from brave6d.evaluation.learned.networks import COORD_STRIDE, DETECTOR_STRIDE
 
 Array = NDArray[np.float64]
+#: Detector patches are zoomed by a log-uniform factor in this range (box edges in pixel-edge units).
+ZOOM_RANGE = (0.75, 1.75)
 
 
 def augment(rgb: NDArray[np.uint8], rng: np.random.Generator) -> NDArray[np.uint8]:
@@ -36,8 +38,11 @@ def augment(rgb: NDArray[np.uint8], rng: np.random.Generator) -> NDArray[np.uint
 def detector_batch(data: TrainingData, images: list[int], rng: np.random.Generator, batch: int,
                    patch: int) -> dict[str, NDArray[np.float32]]:
     """``batch`` square patches of ``patch`` pixels from training images (each around a random object,
-    the detector being fully convolutional) with their heatmaps (B, C, p/4, p/4), and per cell the
-    box size (log pixels), centre offset and a weight that is 1 at object centres."""
+    the detector being fully convolutional), zoomed by a factor drawn from :data:`ZOOM_RANGE` (so the
+    near ring's larger boxes are seen as often as the far ring's), with their heatmaps (B, C, p/4,
+    p/4), and per cell the box size (log pixels), centre offset and a weight that is 1 at object centres."""
+    import cv2
+
     picks = rng.choice(images, size=batch, replace=len(images) < batch)
     n_classes = len(data.objects)
     g = patch // DETECTOR_STRIDE
@@ -50,15 +55,18 @@ def detector_batch(data: TrainingData, images: list[int], rng: np.random.Generat
     for b, i in enumerate(picks):
         record = data.images[int(i)]
         h, w = record.rgb.shape[:2]
-        ox, oy = _patch_origin(data, record.instances, w, h, patch, rng)
+        zoom = math.exp(rng.uniform(math.log(ZOOM_RANGE[0]), math.log(ZOOM_RANGE[1])))
+        source = int(math.ceil(patch / zoom))
+        ox, oy = _patch_origin(data, record.instances, w, h, source, rng)
         flip = rng.uniform() < 0.5
-        part = augment(record.rgb[oy:oy + patch, ox:ox + patch], rng)
-        rgb[b, :part.shape[0], :part.shape[1]] = part
+        part = augment(record.rgb[oy:oy + source, ox:ox + source], rng)
+        rgb[b] = cv2.warpAffine(part, np.array([[zoom, 0.0, 0.5 * zoom - 0.5], [0.0, zoom, 0.5 * zoom - 0.5]]),
+                                (patch, patch), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         if flip:
             rgb[b] = rgb[b, :, ::-1]
         for k in record.instances:
-            x0, y0, x1, y1 = data.instances[k].box
-            x0, x1, y0, y1 = x0 - ox, x1 - ox, y0 - oy, y1 - oy
+            x0, y0, x1, y1 = (c * zoom for c in data.instances[k].box)
+            x0, x1, y0, y1 = x0 - ox * zoom, x1 - ox * zoom, y0 - oy * zoom, y1 - oy * zoom
             if flip:
                 x0, x1 = patch - x1, patch - x0
             cx, cy = (x0 + x1) / 2.0 / DETECTOR_STRIDE, (y0 + y1) / 2.0 / DETECTOR_STRIDE
