@@ -29,6 +29,9 @@ from brave6d.evaluation.learned.presets import LearnPreset
 
 log = logging.getLogger(__name__)
 _WARMUP = 50
+#: Raised whenever a change to the training (targets, augmentation, losses, networks) gives other
+#: weights for the same inputs, so that a model trained by older code is not reused as current.
+TRAINING_REVISION = 2
 
 
 @dataclass(frozen=True)
@@ -46,10 +49,11 @@ class LearnResult:
 
 
 def inputs_key(train_pbr_digest: str, models_dir: Path, preset: LearnPreset, device_kind: str) -> str:
-    """The digest a finished model is reused by: the split, the models, the preset and the device kind."""
+    """The digest a finished model is reused by: the split, the models, the preset, the device kind and
+    the training code's revision."""
     models_digest, _ = split_digest(models_dir)
     text = json.dumps({"train_pbr": train_pbr_digest, "models": models_digest, "preset": preset.to_json(),
-                       "device": device_kind, "format": FORMAT}, sort_keys=True)
+                       "device": device_kind, "format": FORMAT, "revision": TRAINING_REVISION}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
