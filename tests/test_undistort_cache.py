@@ -94,7 +94,7 @@ def test_missing_output_is_redone_and_strays_removed(scene: SceneDir) -> None:
 def test_a_corrupt_raw_frame_is_named_and_the_others_are_kept(scene: SceneDir) -> None:
     capture(scene, random_images(3, seed=2))
     (scene.rgb_dir / "000001.png").write_bytes(b"not a png")
-    with pytest.raises(DataError, match=r"frame 1 \(v1\): .*000001\.png: cannot decode"):
+    with pytest.raises(DataError, match=r"frame 1 \(v1\): .*000001\.png: not an image this program reads"):
         ensure_undistorted(scene)
     frames_dir = scene.root / "undistorted" / "rgb"
     assert not (frames_dir / "000001.png").exists()
