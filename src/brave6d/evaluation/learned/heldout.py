@@ -113,9 +113,7 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
         instances = [data.instances[k] for k in record.instances]
         n_instances += len(instances)
         _match_detections(detections, instances, det_scores, det_hits, n_gt, found)
-        counts: dict[int, int] = {}
         for inst in instances:
-            counts[inst.obj_id] = counts.get(inst.obj_id, 0) + 1
             gts.append(GTInstance(record.scene_id, record.im_id, inst.obj_id, inst.R, inst.t_mm,
                                   max(inst.visib_fract, MIN_VISIB_FRACT), record.K_full, record.size_full,
                                   depth_full_mm))
