@@ -74,7 +74,7 @@ def interleaved_times(scene_dir: Path, weights: list[float], every: int) -> dict
     from brave6d.annotation import BopLayout, read_models_info, read_scene_camera, read_scene_gt, read_scene_gt_info
     from brave6d.core.atomic import read_png
     from brave6d.core.transforms import invert
-    from brave6d.evaluation.report.sections.realism import depth_png_to_m
+    from brave6d.evaluation.report.real_vs_splat import depth_png_to_m
     from brave6d.evaluation.report.single_view import MIN_VISIB_FRACT, StaticEstimator, model_centre_m, project
 
     layout = BopLayout.of_scene(SceneDir(scene_dir))

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from brave6d.core.atomic import read_json
 from brave6d.pipeline import QUICK_CAPTURE, STAGES
 from brave6d.pipeline.demo import DEMO_SPEC
 
@@ -103,3 +104,8 @@ def test_quick_demo_runs_every_stage(tmp_path: Path) -> None:
 
     assert fig["report"]["incomplete"] == "none"
     assert (tmp_path / "report" / "report.md").is_file()
+    learned = read_json(tmp_path / "report" / "measurements" / "learned.json")  # the learned estimator, real vs splat
+    targets = [o for p in learned["points"] for o in p["objects"]]
+    assert learned["status"] == "complete" and targets
+    assert all(0.0 <= o[f"{side}_true_box_rgb_ar"] <= 1.0 for o in targets for side in ("real", "splat"))
+    assert "## 10. The learned estimator" in (tmp_path / "report" / "report.md").read_text()

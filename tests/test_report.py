@@ -26,6 +26,7 @@ from brave6d.evaluation.report.sections.training import collect_training, render
 from brave6d.evaluation.report.sections.views import ViewsSweep, render_views
 from brave6d.evaluation.report.sections.distance import render_distance
 from brave6d.evaluation.report.sections.realism import render_realism
+from brave6d.evaluation.report.sections.learned import VARIANTS as LEARNED_VARIANTS
 from brave6d.evaluation.report.sections.synthesis import SynthSweep, advice_synthesis, measure_synthesis, render_synthesis
 from brave6d.evaluation.report.protocol import MeasureInputs
 from brave6d.evaluation.report.sections import SECTIONS, page_order
@@ -119,6 +120,11 @@ def fabricate(workdir: Path, nan: bool = False) -> MeasurementStore:
     _save(store, "fidelity", fid, {"bundle": "/x/bundle", "mode": "simulated"}, {"views": 1, "image": "160x100"})
     _save(store, "synthesis", synth, {"spec": "/x/scene.yaml", "objects": ["cup", "nut"]},
           {"sizes": ["320x240", "640x480"], "workers": [1, 2], "images": 8})
+    learned = [{"id": f"im{level}", "im_id": level, "level": level, "distance_m": d, "holdout": True, "render_s": 0.1,
+                "objects": [{"obj_id": 1, "object": "cup", "visib_fract": 1.0, "bbox_diag_px": 50.0,
+                             **{f"{side}_{v}_ar": 0.5 for side in ("real", "splat") for v in LEARNED_VARIANTS}}]}
+               for level, d in ((0, 0.2), (1, 0.5))]
+    _save(store, "learned", learned, {"workdir": str(workdir), "card": {}}, {"views": 2, "image": "160x100"})
     return store
 
 
@@ -136,7 +142,7 @@ def test_report_from_fabricated_measurements(tmp_path: Path) -> None:
     md = result.markdown.read_text()
     assert [p.name for p in result.figures] == [s.figure for s in page_order()]
     assert {"training.png", "handeye.png", "latency.png", "views.png", "baseline.png", "distance.png",
-            "realism.png", "synthesis.png", "fidelity.png"} <= {p.name for p in result.figures}
+            "realism.png", "synthesis.png", "fidelity.png", "learned.png"} <= {p.name for p in result.figures}
     for png in result.figures:
         w, h = _valid_png(png)
         assert w > 400 and h > 250

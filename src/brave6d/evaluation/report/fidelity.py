@@ -274,7 +274,7 @@ class FidelityProbe:
 
     def _captured_items(self) -> list[tuple[str, Any]]:
         from brave6d.annotation import BopLayout, read_scene_camera, read_scene_gt, read_scene_gt_info
-        from brave6d.evaluation.report.sections.realism import RealismSweep, choose_views
+        from brave6d.evaluation.report.real_vs_splat import choose_views
 
         layout = BopLayout.of_scene(self.scene)
         cams = read_scene_camera(layout.scene_camera_path)
@@ -283,7 +283,7 @@ class FidelityProbe:
         records = {r.index: r for r in self.scene.frames()}
         levels = {i: records[i].distance_level for i in gts if i in records}
         picked = choose_views(levels, {h.index for h in self.bundle.holdout}, set(cams) & set(infos),
-                              RealismSweep(self.sweep.holdout_per_level, self.sweep.train_per_level))
+                              self.sweep.holdout_per_level, self.sweep.train_per_level)
         self._state.update(layout=layout, cams=cams, gts=gts, infos=infos, records=records)
         return [(f"im{i}", (i, held)) for i, held in picked]
 
@@ -312,7 +312,7 @@ class FidelityProbe:
                                    depth_range=SIM_DEPTH_RANGE, edge_supersample=SIM_EDGE_SUPERSAMPLE)
             s["sim_index"] = {o.name: k + 1 for k, o in enumerate(self.spec.objects)}
         else:
-            from brave6d.evaluation.report.sections.realism import raw_data_pixels
+            from brave6d.evaluation.report.real_vs_splat import raw_data_pixels
 
             s["valid"] = raw_data_pixels(self.scene, (self.bundle.camera.width, self.bundle.camera.height))
         return s
@@ -378,7 +378,7 @@ class FidelityProbe:
         from brave6d.core.atomic import read_png
         from brave6d.core.camera import PinholeCamera
         from brave6d.core.transforms import invert
-        from brave6d.evaluation.report.sections.realism import depth_png_to_m
+        from brave6d.evaluation.report.real_vs_splat import depth_png_to_m
         from brave6d.evaluation.report.single_view import MIN_VISIB_FRACT, model_centre_m, project
 
         im_id, held_out = item

@@ -13,7 +13,8 @@ from importlib import import_module
 from brave6d.evaluation.report.protocol import Section
 
 #: Section modules in measuring order; each defines ``SECTION``.
-MODULES = ("handeye", "latency", "views", "training", "baseline", "synthesis", "distance", "realism", "fidelity")
+MODULES = ("handeye", "latency", "views", "training", "baseline", "synthesis", "distance", "realism", "fidelity",
+           "learned")
 
 SECTIONS: tuple[Section, ...] = tuple(import_module(f"{__name__}.{module}").SECTION for module in MODULES)
 

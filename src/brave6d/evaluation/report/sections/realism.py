@@ -32,9 +32,11 @@ from numpy.typing import NDArray
 from brave6d.core.progress import format_table
 from brave6d.evaluation.report.common import RenderedSection, fmt, median, nan_note, num, paired_standard_error, provenance
 from brave6d.evaluation.report.common import settings_line, unavailable
-from brave6d.evaluation.report.measurements import Measurement, describe_machine, file_stamp, machine_info, run_sweep
+from brave6d.evaluation.report.measurements import Measurement, describe_machine, machine_info, run_sweep
 from brave6d.evaluation.report.plots import legend, new_figure, plot_line, save_figure
 from brave6d.evaluation.report.protocol import MeasureInputs
+from brave6d.evaluation.report.real_vs_splat import choose_views as choose_level_views
+from brave6d.evaluation.report.real_vs_splat import open_views
 from brave6d.evaluation.report.single_view import MIN_VISIB_FRACT, StaticEstimator, ViewScorer, bbox_diagonal
 from brave6d.evaluation.report.single_view import model_centre_m, project
 
@@ -60,59 +62,10 @@ class RealismSweep:
     color_weight: float | None = None
 
 
-def evenly_spaced(items: Sequence[Any], k: int) -> list[Any]:
-    """``k`` of ``items`` at evenly spaced positions (all of them when ``k >= len``)."""
-    n = len(items)
-    if k >= n:
-        return list(items)
-    return [items[math.floor((i + 0.5) * n / k)] for i in range(max(k, 0))]
-
-
 def choose_views(levels: Mapping[int, int], holdout: set[int], exported: set[int], sweep: RealismSweep
                  ) -> list[tuple[int, bool]]:
-    """``(im_id, held_out)`` per distance level: up to ``holdout_per_level`` held-out views and
-    ``train_per_level`` training views among the exported images, evenly spaced by image id."""
-    chosen: list[tuple[int, bool]] = []
-    for level in sorted(set(levels.values())):
-        ids = sorted(i for i, lv in levels.items() if lv == level and i in exported)
-        chosen += [(i, True) for i in evenly_spaced([i for i in ids if i in holdout], sweep.holdout_per_level)]
-        chosen += [(i, False) for i in evenly_spaced([i for i in ids if i not in holdout], sweep.train_per_level)]
-    return chosen
-
-
-def depth_png_to_m(depth_png: NDArray[np.uint16], depth_scale: float) -> NDArray[np.float32]:
-    """A BOP depth image (``depth_scale`` mm per unit, 0 = no data) in metres, one formula for both sides."""
-    return (np.asarray(depth_png, dtype=np.float32) * np.float32(depth_scale)) / np.float32(1000.0)
-
-
-def decimated(K: NDArray[np.float64], stride: int) -> NDArray[np.float64]:
-    """``K`` of the image made of every ``stride``-th pixel (pixel centres at integers, OpenCV)."""
-    out = np.array(K, dtype=np.float64)
-    out[:2] /= float(stride)
-    return out
-
-
-def images_stamp(paths: Sequence[Path]) -> str:
-    """One fingerprint of many image files (name, size, modification time; absent files count too)."""
-    import hashlib
-
-    h = hashlib.sha256()
-    for p in paths:
-        st = p.stat() if p.is_file() else None
-        h.update(f"{p.name}:{st.st_size if st else -1}:{st.st_mtime_ns if st else -1};".encode())
-    return h.hexdigest()
-
-
-def raw_data_pixels(scene: Any, size: tuple[int, int]) -> NDArray[np.bool_] | None:
-    """Pixels of the undistorted image that the raw (distorted) image covers, at the capture's
-    size ``(width, height)``; None without distortion or when the sizes differ (every pixel counts)."""
-    from brave6d.core.calibration_io import read_intrinsics
-
-    raw = read_intrinsics(scene)
-    if not raw.has_distortion or (raw.width, raw.height) != tuple(size):
-        return None
-    inside = raw.undistort_image(np.full((raw.height, raw.width), 255, np.uint8))
-    return np.asarray(inside) >= 255
+    """``(im_id, held_out)`` per distance level as the sweep asks (:func:`real_vs_splat.choose_views`)."""
+    return choose_level_views(levels, holdout, exported, sweep.holdout_per_level, sweep.train_per_level)
 
 
 def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
@@ -120,69 +73,35 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
     scene, store = inputs.scene, inputs.store
     if sweep.stride < 1:
         raise ValueError(f"realism: stride must be a positive integer, got {sweep.stride}")
-    from brave6d.annotation import BopLayout
-    from brave6d.serve import MANIFEST
-
-    manifest = scene.bundle_dir / MANIFEST
-    if (absent := store.require(NAME, [(manifest, "serve export (brave6d export)"),
-                                       (BopLayout(scene.bop_dir).info_path, "annotation (BOP export)"),
-                                       (scene.frames_path, "capture"),
-                                       (scene.intrinsics_path, "calibration")])) is not None:
-        return absent
-    from brave6d.annotation import read_models_info, read_scene_camera, read_scene_gt, read_scene_gt_info
-    from brave6d.core.atomic import depth_m_to_mm_u16, read_png
-    from brave6d.core.camera import PinholeCamera
-    from brave6d.core.transforms import invert
-    from brave6d.evaluation.metrics import load_models
-    from brave6d.evaluation.report.image_quality import psnr, ssim
-    from brave6d.serve import SplatRenderer, load_bundle
     from brave6d.training import resolve_device
 
     device = str(resolve_device(sweep.device))
-    layout = BopLayout.of_scene(scene)
-    bundle = load_bundle(scene.bundle_dir)
-    cams = read_scene_camera(layout.scene_camera_path)
-    gts = read_scene_gt(layout.scene_gt_path)
-    infos = read_scene_gt_info(layout.scene_gt_info_path)
-    records = {r.index: r for r in scene.frames()}
-    levels = {i: records[i].distance_level for i in gts if i in records}
-    views = choose_views(levels, {h.index for h in bundle.holdout}, set(cams) & set(infos), sweep)
-    key = {"bundle": file_stamp(manifest), "scene_gt": file_stamp(layout.scene_gt_path),
-           "scene_camera": file_stamp(layout.scene_camera_path), "scene_gt_info": file_stamp(layout.scene_gt_info_path),
-           "frames": file_stamp(scene.frames_path), "intrinsics": file_stamp(scene.intrinsics_path),
-           "images": images_stamp([p for i, _ in views for p in (layout.rgb_path(i), layout.depth_path(i))]),
-           "sweep": asdict(sweep), "device": device, "test_depth": "captured",
-           "estimator": StaticEstimator.SIGNALS}
+    views = open_views(store, NAME, scene, sweep.holdout_per_level, sweep.train_per_level, sweep.stride, device)
+    if isinstance(views, Measurement):
+        return views
+    from brave6d.annotation import read_models_info
+    from brave6d.evaluation.metrics import load_models
+    from brave6d.evaluation.report.image_quality import psnr, ssim
+
+    layout, gts, infos = views.layout, views.gts, views.infos
+    key = {**views.key(), "sweep": asdict(sweep), "test_depth": "captured", "estimator": StaticEstimator.SIGNALS}
     if (done := store.complete(NAME, key)) is not None:
         return done
-    names = {o.obj_id: o.name for o in bundle.objects}
-    size = (0, 0)
-    if views:
-        size = read_png(layout.rgb_path(views[0][0]), "rgb").shape[1::-1]
-    w, h = (math.ceil(size[0] / sweep.stride), math.ceil(size[1] / sweep.stride))
-    settings = {"views": len(views), "holdout_per_level": sweep.holdout_per_level,
+    w, h = views.image_size
+    settings = {"views": len(views.views), "holdout_per_level": sweep.holdout_per_level,
                 "train_per_level": sweep.train_per_level, "image": f"{w}x{h}", "device": device}
     m = store.resume(NAME, key, settings, machine_info(device))
-    m.summary.update({"bop": str(layout.scene_dir), "bundle": str(scene.bundle_dir),
-                      "objects": {str(k): v for k, v in names.items()},
-                      "levels": {str(lv): records[i].distance_m for i, lv in levels.items()}})
+    views.describe(m)
     state: dict[str, Any] = {}
 
-    def prepared() -> dict[str, Any]:  # renderer, models and estimator only when a point is missing
+    def prepared() -> dict[str, Any]:  # models and estimator only when a point is missing
         if not state:
             info = read_models_info(layout.models_info_path)
-            ids = sorted({g.obj_id for i, _ in views for g in gts[i]})
+            ids = sorted({g.obj_id for i, _ in views.views for g in gts[i]})
             models = load_models(layout.models_dir, ids, info)
-            renderer = SplatRenderer(bundle.splat_path, device, antialiasing=bundle.render.antialiasing)
-            state.update(renderer=renderer, scorer=ViewScorer(models), valid=raw_data_pixels(scene, size),
-                         centres={k: model_centre_m(v.points) for k, v in models.items()},
+            state.update(scorer=ViewScorer(models), centres={k: model_centre_m(v.points) for k, v in models.items()},
                          estimator=StaticEstimator({k: (layout.model_path(k), float(info[k]["diameter"])) for k in ids},
                                                    sweep.color_weight))
-            if views:  # compiles the kernels outside the first point's render time
-                c = cams[views[0][0]]
-                Kc = c.cam_K
-                renderer.warm_up(PinholeCamera(size[0], size[1], Kc[0, 0], Kc[1, 1], Kc[0, 2], Kc[1, 2]),
-                                 invert(c.cam_T_world()))
         return state
 
     def estimate_all(s: dict[str, Any], im_id: int, depth_m: NDArray[np.float32], rgb: NDArray[np.uint8],
@@ -202,41 +121,28 @@ def measure_realism(inputs: MeasureInputs, sweep: RealismSweep) -> Measurement:
         return out
 
     def measure(item: tuple[int, bool]) -> dict[str, Any]:
-        im_id, held_out = item
-        s = prepared()
-        cam = cams[im_id]
-        world_T_cam = invert(cam.cam_T_world())
-        K = decimated(cam.cam_K, sweep.stride)
-        step = sweep.stride
-        rgb_real = read_png(layout.rgb_path(im_id), "rgb")[::step, ::step]
-        point: dict[str, Any] = {"im_id": im_id, "level": levels[im_id], "distance_m": records[im_id].distance_m,
-                                 "holdout": held_out}
-        if not layout.depth_path(im_id).is_file():
-            return {**point, "note": f"no depth image {layout.depth_path(im_id)}", "objects": []}
-        depth_real = depth_png_to_m(read_png(layout.depth_path(im_id), "depth")[::step, ::step], cam.depth_scale)
-        Kc = cam.cam_K  # rendered at the captured size, then decimated as the captured frame is
-        out = s["renderer"].render(world_T_cam, PinholeCamera(size[0], size[1], Kc[0, 0], Kc[1, 1], Kc[0, 2], Kc[1, 2]),
-                                   near=bundle.render.near, far=bundle.render.far, background=bundle.render.background,
-                                   depth_alpha_min=bundle.render.depth_alpha_min,
-                                   depth_mode=bundle.render.depth_mode)
-        rgb_splat = out.rgb[::step, ::step]
-        depth_splat = depth_png_to_m(depth_m_to_mm_u16(out.depth)[::step, ::step], 1.0)
-        real = estimate_all(s, im_id, depth_real, rgb_real, K, world_T_cam, depth_real)
-        splat = {o["gt_id"]: o for o in estimate_all(s, im_id, depth_splat, rgb_splat, K, world_T_cam, depth_real)}
+        point, pair = views.measured_pair(*item)
+        if pair is None or pair.depth_real is None:
+            return point
+        s, im_id = prepared(), item[0]
+        K, world_T_cam, step = pair.K, pair.world_T_cam, sweep.stride
+        real = estimate_all(s, im_id, pair.depth_real, pair.rgb_real, K, world_T_cam, pair.depth_real)
+        splat = {o["gt_id"]: o for o in estimate_all(s, im_id, pair.depth_splat, pair.rgb_splat, K, world_T_cam,
+                                                      pair.depth_real)}
         info = infos[im_id]
         objects = []
         for r in real:
             sp = splat[r["gt_id"]]
-            objects.append({"obj_id": r["obj_id"], "object": names.get(r["obj_id"], str(r["obj_id"])),
+            objects.append({"obj_id": r["obj_id"], "object": views.names.get(r["obj_id"], str(r["obj_id"])),
                             "visib_fract": r["visib_fract"],
                             "bbox_diag_px": (bbox_diagonal(info[r["gt_id"]].bbox_obj) or math.nan) / step,
                             **{f"real_{k}": v for k, v in r.items() if k not in ("gt_id", "obj_id", "visib_fract")},
                             **{f"splat_{k}": v for k, v in sp.items() if k not in ("gt_id", "obj_id", "visib_fract")}})
-        valid = s["valid"][::step, ::step] if s["valid"] is not None else None
-        return {**point, "psnr": psnr(rgb_splat, rgb_real, valid), "ssim": ssim(rgb_splat, rgb_real, valid),
-                "render_s": out.render_ms / 1000.0, "objects": objects}
+        valid = views.valid_pixels()
+        return {**point, "psnr": psnr(pair.rgb_splat, pair.rgb_real, valid),
+                "ssim": ssim(pair.rgb_splat, pair.rgb_real, valid), "render_s": pair.render_s, "objects": objects}
 
-    items = [(f"im{i}", (i, held)) for i, held in views]
+    items = [(f"im{i}", (i, held)) for i, held in views.views]
     return run_sweep(store, m, items, measure, desc="report: real vs splat", unit="view")
 
 

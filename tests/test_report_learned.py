@@ -1,0 +1,123 @@
+"""Report section 10 (the learned estimator): per-ring captured vs splat AR and its gap, the four
+ways a target is estimated with their refusal causes, the held-out table from the card and the
+cost table from ``benchmarks/learned_cost.py``'s JSON. The real measurement on a trained model is
+the quick demo's (tests/test_demo_e2e.py)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from brave6d.evaluation.report.measurements import Measurement
+from brave6d.evaluation.report.sections.learned import COST_FILE, VARIANTS, estimate_target, read_cost, render_learned
+from brave6d.evaluation.report.sections.learned import ring_rows, xywh_to_box
+
+MACHINE = {"cpu": "Test CPU", "cores": 2, "gpu": None, "device": "cpu", "torch": "2.13.0", "torch_threads": 2}
+
+
+def _point(level: int, d: float, real: float, splat: float, n: int = 2) -> dict:
+    return {"id": f"im{level}", "im_id": level, "level": level, "distance_m": d, "holdout": True, "render_s": 0.1,
+            "objects": [{"obj_id": 1, "object": "cup", "visib_fract": 1.0, "bbox_diag_px": 400 * (1 - d),
+                         **{f"real_{v}_ar": real for v in VARIANTS}, **{f"splat_{v}_ar": splat for v in VARIANTS},
+                         **{f"{s}_{v}_cause": None for s in ("real", "splat") for v in VARIANTS}}] * n}
+
+
+def _measurement(points: list[dict], card: dict | None = None) -> Measurement:
+    return Measurement(name="learned", key={"t": 1}, settings={"views": len(points)}, machine=MACHINE,
+                       status="complete", points=points, summary={"card": card or {}, "model": "/x/model"},
+                       seconds=1.0)
+
+
+def test_ring_rows_give_captured_splat_and_the_gap_per_ring() -> None:
+    rows = ring_rows([_point(0, 0.2, 0.8, 0.5), _point(1, 0.5, 0.4, 0.4)])
+    assert [r["distance_m"] for r in rows] == [0.2, 0.5]
+    for v in VARIANTS:
+        assert math.isclose(rows[0][f"gap_{v}"], 0.3) and rows[1][f"gap_{v}"] == 0.0
+        assert rows[0][f"real_{v}"] == 0.8 and rows[0][f"splat_{v}"] == 0.5
+    assert rows[0]["targets"] == 2 and rows[0]["bbox_diag_px"] == pytest.approx(320.0)
+
+
+def test_objects_the_model_never_saw_are_no_targets_of_the_rings() -> None:
+    p = _point(0, 0.3, 0.6, 0.6)
+    p["objects"].append({"obj_id": 9, "object": "new", "note": "object 9 was not in the model's training split"})
+    assert ring_rows([p])[0]["targets"] == 2
+
+
+def test_page_names_large_gaps_the_heldout_table_and_the_cost(tmp_path: Path) -> None:
+    card = {"images": 300, "train_seconds": 600.0, "device": "cpu",
+            "heldout": {"images": 30, "instances": 70, "detection_recall_iou50": {"1": 0.9},
+                        "detection_ap_iou50": {"1": 0.85}, "pose_ar": {v: 0.6 for v in VARIANTS},
+                        "pose_ar_per_object": {v: {"1": 0.6} for v in VARIANTS}}}
+    cost = {"synth_images_per_s": 1.5, "points": [
+        {"images": 100, "steps": 300, "synth_s": 66.0, "train_s": 200.0, "recall_min": 0.4,
+         "heldout_ar": {v: 0.3 for v in VARIANTS}, "agents": {"learned-static-depth": 0.3, "learned-active-depth": 0.35}},
+        {"images": 300, "steps": 1000, "synth_s": 200.0, "train_s": 600.0, "recall_min": 0.7,
+         "heldout_ar": {v: 0.6 for v in VARIANTS}, "agents": {"learned-static-depth": 0.55, "learned-active-depth": 0.6}}]}
+    section = render_learned(_measurement([_point(0, 0.2, 0.8, 0.5), _point(1, 0.5, 0.4, 0.4)], card), tmp_path, cost)
+    assert (tmp_path / "learned.png").is_file()
+    assert "| 1   | 0.90       | 0.85" in section.body  # the card's held-out row
+    assert "0.80 / 0.50 (0.30 ±" in section.body  # captured / splat (gap) at 20 cm
+    assert "gap reaches 0.10 or more at 20 cm" in section.advice and "50 cm" not in section.advice.split("or more at")[1].split(":")[0]
+    assert "| 300    | 1000" in section.body and "1.50 images/s" in section.body
+    assert "came from 300 images x 1000 steps (800 s" in section.advice
+    no_cost = render_learned(_measurement([_point(0, 0.2, 0.6, 0.6)]), tmp_path, None)
+    assert "not measured for this work directory yet" in no_cost.body
+    assert "no ring or variant has a gap of 0.10 or more" in no_cost.advice
+
+
+def test_cost_file_is_read_only_when_it_has_points(tmp_path: Path) -> None:
+    assert read_cost(tmp_path) is None
+    path = tmp_path / COST_FILE
+    path.parent.mkdir(parents=True)
+    path.write_text("{not json")
+    assert read_cost(tmp_path) is None
+    path.write_text(json.dumps({"points": "none"}))
+    assert read_cost(tmp_path) is None
+    path.write_text(json.dumps({"points": []}))
+    assert read_cost(tmp_path) == {"points": []}
+
+
+@given(st.lists(st.floats(-1e6, 1e6), min_size=4, max_size=4), st.integers(1, 8))
+@settings(max_examples=200, deadline=None)
+def test_true_box_is_finite_and_ordered_or_none(bbox: list[float], stride: int) -> None:
+    box = xywh_to_box(bbox, stride)
+    if bbox[2] <= 0 or bbox[3] <= 0:
+        assert box is None
+    if box is not None:  # a box the estimator gets is finite with an area
+        assert all(math.isfinite(b) for b in box) and box[2] > box[0] and box[3] > box[1]
+    if min(bbox[2], bbox[3]) >= 1.0 and max(abs(v) for v in bbox) < 1e5:  # any pixel-sized box is kept
+        assert box is not None
+
+
+class _Estimator:
+    """An estimator whose detector finds nothing and whose pose net refuses RGB-only input: the
+    section must record each variant's cause and give no pose."""
+
+    def best_detection(self, rgb: np.ndarray, K: np.ndarray, obj_id: int) -> object:
+        from brave6d.evaluation.learned import LearnedRefused
+
+        raise LearnedRefused("no-detection", f"no detection of object {obj_id}")
+
+    def estimate(self, rgb: np.ndarray, K: np.ndarray, obj_id: int, box: tuple, depth: object, score: float) -> object:
+        from types import SimpleNamespace
+
+        from brave6d.evaluation.learned import LearnedRefused
+
+        if depth is None:
+            raise LearnedRefused("pnp-failed", "too few correspondences")
+        return SimpleNamespace(cam_T_obj=np.eye(4), score=score)
+
+
+def test_each_variant_records_its_refusal_cause_and_no_pose() -> None:
+    rgb, K = np.zeros((40, 64, 3), np.uint8), np.eye(3)
+    out = estimate_target(_Estimator(), rgb, np.ones((40, 64), np.float32), K, 1, (1.0, 1.0, 10.0, 10.0))
+    assert out["detected_rgb"][1] == out["detected_depth"][1] == "no-detection"
+    assert out["true_box_rgb"][1] == "pnp-failed" and out["true_box_rgb"][0].cam_T_obj is None
+    assert out["true_box_depth"][1] is None and out["true_box_depth"][0].cam_T_obj is not None
+    assert estimate_target(_Estimator(), rgb, None, K, 1, None)["true_box_depth"][1] == "no-box"
