@@ -23,7 +23,7 @@ pytestmark = pytest.mark.slow  # two quick scenes: about a minute
 def test_demo_dataset_runs_releases_and_verifies(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     work, out = tmp_path / "work", tmp_path / "release"
     assert cli_main(["dataset", "run", str(DEMO_DATASET), str(work), "--quick", "--device", "cpu",
-                     "--executor", "local"]) == 0
+                     "--executor", "local", "--no-learn"]) == 0  # the learned model: test_dataset_learned
     assert cli_main(["release", "build", str(work), str(out)]) == 0
     capsys.readouterr()
     assert cli_main(["release", "verify", str(out)]) == 0

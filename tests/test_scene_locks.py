@@ -126,7 +126,7 @@ def test_the_driver_does_not_start_a_second_job_on_a_busy_scene(work: Path, monk
     monkeypatch.setattr(brave6d.dataset.runner, "make_executor", no_jobs)
     proc, job = spawn_holder(scene_lock_path(work, SCENE))
     try:
-        summary = run_dataset(DEMO_DATASET, work, quick=True, device="cpu", scenes=[SCENE],
+        summary = run_dataset(DEMO_DATASET, work, quick=True, device="cpu", scenes=[SCENE], learn=False,
                               options=ExecutorOptions(executor="local", time_min=5))
     finally:
         kill_holder(proc)
@@ -143,7 +143,8 @@ def test_the_command_says_which_scene_it_did_not_start_and_exits_non_zero(
     monkeypatch.setattr(brave6d.dataset.runner, "make_executor", lambda *a, **k: pytest.fail("a second job was started"))
     proc, job = spawn_holder(scene_lock_path(work, SCENE))
     try:
-        code = main(["dataset", "run", str(DEMO_DATASET), str(work), "--quick", "--device", "cpu", "--scenes", SCENE])
+        code = main(["dataset", "run", str(DEMO_DATASET), str(work), "--quick", "--device", "cpu", "--scenes", SCENE,
+                     "--no-learn"])
     finally:
         kill_holder(proc)
     assert code == 1

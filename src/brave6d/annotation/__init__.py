@@ -15,7 +15,8 @@ name is used). Other stages import only these names:
   ``SceneCamera``, ``GtPose``, ``GtInfo``;
 - meshes: ``read_ply_mesh``, ``write_ply_mesh``, ``MeshData`` (:mod:`brave6d.annotation.ply_mesh`, the one
   reader and writer of mesh PLY files), ``load_mesh`` (any mesh format, PLY through that reader),
-  ``model_diameter`` (largest point distance, the BOP ``diameter``);
+  ``model_diameter`` (largest point distance, the BOP ``diameter``), ``write_bop_models`` (a BOP models
+  folder of an object library: PLY in mm and ``models_info.json``);
 - silhouettes by ray casting (BOP masks and the server's visible fractions): ``SilhouetteCaster``,
   ``Silhouette``, ``bbox_xywh``;
 - checks and test scenes: ``mask_iou_against_sim_truth``, ``make_synthetic_scene``.
@@ -44,7 +45,7 @@ _LAZY = {
     "SceneCamera": ".bop_format", "BOP19_MIN_VISIB_FRACT": ".bop_format", "GtPose": ".bop_format", "GtInfo": ".bop_format",
     "read_ply_mesh": ".ply_mesh", "write_ply_mesh": ".ply_mesh", "MeshData": ".ply_mesh", "load_mesh": ".models",
     "SilhouetteCaster": ".visibility", "Silhouette": ".visibility", "bbox_xywh": ".visibility",
-    "model_diameter": ".models", "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".toy_scene",
+    "model_diameter": ".models", "write_bop_models": ".models", "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".toy_scene",
 }
 
 __all__ = sorted(_LAZY)

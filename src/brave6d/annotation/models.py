@@ -125,3 +125,32 @@ def model_info_mm(vertices_mm: ArrayLike, symmetries_discrete: Sequence[ArrayLik
         info["symmetries_continuous"] = [{"axis": [float(a) for a in axis], "offset": [float(o) for o in offset]}
                                          for axis, offset in symmetries_continuous]
     return info
+
+
+def write_bop_models(models_dir: Path | str, objects: Sequence[tuple[int, Path, float, Any]]) -> Path:
+    """A BOP models folder for an object library: ``obj_XXXXXX.ply`` (mm) and ``models_info.json``.
+
+    ``objects``: ``(obj_id, mesh file, scale to metres, symmetry)`` per object; ``symmetry`` is
+    None or has the scene spec's ``discrete`` (flattened 4x4, metres) and ``continuous_axes``.
+    The same objects give the same bytes (a rerun keeps the checksum of a folder that the learned
+    model's inputs key includes). Each file is written atomically.
+    """
+    from brave6d.annotation.bop_format import dump_bop_json
+    from brave6d.core.atomic import atomic_write_text
+
+    out = Path(models_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    info: dict[int, Any] = {}
+    for obj_id, mesh_file, scale, symmetry in objects:
+        mesh = load_mesh(mesh_file, f"object {obj_id}")
+        vertices_mm = np.asarray(mesh.vertices, dtype=np.float64) * float(scale) * 1000.0
+        write_ply(out / f"obj_{obj_id:06d}.ply", vertices_mm, mesh.faces, mesh.vertex_colors)
+        discrete = []
+        for flat in (symmetry.discrete if symmetry is not None else []):
+            m = np.asarray(flat, dtype=np.float64).reshape(4, 4).copy()
+            m[:3, 3] *= 1000.0
+            discrete.append(m)
+        continuous = [(axis, (0.0, 0.0, 0.0)) for axis in (symmetry.continuous_axes if symmetry is not None else [])]
+        info[obj_id] = model_info_mm(vertices_mm, discrete, continuous)
+    atomic_write_text(out / "models_info.json", dump_bop_json(info))
+    return out

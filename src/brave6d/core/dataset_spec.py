@@ -9,7 +9,8 @@ scene spec may give only ``name`` and ``pose``: the rest comes from the library;
 give must equal the library's (a mesh: the same file or the same content). So an object keeps
 one BOP ``obj_id`` in every scene: its 1-based position in the library. A scene's BOP
 ``scene_id`` is its 1-based position in ``scenes``. An optional ``cluster`` block holds the
-defaults of ``brave6d dataset run`` for a Slurm cluster (and the training ``preset`` of every scene).
+defaults of ``brave6d dataset run`` for a Slurm cluster (and the training ``preset`` of every scene, and
+the learned model's ``learn``, ``learn_preset`` and ``learn_images``).
 
 Every name here becomes a path part (``WORKDIR/objects/<object>/``, ``scenes/<scene>/``, the
 release's ``<name>_...zip``, the serve cache's ``<name>-<version>-...``), so each follows the one
@@ -96,6 +97,10 @@ class ClusterSpec(_Strict):
     setup: list[str] = Field(default_factory=list, description="shell lines run before each job (module load, venv)")
     preset: str | None = Field(default=None, description="training preset of every scene (None: the training "
                                                           "stage's default, fast; a GPU cluster wants default)")
+    learn: bool = Field(default=True, description="train the dataset's learned model, one for its object library")
+    learn_preset: str | None = Field(default=None, description="its learn preset (None: fast; --quick: tiny)")
+    learn_images: Annotated[int, Field(ge=1)] | None = Field(
+        default=None, description="train_pbr images rendered for it (None: 300; --quick: 24)")
 
 
 class DatasetSpec(_Strict):

@@ -13,11 +13,14 @@ Public API (imported lazily; ``import dataset`` loads no stage, torch or submiti
   from its files (``dataset run`` never runs those stages for it);
 - ``read_scene_status``, ``SceneStatus``, ``read_summary``, ``status_table``, ``SCENE_STAGES``: the
   status records (``status/<scene>.json``) and the table (``status.json``);
-- ``report_dataset``, ``DatasetReport``: ``brave6d dataset report`` (every scene's report and an index).
+- ``report_dataset``, ``DatasetReport``: ``brave6d dataset report`` (every scene's report and an index);
+- ``LearnOptions``, ``learn_options``, ``LibraryLearnJob``, ``learned_model_dir``, ``read_learn_status``: the
+  dataset's learned model, one per object library (``WORKDIR/learned/``).
 
 The dataset spec itself (``dataset.yaml``) is read by :mod:`brave6d.core.dataset_spec`
 (``load_dataset_spec``), the shared core, so that every package can read it.
-Modules: ``status``, ``workdir``, ``captured``, ``job``, ``executor``, ``runner``, ``report``, ``cli`` (``brave6d dataset``).
+Modules: ``status``, ``workdir``, ``captured``, ``job``, ``learn``, ``executor``, ``runner``, ``report``, ``cli``
+(``brave6d dataset``).
 The release of a dataset is the subpackage ``brave6d.dataset.release``; ``release_scene_sources`` (the
 scenes of a release for the render server) is re-exported here for other stages.
 """
@@ -33,6 +36,8 @@ _LAZY = {
     "read_scene_status": ".status", "SceneStatus": ".status", "read_summary": ".status",
     "status_table": ".status", "SCENE_STAGES": ".status",
     "release_scene_sources": ".release.serving", "report_dataset": ".report", "DatasetReport": ".report",
+    "LearnOptions": ".learn", "learn_options": ".learn", "LibraryLearnJob": ".learn",
+    "learned_model_dir": ".learn", "read_learn_status": ".learn",
 }
 
 __all__ = sorted(_LAZY)

@@ -18,8 +18,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                            "dataset, one submitit job per scene. A captured scene ('dir:' in DATASET.yaml) is "
                            "trained and exported where it lies; its calibration, capture and annotation must be "
                            "there (a scene that misses one is named, with what it misses, and the others go on). "
-                           "Slurm options and the training preset default to the dataset's 'cluster' block; "
-                           "a flag overrides it.")
+                           "Once per run (not per scene) the dataset's object library gets its learned model: a "
+                           "synthetic train_pbr of the library and the learned estimator trained on it, in "
+                           "WORKDIR/learned/ (release build ships it). Slurm options, the training preset and the "
+                           "learn options default to the dataset's 'cluster' block; a flag overrides it.")
     run_p.add_argument("dataset", type=Path, metavar="DATASET.yaml")
     run_p.add_argument("workdir", type=Path, metavar="WORKDIR")
     run_p.add_argument("--quick", action="store_true", help="miniature run (few views and steps), what CI runs")
@@ -27,6 +29,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     run_p.add_argument("--preset", metavar="NAME",
                        help="training preset of every scene: fast, default or quality (default: cluster.preset, "
                             "else fast, the CPU demo's; a GPU cluster wants default)")
+    run_p.add_argument("--learn-preset", metavar="NAME",
+                       help="learn preset of the dataset's learned model: fast, paper or tiny (default: "
+                            "cluster.learn_preset, else fast; --quick: tiny)")
+    run_p.add_argument("--learn-images", type=int, metavar="N",
+                       help="train_pbr images rendered for it (default: cluster.learn_images, else 300; --quick: 24)")
+    run_p.add_argument("--no-learn", action="store_true",
+                       help="train no learned model (default: cluster.learn, else one per dataset)")
     run_p.add_argument("--executor", choices=["local", "slurm"], default=None,
                        help="local: child processes on this machine; slurm: one job array (default: cluster.executor)")
     run_p.add_argument("--scenes", nargs="+", metavar="NAME", help="run only these scenes")
@@ -72,9 +81,11 @@ def run(args: argparse.Namespace) -> int:
 
     require("submitit", "cluster", "brave6d dataset run")  # the executor of the scene jobs, local or Slurm
     from brave6d.dataset.executor import ExecutorOptions
+    from brave6d.dataset.learn import learn_options
     from brave6d.dataset.runner import run_dataset
 
     cluster = load_dataset_spec(args.dataset, args.mesh_dir, args.scene_dir).spec.cluster
+    learn = learn_options(cluster, args.quick, skip=args.no_learn, preset=args.learn_preset, images=args.learn_images)
     options = ExecutorOptions.from_cluster(
         cluster, executor=args.executor, partition=args.partition, time_min=args.time_min,
         gpus_per_task=args.gpus_per_task, cpus_per_task=args.cpus_per_task, mem_gb=args.mem_gb,
@@ -82,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
     if options.executor == "local" and args.array_parallelism is None:
         options = dataclasses.replace(options, array_parallelism=1)  # one scene at a time on this machine
     summary = run_dataset(args.dataset, args.workdir, quick=args.quick, device=args.device, options=options,
-                          scenes=args.scenes, mesh_dirs=args.mesh_dir, scene_dirs=args.scene_dir, preset=args.preset)
+                          scenes=args.scenes, mesh_dirs=args.mesh_dir, scene_dirs=args.scene_dir, preset=args.preset,
+                          learn=learn or False)
     print()
     print(summary.table)
     print(f"\n{len(summary.ran)} scene job(s) ran in {summary.seconds:.1f} s (training preset: "
@@ -93,7 +105,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"NOT READY {scene} ({stage}): {error}")
     for scene, holder in summary.busy.items():
         print(f"NOT STARTED {scene}: its job still runs on {holder}; run again once it has ended")
-    return 1 if summary.failed or summary.missing or summary.busy else 0
+    learn_failed = summary.learn is not None and not summary.learned.startswith("done")
+    if summary.learn is not None:
+        print(f"{'FAILED ' if learn_failed else ''}learned model ({summary.learn.preset}, {summary.learn.images} "
+              f"train_pbr images; {args.workdir / 'learned' / 'model'}): {summary.learned}")
+    return 1 if summary.failed or summary.missing or summary.busy or learn_failed else 0
 
 
 def _status(workdir: Path) -> int:

@@ -40,8 +40,9 @@ class ExecutorOptions:
     @classmethod
     def from_cluster(cls, cluster: ClusterSpec, **overrides: Any) -> ExecutorOptions:
         """The dataset's ``cluster`` block with the flags that were given (``None`` = not given);
-        its training ``preset`` is the scenes' choice, not the executor's."""
-        base = cls(**{**cluster.model_dump(exclude={"preset"}), "setup": tuple(cluster.setup)})
+        its training ``preset`` and ``learn*`` fields are the run's choices, not the executor's."""
+        base = cls(**{**cluster.model_dump(exclude={"preset", "learn", "learn_preset", "learn_images"}),
+                      "setup": tuple(cluster.setup)})
         return replace(base, **{k: v for k, v in overrides.items() if v is not None})
 
 

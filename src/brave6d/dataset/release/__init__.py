@@ -17,7 +17,8 @@ The modules behind them, one job each: ``source`` (dataset.yaml -> scenes and li
 unpacker with its size policy ``ZipLimits``: every member checked to stay inside its folder, sizes
 checked from the headers and again while streaming), ``images`` (every PNG of a release decoded
 or header-checked, through ``brave6d.core.png_check``), ``formats`` (file names, SHA256SUMS, targets,
-holdout.json), ``manifest`` (manifest.json), ``card`` (the dataset card), ``build``, ``verify``,
+holdout.json), ``manifest`` (manifest.json), ``card`` (the dataset card), ``train_pbr`` and ``learned``
+(the synthetic split and the learned model, when the work directory has them), ``build``, ``verify``,
 ``serving`` (the scenes of a release for ``brave6d serve``: the cache folder checked at start,
 bundles unpacked on first use and again by ``refresh``), ``cli``.
 """

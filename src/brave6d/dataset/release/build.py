@@ -8,7 +8,8 @@ to ``<OUT>.old-<time>`` (never deleted) once the new release is complete.
 
 A release packs the scenes' own files and nothing a link points to: a scene's bundle zip holds
 exactly its manifest and the files the manifest lists (verified by ``brave6d.serve.load_bundle``), and
-every file packed (bundle, test split images and masks, models, camera, the synthetic split) must
+every file packed (bundle, test split images and masks, models, camera, the synthetic split, the
+learned model) must
 be a regular file, not a symbolic link, inside its folder once the links on its way are followed;
 anything else is refused, naming the file.
 """
@@ -33,6 +34,7 @@ from brave6d.dataset.release.formats import (CAMERA, CARD, DATASET_INFO, HOLDOUT
                                      TARGETS, TARGETS_HOLDOUT, base_zip, bop19_targets, bundle_folder, bundle_zip,
                                      dump_targets, holdout_json, models_zip, scene_folder, test_zip,
                                      train_pbr_zip, write_sha256sums)
+from brave6d.dataset.release.learned import learned_entry, learned_model, learned_zip
 from brave6d.dataset.release.manifest import library_entries, make_manifest, scene_entry
 from brave6d.dataset.release.source import ReleaseError, ReleaseSource, load_release_source
 from brave6d.dataset.release.train_pbr import synthetic_split, train_pbr_files
@@ -69,6 +71,11 @@ def build_release(workdir: Path | str, out: Path | str, *, force: bool = False) 
     if split is not None:
         _refuse_links(split.rglob("*"), split)  # before train_pbr_files reads a single byte through a link
     split_files = _confined(train_pbr_files(split, models), split) if split is not None else []
+    model_dir = learned_model(source.workdir)  # WORKDIR/learned/model from `brave6d dataset run`, when there is one
+    learned_files, learned = ([], None) if model_dir is None else \
+        learned_entry(model_dir, {o.obj_id for o in source.objects}, learned_zip(source.name))
+    if model_dir is not None:
+        _confined(learned_files, model_dir)
     bundles = {s.source.scene_id: _bundle_files(s) for s in progress(scenes, desc="release: check bundles",
                                                                       unit="bundle")}
     sizes: dict[str, int] = {}
@@ -80,6 +87,8 @@ def build_release(workdir: Path | str, out: Path | str, *, force: bool = False) 
                   desc="models")
         if split is not None:
             write_zip(stage / train_pbr_zip(source.name), split_files, desc="train_pbr split")
+        if learned is not None:
+            write_zip(stage / learned_zip(source.name), learned_files, desc="learned model")
         for s in scenes:
             write_zip(stage / bundle_zip(source.name, s.source.scene_id), bundles[s.source.scene_id],
                       desc=f"bundle {s.source.name}")
@@ -90,7 +99,7 @@ def build_release(workdir: Path | str, out: Path | str, *, force: bool = False) 
         sizes[base_zip(source.name)] = (stage / base_zip(source.name)).stat().st_size
         atomic_write_text(stage / CARD, card)
         sizes[CARD] = (stage / CARD).stat().st_size
-        atomic_write_json(stage / MANIFEST, make_manifest(source, scenes, models, sizes))
+        atomic_write_json(stage / MANIFEST, make_manifest(source, scenes, models, sizes, learned))
         sizes[MANIFEST] = (stage / MANIFEST).stat().st_size
         digests = {name: file_sha256(stage / name) for name in progress(sorted(sizes), desc="SHA256SUMS", unit="file")}
         write_sha256sums(stage / SUMS, digests)

@@ -7,6 +7,7 @@ from brave6d.core.progress import format_table
 from brave6d.dataset.release.collect import ReleaseModel, SceneRelease
 from brave6d.dataset.release.formats import (TARGETS, TARGETS_HOLDOUT, base_zip, bundle_folder, bundle_zip, models_zip,
                                      test_zip, train_pbr_zip)
+from brave6d.dataset.release.learned import learned_zip
 from brave6d.dataset.release.source import ReleaseSource
 
 
@@ -38,6 +39,9 @@ def render_card(source: ReleaseSource, scenes: list[SceneRelease], models: dict[
     if train_pbr_zip(n) in sizes:  # the synthetic training split (brave6d synth), when the dataset has one
         files.append([f"`{train_pbr_zip(n)}`", "`train_pbr/XXXXXX/`: synthetic training images (rgb, depth, mask, "
                       "mask_visib, scene_camera.json, scene_gt.json, scene_gt_info.json)", _mb(sizes[train_pbr_zip(n)])])
+    if learned_zip(n) in sizes:  # the dataset's learned model (brave6d dataset run), when it has one
+        files.append([f"`{learned_zip(n)}`", "`learned/`: the learned estimator trained on the object library's "
+                      "synthetic train_pbr (`model.pt`, `card.json`, `MODEL_CARD.md`)", _mb(sizes[learned_zip(n)])])
     files += [[f"`{bundle_zip(n, s.source.scene_id)}`", f"`{bundle_folder(s.source.scene_id)}/`: render-server "
                f"bundle of scene {s.source.name}", _mb(sizes.get(bundle_zip(n, s.source.scene_id)))] for s in scenes]
     objects = [[o.obj_id, o.name, o.category, f"{models[o.obj_id].info['diameter']:.1f}" if o.obj_id in models

@@ -13,7 +13,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                            "<name>_models.zip (models in mm, models_info.json), <name>_test_all.zip (every scene's "
                            "BOP ground truth and images; holdout views in test/XXXXXX/holdout.json), one "
                            "render-server bundle zip per scene, manifest.json, a dataset card README.md and "
-                           "SHA256SUMS. Files are streamed into the zips; OUT appears only when complete.")
+                           "SHA256SUMS; <name>_train_pbr.zip when WORKDIR/synth/train_pbr exists and "
+                           "<name>_learned.zip (learned/model.pt and its card) when WORKDIR/learned/model does. Files are streamed into the zips; OUT appears only when complete.")
     build.add_argument("workdir", type=Path, help="dataset work directory (dataset.yaml, scenes/)")
     build.add_argument("out", type=Path, help="release folder to write (absent or empty)")
     build.add_argument("--force", action="store_true",
@@ -42,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
         report = verify_release(args.out)
         print(f"{report.root}: OK ({report.files} files, {report.bytes / 1e6:.1f} MB, {report.scenes} scenes, "
               f"{report.images} images, {report.bundles} bundles"
-              + (f", {report.train_pbr_images} synthetic training images)" if report.train_pbr_images else ")"))
+              + (f", {report.train_pbr_images} synthetic training images" if report.train_pbr_images else "")
+              + (f", learned model ({report.learned_model})" if report.learned_model else "") + ")")
         return 0
     raise AssertionError(f"unknown action {args.action!r}")

@@ -11,6 +11,8 @@ folder it makes)::
                               scene_gt.json, scene_gt_info.json, holdout.json
     <name>_bundle_XXXXXX.zip  bundles/XXXXXX/ (the scene's render-server bundle)
     <name>_train_pbr.zip      train_pbr/XXXXXX/ (the synthetic training split; only when the dataset has one)
+    <name>_learned.zip        learned/model.pt, card.json, MODEL_CARD.md (the dataset's learned model; only
+                              when it has one: :mod:`brave6d.dataset.release.learned`)
     manifest.json, README.md, SHA256SUMS
 """
 

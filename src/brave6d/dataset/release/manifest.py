@@ -3,7 +3,8 @@
 ``format``, the dataset's name/version/license, creation time, the versions of everything that
 made it (python, brave6d, numpy, torch, ... and the git commit when known), counts, the size of
 every file, the object library (with which objects have a model) and, per scene, its
-``scene_id``, name, views, holdout views, objects, instances, targets and holdout PSNR.
+``scene_id``, name, views, holdout views, objects, instances, targets and holdout PSNR; and, when
+the release ships the dataset's learned model, ``learned_model`` (:mod:`brave6d.dataset.release.learned`).
 """
 
 from __future__ import annotations
@@ -48,9 +49,10 @@ def library_entries(source: ReleaseSource, models: dict[int, ReleaseModel]) -> l
 
 
 def make_manifest(source: ReleaseSource, scenes: list[SceneRelease], models: dict[int, ReleaseModel],
-                  sizes: dict[str, int]) -> dict[str, Any]:
-    """The manifest's content (``sizes``: bytes of every release file but the manifest and SHA256SUMS)."""
-    return {
+                  sizes: dict[str, int], learned: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The manifest's content (``sizes``: bytes of every release file but the manifest and SHA256SUMS;
+    ``learned``: the learned model's entry, when the release ships one)."""
+    manifest = {
         "format": FORMAT, "name": source.name, "version": source.version, "license": source.license,
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "versions": versions(),
@@ -62,6 +64,9 @@ def make_manifest(source: ReleaseSource, scenes: list[SceneRelease], models: dic
         "objects": library_entries(source, models),
         "scenes": [scene_entry(s, source.name) for s in scenes],
     }
+    if learned is not None:
+        manifest["learned_model"] = learned
+    return manifest
 
 
 def read_manifest(path: Path) -> dict[str, Any]:

@@ -8,7 +8,8 @@ that ``scene_gt``/``scene_camera`` reference, and every PNG of the test split de
 name has the same ``obj_id`` in every scene, in ``models_info`` and in the library), the targets,
 every other member's length and CRC, each scene's bundle (every member listed by its own
 ``manifest.json`` and matching its sha256; then ``brave6d.serve.load_bundle`` on its small files) and, when
-the release has one, the synthetic training split (:mod:`brave6d.dataset.release.train_pbr`).
+the release has one, the synthetic training split (:mod:`brave6d.dataset.release.train_pbr`) and the
+learned model (:mod:`brave6d.dataset.release.learned`: its checksum against the manifest, its card).
 
 A release is untrusted input, so nothing is extracted whole: members are streamed for their
 checksums, JSON files and images are read into memory (bounded by :class:`~brave6d.dataset.release.zips.ZipLimits`)
@@ -33,6 +34,7 @@ from brave6d.dataset.release.formats import (CAMERA, DATASET_INFO, HOLDOUT, MANI
                                      base_zip, bundle_folder, bundle_zip, models_zip, read_holdout,
                                      read_sha256sums, read_targets, scene_folder, test_zip, train_pbr_zip)
 from brave6d.dataset.release.images import decode_png, decode_zip_images, image_kind
+from brave6d.dataset.release.learned import check_learned_zip, learned_zip
 from brave6d.dataset.release.manifest import read_manifest
 from brave6d.dataset.release.source import ReleaseError
 from brave6d.dataset.release.train_pbr import check_train_pbr_zip
@@ -55,6 +57,7 @@ class VerifyReport:
     images: int
     bundles: int
     train_pbr_images: int = 0  # images of the synthetic training split (0: the release has none)
+    learned_model: str | None = None  # the learned model's preset (None: the release has none)
 
 
 def verify_release(root: Path | str) -> VerifyReport:
@@ -86,8 +89,22 @@ def verify_release(root: Path | str) -> VerifyReport:
             _check_bundle(base, bundle_zip(name, s["scene_id"]), s, library, tmp)
     pbr = train_pbr_zip(name)
     pbr_images = check_train_pbr_zip(base / pbr, models) if pbr in sums else 0
+    learned = _check_learned(base, sums, manifest, set(library))
     return VerifyReport(base, len(sums) + 1, sum((base / n).stat().st_size for n in sums), len(scenes),
-                        sum(len(g) for k, g in gts.items() if k > 0), len(scenes), pbr_images)
+                        sum(len(g) for k, g in gts.items() if k > 0), len(scenes), pbr_images, learned)
+
+
+def _check_learned(base: Path, sums: dict[str, str], manifest: dict[str, Any], library: set[int]) -> str | None:
+    """The learned model's zip, when the manifest names one (and none when it does not)."""
+    name = learned_zip(manifest["name"])
+    entry = manifest.get("learned_model")
+    if entry is None:
+        if name in sums:
+            raise ReleaseError(f"{base / name}: in the release, but {MANIFEST} has no 'learned_model' entry for it")
+        return None
+    if name not in sums:
+        raise ReleaseError(f"{base / name}: required by {MANIFEST} (learned_model) but not in the release")
+    return check_learned_zip(base / name, entry, library, MANIFEST)
 
 
 def _check_sums(base: Path) -> dict[str, str]:
