@@ -27,7 +27,7 @@ def _data(box: tuple[float, float, float, float], size: tuple[int, int] = (320, 
     rw, rh = int(math.ceil(box[2])) - x0, int(math.ceil(box[3])) - y0
     inst = Instance(0, 1, 0, np.eye(3), np.array([0.0, 0.0, 300.0]), 1.0, box, (x0, y0),
                     np.full((rh, rw, 3), 0.5, np.float16), np.ones((rh, rw), bool), box)
-    record = ImageRecord(1, 0, rgb, np.eye(3), np.eye(3), size, False, Path("none"), [0], rgb, np.eye(3))
+    record = ImageRecord(1, 0, rgb, np.eye(3), np.eye(3), size, False, Path("none"), rgb, np.eye(3), [0])
     return TrainingData(Path("none"), [record], [inst], {1: obj}, "digest")
 
 

@@ -90,9 +90,9 @@ class ImageRecord:
     size_full: tuple[int, int]
     heldout: bool
     depth_path: Path
+    rgb_crop: NDArray[np.uint8]
+    K_crop: Array
     instances: list[int] = field(default_factory=list)
-    rgb_crop: NDArray[np.uint8] | None = None
-    K_crop: Array | None = None
 
 
 @dataclass
@@ -237,7 +237,7 @@ def _add_image(data: TrainingData, casters: _Casters, layout: object, im_id: int
     rgb, K, s = resize_to_width(rgb_full, cam.cam_K, crop_width)  # type: ignore[attr-defined]
     record = ImageRecord(int(layout.scene_id), im_id, rgb_work, K_work, np.asarray(cam.cam_K),  # type: ignore[attr-defined]
                          (rgb_full.shape[1], rgb_full.shape[0]), heldout, layout.depth_path(im_id),  # type: ignore[attr-defined]
-                         rgb_crop=rgb, K_crop=K)
+                         rgb, K)
     data.images.append(record)
     h, w = rgb.shape[:2]
     for gt_id, (gt, info) in enumerate(zip(gts, infos)):

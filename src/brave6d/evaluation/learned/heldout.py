@@ -105,7 +105,7 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
     n_instances = 0
     for i in progress(images, total=len(images), desc="learn: held-out", unit="img", disable=not show_progress):
         record = data.images[i]
-        rgb, K = (record.rgb_crop, record.K_crop) if record.rgb_crop is not None else (record.rgb, record.K)
+        rgb, K = record.rgb_crop, record.K_crop
         depth_full_mm = read_png(record.depth_path, expect="depth").astype(np.float64)
         h, w = rgb.shape[:2]
         depth_work = cv2.resize(depth_full_mm, (w, h), interpolation=cv2.INTER_NEAREST) / 1000.0
