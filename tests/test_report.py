@@ -124,7 +124,7 @@ def fabricate(workdir: Path, nan: bool = False) -> MeasurementStore:
                 "objects": [{"obj_id": 1, "object": "cup", "visib_fract": 1.0, "bbox_diag_px": 50.0,
                              **{f"{side}_{v}_ar": 0.5 for side in ("real", "splat") for v in LEARNED_VARIANTS}}]}
                for level, d in ((0, 0.2), (1, 0.5))]
-    _save(store, "learned", learned, {"workdir": str(workdir), "card": {}}, {"views": 2, "image": "160x100"})
+    _save(store, "learned", learned, {"cost": str(workdir / "learned" / "cost" / "learned_cost.json"), "card": {}}, {"views": 2, "image": "160x100"})
     return store
 
 

@@ -15,7 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from brave6d.evaluation.report.measurements import Measurement
-from brave6d.evaluation.report.sections.learned import COST_FILE, VARIANTS, estimate_target, read_cost, render_learned
+from brave6d.evaluation.report.sections.learned import COST_FILE, VARIANTS, cost_path, estimate_target, read_cost
+from brave6d.evaluation.report.sections.learned import render_learned
 from brave6d.evaluation.report.sections.learned import ring_rows, xywh_to_box
 
 MACHINE = {"cpu": "Test CPU", "cores": 2, "gpu": None, "device": "cpu", "torch": "2.13.0", "torch_threads": 2}
@@ -72,15 +73,16 @@ def test_page_names_large_gaps_the_heldout_table_and_the_cost(tmp_path: Path) ->
 
 
 def test_cost_file_is_read_only_when_it_has_points(tmp_path: Path) -> None:
-    assert read_cost(tmp_path) is None
-    path = tmp_path / COST_FILE
+    path = cost_path(tmp_path / "learned" / "model")
+    assert path == tmp_path / COST_FILE
+    assert read_cost(path) is None
     path.parent.mkdir(parents=True)
     path.write_text("{not json")
-    assert read_cost(tmp_path) is None
+    assert read_cost(path) is None
     path.write_text(json.dumps({"points": "none"}))
-    assert read_cost(tmp_path) is None
+    assert read_cost(path) is None
     path.write_text(json.dumps({"points": []}))
-    assert read_cost(tmp_path) == {"points": []}
+    assert read_cost(path) == {"points": []}
 
 
 @given(st.lists(st.floats(-1e6, 1e6), min_size=4, max_size=4), st.integers(1, 8))
@@ -121,3 +123,18 @@ def test_each_variant_records_its_refusal_cause_and_no_pose() -> None:
     assert out["true_box_rgb"][1] == "pnp-failed" and out["true_box_rgb"][0].cam_T_obj is None
     assert out["true_box_depth"][1] is None and out["true_box_depth"][0].cam_T_obj is not None
     assert estimate_target(_Estimator(), rgb, None, K, 1, None)["true_box_depth"][1] == "no-box"
+
+
+def test_missing_model_is_named_where_the_report_was_told_to_look(tmp_path: Path) -> None:
+    """A dataset's scenes share ``WORKDIR/learned/model``; the demo's is ``<workdir>/learned/model``."""
+    from brave6d.core.layout import SceneDir
+    from brave6d.evaluation.report.measurements import MeasurementStore
+    from brave6d.evaluation.report.protocol import MeasureInputs
+    from brave6d.evaluation.report.sections.learned import LearnedSweep, measure_learned
+
+    store = MeasurementStore(tmp_path / "measurements")
+    shared = tmp_path / "dataset" / "learned" / "model"
+    m = measure_learned(MeasureInputs(tmp_path, SceneDir(tmp_path / "scene"), store, shared), LearnedSweep())
+    assert m.status == "missing" and str(shared / "model.pt") in m.note
+    demo = measure_learned(MeasureInputs(tmp_path, SceneDir(tmp_path / "scene"), store), LearnedSweep())
+    assert str(tmp_path / "learned" / "model" / "model.pt") in demo.note

@@ -52,6 +52,7 @@ def report_root(workdir: Path) -> Path:
 def report_dataset(workdir: Path, quick: bool, only: Sequence[str] = (), refresh: bool = False,
                    device: str = "auto") -> DatasetReport:
     """Report every scene of the work directory (module docstring), then write the index."""
+    from brave6d.dataset.learn import learned_model_dir
     from brave6d.dataset.workdir import WORKDIR_DATASET, load_workdir_dataset, scene_root
     from brave6d.evaluation.report import ReportSettings, ReportTarget, build_report
 
@@ -72,7 +73,8 @@ def report_dataset(workdir: Path, quick: bool, only: Sequence[str] = (), refresh
         if not root.is_dir():
             summaries.append(SceneSummary(scene.name, None, note=f"no scene directory {root}"))
             continue
-        result = build_report(ReportTarget.of_scene(root, out), settings, refresh=refresh, only=tuple(only))
+        result = build_report(ReportTarget.of_scene(root, out, learned_model_dir(workdir)), settings, refresh=refresh,
+                              only=tuple(only))
         summaries.append(summarize_scene(scene.name, out, result.markdown, result.statuses))
     index = write_index(workdir, f"{dataset.spec.name} {dataset.spec.version}", summaries, quick)
     return DatasetReport(index, tuple(summaries))

@@ -110,11 +110,13 @@ def report_dir(workdir: Path) -> Path:
 class ReportTarget:
     """What a report reads and where it writes: the work directory (sections that read the demo's
     other outputs, such as ``evaluation/baseline.json``, look there), the scene directory, and the
-    folder of ``report.md``, its PNGs and ``measurements/``."""
+    folder of ``report.md``, its PNGs and ``measurements/``; ``learned_model``: the learned model's
+    folder when it is not the demo's ``<workdir>/learned/model`` (a dataset's is shared by its scenes)."""
 
     workdir: Path
     scene: Path
     out: Path
+    learned_model: Path | None = None
 
     @staticmethod
     def of_workdir(workdir: Path) -> ReportTarget:
@@ -122,9 +124,9 @@ class ReportTarget:
         return ReportTarget(Path(workdir), Path(workdir) / "scene", report_dir(workdir))
 
     @staticmethod
-    def of_scene(scene: Path, out: Path) -> ReportTarget:
+    def of_scene(scene: Path, out: Path, learned_model: Path | None = None) -> ReportTarget:
         """Any scene directory reported into ``out`` (its parent is the work directory)."""
-        return ReportTarget(Path(scene).parent, Path(scene), Path(out))
+        return ReportTarget(Path(scene).parent, Path(scene), Path(out), learned_model)
 
 
 def as_target(where: Path | ReportTarget) -> ReportTarget:
@@ -141,7 +143,7 @@ def measure_all(workdir: Path | ReportTarget, settings: ReportSettings, refresh:
     """Measure (or reuse) every section's data; a failing section is recorded, not raised."""
     target = as_target(workdir)
     inputs = MeasureInputs(target.workdir, SceneDir(target.scene),
-                           MeasurementStore(target.out / "measurements", refresh=refresh))
+                           MeasurementStore(target.out / "measurements", refresh=refresh), target.learned_model)
     results: dict[str, Measurement] = {}
     seconds: dict[str, float] = {}
     for section in registry.SECTIONS:

@@ -20,11 +20,13 @@ from brave6d.evaluation.report.measurements import Measurement, MeasurementStore
 
 @dataclass(frozen=True)
 class MeasureInputs:
-    """What a section may measure from: the work directory, its scene and the measurement cache."""
+    """What a section may measure from: the work directory, its scene, the measurement cache and
+    the learned model's folder (None: the demo's, ``<workdir>/learned/model``)."""
 
     workdir: Path
     scene: SceneDir
     store: MeasurementStore
+    learned_model: Path | None = None
 
 
 class Section(Protocol):

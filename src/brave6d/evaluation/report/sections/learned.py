@@ -109,7 +109,7 @@ def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
     from brave6d.training import resolve_device
 
     workdir, scene, store = inputs.workdir, inputs.scene, inputs.store
-    model_dir = Path(workdir) / MODEL_SUBDIR
+    model_dir = Path(inputs.learned_model) if inputs.learned_model is not None else Path(workdir) / MODEL_SUBDIR
     model_path, card_path = model_dir / "model.pt", model_dir / "card.json"
     if (absent := store.require(NAME, [(model_path, "learn (brave6d learn train / the demo's learn stage)"),
                                        (card_path, "learn (the model's card)")])) is not None:
@@ -133,7 +133,7 @@ def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
     m = store.resume(NAME, key, settings, machine_info(device))
     views.describe(m)
     card = read_card(model_dir)
-    m.summary.update({"workdir": str(workdir), "model": str(model_dir), "card": {k: card.get(k) for k in
+    m.summary.update({"cost": str(cost_path(model_dir)), "model": str(model_dir), "card": {k: card.get(k) for k in
                                                         ("images", "heldout_images", "train_seconds", "device",
                                                          "heldout", "preset", "objects", "model_sha256")}})
     state: dict[str, Any] = {}
@@ -205,9 +205,13 @@ def ring_rows(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
-def read_cost(workdir: Path) -> dict[str, Any] | None:
-    """``benchmarks/learned_cost.py``'s result for this work directory (None when absent or unreadable)."""
-    path = Path(workdir) / COST_FILE
+def cost_path(model_dir: Path) -> Path:
+    """Where ``benchmarks/learned_cost.py`` writes for the report: ``learned/cost/`` beside ``learned/model``."""
+    return Path(model_dir).parent / COST_FILE.parent.name / COST_FILE.name
+
+
+def read_cost(path: Path) -> dict[str, Any] | None:
+    """``benchmarks/learned_cost.py``'s result ``path`` (None when absent or unreadable)."""
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
@@ -238,7 +242,7 @@ def _cost_part(cost: dict[str, Any] | None, ax: Any) -> tuple[str, str]:
         ax.set_axis_off()
         ax.text(0.5, 0.5, "no learned_cost.json yet", ha="center", va="center")
         return (f"What accuracy costs: not measured for this work directory yet: `python benchmarks/learned_cost.py "
-                f"SPEC MODELS <workdir>/{COST_FILE.parent} --bundle BUNDLE` writes it.\n", "")
+                f"SPEC MODELS <workdir>/{COST_FILE.parent} --bundle BUNDLE` (beside the model's folder) writes it.\n", "")
     pts = cost["points"]
     rows, xs = [], []
     for p in pts:
@@ -366,8 +370,8 @@ class LearnedSection:
 
     def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
         m = measurements.get(NAME)
-        workdir = Path(str(m.summary.get("workdir"))) if m is not None and m.summary.get("workdir") else None
-        return render_learned(m, out_dir, read_cost(workdir) if workdir is not None else None)
+        cost = m.summary.get("cost") if m is not None else None
+        return render_learned(m, out_dir, read_cost(Path(str(cost))) if cost else None)
 
 
 SECTION = LearnedSection()
