@@ -159,3 +159,18 @@ def test_a_non_finite_loss_stops_training_naming_the_network_and_step(tmp_path, 
     with pytest.raises(BraveError, match=r"the pose loss is nan at step 0"):
         training.train_learned(tmp_path / "synth", models, tmp_path / "out", preset, "cpu", show_progress=False)
     assert not (tmp_path / "out" / "model.pt").exists()
+
+
+def test_preset_overrides_from_the_command_line_keep_types_and_name_bad_fields() -> None:
+    from brave6d.evaluation.learned.cli import parse_overrides
+
+    fast = get_learn_preset("fast")
+    changed = fast.with_overrides(**parse_overrides(fast, ["work_width=640", "detector_lr=1e-3"]))
+    assert changed.work_width == 640 and isinstance(changed.work_width, int) and changed.detector_lr == 1e-3
+    for bad, says in (("colour=1", "numeric field of the preset"), ("work_width", "FIELD=VALUE"),
+                      ("work_width=6.5", "not a valid integer"), ("detector_lr=fast", "not a valid number"),
+                      ("name=3", "numeric field")):
+        with pytest.raises(BraveError, match=says):
+            parse_overrides(fast, [bad])
+    with pytest.raises(BraveError, match="crop_source_width"):  # the preset's own checks still apply
+        fast.with_overrides(**parse_overrides(fast, ["work_width=1280"]))

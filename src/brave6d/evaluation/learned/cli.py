@@ -1,6 +1,7 @@
 """``brave6d learn``: train the learned estimator on a train_pbr split, or score one on its held-out images.
 
     brave6d learn train TRAIN_PBR --models MODELS_DIR --out MODEL_DIR [--preset fast|paper] [--device ...] [--resume]
+        [--set FIELD=VALUE ...]
     brave6d learn heldout MODEL_DIR TRAIN_PBR --models MODELS_DIR
 """
 
@@ -8,8 +9,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from brave6d.core.cli_types import int_in
+
+if TYPE_CHECKING:
+    from brave6d.evaluation.learned.presets import LearnPreset
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -23,12 +28,34 @@ def configure(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--preset", default="fast", help="fast (2-core CPU, minutes), paper (GPU), tiny (tests)")
     train.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     train.add_argument("--seed", type=int_in(0, 2**31 - 1), default=None, help="seed (default: the preset's, 0)")
+    train.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="overrides",
+                       help="change one field of the preset (repeatable), e.g. --set work_width=640 --set "
+                            "pose_steps=2000; the card records the preset as it ran")
     train.add_argument("--resume", action="store_true", help="continue the run whose checkpoint.pt is in MODEL_DIR")
     train.add_argument("--no-heldout", action="store_true", help="skip the held-out figures of the card")
     heldout = sub.add_parser("heldout", help="score a trained model on the held-out images of its train_pbr")
     heldout.add_argument("model_dir", type=Path, metavar="MODEL_DIR")
     heldout.add_argument("train_pbr", type=Path, metavar="TRAIN_PBR")
     heldout.add_argument("--models", type=Path, required=True, metavar="MODELS_DIR")
+
+
+def parse_overrides(preset: LearnPreset, items: list[str]) -> dict[str, int | float]:
+    """``FIELD=VALUE`` strings as preset field changes, each value of its field's type (int or float)."""
+    from brave6d.core.errors import BraveError
+
+    out: dict[str, int | float] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        current = getattr(preset, name.strip(), None) if sep else None
+        if not sep or name.strip() == "name" or not isinstance(current, (int, float)):
+            raise BraveError(f"learn train: --set {item!r}: expected FIELD=VALUE with FIELD a numeric field of the "
+                             f"preset ({', '.join(k for k, v in preset.to_json().items() if k != 'name')})")
+        try:
+            out[name.strip()] = int(value) if isinstance(current, int) else float(value)
+        except ValueError:
+            raise BraveError(f"learn train: --set {item!r}: {value!r} is not a valid "
+                             f"{'integer' if isinstance(current, int) else 'number'}") from None
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
         preset = get_learn_preset(args.preset)
         if args.seed is not None:
             preset = preset.with_overrides(seed=args.seed)
+        if args.overrides:
+            preset = preset.with_overrides(**parse_overrides(preset, args.overrides))
         card = learn_and_card(args.train_pbr, args.models, args.out, preset, args.device, args.resume,
                               heldout=not args.no_heldout)
         print(f"learn: model in {args.out / 'model.pt'} ({card['train_seconds']:.0f} s of training on "
