@@ -5,8 +5,15 @@ not gsplat nor the rest of brave6d's dependencies, and it cannot download; open3
 big to carry there, so these checks use only what the rasterizer, the trainer and the renderer
 need. Two steps:
 
-    python benchmarks/gpu_checks.py prepare        # here: wheels for the GPU's Python 3.12 -> .whl/
+    python benchmarks/gpu_checks.py prepare        # here: wheels for the GPU's Python 3.12 -> .whl/,
+                                                   # and the learned estimator's data -> .whl/learned/
     bash benchmarks/gpu_checks.sh                  # there: install .whl, run the checks into $OUT
+
+The learned estimator's training data needs Open3D (its model coordinates are ray-cast) and the
+synthetic renderer, so ``prepare`` makes it here: a tiny train_pbr of the demo scene (30 images,
+320x200, ``brave6d synth``), the BOP models of its objects, and that split read for training, saved
+as ``.whl/learned/`` (arrays in ``data.npz``, the rest in ``data.json``, the held-out images' depth;
+about 4.5 MB, carried with the wheels: 52 MB together, the tree 11 MB, of the 64 MiB a call carries).
 
 ``run`` (what gpu_checks.sh calls) does, each step timed, and writes ``gpu_checks.json`` and
 ``gpu_checks.md`` into ``--out``:
@@ -16,7 +23,15 @@ need. Two steps:
    the CPU kernels, renders and gradients; the trainer and renderer tests) and counts what ran;
 3. trains a synthetic textured-plane scene (``brave6d.training.toy_scenes``) with the fast preset
    on the GPU and on the CPU (``benchmarks/training.py``): seconds per step and holdout PSNR;
-4. renders a 100k-Gaussian splat for serving on each device: median ms per frame.
+4. renders a 100k-Gaussian splat for serving on each device: median ms per frame;
+5. trains the learned estimator (``brave6d.evaluation.learned``, the ``fast`` preset cut to
+   ``--learned-steps`` steps per network) on the carried split, on the GPU and, the same steps, on
+   the CPU: seconds and steps/s per network, the CPU/GPU ratio, and the held-out figures of
+   ``score_heldout`` (detection recall at IoU 0.5, pose AR) where Open3D is installed (its VSD and
+   depth refinement need it; elsewhere the report says the scoring was skipped and why, and
+   ``score-learned`` scores the returned models here: ``python benchmarks/gpu_checks.py
+   score-learned FILES_AT --out DIR``). ``--skip-learned`` leaves it out; without the prepared
+   folder it is reported as skipped.
 
 Without a GPU the CUDA parts are reported as not run (so the wiring is tested on the CPU).
 """
@@ -48,6 +63,9 @@ PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x
 #: the tests that run only on a CUDA GPU (the rest of CUDA_TESTS runs everywhere)
 GPU_ONLY_TESTS = ("test_cuda_backend_matches_cpu", "test_cuda_gradients_match_cpu")
 CUDA_TESTS = ("tests/test_rasterizer.py", "tests/test_train_pipeline.py", "tests/test_serve_renderer.py")
+#: the learned estimator's carried split (``prepare`` writes it, step 5 trains on it)
+LEARNED_BUNDLE = ROOT / ".whl" / "learned"
+LEARNED_SPEC = ROOT / "data" / "demo" / "scene.yaml"
 
 
 def prepare(dest: Path) -> list[Path]:
@@ -68,6 +86,171 @@ def prepare(dest: Path) -> list[Path]:
     size_mb = sum(w.stat().st_size for w in wheels) / 1e6
     print(f"{len(wheels)} wheels, {size_mb:.1f} MB in {dest} (the device carries at most 64 MiB with the tree)")
     return wheels
+
+
+def learned_preset(steps: int) -> Any:
+    """The ``fast`` preset cut to ``steps`` per network, its crops from the 320-wide split itself
+    (no checkpoint inside the timed run)."""
+    from brave6d.evaluation.learned import get_learn_preset
+
+    return get_learn_preset("fast").with_overrides(crop_source_width=320, detector_steps=steps, pose_steps=steps,
+                                                   checkpoint_every=steps)
+
+
+def prepare_learned(dest: Path, images: int = 30, workers: int = 1) -> dict[str, Any]:
+    """The learned estimator's split for the GPU machine (module docstring) into ``dest``: rendered,
+    read (Open3D ray casting, here) and saved by :func:`save_learned_bundle`."""
+    import shutil
+
+    from brave6d.annotation.models import write_bop_models
+    from brave6d.core.spec import load_scene_spec
+    from brave6d.evaluation.learned import load_training_data
+    from brave6d.synth import SynthOptions, synthesize
+
+    t0 = time.perf_counter()
+    work = dest.parent / f".{dest.name}.work"
+    shutil.rmtree(work, ignore_errors=True)
+    synthesize(LEARNED_SPEC, work / "synth", SynthOptions(images=images, seed=0, workers=workers, width=320, height=200))
+    spec = load_scene_spec(LEARNED_SPEC)
+    objects = sorted(spec.objects, key=lambda o: o.name)  # obj_ids as synth numbers them
+    models = write_bop_models(work / "models", [(i, LEARNED_SPEC.parent / o.mesh, float(o.scale), o.symmetry)
+                                                for i, o in enumerate(objects, start=1)])
+    preset = learned_preset(1)
+    data = load_training_data(work / "synth", models, preset.work_width, preset.heldout_every, show_progress=False,
+                              crop_width=preset.crop_source_width)
+    shutil.rmtree(dest, ignore_errors=True)
+    save_learned_bundle(data, models, dest, {"images": images, "width": 320, "height": 200, "seed": 0,
+                                             "spec": LEARNED_SPEC.relative_to(ROOT).as_posix(),
+                                             "prepare_s": time.perf_counter() - t0})
+    shutil.rmtree(work, ignore_errors=True)
+    size_mb = sum(f.stat().st_size for f in dest.rglob("*") if f.is_file()) / 1e6
+    print(f"learned split: {len(data.images)} images, {len(data.instances)} instances, {size_mb:.1f} MB in {dest}")
+    return {"images": len(data.images), "instances": len(data.instances), "mb": size_mb}
+
+
+def save_learned_bundle(data: Any, models_dir: Path, dest: Path, source: dict[str, Any]) -> None:
+    """``data`` (a read :class:`TrainingData`) as plain arrays and JSON (any NumPy reads them, no
+    pickle), the models folder and the held-out images' depth (what ``score_heldout`` reads)."""
+    import shutil
+
+    import numpy as np
+
+    dest.mkdir(parents=True)
+    shutil.copytree(models_dir, dest / "models")
+    arrays: dict[str, Any] = {}
+    images = []
+    for i, im in enumerate(data.images):
+        arrays[f"rgb_{i}"] = im.rgb
+        if im.rgb_crop is not im.rgb:
+            arrays[f"rgb_crop_{i}"] = im.rgb_crop
+        depth = None
+        if im.heldout:
+            depth = f"depth/{i:06d}.png"
+            (dest / "depth").mkdir(exist_ok=True)
+            shutil.copyfile(im.depth_path, dest / depth)
+        images.append({"scene_id": im.scene_id, "im_id": im.im_id, "K": im.K.tolist(), "K_full": np.asarray(im.K_full).tolist(),
+                       "size_full": list(im.size_full), "heldout": im.heldout, "depth": depth,
+                       "K_crop": im.K_crop.tolist(), "instances": im.instances})
+    instances = []
+    for k, inst in enumerate(data.instances):
+        arrays[f"coords_{k}"], arrays[f"mask_{k}"] = inst.coords, inst.mask
+        instances.append({"image": inst.image, "obj_id": inst.obj_id, "class_index": inst.class_index,
+                          "R": np.asarray(inst.R).tolist(), "t_mm": np.asarray(inst.t_mm).tolist(),
+                          "visib_fract": inst.visib_fract, "box": list(inst.box), "region": list(inst.region),
+                          "box_crop": list(inst.box_crop)})
+    np.savez_compressed(dest / "data.npz", **arrays)
+    (dest / "data.json").write_text(json.dumps({"digest": data.digest, "source": source, "images": images,
+                                                "instances": instances}, indent=1))
+
+
+def load_learned_bundle(bundle: Path) -> tuple[Any, Path, dict[str, Any]]:
+    """What :func:`save_learned_bundle` wrote: the :class:`TrainingData` (objects from the carried
+    models; no Open3D), the models folder and the split's source."""
+    import numpy as np
+
+    from brave6d.evaluation.learned.data import ImageRecord, Instance, TrainingData, load_objects
+
+    meta = json.loads((bundle / "data.json").read_text())
+    models = bundle / "models"
+    with np.load(bundle / "data.npz", allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    images = []
+    for i, m in enumerate(meta["images"]):
+        rgb = arrays[f"rgb_{i}"]
+        images.append(ImageRecord(m["scene_id"], m["im_id"], rgb, np.array(m["K"]), np.array(m["K_full"]),
+                                  tuple(m["size_full"]), m["heldout"], bundle / (m["depth"] or "no-depth"),
+                                  arrays.get(f"rgb_crop_{i}", rgb), np.array(m["K_crop"]), list(m["instances"])))
+    instances = [Instance(m["image"], m["obj_id"], m["class_index"], np.array(m["R"]), np.array(m["t_mm"]),
+                          m["visib_fract"], tuple(m["box"]), tuple(m["region"]), arrays[f"coords_{k}"],
+                          arrays[f"mask_{k}"], tuple(m["box_crop"]))
+                     for k, m in enumerate(meta["instances"])]
+    return TrainingData(bundle, images, instances, load_objects(models), meta["digest"]), models, meta["source"]
+
+
+def train_learned_check(bundle: Path, out: Path, device: str, steps: int) -> dict[str, Any]:
+    """Step 5 on ``device``: train the carried split for ``steps`` per network; seconds and steps/s per
+    network, the final losses, and the held-out figures where Open3D is installed."""
+    import importlib.util
+    import shutil
+
+    from brave6d.evaluation.learned import LearnedEstimator, train_learned
+
+    if not (bundle / "data.json").is_file():
+        return {"ok": False, "skipped": f"no prepared split in {bundle} (run `python benchmarks/gpu_checks.py "
+                                        "prepare` here and carry .whl)"}
+    model_dir = out / f"learned_{device}"
+    shutil.rmtree(model_dir, ignore_errors=True)  # a model left by an earlier run would be reused, not timed
+    try:
+        data, models, source = load_learned_bundle(bundle)
+        preset = learned_preset(steps)
+        result = train_learned(bundle, models, model_dir, preset, device, show_progress=False, data=data)
+    except Exception as err:  # noqa: BLE001 - the report says why; the other checks go on
+        return {"ok": False, "error": f"{type(err).__name__}: {err}"}
+    report: dict[str, Any] = {
+        "ok": True, "preset": preset.name, "steps": steps, "split": source, "images": len(data.images),
+        "heldout_images": len(data.split(True)), "losses": result.losses,
+        "seconds": {k: result.seconds[k] for k in ("detector", "pose")},
+        "steps_per_s": {k: steps / max(result.seconds[k], 1e-9) for k in ("detector", "pose")},
+        "model": f"{model_dir.name}/model.pt"}
+    if importlib.util.find_spec("open3d") is None:
+        report["heldout_skipped"] = ("open3d is not installed here (VSD and the depth refinement need it); score "
+                                     "the returned model with `python benchmarks/gpu_checks.py score-learned`")
+        return report
+    report["heldout"] = score_learned(LearnedEstimator(result.model, device), data, models)
+    return report
+
+
+def score_learned(estimator: Any, data: Any, models: Path) -> dict[str, Any]:
+    """``score_heldout``'s figures of ``estimator`` on the split's held-out images, and the seconds it took."""
+    from brave6d.evaluation.learned import score_heldout
+
+    t0 = time.perf_counter()
+    held = score_heldout(estimator, data, models, show_progress=False)
+    return {**held.to_json(), "seconds": time.perf_counter() - t0}
+
+
+def score_returned(device_out: Path, out: Path, bundle: Path) -> dict[str, Any]:
+    """Here, after a run on a machine without Open3D: score the models it returned (``device_out``, its
+    ``$OUT``) on the same carried split and write the completed report into ``out``."""
+    from brave6d.evaluation.learned import LearnedEstimator
+
+    report = json.loads((device_out / "gpu_checks.json").read_text())
+    data, models, _ = load_learned_bundle(bundle)
+    for device, r in report.get("learned", {}).items():
+        if r.get("ok") and "heldout" not in r and (device_out / r["model"]).is_file():
+            r["heldout"] = score_learned(LearnedEstimator.load((device_out / r["model"]).parent), data, models)
+            r["heldout_scored_by"] = "score-learned (on this machine's CPU, after the run)"
+            r.pop("heldout_skipped", None)
+    write_report(out, report)
+    return report
+
+
+def learned_ratio(learned: dict[str, Any]) -> dict[str, Any] | None:
+    """CPU over GPU training seconds of the learned estimator (both ran the same steps)."""
+    cuda, cpu = learned.get("cuda", {}), learned.get("cpu", {})
+    if not (cuda.get("ok") and cpu.get("ok")) or cuda["steps"] != cpu["steps"]:
+        return None
+    return {k: cpu["seconds"][k] / max(cuda["seconds"][k], 1e-9) for k in ("detector", "pose")}
 
 
 def _cuda() -> dict[str, Any] | None:
@@ -216,7 +399,46 @@ def markdown(report: dict[str, Any]) -> str:
     if rows:
         lines += ["", "| serving render, 640x400 | Gaussians | ms per frame (median) |", "|---|---|---|"]
         lines += [f"| {d} | {r['gaussians']} | {r['ms_median']:.1f} |" for d, r in rows]
+    lines += learned_markdown(report.get("learned", {}), report.get("learned_ratio"))
     return "\n".join(lines) + "\n"
+
+
+def learned_markdown(learned: dict[str, Any], ratio: dict[str, Any] | None) -> list[str]:
+    """Step 5's lines: a row per device that trained, and why a device did not."""
+    lines: list[str] = []
+    rows = [(d, r) for d, r in learned.items() if r.get("ok")]
+    if rows:
+        lines += ["", "| learned estimator (fast preset) | steps/network | detector s (steps/s) | pose s (steps/s) "
+                  "| held-out recall@0.5 (min over objects) | AR true box (RGB) | AR detected box (RGB) |",
+                  "|---|---|---|---|---|---|---|"]
+        for d, r in rows:
+            held = r.get("heldout")
+            figures = "not scored | | "
+            if held:
+                recall = min(held["detection_recall_iou50"].values(), default=float("nan"))
+                figures = f"{recall:.2f} | {held['pose_ar']['true_box_rgb']:.3f} | {held['pose_ar']['detected_rgb']:.3f}"
+            lines.append(f"| {d} | {r['steps']} | {r['seconds']['detector']:.1f} ({r['steps_per_s']['detector']:.1f}) "
+                         f"| {r['seconds']['pose']:.1f} ({r['steps_per_s']['pose']:.1f}) | {figures} |")
+        first = rows[0][1]
+        lines.append(f"\nLearned split: {first['images']} train_pbr images of {first['split']['spec']} at "
+                     f"{first['split']['width']}x{first['split']['height']} ({first['heldout_images']} held out)"
+                     + "".join(f"; {d}: held-out scoring skipped: {r['heldout_skipped']}"
+                               for d, r in rows if "heldout_skipped" in r))
+    lines += [f"- learned estimator on {d}: " + (f"skipped ({r['skipped']})" if "skipped" in r else f"FAILED ({r['error']})")
+              for d, r in learned.items() if not r.get("ok")]
+    if ratio:
+        lines.append(f"\nLearned estimator, CPU over GPU seconds at the same steps: detector {ratio['detector']:.1f}x, "
+                     f"pose {ratio['pose']:.1f}x")
+    return lines
+
+
+def write_report(out: Path, report: dict[str, Any]) -> None:
+    """``gpu_checks.json`` and ``gpu_checks.md`` into ``out``, the page on screen too."""
+    out.mkdir(parents=True, exist_ok=True)
+    page = markdown(report)
+    (out / "gpu_checks.json").write_text(json.dumps(report, indent=2))
+    (out / "gpu_checks.md").write_text(page)
+    print(page, flush=True)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -232,10 +454,7 @@ def run(args: argparse.Namespace) -> int:
 
     def save() -> None:
         """After each step: what is known so far on disk and on screen (a run cut short keeps it)."""
-        page = markdown(report)
-        (out / "gpu_checks.json").write_text(json.dumps(report, indent=2))
-        (out / "gpu_checks.md").write_text(page)
-        print(page, flush=True)
+        write_report(out, report)
 
     if cuda:
         report["gsplat_build"] = build_gsplat()
@@ -251,9 +470,16 @@ def run(args: argparse.Namespace) -> int:
     for device in devices:
         report["render"][device] = render_timing(device, args.gaussians, args.repeats)
     save()
+    if not args.skip_learned:
+        report["learned"] = {}
+        for device in devices:
+            report["learned"][device] = train_learned_check(args.learned_bundle, out, device, args.learned_steps)
+            report["learned_ratio"] = learned_ratio(report["learned"])
+            save()
     failed = (report.get("gsplat_build", {"ok": True})["ok"] is False
               or report.get("tests", {"exit": 0})["exit"] != 0
-              or not all(r.get("ok") for part in ("training", "render") for r in report[part].values()))
+              or not all(r.get("ok") for part in ("training", "render") for r in report[part].values())
+              or any("error" in r for r in report.get("learned", {}).values()))
     return 1 if failed else 0
 
 
@@ -261,8 +487,9 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("prepare", help="download the wheels the GPU image lacks (run here)")
+    p = sub.add_parser("prepare", help="download the wheels the GPU image lacks, make the learned split (run here)")
     p.add_argument("--dest", type=Path, default=ROOT / ".whl")
+    p.add_argument("--learned-images", type=int, default=30, help="train_pbr images of the learned split")
     r = sub.add_parser("run", help="run the checks (on the GPU machine: bash benchmarks/gpu_checks.sh)")
     r.add_argument("--out", type=Path, required=True, help="folder for the report and logs")
     r.add_argument("--steps", type=int, default=2000, help="GPU training steps")
@@ -272,9 +499,21 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--gaussians", type=int, default=100_000, help="splat size for the render timing")
     r.add_argument("--repeats", type=int, default=20, help="timed renders per device")
     r.add_argument("--skip-tests", action="store_true", help="leave out step 2 (pytest)")
+    r.add_argument("--skip-learned", action="store_true", help="leave out step 5 (the learned estimator)")
+    r.add_argument("--learned-steps", type=int, default=300,
+                   help="learned estimator: training steps per network, on each device")
+    r.add_argument("--learned-bundle", type=Path, default=LEARNED_BUNDLE, help="the split prepare made")
+    s = sub.add_parser("score-learned", help="here: score the learned models a run returned (no Open3D there)")
+    s.add_argument("device_out", type=Path, help="the run's $OUT as fetched (holds gpu_checks.json)")
+    s.add_argument("--out", type=Path, required=True, help="folder for the completed report")
+    s.add_argument("--learned-bundle", type=Path, default=LEARNED_BUNDLE, help="the split prepare made")
     args = ap.parse_args(argv)
     if args.command == "prepare":
         prepare(args.dest)
+        prepare_learned(args.dest / "learned", args.learned_images)
+        return 0
+    if args.command == "score-learned":
+        score_returned(args.device_out, args.out, args.learned_bundle)
         return 0
     return run(args)
 

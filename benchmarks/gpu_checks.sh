@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The GPU checks (benchmarks/gpu_checks.py) on a lent GPU machine, in one call of the device tool:
-#   here:   python benchmarks/gpu_checks.py prepare     (wheels into .whl/, ignored by git)
+#   here:   python benchmarks/gpu_checks.py prepare     (wheels and the learned split into .whl/, ignored by git)
 #   device: run(command="bash benchmarks/gpu_checks.sh", carry=[".whl"], timeout_s=540)
-# Extra arguments go to `gpu_checks.py run` (e.g. --steps 1000 --skip-tests).
+# Extra arguments go to `gpu_checks.py run` (e.g. --steps 1000 --skip-tests --learned-steps 500 --skip-learned).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out="${OUT:-/tmp/gpu_checks}"

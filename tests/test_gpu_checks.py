@@ -27,7 +27,8 @@ def test_the_run_trains_and_renders_on_the_cpu_and_says_the_cuda_parts_did_not_r
     out = tmp_path / "out"
     proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_checks.py"), "run", "--out", str(out),
                            "--skip-tests", "--steps", "6", "--cpu-steps", "6", "--width", "160",
-                           "--views-per-ring", "3", "--gaussians", "2000", "--repeats", "2"],
+                           "--views-per-ring", "3", "--gaussians", "2000", "--repeats", "2",
+                           "--learned-bundle", str(tmp_path / "not-prepared")],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     report = json.loads((out / "gpu_checks.json").read_text())
@@ -41,6 +42,8 @@ def test_the_run_trains_and_renders_on_the_cpu_and_says_the_cuda_parts_did_not_r
     page = (out / "gpu_checks.md").read_text()
     assert "no CUDA GPU: CUDA parts not run" in page and "| cpu | 6 |" in page
     assert report["same_step"] is None  # nothing to compare without a GPU
+    # the learned step without its prepared split: said, not a failure of the other checks
+    assert not report["learned"]["cpu"]["ok"] and "skipped (no prepared split" in page
 
 
 def test_the_gpu_only_tests_are_counted_and_their_measurements_read(tmp_path: Path) -> None:
@@ -80,3 +83,51 @@ def test_cpu_and_gpu_training_are_compared_at_the_same_step() -> None:
     assert same == {"step": 300, "cpu_s": 90.0, "cuda_s": 6.0, "speedup": 15.0, "psnr_cpu": 20.1, "psnr_cuda": 20.0}
     assert gpu_checks.same_step_ratio({"cuda": {**gpu, "ok": False}, "cpu": cpu}) is None
     assert gpu_checks.same_step_ratio({"cuda": gpu, "cpu": {**cpu, "points": cpu["points"][:1]}}) is None
+
+
+def test_the_learned_step_trains_the_carried_split_without_open3d_and_is_scored_here(tmp_path: Path) -> None:
+    """Step 5: ``prepare`` renders and reads the split here (Open3D), the GPU machine (no Open3D)
+    trains it from the carried arrays and times each network, and ``score-learned`` scores the model
+    it returned; a machine without the prepared split reports the step as skipped."""
+    bundle = tmp_path / "learned"
+    made = gpu_checks.prepare_learned(bundle, images=12)
+    assert made["images"] == 12 and made["instances"] > 0 and made["mb"] < 3
+    data, models, source = gpu_checks.load_learned_bundle(bundle)
+    assert source["width"] == 320 and len(data.split(True)) == 1 and sorted(data.objects) == [1, 2, 3, 4]
+    assert all(im.rgb.shape == (200, 320, 3) and im.rgb_crop is im.rgb for im in data.images)
+    assert all(inst.coords.shape[:2] == inst.mask.shape and inst.mask.any() for inst in data.instances)
+    gpu_checks.save_learned_bundle(data, models, tmp_path / "again", source)  # what it reads, it writes back
+    again, _, _ = gpu_checks.load_learned_bundle(tmp_path / "again")
+    assert again.digest == data.digest and len(again.instances) == len(data.instances)
+    assert all((a.coords == b.coords).all() and (a.mask == b.mask).all() and a.box == b.box and a.region == b.region
+               for a, b in zip(again.instances, data.instances))
+    assert all((a.rgb == b.rgb).all() and (a.K == b.K).all() and a.instances == b.instances and a.heldout == b.heldout
+               for a, b in zip(again.images, data.images))
+
+    device_out = tmp_path / "device"
+    code = ("import json, sys; sys.modules['open3d'] = None  # as on the GPU machine\n"
+            f"sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); import gpu_checks as g; from pathlib import Path\n"
+            f"r = g.train_learned_check(Path({str(bundle)!r}), Path({str(device_out)!r}), 'cpu', 20)\n"
+            f"g.write_report(Path({str(device_out)!r}), {{'cuda': None, 'torch': '', 'python': '', 'commit': '',"
+            " 'learned': {'cpu': r}})\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    run = json.loads((device_out / "gpu_checks.json").read_text())["learned"]["cpu"]
+    assert run["ok"] and run["steps"] == 20 and "heldout" not in run and "open3d" in run["heldout_skipped"]
+    assert all(run["seconds"][k] > 0 and run["steps_per_s"][k] > 0 for k in ("detector", "pose"))
+    assert all(math.isfinite(v) for v in run["losses"].values()) and (device_out / run["model"]).is_file()
+    page = (device_out / "gpu_checks.md").read_text()
+    assert "| cpu | 20 |" in page and "not scored" in page and "held-out scoring skipped: open3d" in page
+
+    report = gpu_checks.score_returned(device_out, tmp_path / "scored", bundle)
+    held = report["learned"]["cpu"]["heldout"]
+    assert held["images"] == 1 and set(held["detection_recall_iou50"]) == {"1", "2", "3", "4"}
+    assert 0 <= held["pose_ar"]["true_box_rgb"] <= 1 and "heldout_skipped" not in report["learned"]["cpu"]
+    assert "not scored" not in (tmp_path / "scored" / "gpu_checks.md").read_text()
+
+    missing = gpu_checks.train_learned_check(tmp_path / "nothing", tmp_path / "o", "cpu", 20)
+    assert not missing["ok"] and "prepare" in missing["skipped"]
+    assert "learned estimator on cpu: skipped (no prepared split" in "\n".join(
+        gpu_checks.learned_markdown({"cpu": missing}, None))
+    assert gpu_checks.learned_ratio({"cuda": {**run, "seconds": {"detector": 2.0, "pose": 1.0}}, "cpu": run}) == {
+        "detector": run["seconds"]["detector"] / 2.0, "pose": run["seconds"]["pose"] / 1.0}

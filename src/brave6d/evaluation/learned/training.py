@@ -59,11 +59,14 @@ def inputs_key(train_pbr_digest: str, models_dir: Path, preset: LearnPreset, dev
 
 def train_learned(train_pbr: Path | str, models_dir: Path | str, out: Path | str, preset: LearnPreset,
                   device: str = "auto", resume: bool = False, show_progress: bool = True,
-                  stop_after_steps: int | None = None, max_images: int | None = None) -> LearnResult:
+                  stop_after_steps: int | None = None, max_images: int | None = None,
+                  data: TrainingData | None = None) -> LearnResult:
     """Train (or reuse, or resume) the learned estimator of ``train_pbr`` into ``out`` (module
     docstring); ``stop_after_steps`` stops after that many steps of this call with a checkpoint
     (a job with a time slot; the tests' interruption); ``max_images`` trains on the split's first n
-    images only (the benchmarks' accuracy against the split's size)."""
+    images only (the benchmarks' accuracy against the split's size); ``data``: the split already
+    read by :func:`load_training_data` with this preset's widths (``train_pbr`` and ``max_images``
+    are then not read: the GPU checks carry it to a machine without Open3D)."""
     import torch
 
     from brave6d.core.atomic import move_aside
@@ -75,8 +78,9 @@ def train_learned(train_pbr: Path | str, models_dir: Path | str, out: Path | str
     if out.exists() and not out.is_dir():
         raise BraveError(f"{out}: --out is a file; give a folder")
     t0 = time.perf_counter()
-    data = load_training_data(train_pbr, models_dir, preset.work_width, preset.heldout_every,
-                              max_images=max_images, show_progress=show_progress, crop_width=preset.crop_source_width)
+    if data is None:
+        data = load_training_data(train_pbr, models_dir, preset.work_width, preset.heldout_every, max_images=max_images,
+                                  show_progress=show_progress, crop_width=preset.crop_source_width)
     key = inputs_key(f"{data.digest}:{len(data.images)}", Path(models_dir), preset, dev.type)
     seconds = {"read": time.perf_counter() - t0}
     if (out / MODEL).is_file():
