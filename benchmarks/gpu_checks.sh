@@ -2,11 +2,15 @@
 # The GPU checks (benchmarks/gpu_checks.py) on a lent GPU machine, in one call of the device tool:
 #   here:   python benchmarks/gpu_checks.py prepare     (wheels and the learned split into .whl/, ignored by git)
 #   device: run(command="bash benchmarks/gpu_checks.sh", carry=[".whl"], timeout_s=540)
+#   after:  python benchmarks/gpu_checks.py score-learned FILES_AT --out DIR   (held-out scores of the returned model)
 # Extra arguments go to `gpu_checks.py run` (e.g. --steps 1000 --skip-tests --learned-steps 500 --skip-learned).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out="${OUT:-/tmp/gpu_checks}"
-mkdir -p "$out"
+# The device tool returns at most 8 files from $OUT: the checks write into a work folder and only
+# the report, its log, the tests' log and the GPU-trained learned model (for `score-learned`) are copied back.
+work="${GPU_CHECKS_WORK:-/tmp/gpu_checks_work}"
+mkdir -p "$out" "$work"
 if compgen -G ".whl/*.whl" >/dev/null; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
   export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
@@ -18,4 +22,9 @@ if [ -z "${TORCH_CUDA_ARCH_LIST:-}" ]; then
   TORCH_CUDA_ARCH_LIST="$(python3 -c 'import torch; c = torch.cuda.get_device_capability() if torch.cuda.is_available() else None; print(f"{c[0]}.{c[1]}" if c else "")')"
   [ -n "$TORCH_CUDA_ARCH_LIST" ] && export TORCH_CUDA_ARCH_LIST || unset TORCH_CUDA_ARCH_LIST
 fi
-python3 benchmarks/gpu_checks.py run --out "$out" "$@" 2>&1 | tee "$out/gpu_checks.log"
+status=0
+python3 benchmarks/gpu_checks.py run --out "$work" "$@" 2>&1 | tee "$out/gpu_checks.log" || status=$?
+for f in gpu_checks.json gpu_checks.md pytest.log training_cuda.json learned_cuda/model.pt; do
+  if [ -f "$work/$f" ] && [ "$work" != "$out" ]; then mkdir -p "$out/$(dirname "$f")"; cp "$work/$f" "$out/$f"; fi
+done
+exit "$status"
