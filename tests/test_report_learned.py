@@ -138,3 +138,14 @@ def test_missing_model_is_named_where_the_report_was_told_to_look(tmp_path: Path
     assert m.status == "missing" and str(shared / "model.pt") in m.note
     demo = measure_learned(MeasureInputs(tmp_path, SceneDir(tmp_path / "scene"), store), LearnedSweep())
     assert str(tmp_path / "learned" / "model" / "model.pt") in demo.note
+
+
+def test_advice_tells_a_domain_gap_from_a_weak_model() -> None:
+    from brave6d.evaluation.report.sections.learned import advice_learned
+
+    rows = ring_rows([_point(0, 0.2, 0.4, 0.4), _point(1, 0.5, 0.4, 0.4)])
+    card = {"heldout": {"pose_ar": {"true_box_depth": 0.75}}}
+    assert "the synthetic -> scene gap is what holds it down" in advice_learned(rows, card)
+    card["heldout"]["pose_ar"]["true_box_depth"] = 0.45
+    assert "its own accuracy (training images and steps, below) limits it" in advice_learned(rows, card)
+    assert "On held-out" not in advice_learned(rows, {})
