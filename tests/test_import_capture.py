@@ -266,6 +266,36 @@ def test_a_pose_that_is_not_rigid_is_refused_naming_the_frame(tmp_path: Path) ->
         read_source(source)
 
 
+def test_rotations_rounded_as_real_files_are_import_projected_and_the_correction_recorded(tmp_path: Path,
+                                                                                         capsys) -> None:
+    # instant-ngp's fox: six printed digits, column norms 1.000001 (max |R^T R - I| = 1.09e-6)
+    truth = ring(6, 0.5)
+    gl = [np.round(gl_camera_to_world(T[:3, 3], np.zeros(3)), 6) for T in truth]
+    gl[3][:3, 0] *= 1.000001
+    gl[3][:3, 2] *= 1.000001
+    source = write_transforms(tmp_path / "src", gl, CAMERA, points=sphere_points(0.1))
+    code = cli_main(["import", str(source), str(tmp_path / "scene"), "--scale", "1", "--up", "0,0,1"])
+    assert code == 0, capsys.readouterr()
+    scene = SceneDir(tmp_path / "scene")
+    for (_, T), want in zip(camera_poses(scene), truth):
+        np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(T, want, atol=1e-5)
+    rotations = json.loads(scene.import_record_path.read_text())["rotations"]
+    assert rotations["largest_correction_frame"] == "images/f003.png"
+    assert 5e-7 < rotations["largest_correction"] < 1e-5 and rotations["tolerance"] == 1e-3
+
+
+def test_a_sheared_rotation_is_refused_by_the_cli_in_one_line_naming_the_frame(tmp_path: Path, capsys) -> None:
+    gl = [gl_camera_to_world(T[:3, 3], np.zeros(3)) for T in ring(4, 0.5)]
+    gl[1][:3, 1] += 0.01 * gl[1][:3, 0]  # a shear of 1 %: |R^T R - I| = 1e-2, ten times the tolerance
+    source = write_transforms(tmp_path / "src", gl, CAMERA, points=sphere_points(0.1))
+    code = cli_main(["import", str(source), str(tmp_path / "scene"), "--scale", "1", "--up", "0,0,1"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "frames[1]' (images/f001.png).transform_matrix: rotation block is not orthonormal" in err
+    assert "Traceback" not in err and not (tmp_path / "scene").exists()
+
+
 # ----------------------------------------------------------------------------- properties
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(radius=st.floats(0.3, 10.0), unit=st.sampled_from([0.001, 1.0, 1000.0]), k1=st.floats(-0.3, 0.6),

@@ -81,6 +81,16 @@ def test_collections_in_order_or_by_name(tmp_path) -> None:
     assert isinstance(mapping, dict) and np.allclose(mapping["img1"], TRUTH)
 
 
+def test_a_matrix_rounded_as_printed_files_are_is_projected_onto_the_nearest_rotation(tmp_path) -> None:
+    rounded = np.round(TRUTH, 6)
+    rounded[:3, 0] *= 1.000001  # a column norm of 1.000001, as instant-ngp's files carry
+    assert np.abs(rounded[:3, :3].T @ rounded[:3, :3] - np.eye(3)).max() > 1e-6  # above the strict check's 1e-6
+    T = read_pose_file(_write(tmp_path / "p.txt", " ".join(f"{v:.6f}" for v in rounded.ravel())))
+    np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(T, TRUTH, atol=1e-5)
+
+
 @pytest.mark.parametrize("text, fmt, message", [
     (" ".join(map(str, [*POS, QX, QY, QZ, QW])), PoseFormat(), "in which order is the quaternion"),
     (" ".join(map(str, [*POS, *ROTVEC])), PoseFormat(), "6 numbers are ambiguous"),

@@ -149,6 +149,14 @@ def test_pose_forms_are_equivalent(client: TestClient) -> None:
         r = client.post(f"/episodes/{eid}/set_pose", json={"pose": pose, "rgb": "none", "depth": "none"})
         assert r.status_code == 200, r.text
         np.testing.assert_allclose(r.json()["observation"]["world_T_cam"], T, atol=1e-9)
+    rounded = np.round(T, 6)  # six printed digits and a column norm of 1.000001: accepted, projected
+    rounded[:3, 0] *= 1.000001
+    r = client.post(f"/episodes/{eid}/set_pose", json={"pose": {"world_T_cam": rounded.tolist()}, "rgb": "none",
+                                                       "depth": "none"})
+    assert r.status_code == 200, r.text
+    got = np.asarray(r.json()["observation"]["world_T_cam"])
+    np.testing.assert_allclose(got[:3, :3].T @ got[:3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(got, T, atol=1e-5)
 
 
 # ----------------------------------------------------------------------------- refusals and adjustments

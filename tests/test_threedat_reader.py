@@ -96,13 +96,17 @@ def test_shared_camera_yaml_in_scenes_dir(dat: Path) -> None:
     assert read_threedat(dat).camera.width == 64
 
 
-def test_float32_precision_poses_are_accepted_and_made_exactly_rigid(dat: Path) -> None:
+@pytest.mark.parametrize("stored, atol", [
+    (lambda m: m.astype(np.float32).astype(np.float64), 1e-6),  # what Blender stores
+    (lambda m: np.round(m, 4), 1e-4),  # four printed decimals: |R^T R - I| ~1e-4, refused before the one rule
+])
+def test_float32_precision_poses_are_accepted_and_made_exactly_rigid(dat: Path, stored, atol: float) -> None:
     R = Rotation.from_euler("xyz", [12.3, -45.6, 78.9], degrees=True).as_matrix()
-    pose = make_transform(R, [0.1, 0.2, 0.3]).astype(np.float32).astype(np.float64)  # what Blender stores
+    pose = stored(make_transform(R, [0.1, 0.2, 0.3]))
     _edit_yaml(dat / "annotations" / "scene1" / "poses.yaml", lambda d: d[0].update(pose=pose.reshape(-1).tolist()))
     T = read_threedat(dat).objects[0].world_T_model
     np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-14)
-    np.testing.assert_allclose(T, pose, atol=1e-6)
+    np.testing.assert_allclose(T, pose, atol=atol)
 
 
 def test_integer_ids_and_comments(dat: Path) -> None:

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from brave6d.core.errors import NonRigidTransformError
 from brave6d.core.transforms import (
+    ROTATION_TOLERANCE,
     check_rigid,
     format_tum_line,
     invert,
@@ -22,6 +23,8 @@ from brave6d.core.transforms import (
     matrix_to_rpy_deg,
     matrix_to_tum,
     matrix_to_ur_pose,
+    nearest_rigid,
+    nearest_rotation,
     orthonormalize,
     parse_tum_line,
     pose_distance,
@@ -183,6 +186,49 @@ def test_orthonormalize_projects_perturbed_rotation_back(T: np.ndarray, eps: flo
     R = orthonormalize(noisy)
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
     assert np.linalg.det(R) > 0
+
+
+# ----------------------------------------------------------------------------- the one rule for poses made elsewhere
+noise = st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9).map(lambda v: np.reshape(v, (3, 3)))
+
+
+@given(poses, noise, st.floats(1e-9, 1e-4))
+def test_rotations_off_by_rounding_are_projected_and_the_correction_reported(T: np.ndarray, E: np.ndarray,
+                                                                             eps: float) -> None:
+    noisy = T[:3, :3] + eps * E  # |R^T R - I| <= 6 eps + 9 eps^2 < ROTATION_TOLERANCE
+    R, correction = nearest_rotation(noisy, "frame 3")
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
+    assert math.isfinite(correction) and correction == np.abs(R - noisy).max()
+    assert correction <= 3 * eps + 1e-15  # no farther than the rotation it was rounded from
+    np.testing.assert_allclose(R, T[:3, :3], atol=6 * eps + 1e-12)
+    rigid, same = nearest_rigid(np.c_[noisy, T[:3, 3]], "frame 3")  # 3x4 as transforms.json may hold
+    assert same == correction and rigid[3].tolist() == [0.0, 0.0, 0.0, 1.0]
+    np.testing.assert_array_equal(rigid[:3, :3], R)
+
+
+@given(poses, st.sampled_from(["scaled", "sheared", "reflected", "nan"]), st.floats(2e-3, 1.0))
+def test_sheared_scaled_reflected_or_nan_matrices_are_refused_naming_the_frame(T: np.ndarray, kind: str,
+                                                                               size: float) -> None:
+    R = T[:3, :3].copy()
+    if kind == "scaled":
+        R[:, 1] *= 1.0 + size
+    elif kind == "sheared":
+        R[:, 2] += size * R[:, 0]
+    elif kind == "reflected":
+        R = -R
+    else:
+        R[1, 1] = np.nan
+    with pytest.raises(NonRigidTransformError) as info:
+        nearest_rotation(R, "frames[7] (f007.png)")
+    message = str(info.value)
+    assert message.startswith("frames[7] (f007.png): ") and "\n" not in message
+    expected = {"scaled": "not orthonormal", "sheared": "not orthonormal", "reflected": "reflection",
+                "nan": "NaN"}[kind]
+    assert expected in message
+    if kind in ("scaled", "sheared"):
+        measured = float(message.split("max |R^T R - I| = ")[1].split(",")[0])
+        assert measured > ROTATION_TOLERANCE
 
 
 @pytest.mark.parametrize("bad", [[0, 0, 0, 0, 0], [0, 0, 0, np.nan, 0, 0], [0, 0, 0, 0, 0, np.inf]])

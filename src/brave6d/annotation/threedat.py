@@ -91,7 +91,7 @@ from numpy.typing import NDArray
 
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import BraveError, DataError, NonRigidTransformError
-from brave6d.core.transforms import check_rigid, orthonormalize, parse_tum_line
+from brave6d.core.transforms import check_rigid, nearest_rigid, parse_tum_line
 from brave6d.core.yaml_io import read_yaml
 
 Matrix4 = NDArray[np.float64]
@@ -110,8 +110,6 @@ DEFAULTS_WHEN_MISSING = {"scenes_dir": "scenes", "rgb_dir": "rgb", "depth_dir": 
 RGB_SUFFIXES = (".png", ".jpg")
 #: Config file names tried, in order, when a folder is given.
 CONFIG_NAMES = ("dataset.yaml", "config.yaml", "dataset.yml", "config.yml")
-#: Tolerance of the rigidity check on annotated poses (Blender stores float32 matrices).
-POSE_RIGID_ATOL = 1e-5
 #: Largest accepted deviation of a camera-pose quaternion's norm from 1.
 QUAT_NORM_TOL = 1e-3
 
@@ -594,8 +592,9 @@ def _continuous_symmetries(value: Any, where: str) -> tuple[ContinuousSymmetry, 
 def parse_pose_matrix(value: Any, name: str) -> Matrix4:
     """16 numbers (row-major, or nested 4x4) -> rigid float64 4x4; raises NonRigidTransformError.
 
-    The rotation block is projected onto SO(3) after the check so that float32 round-off in
-    the file does not propagate.
+    The rotation block is projected onto the nearest rotation when it is one up to rounding (Blender
+    stores float32 matrices), the one rule for poses made elsewhere
+    (:func:`brave6d.core.transforms.nearest_rotation`).
     """
     try:
         nums = _finite_numbers(value, None, "pose")
@@ -603,11 +602,7 @@ def parse_pose_matrix(value: Any, name: str) -> Matrix4:
         raise NonRigidTransformError(f"{name}: {exc}") from None
     if len(nums) != 16:
         raise NonRigidTransformError(f"{name}: expected 16 numbers (row-major 4x4), got {len(nums)}")
-    T = check_rigid(np.reshape(nums, (4, 4)), name, atol=POSE_RIGID_ATOL)
-    out = np.eye(4)
-    out[:3, :3] = orthonormalize(T[:3, :3])
-    out[:3, 3] = T[:3, 3]
-    return out
+    return nearest_rigid(np.reshape(nums, (4, 4)), name)[0]
 
 
 def read_object_poses(path: Path | str, library: Sequence[LibraryEntry], root: Path | None = None,

@@ -3,8 +3,9 @@
 Three pose forms, each in text (``.txt``/``.csv``), NumPy (``.npy``), JSON or YAML files:
 
 * **4x4 matrix** (row-major; 16 numbers, or 12 for the top three rows): recognised by itself;
-  a rotation block off by more than 1e-3 (scaled, sheared, mirrored) is refused, a smaller error
-  (printed digits) is orthonormalised;
+  the rotation block is projected onto the nearest rotation when it is one up to rounding (printed
+  digits), and refused when scaled, sheared or mirrored (the one rule,
+  :func:`brave6d.core.transforms.nearest_rotation`, :data:`~brave6d.core.transforms.ROTATION_TOLERANCE`);
 * **position + quaternion**: named keys are recognised by themselves: ``x y z qx qy qz qw``
   (ROS-Industrial's calibration files), ``position: {x, y, z}`` + ``orientation: {x, y, z, w}``
   (ROS ``geometry_msgs/Pose``), ``translation`` + ``rotation`` (ROS transforms). Seven bare
@@ -38,7 +39,7 @@ from scipy.spatial.transform import Rotation
 from brave6d.core.errors import DataError, NonRigidTransformError
 from brave6d.core.json_input import read_json_file
 from brave6d.core.npy_check import read_npy
-from brave6d.core.transforms import check_rigid, orthonormalize
+from brave6d.core.transforms import nearest_rigid
 from brave6d.core.yaml_io import read_yaml
 
 __all__ = [
@@ -55,7 +56,7 @@ Array = NDArray[np.float64]
 POSE_FORMATS = ("auto", "matrix", "quaternion", "ur")
 QUATERNION_ORDERS = ("xyzw", "wxyz")
 POSE_EXTENSIONS = (".txt", ".csv", ".npy", ".json", ".yaml", ".yml")
-#: A quaternion norm or a rotation block this far from unit is refused (closer: normalised).
+#: A quaternion norm this far from 1 is refused (closer: normalised).
 UNIT_TOLERANCE = 1e-3
 #: Pose files are small; larger ones are refused before they are read.
 MAX_FILE_BYTES = 16 << 20
@@ -110,10 +111,9 @@ def _matrix(values: Array, where: str, fmt: PoseFormat) -> Array:
     T = np.eye(4)
     T[: values.size // 4] = values.reshape(-1, 4)
     try:
-        check_rigid(T, where, atol=UNIT_TOLERANCE)
+        T, _ = nearest_rigid(T, where)
     except NonRigidTransformError as exc:
         raise PoseFileError(f"{exc} (a 4x4 base_T_tcp, row-major, is expected)") from None
-    T[:3, :3] = orthonormalize(T[:3, :3])
     T[:3, 3] *= fmt.scale
     return T
 
@@ -133,6 +133,9 @@ def _quaternion(position: Array, q: Array, order: str, where: str, fmt: PoseForm
 def _ur(values: Array, where: str, fmt: PoseFormat) -> Array:
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(values[3:]).as_matrix()
+    if not np.all(np.isfinite(T)):  # an angle so large that scipy's arithmetic overflows
+        raise PoseFileError(f"{where}: rotation vector {np.asarray(values[3:]).tolist()} is too large to be read "
+                            "as an angle in radians")
     T[:3, 3] = values[:3] * fmt.scale
     return T
 

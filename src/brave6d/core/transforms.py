@@ -30,34 +30,88 @@ def check_rigid(T: ArrayLike, name: str = "transform", atol: float = RIGID_ATOL)
     rotation blocks that are scaled or sheared (``|R^T R - I| > atol``).
     """
     arr = np.asarray(T, dtype=np.float64)
-    if arr.shape != (4, 4):
-        raise NonRigidTransformError(f"{name}: expected a 4x4 matrix, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise NonRigidTransformError(f"{name}: contains NaN or inf")
-    if not np.allclose(arr[3], (0.0, 0.0, 0.0, 1.0), atol=atol, rtol=0.0):
-        raise NonRigidTransformError(f"{name}: bottom row is {arr[3].tolist()}, expected [0, 0, 0, 1]")
+    problem = _frame_problem(arr, atol)
+    if problem:
+        raise NonRigidTransformError(f"{name}: {problem}")
     check_rotation(arr[:3, :3], name=name, atol=atol)
     return arr
+
+
+def _frame_problem(arr: NDArray[np.float64], atol: float) -> str | None:
+    """What keeps ``arr`` from being a finite 4x4 with bottom row ``0 0 0 1`` (one line), or None."""
+    if arr.shape != (4, 4):
+        return f"expected a 4x4 matrix, got shape {arr.shape}"
+    if not np.all(np.isfinite(arr)):
+        return "contains NaN or inf"
+    if not np.allclose(arr[3], (0.0, 0.0, 0.0, 1.0), atol=atol, rtol=0.0):
+        return f"bottom row is {arr[3].tolist()}, expected [0, 0, 0, 1]"
+    return None
 
 
 def check_rotation(R: ArrayLike, name: str = "rotation", atol: float = RIGID_ATOL) -> Matrix3:
     """Return ``R`` as a float64 3x3 rotation matrix, or raise naming ``name`` and the defect."""
     rot = np.asarray(R, dtype=np.float64)
+    problem = _rotation_problem(rot, atol)
+    if problem:
+        raise NonRigidTransformError(f"{name}: {problem}")
+    return rot
+
+
+def _rotation_problem(rot: NDArray[np.float64], atol: float) -> str | None:
+    """What keeps ``rot`` from being a rotation within ``atol`` on ``max |R^T R - I|`` (one line), or None."""
     if rot.shape != (3, 3):
-        raise NonRigidTransformError(f"{name}: expected a 3x3 rotation, got shape {rot.shape}")
+        return f"expected a 3x3 rotation, got shape {rot.shape}"
     if not np.all(np.isfinite(rot)):
-        raise NonRigidTransformError(f"{name}: rotation contains NaN or inf")
+        return "rotation contains NaN or inf"
     orth_err = float(np.max(np.abs(rot.T @ rot - np.eye(3))))
     if orth_err > atol:
         scales = np.linalg.norm(rot, axis=0)
-        raise NonRigidTransformError(
-            f"{name}: rotation block is not orthonormal (max |R^T R - I| = {orth_err:.3g}, "
-            f"column norms {np.round(scales, 6).tolist()}): scaled or sheared matrix"
-        )
+        return (f"rotation block is not orthonormal (max |R^T R - I| = {orth_err:.3g}, more than the {atol:g} "
+                f"accepted; column norms {np.round(scales, 6).tolist()}): scaled or sheared matrix, not a rotation")
     det = float(np.linalg.det(rot))
-    if det < 0:
-        raise NonRigidTransformError(f"{name}: rotation block is a reflection (det = {det:.6f})")
-    return rot
+    if det <= 0:
+        return f"rotation block is a reflection (det = {det:.6f}), not a rotation"
+    return None
+
+
+#: Largest ``max |R^T R - I|`` of a rotation that enters from outside (an imported capture, a pose
+#: file, a 3D-DAT pose, a server request) accepted as rounding and projected onto the nearest
+#: rotation (:func:`nearest_rotation`). Real files need about 1e-6 (instant-ngp's transforms.json
+#: prints six digits: 1.09e-6 on its fox), float32 files about 1e-7, and a matrix printed with four
+#: decimals up to about 2e-4; nerfstudio's and COLMAP's quaternions normalise to exact rotations.
+#: 1e-3 takes all of these, and moves a rotation by at most about 0.03 degrees, while a scale
+#: of 0.1 % or a shear of 0.1 (what a wrong matrix looks like) is well above it and refused.
+ROTATION_TOLERANCE = 1e-3
+
+
+def nearest_rotation(R: ArrayLike, where: str, atol: float = ROTATION_TOLERANCE) -> tuple[Matrix3, float]:
+    """The rotation nearest to ``R`` (SVD projection onto SO(3), det +1) and the correction made
+    (``max |R_projected - R|`` over the entries), when ``R`` is a rotation up to rounding
+    (``max |R^T R - I| <= atol``, det > 0, finite; see :data:`ROTATION_TOLERANCE`); else
+    :class:`NonRigidTransformError` in one line naming ``where`` and the measured deviation.
+
+    The one rule for rotations that come from outside: every reader of poses made elsewhere uses it.
+    """
+    rot = np.asarray(R, dtype=np.float64)
+    problem = _rotation_problem(rot, atol)
+    if problem:
+        raise NonRigidTransformError(f"{where}: {problem}")
+    projected = orthonormalize(rot)
+    return projected, float(np.max(np.abs(projected - rot)))
+
+
+def nearest_rigid(T: ArrayLike, where: str, atol: float = ROTATION_TOLERANCE) -> tuple[Matrix4, float]:
+    """A 4x4 (or 3x4) pose made elsewhere -> the rigid 4x4 with its rotation projected by
+    :func:`nearest_rotation` and the bottom row set to ``0 0 0 1``, and the rotation's correction;
+    else :class:`NonRigidTransformError` naming ``where``."""
+    arr = np.asarray(T, dtype=np.float64)
+    if arr.shape == (3, 4):
+        arr = np.vstack([arr, [0.0, 0.0, 0.0, 1.0]])
+    problem = _frame_problem(arr, atol)
+    if problem:
+        raise NonRigidTransformError(f"{where}: {problem}")
+    R, correction = nearest_rotation(arr[:3, :3], where, atol)
+    return make_transform(R, arr[:3, 3]), correction
 
 
 def make_transform(R: ArrayLike, t: ArrayLike) -> Matrix4:

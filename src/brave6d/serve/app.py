@@ -26,8 +26,9 @@ Endpoints (all JSON unless noted; errors are ``{"error": message, "field": where
 Poses are ``world_T_cam`` (OpenCV camera axes, metres), given as a 4x4 matrix, as
 ``position`` + ``quaternion_wxyz``, or as ``look_at`` ``{eye, target, up}``. Numbers must be
 finite and within the bounds of :mod:`brave6d.serve.limits` (coordinates within 1 km, velocities within
-10 m/s and 2 pi rad/s per component, images within 1280 x 960); a matrix must be rigid
-(``|R^T R - I| <= 1e-5``, ``det R > 0``, bottom row 0 0 0 1; it is then re-orthonormalised);
+10 m/s and 2 pi rad/s per component, images within 1280 x 960); a matrix must be rigid up to
+rounding (``|R^T R - I| <= 1e-3``, ``det R > 0``, bottom row 0 0 0 1; it is then projected onto the
+nearest rotation: the one rule for poses made elsewhere, :func:`brave6d.core.transforms.nearest_rigid`);
 a quaternion must have norm 1 within 1e-3.
 
 Observations carry RGB (``png`` or ``jpeg``, base64) and depth (``f32``: base64 of
@@ -81,7 +82,7 @@ from starlette.websockets import WebSocketClose
 
 from brave6d.core.errors import BraveError, NonRigidTransformError, validation_error_field
 from brave6d.core.json_input import JsonInputError, JsonLimits, parse_json
-from brave6d.core.transforms import check_rigid, look_at, make_transform, orthonormalize
+from brave6d.core.transforms import look_at, make_transform, nearest_rigid
 from brave6d.serve.bundle import Bundle, load_bundle
 from brave6d.serve.limits import (
     MAX_ANGULAR_SPEED_RAD_S,
@@ -110,7 +111,6 @@ log = logging.getLogger(__name__)
 
 VIEWER_DIR = Path(__file__).resolve().parent / "viewer"
 
-RIGID_ATOL = 1e-5
 QUAT_NORM_TOL = 1e-3
 
 
@@ -178,10 +178,9 @@ class PoseIn(_Strict):
     def _matrix(self) -> np.ndarray:
         if self.world_T_cam is not None:
             try:
-                T = check_rigid(self.world_T_cam, "world_T_cam", atol=RIGID_ATOL)
+                return nearest_rigid(self.world_T_cam, "world_T_cam")[0]
             except NonRigidTransformError as exc:
                 raise ValueError(f"not a rigid transform: {exc}") from None
-            return make_transform(orthonormalize(T[:3, :3]), T[:3, 3])
         if self.look_at is not None:
             try:
                 return look_at(self.look_at.eye, self.look_at.target, self.look_at.up)

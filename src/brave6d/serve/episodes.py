@@ -52,8 +52,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.core.camera import PinholeCamera
-from brave6d.core.errors import BraveError
-from brave6d.core.transforms import invert, look_at, orthonormalize
+from brave6d.core.errors import BraveError, NonRigidTransformError
+from brave6d.core.transforms import invert, look_at, nearest_rotation
 from brave6d.serve.bundle import Bundle, BundleObject, load_model_m
 from brave6d.serve.episode_log import EpisodeLog, FinalView, LoggedEstimate, SubmitRecord
 from brave6d.serve.geometry import Refusal
@@ -300,13 +300,10 @@ class Episode:
                 "world_T_cam": self.world_T_cam.tolist()}
 
 
-#: Largest ``|R^T R - I|`` accepted for a submitted rotation (then re-orthonormalised).
-ESTIMATE_ROTATION_ATOL = 1e-3
-
-
 def check_estimate(index: int, obj_id: int, R: Any, t_m: Any, score: float, known: set[int]) -> LoggedEstimate:
-    """A validated (finite, rotation orthonormal within ``ESTIMATE_ROTATION_ATOL`` with det > 0,
-    known ``obj_id``) and re-orthonormalised estimate; else :class:`InvalidAction` naming the field."""
+    """A validated (finite, a rotation up to rounding, known ``obj_id``) estimate, its rotation projected
+    onto the nearest rotation (the one rule, :func:`brave6d.core.transforms.nearest_rotation`); else
+    :class:`InvalidAction` naming the field."""
     where = f"estimates.{index}"
     if int(obj_id) not in known:
         raise InvalidAction(f"{where}.obj_id: unknown object id {obj_id} (known: {sorted(known)})", f"{where}.obj_id")
@@ -320,12 +317,11 @@ def check_estimate(index: int, obj_id: int, R: Any, t_m: Any, score: float, know
     for name, values in (("R", rot), ("t_m", t), ("score", np.asarray([score], dtype=np.float64))):
         if not np.all(np.isfinite(values)):
             raise InvalidAction(f"{where}.{name}: must be finite (NaN and inf are refused)", f"{where}.{name}")
-    err = float(np.max(np.abs(rot.T @ rot - np.eye(3))))
-    det = float(np.linalg.det(rot))
-    if err > ESTIMATE_ROTATION_ATOL or det <= 0:
-        raise InvalidAction(f"{where}.R: not a rotation (must be orthonormal with det +1: max |R^T R - I| = "
-                            f"{err:.3g}, det = {det:.3g})", f"{where}.R")
-    return LoggedEstimate(obj_id=int(obj_id), R=orthonormalize(rot), t_m=t, score=float(score))
+    try:
+        rot, _ = nearest_rotation(rot, f"{where}.R")
+    except NonRigidTransformError as exc:
+        raise InvalidAction(str(exc), f"{where}.R") from None
+    return LoggedEstimate(obj_id=int(obj_id), R=rot, t_m=t, score=float(score))
 
 
 def check_pose(world_T_cam: Any, field: str) -> Matrix4:

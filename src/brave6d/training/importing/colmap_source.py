@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from brave6d.core.errors import DataError
+from brave6d.core.errors import DataError, NonRigidTransformError
 from brave6d.core.names import contained_path
-from brave6d.core.transforms import invert
+from brave6d.core.transforms import invert, nearest_rigid
 from brave6d.training.importing.source import CAMERA_MODELS, ImportedCapture, SourceCamera, SourceFrame
 
 _MODEL_FILES = ("cameras", "images", "points3D")
@@ -88,7 +88,11 @@ def read_colmap(source: Path | str, images: Path | str | None = None) -> Importe
         cam_T_world[:3, :4] = image.cam_from_world().matrix()
         if not np.isfinite(cam_T_world).all():
             raise DataError(f"{model}: image {image.name}: pose is not finite")
-        frames.append(SourceFrame(image.name, path, cameras[image.camera_id], invert(cam_T_world)))
+        try:  # a normalised quaternion is a rotation to the last digit; the rule is the same for every source
+            cam_T_world, correction = nearest_rigid(cam_T_world, f"{model}: image {image.name}: pose")
+        except NonRigidTransformError as exc:
+            raise DataError(str(exc)) from None
+        frames.append(SourceFrame(image.name, path, cameras[image.camera_id], invert(cam_T_world), correction))
     ids = sorted(rec.point3D_ids())
     points = np.array([rec.points3D[i].xyz for i in ids], np.float64).reshape(-1, 3)
     colors = np.array([rec.points3D[i].color for i in ids], np.uint8).reshape(-1, 3)

@@ -40,6 +40,7 @@ from brave6d.core.errors import DataError
 from brave6d.core.layout import FrameLog, FrameRecord, SceneDir, write_spec
 from brave6d.core.progress import progress
 from brave6d.core.spec import SceneSpec
+from brave6d.core.transforms import ROTATION_TOLERANCE
 from brave6d.training.importing.image_io import Resampler, read_frame_image
 from brave6d.training.importing.scene_files import write_import_record, write_imported_points
 from brave6d.training.importing.source import (MAX_COORDINATE, ImportedCapture, SourceCamera, SourceFrame,
@@ -354,7 +355,16 @@ def _record(capture: ImportedCapture, options: ImportOptions, plan: CameraPlan, 
         "world": change.to_json(),
         "points": {"count": n_points, "from": capture.points_from},
         "pose_check": _check_record(check, reference, options.pose_check),
+        "rotations": _rotation_record(capture.frames),
     }
+
+
+def _rotation_record(frames: list[SourceFrame]) -> dict[str, Any]:
+    """The largest correction the projection onto the nearest rotation made, and its frame."""
+    worst = max(frames, key=lambda f: f.rotation_correction)
+    return {"rule": "each rotation projected onto the nearest rotation (SVD) when max |R^T R - I| <= tolerance",
+            "tolerance": ROTATION_TOLERANCE, "largest_correction": worst.rotation_correction,
+            "largest_correction_frame": worst.name, "correction": "max |R_projected - R| over the entries"}
 
 
 def _check_record(check: PoseCheck | None, reference: tuple[NDArray[np.float64], str] | None,

@@ -3,7 +3,8 @@
 - ``capture/import.json`` (``brave6d-import/1``): where the capture came from and what was done to
   it: the source's format, frames imported and missing, the camera and how the images were
   written, the world change (scale, up, centre; :class:`~.world.WorldChange`) and how each was
-  chosen, the pose check's result.
+  chosen, the pose check's result, and ``rotations``: the largest correction the projection of the
+  source's rotations onto the nearest rotation made, and its frame.
 - ``capture/imported_points.ply``: the source's sparse points in the scene's world (metres),
   binary little-endian PLY with ``x y z`` (float32) and ``red green blue`` (uint8): the pose
   check's reference at the start of every training of the scene.

@@ -124,12 +124,15 @@ class SourceCamera:
 
 @dataclass(frozen=True)
 class SourceFrame:
-    """One frame: its name in the source, its image file, its camera and ``world_T_cam`` (OpenCV axes)."""
+    """One frame: its name in the source, its image file, its camera and ``world_T_cam`` (OpenCV axes,
+    its rotation projected onto the nearest rotation; ``rotation_correction`` = ``max |R' - R|``, what
+    that moved, :func:`brave6d.core.transforms.nearest_rotation`)."""
 
     name: str
     image: Path
     camera: SourceCamera
     world_T_cam: NDArray[np.float64]
+    rotation_correction: float = 0.0
 
 
 @dataclass

@@ -39,7 +39,7 @@ from brave6d.core.errors import DataError, NonRigidTransformError
 from brave6d.core.names import contained_path
 from brave6d.core.ply_check import check_ply_header
 from brave6d.core.png_check import check_image_header
-from brave6d.core.transforms import check_rigid
+from brave6d.core.transforms import nearest_rigid
 from brave6d.training.importing.source import ImportedCapture, SourceCamera, SourceFrame
 from brave6d.training.pose_check import GL_TO_CV
 
@@ -83,7 +83,8 @@ def read_transforms(source: Path | str) -> ImportedCapture:
             missing.append(name)
             continue
         camera = _camera({**shared, **{k: item[k] for k in _CAMERA_KEYS if k in item}}, image, f"{where} ({name})")
-        frames.append(SourceFrame(name, image, camera, _pose(item.get("transform_matrix"), f"{where} ({name})")))
+        pose, correction = _pose(item.get("transform_matrix"), f"{where} ({name})")
+        frames.append(SourceFrame(name, image, camera, pose, correction))
     points, colors, points_from = _points(path, data)
     details: dict[str, Any] = {k: data[k] for k in ("aabb_scale", "scale", "offset", "applied_transform") if k in data}
     with_depth = sum(1 for f in listed if isinstance(f, dict) and ("depth_file_path" in f or "depth_path" in f))
@@ -177,21 +178,21 @@ def _image_size(image: Path) -> tuple[int, int]:
     return check_image_header(image)
 
 
-def _pose(value: Any, where: str) -> NDArray[np.float64]:
-    """``world_T_cam`` with OpenCV axes from an OpenGL camera-to-world ``transform_matrix`` (4x4 or 3x4)."""
+def _pose(value: Any, where: str) -> tuple[NDArray[np.float64], float]:
+    """``world_T_cam`` with OpenCV axes from an OpenGL camera-to-world ``transform_matrix`` (4x4 or 3x4),
+    its rotation projected onto the nearest rotation (:func:`brave6d.core.transforms.nearest_rigid`:
+    the files carry rounding), and the correction that made."""
     try:
         m = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise DataError(f"{where}.transform_matrix: a 4x4 matrix of numbers is required") from None
-    if m.shape == (3, 4):
-        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
-    if m.shape != (4, 4):
+    if m.shape not in ((3, 4), (4, 4)):
         raise DataError(f"{where}.transform_matrix: a 4x4 (or 3x4) matrix is required, got shape {m.shape}")
     try:
-        check_rigid(m, "transform_matrix", atol=1e-4)
+        T, correction = nearest_rigid(m, f"{where}.transform_matrix")
     except NonRigidTransformError as exc:
-        raise DataError(f"{where}: {exc}") from None
-    return m @ GL_TO_CV
+        raise DataError(str(exc)) from None
+    return T @ GL_TO_CV, correction
 
 
 def _points(path: Path, data: dict[str, Any]) -> tuple[NDArray[np.float64], NDArray[np.uint8], str | None]:
