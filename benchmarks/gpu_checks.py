@@ -102,7 +102,7 @@ def prepare_learned(dest: Path, images: int = 30, workers: int = 1) -> dict[str,
     read (Open3D ray casting, here) and saved by :func:`save_learned_bundle`."""
     import shutil
 
-    from brave6d.annotation.models import write_bop_models
+    from brave6d.annotation import write_bop_models
     from brave6d.core.spec import load_scene_spec
     from brave6d.evaluation.learned import load_training_data
     from brave6d.synth import SynthOptions, synthesize

@@ -8,8 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from brave6d.annotation import dump_bop_json, load_mesh
-from brave6d.annotation.models import model_info_mm, write_ply
+from brave6d.annotation import write_bop_models
 from brave6d.core.spec import load_scene_spec
 from brave6d.evaluation.learned.model_file import LearnedModel, ObjectNorm
 from brave6d.evaluation.learned.networks import CoordinateNet, Detector
@@ -23,18 +22,9 @@ def write_models(spec_path: Path, out: Path) -> Path:
     """``out/obj_XXXXXX.ply`` (mm) and ``models_info.json`` of the spec's objects, obj_ids by sorted
     name (as ``brave6d synth`` and the BOP export number a scene's objects)."""
     spec = load_scene_spec(spec_path)
-    out.mkdir(parents=True, exist_ok=True)
-    info = {}
-    for obj_id, obj in enumerate(sorted(spec.objects, key=lambda o: o.name), start=1):
-        mesh = load_mesh(spec_path.parent / obj.mesh)
-        vertices_mm = np.asarray(mesh.vertices) * obj.scale * 1000.0
-        write_ply(out / f"obj_{obj_id:06d}.ply", vertices_mm, mesh.faces, mesh.vertex_colors)
-        sym = obj.symmetry
-        discrete = [np.asarray(m, dtype=np.float64).reshape(4, 4) for m in (sym.discrete if sym else [])]
-        continuous = [(axis, (0.0, 0.0, 0.0)) for axis in (sym.continuous_axes if sym else [])]
-        info[obj_id] = model_info_mm(vertices_mm, discrete, continuous)
-    (out / "models_info.json").write_text(dump_bop_json(info))
-    return out
+    objects = sorted(spec.objects, key=lambda o: o.name)
+    return write_bop_models(out, [(obj_id, spec_path.parent / o.mesh, float(o.scale), o.symmetry)
+                                  for obj_id, o in enumerate(objects, start=1)])
 
 
 def untrained_model(preset: LearnPreset, obj_ids: list[int], seed: int = 0) -> LearnedModel:

@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.annotation.bop_format import BOP19_MIN_VISIB_FRACT, BopLayout, bop_cam_K, dump_bop_json
-from brave6d.annotation.models import MeshData, load_mesh, model_info_mm, write_ply
+from brave6d.annotation.models import MeshData, load_mesh, write_bop_model
 from brave6d.annotation.staging import link_or_copy
 from brave6d.annotation.store import Annotation, AnnotatedObject, load_annotation
 from brave6d.annotation.visibility import InstanceMasks, MaskRenderer, bbox_xywh
@@ -195,16 +195,9 @@ def _write_models(layout: BopLayout, objects: list[AnnotatedObject], models_m: d
     """``models/obj_XXXXXX.ply`` in mm and ``models_info.json`` (symmetry translations in mm)."""
     info: dict[int, Any] = {}
     for obj in objects:
-        mesh = models_m[obj.obj_id]
-        vertices_mm = mesh.vertices * 1000.0
-        write_ply(layout.model_path(obj.obj_id), vertices_mm, mesh.faces, mesh.vertex_colors)
-        discrete = []
-        for m in obj.symmetries_discrete:
-            m_mm = np.array(m, dtype=np.float64)
-            m_mm[:3, 3] *= 1000.0
-            discrete.append(m_mm)
-        continuous = [(s.axis, tuple(1000.0 * o for o in s.offset)) for s in obj.symmetries_continuous]
-        info[obj.obj_id] = model_info_mm(vertices_mm, discrete, continuous)
+        info[obj.obj_id] = write_bop_model(layout.model_path(obj.obj_id), models_m[obj.obj_id], 1.0,
+                                           obj.symmetries_discrete,
+                                           [(s.axis, tuple(1000.0 * o for o in s.offset)) for s in obj.symmetries_continuous])
     atomic_write_text(layout.models_info_path, dump_bop_json(info))
 
 

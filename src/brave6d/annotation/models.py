@@ -127,6 +127,21 @@ def model_info_mm(vertices_mm: ArrayLike, symmetries_discrete: Sequence[ArrayLik
     return info
 
 
+def write_bop_model(ply_path: Path | str, mesh: MeshData, scale_to_m: float, discrete_m: Sequence[ArrayLike],
+                    continuous_mm: Sequence[tuple[Any, Any]]) -> dict[str, Any]:
+    """Write ``ply_path`` (``mesh`` scaled to metres by ``scale_to_m``, stored in mm) and return its
+    ``models_info.json`` entry; ``discrete_m``: symmetry transforms (4x4 or flattened, translation in
+    metres); ``continuous_mm``: ``(axis, offset in mm)`` pairs."""
+    vertices_mm = np.asarray(mesh.vertices, dtype=np.float64) * float(scale_to_m) * 1000.0
+    write_ply(ply_path, vertices_mm, mesh.faces, mesh.vertex_colors)
+    discrete = []
+    for m in discrete_m:
+        m_mm = np.array(m, dtype=np.float64).reshape(4, 4)
+        m_mm[:3, 3] *= 1000.0
+        discrete.append(m_mm)
+    return model_info_mm(vertices_mm, discrete, list(continuous_mm))
+
+
 def write_bop_models(models_dir: Path | str, objects: Sequence[tuple[int, Path, float, Any]]) -> Path:
     """A BOP models folder for an object library: ``obj_XXXXXX.ply`` (mm) and ``models_info.json``.
 
@@ -142,15 +157,9 @@ def write_bop_models(models_dir: Path | str, objects: Sequence[tuple[int, Path, 
     out.mkdir(parents=True, exist_ok=True)
     info: dict[int, Any] = {}
     for obj_id, mesh_file, scale, symmetry in objects:
-        mesh = load_mesh(mesh_file, f"object {obj_id}")
-        vertices_mm = np.asarray(mesh.vertices, dtype=np.float64) * float(scale) * 1000.0
-        write_ply(out / f"obj_{obj_id:06d}.ply", vertices_mm, mesh.faces, mesh.vertex_colors)
-        discrete = []
-        for flat in (symmetry.discrete if symmetry is not None else []):
-            m = np.asarray(flat, dtype=np.float64).reshape(4, 4).copy()
-            m[:3, 3] *= 1000.0
-            discrete.append(m)
-        continuous = [(axis, (0.0, 0.0, 0.0)) for axis in (symmetry.continuous_axes if symmetry is not None else [])]
-        info[obj_id] = model_info_mm(vertices_mm, discrete, continuous)
+        info[obj_id] = write_bop_model(out / f"obj_{obj_id:06d}.ply", load_mesh(mesh_file, f"object {obj_id}"), scale,
+                                       symmetry.discrete if symmetry is not None else [],
+                                       [(axis, (0.0, 0.0, 0.0)) for axis in
+                                        (symmetry.continuous_axes if symmetry is not None else [])])
     atomic_write_text(out / "models_info.json", dump_bop_json(info))
     return out

@@ -54,6 +54,12 @@ def finite(values: Sequence[Any]) -> np.ndarray:
     return arr[np.isfinite(arr)]
 
 
+def mean(values: Sequence[Any]) -> float:
+    """Mean of the finite values (NaN when there are none)."""
+    a = finite(values)
+    return float(np.mean(a)) if a.size else math.nan
+
+
 def median(values: Sequence[Any]) -> float:
     """Median of the finite values (NaN when there are none)."""
     a = finite(values)

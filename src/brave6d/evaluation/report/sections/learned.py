@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from brave6d.core.progress import format_table
-from brave6d.evaluation.report.common import RenderedSection, fmt, nan_note, num, paired_standard_error, provenance
+from brave6d.evaluation.report.common import RenderedSection, fmt, mean, nan_note, num, paired_standard_error, provenance
 from brave6d.evaluation.report.common import settings_line, unavailable
 from brave6d.evaluation.report.measurements import Measurement, describe_machine, file_stamp, machine_info, run_sweep
 from brave6d.evaluation.report.plots import legend, new_figure, plot_line, save_figure
@@ -45,8 +45,7 @@ LABELS = {"true_box_rgb": "true box, RGB", "true_box_depth": "true box, + depth"
           "detected_depth": "detected, + depth"}
 #: A per-ring gap (captured - splat) at least this large is named (the issue's realism limit).
 LARGE_GAP = 0.1
-#: Where the demo keeps its learned model and where ``benchmarks/learned_cost.py`` writes for the report.
-MODEL_SUBDIR = Path("learned") / "model"
+#: Where ``benchmarks/learned_cost.py`` writes for the report (beside the demo's ``learned/model``).
 COST_FILE = Path("learned") / "cost" / "learned_cost.json"
 
 
@@ -109,7 +108,9 @@ def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
     from brave6d.training import resolve_device
 
     workdir, scene, store = inputs.workdir, inputs.scene, inputs.store
-    model_dir = Path(inputs.learned_model) if inputs.learned_model is not None else Path(workdir) / MODEL_SUBDIR
+    from brave6d.evaluation.learned.demo import demo_model_dir
+
+    model_dir = Path(inputs.learned_model) if inputs.learned_model is not None else demo_model_dir(workdir)
     model_path, card_path = model_dir / "model.pt", model_dir / "card.json"
     if (absent := store.require(NAME, [(model_path, "learn (brave6d learn train / the demo's learn stage)"),
                                        (card_path, "learn (the model's card)")])) is not None:
@@ -179,11 +180,6 @@ def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
 
 
 # ----------------------------------------------------------------------------- aggregation
-def _mean(values: Sequence[Any]) -> float:
-    finite = [num(v) for v in values if math.isfinite(num(v))]
-    return float(sum(finite) / len(finite)) if finite else math.nan
-
-
 def ring_rows(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per distance level: targets, and per variant AR on captured frames, on splat renders, the gap ± SE."""
     by_level: dict[int, list[dict[str, Any]]] = defaultdict(list)
@@ -193,14 +189,12 @@ def ring_rows(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     for level, pts in sorted(by_level.items()):
         tg = [o for p in pts for o in p.get("objects", []) if f"real_{VARIANTS[0]}_ar" in o]
         row: dict[str, Any] = {"level": level, "distance_m": num(pts[0].get("distance_m")), "views": len(pts),
-                               "targets": len(tg), "bbox_diag_px": _mean([o.get("bbox_diag_px") for o in tg])}
+                               "targets": len(tg), "bbox_diag_px": mean([o.get("bbox_diag_px") for o in tg])}
         for v in VARIANTS:
             real, splat = [num(o.get(f"real_{v}_ar")) for o in tg], [num(o.get(f"splat_{v}_ar")) for o in tg]
-            row[f"real_{v}"], row[f"splat_{v}"] = _mean(real), _mean(splat)
+            row[f"real_{v}"], row[f"splat_{v}"] = mean(real), mean(splat)
             row[f"gap_{v}"] = row[f"real_{v}"] - row[f"splat_{v}"]
             row[f"gap_se_{v}"] = paired_standard_error([a - b for a, b in zip(real, splat)])
-            row[f"refused_{v}"] = sum(o.get(f"real_{v}_cause") is not None for o in tg) + \
-                sum(o.get(f"splat_{v}_cause") is not None for o in tg)
         rows.append(row)
     return rows
 
@@ -346,7 +340,7 @@ def advice_learned(rows: list[dict[str, Any]], card: Mapping[str, Any]) -> str:
         se = num(worst[f"gap_se_{main}"])
         if math.isfinite(se) and abs(num(worst[f"gap_{main}"])) + 2.0 * se >= LARGE_GAP:
             text += f" (within two standard errors, ±{fmt(2.0 * se, 2)}, the largest could still reach {fmt(LARGE_GAP, 2)})"
-    rgb, depth = _mean([r["real_true_box_rgb"] for r in ok]), _mean([r[f"real_{main}"] for r in ok])
+    rgb, depth = mean([r["real_true_box_rgb"] for r in ok]), mean([r[f"real_{main}"] for r in ok])
     text += f". Depth lifts its captured-frame AR from {fmt(rgb, 2)} (RGB only) to {fmt(depth, 2)}."
     held = num((card.get("heldout") or {}).get("pose_ar", {}).get(main))
     if math.isfinite(held) and math.isfinite(depth):

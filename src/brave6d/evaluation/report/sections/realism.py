@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.core.progress import format_table
-from brave6d.evaluation.report.common import RenderedSection, fmt, median, nan_note, num, paired_standard_error, provenance
+from brave6d.evaluation.report.common import RenderedSection, fmt, mean, median, nan_note, num, paired_standard_error, provenance
 from brave6d.evaluation.report.common import settings_line, unavailable
 from brave6d.evaluation.report.measurements import Measurement, describe_machine, machine_info, run_sweep
 from brave6d.evaluation.report.plots import legend, new_figure, plot_line, save_figure
@@ -154,9 +154,8 @@ def targets(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def mean_of(rows: Sequence[dict[str, Any]], key: str) -> float:
-    values = [num(r.get(key)) for r in rows]
-    values = [v for v in values if math.isfinite(v)]
-    return float(np.mean(values)) if values else math.nan
+    """Mean of the finite ``key`` values of ``rows``."""
+    return mean([r.get(key) for r in rows])
 
 
 def unresolved(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
