@@ -78,6 +78,13 @@ def summary(result) -> str:  # type: ignore[no-untyped-def]
              f"scale: {result.world.scale:.6g} m per source unit, from {result.world.scale_from}",
              f"up: {result.world.up_from}; the source's up {[round(float(v), 4) for v in result.world.up_source]} is now +z",
              f"origin: {result.world.centre_from}"]
+    if "images_downscaled" in rec["source"]:
+        lines.append(rec["source"]["images_downscaled"])
+    rotations = rec.get("rotations", {})
+    if rotations.get("largest_correction"):
+        lines.append(f"rotations: the largest projection onto a rotation moved an entry by "
+                     f"{rotations['largest_correction']:.2g} ({rotations.get('largest_correction_frame')}; "
+                     f"tolerance {rotations['tolerance']:g})")
     if result.missing:
         shown = ", ".join(result.missing[:10]) + (f" and {len(result.missing) - 10} more" if len(result.missing) > 10 else "")
         lines.append(f"{len(result.missing)} frames listed without an image file, left out: {shown}")

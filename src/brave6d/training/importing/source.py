@@ -31,6 +31,9 @@ from brave6d.core.png_check import MAX_PIXELS
 #: metres after the world change (a float32 PLY holds it exactly enough; a tabletop is a metre).
 MAX_COORDINATE = 1e6
 
+#: The whole factors a folder of resampled copies may have (nerfstudio writes images_2, _4, _8).
+DOWNSCALE_FACTORS = (2, 3, 4, 8, 16)
+
 #: COLMAP camera models -> their parameter names (COLMAP's order).
 CAMERA_MODELS: dict[str, tuple[str, ...]] = {
     "SIMPLE_PINHOLE": ("f", "cx", "cy"),
@@ -113,6 +116,14 @@ class SourceCamera:
         return PinholeCamera(self.width, self.height, float(fx), float(fy), p["cx"] - CORNER_ORIGIN_OFFSET,
                              p["cy"] - CORNER_ORIGIN_OFFSET)
 
+    def scaled_to(self, width: int, height: int) -> SourceCamera:
+        """The same camera for images resampled to ``width`` x ``height``: focal lengths and principal
+        point scale with the size (exact in COLMAP's corner-origin convention), distortion does not."""
+        sx, sy = width / self.width, height / self.height
+        factor = {"f": sx, "fx": sx, "cx": sx, "fy": sy, "cy": sy}
+        params = tuple(v * factor.get(name, 1.0) for name, v in zip(CAMERA_MODELS[self.model], self.params))
+        return SourceCamera(self.model, width, height, params)
+
     def same_as(self, other: SourceCamera, rtol: float = 1e-6) -> bool:
         return (self.model == other.model and (self.width, self.height) == (other.width, other.height)
                 and np.allclose(self.params, other.params, rtol=rtol, atol=1e-9))
@@ -180,3 +191,16 @@ def check_pose(pose: NDArray[np.float64], where: str, units: str) -> None:
         shown = ", ".join(f"{v:.6g}" for v in m[:3, 3])
         raise DataError(f"{where}: the camera position ({shown}) has a coordinate beyond +-{MAX_COORDINATE:g} "
                         f"{units} (MAX_COORDINATE)")
+
+
+def downscale_factor(camera: SourceCamera, image_size: tuple[int, int]) -> int | None:
+    """The whole factor ``k`` that makes ``image_size`` (width, height) the camera's size divided by
+    ``k`` (rounded, or floored as ffmpeg and ns-process-data do), 1 for the camera's own size, None
+    when neither: copies resampled by another amount or another camera's images."""
+    if tuple(image_size) == (camera.width, camera.height):
+        return 1
+    for k in DOWNSCALE_FACTORS:
+        sizes = {(round(camera.width / k), round(camera.height / k)), (camera.width // k, camera.height // k)}
+        if tuple(image_size) in sizes:
+            return k
+    return None

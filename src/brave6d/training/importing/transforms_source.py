@@ -19,6 +19,8 @@ What the file holds, as those tools write it:
   ``p_ngp = cycle(p * scale + offset)``, axes cycled x->z, y->x, z->y). With no points, the centre of
   that unit cube is the scene's reference for the pose check.
 
+Images resampled by a whole factor (nerfstudio's ``images_2/4/8`` convention, or photos shrunk in
+place) are taken with the intrinsics scaled to them, and ``details["images_downscaled"]`` says so.
 A frame whose image file is missing is reported in ``missing`` (by its ``file_path``), not an error.
 Every path the file names (``file_path``, ``ply_file_path``) must lie inside the file's folder
 (:func:`brave6d.core.names.contained_path`: no absolute path, no ``..``, no symbolic link); the
@@ -40,7 +42,7 @@ from brave6d.core.names import contained_path
 from brave6d.core.ply_check import check_ply_header
 from brave6d.core.png_check import check_image_header
 from brave6d.core.transforms import nearest_rigid
-from brave6d.training.importing.source import ImportedCapture, SourceCamera, SourceFrame
+from brave6d.training.importing.source import ImportedCapture, SourceCamera, SourceFrame, downscale_factor
 from brave6d.training.pose_check import GL_TO_CV
 
 _CAMERA_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2", "camera_model",
@@ -70,6 +72,7 @@ def read_transforms(source: Path | str) -> ImportedCapture:
     if not isinstance(listed, list) or not listed:
         raise DataError(f"{path}: field 'frames': a non-empty list of frames is required")
     frames, missing = [], []
+    downscaled: dict[int, int] = {}  # factor -> frames whose images are resampled copies
     shared = {k: data[k] for k in _CAMERA_KEYS if k in data}
     for i, item in enumerate(listed):
         where = f"{path}: field 'frames[{i}]'"
@@ -83,10 +86,17 @@ def read_transforms(source: Path | str) -> ImportedCapture:
             missing.append(name)
             continue
         camera = _camera({**shared, **{k: item[k] for k in _CAMERA_KEYS if k in item}}, image, f"{where} ({name})")
+        camera, factor = _fit_to_image(camera, image)
+        if factor > 1:
+            downscaled[factor] = downscaled.get(factor, 0) + 1
         pose, correction = _pose(item.get("transform_matrix"), f"{where} ({name})")
         frames.append(SourceFrame(name, image, camera, pose, correction))
     points, colors, points_from = _points(path, data)
     details: dict[str, Any] = {k: data[k] for k in ("aabb_scale", "scale", "offset", "applied_transform") if k in data}
+    if downscaled:
+        details["images_downscaled"] = "; ".join(
+            f"{n} frames' images are 1/{k} of the size the file describes: their intrinsics were scaled by 1/{k}"
+            for k, n in sorted(downscaled.items()))
     with_depth = sum(1 for f in listed if isinstance(f, dict) and ("depth_file_path" in f or "depth_path" in f))
     if with_depth:
         details["depth_not_imported"] = f"{with_depth} frames list a depth map; depth is not imported (RGB only)"
@@ -156,6 +166,18 @@ def _camera(values: dict[str, Any], image: Path, where: str) -> SourceCamera:
         return _source_camera("FULL_OPENCV", width, height,
                               (fx, fy, cx, cy, k["k1"], k["k2"], k["p1"], k["p2"], k["k3"], 0.0, 0.0, 0.0), where)
     return _source_camera("OPENCV", width, height, (fx, fy, cx, cy, k["k1"], k["k2"], k["p1"], k["p2"]), where)
+
+
+def _fit_to_image(camera: SourceCamera, image: Path) -> tuple[SourceCamera, int]:
+    """The camera for the image file as it is: when the file is a copy resampled by a whole factor
+    (:func:`.source.downscale_factor`, e.g. nerfstudio's ``images_4`` or photos shrunk in place),
+    the file's ``w``/``h`` and intrinsics describe the originals and are scaled to the copy. Any other
+    size is left for the image reader to refuse, naming the frame and both sizes."""
+    size = _image_size(image)
+    factor = downscale_factor(camera, size)
+    if factor is None or factor == 1:
+        return camera, 1
+    return camera.scaled_to(*size), factor
 
 
 def _source_camera(model: str, width: int, height: int, params: tuple[float, ...], where: str) -> SourceCamera:
