@@ -153,7 +153,7 @@ def test_quaternions_near_unit_are_normalised_others_refused(tmp_path_factory, q
     path = tmp_path_factory.mktemp("q") / "q.yaml"
     path.write_text(f"x: 0\ny: 0\nz: 0\nqx: {qv[0]!r}\nqy: {qv[1]!r}\nqz: {qv[2]!r}\nqw: {qv[3]!r}\n")
     if abs(scale - 1.0) > 1e-3:
-        with pytest.raises(PoseFileError, match="not 1"):
+        with pytest.raises(PoseFileError, match="not a unit quaternion"):
             read_pose_file(path)
         return
     T = read_pose_file(path)

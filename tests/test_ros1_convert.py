@@ -28,7 +28,7 @@ def test_set_pose_needs_the_world_frame_and_a_unit_quaternion() -> None:
     np.testing.assert_allclose(T[:3, 3], [0.3, 0.1, 0.35])
     with pytest.raises(BraveError, match=r"^/brave6d_sim/set_pose: header.frame_id must be 'world'.*'map'"):
         convert.world_T_cam_from(_pose_stamped("map"), "/brave6d_sim/set_pose")
-    with pytest.raises(BraveError, match=r"^/brave6d_sim/set_pose: pose.orientation: .*not unit"):
+    with pytest.raises(BraveError, match=r"^/brave6d_sim/set_pose: pose.orientation: .*not a unit quaternion"):
         convert.world_T_cam_from(_pose_stamped("world", q=(0.0, 0.0, 0.0, 0.0)), "/brave6d_sim/set_pose")
 
 

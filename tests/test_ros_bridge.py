@@ -199,9 +199,9 @@ def test_camera_info_arrays_and_rep118_depth() -> None:
 
 
 def test_pose_to_matrix_refuses_bad_quaternions_naming_the_field() -> None:
-    with pytest.raises(BraveError, match=r"set_pose\.orientation: .*not unit"):
+    with pytest.raises(BraveError, match=r"set_pose\.orientation: .*not a unit quaternion"):
         pose_to_matrix([0, 0, 0], [0, 0, 0, 0], "set_pose")
-    with pytest.raises(BraveError, match=r"est\.orientation: must be 4 finite"):
+    with pytest.raises(BraveError, match=r"est\.orientation: a quaternion \(x, y, z, w\) must be 4 finite"):
         pose_to_matrix([0, 0, 0], [0, 0, math.nan, 1], "est")
     with pytest.raises(BraveError, match=r"p\.position"):
         pose_to_matrix([0, math.inf, 0], [0, 0, 0, 1], "p")

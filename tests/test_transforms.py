@@ -24,7 +24,9 @@ from brave6d.core.transforms import (
     matrix_to_tum,
     matrix_to_ur_pose,
     nearest_rigid,
+    QUATERNION_TOLERANCE,
     nearest_rotation,
+    unit_quaternion,
     orthonormalize,
     parse_tum_line,
     pose_distance,
@@ -247,3 +249,31 @@ def test_tum_line_accepts_commas() -> None:
     frame, T = parse_tum_line("3, 0.1, 0.2, 0.3, 0, 0, 0, 1")
     assert frame == "3"
     np.testing.assert_allclose(T[:3, 3], [0.1, 0.2, 0.3])
+
+
+@given(q=st.tuples(*[st.floats(allow_nan=True, allow_infinity=True, width=64)] * 4))
+def test_unit_quaternion_normalises_near_unit_and_names_the_rest(q: tuple) -> None:
+    """The one quaternion rule: within QUATERNION_TOLERANCE of norm 1 -> exactly unit, finite; any
+    other four numbers (zero, NaN, inf, far off) -> one line naming where, the order and the norm."""
+    arr = np.asarray(q)
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm = float(np.linalg.norm(arr))
+    if np.all(np.isfinite(arr)) and abs(norm - 1.0) <= QUATERNION_TOLERANCE:
+        unit = unit_quaternion(arr, "pose.orientation")
+        assert np.all(np.isfinite(unit)) and np.linalg.norm(unit) == pytest.approx(1.0, abs=1e-12)
+        np.testing.assert_allclose(unit, arr / norm)
+    else:
+        with pytest.raises(NonRigidTransformError) as info:
+            unit_quaternion(arr, "pose.orientation", "w, x, y, z")
+        message = str(info.value)
+        assert message.startswith("pose.orientation: ") and "(w, x, y, z)" in message and "\n" not in message
+
+
+@pytest.mark.parametrize("scale, accepted", [(1.0 + 0.9e-3, True), (1.0 - 0.9e-3, True), (1.0011, False), (0.0, False)])
+def test_unit_quaternion_tolerance_edges(scale: float, accepted: bool) -> None:
+    q = scale * np.array([0.5, 0.5, 0.5, 0.5])
+    if accepted:
+        np.testing.assert_allclose(unit_quaternion(q, "q"), [0.5] * 4, atol=1e-15)
+    else:
+        with pytest.raises(NonRigidTransformError, match="not a unit quaternion"):
+            unit_quaternion(q, "q")

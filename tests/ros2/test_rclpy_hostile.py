@@ -79,7 +79,7 @@ def test_hostile_requests_are_refused_and_the_node_keeps_serving(agent: Ros2Agen
     assert "estimates.0.pose.position" in refused(agent, "submit", srv.Submit.Request(estimates=[nan]))
     skew = ObjectEstimate(obj_id=1, pose=_pose(np.eye(4)))
     skew.pose.orientation.w = 3.0
-    assert "not unit" in refused(agent, "submit", srv.Submit.Request(estimates=[skew]))
+    assert "not a unit quaternion" in refused(agent, "submit", srv.Submit.Request(estimates=[skew]))
 
     # after all that, a normal episode
     view = agent.set_pose(look_at((0.30, 0.10, 0.35), (0.46, 0.0, 0.01)))

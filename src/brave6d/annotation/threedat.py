@@ -91,7 +91,7 @@ from numpy.typing import NDArray
 
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import BraveError, DataError, NonRigidTransformError
-from brave6d.core.transforms import check_rigid, nearest_rigid, parse_tum_line
+from brave6d.core.transforms import check_rigid, nearest_rigid, parse_tum_line, unit_quaternion
 from brave6d.core.yaml_io import read_yaml
 
 Matrix4 = NDArray[np.float64]
@@ -110,8 +110,6 @@ DEFAULTS_WHEN_MISSING = {"scenes_dir": "scenes", "rgb_dir": "rgb", "depth_dir": 
 RGB_SUFFIXES = (".png", ".jpg")
 #: Config file names tried, in order, when a folder is given.
 CONFIG_NAMES = ("dataset.yaml", "config.yaml", "dataset.yml", "config.yml")
-#: Largest accepted deviation of a camera-pose quaternion's norm from 1.
-QUAT_NORM_TOL = 1e-3
 
 
 class ThreeDatError(DataError):
@@ -675,7 +673,7 @@ def read_camera_poses(path: Path | str, root: Path | None = None) -> list[Camera
     """Parse ``groundtruth_handeye.txt``: ``id tx ty tz qx qy qz qw`` per line (spaces or commas).
 
     Blank lines and lines starting with ``#`` are skipped. Quaternions must have unit norm
-    (within :data:`QUAT_NORM_TOL`); frame ids must be unique.
+    (within :data:`brave6d.core.transforms.QUATERNION_TOLERANCE`); frame ids must be unique.
     """
     pose_path = Path(path)
     shown = _show(pose_path, root) if root is not None else str(pose_path)
@@ -697,10 +695,10 @@ def read_camera_poses(path: Path | str, root: Path | None = None) -> list[Camera
         except NonRigidTransformError as exc:
             raise ThreeDatError(f"{where}: {exc}") from None
         q = np.asarray([float(x) for x in line.replace(",", " ").split()[4:8]])
-        norm = float(np.linalg.norm(q))
-        if abs(norm - 1.0) > QUAT_NORM_TOL:
-            raise ThreeDatError(f"{where}: frame {frame_id!r}: quaternion (qx qy qz qw) has norm {norm:.6g}, "
-                                "expected a unit quaternion")
+        try:
+            unit_quaternion(q, f"{where}: frame {frame_id!r}", "qx qy qz qw")
+        except NonRigidTransformError as exc:
+            raise ThreeDatError(str(exc)) from None
         if frame_id in seen:
             raise ThreeDatError(f"{where}: frame {frame_id!r} appears twice (also line {seen[frame_id]})")
         seen[frame_id] = number

@@ -11,7 +11,8 @@ Three pose forms, each in text (``.txt``/``.csv``), NumPy (``.npy``), JSON or YA
   (ROS ``geometry_msgs/Pose``), ``translation`` + ``rotation`` (ROS transforms). Seven bare
   numbers need the quaternion order, ``xyzw`` (ROS, scipy, Eigen's coefficients) or ``wxyz``
   (this project's code, Eigen's constructor, MATLAB): :class:`PoseFormat` ``quaternion_order``.
-  A quaternion whose norm is off 1 by more than 1e-3 is refused; a smaller error is normalised;
+  A quaternion whose norm is off 1 by more than 1e-3 is refused; a smaller error is normalised
+  (:func:`brave6d.core.transforms.unit_quaternion`);
 * **UR pose vector** ``[x, y, z, rx, ry, rz]`` (rotation vector, radians; what a UR controller
   and ur-rtde's ``getActualTCPPose`` report): only with ``kind="ur"``, because six numbers (or keys
   ``rx ry rz``) are as often roll-pitch-yaw angles, which are not read.
@@ -39,7 +40,7 @@ from scipy.spatial.transform import Rotation
 from brave6d.core.errors import DataError, NonRigidTransformError
 from brave6d.core.json_input import read_json_file
 from brave6d.core.npy_check import read_npy
-from brave6d.core.transforms import nearest_rigid
+from brave6d.core.transforms import nearest_rigid, unit_quaternion
 from brave6d.core.yaml_io import read_yaml
 
 __all__ = [
@@ -56,8 +57,6 @@ Array = NDArray[np.float64]
 POSE_FORMATS = ("auto", "matrix", "quaternion", "ur")
 QUATERNION_ORDERS = ("xyzw", "wxyz")
 POSE_EXTENSIONS = (".txt", ".csv", ".npy", ".json", ".yaml", ".yml")
-#: A quaternion norm this far from 1 is refused (closer: normalised).
-UNIT_TOLERANCE = 1e-3
 #: Pose files are small; larger ones are refused before they are read.
 MAX_FILE_BYTES = 16 << 20
 _NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?|[+-]?(nan|inf|infinity)", re.IGNORECASE)
@@ -119,13 +118,13 @@ def _matrix(values: Array, where: str, fmt: PoseFormat) -> Array:
 
 
 def _quaternion(position: Array, q: Array, order: str, where: str, fmt: PoseFormat) -> Array:
-    norm = float(np.linalg.norm(q))
-    if not abs(norm - 1.0) <= UNIT_TOLERANCE:
-        raise PoseFileError(f"{where}: quaternion {np.round(q, 6).tolist()} ({order}) has norm {norm:.6g}, not 1 "
-                            f"(within {UNIT_TOLERANCE:g}): not a rotation")
-    xyzw = q if order == "xyzw" else np.r_[q[1:], q[0]]
+    try:
+        unit = unit_quaternion(q, where, order)
+    except NonRigidTransformError as exc:
+        raise PoseFileError(str(exc)) from None
+    xyzw = unit if order == "xyzw" else np.r_[unit[1:], unit[0]]
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(xyzw / norm).as_matrix()
+    T[:3, :3] = Rotation.from_quat(xyzw).as_matrix()
     T[:3, 3] = position * fmt.scale
     return T
 

@@ -114,6 +114,27 @@ def nearest_rigid(T: ArrayLike, where: str, atol: float = ROTATION_TOLERANCE) ->
     return make_transform(R, arr[:3, 3]), correction
 
 
+#: A quaternion made elsewhere whose norm is off 1 by at most this is normalised; further off, it is
+#: refused: printed quaternions carry rounding far below it, while a zero quaternion (ROS's
+#: uninitialised default) or a vector that is not a rotation is far above it.
+QUATERNION_TOLERANCE = 1e-3
+
+
+def unit_quaternion(q: ArrayLike, where: str, order: str = "x, y, z, w",
+                    atol: float = QUATERNION_TOLERANCE) -> NDArray[np.float64]:
+    """``q`` normalised, when it is four finite numbers of norm 1 within ``atol``
+    (:data:`QUATERNION_TOLERANCE`); else :class:`NonRigidTransformError` in one line naming ``where``,
+    the order the numbers were read in, and the norm. The one rule for quaternions from outside."""
+    arr = np.asarray(q, dtype=np.float64).reshape(-1)
+    if arr.size != 4 or not np.all(np.isfinite(arr)):
+        raise NonRigidTransformError(f"{where}: a quaternion ({order}) must be 4 finite numbers, got {arr.tolist()}")
+    norm = float(np.linalg.norm(arr))
+    if not abs(norm - 1.0) <= atol:
+        raise NonRigidTransformError(f"{where}: quaternion {np.round(arr, 6).tolist()} ({order}) has norm {norm:.6g}: "
+                                     f"not a unit quaternion (within {atol:g})")
+    return arr / norm
+
+
 def make_transform(R: ArrayLike, t: ArrayLike) -> Matrix4:
     """Assemble ``[[R, t], [0, 1]]`` as float64 (no rigidity check; see :func:`check_rigid`)."""
     T = np.eye(4)

@@ -20,14 +20,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from brave6d.core.errors import BraveError
+from brave6d.core.errors import BraveError, NonRigidTransformError
+from brave6d.core.transforms import unit_quaternion
 
 FRAME_WORLD = "world"
 FRAME_CAMERA_OPTICAL = "brave6d_camera_optical_frame"
 #: Namespace of the ground-truth object frames (``gt/<name>_<gt_id>``).
 GT_FRAME_PREFIX = "gt/"
-#: Largest ``| |q| - 1 |`` accepted for an incoming quaternion (then normalised); tf2 warns past 1e-2.
-QUATERNION_NORM_ATOL = 1e-3
 #: Depth images' value for "no data" (REP 118: NaN is an invalid or missing measurement).
 DEPTH_NO_DATA = float("nan")
 
@@ -48,20 +47,19 @@ def matrix_to_pose(T: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float6
 
 def pose_to_matrix(position: ArrayLike, quaternion_xyzw: ArrayLike, field: str = "pose") -> NDArray[np.float64]:
     """(position xyz, quaternion x, y, z, w) -> 4x4 rigid transform. The quaternion must be finite
-    with unit norm within ``QUATERNION_NORM_ATOL`` (a zero quaternion, ROS's uninitialised
+    with unit norm within :data:`brave6d.core.transforms.QUATERNION_TOLERANCE` (a zero quaternion, ROS's uninitialised
     default, is refused naming ``field``); it is normalised before use."""
     p = np.asarray(position, dtype=np.float64).reshape(-1)
     q = np.asarray(quaternion_xyzw, dtype=np.float64).reshape(-1)
     if p.size != 3 or not np.all(np.isfinite(p)):
         raise BraveError(f"{field}.position: must be 3 finite numbers (metres), got {p.tolist()}")
-    if q.size != 4 or not np.all(np.isfinite(q)):
-        raise BraveError(f"{field}.orientation: must be 4 finite numbers (x, y, z, w), got {q.tolist()}")
-    norm = float(np.linalg.norm(q))
-    if abs(norm - 1.0) > QUATERNION_NORM_ATOL:
-        raise BraveError(f"{field}.orientation: quaternion {q.tolist()} is not unit (norm {norm:.6g}; "
-                         f"a zero quaternion is ROS's uninitialised default)")
+    try:
+        unit = unit_quaternion(q, f"{field}.orientation")
+    except NonRigidTransformError as exc:
+        zero = "; a zero quaternion is ROS's uninitialised default" if np.all(q == 0) else ""
+        raise BraveError(f"{exc}{zero}") from None
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
+    T[:3, :3] = Rotation.from_quat(unit).as_matrix()
     T[:3, 3] = p
     return T
 

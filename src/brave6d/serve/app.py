@@ -82,7 +82,7 @@ from starlette.websockets import WebSocketClose
 
 from brave6d.core.errors import BraveError, NonRigidTransformError, validation_error_field
 from brave6d.core.json_input import JsonInputError, JsonLimits, parse_json
-from brave6d.core.transforms import look_at, make_transform, nearest_rigid
+from brave6d.core.transforms import look_at, make_transform, nearest_rigid, quat_wxyz_to_matrix, unit_quaternion
 from brave6d.serve.bundle import Bundle, load_bundle
 from brave6d.serve.limits import (
     MAX_ANGULAR_SPEED_RAD_S,
@@ -110,9 +110,6 @@ from brave6d.serve.schema import EncodedImage, ErrorMessage, ObservationMessage,
 log = logging.getLogger(__name__)
 
 VIEWER_DIR = Path(__file__).resolve().parent / "viewer"
-
-QUAT_NORM_TOL = 1e-3
-
 
 # ----------------------------------------------------------------------------- request models
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -186,13 +183,11 @@ class PoseIn(_Strict):
                 return look_at(self.look_at.eye, self.look_at.target, self.look_at.up)
             except NonRigidTransformError as exc:
                 raise ValueError(str(exc)) from None
-        q = np.asarray(self.quaternion_wxyz, dtype=np.float64)
-        norm = float(np.linalg.norm(q))
-        if abs(norm - 1.0) > QUAT_NORM_TOL:
-            raise ValueError(f"quaternion_wxyz must be a unit quaternion (w, x, y, z), got norm {norm:.6g}")
-        from brave6d.core.transforms import quat_wxyz_to_matrix
-
-        return make_transform(quat_wxyz_to_matrix(q / norm), self.position)
+        try:
+            q = unit_quaternion(self.quaternion_wxyz, "quaternion_wxyz", "w, x, y, z")
+        except NonRigidTransformError as exc:
+            raise ValueError(str(exc)) from None
+        return make_transform(quat_wxyz_to_matrix(q), self.position)
 
 
 class ObsOptions(_Strict):
