@@ -21,6 +21,7 @@ from brave6d.core.calibration_io import camera_poses, read_intrinsics
 from brave6d.core.errors import DataError
 from brave6d.core.layout import SceneDir
 from brave6d.training import get_preset, train_scene
+from brave6d.training.importing.colmap_source import read_colmap
 from brave6d.training.importing.source import SourceCamera, downscale_factor
 
 SAMPLE = Path(__file__).parent / "data" / "real" / "fox"
@@ -136,6 +137,7 @@ def test_the_fox_trains_in_miniature(fox_scene: SceneDir, tmp_path: Path) -> Non
     assert metrics["steps"] == 60 and metrics["n_holdout_views"] >= 3
     assert np.isfinite(metrics["holdout"]["psnr"]) and 8.0 < metrics["holdout"]["psnr"] < 60.0
     assert fox_scene.splat_ply_path.is_file()
+    assert metrics["pose_check"].startswith("pose check: 50 of 50 cameras see")  # printed by `brave6d train`
 
 
 def test_photos_of_another_size_are_refused_naming_the_frame(tmp_path: Path, fox_json: dict) -> None:
@@ -181,3 +183,14 @@ def test_a_size_that_is_no_whole_factor_is_not_taken_for_a_copy() -> None:
     assert downscale_factor(camera, (250, 480)) is None and downscale_factor(camera, (1920, 1080)) is None
     with pytest.raises(DataError):
         camera.scaled_to(0, 480)
+
+
+def test_a_model_without_images_names_each_place_looked_once(tmp_path: Path) -> None:
+    import shutil
+
+    shutil.copytree(SAMPLE / "sparse", tmp_path / "capture" / "sparse")
+    with pytest.raises(DataError, match="no images folder found") as info:
+        read_colmap(tmp_path / "capture")
+    message = str(info.value)
+    looked = message.split("(looked in ")[1].split(")")[0].split(", ")
+    assert len(looked) == len(set(looked)) == 2, message

@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def summary(metrics: dict) -> str:
-    """The holdout table: overall and per distance level."""
+    """The run's line, the pose check's result and the holdout table (overall and per distance level)."""
     hold = metrics["holdout"]
     rows = [(f"level {lvl} ({m['distance_m']:.2f} m)", m["n_views"], f"{m['psnr']:.2f}", f"{m['ssim']:.4f}")
             for lvl, m in hold["per_level"].items()]
@@ -75,4 +75,6 @@ def summary(metrics: dict) -> str:
             f"{metrics['train_time_s']:.0f} s of training ({metrics['train_cpu_s']:.0f} CPU-s; "
             f"{metrics['total_time_s']:.0f} s in all), "
             f"{metrics['num_gaussians']} Gaussians, {metrics['images']['metrics_resolution']} images")
+    if metrics.get("pose_check"):
+        head += "\n" + metrics["pose_check"]
     return head + "\n" + format_table(["holdout", "views", "PSNR [dB]", "SSIM"], rows)

@@ -1,7 +1,8 @@
 """``train_scene``: the whole training stage on one scene directory.
 
 Frames + calibrated poses -> initial points (COLMAP, ``sparse/0``) -> training -> holdout
-evaluation -> ``splat/point_cloud.ply`` (Inria layout), ``splat/holdout.json`` (the views held
+evaluation -> ``splat/point_cloud.ply`` (Inria layout), ``splat/point_cloud_viewer.ply`` (the same
+Gaussians for other 3DGS viewers: the 3D filter baked in), ``splat/holdout.json`` (the views held
 out: :mod:`brave6d.training.holdout`), ``splat/metrics.json``, ``splat/curves.png``,
 ``splat/holdout/<view>.png`` (render | ground truth) and ``splat/checkpoints/``.
 
@@ -32,7 +33,7 @@ from brave6d.training.colmap_init import ColmapOptions
 from brave6d.training.device import resolve_device
 from brave6d.training.holdout import HOLDOUT_PROTOCOL, write_holdout
 from brave6d.training.holdout_eval import evaluate_holdout, peak_memory_mb, plot_curves, write_metrics
-from brave6d.training.ply import write_ply
+from brave6d.training.ply import write_ply, write_viewer_ply
 from brave6d.training.presets import Preset
 from brave6d.training.trainer import Trainer, list_checkpoints
 from brave6d.training.training_run import train
@@ -42,7 +43,7 @@ log = logging.getLogger(__name__)
 
 def training_outputs(scene: SceneDir) -> tuple[Path, ...]:
     """What a training run writes into ``splat/``: a new run moves the previous run's aside."""
-    return (scene.checkpoints_dir, scene.splat_ply_path, scene.holdout_split_path, scene.metrics_path,
+    return (scene.checkpoints_dir, scene.splat_ply_path, scene.splat_viewer_ply_path, scene.holdout_split_path, scene.metrics_path,
             scene.curves_path, scene.holdout_images_dir)
 
 
@@ -139,7 +140,9 @@ def train_scene(
     t_init = t_loaded - t_start + trained.init_seconds
     result = trained.result
     model = trained.model
-    ply_path = write_ply(scene.splat_ply_path, model.to_splat())
+    splat = model.to_splat()
+    ply_path = write_ply(scene.splat_ply_path, splat)
+    write_viewer_ply(scene.splat_viewer_ply_path, splat)
     t_eval = time.perf_counter()
     shutil.rmtree(scene.holdout_images_dir, ignore_errors=True)  # --resume: no stale views from an earlier split
     holdout = evaluate_holdout(model, data, scene.holdout_images_dir)
@@ -175,6 +178,7 @@ def train_scene(
                   if scene.import_record_path.is_file() else
                   "base_T_tcp (robot) @ tcp_T_cam (calibrated, calibration/handeye.json)"),
         "init": trained.init,
+        "pose_check": trained.pose_check,
         "outputs": {"ply": str(ply_path), "curves": str(scene.curves_path),
                     "holdout_split": str(scene.holdout_split_path),
                     "holdout_images": str(scene.holdout_images_dir), "checkpoints": str(ckpt_dir),

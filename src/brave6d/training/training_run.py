@@ -54,6 +54,7 @@ class TrainedSplat:
     init: dict[str, Any]  # where the initial points came from: {"source", "points", ...} or {"source": "checkpoint"}
     init_seconds: float  # initial points and model construction
     holdout_curve: list[HoldoutPoint] = field(default_factory=list)
+    pose_check: str | None = None  # the pose check's one-line result, or why it was skipped or not run
 
     @property
     def steps(self) -> int:
@@ -93,8 +94,11 @@ def train(
     (:func:`brave6d.training.check_scene_poses`; a :class:`~brave6d.training.PoseCheckError` names the
     views that do not).
     """
+    pose_check = "pose check: not run (--skip-pose-check)"
     if check_poses:
-        check_scene_poses(data, scene)
+        checked = check_scene_poses(data, scene)
+        pose_check = checked.summary() if checked is not None else (
+            "pose check: skipped (no imported points, no capture target, and the optical axes do not meet)")
     dev = resolve_device(device)
     set_seed(preset.seed)
     t0 = time.perf_counter()
@@ -124,4 +128,4 @@ def train(
     trainer = Trainer(data, model, preset, checkpoint_dir, dev, show_progress=show_progress,
                       eval_callback=score_holdout, checkpoint_hook=checkpoint_hook)
     result = trainer.train(resume=continuing)
-    return TrainedSplat(trainer.model, result, init_info, init_seconds, curve)
+    return TrainedSplat(trainer.model, result, init_info, init_seconds, curve, pose_check)

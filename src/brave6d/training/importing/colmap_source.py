@@ -43,7 +43,7 @@ def find_model(source: Path) -> Path:
 
 def find_images(source: Path, model: Path) -> Path:
     """The images folder: ``<source>/images``, else ``images`` next to the model's ``sparse`` folder."""
-    candidates = [source / "images", model.parent.parent / "images", model.parent / "images"]
+    candidates = list(dict.fromkeys([source / "images", model.parent.parent / "images", model.parent / "images"]))
     for folder in candidates:
         if folder.is_symlink():
             raise DataError(f"{folder}: the images folder is a symbolic link; an import reads only its source's "
