@@ -23,6 +23,9 @@
 * Renders run under ``torch.no_grad`` and one lock: the CPU kernels use every core, and
   concurrent renders would only slow each other down. ``render_ms`` is the wall time of the
   rasterizer call (including waiting for the GPU), ``queue_ms`` the wait for the lock.
+* Many views at once (:meth:`SplatRenderer.render_batch`, N agents on one scene): one rasterizer
+  call for all cameras over the union of their culled sets, each view bit for bit its
+  :meth:`SplatRenderer.render`; :meth:`SplatRenderer.render` is a batch of one.
 * Depth is z-depth in the camera frame (metres, float32) with a depth sensor's semantics: 0 (= no
   data, the project's depth convention) where the splat's alpha is below ``depth_alpha_min`` (no
   surface there), and with ``depth_mode="median"`` (the bundles' default) the depth of the one
@@ -35,6 +38,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -52,6 +56,16 @@ DEPTH_MODES = ("median", "expected")
 
 if TYPE_CHECKING:
     from brave6d.training import SplatData
+
+
+def _check_poses(world_T_cams: Sequence[NDArray[np.float64]] | NDArray[np.float64]) -> NDArray[np.float64]:
+    """``world_T_cams`` as a [C, 4, 4] float64 array (C >= 1), or a BraveError saying what is wrong."""
+    poses = np.asarray(world_T_cams, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or poses.shape[0] == 0:
+        raise BraveError(f"render_batch: world_T_cams must be one or more 4x4 poses ([C, 4, 4]), got shape {poses.shape}")
+    if not np.all(np.isfinite(poses)):
+        raise BraveError("render_batch: world_T_cams holds NaN or inf")
+    return poses
 
 
 def effective_sh_degree(shN: NDArray[np.float32]) -> int:
@@ -179,47 +193,91 @@ class SplatRenderer:
                far: float = 100.0, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
                depth_alpha_min: float = 0.5, depth_mode: str = "median") -> RenderOutput:
         """Render the view of an undistorted pinhole ``camera`` at ``world_T_cam`` (OpenCV axes)."""
+        return self.render_batch([world_T_cam], camera, near=near, far=far, background=background,
+                                 depth_alpha_min=depth_alpha_min, depth_mode=depth_mode)[0]
+
+    def render_batch(self, world_T_cams: Sequence[NDArray[np.float64]] | NDArray[np.float64],
+                     camera: PinholeCamera, *, near: float = 0.01, far: float = 100.0,
+                     background: tuple[float, float, float] = (0.0, 0.0, 0.0), depth_alpha_min: float = 0.5,
+                     depth_mode: str = "median") -> list[RenderOutput]:
+        """Render one view per pose in ``world_T_cams`` ([C, 4, 4] or a list) in one rasterizer call.
+
+        Why: many agents on one scene. The rasterizer takes C cameras at once: on CUDA gsplat
+        batches them, on the CPU the Numba kernels run their ``prange`` loops over all cameras'
+        Gaussians and tiles together, so C small images keep every core busy. The Gaussians drawn
+        are the union of the cameras' culled sets (lossless for each camera, see :meth:`_cull`),
+        so each view equals :meth:`render` of its pose. ``render_ms`` and ``queue_ms`` are the
+        whole batch's (shared by its views); ``gaussians_drawn`` is each camera's own culled count.
+        """
         import torch
 
-        from brave6d.training import rasterize
-
+        poses = _check_poses(world_T_cams)
         if camera.has_distortion:
             raise BraveError("the renderer draws pinhole images: give an undistorted camera")
         if depth_mode not in DEPTH_MODES:
             raise BraveError(f"render: depth_mode must be one of {', '.join(DEPTH_MODES)}, got {depth_mode!r}")
         dev = self.means.device
-        viewmat = torch.as_tensor(invert(world_T_cam), dtype=torch.float32, device=dev)
+        viewmats = torch.as_tensor(np.stack([invert(T) for T in poses]), dtype=torch.float32, device=dev)
         K = torch.as_tensor(camera.K, dtype=torch.float32, device=dev)
-        bg = torch.as_tensor(background, dtype=torch.float32, device=dev).reshape(1, 3)
+        bg = torch.as_tensor(background, dtype=torch.float32, device=dev).reshape(1, 3).expand(len(poses), 3)
         t_wait = time.perf_counter()
         with self.lock:
             t0 = time.perf_counter()
             with torch.no_grad():
-                if self.cull:
-                    idx = self._cull(viewmat, K, camera.width, camera.height, near, far)
-                    if idx.numel() == 0:  # nothing in view: keep one Gaussian so shapes stay valid
-                        idx = torch.zeros(1, dtype=torch.long, device=dev)
-                    args = (self.means[idx], self.quats[idx], self.scales[idx], self.opacities[idx],
-                            self.colors[idx])
-                else:
-                    args = (self.means, self.quats, self.scales, self.opacities, self.colors)
-                median = depth_mode == "median"
-                colors, depth, alpha, info = rasterize(
-                    *args, viewmat[None], K[None], camera.width, camera.height,
-                    sh_degree=self.sh_degree, near_plane=near, far_plane=far, backgrounds=bg,
-                    backend="cuda" if dev.type == "cuda" else "cpu", median_depth=median,
-                    antialiased=self.antialiasing == "mip")
-                if median:
-                    depth = info["median_depth"]
-                rgb = (colors[0].clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8)
-                a = alpha[0, :, :, 0]
-                d = torch.where(a >= depth_alpha_min, depth[0, :, :, 0], torch.zeros_like(a))
-                d = torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0)
-                rgb_np, d_np, a_np = rgb.cpu().numpy(), d.float().cpu().numpy(), a.float().cpu().numpy()
+                args, drawn = self._gaussians_for(viewmats, K, camera, near, far)
+                images = self._rasterize(args, viewmats, K.expand(len(poses), 3, 3).contiguous(), camera, near, far,
+                                         bg.contiguous(), depth_alpha_min, depth_mode)
             t1 = time.perf_counter()
-            self.renders += 1
-        drawn = int(args[0].shape[0])
-        return RenderOutput(rgb_np, d_np, a_np, (t1 - t0) * 1000.0, (t0 - t_wait) * 1000.0, drawn)
+            self.renders += len(poses)
+        ms, queue = (t1 - t0) * 1000.0, (t0 - t_wait) * 1000.0
+        return [RenderOutput(rgb, d, a, ms, queue, n) for (rgb, d, a), n in zip(images, drawn)]
+
+    def _gaussians_for(self, viewmats, K, camera: PinholeCamera, near: float, far: float  # type: ignore[no-untyped-def]
+                       ) -> tuple[tuple, list[int]]:  # type: ignore[type-arg]
+        """The Gaussians to rasterize for these cameras (the union of their culled sets, all of them
+        without culling) and each camera's own count (at least 1: an empty view keeps one Gaussian
+        so that shapes stay valid; it cannot touch that view's image)."""
+        import torch
+
+        if not self.cull:
+            every = (self.means, self.quats, self.scales, self.opacities, self.colors)
+            return every, [self.num_gaussians] * int(viewmats.shape[0])
+        dev = self.means.device
+        keep = torch.zeros(self.num_gaussians, dtype=torch.bool, device=dev)
+        drawn = []
+        for viewmat in viewmats:
+            idx = self._cull(viewmat, K, camera.width, camera.height, near, far)
+            if idx.numel() == 0:  # nothing in view: keep one Gaussian so shapes stay valid
+                idx = torch.zeros(1, dtype=torch.long, device=dev)
+            keep[idx] = True
+            drawn.append(int(idx.numel()))
+        union = torch.nonzero(keep, as_tuple=False).squeeze(1)
+        return (self.means[union], self.quats[union], self.scales[union], self.opacities[union],
+                self.colors[union]), drawn
+
+    def _rasterize(self, args: tuple, viewmats, Ks, camera: PinholeCamera, near: float, far: float,  # type: ignore[no-untyped-def, type-arg]
+                   bg, depth_alpha_min: float, depth_mode: str
+                   ) -> list[tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.float32]]]:
+        """One rasterizer call for all cameras -> per camera (rgb uint8, depth with the sensor's
+        0 = no data, alpha), as host arrays."""
+        import torch
+
+        from brave6d.training import rasterize
+
+        median = depth_mode == "median"
+        colors, depth, alpha, info = rasterize(
+            *args, viewmats, Ks, camera.width, camera.height,
+            sh_degree=self.sh_degree, near_plane=near, far_plane=far, backgrounds=bg,
+            backend="cuda" if self.means.device.type == "cuda" else "cpu", median_depth=median,
+            antialiased=self.antialiasing == "mip")
+        if median:
+            depth = info["median_depth"]
+        rgb = (colors.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+        a = alpha[..., 0]
+        d = torch.where(a >= depth_alpha_min, depth[..., 0], torch.zeros_like(a))
+        d = torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0).float().cpu().numpy()
+        a_np = a.float().cpu().numpy()
+        return [(rgb[i], d[i], a_np[i]) for i in range(rgb.shape[0])]
 
     def warm_up(self, camera: PinholeCamera, world_T_cam: NDArray[np.float64]) -> float:
         """One render (loads the compiled kernels / CUDA context); returns its milliseconds."""
