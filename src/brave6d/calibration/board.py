@@ -194,7 +194,7 @@ def _label_lines(spec: BoardSpec, width_m: float, height_m: float, chars_per_lin
     legacy = "yes" if spec.legacy_pattern else "no"
     text = (
         f"ChArUco {spec.squares_x} x {spec.squares_y} squares, square {spec.square_length_m * 1000:.2f} mm, "
-        f"marker {spec.marker_length_m * 1000:.2f} mm, {spec.dictionary}, legacy pattern: {legacy}. "
+        f"marker {spec.marker_length_m * 1000:.2f} mm, {spec.dictionary_label}, legacy pattern: {legacy}. "
         f"Pattern {width_m * 1000:.1f} x {height_m * 1000:.1f} mm. Print at 100 % (no fit-to-page) and "
         "measure the bar. Board frame: origin at the top-left outer corner, x right, y down."
     )

@@ -21,7 +21,7 @@ from brave6d.core.run_context import RunContext, Rig
 ACTIONS = ("plan", "capture", "intrinsics", "handeye", "all", "folder")
 #: Options of 'calibrate folder' only (their defaults are None, so a scene action can refuse them).
 FOLDER_ONLY = ("poses", "out", "match", "pose_format", "quaternion_order", "pose_unit", "squares_x", "squares_y",
-               "square_mm", "marker_mm", "dictionary", "intrinsics", "refine_intrinsics")
+               "square_mm", "marker_mm", "dictionary", "dictionary_file", "intrinsics", "refine_intrinsics")
 #: Today's acceptance limits of a hand-eye result (HandEyeOptions' defaults).
 DEFAULT_MAX_SIGMA_MM, DEFAULT_MAX_SIGMA_DEG = 2.0, 0.2
 
@@ -89,7 +89,14 @@ def _configure_folder(group: argparse._ArgumentGroup) -> None:
     group.add_argument("--marker-mm", type=float_in(0.0, 2000.0, low_open=True), default=None, metavar="MM",
                        help=f"ArUco marker side (default {board['marker_length_m'] * 1000:g})")
     group.add_argument("--dictionary", default=None, metavar="NAME",
-                       help=f"ArUco dictionary (default {board['dictionary']})")
+                       help=f"ArUco dictionary: a predefined OpenCV name (default {board['dictionary']}) or "
+                            "custom:MARKERSxBITS:SEED, generated as OpenCV's extendDictionary(MARKERS, BITS, "
+                            "randomSeed=SEED) and older OpenCV's Dictionary_create(MARKERS, BITS, SEED) make it "
+                            "(e.g. custom:17x5:42)")
+    group.add_argument("--dictionary-file", type=Path, default=None, metavar="FILE",
+                       help="ArUco dictionary from a file in OpenCV's format (written by "
+                            "cv2.aruco.Dictionary.writeDictionary: nmarkers, markersize, marker_0 ...); "
+                            "instead of --dictionary")
     group.add_argument("--legacy-pattern", action="store_true",
                        help="a board printed before OpenCV 4.6 with an even number of rows")
     group.add_argument("--intrinsics", type=Path, default=None, metavar="FILE",
@@ -135,6 +142,17 @@ def _handeye_options(args: argparse.Namespace):  # noqa: ANN202 - HandEyeOptions
     return HandEyeOptions(max_sigma_mm=args.max_sigma_mm, max_sigma_deg=args.max_sigma_deg)
 
 
+def _dictionary_fields(args: argparse.Namespace) -> dict[str, object]:
+    """BoardSpec's dictionary fields from --dictionary / --dictionary-file (a file made absolute;
+    both given is the board's own one-line error)."""
+    fields: dict[str, object] = {}
+    if args.dictionary is not None:
+        fields["dictionary"] = args.dictionary
+    if args.dictionary_file is not None:
+        fields["dictionary_file"] = args.dictionary_file.absolute()
+    return fields
+
+
 def _board(args: argparse.Namespace):  # noqa: ANN202 - BoardSpec
     from pydantic import ValidationError
 
@@ -146,7 +164,7 @@ def _board(args: argparse.Namespace):  # noqa: ANN202 - BoardSpec
             squares_x=args.squares_x or defaults.squares_x, squares_y=args.squares_y or defaults.squares_y,
             square_length_m=(args.square_mm / 1000.0) if args.square_mm else defaults.square_length_m,
             marker_length_m=(args.marker_mm / 1000.0) if args.marker_mm else defaults.marker_length_m,
-            dictionary=args.dictionary or defaults.dictionary, legacy_pattern=args.legacy_pattern)
+            legacy_pattern=args.legacy_pattern, **_dictionary_fields(args))
     except ValidationError as exc:
         problems = "; ".join(e["msg"].removeprefix("Value error, ") for e in exc.errors())
         raise BraveError(f"calibrate folder: board options: {problems}") from None

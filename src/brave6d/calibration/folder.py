@@ -128,8 +128,9 @@ def detect_folder(inputs: PosedImages, board: BoardSpec) -> tuple[list[CharucoDe
         raise DataError(
             f"{inputs.images[0].parent}: the board ({board.squares_x} x {board.squares_y} ChArUco squares, "
             f"{board.square_length_m * 1000:g} mm squares, {board.marker_length_m * 1000:g} mm markers, "
-            f"{board.dictionary}) was detected in none of the {len(inputs.images)} images (e.g. {inputs.images[0].name}); "
-            "check --squares-x/--squares-y (squares, not inner corners), --dictionary and --legacy-pattern")
+            f"{board.dictionary_label}) was detected in none of the {len(inputs.images)} images "
+            f"(e.g. {inputs.images[0].name}); check --squares-x/--squares-y (squares, not inner corners), "
+            "--dictionary (or --dictionary-file) and --legacy-pattern")
     return detections, size
 
 

@@ -137,9 +137,10 @@ def detect_board_frames(scene: SceneDir, spec: SceneSpec) -> BoardFrames:
     if frames.with_board == 0:
         board = spec.board
         raise BoardNotFoundError(
-            f"{layout.frames_path}: the board ({board.squares_x} x {board.squares_y} ChArUco, {board.dictionary}) "
-            f"was detected in none of the {len(records)} board frames (e.g. {layout.root / records[0].rgb}); check "
-            "that it is in view and lit, and that field 'board' of scene.yaml matches the printed board")
+            f"{layout.frames_path}: the board ({board.squares_x} x {board.squares_y} ChArUco, "
+            f"{board.dictionary_label}) was detected in none of the {len(records)} board frames "
+            f"(e.g. {layout.root / records[0].rgb}); check that it is in view and lit, and that field 'board' "
+            "of scene.yaml matches the printed board")
     return frames
 
 

@@ -15,12 +15,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from brave6d.core.aruco_dictionary import aruco_dictionary
 from brave6d.core.spec import BoardSpec
 
 
 def make_charuco_board(spec: BoardSpec) -> cv2.aruco.CharucoBoard:
-    """The ``cv2.aruco.CharucoBoard`` described by ``spec``."""
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, spec.dictionary))
+    """The ``cv2.aruco.CharucoBoard`` described by ``spec`` (its dictionary predefined, custom or from a file)."""
+    dictionary = aruco_dictionary(spec.dictionary, spec.dictionary_file)
     board = cv2.aruco.CharucoBoard(
         (spec.squares_x, spec.squares_y), spec.square_length_m, spec.marker_length_m, dictionary
     )

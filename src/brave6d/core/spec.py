@@ -14,7 +14,16 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    ValidationError,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import SpecError, validation_error_field
@@ -208,7 +217,11 @@ class BoardSpec(_Strict):
     squares_y: Annotated[int, Field(ge=3, le=50)] = 5
     square_length_m: PositiveFloat = 0.03
     marker_length_m: PositiveFloat = 0.022
+    #: A predefined OpenCV name, or ``custom:MARKERSxBITS:SEED`` (``cv2.aruco.extendDictionary``).
     dictionary: str = "DICT_5X5_100"
+    #: An OpenCV dictionary file (``Dictionary.writeDictionary``); replaces ``dictionary``. In a
+    #: scene spec a relative path is relative to the spec file (and stored resolved).
+    dictionary_file: Path | None = None
     legacy_pattern: bool = False
     pose: Pose = Pose()
 
@@ -216,11 +229,33 @@ class BoardSpec(_Strict):
     def _check(self) -> BoardSpec:
         if self.marker_length_m >= self.square_length_m:
             raise ValueError("marker_length_m must be smaller than square_length_m")
-        import cv2  # local: keeps spec loading light for the CLI's --help
+        # local: keeps spec loading light for the CLI's --help (the module loads OpenCV)
+        from brave6d.core.aruco_dictionary import aruco_dictionary, check_dictionary
 
-        if not self.dictionary.startswith("DICT_") or not hasattr(cv2.aruco, self.dictionary):
-            raise ValueError(f"unknown ArUco dictionary {self.dictionary!r} (e.g. DICT_5X5_100)")
+        if self.dictionary_file is not None and "dictionary" in self.model_fields_set:
+            raise ValueError("give dictionary or dictionary_file, not both")
+        check_dictionary(self.dictionary)
+        needed = self.squares_x * self.squares_y // 2
+        have = int(aruco_dictionary(self.dictionary, self.dictionary_file).bytesList.shape[0])
+        if have < needed:
+            raise ValueError(f"a {self.squares_x} x {self.squares_y} ChArUco board has {needed} markers, "
+                             f"its dictionary ({self.dictionary_label}) only {have}")
         return self
+
+    @model_serializer(mode="wrap")
+    def _omit_no_file(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        """No ``dictionary_file`` key when there is none (boards dump and fingerprint as before it
+        existed), no ``dictionary`` key when there is one (the dump validates again)."""
+        data = handler(self)
+        data.pop("dictionary_file" if self.dictionary_file is None else "dictionary", None)
+        return data
+
+    @property
+    def dictionary_label(self) -> str:
+        """The dictionary in words: its name, ``custom dictionary of N markers ...`` or its file."""
+        from brave6d.core.aruco_dictionary import describe_dictionary
+
+        return describe_dictionary(self.dictionary, self.dictionary_file)
 
 
 # ----------------------------------------------------------------------------- simulation effects
@@ -331,6 +366,18 @@ class SceneSpec(_Strict):
     simulation: SimulationSpec | None = None
 
     source: Path | None = Field(default=None, exclude=True, description="file this spec was read from")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _resolve_dictionary_file(cls, data: Any) -> Any:
+        """A relative ``board.dictionary_file`` names a file beside the spec: made absolute before
+        the board is checked, so the spec still finds it once copied into a scene directory."""
+        board = data.get("board") if isinstance(data, dict) else None
+        name = board.get("dictionary_file") if isinstance(board, dict) else None
+        if not isinstance(name, str | Path) or Path(name).is_absolute():
+            return data
+        base = Path(data["source"]).parent if isinstance(data.get("source"), str | Path) else Path.cwd()
+        return {**data, "board": {**board, "dictionary_file": str(base / name)}}
 
     @model_validator(mode="after")
     def _unique_names(self) -> SceneSpec:
