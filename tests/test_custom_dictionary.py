@@ -36,6 +36,7 @@ from brave6d.core.aruco_dictionary import (
     write_dictionary_file,
 )
 from brave6d.core.board import make_charuco_board
+from brave6d.core.dataset_spec import scene_fingerprint
 from brave6d.core.errors import SpecError
 from brave6d.core.spec import BoardSpec, Pose, load_scene_spec, parse_scene_spec, spec_to_yaml
 from brave6d.core.transforms import invert
@@ -159,6 +160,9 @@ def test_scene_spec_names_a_dictionary_file_beside_it(demo_spec_path: Path, tmp_
     assert spec.board.dictionary_file == tmp_path / "board_dict.yml"  # resolved beside the spec
     again = parse_scene_spec(yaml.safe_load(spec_to_yaml(spec)), tmp_path / "elsewhere" / "scene.yaml")
     assert again.board == spec.board  # stored resolved: a copy elsewhere still finds it
+    before = scene_fingerprint(spec, {})  # the file's content is part of what the scene is made from
+    write_dictionary_file(cv2.aruco.extendDictionary(17, 5, randomSeed=43), tmp_path / "board_dict.yml")
+    assert scene_fingerprint(load_scene_spec(spec_file), {}) != before
     data["board"]["dictionary_file"] = "missing.yml"
     with pytest.raises(SpecError, match=r"field 'board': dictionary file .*missing.yml: cannot be read"):
         parse_scene_spec(data, spec_file)

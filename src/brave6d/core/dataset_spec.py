@@ -340,6 +340,8 @@ def scene_fingerprint(spec: SceneSpec, obj_ids: dict[str, int]) -> str:
     for key in ("static_meshes", "objects"):
         for item, model in zip(data.get(key, []), getattr(spec, key)):
             item["mesh"] = file_sha256(spec.resolve(model.mesh).resolve())
+    if spec.board.dictionary_file is not None:  # the board's markers are in the file: its content counts
+        data["board"]["dictionary_file"] = file_sha256(spec.board.dictionary_file)
     text = json.dumps({"spec": data, "obj_ids": obj_ids}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
