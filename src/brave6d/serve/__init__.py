@@ -22,7 +22,8 @@ a name is used). Other stages import only these names:
   ``SceneCacheFull``, ``SceneUnavailable`` (503:
   a scene whose files cannot be located, unpacked or verified, even after ``SceneSource.refresh``);
 - the client: ``BraveClient``, ``PoseEstimate``, ``ServerError``, ``Observation``, ``StepResult``,
-  ``decode_observation``, and ``BraveEnv`` (a ``gymnasium.Env``);
+  ``decode_observation``, and ``BraveEnv`` (a ``gymnasium.Env``); ``BraveVectorEnv`` (a
+  ``gymnasium.vector.VectorEnv``: N agents on one scene in process, their renders batched);
 - the wire schema (:mod:`brave6d.serve.schema`): ``ObservationMessage``, ``StepMessage``, ``ObjectState``,
   ``EncodedImage``, ``TargetRef``, ``ErrorMessage``;
 - the episode log (:mod:`brave6d.serve.episode_log`, versioned): ``read_episode_log``, ``EpisodeLog``,
@@ -61,6 +62,7 @@ _LAZY = {
     "SceneUnavailable": ".catalog",
     "BraveClient": ".client", "PoseEstimate": ".client", "ServerError": ".client", "Observation": ".client",
     "StepResult": ".client", "decode_observation": ".client", "BraveEnv": ".gym_env",
+    "BraveVectorEnv": ".vector_env",
     "ObservationMessage": ".schema", "StepMessage": ".schema", "ObjectState": ".schema",
     "EncodedImage": ".schema", "TargetRef": ".schema", "ErrorMessage": ".schema",
     "read_episode_log": ".episode_log", "EpisodeLog": ".episode_log", "ResetRecord": ".episode_log",

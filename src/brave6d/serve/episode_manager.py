@@ -14,12 +14,15 @@ import secrets
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from brave6d.core.atomic import depth_m_to_mm_u16, write_png
+from brave6d.core.camera import PinholeCamera
 from brave6d.serve.catalog import SceneCatalog
 from brave6d.serve.episode_log import FINAL_DEPTH_SUFFIX, ActionRecord, CloseRecord, EpisodeLog, ResetRecord
 from brave6d.serve.episodes import (
@@ -43,6 +46,30 @@ from brave6d.serve.episodes import (
 from brave6d.serve.geometry import MoveResult, Refusal, integrate_twist
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MoveRequest:
+    """One episode's twist in :meth:`EpisodeManager.move_many` (the arguments of :meth:`EpisodeManager.move`)."""
+
+    episode_id: str
+    linear: Any
+    angular: Any
+    duration: float
+    frame: str = "camera"
+
+
+@dataclass(frozen=True)
+class _MovePlan:
+    """A checked and integrated twist, before its view: the pose to reach, the refusal (None: the
+    move is accepted), the move's record, the request as logged and, for a move stopped part-way,
+    what stopped it."""
+
+    T: Matrix4
+    refusal: Refusal | None
+    move: dict[str, Any]
+    requested: dict[str, Any]
+    stopped_by: Refusal | None = None
 
 
 def _target_truth(obs: RenderedView) -> dict[str, Any]:
@@ -210,7 +237,7 @@ class EpisodeManager:
         try:
             T = check_pose(world_T_cam, "pose")
             return self._finish(ep, "set_pose", T, self._scene(ep).bundle.world.check(T), None,
-                                {"world_T_cam": T.tolist()}, ticket)
+                                {"world_T_cam": T.tolist()}, ticket=ticket)
         finally:
             ep.lock.release()
 
@@ -219,22 +246,68 @@ class EpisodeManager:
         ep = self.get(episode_id)
         self._acquire(ep)
         try:
-            v, w, d = check_twist(linear, angular, duration)
-            try:
-                res: MoveResult = integrate_twist(self._scene(ep).bundle.world, ep.world_T_cam, v, w, d, frame)
-            except ValueError as exc:
-                raise InvalidAction(str(exc), "frame" if "frame" in str(exc) else "duration") from None
-            move = {"fraction": res.fraction, "substeps": res.substeps, "path_m": res.path_m}
-            requested = {"linear": v.tolist(), "angular": w.tolist(), "duration": d, "frame": frame}
-            if not res.moved:  # blocked at the first substep: refused
-                return self._finish(ep, "move", ep.world_T_cam, res.refusal, move, requested, ticket)
-            return self._finish(ep, "move", res.world_T_cam, None, move, requested, ticket,
-                                stopped_by=res.refusal)
+            return self._finish_move(ep, self._plan_move(ep, linear, angular, duration, frame), ticket)
         finally:
             ep.lock.release()
 
+    def move_many(self, requests: Sequence[MoveRequest]) -> list[ActionResult]:
+        """Run one ``move`` in each of several episodes with their renders batched: the views of the
+        accepted moves that share a scene and a camera are drawn in one
+        :meth:`SceneServer.observe_batch` call (many agents stepping together). Each result, log
+        line and counter is what :meth:`move` gives for that request; a bad request (unknown,
+        closed or repeated episode, invalid twist) refuses the whole batch before anything changes."""
+        ids = [r.episode_id for r in requests]
+        if len(set(ids)) != len(ids):
+            raise InvalidAction("move_many: each episode may appear once per batch", "episode_id")
+        eps = [self.get(i) for i in ids]
+        held: list[Episode] = []
+        try:
+            for ep in eps:
+                self._acquire(ep)
+                held.append(ep)
+            plans = [self._plan_move(ep, r.linear, r.angular, r.duration, r.frame) for ep, r in zip(eps, requests)]
+            views = self._observe_accepted(eps, plans)
+            return [self._finish_move(ep, plan, None, views.get(k)) for k, (ep, plan) in enumerate(zip(eps, plans))]
+        finally:
+            for ep in held:
+                ep.lock.release()
+
+    def _observe_accepted(self, eps: list[Episode], plans: list[_MovePlan]) -> dict[int, RenderedView]:
+        """The views of the accepted plans (by index), one batched render per (scene, camera) group."""
+        groups: dict[tuple[int, PinholeCamera], list[int]] = {}
+        for k, (ep, plan) in enumerate(zip(eps, plans)):
+            if plan.refusal is None:  # no refusal: the move is accepted and needs a view
+                groups.setdefault((id(self._scene(ep)), ep.camera), []).append(k)
+        views: dict[int, RenderedView] = {}
+        for members in groups.values():
+            scene, camera = self._scene(eps[members[0]]), eps[members[0]].camera
+            rendered = scene.observe_batch([plans[k].T for k in members], camera,
+                                           [eps[k].target.gt_id for k in members])
+            views.update(zip(members, rendered))
+        return views
+
+    def _plan_move(self, ep: Episode, linear: Any, angular: Any, duration: float, frame: str) -> _MovePlan:
+        """Check a twist and integrate it from ``ep``'s pose -> the arguments of :meth:`_finish`."""
+        v, w, d = check_twist(linear, angular, duration)
+        try:
+            res: MoveResult = integrate_twist(self._scene(ep).bundle.world, ep.world_T_cam, v, w, d, frame)
+        except ValueError as exc:
+            raise InvalidAction(str(exc), "frame" if "frame" in str(exc) else "duration") from None
+        move = {"fraction": res.fraction, "substeps": res.substeps, "path_m": res.path_m}
+        requested = {"linear": v.tolist(), "angular": w.tolist(), "duration": d, "frame": frame}
+        if not res.moved:  # blocked at the first substep: refused
+            return _MovePlan(ep.world_T_cam, res.refusal, move, requested)
+        return _MovePlan(res.world_T_cam, None, move, requested, res.refusal)
+
+    def _finish_move(self, ep: Episode, plan: _MovePlan, ticket: Ticket | None,
+                     obs: RenderedView | None = None) -> ActionResult:
+        """:meth:`_finish` of a planned move (``obs``: its view when rendered in a batch)."""
+        return self._finish(ep, "move", plan.T, plan.refusal, plan.move, plan.requested, plan.stopped_by,
+                            ticket=ticket, obs=obs)
+
     def _finish(self, ep: Episode, action: str, T: Matrix4, refusal: Refusal | None, move: dict[str, Any] | None,
-                requested: dict[str, Any], ticket: Ticket | None, stopped_by: Refusal | None = None) -> ActionResult:
+                requested: dict[str, Any], stopped_by: Refusal | None = None, *, ticket: Ticket | None = None,
+                obs: RenderedView | None = None) -> ActionResult:
         """Complete a ``set_pose``/``move`` to ``T`` (or refuse it) as one transaction: the
         observation, the counters and the log line are all computed first, then the log line is
         written and the state changed together; a failure before that changes nothing."""
@@ -242,7 +315,8 @@ class EpisodeManager:
         before = ep.world_T_cam
         accepted = refusal is None
         if accepted:
-            obs = self._scene(ep).observe(T, ep.camera, ep.target.gt_id)
+            if obs is None:  # not rendered beforehand in a batch (move_many)
+                obs = self._scene(ep).observe(T, ep.camera, ep.target.gt_id)
             after, timings = T, {**obs.timings_ms}
         else:
             assert ep.last is not None

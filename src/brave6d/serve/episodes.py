@@ -44,6 +44,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property, partial
 from typing import Any
@@ -59,7 +60,7 @@ from brave6d.serve.episode_log import EpisodeLog, FinalView, LoggedEstimate, Sub
 from brave6d.serve.geometry import Refusal
 from brave6d.serve.limits import MAX_ANGULAR_SPEED_RAD_S, MAX_COORD_M, MAX_LINEAR_SPEED_M_S, MAX_MOVE_DURATION_S
 from brave6d.serve.reference import SPLAT_GEOMETRY, ReferenceGeometry, bundle_reference
-from brave6d.serve.renderer import SplatRenderer
+from brave6d.serve.renderer import RenderOutput, SplatRenderer
 from brave6d.serve.schema import ObjectState, TargetRef
 from brave6d.serve.visibility import Visibility, VisibilityComputer
 
@@ -219,10 +220,25 @@ class SceneServer:
         return cam.scaled(width, height)
 
     def observe(self, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None) -> RenderedView:
+        """The view at ``world_T_cam``: the rendered images and every object's ground truth."""
+        return self.observe_batch([world_T_cam], camera, [target_gt_id])[0]
+
+    def observe_batch(self, poses: Sequence[Matrix4], camera: PinholeCamera,
+                      target_gt_ids: Sequence[int | None]) -> list[RenderedView]:
+        """The views at ``poses`` (one camera), rendered in one batched call
+        (:meth:`SplatRenderer.render_batch`: many agents on one scene), each what :meth:`observe` gives."""
+        if len(poses) != len(target_gt_ids):
+            raise ValueError(f"observe_batch: {len(poses)} poses but {len(target_gt_ids)} targets")
         r = self.bundle.render
         t0 = time.perf_counter()
-        out = self.renderer.render(world_T_cam, camera, near=r.near, far=r.far, background=r.background,
-                                   depth_alpha_min=r.depth_alpha_min, depth_mode=r.depth_mode)
+        outs = self.renderer.render_batch(poses, camera, near=r.near, far=r.far, background=r.background,
+                                          depth_alpha_min=r.depth_alpha_min, depth_mode=r.depth_mode)
+        render_s = time.perf_counter() - t0
+        return [self._view(out, T, camera, gt_id, render_s) for out, T, gt_id in zip(outs, poses, target_gt_ids)]
+
+    def _view(self, out: RenderOutput, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None,
+              render_s: float) -> RenderedView:
+        """One rendered view plus its visible fractions and objects' poses (``render_s``: the render's wall time)."""
         t1 = time.perf_counter()
         vis: list[Visibility | None] = [None] * len(self.bundle.objects)
         if self.visibility is not None:
@@ -232,7 +248,8 @@ class SceneServer:
         cam_T_world = invert(world_T_cam)
         objects = tuple(object_state(o, cam_T_world @ o.world_T_obj, v, o.gt_id == target_gt_id)
                         for o, v in zip(self.bundle.objects, vis))
-        timings = {"render": out.render_ms, "render_queue": out.queue_ms, "visibility": (t2 - t1) * 1000.0, "observe": (t2 - t0) * 1000.0}
+        timings = {"render": out.render_ms, "render_queue": out.queue_ms, "visibility": (t2 - t1) * 1000.0,
+                   "observe": render_s * 1000.0 + (t2 - t1) * 1000.0}
         return RenderedView(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), objects, timings,
                             self.reference, self.geometry)
 

@@ -51,6 +51,34 @@ from brave6d.serve.client import BraveClient, Observation, PoseEstimate, ServerE
 
 log = logging.getLogger(__name__)
 
+
+def twist_space() -> spaces.Box:
+    """The action space: a camera-frame twist ``(vx, vy, vz, wx, wy, wz)`` in ``[-1, 1]`` (scaled by the env)."""
+    return spaces.Box(-1.0, 1.0, (6,), np.float32)
+
+
+def observation_space(width: int, height: int) -> spaces.Dict:
+    """One agent's observation space at ``width`` x ``height`` (the module docstring)."""
+    return spaces.Dict({
+        "rgb": spaces.Box(0, 255, (height, width, 3), np.uint8),
+        "depth": spaces.Box(0.0, np.inf, (height, width), np.float32),
+        "K": spaces.Box(-np.inf, np.inf, (3, 3), np.float64),
+        "world_T_cam": spaces.Box(-np.inf, np.inf, (4, 4), np.float64),
+    })
+
+
+def visible_px(view: Any) -> int:
+    """The target's visible pixel count in ``view`` (a client ``Observation`` or a server
+    ``RenderedView``: both have ``target()``); 0 without a view, a target or visibility."""
+    t = view.target() if view is not None else None
+    return int(t.px_count_visib or 0) if t is not None else 0
+
+
+def visibility_reward(accepted: bool, before_px: int, after_px: int, width: int, height: int) -> float:
+    """The documented reward: the target's visible area gained, as a fraction of the image; 0 when refused."""
+    return (after_px - before_px) / float(width * height) if accepted else 0.0
+
+
 class BraveEnv(gym.Env):  # type: ignore[misc]
     """See the module docstring."""
 
@@ -70,13 +98,8 @@ class BraveEnv(gym.Env):  # type: ignore[misc]
         self.max_linear, self.max_angular = float(max_linear), float(max_angular)
         self.frame = frame
         self.render_mode = render_mode
-        self.action_space = spaces.Box(-1.0, 1.0, (6,), np.float32)
-        self.observation_space = spaces.Dict({
-            "rgb": spaces.Box(0, 255, (self.height, self.width, 3), np.uint8),
-            "depth": spaces.Box(0.0, np.inf, (self.height, self.width), np.float32),
-            "K": spaces.Box(-np.inf, np.inf, (3, 3), np.float64),
-            "world_T_cam": spaces.Box(-np.inf, np.inf, (4, 4), np.float64),
-        })
+        self.action_space = twist_space()
+        self.observation_space = observation_space(self.width, self.height)
         self._steps = 0
         self._last: Observation | None = None
         self._done = True
@@ -94,11 +117,6 @@ class BraveEnv(gym.Env):  # type: ignore[misc]
         return {"episode_id": step.episode_id, "accepted": step.accepted, "collided": step.collided,
                 "refusal": step.refusal, "adjustments": step.adjustments, "target": step.target,
                 "objects": step.observation.objects, "timings_ms": step.timings_ms, "move": step.move}
-
-    @staticmethod
-    def _visible_px(o: Observation | None) -> int:
-        t = o.target() if o is not None else None
-        return int(t.px_count_visib or 0) if t is not None else 0
 
     # -------------------------------------------------------------- Gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -149,12 +167,11 @@ class BraveEnv(gym.Env):  # type: ignore[misc]
                 return self._end_step(self._last, 0.0, {"accepted": True, "noop": True,
                                                         "episode_id": self.client.episode_id})
             step = self.client.move(a[:3] * self.max_linear, a[3:] * self.max_angular, self.step_duration, self.frame)
-        before = self._visible_px(self._last)
+        before = visible_px(self._last)
         self._last = step.observation
         self._steps += 1
-        reward = 0.0
-        if step.accepted:
-            reward = (self._visible_px(step.observation) - before) / float(step.observation.width * step.observation.height)
+        reward = visibility_reward(step.accepted, before, visible_px(step.observation), step.observation.width,
+                                   step.observation.height)
         return self._end_step(step.observation, reward, self._info(step))
 
     def submit(self, estimates: list[PoseEstimate | dict[str, Any]], agent: str | None = None

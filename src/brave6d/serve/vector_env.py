@@ -1,0 +1,180 @@
+"""N agents on one scene stepping together: a ``gymnasium.vector.VectorEnv`` whose renders are batched.
+
+    from brave6d.serve import BraveVectorEnv, SceneServer, load_bundle
+
+    envs = BraveVectorEnv(SceneServer(load_bundle("runs/demo/scene/bundle"), "auto"), num_envs=64,
+                          target="hex_nut", width=320, height=240)
+    obs, info = envs.reset(seed=0)                    # obs["rgb"]: (64, 240, 320, 3) uint8
+    obs, rewards, terminated, truncated, info = envs.step(envs.action_space.sample())
+
+Each sub-environment is a :class:`brave6d.serve.BraveEnv` run in process instead of over HTTP:
+the same episodes (an :class:`brave6d.serve.episode_manager.EpisodeManager`, its rules, logs and
+counters), the same observation and action spaces, the same twist scaling, null-twist no-op,
+reward and truncation at ``max_steps``. A sub-environment reset with seed ``s`` sees what
+``BraveEnv.reset(seed=s)`` sees, and the same actions give the same observations and rewards.
+
+What differs is the render: :meth:`step` runs the N moves through
+:meth:`EpisodeManager.move_many`, which draws all accepted views in one
+:meth:`SplatRenderer.render_batch` call (gsplat batches the cameras on CUDA; the CPU kernels
+spread the cameras' Gaussians and tiles over the cores).
+
+Only twists (the ``(6,)`` Box actions, batched to ``(N, 6)``): teleports, ``stop`` and
+``submit`` stay :class:`BraveEnv`'s. ``reset(seed=s)`` seeds sub-environment ``i`` with
+``s + i`` (gymnasium's rule; a list gives each its own); episodes never terminate, they are
+truncated after ``max_steps`` and reset on the next step (``AutoresetMode.NEXT_STEP``: that
+step ignores the sub-environment's action and returns its first observation with reward 0),
+with a start seed drawn from the sub-environment's generator, so a seeded run repeats.
+``info`` holds ``episode_id``, ``accepted``, ``collided`` and ``adjustments`` per sub-environment
+(gymnasium's ``_key`` masks beside them).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+from numpy.typing import NDArray
+
+from brave6d.core.errors import BraveError
+from brave6d.serve.episode_manager import EpisodeManager, MoveRequest
+from brave6d.serve.episodes import ActionResult, RenderedView, SceneServer
+from brave6d.serve.gym_env import observation_space, twist_space, visibility_reward, visible_px
+
+Obs = dict[str, NDArray[Any]]
+
+
+def view_obs(view: RenderedView) -> Obs:
+    """One agent's observation of ``view`` (what :class:`BraveEnv` decodes from the server)."""
+    return {"rgb": view.rgb, "depth": view.depth, "K": view.camera.K, "world_T_cam": view.world_T_cam}
+
+
+def sub_seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
+    """Gymnasium's seeding of ``n`` sub-environments: ``seed + i``, a list as given, or all None."""
+    if seed is None:
+        return [None] * n
+    if isinstance(seed, (int, np.integer)):
+        return [int(seed) + i for i in range(n)]
+    seeds = list(seed)
+    if len(seeds) != n:
+        raise BraveError(f"reset: {len(seeds)} seeds given for {n} environments")
+    return seeds
+
+
+class BraveVectorEnv(VectorEnv):  # type: ignore[misc]
+    """See the module docstring."""
+
+    metadata: dict[str, Any] = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}  # noqa: RUF012
+
+    def __init__(self, scene: SceneServer | EpisodeManager, num_envs: int, *, target: int | str | None = None,
+                 width: int = 320, height: int = 240, max_steps: int = 100, step_duration: float = 0.5,
+                 max_linear: float = 0.1, max_angular: float = 0.5, frame: str = "camera",
+                 agent: str | None = None) -> None:
+        if num_envs < 1:
+            raise BraveError(f"BraveVectorEnv: num_envs must be at least 1, got {num_envs}")
+        self.manager = scene if isinstance(scene, EpisodeManager) else EpisodeManager(scene, max_episodes=num_envs)
+        self.num_envs = int(num_envs)
+        self.target, self.agent, self.frame = target, agent, frame
+        self.width, self.height, self.max_steps = int(width), int(height), int(max_steps)
+        self.step_duration, self.max_linear, self.max_angular = float(step_duration), float(max_linear), float(max_angular)
+        self.single_observation_space = observation_space(self.width, self.height)
+        self.single_action_space = twist_space()
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self._ids: list[str | None] = [None] * self.num_envs
+        self._views: list[RenderedView | None] = [None] * self.num_envs
+        self._steps = np.zeros(self.num_envs, np.int64)
+        self._needs_reset = np.zeros(self.num_envs, bool)
+        self._rngs = [np.random.default_rng() for _ in range(self.num_envs)]
+
+    # -------------------------------------------------------------- Gymnasium API
+    def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[Obs, dict[str, Any]]:
+        """Start a new episode in every sub-environment (open ones are closed first); ``options``: ``target``."""
+        if isinstance(seed, (int, np.integer)):
+            self.action_space.seed(int(seed))
+        target = (options or {}).get("target", self.target)
+        infos: dict[str, Any] = {}
+        for i, s in enumerate(sub_seeds(seed, self.num_envs)):
+            self._rngs[i] = np.random.default_rng(s)
+            infos = self._add_info(infos, self._reset_one(i, s, target), i)
+        return self._batch_obs(), infos
+
+    def step(self, actions: Any) -> tuple[Obs, NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_], dict[str, Any]]:
+        """One step of every sub-environment; the accepted moves' views are rendered in one batch."""
+        if any(i is None for i in self._ids):
+            raise RuntimeError("call reset() before step()")
+        twists = self._twists(actions)
+        rewards = np.zeros(self.num_envs, np.float64)
+        truncated = np.zeros(self.num_envs, bool)
+        infos: dict[str, Any] = {}
+        requests: dict[int, MoveRequest] = {}
+        for i in range(self.num_envs):
+            if self._needs_reset[i]:  # NEXT_STEP autoreset: this step starts a new episode
+                seed = int(self._rngs[i].integers(2**31))
+                infos = self._add_info(infos, self._reset_one(i, seed, self.target), i)
+            elif not np.any(twists[i]):  # a null twist: nothing moves, nothing is rendered
+                self._steps[i] += 1
+                infos = self._add_info(infos, {"episode_id": self._ids[i], "accepted": True, "noop": True}, i)
+            else:
+                requests[i] = MoveRequest(str(self._ids[i]), twists[i, :3] * self.max_linear,
+                                          twists[i, 3:] * self.max_angular, self.step_duration, self.frame)
+        results = self.manager.move_many(list(requests.values()))
+        for i, result in zip(requests, results):
+            rewards[i] = self._record_move(i, result)
+            infos = self._add_info(infos, self._info(result), i)
+        for i in range(self.num_envs):
+            truncated[i] = not self._needs_reset[i] and self._steps[i] >= self.max_steps
+        self._end_truncated(truncated)
+        return self._batch_obs(), rewards, np.zeros(self.num_envs, bool), truncated, infos
+
+    def close_extras(self, **kwargs: Any) -> None:
+        """Close the open episodes (their logs get their close records)."""
+        for i in range(self.num_envs):
+            self._close_one(i)
+
+    # -------------------------------------------------------------- helpers
+    def _twists(self, actions: Any) -> NDArray[np.float64]:
+        """``actions`` as an (N, 6) array clipped to ``[-1, 1]``, or a BraveError naming the shape."""
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (self.num_envs, 6):
+            raise BraveError(f"step: actions must have shape ({self.num_envs}, 6) (one twist per agent), got {a.shape}")
+        return np.clip(a, -1.0, 1.0)
+
+    def _reset_one(self, i: int, seed: int | None, target: int | str | None) -> dict[str, Any]:
+        """Close sub-environment ``i``'s episode if open and start a new one (``BraveEnv.reset``)."""
+        self._close_one(i)
+        result = self.manager.reset(target=target, width=self.width, height=self.height, seed=seed, agent=self.agent)
+        self._ids[i], self._views[i] = result.episode_id, result.observation
+        self._steps[i], self._needs_reset[i] = 0, False
+        return self._info(result)
+
+    def _record_move(self, i: int, result: ActionResult) -> float:
+        """Count the step, keep the new view and return its reward (``BraveEnv.step``'s rule)."""
+        before = visible_px(self._views[i])
+        self._views[i] = result.observation
+        self._steps[i] += 1
+        return visibility_reward(result.accepted, before, visible_px(result.observation), self.width, self.height)
+
+    def _end_truncated(self, truncated: NDArray[np.bool_]) -> None:
+        """Close the episodes that reached ``max_steps``; they reset on the next step."""
+        for i in np.flatnonzero(truncated):
+            self._close_one(int(i))
+            self._needs_reset[i] = True
+
+    def _close_one(self, i: int) -> None:
+        """Close sub-environment ``i``'s episode if it is still open."""
+        eid = self._ids[i]
+        if eid is not None and not self._needs_reset[i] and not self.manager.get(eid).closed:
+            self.manager.close(eid)
+
+    @staticmethod
+    def _info(result: ActionResult) -> dict[str, Any]:
+        return {"episode_id": result.episode_id, "accepted": result.accepted, "collided": result.collided,
+                "adjustments": result.adjustments}
+
+    def _batch_obs(self) -> Obs:
+        views = [view_obs(v) for v in self._views if v is not None]
+        return {key: np.stack([v[key] for v in views]) for key in ("rgb", "depth", "K", "world_T_cam")}
