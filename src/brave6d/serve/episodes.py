@@ -221,7 +221,9 @@ class SceneServer:
 
     def observe(self, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None) -> RenderedView:
         """The view at ``world_T_cam``: the rendered images and every object's ground truth."""
-        return self.observe_batch([world_T_cam], camera, [target_gt_id])[0]
+        t0 = time.perf_counter()
+        out = self.renderer.render(world_T_cam, camera, **self._render_settings())
+        return self._view(out, world_T_cam, camera, target_gt_id, time.perf_counter() - t0)
 
     def observe_batch(self, poses: Sequence[Matrix4], camera: PinholeCamera,
                       target_gt_ids: Sequence[int | None]) -> list[RenderedView]:
@@ -229,12 +231,16 @@ class SceneServer:
         (:meth:`SplatRenderer.render_batch`: many agents on one scene), each what :meth:`observe` gives."""
         if len(poses) != len(target_gt_ids):
             raise ValueError(f"observe_batch: {len(poses)} poses but {len(target_gt_ids)} targets")
-        r = self.bundle.render
         t0 = time.perf_counter()
-        outs = self.renderer.render_batch(poses, camera, near=r.near, far=r.far, background=r.background,
-                                          depth_alpha_min=r.depth_alpha_min, depth_mode=r.depth_mode)
+        outs = self.renderer.render_batch(poses, camera, **self._render_settings())
         render_s = time.perf_counter() - t0
         return [self._view(out, T, camera, gt_id, render_s) for out, T, gt_id in zip(outs, poses, target_gt_ids)]
+
+    def _render_settings(self) -> dict[str, Any]:
+        """The bundle's render settings as the renderer's keyword arguments."""
+        r = self.bundle.render
+        return {"near": r.near, "far": r.far, "background": r.background, "depth_alpha_min": r.depth_alpha_min,
+                "depth_mode": r.depth_mode}
 
     def _view(self, out: RenderOutput, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None,
               render_s: float) -> RenderedView:
