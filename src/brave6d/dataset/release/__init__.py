@@ -18,7 +18,8 @@ unpacker with its size policy ``ZipLimits``: every member checked to stay inside
 checked from the headers and again while streaming), ``images`` (every PNG of a release decoded
 or header-checked, through ``brave6d.core.png_check``), ``formats`` (file names, SHA256SUMS, targets,
 holdout.json), ``manifest`` (manifest.json), ``card`` (the dataset card), ``train_pbr`` and ``learned``
-(the synthetic split and the learned model, when the work directory has them), ``build``, ``verify``,
+(the synthetic split and the learned model, when the work directory has them), ``ros2_wheel`` (the
+ROS 2 interfaces wheel for agents, when a ROS 2 Python can build it), ``build``, ``verify``,
 ``serving`` (the scenes of a release for ``brave6d serve``: the cache folder checked at start,
 bundles unpacked on first use and again by ``refresh``), ``cli``.
 """

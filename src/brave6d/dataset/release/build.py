@@ -6,6 +6,9 @@ staging folder of a build that was killed is removed by the next one, :func:`bra
 ``OUT`` must be absent or empty; anything else is refused unless ``force``, and then moved aside
 to ``<OUT>.old-<time>`` (never deleted) once the new release is complete.
 
+When a ROS 2 Python is at hand the release also ships the ROS 2 interfaces wheel for agents
+(:mod:`brave6d.dataset.release.ros2_wheel`; without one the log says so and the build goes on).
+
 A release packs the scenes' own files and nothing a link points to: a scene's bundle zip holds
 exactly its manifest and the files the manifest lists (verified by ``brave6d.serve.load_bundle``), and
 every file packed (bundle, test split images and masks, models, camera, the synthetic split, the
@@ -36,6 +39,7 @@ from brave6d.dataset.release.formats import (CAMERA, CARD, DATASET_INFO, HOLDOUT
                                      train_pbr_zip, write_sha256sums)
 from brave6d.dataset.release.learned import learned_entry, learned_model, learned_zip
 from brave6d.dataset.release.manifest import library_entries, make_manifest, scene_entry
+from brave6d.dataset.release.ros2_wheel import build_interfaces_wheel
 from brave6d.dataset.release.source import ReleaseError, ReleaseSource, load_release_source
 from brave6d.dataset.release.train_pbr import synthetic_split, train_pbr_files
 from brave6d.dataset.release.zips import write_zip
@@ -92,6 +96,7 @@ def build_release(workdir: Path | str, out: Path | str, *, force: bool = False) 
         for s in scenes:
             write_zip(stage / bundle_zip(source.name, s.source.scene_id), bundles[s.source.scene_id],
                       desc=f"bundle {s.source.name}")
+        ros2 = build_interfaces_wheel(stage)  # for agents' own environments; None (logged) without ROS 2
         sizes = {p.name: p.stat().st_size for p in stage.iterdir()}
         card = render_card(source, scenes, models, sizes)
         write_zip(stage / base_zip(source.name), camera,
@@ -99,7 +104,7 @@ def build_release(workdir: Path | str, out: Path | str, *, force: bool = False) 
         sizes[base_zip(source.name)] = (stage / base_zip(source.name)).stat().st_size
         atomic_write_text(stage / CARD, card)
         sizes[CARD] = (stage / CARD).stat().st_size
-        atomic_write_json(stage / MANIFEST, make_manifest(source, scenes, models, sizes, learned))
+        atomic_write_json(stage / MANIFEST, make_manifest(source, scenes, models, sizes, learned, ros2))
         sizes[MANIFEST] = (stage / MANIFEST).stat().st_size
         digests = {name: file_sha256(stage / name) for name in progress(sorted(sizes), desc="SHA256SUMS", unit="file")}
         write_sha256sums(stage / SUMS, digests)

@@ -42,6 +42,9 @@ def render_card(source: ReleaseSource, scenes: list[SceneRelease], models: dict[
     if learned_zip(n) in sizes:  # the dataset's learned model (brave6d dataset run), when it has one
         files.append([f"`{learned_zip(n)}`", "`learned/`: the learned estimator trained on the object library's "
                       "synthetic train_pbr (`model.pt`, `card.json`, `MODEL_CARD.md`)", _mb(sizes[learned_zip(n)])])
+    for wheel in sorted(name for name in sizes if name.endswith(".whl")):  # ROS 2 interfaces, when built
+        files.append([f"`{wheel}`", "ROS 2 interfaces (`brave6d_msgs`, `tf2_msgs`) for an agent's own environment: "
+                      "`pip install` it (docs/ROS.md)", _mb(sizes[wheel])])
     files += [[f"`{bundle_zip(n, s.source.scene_id)}`", f"`{bundle_folder(s.source.scene_id)}/`: render-server "
                f"bundle of scene {s.source.name}", _mb(sizes.get(bundle_zip(n, s.source.scene_id)))] for s in scenes]
     objects = [[o.obj_id, o.name, o.category, f"{models[o.obj_id].info['diameter']:.1f}" if o.obj_id in models

@@ -14,7 +14,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                            "BOP ground truth and images; holdout views in test/XXXXXX/holdout.json), one "
                            "render-server bundle zip per scene, manifest.json, a dataset card README.md and "
                            "SHA256SUMS; <name>_train_pbr.zip when WORKDIR/synth/train_pbr exists and "
-                           "<name>_learned.zip (learned/model.pt and its card) when WORKDIR/learned/model does. Files are streamed into the zips; OUT appears only when complete.")
+                           "<name>_learned.zip (learned/model.pt and its card) when WORKDIR/learned/model does, and the ROS 2 "
+                           "interfaces wheel for agents (brave6d_ros2_interfaces-*.whl) when $BRAVE6D_ROS2_PYTHON (or "
+                           "this Python) has the ROS 2 wheels. Files are streamed into the zips; OUT appears only when complete.")
     build.add_argument("workdir", type=Path, help="dataset work directory (dataset.yaml, scenes/)")
     build.add_argument("out", type=Path, help="release folder to write (absent or empty)")
     build.add_argument("--force", action="store_true",
@@ -36,6 +38,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"moved the previous {args.out} aside to {result.moved_aside}")
         print(f"wrote {result.root}: {result.scenes} scenes, {result.images} images, {len(result.sizes)} files, "
               f"{result.total_bytes / 1e6:.1f} MB")
+        for wheel in sorted(n for n in result.sizes if n.endswith(".whl")):
+            print(f"agents: pip install {result.root / wheel} (ROS 2 interfaces, docs/ROS.md)")
         return 0
     if args.action == "verify":
         from brave6d.dataset.release.verify import verify_release
@@ -44,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{report.root}: OK ({report.files} files, {report.bytes / 1e6:.1f} MB, {report.scenes} scenes, "
               f"{report.images} images, {report.bundles} bundles"
               + (f", {report.train_pbr_images} synthetic training images" if report.train_pbr_images else "")
-              + (f", learned model ({report.learned_model})" if report.learned_model else "") + ")")
+              + (f", learned model ({report.learned_model})" if report.learned_model else "")
+              + (f", ROS 2 interfaces wheel {report.ros2_interfaces}" if report.ros2_interfaces else "") + ")")
         return 0
     raise AssertionError(f"unknown action {args.action!r}")

@@ -4,7 +4,8 @@
 made it (python, brave6d, numpy, torch, ... and the git commit when known), counts, the size of
 every file, the object library (with which objects have a model) and, per scene, its
 ``scene_id``, name, views, holdout views, objects, instances, targets and holdout PSNR; and, when
-the release ships the dataset's learned model, ``learned_model`` (:mod:`brave6d.dataset.release.learned`).
+the release ships the dataset's learned model, ``learned_model`` (:mod:`brave6d.dataset.release.learned`);
+when it ships the ROS 2 interfaces wheel, ``ros2_interfaces`` (:mod:`brave6d.dataset.release.ros2_wheel`).
 """
 
 from __future__ import annotations
@@ -49,9 +50,10 @@ def library_entries(source: ReleaseSource, models: dict[int, ReleaseModel]) -> l
 
 
 def make_manifest(source: ReleaseSource, scenes: list[SceneRelease], models: dict[int, ReleaseModel],
-                  sizes: dict[str, int], learned: dict[str, Any] | None = None) -> dict[str, Any]:
+                  sizes: dict[str, int], learned: dict[str, Any] | None = None,
+                  ros2_interfaces: dict[str, Any] | None = None) -> dict[str, Any]:
     """The manifest's content (``sizes``: bytes of every release file but the manifest and SHA256SUMS;
-    ``learned``: the learned model's entry, when the release ships one)."""
+    ``learned``, ``ros2_interfaces``: the learned model's and the interfaces wheel's entries, when shipped)."""
     manifest = {
         "format": FORMAT, "name": source.name, "version": source.version, "license": source.license,
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -66,6 +68,8 @@ def make_manifest(source: ReleaseSource, scenes: list[SceneRelease], models: dic
     }
     if learned is not None:
         manifest["learned_model"] = learned
+    if ros2_interfaces is not None:
+        manifest["ros2_interfaces"] = ros2_interfaces
     return manifest
 
 

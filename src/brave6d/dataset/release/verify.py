@@ -9,7 +9,8 @@ name has the same ``obj_id`` in every scene, in ``models_info`` and in the libra
 every other member's length and CRC, each scene's bundle (every member listed by its own
 ``manifest.json`` and matching its sha256; then ``brave6d.serve.load_bundle`` on its small files) and, when
 the release has one, the synthetic training split (:mod:`brave6d.dataset.release.train_pbr`) and the
-learned model (:mod:`brave6d.dataset.release.learned`: its checksum against the manifest, its card).
+learned model (:mod:`brave6d.dataset.release.learned`: its checksum against the manifest, its card) and
+the ROS 2 interfaces wheel (:mod:`brave6d.dataset.release.ros2_wheel`: its checksum against the manifest).
 
 A release is untrusted input, so nothing is extracted whole: members are streamed for their
 checksums, JSON files and images are read into memory (bounded by :class:`~brave6d.dataset.release.zips.ZipLimits`)
@@ -36,6 +37,7 @@ from brave6d.dataset.release.formats import (CAMERA, DATASET_INFO, HOLDOUT, MANI
 from brave6d.dataset.release.images import decode_png, decode_zip_images, image_kind
 from brave6d.dataset.release.learned import check_learned_zip, learned_zip
 from brave6d.dataset.release.manifest import read_manifest
+from brave6d.dataset.release.ros2_wheel import check_interfaces_wheel
 from brave6d.dataset.release.source import ReleaseError
 from brave6d.dataset.release.train_pbr import check_train_pbr_zip
 from brave6d.dataset.release.zips import CheckedZip, open_zip
@@ -58,6 +60,7 @@ class VerifyReport:
     bundles: int
     train_pbr_images: int = 0  # images of the synthetic training split (0: the release has none)
     learned_model: str | None = None  # the learned model's preset (None: the release has none)
+    ros2_interfaces: str | None = None  # the ROS 2 interfaces wheel's file name (None: the release has none)
 
 
 def verify_release(root: Path | str) -> VerifyReport:
@@ -90,8 +93,9 @@ def verify_release(root: Path | str) -> VerifyReport:
     pbr = train_pbr_zip(name)
     pbr_images = check_train_pbr_zip(base / pbr, models) if pbr in sums else 0
     learned = _check_learned(base, sums, manifest, set(library))
+    wheel = check_interfaces_wheel(base, sums, manifest, MANIFEST)
     return VerifyReport(base, len(sums) + 1, sum((base / n).stat().st_size for n in sums), len(scenes),
-                        sum(len(g) for k, g in gts.items() if k > 0), len(scenes), pbr_images, learned)
+                        sum(len(g) for k, g in gts.items() if k > 0), len(scenes), pbr_images, learned, wheel)
 
 
 def _check_learned(base: Path, sums: dict[str, str], manifest: dict[str, Any], library: set[int]) -> str | None:

@@ -5,6 +5,7 @@ for ``generate``, the rosidl wheels; not brave6d, which that interpreter may not
 
 * ``probe DIST MODULE...`` prints JSON: where the environment keeps its files, the missing
   modules among ``MODULE...``, the installed version of ``DIST`` and where ``tf2_msgs`` comes from;
+* ``versions DIST...`` prints JSON: ``{dist: installed version or null}``;
 * ``generate SPEC.json`` runs the rosidl generators (C structs, Python, the typesupports) on one
   interface package, as ``rosidl generate`` would. The generator classes are called directly:
   the ROS wheels ship each entry point twice (dist-info and egg-info), which ``rosidl`` refuses,
@@ -65,6 +66,17 @@ def probe(dist: str, modules: list[str]) -> dict[str, Any]:
     }
 
 
+def versions(dists: list[str]) -> dict[str, str | None]:
+    """The installed version of each of ``dists`` (None when absent)."""
+    out: dict[str, str | None] = {}
+    for dist in dists:
+        try:
+            out[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            out[dist] = None
+    return out
+
+
 def generate(spec: dict[str, Any]) -> None:
     """Generate one package's sources under ``spec['output']``/{c,py,typesupport_c,fastrtps_c,
     introspection_c}/<package> (so each of those dirs is an include root), from the .msg/.srv
@@ -103,13 +115,17 @@ def main(argv: list[str]) -> int:
     if argv[:1] == ["probe"] and len(argv) >= 2:
         print(json.dumps(probe(argv[1], argv[2:])))
         return 0
+    if argv[:1] == ["versions"]:
+        print(json.dumps(versions(argv[1:])))
+        return 0
     if argv[:1] == ["generate"] and len(argv) == 2:
         spec = json.loads(Path(argv[1]).read_text())
         os.environ["AMENT_PREFIX_PATH"] = sys.prefix  # the generators find their templates by it
         with contextlib.redirect_stdout(sys.stderr):  # the converters print every file they write
             generate(spec)
         return 0
-    print("usage: _rosidl_generate.py probe DIST [MODULE...] | generate SPEC.json", file=sys.stderr)
+    print("usage: _rosidl_generate.py probe DIST [MODULE...] | versions DIST... | generate SPEC.json",
+          file=sys.stderr)
     return 2
 
 
