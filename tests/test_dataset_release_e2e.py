@@ -44,6 +44,11 @@ def test_demo_dataset_runs_releases_and_verifies(tmp_path: Path, capsys: pytest.
         assert used == {library[o.name] for o in scene.spec.objects}, scene.name
     shared = {o.name for o in dataset.scenes[0].spec.objects} & {o.name for o in dataset.scenes[1].spec.objects}
     assert shared and {library[n] for n in shared} <= set(read_models_info(unpacked / "models" / "models_info.json"))
+    # each scene's bundle zip ships the viewer PLY (the 3D filter baked in, issue 45), listed in its manifest
+    for scene in dataset.scenes:
+        with zipfile.ZipFile(out / f"{name}_bundle_{scene.scene_id:06d}.zip") as zf:
+            members = set(zf.namelist())
+        assert f"bundles/{scene.scene_id:06d}/splat_viewer.ply" in members, scene.name
 
     # one server serves every scene of the release; the leaderboard scores across scenes
     _serve_and_score(out, tmp_path, [s.name for s in dataset.scenes], capsys)

@@ -19,9 +19,9 @@ from brave6d.training.filter3d import scale_range
 from brave6d.training.holdout_eval import render_view
 from brave6d.training.model import GaussianModel
 from brave6d.training.presets import Preset, get_preset
-from brave6d.training.toy_scenes import random_gaussians, render_views, ring_poses
+from brave6d.training.toy_scenes import gaussian_ring_data, random_gaussians
 from brave6d.training.trainer import Trainer
-from brave6d.training.views import TrainingData, View
+from brave6d.training.views import TrainingData
 
 F, W, H = 100.0, 64, 48
 K = torch.tensor([[F, 0.0, 31.5], [0.0, F, 23.5], [0.0, 0.0, 1.0]])
@@ -134,11 +134,7 @@ CAM = PinholeCamera(48, 36, 40.0, 40.0, 23.5, 17.5)
 
 
 def _tiny_data() -> TrainingData:
-    gt = random_gaussians(150, seed=1, extent=0.08)
-    poses = ring_poses([0.35, 0.45], 6, elevation_deg=40)
-    images = render_views(gt, CAM, [p for _, _, p in poses])
-    views = [View(i, f"v{i:02d}", lvl, d, pose, img) for i, ((lvl, d, pose), img) in enumerate(zip(poses, images))]
-    return TrainingData(CAM, [v for v in views if v.index not in (2, 9)], [views[2], views[9]])
+    return gaussian_ring_data(CAM)
 
 
 def test_training_with_mip_keeps_the_filter_in_step_with_densification(tmp_path: Path) -> None:

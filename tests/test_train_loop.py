@@ -11,11 +11,11 @@ import torch
 
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import DataError
-from brave6d.training.views import TrainingData, View
+from brave6d.training.views import TrainingData
 from brave6d.training.holdout_eval import evaluate_holdout
 from brave6d.training.model import GaussianModel
 from brave6d.training.presets import Preset
-from brave6d.training.toy_scenes import random_gaussians, render_views, ring_poses
+from brave6d.training.toy_scenes import gaussian_ring_data, random_gaussians
 from brave6d.training.trainer import Trainer, TrainingDiverged, list_checkpoints, means_lr, read_checkpoint
 
 CAM = PinholeCamera(48, 36, 40.0, 40.0, 23.5, 17.5)
@@ -24,13 +24,7 @@ CAM = PinholeCamera(48, 36, 40.0, 40.0, 23.5, 17.5)
 @pytest.fixture(scope="module")
 def tiny_data() -> TrainingData:
     """12 views of 150 random Gaussians rendered by the rasterizer itself (2 rings)."""
-    gt = random_gaussians(150, seed=1, extent=0.08)
-    poses = ring_poses([0.35, 0.45], 6, elevation_deg=40)
-    images = render_views(gt, CAM, [p for _, _, p in poses])
-    views = [View(i, f"v{i:02d}", lvl, d, pose, img) for i, ((lvl, d, pose), img) in enumerate(zip(poses, images))]
-    test = [views[2], views[9]]
-    train = [v for v in views if v not in test]
-    return TrainingData(CAM, train, test)
+    return gaussian_ring_data(CAM)
 
 
 def init_model(seed: int = 0) -> GaussianModel:

@@ -65,6 +65,10 @@ def test_outputs_and_metrics(trained: SceneDir) -> None:
     names = [p.name for p in PlyData.read(str(splat / "point_cloud.ply"))["vertex"].properties]
     assert names == inria_attribute_names() + ["filter_3d"]  # Inria's layout + the mip 3D filter of `fast`
     assert read_ply(splat / "point_cloud.ply").num_gaussians == metrics["num_gaussians"]
+    # beside it, the viewer PLY: the same Gaussians with the filter baked in, Inria's layout only (issue 45)
+    viewer = PlyData.read(str(splat / "point_cloud_viewer.ply"))["vertex"]
+    assert [p.name for p in viewer.properties] == inria_attribute_names()
+    assert len(viewer.data) == metrics["num_gaussians"]
     pycolmap.Reconstruction(str(trained.sparse_dir / "0"))  # loads
 
 

@@ -216,6 +216,12 @@ class SceneDir:
         return self.splat_dir / "point_cloud.ply"
 
     @property
+    def splat_viewer_ply_path(self) -> Path:
+        """The same Gaussians for other 3DGS viewers: the 3D filter baked into scales and opacities,
+        no ``filter_3d`` property (``brave6d.training.write_viewer_ply``)."""
+        return self.splat_dir / "point_cloud_viewer.ply"
+
+    @property
     def metrics_path(self) -> Path:
         """The training's metrics (``brave6d.training``'s ``metrics.json``)."""
         return self.splat_dir / "metrics.json"

@@ -6,8 +6,9 @@ a name is used). Other stages import only these names:
 
 - bundles: ``export_bundle``, ``load_bundle``, ``Bundle``, ``BundleObject``, ``BundleError``,
   ``read_bundle_manifest`` (the one reader of a bundle's ``manifest.json``, structure checked),
-  ``is_bundle`` (the one test for a bundle folder), ``find_splat_ply``, ``MANIFEST``, ``SPLAT`` and
-  ``HOLDOUT_IMAGES`` (the manifest's and the splat's file names and the holdout images' folder inside
+  ``is_bundle`` (the one test for a bundle folder), ``find_splat_ply``, ``MANIFEST``, ``SPLAT``,
+  ``SPLAT_VIEWER`` and ``HOLDOUT_IMAGES`` (the manifest's, the splat's and the viewer splat's file
+  names and the holdout images' folder inside
   a bundle: the bundle's names live in :mod:`brave6d.serve.bundle` only);
 - the server: ``create_app``, ``validate_request`` (a request checked as HTTP checks it: same limits and
   messages, for the ROS 2 node), ``ServerLimits`` (its limits, checked when made: ``LimitError``;
@@ -51,6 +52,7 @@ from brave6d.core.lazy import lazy_exports
 _LAZY = {
     "export_bundle": ".bundle", "load_bundle": ".bundle", "Bundle": ".bundle", "BundleObject": ".bundle",
     "BundleError": ".bundle", "read_bundle_manifest": ".bundle", "find_splat_ply": ".bundle", "SPLAT": ".bundle",
+    "SPLAT_VIEWER": ".bundle",
     "HOLDOUT_IMAGES": ".bundle",
     "create_app": ".app", "validate_request": ".app", "ServerLimits": ".limits", "LimitError": ".limits", "limit_arg": ".limits",
     "ServerThread": ".runner", "SceneServer": ".episodes",

@@ -9,6 +9,9 @@
                       sha256 of the training's metrics and holdout split) and, per file, its
                       sha256 and size. Written last.
     splat.ply         the trained Gaussians (Inria 3DGS PLY layout, copied unchanged)
+    splat_viewer.ply  the same Gaussians for other 3DGS viewers (SuperSplat, gsplat's, SIBR): the
+                      3D filter baked into scales and opacities, no ``filter_3d`` property
+                      (``brave6d.training.write_viewer_ply``); absent in older bundles
     scene.json        pinhole intrinsics of the undistorted images, render defaults (size,
                       near/far, background, depth validity, ``antialiasing``: ``mip`` when the
                       splat was trained with Mip-Splatting's filters, i.e. its PLY has
@@ -95,6 +98,7 @@ log = logging.getLogger(__name__)
 FORMAT = "brave6d-bundle/1"
 MANIFEST = "manifest.json"
 SPLAT = "splat.ply"
+SPLAT_VIEWER = "splat_viewer.ply"  # the splat for other viewers (the 3D filter baked in); absent in older bundles
 SCENE = "scene.json"
 OBJECTS = "objects.json"
 HOLDOUT = "holdout.json"
@@ -220,6 +224,12 @@ class Bundle:
         return self.root / SPLAT
 
     @property
+    def viewer_splat_path(self) -> Path | None:
+        """The splat for other 3DGS viewers when the manifest lists one (:data:`SPLAT_VIEWER`); None
+        for a bundle exported before it existed."""
+        return self.root / SPLAT_VIEWER if SPLAT_VIEWER in self.manifest.get("files", {}) else None
+
+    @property
     def reference_path(self) -> Path | None:
         """The reference geometry's file when the manifest lists one; None for a bundle exported
         without it (before it existed, or from a capture without depth)."""
@@ -306,11 +316,14 @@ def bundle_source(manifest: dict[str, Any]) -> BundleSource:
 # ----------------------------------------------------------------------------- adapters (one per source)
 def find_splat_ply(scene: SceneDir) -> Path:
     """The trained splat of a scene: ``splat/point_cloud.ply``, else the newest
-    ``splat/**/point_cloud*.ply`` (Inria's ``point_cloud/iteration_N/point_cloud.ply``)."""
+    ``splat/**/point_cloud*.ply`` (Inria's ``point_cloud/iteration_N/point_cloud.ply``), never the
+    viewer PLY (``point_cloud_viewer.ply``: its filter is baked in, the server would apply it twice)."""
     direct = scene.splat_ply_path
     if direct.is_file():
         return direct
-    candidates = sorted(scene.splat_dir.glob("**/point_cloud*.ply"), key=lambda p: p.stat().st_mtime)
+    viewer = scene.splat_viewer_ply_path.name
+    candidates = sorted((p for p in scene.splat_dir.glob("**/point_cloud*.ply") if p.name != viewer),
+                        key=lambda p: p.stat().st_mtime)
     if candidates:
         return candidates[-1]
     raise BraveError(f"{scene.splat_dir}: no trained splat (point_cloud.ply); train the scene first")
@@ -506,7 +519,7 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
     is moved aside (:func:`brave6d.core.atomic.move_aside`) once the new bundle is complete.
     ``reference``: build the reference geometry (:func:`reference_mesh`) with ``reference_settings``.
     """
-    from brave6d.training import read_ply
+    from brave6d.training import read_ply, write_viewer_ply
 
     scene = SceneDir(scene_dir)
     if not scene.spec_path.is_file():
@@ -534,6 +547,7 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
     moved: Path | None = None
     with staged_folder(target) as staging:
         shutil.copyfile(splat_src, staging / SPLAT)
+        write_viewer_ply(staging / SPLAT_VIEWER, splat)
         objects, models_from = _export_objects(staging, instances, bop_models, bop_info)
         atomic_write_json(staging / OBJECTS, {
             "format": "brave6d-bundle-objects/1",

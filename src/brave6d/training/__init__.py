@@ -18,7 +18,8 @@ Other stages (serve, evaluation) import only these names:
   ``check_camera_poses``, ``check_scene_poses``, ``PoseCheck``, ``PoseCheckError``;
 - Gaussians: ``GaussianModel``, ``rasterize``, ``SplatData``, ``read_ply``, ``write_ply``, ``SH_C0``,
   ``sh_degree_for``, ``apply_filter_3d`` / ``compute_filter_3d`` (Mip-Splatting's 3D filter: what every
-  renderer of a splat applies before ``rasterize``).
+  renderer of a splat applies before ``rasterize``), ``write_viewer_ply`` / ``bake_filter_3d`` (the
+  viewer PLY: that filter baked into scales and opacities, for viewers that ignore ``filter_3d``).
 
 Repeatable: on the CPU, the same scene, preset and seed give a byte-identical ``point_cloud.ply``
 (same Gaussians) on the same machine and install at the same thread count, COLMAP's initial points
@@ -33,7 +34,8 @@ __all__ = ["ImportOptions", "ImportResult", "ImportedCapture", "PoseCheck", "Pos
            "read_source",
            "ANTIALIASING_MODES", "SH_C0", "GaussianModel", "apply_filter_3d", "compute_filter_3d", "HeldOutView", "HoldoutPoint", "HoldoutSplit", "Preset", "SplatData", "TrainedSplat",
            "evaluate_holdout", "get_preset", "holdout_split", "load_scene", "rasterize", "read_holdout", "read_ply",
-           "resolve_device", "sh_degree_for", "train", "train_scene", "write_holdout", "write_ply"]
+           "resolve_device", "sh_degree_for", "train", "train_scene", "write_holdout", "write_ply",
+           "bake_filter_3d", "write_viewer_ply"]
 
 _LAZY = {
     "rasterize": ".rasterizer",
@@ -47,6 +49,8 @@ _LAZY = {
     "GaussianModel": ".model",
     "read_ply": ".ply",
     "write_ply": ".ply",
+    "write_viewer_ply": ".ply",
+    "bake_filter_3d": ".ply",
     "SplatData": ".ply",
     "SH_C0": ".ply",
     "sh_degree_for": ".ply",

@@ -43,8 +43,8 @@ log = logging.getLogger(__name__)
 
 def training_outputs(scene: SceneDir) -> tuple[Path, ...]:
     """What a training run writes into ``splat/``: a new run moves the previous run's aside."""
-    return (scene.checkpoints_dir, scene.splat_ply_path, scene.splat_viewer_ply_path, scene.holdout_split_path, scene.metrics_path,
-            scene.curves_path, scene.holdout_images_dir)
+    return (scene.checkpoints_dir, scene.splat_ply_path, scene.splat_viewer_ply_path, scene.holdout_split_path,
+            scene.metrics_path, scene.curves_path, scene.holdout_images_dir)
 
 
 def move_previous_outputs(scene: SceneDir) -> list[Path]:

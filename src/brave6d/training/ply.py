@@ -13,6 +13,12 @@ properties (ignored), missing normals, float64 properties.
 A splat trained with Mip-Splatting's 3D filter has one more property after those, ``filter_3d``
 (the filter's standard deviation in metres, :mod:`brave6d.training.filter3d`; Mip-Splatting's own
 name); viewers that do not know it ignore it, and a PLY without it reads as no filter.
+
+For those viewers :func:`write_viewer_ply` writes the *viewer PLY*: the filter baked into the
+stored log-scales and logit-opacities (:func:`bake_filter_3d`, what the server draws), no extra
+property, so SuperSplat, gsplat's viewer or SIBR draw the Gaussians the server draws. Only the
+rasterizer's 2D mip filter (view-dependent) cannot be baked: a viewer in its antialiased mode
+renders the file as served; a classic one differs where Gaussians are smaller than a pixel.
 """
 
 from __future__ import annotations
@@ -169,6 +175,49 @@ def _filter_3d(path: Path, values: NDArray[np.float32]) -> NDArray[np.float32]:
     if not bool(np.all(np.isfinite(values) & (values >= 0))):
         raise DataError(f"{path}: vertex property {FILTER_3D!r} must be finite and >= 0")
     return values
+
+
+#: The lowest logit-opacity baking the filter writes (an opacity of about 1e-35, far below the
+#: 1/255 any rasterizer draws), unless the stored one was already lower: finite in float32.
+VIEWER_MIN_LOGIT = -80.0
+
+
+def bake_filter_3d(splat: SplatData) -> SplatData:
+    """``splat`` with its 3D filter folded into the stored scales and opacities, ``filter_3d`` None.
+
+    :func:`brave6d.training.apply_filter_3d` (effective scale ``sqrt(s^2 + f^2)``, opacity times
+    ``sqrt(det(S) / det(S + f^2 I))``) computed in log space in float64, so that any finite float32
+    input gives finite values: log-scale ``0.5 * logaddexp(2 log s, 2 log f)`` and the logit of the
+    reduced opacity through ``log(1 - a) = log(-expm1(log a))``, never below :data:`VIEWER_MIN_LOGIT`
+    (or the stored logit when that is lower). A zero filter, or none, leaves the values unchanged.
+    """
+    if splat.filter_3d is None:
+        return replace(splat)
+    log_s = np.asarray(splat.scales, np.float64)
+    with np.errstate(divide="ignore"):  # a zero filter: log 0 = -inf, and logaddexp(x, -inf) = x exactly
+        log_f = np.log(np.asarray(splat.filter_3d, np.float64))[:, None]
+    log_total = np.logaddexp(2.0 * log_s, 2.0 * log_f)
+    log_factor = 0.5 * (2.0 * log_s - log_total).sum(axis=1)  # log sqrt(det ratio) <= 0
+    logit = np.asarray(splat.opacities, np.float64)
+    log_a = -np.logaddexp(0.0, -logit) + log_factor  # log(sigmoid(logit) * factor)
+    with np.errstate(divide="ignore"):
+        baked = log_a - np.log(-np.expm1(log_a))
+    baked = np.where(log_factor == 0.0, logit, baked)  # unchanged where the filter changes nothing
+    floor = np.minimum(logit, VIEWER_MIN_LOGIT)
+    return replace(splat, scales=(0.5 * log_total).astype(np.float32),
+                   opacities=np.maximum(baked, floor).astype(np.float32), filter_3d=None)
+
+
+def write_viewer_ply(path: Path | str, splat: SplatData) -> Path:
+    """Write the viewer PLY of ``splat`` (:func:`bake_filter_3d`; the Inria layout, nothing else),
+    atomically. A splat with a NaN or inf parameter is refused with an error naming ``path``."""
+    for name in ("means", "scales", "opacities", "quats", FILTER_3D):
+        values = getattr(splat, name)
+        if values is not None and not bool(np.all(np.isfinite(values))):
+            raise DataError(f"{path}: cannot write the viewer PLY: the splat's {name} hold NaN or inf")
+    if splat.filter_3d is not None and bool(np.any(splat.filter_3d < 0)):
+        raise DataError(f"{path}: cannot write the viewer PLY: the splat's {FILTER_3D} holds negative values")
+    return write_ply(path, bake_filter_3d(splat))
 
 
 def trim_sh(splat: SplatData, degree: int) -> SplatData:

@@ -5,7 +5,8 @@
 - :func:`write_scene`: a complete scene directory (capture + calibration) from such views, so
   that the real loading, undistortion, COLMAP and training code runs on it.
 - :func:`random_gaussians` / :func:`render_views`: a random Gaussian scene and its renders,
-  ground truth that the trainer can fit exactly.
+  ground truth that the trainer can fit exactly; :func:`gaussian_ring_data`: such renders from
+  two rings as in-memory training data (the trainer's tests' tiny scene).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -24,6 +26,9 @@ from brave6d.core.calibration_io import write_handeye, write_intrinsics
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.layout import FrameLog, FrameRecord, SceneDir
 from brave6d.core.transforms import invert
+
+if TYPE_CHECKING:
+    from brave6d.training.views import TrainingData
 
 
 def look_at(eye: NDArray[np.float64], target: NDArray[np.float64], up: tuple[float, float, float] = (0, 0, 1)
@@ -152,3 +157,16 @@ def render_views(params: dict[str, torch.Tensor], camera: PinholeCamera, poses: 
                                     camera.width, camera.height, sh_degree=0)
         out.append((colors[0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
     return out
+
+
+def gaussian_ring_data(camera: PinholeCamera, n: int = 150, seed: int = 1, extent: float = 0.08,
+                       distances: tuple[float, ...] = (0.35, 0.45), per_ring: int = 6,
+                       elevation_deg: float = 40.0, test: tuple[int, ...] = (2, 9)) -> TrainingData:
+    """Training data of :func:`random_gaussians` rendered from rings of cameras (:func:`ring_poses`),
+    views ``test`` held out: a scene the trainer fits in seconds on a CPU."""
+    from brave6d.training.views import TrainingData, View
+
+    poses = ring_poses(list(distances), per_ring, elevation_deg=elevation_deg)
+    images = render_views(random_gaussians(n, seed=seed, extent=extent), camera, [p for _, _, p in poses])
+    views = [View(i, f"v{i:02d}", lvl, d, pose, img) for i, ((lvl, d, pose), img) in enumerate(zip(poses, images))]
+    return TrainingData(camera, [v for v in views if v.index not in test], [views[i] for i in test])
