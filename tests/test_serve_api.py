@@ -268,7 +268,7 @@ BAD_RESETS = [
     ({"width": 100000, "height": 240}, "width"), ({"width": 0}, "width"), ({"height": -5}, "height"),
     ({"width": 15}, "width"), ({"height": 961}, "height"), ({"width": "big"}, "width"),
     ({"width": 320.5}, "width"), ({"target": "nothing"}, "no object named"), ({"target": 99}, "gt_id 99"),
-    ({"seed": -1}, "seed"), ({"start": {"world_T_cam": IN_POST.tolist()}}, "start pose refused"),
+    ({"seed": -1}, "seed"), ({"start": {"world_T_cam": IN_POST.tolist()}}, "start: refused"),
     ({"rgb": "bmp"}, "rgb"), ({"depth": "u16"}, "depth"),
 ]
 

@@ -173,3 +173,40 @@ def test_viewer_renders_moves_and_shows_refusal(synthetic_bundle: Path, tmp_path
         out = Path(os.environ.get("BRAVE6D_VIEWER_SCREENSHOT", tmp_path / "viewer.png"))
         out.write_bytes(base64.b64decode(shot["data"]))
         assert out.stat().st_size > 1000
+
+
+def test_viewer_free_view_of_a_bundle_without_objects(tmp_path: Path, browser: DevTools) -> None:
+    """Issue #47's acceptance in the viewer: a bundle without objects (as an imported capture) opens in
+    free view, draws a real image from POST /render, moves with the keys and shows a refused pose."""
+    from brave6d.serve.app import create_app
+    from brave6d.serve.runner import ServerThread
+    from brave6d.serve.toy_scene import make_synthetic_bundle
+
+    bare = make_synthetic_bundle(tmp_path / "bare", n_gaussians=8000, objects=False)
+    with ServerThread(create_app(bare, device="cpu", log_dir=tmp_path / "episodes")) as server:
+        browser.call("Page.enable")
+        browser.call("Page.navigate", url=f"{server.url}/viewer/?width=160&height=120")
+        browser.wait_for("document.body.dataset.state === 'ready' && Number(document.body.dataset.frames) >= 1")
+        assert browser.eval("document.body.dataset.mode") == "free"
+        assert browser.eval("document.getElementById('free').checked && document.getElementById('free').disabled")
+        spread = browser.eval("""(() => { const c = document.getElementById('view');
+            const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+            let lo = 255, hi = 0; for (let i = 0; i < d.length; i += 4) { lo = Math.min(lo, d[i]); hi = Math.max(hi, d[i]); }
+            return [c.width, c.height, hi - lo]; })()""")
+        assert spread[0] == 160 and spread[1] == 120 and spread[2] > 50, spread
+        assert httpx.get(f"{server.url}/episodes").json()["episodes"] == []  # no episode was made
+
+        pose0 = browser.eval("window.braveViewer.pose")
+        frames = browser.eval("Number(document.body.dataset.frames)")
+        browser.call("Input.dispatchKeyEvent", type="keyDown", key="w", code="KeyW", text="w", windowsVirtualKeyCode=87)
+        browser.call("Input.dispatchKeyEvent", type="keyUp", key="w", code="KeyW", windowsVirtualKeyCode=87)
+        browser.wait_for(f"Number(document.body.dataset.frames) > {frames} && window.braveViewer.idle")
+        pose1 = browser.eval("window.braveViewer.pose")
+        step = [pose1[i][3] - pose0[i][3] for i in range(3)]
+        forward = [pose0[i][2] for i in range(3)]  # the camera's z axis in the world
+        assert abs(sum(s * f for s, f in zip(step, forward)) - 0.02) < 1e-6, (step, forward)
+
+        browser.eval("window.braveViewer.setPose({look_at: {eye: [0.30, 0.25, 0.15], target: [0.45, 0.0, 0.0]}})")
+        browser.wait_for("Number(document.body.dataset.refusals) >= 1")
+        assert "post" in browser.eval("document.getElementById('banner').textContent")
+        assert browser.eval("window.braveViewer.pose") == pose1

@@ -9,6 +9,9 @@ Endpoints (all JSON unless noted; errors are ``{"error": message, "field": where
                                             (BOP ids, ``world_T_obj``, diameters, symmetries),
                                             collision boxes, workspace, holdout views, versions
 ``GET  /bundle/models/{obj_id}``            the object model (BOP PLY, millimetres)
+``POST /render``                            free view: the splat at a pose (``{pose, scene?, width?,
+                                            height?, rgb, depth}``), no episode, no object poses;
+                                            any bundle, with or without objects
 ``POST /episodes``                          reset: new episode, returns the first observation
 ``GET  /episodes``                          the episodes this server knows
 ``GET  /episodes/{id}``                     state: pose, counters, target (no images)
@@ -36,6 +39,11 @@ little-endian float32, row-major, metres, 0 = no data), the intrinsics ``K``, ``
 and, per object instance, ``cam_T_obj`` (metres; BOP's ``cam_R_m2c``/``cam_t_m2c`` in mm
 follow from it) and its visible fraction. Every response reports ``timings_ms`` (``render``:
 the rasterizer call; ``total``: the whole request) and the header ``X-Render-Ms``.
+
+A free view (``POST /render``) is a look at the scene without an episode (a new scan before anyone
+annotates it): the same pose forms, image sizes, encodings, timeout and body limit as a reset, and its
+pose must be free as a reset's ``start`` must be (inside the workspace, clear of the collision boxes;
+else 422 naming ``pose``). Its observation lists no objects: it is the splat and nothing the score uses.
 
 Robustness: request bodies (and WebSocket messages) are limited to ``max_body_bytes``
 (413); each action runs under ``request_timeout_s`` (504; a timed-out action is withdrawn
@@ -105,7 +113,7 @@ from brave6d.serve.episodes import (
     SceneServer,
     Ticket,
 )
-from brave6d.serve.schema import EncodedImage, ErrorMessage, ObservationMessage, StepMessage
+from brave6d.serve.schema import EncodedImage, ErrorMessage, ObservationMessage, RenderMessage, StepMessage
 
 log = logging.getLogger(__name__)
 
@@ -195,12 +203,24 @@ class ObsOptions(_Strict):
     depth: Literal["f32", "none"] = Field("f32", description="'f32': base64 of little-endian float32 metres")
 
 
-class ResetRequest(ObsOptions):
+class ViewRequest(ObsOptions):
+    """What a request for a view names besides its pose: the scene, the image size (the bundle's
+    camera scaled to it; omitted: the bundle's render default) and the encodings."""
+
     scene: Annotated[str, Field(max_length=128)] | Annotated[int, Field(ge=0, lt=2**31)] | None = Field(
         None, description="scene name or BOP scene_id (GET /scenes); may be omitted when the server has one scene")
-    target: int | str | None = Field(None, description="target instance: gt_id (int) or object name")
     width: Width | None = None
     height: Height | None = None
+
+
+class RenderRequest(ViewRequest):
+    """A free view: the splat at ``pose``, no episode (any bundle, with or without objects)."""
+
+    pose: PoseIn
+
+
+class ResetRequest(ViewRequest):
+    target: int | str | None = Field(None, description="target instance: gt_id (int) or object name")
     start: PoseIn | None = Field(None, description="start pose; omitted: a seeded random start around the target")
     seed: Annotated[int, Field(ge=0, lt=2**63)] | None = None
     agent: AgentName | None = None
@@ -282,6 +302,20 @@ def step_json(result: ActionResult, opts: ObsOptions, t_start: float) -> dict[st
         adjustments=result.adjustments, move=result.move,
         target={"gt_id": target.gt_id, "obj_id": target.obj_id, "name": target.name} if target else {},
         observation=obs, timings_ms=timings).model_dump()
+
+
+def render_json(view: RenderedView, scene: str, opts: ObsOptions, t_start: float) -> dict[str, Any]:
+    """The JSON body of a free view's reply (a :class:`brave6d.serve.schema.RenderMessage`)."""
+    obs, enc_ms = encode_observation(view, opts.rgb, opts.depth)
+    timings = {**view.timings_ms, "encode": enc_ms, "total": (time.perf_counter() - t_start) * 1000.0}
+    return RenderMessage(scene=scene, observation=obs, timings_ms=timings).model_dump()
+
+
+def timing_headers(timings_ms: dict[str, float]) -> dict[str, str]:
+    """``X-Render-Ms`` and ``Server-Timing`` of a reply whose body reports ``timings_ms``."""
+    render = timings_ms.get("render", 0.0)
+    return {"X-Render-Ms": f"{render:.2f}",
+            "Server-Timing": f"render;dur={render:.2f}, total;dur={timings_ms.get('total', 0.0):.2f}"}
 
 
 #: Bytes of an ``observation.npz`` reply handed to the connection at a time (see
@@ -626,10 +660,7 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
 
     def respond(result: ActionResult, opts: ObsOptions, t0: float, status: int = 200) -> JSONResponse:
         body = step_json(result, opts, t0)
-        return JSONResponse(body, status_code=status, headers={
-            "X-Render-Ms": f"{result.timings_ms.get('render', 0.0):.2f}",
-            "Server-Timing": f"render;dur={result.timings_ms.get('render', 0.0):.2f}, "
-                             f"total;dur={body['timings_ms']['total']:.2f}"})
+        return JSONResponse(body, status_code=status, headers=timing_headers(body["timings_ms"]))
 
     err = {400: {"model": ErrorMessage}, 404: {"model": ErrorMessage}, 409: {"model": ErrorMessage},
            413: {"model": ErrorMessage}, 422: {"model": ErrorMessage}, 429: {"model": ErrorMessage}, 504: {"model": ErrorMessage}}
@@ -682,6 +713,15 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
         result = await run_action(manager.reset, scene=req.scene, target=req.target, width=req.width, height=req.height,
                                   start=start, seed=req.seed, agent=req.agent)
         return respond(result, req, t0, 201)
+
+    @app.post("/render", response_model=RenderMessage, responses=err,
+              summary="free view: the splat at a pose, without an episode (any bundle, with or without objects)")
+    async def render(req: RenderRequest) -> JSONResponse:
+        t0 = time.perf_counter()
+        view = await run_action(manager.render, req.pose.matrix(), scene=req.scene, width=req.width,
+                                height=req.height)
+        body = render_json(view, catalog.source(req.scene).name, req, t0)
+        return JSONResponse(body, headers=timing_headers(body["timings_ms"]))
 
     @app.get("/episodes", summary="list episodes")
     def list_episodes() -> dict[str, Any]:

@@ -10,6 +10,7 @@
             print("refused:", step.refusal["message"])
         client.submit([PoseEstimate(obj_id=1, cam_T_obj=my_estimate, score=0.9)], agent="mine")
         # (submit ends the episode; client.close() ends one without estimates)
+        view = client.render(world_T_cam, width=320, height=240)   # a free view, no episode
 
 Poses are ``world_T_cam`` 4x4 arrays (OpenCV camera axes, metres). A refused action is not an
 error: it returns a :class:`StepResult` with ``accepted == False``. HTTP errors (4xx/5xx) raise
@@ -31,9 +32,9 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import ValidationError
 
 from brave6d.core.errors import BraveError
-from brave6d.serve.schema import ObjectState, ObservationMessage, StepMessage
+from brave6d.serve.schema import ObjectState, ObservationMessage, RenderMessage, StepMessage
 
-M = TypeVar("M", ObservationMessage, StepMessage)
+M = TypeVar("M", ObservationMessage, StepMessage, RenderMessage)
 
 DEFAULT_URL = "http://127.0.0.1:8765"
 #: Environment variable holding the server's token (the same one ``brave6d serve`` reads).
@@ -178,6 +179,11 @@ def _validated(model: type[M], data: dict[str, Any]) -> M:
                          f"differ?): {exc}") from None
 
 
+def _given(**fields: Any) -> dict[str, Any]:
+    """The ``fields`` that are not None: a request body leaves out what the caller did not give."""
+    return {key: value for key, value in fields.items() if value is not None}
+
+
 def pose_json(pose: ArrayLike | dict[str, Any]) -> dict[str, Any]:
     """A 4x4 ``world_T_cam`` (array) or an already formed pose dict -> the API's pose object."""
     if isinstance(pose, dict):
@@ -243,16 +249,21 @@ class BraveClient:
         params = {"scene": str(scene)} if scene is not None else None
         return self._request("GET", f"/bundle/models/{obj_id}", params=params).content
 
+    def render(self, pose: ArrayLike | dict[str, Any], width: int | None = None, height: int | None = None,
+               scene: str | int | None = None) -> Observation:
+        """A free view (``POST /render``): the splat of ``scene`` at ``pose`` (a 4x4 ``world_T_cam`` or a
+        pose dict), no episode, no object poses; works on a bundle without objects."""
+        body = {"pose": pose_json(pose), **self._opts(), **_given(scene=scene, width=width, height=height)}
+        reply = _validated(RenderMessage, self._request("POST", "/render", json=body).json())
+        return decode_observation(reply.observation)
+
     def reset(self, target: int | str | None = None, width: int | None = None, height: int | None = None,
               start: ArrayLike | dict[str, Any] | None = None, seed: int | None = None,
               agent: str | None = None, scene: str | int | None = None) -> StepResult:
         """Start an episode on ``scene`` (name or scene_id; may be omitted when the server has one)
         at ``target``; ``agent`` names the agent on the leaderboard."""
-        body: dict[str, Any] = {**self._opts()}
-        for key, value in (("scene", scene), ("target", target), ("width", width), ("height", height),
-                           ("seed", seed), ("agent", agent)):
-            if value is not None:
-                body[key] = value
+        body = {**self._opts(), **_given(scene=scene, target=target, width=width, height=height, seed=seed,
+                                          agent=agent)}
         if start is not None:
             body["start"] = pose_json(start)
         step = decode_step(self._request("POST", "/episodes", json=body).json())

@@ -40,6 +40,7 @@ from brave6d.serve.episodes import (
     check_estimate,
     check_pose,
     check_twist,
+    free_pose,
     submission_record,
     target_ref,
 )
@@ -175,7 +176,8 @@ class EpisodeManager:
                ticket: Ticket | None) -> ActionResult:
         bundle = server.bundle
         if not bundle.objects:
-            raise InvalidAction("the bundle has no objects to target", "target")
+            raise InvalidAction("target: the bundle has no objects to target (annotate them for episodes: brave6d "
+                                "annotate); look at the scene without an episode with POST /render", "target")
         if target is None:
             tgt = bundle.objects[0]
         else:
@@ -183,14 +185,10 @@ class EpisodeManager:
                 tgt = bundle.object_by(target)
             except KeyError as exc:
                 raise InvalidAction(str(exc.args[0]), "target") from None
-        w = width or bundle.render.width
-        h = height or bundle.render.height
-        camera = server.camera_for(w, h)
+        camera = server.camera_of(width, height)
+        w, h = camera.width, camera.height
         if start is not None:
-            T0 = check_pose(start, "start")
-            refusal = bundle.world.check(T0)
-            if refusal is not None:
-                raise InvalidAction(f"start pose refused: {refusal.message}", "start")
+            T0 = free_pose(bundle.world, start, "start")
             used_seed = seed
         else:
             used_seed = seed if seed is not None else secrets.randbits(31)
@@ -230,6 +228,20 @@ class EpisodeManager:
             return ActionResult(eid, "reset", 0, True, False, None, 0, obs, None, timings)
         finally:
             ep.lock.release()
+
+    def render(self, world_T_cam: Matrix4, *, scene: str | int | None = None, width: int | None = None,
+               height: int | None = None, ticket: Ticket | None = None) -> RenderedView:
+        """The splat of ``scene`` at ``world_T_cam``, without an episode (free viewing: any bundle,
+        with or without objects). The pose must be free as a reset's start must be, the image within
+        the same cap; the scene is loaded first when needed and pinned only while it renders."""
+        server = self.scenes.acquire(scene)  # an unknown scene is refused before anything is loaded
+        try:
+            T = free_pose(server.bundle.world, world_T_cam, "pose")
+            view = server.free_view(T, server.camera_of(width, height))
+            _commit(ticket, lambda: None)  # a withdrawn request answers 504, not a late image
+            return view
+        finally:
+            self.scenes.release(server)
 
     def set_pose(self, episode_id: str, world_T_cam: Matrix4, ticket: Ticket | None = None) -> ActionResult:
         ep = self.get(episode_id)

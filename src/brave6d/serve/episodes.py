@@ -57,7 +57,7 @@ from brave6d.core.errors import BraveError, NonRigidTransformError
 from brave6d.core.transforms import invert, look_at, nearest_rotation
 from brave6d.serve.bundle import Bundle, BundleObject, load_model_m
 from brave6d.serve.episode_log import EpisodeLog, FinalView, LoggedEstimate, SubmitRecord
-from brave6d.serve.geometry import Refusal
+from brave6d.serve.geometry import CollisionWorld, Refusal
 from brave6d.serve.limits import MAX_ANGULAR_SPEED_RAD_S, MAX_COORD_M, MAX_LINEAR_SPEED_M_S, MAX_MOVE_DURATION_S
 from brave6d.serve.reference import SPLAT_GEOMETRY, ReferenceGeometry, bundle_reference
 from brave6d.serve.renderer import RenderOutput, SplatRenderer
@@ -219,6 +219,19 @@ class SceneServer:
             return cam
         return cam.scaled(width, height)
 
+    def camera_of(self, width: int | None, height: int | None) -> PinholeCamera:
+        """The camera of a request's ``width`` x ``height`` (None: the bundle's render default)."""
+        return self.camera_for(width or self.bundle.render.width, height or self.bundle.render.height)
+
+    def free_view(self, world_T_cam: Matrix4, camera: PinholeCamera) -> RenderedView:
+        """The splat alone at ``world_T_cam``: no objects and no visibility (free viewing, ``POST
+        /render``: a scene without objects can be looked at, and no ground truth leaves the server)."""
+        t0 = time.perf_counter()
+        out = self.renderer.render(world_T_cam, camera, **self._render_settings())
+        timings = {"render": out.render_ms, "render_queue": out.queue_ms,
+                   "observe": (time.perf_counter() - t0) * 1000.0}
+        return RenderedView(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), (), timings)
+
     def observe(self, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None) -> RenderedView:
         """The view at ``world_T_cam``: the rendered images and every object's ground truth."""
         t0 = time.perf_counter()
@@ -355,6 +368,17 @@ def check_pose(world_T_cam: Any, field: str) -> Matrix4:
         raise InvalidAction(f"{field}: must be a finite 4x4 matrix", field)
     if float(np.max(np.abs(T[:3, 3]))) > MAX_COORD_M:
         raise InvalidAction(f"{field}: the camera centre must lie within {MAX_COORD_M:g} m of the origin", field)
+    return T
+
+
+def free_pose(world: CollisionWorld, world_T_cam: Any, field: str) -> Matrix4:
+    """``world_T_cam`` checked (:func:`check_pose`) and free (inside the workspace, clear of every
+    collision box), else :class:`InvalidAction` naming ``field`` with the refusal: the rule of a
+    pose given without an episode to stay in (a reset's start, a free view)."""
+    T = check_pose(world_T_cam, field)
+    refusal = world.check(T)
+    if refusal is not None:
+        raise InvalidAction(f"{field}: refused: {refusal.message}", field)
     return T
 
 

@@ -308,9 +308,20 @@ def bundle_reference(bundle: Any) -> ReferenceGeometry | None:
     every score says which geometry it was measured on."""
     path = bundle.reference_path
     if path is None:
-        log.warning("bundle %s has no reference geometry (%s; exported before it existed or from a capture "
-                    "without depth): visible fractions and the depth VSD is scored on come from the splat being "
-                    "served, so its scores move with each training; export the bundle again to fix them",
-                    bundle.name, bundle.root)
+        log.warning("bundle %s has no reference geometry (%s): %s", bundle.name, bundle.root,
+                    missing_reference_advice(bool(bundle.objects)))
         return None
     return read_reference(path)
+
+
+def missing_reference_advice(has_objects: bool) -> str:
+    """What a bundle without reference geometry means and what can fix it. Exporting again helps
+    only when the capture recorded depth (a bundle exported before the reference existed); a
+    capture without depth (an imported photo set) never gets one, and a bundle without objects
+    has nothing to score: it is looked at with free views (``POST /render``)."""
+    if not has_objects:
+        return ("it has no objects either, so nothing is scored on it; look at it with free views "
+                "(POST /render, or the viewer's free view); annotate objects (brave6d annotate) for episodes")
+    return ("visible fractions and the depth VSD is scored on come from the splat being served, so its scores "
+            "move with each training; if its capture recorded depth, export the bundle again to add the reference "
+            "(a capture without depth, such as an imported photo set, cannot have one)")

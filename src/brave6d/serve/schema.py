@@ -1,4 +1,4 @@
-"""The render server's wire format: what one step returns (observation, objects, images).
+"""The render server's wire format: what one step or free view returns (observation, objects, images).
 
 One definition for the server (which builds these from a rendered view), the OpenAPI docs
 (FastAPI's ``response_model``) and the Python client (which validates every reply against them
@@ -141,6 +141,15 @@ class StepMessage(WireModel):
     adjustments: int
     move: dict[str, Any] | None
     target: dict[str, Any]
+    observation: ObservationMessage
+    timings_ms: dict[str, float]
+
+
+class RenderMessage(WireModel):
+    """The reply to ``POST /render`` (a free view, no episode): the scene's name and the view of the
+    splat; its ``objects`` are always empty (a free view carries no ground truth)."""
+
+    scene: str
     observation: ObservationMessage
     timings_ms: dict[str, float]
 

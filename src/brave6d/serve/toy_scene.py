@@ -200,8 +200,10 @@ def ring_poses(n_views: int, distance: float = 0.3, elevation_deg: float = 50.0)
 
 def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree: int = 0, n_views: int = 10,
                          width: int = 320, height: int = 240, seed: int = 0, volume_fraction: float = 0.0,
-                         depth: bool = False) -> SceneDir:
-    """Write the synthetic scene directory (see the module docstring); returns it."""
+                         depth: bool = False, objects: bool = True) -> SceneDir:
+    """Write the synthetic scene directory (see the module docstring); returns it. ``objects=False``:
+    the cubes stay in the splat but the spec and the annotation list none, as an imported capture
+    nobody has annotated yet (its bundle serves free views only)."""
     from brave6d.annotation import write_ply_mesh
     from brave6d.training import holdout_split, write_holdout, write_ply
 
@@ -213,6 +215,8 @@ def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree:
     spec = json.loads(json.dumps(SPEC))
     spec["camera"].update({"width": width, "height": height})
     spec["capture"]["depth"] = depth
+    if not objects:
+        del spec["objects"]
     import yaml
 
     scene.spec_path.write_text(yaml.safe_dump(spec, sort_keys=False), encoding="utf-8")
@@ -245,6 +249,10 @@ def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree:
     write_holdout(scene, [r for r in records if r.index in held_out])  # as training records its split
     from brave6d.annotation import AnnotatedInstance, AnnotatedObject, Annotation, write_annotation
 
+    if not objects:
+        write_annotation(scene, Annotation((), (), {}, source={"kind": "none", "note": "no objects annotated yet"}))
+        return scene
+
     meshes = scene.annotation_meshes_dir
     objects, instances, id_map = [], [], {}
     for obj_id, name in enumerate(CUBE_POSES, start=1):
@@ -259,13 +267,15 @@ def make_synthetic_scene(root: Path | str, n_gaussians: int = 20_000, sh_degree:
 
 def make_synthetic_bundle(root: Path | str, n_gaussians: int = 20_000, sh_degree: int = 0, n_views: int = 10,
                           width: int = 320, height: int = 240, bop: bool = False, seed: int = 0,
-                          volume_fraction: float = 0.0, depth: bool = False) -> Path:
+                          volume_fraction: float = 0.0, depth: bool = False, objects: bool = True) -> Path:
     """The synthetic scene under ``root`` and its bundle (``root/bundle``); ``bop`` also runs the
     annotation stage's BOP export first (so the bundle takes BOP's models); ``depth``: the capture
-    records true depth, so the bundle has a reference geometry."""
+    records true depth, so the bundle has a reference geometry; ``objects=False``: a bundle without
+    objects (:func:`make_synthetic_scene`)."""
     from brave6d.serve.bundle import export_bundle
 
-    scene = make_synthetic_scene(root, n_gaussians, sh_degree, n_views, width, height, seed, volume_fraction, depth)
+    scene = make_synthetic_scene(root, n_gaussians, sh_degree, n_views, width, height, seed, volume_fraction, depth,
+                                 objects)
     if bop:
         from brave6d.annotation import export_bop
 

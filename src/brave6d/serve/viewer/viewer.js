@@ -1,4 +1,7 @@
-// BRAVE-6D browser viewer: drives one episode of the render server through its REST API.
+// BRAVE-6D browser viewer: drives one episode of the render server through its REST API, or,
+// in free view (the "free view" toggle; always for a bundle without objects, and when no episode
+// can start), moves a camera of its own and asks POST /render for each pose: no episode, no
+// object poses, the same pose checks (a pose outside the workspace or in a box shows the red banner).
 // Drag orbits around the target, the wheel and WASD/QE move the camera (camera-frame twists),
 // the arrow keys turn it. Object axes (x red, y green, z blue) and ids are drawn from the
 // ground-truth poses (cam_T_obj) and the intrinsics K of each observation. Refused moves show
@@ -20,7 +23,9 @@
   const state = {
     bundle: null, episodeId: null, last: null, frames: 0, refusals: 0,
     queue: [], busy: false, bannerTimer: null, drag: null, labels: [],
+    free: false, pose: null, size: null, // free view: its camera pose (world_T_cam) and image size
   };
+  const freeBox = document.getElementById("free");
 
   function showBanner(kind, text) {
     banner.className = "banner " + kind;
@@ -130,14 +135,18 @@
     });
   }
 
+  function refused(message) {
+    state.refusals += 1;
+    body.dataset.refusals = String(state.refusals);
+    body.dataset.lastRefusal = message;
+    showBanner("refused", "Refused: " + message);
+  }
+
   function handle(step) {
     state.last = step;
     updatePanel(step);
     if (!step.accepted) {
-      state.refusals += 1;
-      body.dataset.refusals = String(state.refusals);
-      body.dataset.lastRefusal = step.refusal.message;
-      showBanner("refused", "Refused: " + step.refusal.message);
+      refused(step.refusal.message);
     } else if (step.collided && step.refusal) {
       showBanner("stopped", "Stopped at a collision: " + step.refusal.message);
     } else {
@@ -148,7 +157,7 @@
 
   // ------------------------------------------------------------------ requests (one at a time)
   function enqueue(kind, payload) {
-    if (!state.episodeId) return;
+    if (!state.episodeId && !state.free) return;
     if (kind === "set_pose") state.queue = state.queue.filter((q) => q.kind !== "set_pose");
     if (state.queue.length > 8) state.queue.shift();
     state.queue.push({ kind, payload });
@@ -160,11 +169,17 @@
     const item = state.queue.shift();
     state.busy = true;
     try {
-      const step = await api("POST", "/episodes/" + state.episodeId + "/" + item.kind,
-        Object.assign({ rgb: "jpeg", depth: "none" }, item.payload));
-      await handle(step);
+      if (state.free) {
+        const pose = item.kind === "set_pose" ? item.payload.pose : { world_T_cam: twisted(state.pose, item.payload) };
+        await renderFree(pose);
+      } else {
+        const step = await api("POST", "/episodes/" + state.episodeId + "/" + item.kind,
+          Object.assign({ rgb: "jpeg", depth: "none" }, item.payload));
+        await handle(step);
+      }
     } catch (err) {
-      showBanner("error", "Error: " + err.message);
+      if (state.free && err.status === 422) refused(err.message);
+      else showBanner("error", "Error: " + err.message);
     } finally {
       state.busy = false;
       pump();
@@ -181,15 +196,24 @@
 
   // ------------------------------------------------------------------ orbit
   function targetCentre() {
+    if (state.free || state.bundle.objects.length === 0) {
+      const c = (state.bundle.start && state.bundle.start.target) || [0, 0, 0];
+      return [c[0], c[1], c[2]];
+    }
     const gt = Number(document.getElementById("target").value || 0);
     const o = state.bundle.objects.find((b) => b.gt_id === gt) || state.bundle.objects[0];
     const T = o.world_T_obj;
     return [T[0][3], T[1][3], T[2][3] + 0.01];
   }
 
+  function currentPose() {
+    if (state.free) return state.pose;
+    return state.last ? state.last.observation.world_T_cam : null;
+  }
+
   function orbitStart(x, y) {
-    if (!state.last) return;
-    const T = state.last.observation.world_T_cam;
+    const T = currentPose();
+    if (!T) return;
     const c = targetCentre();
     const d = [T[0][3] - c[0], T[1][3] - c[1], T[2][3] - c[2]];
     const r = Math.hypot(d[0], d[1], d[2]);
@@ -226,34 +250,111 @@
   window.addEventListener("keydown", (e) => {
     if (e.target && e.target.tagName === "SELECT") return;
     const key = e.key.toLowerCase();
-    if (key === "r") { reset(); return; }
+    if (key === "r") { if (state.free) startFree(); else reset(); return; }
     const twist = KEYS[key];
     if (!twist) return;
     e.preventDefault();
     move(twist[0], twist[1]);
   });
 
-  // ------------------------------------------------------------------ episodes
-  async function reset() {
-    body.dataset.state = "resetting";
+  // ------------------------------------------------------------------ free view (POST /render)
+  function rotation(w) { // Rodrigues: the rotation of the axis-angle vector w
+    const a = Math.hypot(w[0], w[1], w[2]);
+    if (a < 1e-12) return [[1, 0, 0], [0, 1, 0], [0, 0, 1]];
+    const k = [w[0] / a, w[1] / a, w[2] / a], c = Math.cos(a), s = Math.sin(a), v = 1 - c;
+    return [[c + k[0] * k[0] * v, k[0] * k[1] * v - k[2] * s, k[0] * k[2] * v + k[1] * s],
+      [k[1] * k[0] * v + k[2] * s, c + k[1] * k[1] * v, k[1] * k[2] * v - k[0] * s],
+      [k[2] * k[0] * v - k[1] * s, k[2] * k[1] * v + k[0] * s, c + k[2] * k[2] * v]];
+  }
+
+  function twisted(T, move) { // T moved by a camera-frame twist for move.duration (as the server's move)
+    const d = move.duration, R = rotation(move.angular.map((w) => w * d));
+    const out = [];
+    for (let i = 0; i < 3; i++) {
+      const row = [0, 0, 0, T[i][3]];
+      for (let j = 0; j < 3; j++) {
+        for (let k = 0; k < 3; k++) row[j] += T[i][k] * R[k][j];
+        row[3] += T[i][j] * move.linear[j] * d;
+      }
+      out.push(row);
+    }
+    out.push([0, 0, 0, 1]);
+    return out;
+  }
+
+  function startPose() { // a held-out capture view (a pose a real camera had), else a look at the start target
+    const held = state.bundle.holdout || [];
+    if (held.length) return { world_T_cam: held[0].world_T_cam };
+    const s = state.bundle.start || {}, c = targetCentre();
+    const r = (s.distances_m && s.distances_m.length) ? Math.min(...s.distances_m) : 0.5;
+    const el = Math.PI / 180 * (((s.min_elevation_deg ?? 30) + (s.max_elevation_deg ?? 60)) / 2);
+    const eye = [c[0], c[1] - r * Math.cos(el), c[2] + r * Math.sin(el)];
+    return { look_at: { eye, target: c, up: [0, 0, 1] } };
+  }
+
+  async function renderFree(pose) {
+    const view = await api("POST", "/render", Object.assign({ pose, rgb: "jpeg", depth: "none" }, state.size));
+    state.pose = view.observation.world_T_cam;
+    banner.classList.add("hidden");
+    document.getElementById("episode").textContent = "- (free view of " + view.scene + ")";
+    document.getElementById("adjustments").textContent = "-";
+    document.getElementById("render-ms").textContent = view.timings_ms.render.toFixed(1) + " ms";
+    document.getElementById("total-ms").textContent = view.timings_ms.total.toFixed(1) + " ms";
+    const t = state.pose;
+    document.getElementById("pose").textContent =
+      "[" + [t[0][3], t[1][3], t[2][3]].map((v) => v.toFixed(3)).join(", ") + "]";
+    document.querySelector("#objects tbody").innerHTML = "";
+    await show(view);
+  }
+
+  async function startFree(why) { // leave any episode; look from the current pose, else the start pose
+    const pose = currentPose();
     const old = state.episodeId;
     state.episodeId = null;
     state.queue = [];
     if (old) api("POST", "/episodes/" + old + "/close").catch(() => {});
+    state.free = true;
+    freeBox.checked = true;
+    body.dataset.mode = "free";
+    body.dataset.state = "resetting";
+    try {
+      await renderFree(pose ? { world_T_cam: pose } : startPose());
+      body.dataset.state = "ready";
+      if (why) showBanner("stopped", why);
+    } catch (err) {
+      body.dataset.state = "error";
+      showBanner("error", "Error: " + err.message);
+    }
+  }
+
+  function imageSize() {
     const r = state.bundle.render;
     const width = Number(params.get("width")) || Math.min(640, r.width);
     const height = Number(params.get("height")) || Math.round(width * r.height / r.width);
+    return { width, height };
+  }
+
+  // ------------------------------------------------------------------ episodes
+  async function reset() {
+    if (state.bundle.objects.length === 0) { await startFree(); return; }
+    body.dataset.state = "resetting";
+    const old = state.episodeId;
+    state.episodeId = null;
+    state.queue = [];
+    state.free = false;
+    freeBox.checked = false;
+    body.dataset.mode = "episode";
+    if (old) api("POST", "/episodes/" + old + "/close").catch(() => {});
     const seed = params.has("seed") ? Number(params.get("seed")) : Math.floor(Math.random() * 1e9);
-    const request = { width, height, seed, rgb: "jpeg", depth: "none",
-      target: Number(document.getElementById("target").value || 0) };
+    const request = Object.assign({ seed, rgb: "jpeg", depth: "none",
+      target: Number(document.getElementById("target").value || 0) }, state.size);
     try {
       const step = await api("POST", "/episodes", request);
       state.episodeId = step.episode_id;
       await handle(step);
       body.dataset.state = "ready";
-    } catch (err) {
-      body.dataset.state = "error";
-      showBanner("error", "Error: " + err.message);
+    } catch (err) { // no episode can start (too many open, a scene that refuses): look around freely
+      await startFree("No episode (" + err.message + "): free view");
     }
   }
 
@@ -275,6 +376,12 @@
       select.appendChild(opt);
     }
     if (params.has("target")) select.value = params.get("target");
+    state.size = imageSize();
+    const noObjects = state.bundle.objects.length === 0;
+    freeBox.disabled = noObjects; // a bundle without objects has free views only
+    select.disabled = noObjects;
+    document.getElementById("reset").disabled = noObjects;
+    freeBox.addEventListener("change", () => (freeBox.checked ? startFree() : reset()));
     select.addEventListener("change", reset);
     document.getElementById("reset").addEventListener("click", reset);
     window.addEventListener("beforeunload", () => {
@@ -283,7 +390,8 @@
         navigator.sendBeacon("/episodes/" + state.episodeId + "/close" + query);
       }
     });
-    await reset();
+    if (noObjects || params.get("free") === "1") await startFree();
+    else await reset();
   }
 
   window.braveViewer = {
@@ -292,7 +400,9 @@
     get last() { return state.last; },
     get labels() { return state.labels.slice(); },
     get idle() { return !state.busy && state.queue.length === 0; },
-    setPose, move, reset,
+    get free() { return state.free; },
+    get pose() { return currentPose(); },
+    setPose, move, reset, startFree,
   };
   init();
 })();
