@@ -168,3 +168,39 @@ def test_bad_bodies_get_the_set_pose_answers(client: TestClient, text: str, mess
     assert 400 <= r.status_code < 500, r.text
     body = r.json()
     assert set(body) == {"error", "field", "status"} and message.lower() in body["error"].lower(), body
+
+
+@pytest.mark.slow
+def test_an_imported_capture_trained_and_exported_serves_free_views(tmp_path: Path,
+                                                                   caplog: pytest.LogCaptureFixture) -> None:
+    """The acceptance on a real capture: the skull imported (no objects), trained briefly, exported;
+    the server renders it over HTTP at a held-out camera, refuses episodes naming POST /render, and its
+    load warning no longer advises exporting again."""
+    from brave6d.core.layout import SceneDir
+    from brave6d.serve.bundle import export_bundle
+    from brave6d.training import get_preset, import_capture, train_scene
+    from test_import_real import MODEL, options
+
+    import_capture(MODEL, tmp_path / "scene", options(downscale=4))
+    scene = SceneDir(tmp_path / "scene")
+    preset = get_preset("fast").with_overrides(steps=30, coarse_steps=0, downscale=1, refine_start=10,
+                                               refine_every=10, refine_stop=20, max_init_points=2000,
+                                               checkpoint_every=30, curve_every=10, depth_lambda=0.0)
+    train_scene(scene, preset, device="cpu", init_method="imported", show_progress=False)
+    bundle = load_bundle(export_bundle(scene.root).root)
+    assert not bundle.objects and bundle.holdout
+    pose = bundle.holdout[0].world_T_cam
+    with caplog.at_level("WARNING"), TestClient(create_app(bundle, device="cpu"), base_url=LOCAL) as c:
+        r = render(c, {"world_T_cam": pose.tolist()}, width=120, height=80)
+        assert r.status_code == 200, r.text
+        obs = decode_observation(r.json()["observation"])
+        assert obs.rgb.shape == (80, 120, 3) and obs.rgb.std() > 5.0
+        d = bundle.render
+        own = SplatRenderer(bundle.splat_path, "cpu", antialiasing=d.antialiasing).render(
+            pose, bundle.camera.scaled(120, 80), near=d.near, far=d.far, background=d.background,
+            depth_alpha_min=d.depth_alpha_min, depth_mode=d.depth_mode)
+        np.testing.assert_array_equal(obs.rgb, own.rgb)
+        episode = c.post("/episodes", json={})
+        assert episode.status_code == 422 and "POST /render" in episode.json()["error"]
+    warning = next(m.getMessage() for m in caplog.records if m.name == "brave6d.serve.reference")
+    assert "POST /render" in warning and "export the bundle again" not in warning
