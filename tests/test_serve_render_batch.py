@@ -1,8 +1,11 @@
 """Batched renders (issue #46 item 4): N cameras in one rasterizer call give each camera the
 views :meth:`SplatRenderer.render` gives it alone, including empty views and a Gaussian that
-covers the whole image."""
+covers the whole image. Each check runs twice: with the CPU's grouping of cameras as it is, and
+with every camera forced into one call (``CPU_BATCH_OVERLAP`` unbounded)."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 import pytest
@@ -13,6 +16,7 @@ from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import BraveError
 from brave6d.core.transforms import look_at
 from brave6d.serve import SplatRenderer
+from brave6d.serve import renderer as renderer_module
 from brave6d.serve.renderer import RenderOutput
 from brave6d.serve.toy_scene import synthetic_splat
 from brave6d.training.ply import SplatData
@@ -47,13 +51,37 @@ def assert_same_view(batched: RenderOutput, single: RenderOutput) -> None:
 
 
 def check_batch(r: SplatRenderer, poses: list[np.ndarray], camera: PinholeCamera = CAMERA) -> list[RenderOutput]:
-    batched = r.render_batch(poses, camera)
-    assert len(batched) == len(poses)
-    for out, T in zip(batched, poses):
-        assert np.all(np.isfinite(out.depth)) and np.all(np.isfinite(out.alpha))
-        assert out.rgb.shape == (camera.height, camera.width, 3) and out.rgb.dtype == np.uint8
-        assert_same_view(out, r.render(T, camera))
+    """render_batch equals render per pose, grouped as the CPU groups and all in one call."""
+    singles = [r.render(T, camera) for T in poses]
+    for overlap in (renderer_module.CPU_BATCH_OVERLAP, float("inf")):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(renderer_module, "CPU_BATCH_OVERLAP", overlap)
+            batched = r.render_batch(poses, camera)
+        assert len(batched) == len(poses)
+        for out, single in zip(batched, singles):
+            assert np.all(np.isfinite(out.depth)) and np.all(np.isfinite(out.alpha))
+            assert out.rgb.shape == (camera.height, camera.width, 3) and out.rgb.dtype == np.uint8
+            assert_same_view(out, single)
     return batched
+
+
+def test_cpu_groups_cameras_that_share_gaussians(renderer: SplatRenderer) -> None:
+    """Nearby views share one call; views from opposite sides of the scene are drawn apart."""
+    near = [look_at((0.25 + 0.002 * k, -0.15, 0.30), TARGET) for k in range(4)]
+    culled = renderer._culled(*_cameras(renderer, near))
+    assert renderer._groups(culled, 4) == [[0, 1, 2, 3]]
+    apart = [look_at((0.46, -0.3, 0.05), (0.46, 0.3, 0.05)), look_at((0.46, 0.3, 0.05), (0.46, -0.3, 0.05))]
+    culled = renderer._culled(*_cameras(renderer, apart))
+    assert renderer._groups(culled, 2) == [[0], [1]]
+    assert renderer._groups(None, 3) == [[0, 1, 2]]
+
+
+def _cameras(r: SplatRenderer, poses: list[np.ndarray]) -> tuple:  # type: ignore[type-arg]
+    """The arguments of ``_culled`` for ``poses`` seen through CAMERA."""
+    import torch
+
+    viewmats = torch.as_tensor(np.stack([np.linalg.inv(T) for T in poses]), dtype=torch.float32)
+    return viewmats, torch.as_tensor(CAMERA.K, dtype=torch.float32), CAMERA, 0.01, 100.0
 
 
 @pytest.mark.parametrize("n", [1, 3])
@@ -110,3 +138,28 @@ def test_random_poses_batched_equal_single(renderer: SplatRenderer,
         poses.append(look_at(eye, target))
     if poses:
         check_batch(renderer, poses)
+
+
+def _cuda_available() -> bool:
+    import torch
+
+    return bool(torch.cuda.is_available())
+
+
+@pytest.mark.skipif(not _cuda_available(), reason="needs a CUDA GPU (benchmarks/gpu_checks.sh runs it)")
+def test_cuda_render_batch_matches_cpu(record_property: Any) -> None:
+    """gsplat's batched cameras against the CPU kernels one view at a time (float tolerance:
+    different arithmetic order; the median depth of an ambiguous pixel may pick its neighbour)."""
+    splat = synthetic_splat(4000, sh_degree=1, seed=5)
+    cpu, gpu = SplatRenderer.from_splat(splat, device="cpu"), SplatRenderer.from_splat(splat, device="cuda")
+    poses = [*VIEWS, AWAY]
+    worst = {"rgb": 0.0, "alpha": 0.0, "depth_bad_fraction": 0.0}
+    for out, T in zip(gpu.render_batch(poses, CAMERA), poses):
+        ref = cpu.render(T, CAMERA)
+        worst["rgb"] = max(worst["rgb"], float(np.abs(out.rgb.astype(int) - ref.rgb.astype(int)).max()))
+        worst["alpha"] = max(worst["alpha"], float(np.abs(out.alpha - ref.alpha).max()))
+        bad = float(np.mean(np.abs(out.depth - ref.depth) > 1e-3))
+        worst["depth_bad_fraction"] = max(worst["depth_bad_fraction"], bad)
+    for k, v in worst.items():
+        record_property(f"render_batch_{k}", v)
+    assert worst["rgb"] <= 1 and worst["alpha"] < 1e-4 and worst["depth_bad_fraction"] < 0.005, worst

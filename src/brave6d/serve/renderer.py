@@ -51,6 +51,10 @@ from brave6d.core.errors import BraveError
 from brave6d.core.transforms import invert
 from brave6d.serve.splat_check import MIN_ALPHA, activated_opacity, check_splat
 
+#: CPU batches (:meth:`SplatRenderer._groups`): cameras share a rasterizer call while its work
+#: (cameras x the union of their culled Gaussians) is at most this times that of separate calls.
+CPU_BATCH_OVERLAP = 1.25
+
 #: The depths a render may report (the module docstring; ``brave6d.training.rasterize``'s median_depth).
 DEPTH_MODES = ("median", "expected")
 
@@ -200,14 +204,16 @@ class SplatRenderer:
                      camera: PinholeCamera, *, near: float = 0.01, far: float = 100.0,
                      background: tuple[float, float, float] = (0.0, 0.0, 0.0), depth_alpha_min: float = 0.5,
                      depth_mode: str = "median") -> list[RenderOutput]:
-        """Render one view per pose in ``world_T_cams`` ([C, 4, 4] or a list) in one rasterizer call.
+        """Render one view per pose in ``world_T_cams`` ([C, 4, 4] or a list), the cameras batched.
 
         Why: many agents on one scene. The rasterizer takes C cameras at once: on CUDA gsplat
-        batches them, on the CPU the Numba kernels run their ``prange`` loops over all cameras'
-        Gaussians and tiles together, so C small images keep every core busy. The Gaussians drawn
-        are the union of the cameras' culled sets (lossless for each camera, see :meth:`_cull`),
-        so each view equals :meth:`render` of its pose. ``render_ms`` and ``queue_ms`` are the
-        whole batch's (shared by its views); ``gaussians_drawn`` is each camera's own culled count.
+        batches them (one call for all), on the CPU the Numba kernels run their ``prange`` loops over
+        all cameras' Gaussians and tiles together. A call draws the union of its cameras' culled sets
+        (lossless for each camera, see :meth:`_cull`), so each view equals :meth:`render` of its
+        pose, bit for bit. The CPU kernels project every Gaussian of a call for every camera of it,
+        so cameras that share few Gaussians (agents all around a scene) cost more together than apart:
+        on the CPU cameras are grouped (:meth:`_groups`). ``render_ms`` and ``queue_ms`` are the whole
+        batch's (shared by its views); ``gaussians_drawn`` is each camera's own culled count.
         """
         import torch
 
@@ -219,41 +225,75 @@ class SplatRenderer:
         dev = self.means.device
         viewmats = torch.as_tensor(np.stack([invert(T) for T in poses]), dtype=torch.float32, device=dev)
         K = torch.as_tensor(camera.K, dtype=torch.float32, device=dev)
-        bg = torch.as_tensor(background, dtype=torch.float32, device=dev).reshape(1, 3).expand(len(poses), 3)
+        bg = torch.as_tensor(background, dtype=torch.float32, device=dev).reshape(1, 3)
+        images: list[tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.float32]] | None] = [None] * len(poses)
         t_wait = time.perf_counter()
         with self.lock:
             t0 = time.perf_counter()
             with torch.no_grad():
-                args, drawn = self._gaussians_for(viewmats, K, camera, near, far)
-                images = self._rasterize(args, viewmats, K.expand(len(poses), 3, 3).contiguous(), camera, near, far,
-                                         bg.contiguous(), depth_alpha_min, depth_mode)
+                culled = self._culled(viewmats, K, camera, near, far)
+                for members in self._groups(culled, len(poses)):
+                    c = len(members)
+                    views = self._rasterize(self._gaussians(culled, members), viewmats[members].contiguous(),
+                                            K.expand(c, 3, 3).contiguous(), camera, near, far,
+                                            bg.expand(c, 3).contiguous(), depth_alpha_min, depth_mode)
+                    for i, view in zip(members, views):
+                        images[i] = view
             t1 = time.perf_counter()
             self.renders += len(poses)
         ms, queue = (t1 - t0) * 1000.0, (t0 - t_wait) * 1000.0
-        return [RenderOutput(rgb, d, a, ms, queue, n) for (rgb, d, a), n in zip(images, drawn)]
+        drawn = [self.num_gaussians] * len(poses) if culled is None else [int(c.numel()) for c in culled]
+        return [RenderOutput(*view, ms, queue, n) for view, n in zip(images, drawn) if view is not None]
 
-    def _gaussians_for(self, viewmats, K, camera: PinholeCamera, near: float, far: float  # type: ignore[no-untyped-def]
-                       ) -> tuple[tuple, list[int]]:  # type: ignore[type-arg]
-        """The Gaussians to rasterize for these cameras (the union of their culled sets, all of them
-        without culling) and each camera's own count (at least 1: an empty view keeps one Gaussian
-        so that shapes stay valid; it cannot touch that view's image)."""
+    def _culled(self, viewmats, K, camera: PinholeCamera, near: float, far: float):  # type: ignore[no-untyped-def]
+        """Each camera's culled Gaussian indices (at least one: an empty view keeps Gaussian 0 so
+        that shapes stay valid; it cannot touch that view's image), or None without culling."""
         import torch
 
         if not self.cull:
-            every = (self.means, self.quats, self.scales, self.opacities, self.colors)
-            return every, [self.num_gaussians] * int(viewmats.shape[0])
-        dev = self.means.device
-        keep = torch.zeros(self.num_gaussians, dtype=torch.bool, device=dev)
-        drawn = []
-        for viewmat in viewmats:
-            idx = self._cull(viewmat, K, camera.width, camera.height, near, far)
-            if idx.numel() == 0:  # nothing in view: keep one Gaussian so shapes stay valid
-                idx = torch.zeros(1, dtype=torch.long, device=dev)
-            keep[idx] = True
-            drawn.append(int(idx.numel()))
+            return None
+        empty = torch.zeros(1, dtype=torch.long, device=self.means.device)
+        culled = [self._cull(viewmat, K, camera.width, camera.height, near, far) for viewmat in viewmats]
+        return [idx if idx.numel() > 0 else empty for idx in culled]
+
+    def _groups(self, culled: list | None, n_views: int) -> list[list[int]]:  # type: ignore[type-arg]
+        """The cameras' rasterizer calls: all in one on CUDA and without culling; on the CPU the
+        cameras in order, a camera joining the current call while the call's work (cameras x their
+        union) stays within ``CPU_BATCH_OVERLAP`` times the work of separate calls (the sum of the
+        sets): agents looking at the same Gaussians share a call, agents far apart do not."""
+        import torch
+
+        if culled is None or self.means.device.type == "cuda":
+            return [list(range(n_views))]
+        groups: list[list[int]] = []
+        union = torch.zeros(self.num_gaussians, dtype=torch.bool, device=self.means.device)
+        total = 0
+        for i, idx in enumerate(culled):
+            trial = union.clone()
+            trial[idx] = True
+            work = (len(groups[-1]) + 1 if groups else 1) * int(trial.sum())
+            if groups and work <= CPU_BATCH_OVERLAP * (total + idx.numel()):
+                groups[-1].append(i)
+                union, total = trial, total + int(idx.numel())
+            else:
+                groups.append([i])
+                union = torch.zeros_like(union)
+                union[idx] = True
+                total = int(idx.numel())
+        return groups
+
+    def _gaussians(self, culled: list | None, members: list[int]) -> tuple:  # type: ignore[type-arg]
+        """The Gaussians of one rasterizer call: the union of its cameras' culled sets (all of them
+        without culling)."""
+        import torch
+
+        if culled is None:
+            return (self.means, self.quats, self.scales, self.opacities, self.colors)
+        keep = torch.zeros(self.num_gaussians, dtype=torch.bool, device=self.means.device)
+        for i in members:
+            keep[culled[i]] = True
         union = torch.nonzero(keep, as_tuple=False).squeeze(1)
-        return (self.means[union], self.quats[union], self.scales[union], self.opacities[union],
-                self.colors[union]), drawn
+        return (self.means[union], self.quats[union], self.scales[union], self.opacities[union], self.colors[union])
 
     def _rasterize(self, args: tuple, viewmats, Ks, camera: PinholeCamera, near: float, far: float,  # type: ignore[no-untyped-def, type-arg]
                    bg, depth_alpha_min: float, depth_mode: str
