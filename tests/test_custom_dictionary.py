@@ -20,7 +20,7 @@ from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
 
 from brave6d.calibration import HandEyeResult
-from brave6d.calibration.board import _label_lines, detect_charuco
+from brave6d.calibration.board import board_label_lines, detect_charuco
 from brave6d.calibration.known_truth import (
     default_tcp_T_cam,
     perturb_pose,
@@ -91,9 +91,9 @@ def test_dictionary_file_round_trips_through_opencvs_writer_and_reader(tmp_path:
     assert np.array_equal(image, make_charuco_board(BoardSpec(dictionary=CUSTOM)).generateImage((700, 500)))
     assert BoardSpec.model_validate(from_file.model_dump(mode="json")) == from_file
     assert "dictionary_file" not in BoardSpec().model_dump()  # boards without one dump as before
-    assert "dictionary file" in " ".join(_label_lines(from_file, 0.21, 0.15, 80))
+    assert "dictionary file" in " ".join(board_label_lines(from_file, 0.21, 0.15, 80))
     assert "custom dictionary of 17 markers, 5x5 bits, seed 42" in " ".join(
-        _label_lines(BoardSpec(dictionary=CUSTOM), 0.21, 0.15, 200))
+        board_label_lines(BoardSpec(dictionary=CUSTOM), 0.21, 0.15, 200))
 
 
 def _one_line_value_error(fn, *args) -> str:

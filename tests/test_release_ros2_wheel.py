@@ -40,7 +40,7 @@ def stub_build_wheel(out_dir: Path, *, python: str = sys.executable, **_: object
 def release(workdir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:  # noqa: F811
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(ros2_wheel, "ros2_python", lambda: sys.executable)
-        mp.setattr(interfaces, "build_wheel", stub_build_wheel)
+        mp.setattr(interfaces, "build_ros2_interfaces_wheel", stub_build_wheel)
         out = tmp_path_factory.mktemp("release") / "out"
         build_release(workdir, out)
     return out

@@ -190,7 +190,7 @@ _LABEL_PT = 6.0  # label font size
 _LINE_M = _LABEL_PT * 1.35 / 72 * 0.0254  # line height on paper, metres
 
 
-def _label_lines(spec: BoardSpec, width_m: float, height_m: float, chars_per_line: int) -> list[str]:
+def board_label_lines(spec: BoardSpec, width_m: float, height_m: float, chars_per_line: int) -> list[str]:
     legacy = "yes" if spec.legacy_pattern else "no"
     text = (
         f"ChArUco {spec.squares_x} x {spec.squares_y} squares, square {spec.square_length_m * 1000:.2f} mm, "
@@ -215,7 +215,7 @@ def draw_board_figure(spec: BoardSpec, margin_m: float = 0.015, label: bool = Tr
     width_m, height_m = board_size_m(spec)
     bar = 0.05 if width_m >= 0.12 else 0.02
     text_w = width_m + margin_m - bar - 0.006
-    lines = _label_lines(spec, width_m, height_m, int(text_w / (0.55 * _LABEL_PT / 72 * 0.0254))) if label else []
+    lines = board_label_lines(spec, width_m, height_m, int(text_w / (0.55 * _LABEL_PT / 72 * 0.0254))) if label else []
     text_m = len(lines) * _LINE_M + 0.004 if label else 0.0
     fig_w, fig_h = width_m + 2 * margin_m, height_m + 2 * margin_m + text_m
     fig = Figure(figsize=(fig_w / 0.0254, fig_h / 0.0254))

@@ -50,10 +50,10 @@ def build_interfaces_wheel(out_dir: Path) -> dict[str, Any] | None:
         log.warning("release: no ROS 2 interfaces wheel: this Python has no ROS 2 wheels and $%s is not set "
                     "(e.g. %s=.venv-ros2/bin/python); the release ships without it", ROS2_PYTHON_ENV, ROS2_PYTHON_ENV)
         return None
-    from brave6d.ros_interface.ros2 import interfaces
+    from brave6d.ros_interface import build_ros2_interfaces_wheel
 
     try:
-        wheel = interfaces.build_wheel(out_dir, python=python)
+        wheel = build_ros2_interfaces_wheel(out_dir, python=python)
     except BraveError as exc:
         log.warning("release: no ROS 2 interfaces wheel (%s): %s", python, exc)
         return None

@@ -397,3 +397,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+#: The name the ros_interface stage exports :func:`build_wheel` under (``brave6d.ros_interface``'s API).
+build_ros2_interfaces_wheel = build_wheel
