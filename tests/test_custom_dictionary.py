@@ -38,6 +38,7 @@ from brave6d.core.aruco_dictionary import (
 from brave6d.core.board import make_charuco_board
 from brave6d.core.dataset_spec import scene_fingerprint
 from brave6d.core.errors import SpecError
+from brave6d.core.layout import init_scene_dir
 from brave6d.core.spec import BoardSpec, Pose, load_scene_spec, parse_scene_spec, spec_to_yaml
 from brave6d.core.transforms import invert
 
@@ -163,6 +164,16 @@ def test_scene_spec_names_a_dictionary_file_beside_it(demo_spec_path: Path, tmp_
     before = scene_fingerprint(spec, {})  # the file's content is part of what the scene is made from
     write_dictionary_file(cv2.aruco.extendDictionary(17, 5, randomSeed=43), tmp_path / "board_dict.yml")
     assert scene_fingerprint(load_scene_spec(spec_file), {}) != before
+    import shutil
+
+    scene = init_scene_dir(tmp_path / "scene", spec_file)  # the file travels into the scene like a mesh
+    stored = yaml.safe_load(scene.spec_path.read_text())["board"]["dictionary_file"]
+    assert stored == "assets/board/board_dict.yml" and (scene.root / stored).is_file()
+    moved = shutil.move(scene.root, tmp_path / "moved")
+    (tmp_path / "board_dict.yml").unlink()  # nothing outside the scene is needed any more
+    board = load_scene_spec(Path(moved) / "scene.yaml").board
+    assert np.array_equal(aruco_dictionary(board.dictionary, board.dictionary_file).bytesList,
+                          cv2.aruco.extendDictionary(17, 5, randomSeed=43).bytesList)
     data["board"]["dictionary_file"] = "missing.yml"
     with pytest.raises(SpecError, match=r"field 'board': dictionary file .*missing.yml: cannot be read"):
         parse_scene_spec(data, spec_file)

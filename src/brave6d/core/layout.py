@@ -324,7 +324,8 @@ def init_scene_dir(root: Path | str, spec_file: Path | str) -> SceneDir:
 
 
 def _write_scene_files(scene: SceneDir, spec: SceneSpec) -> None:
-    """``scene.yaml`` and ``assets/`` of ``spec`` in ``scene`` (the meshes copied, the copy checked)."""
+    """``scene.yaml`` and ``assets/`` of ``spec`` in ``scene`` (the meshes and a board's dictionary file
+    copied, the copy checked)."""
     placed = asset_paths(spec)
     rewritten: dict[str, list[dict]] = {}
     data = spec.model_dump(mode="json", exclude={"source"})
@@ -337,6 +338,11 @@ def _write_scene_files(scene: SceneDir, spec: SceneSpec) -> None:
             item["mesh"] = dst.relative_to(scene.root).as_posix()
         rewritten[key] = items
     data.update(rewritten)
+    if spec.board.dictionary_file is not None:  # the board's ArUco dictionary travels like a mesh
+        dictionary = scene.asset_path(f"board/{spec.board.dictionary_file.name}")
+        dictionary.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(spec.board.dictionary_file, dictionary)
+        data["board"]["dictionary_file"] = dictionary.relative_to(scene.root).as_posix()
     import yaml
 
     atomic_write_text(scene.spec_path, yaml.safe_dump(data, sort_keys=False))
