@@ -150,3 +150,21 @@ def test_real_refusal_names_the_intrinsics_not_the_poses(capsys, tmp_path) -> No
 def test_real_set_as_eye_in_hand_is_stopped_naming_the_setup(capsys, tmp_path) -> None:
     rc, _, err = _run(capsys, *BOARD, "--out", tmp_path)
     assert rc == 2 and "do not fit eye-in-hand" in err and "--eye-to-hand" in err
+
+
+def test_the_robots_accuracy_is_a_flag_and_counts_in_the_uncertainty(calibrated: Path, capsys, tmp_path) -> None:
+    """--robot-sigma-mm/--robot-sigma-deg/--fixed-robot-noise reach the refinement: a robot said to be
+    20x less accurate, held there, widens the 1-sigma (3.0 vs 0.9 mm here), which the default limits
+    then refuse naming --max-sigma-mm; the default run starts from 0.1 mm / 0.01 deg and re-estimates."""
+    default = json.loads((calibrated / "handeye.json").read_text())
+    assert default["fit"]["robot_sigma_configured_mm"] == 0.1 and default["fit"]["robot_sigma_configured_deg"] == 0.01
+    loose = ("--robot-sigma-mm", "2", "--robot-sigma-deg", "0.2", "--fixed-robot-noise")
+    rc, _, err = _run(capsys, "--eye-to-hand", *BOARD, *loose, "--out", tmp_path / "refused")
+    assert rc != 0 and "--max-sigma-mm" in err and "Traceback" not in err
+    rc, _, _ = _run(capsys, "--eye-to-hand", *BOARD, *loose, "--max-sigma-mm", "10", "--max-sigma-deg", "1",
+                    "--out", tmp_path / "loose")
+    assert rc == 0
+    data = json.loads((tmp_path / "loose" / "handeye.json").read_text())
+    assert (data["fit"]["robot_sigma_mm"], data["fit"]["robot_sigma_deg"]) == (2.0, 0.2)
+    assert data["fit"]["robot_sigma_configured_mm"] is None  # held, not re-estimated
+    assert data["uncertainty"]["translation_sigma_norm_mm"] > 2 * default["uncertainty"]["translation_sigma_norm_mm"]

@@ -24,6 +24,8 @@ FOLDER_ONLY = ("poses", "out", "match", "pose_format", "quaternion_order", "pose
                "square_mm", "marker_mm", "dictionary", "dictionary_file", "intrinsics", "refine_intrinsics")
 #: Today's acceptance limits of a hand-eye result (HandEyeOptions' defaults).
 DEFAULT_MAX_SIGMA_MM, DEFAULT_MAX_SIGMA_DEG = 2.0, 0.2
+#: The robot error model's starting values (HandEyeOptions' defaults).
+DEFAULT_ROBOT_SIGMA_MM, DEFAULT_ROBOT_SIGMA_DEG = 0.1, 0.01
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -53,6 +55,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-sigma-deg", type=float_in(0.0, low_open=True), default=DEFAULT_MAX_SIGMA_DEG,
                         metavar="DEG", help="refuse a hand-eye result whose 1-sigma rotation (norm) exceeds this "
                                             f"(default {DEFAULT_MAX_SIGMA_DEG:g})")
+    robot = parser.add_argument_group(
+        "robot accuracy", "the refinement's model of the robot's pose error (per axis, 1-sigma)")
+    robot.add_argument("--robot-sigma-mm", type=float_in(0.0, low_open=True), default=DEFAULT_ROBOT_SIGMA_MM,
+                       metavar="MM", help="the robot's position error per axis, the starting value of the estimate "
+                                          f"(default {DEFAULT_ROBOT_SIGMA_MM:g}: a UR arm's repeatability)")
+    robot.add_argument("--robot-sigma-deg", type=float_in(0.0, low_open=True), default=DEFAULT_ROBOT_SIGMA_DEG,
+                       metavar="DEG", help=f"the robot's rotation error per axis (default {DEFAULT_ROBOT_SIGMA_DEG:g})")
+    robot.add_argument("--fixed-robot-noise", action="store_true",
+                       help="keep --robot-sigma-mm/--robot-sigma-deg as given instead of re-estimating them from "
+                            "the refinement's corrections (when the robot's accuracy is known, e.g. from its datasheet)")
     _configure_folder(parser.add_argument_group(
         "calibrate folder", "images of a ChArUco board plus one robot pose (base_T_tcp) per image, from files"))
 
@@ -139,7 +151,9 @@ def _check_args(args: argparse.Namespace) -> None:
 def _handeye_options(args: argparse.Namespace):  # noqa: ANN202 - HandEyeOptions, imported when a command runs
     from brave6d.calibration.handeye import HandEyeOptions
 
-    return HandEyeOptions(max_sigma_mm=args.max_sigma_mm, max_sigma_deg=args.max_sigma_deg)
+    return HandEyeOptions(max_sigma_mm=args.max_sigma_mm, max_sigma_deg=args.max_sigma_deg,
+                          robot_sigma_mm=args.robot_sigma_mm, robot_sigma_deg=args.robot_sigma_deg,
+                          estimate_robot_noise=not args.fixed_robot_noise)
 
 
 def _dictionary_fields(args: argparse.Namespace) -> dict[str, object]:

@@ -435,7 +435,8 @@ def _robot_noise_warnings(ref: Refinement, corr_sigma: Array, opts: HandEyeOptio
     more accurate than configured."""
     assert ref.robot_sigma_mm and ref.robot_sigma_deg and opts.robot_sigma_mm and opts.robot_sigma_deg
     configured = f"{opts.robot_sigma_mm:g} mm / {opts.robot_sigma_deg:g} deg"
-    advice = "set robot_sigma_mm / robot_sigma_deg to its real accuracy"
+    advice = ("give the robot's real accuracy with --robot-sigma-mm / --robot-sigma-deg "
+              "(HandEyeOptions.robot_sigma_mm / robot_sigma_deg)")
     if opts.estimate_robot_noise:
         ratios = (ref.robot_sigma_mm / opts.robot_sigma_mm, ref.robot_sigma_deg / opts.robot_sigma_deg)
         if max(max(ratios), 1.0 / min(ratios)) <= 2.0:
