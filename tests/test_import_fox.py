@@ -140,6 +140,22 @@ def test_the_fox_trains_in_miniature(fox_scene: SceneDir, tmp_path: Path) -> Non
     assert metrics["pose_check"].startswith("pose check: 50 of 50 cameras see")  # printed by `brave6d train`
 
 
+@pytest.mark.slow
+def test_colmaps_model_of_the_fox_trains_in_miniature_from_its_points(tmp_path: Path) -> None:
+    """The COLMAP format's wiring on this capture: the model's 5393 points start 60 steps at 1/2 size."""
+    out = tmp_path / "colmap"
+    assert cli_main(["import", str(SAMPLE / "sparse" / "0"), str(out), "--images", str(SAMPLE / "images"),
+                     "--scale-from-distance", "0001.jpg", "0110.jpg", "1.0", "--up", "auto"]) == 0
+    scene = SceneDir(out)
+    preset = get_preset("fast").with_overrides(steps=60, coarse_steps=0, downscale=2, refine_start=10,
+                                               refine_every=10, refine_stop=50, checkpoint_every=60,
+                                               curve_every=10, depth_lambda=0.0)
+    metrics = train_scene(scene, preset, device="cpu", init_method="imported", show_progress=False)
+    assert metrics["init"]["source"] == "imported" and metrics["init"]["points"] > 5000
+    assert metrics["steps"] == 60 and np.isfinite(metrics["holdout"]["psnr"]) and 8.0 < metrics["holdout"]["psnr"] < 60.0
+    assert metrics["pose_check"].startswith("pose check: 50 of 50 cameras see")
+
+
 def test_photos_of_another_size_are_refused_naming_the_frame(tmp_path: Path, fox_json: dict) -> None:
     import shutil
 
