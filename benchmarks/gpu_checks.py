@@ -24,7 +24,11 @@ about 4.5 MB, carried with the wheels: 52 MB together, the tree 11 MB, of the 64
 3. trains a synthetic textured-plane scene (``brave6d.training.toy_scenes``) with the fast preset
    on the GPU and on the CPU (``benchmarks/training.py``): seconds per step and holdout PSNR;
 4. renders a 100k-Gaussian splat for serving on each device: median ms per frame;
-5. trains the learned estimator (``brave6d.evaluation.learned``, the ``fast`` preset cut to
+5. N agents stepping together (``benchmarks/vector_env_throughput.py``, issue #46 item 4): agent
+   steps per second of ``BraveVectorEnv`` at 320x240 for N = 1, 8, 64 on the GPU, batched renders
+   vs a loop of single renders (on the CPU N = 8 only, a wiring check); ``--skip-vector-env``
+   leaves it out;
+6. trains the learned estimator (``brave6d.evaluation.learned``, the ``fast`` preset cut to
    ``--learned-steps`` steps per network) on the carried split, on the GPU and, the same steps, on
    the CPU: seconds and steps/s per network, the CPU/GPU ratio, and the held-out figures of
    ``score_heldout`` (detection recall at IoU 0.5, pose AR) where Open3D is installed (its VSD and
@@ -61,9 +65,13 @@ GPU_PYTHON = "3.12"
 PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64",
              "manylinux1_x86_64", "manylinux_2_5_x86_64")
 #: the tests that run only on a CUDA GPU (the rest of CUDA_TESTS runs everywhere)
-GPU_ONLY_TESTS = ("test_cuda_backend_matches_cpu", "test_cuda_gradients_match_cpu")
-CUDA_TESTS = ("tests/test_rasterizer.py", "tests/test_train_pipeline.py", "tests/test_serve_renderer.py")
-#: the learned estimator's carried split (``prepare`` writes it, step 5 trains on it)
+GPU_ONLY_TESTS = ("test_cuda_backend_matches_cpu", "test_cuda_gradients_match_cpu", "test_cuda_render_batch")
+CUDA_TESTS = ("tests/test_rasterizer.py", "tests/test_train_pipeline.py", "tests/test_serve_renderer.py",
+              "tests/test_serve_render_batch.py")
+#: agents per vector-env run (step 5): the GPU's figures; on the CPU only the wiring (its figures,
+#: measured with every core, are in docs/BENCHMARKS.md)
+VECTOR_AGENTS = {"cuda": (1, 8, 64), "cpu": (8,)}
+#: the learned estimator's carried split (``prepare`` writes it, step 6 trains on it)
 LEARNED_BUNDLE = ROOT / ".whl" / "learned"
 LEARNED_SPEC = ROOT / "data" / "demo" / "scene.yaml"
 
@@ -188,7 +196,7 @@ def load_learned_bundle(bundle: Path) -> tuple[Any, Path, dict[str, Any]]:
 
 
 def train_learned_check(bundle: Path, out: Path, device: str, steps: int) -> dict[str, Any]:
-    """Step 5 on ``device``: train the carried split for ``steps`` per network; seconds and steps/s per
+    """Step 6 on ``device``: train the carried split for ``steps`` per network; seconds and steps/s per
     network, the final losses, and the held-out figures where Open3D is installed."""
     import importlib.util
     import shutil
@@ -367,6 +375,39 @@ def render_timing(device: str, n_gaussians: int, repeats: int) -> dict[str, Any]
             "repeats": repeats}
 
 
+def vector_env_check(out: Path, device: str, gaussians: int) -> dict[str, Any]:
+    """Step 5 on ``device``: ``benchmarks/vector_env_throughput.py`` (agent steps/s, batched vs loop)."""
+    js = out / f"vector_env_{device}.json"
+    quick = device != "cuda"
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "vector_env_throughput.py"), "--device", device,
+           "--gaussians", str(gaussians), "--steps", "1" if quick else "3", "--repeats", "1" if quick else "3",
+           "--agents", *map(str, VECTOR_AGENTS[device]), "--json", str(js)]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    (out / f"vector_env_{device}.log").write_text(proc.stdout + proc.stderr)
+    if proc.returncode != 0 or not js.is_file():
+        return {"ok": False, "exit": proc.returncode, "seconds": time.perf_counter() - t0,
+                "error": (proc.stderr.strip().splitlines() or ["no output"])[-1]}
+    report = json.loads(js.read_text())
+    return {"ok": True, "seconds": time.perf_counter() - t0,
+            **{k: report[k] for k in ("source", "gaussians", "depth_mode", "size", "steps", "repeats", "rows")}}
+
+
+def vector_env_markdown(runs: dict[str, Any]) -> list[str]:
+    """Step 5's lines: agent steps/s and renders/s per device and N, batched vs loop."""
+    lines: list[str] = []
+    ok = [(d, r) for d, r in runs.items() if r.get("ok")]
+    if ok:
+        w, h = ok[0][1]["size"]
+        lines += ["", f"| vector env, {w}x{h}, {ok[0][1]['depth_mode']} depth | agents | agent steps/s batched | loop "
+                  "| renders/s batched | loop |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {d} | {row['agents']} | {row['env_batched']:.1f} | {row['env_loop']:.1f} | "
+                  f"{row['render_batched']:.1f} | {row['render_loop']:.1f} |" for d, r in ok for row in r["rows"]]
+    lines += [f"- vector env on {d}: FAILED ({r['error']})" for d, r in runs.items() if not r.get("ok")]
+    return lines
+
+
 def markdown(report: dict[str, Any]) -> str:
     """The report as a short page (what a session pastes into its note and docs/BENCHMARKS.md)."""
     cuda = report["cuda"]
@@ -399,12 +440,13 @@ def markdown(report: dict[str, Any]) -> str:
     if rows:
         lines += ["", "| serving render, 640x400 | Gaussians | ms per frame (median) |", "|---|---|---|"]
         lines += [f"| {d} | {r['gaussians']} | {r['ms_median']:.1f} |" for d, r in rows]
+    lines += vector_env_markdown(report.get("vector_env", {}))
     lines += learned_markdown(report.get("learned", {}), report.get("learned_ratio"))
     return "\n".join(lines) + "\n"
 
 
 def learned_markdown(learned: dict[str, Any], ratio: dict[str, Any] | None) -> list[str]:
-    """Step 5's lines: a row per device that trained, and why a device did not."""
+    """Step 6's lines: a row per device that trained, and why a device did not."""
     lines: list[str] = []
     rows = [(d, r) for d, r in learned.items() if r.get("ok")]
     if rows:
@@ -470,6 +512,11 @@ def run(args: argparse.Namespace) -> int:
     for device in devices:
         report["render"][device] = render_timing(device, args.gaussians, args.repeats)
     save()
+    if not args.skip_vector_env:
+        report["vector_env"] = {}
+        for device in devices:
+            report["vector_env"][device] = vector_env_check(out, device, args.gaussians)
+            save()
     if not args.skip_learned:
         report["learned"] = {}
         for device in devices:
@@ -479,6 +526,7 @@ def run(args: argparse.Namespace) -> int:
     failed = (report.get("gsplat_build", {"ok": True})["ok"] is False
               or report.get("tests", {"exit": 0})["exit"] != 0
               or not all(r.get("ok") for part in ("training", "render") for r in report[part].values())
+              or not all(r.get("ok") for r in report.get("vector_env", {}).values())
               or any("error" in r for r in report.get("learned", {}).values()))
     return 1 if failed else 0
 
@@ -499,7 +547,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--gaussians", type=int, default=100_000, help="splat size for the render timing")
     r.add_argument("--repeats", type=int, default=20, help="timed renders per device")
     r.add_argument("--skip-tests", action="store_true", help="leave out step 2 (pytest)")
-    r.add_argument("--skip-learned", action="store_true", help="leave out step 5 (the learned estimator)")
+    r.add_argument("--skip-vector-env", action="store_true", help="leave out step 5 (N agents' batched renders)")
+    r.add_argument("--skip-learned", action="store_true", help="leave out step 6 (the learned estimator)")
     r.add_argument("--learned-steps", type=int, default=300,
                    help="learned estimator: training steps per network, on each device")
     r.add_argument("--learned-bundle", type=Path, default=LEARNED_BUNDLE, help="the split prepare made")

@@ -3,7 +3,8 @@
 #   here:   python benchmarks/gpu_checks.py prepare     (wheels and the learned split into .whl/, ignored by git)
 #   device: run(command="bash benchmarks/gpu_checks.sh", carry=[".whl"], timeout_s=540)
 #   after:  python benchmarks/gpu_checks.py score-learned FILES_AT --out DIR   (held-out scores of the returned model)
-# Extra arguments go to `gpu_checks.py run` (e.g. --steps 1000 --skip-tests --learned-steps 500 --skip-learned).
+# Extra arguments go to `gpu_checks.py run` (e.g. --steps 1000 --skip-tests --learned-steps 500 --skip-learned
+# --skip-vector-env).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out="${OUT:-/tmp/gpu_checks}"
@@ -24,7 +25,7 @@ if [ -z "${TORCH_CUDA_ARCH_LIST:-}" ]; then
 fi
 status=0
 python3 benchmarks/gpu_checks.py run --out "$work" "$@" 2>&1 | tee "$out/gpu_checks.log" || status=$?
-for f in gpu_checks.json gpu_checks.md pytest.log training_cuda.json learned_cuda/model.pt; do
+for f in gpu_checks.json gpu_checks.md pytest.log training_cuda.json vector_env_cuda.json learned_cuda/model.pt; do
   if [ -f "$work/$f" ] && [ "$work" != "$out" ]; then mkdir -p "$out/$(dirname "$f")"; cp "$work/$f" "$out/$f"; fi
 done
 exit "$status"

@@ -39,6 +39,10 @@ def test_the_run_trains_and_renders_on_the_cpu_and_says_the_cuda_parts_did_not_r
     assert math.isfinite(train["holdout_psnr"]) and train["s_per_step"] > 0
     render = report["render"]["cpu"]
     assert render["ok"] and render["gaussians"] == 2000 and render["ms_median"] > 0
+    vector = report["vector_env"]["cpu"]  # issue #46 item 4's wiring: 8 agents, batched vs loop
+    assert vector["ok"] and [r["agents"] for r in vector["rows"]] == [8] and vector["size"] == [320, 240]
+    assert vector["rows"][0]["env_batched"] > 0 and vector["rows"][0]["render_loop"] > 0
+    assert "| vector env, 320x240" in (out / "gpu_checks.md").read_text()
     page = (out / "gpu_checks.md").read_text()
     assert "no CUDA GPU: CUDA parts not run" in page and "| cpu | 6 |" in page
     assert report["same_step"] is None  # nothing to compare without a GPU

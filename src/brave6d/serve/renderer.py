@@ -23,9 +23,11 @@
 * Renders run under ``torch.no_grad`` and one lock: the CPU kernels use every core, and
   concurrent renders would only slow each other down. ``render_ms`` is the wall time of the
   rasterizer call (including waiting for the GPU), ``queue_ms`` the wait for the lock.
-* Many views at once (:meth:`SplatRenderer.render_batch`, N agents on one scene): one rasterizer
-  call for all cameras over the union of their culled sets, each view bit for bit its
-  :meth:`SplatRenderer.render`; :meth:`SplatRenderer.render` is a batch of one.
+* Many views at once (:meth:`SplatRenderer.render_batch`, N agents on one scene): a rasterizer
+  call draws several cameras over the union of their culled sets, each view bit for bit its
+  :meth:`SplatRenderer.render`; on CUDA one gsplat call takes every camera, on the CPU cameras
+  that share most of their Gaussians share a call (``CPU_BATCH_OVERLAP``).
+  :meth:`SplatRenderer.render` is a batch of one.
 * Depth is z-depth in the camera frame (metres, float32) with a depth sensor's semantics: 0 (= no
   data, the project's depth convention) where the splat's alpha is below ``depth_alpha_min`` (no
   surface there), and with ``depth_mode="median"`` (the bundles' default) the depth of the one
