@@ -30,8 +30,12 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+#: Connections the socket queues before they are accepted (uvicorn's own default backlog).
+LISTEN_BACKLOG = 2048
+
+
 def listening_socket(host: str, port: int) -> socket.socket:
-    """A TCP socket bound to ``host:port`` (port 0: any free port) for uvicorn to listen on.
+    """A TCP socket bound to ``host:port`` (port 0: any free port) and listening, for uvicorn to serve.
 
     Made with proto ``IPPROTO_TCP``, so that asyncio sets ``TCP_NODELAY`` on the connections it
     accepts (it checks the proto): with proto 0, every reply uvicorn writes in two parts (head,
@@ -41,7 +45,8 @@ def listening_socket(host: str, port: int) -> socket.socket:
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         sock.bind((host, port))
-    except OSError:
+        sock.listen(LISTEN_BACKLOG)  # listening before the address is announced: a client that connects
+    except OSError:                  # while uvicorn still starts waits in the backlog instead of being refused
         sock.close()
         raise
     return sock
