@@ -39,6 +39,8 @@ def test_the_run_trains_and_renders_on_the_cpu_and_says_the_cuda_parts_did_not_r
     assert math.isfinite(train["holdout_psnr"]) and train["s_per_step"] > 0
     render = report["render"]["cpu"]
     assert render["ok"] and render["gaussians"] == 2000 and render["ms_median"] > 0
+    assert render["ms_expected_depth"] > 0 and render["size"] == [640, 400]
+    assert render["median_over_expected"] == pytest.approx(render["ms_median"] / render["ms_expected_depth"])
     vector = report["vector_env"]["cpu"]  # issue #46 item 4's wiring: 8 agents, batched vs loop
     assert vector["ok"] and [r["agents"] for r in vector["rows"]] == [8] and vector["size"] == [320, 240]
     assert vector["rows"][0]["env_batched"] > 0 and vector["rows"][0]["render_loop"] > 0

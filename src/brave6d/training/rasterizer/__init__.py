@@ -26,6 +26,8 @@ modules are the backends' plumbing):
 * ``constants``: the numerical conventions every backend shares (tile size, alpha cap, ...).
 * ``kernels``: the compiled CPU kernels (projection, SH, tile binning, compositing and their
   backward passes), each testable on its own against ``reference``.
+* ``median_depth``: the median depth on the GPU (a Triton kernel over gsplat's projections and
+  tile lists; its interpreter runs it on CPU tensors for tests) and gsplat's tile lists in torch.
 * ``simd``: the CPU name and SIMD features Numba compiles the kernels for (benchmarks print it).
 * ``reference``: a slow pure-torch implementation (autograd for gradients), the yardstick of
   the kernels; only for tests and benchmarks, never for training.

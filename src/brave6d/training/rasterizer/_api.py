@@ -74,7 +74,8 @@ def rasterize(
             the Gaussian that takes the pixel's transmittance from above 0.5 to 0.5 or below, 0
             where it never does. Unlike the expected depth it never lies between a foreground and
             a background surface (what a depth sensor reports at an edge). gsplat has no median
-            depth: on ``cuda`` it comes from the CPU kernels on a CPU copy of the inputs.
+            depth: on ``cuda`` a Triton kernel (:mod:`.median_depth`) computes it on the device
+            from the same call's projected Gaussians and tile lists.
         antialiased: the 2D mip filter (Mip-Splatting; gsplat's ``rasterize_mode="antialiased"``):
             besides the ``eps2d`` dilation, each Gaussian's opacity is multiplied per camera by
             ``sqrt(max(det(cov2d) / det(cov2d + eps2d I), 0))``, so a Gaussian far below a pixel

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import torch
@@ -14,7 +13,8 @@ from ._validation import RasterBackendError, RasterInputError, RasterInputs
 def rasterize_cuda(inp: RasterInputs, absgrad: bool, median_depth: bool = False
                    ) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
     """Render with gsplat's CUDA kernels (see :func:`brave6d.training.rasterizer.rasterize`); the
-    median depth (gsplat has none) from the CPU kernels on a detached CPU copy of the inputs."""
+    median depth (gsplat has none) from the same call's projections and tile lists by the Triton
+    kernel of :mod:`.median_depth`, on the device: nothing goes through the CPU rasterizer."""
     if not torch.cuda.is_available():
         raise RasterBackendError(
             "rasterize: backend='cuda' needs a CUDA GPU but torch.cuda.is_available() is False; "
@@ -56,9 +56,9 @@ def rasterize_cuda(inp: RasterInputs, absgrad: bool, median_depth: bool = False
     meta["backend"] = "cuda"
     meta["visible"] = (meta["radii"] > 0).all(dim=-1)
     if median_depth:
-        from ._cpu import rasterize_cpu
+        from .median_depth import median_depth as median_from_tiles
 
-        on_cpu = dataclasses.replace(inp, **{f.name: getattr(inp, f.name).detach().cpu()
-                                            for f in dataclasses.fields(inp) if isinstance(getattr(inp, f.name), Tensor)})
-        meta["median_depth"] = rasterize_cpu(on_cpu, False, True)[3]["median_depth"].to(inp.means.device)
+        meta["median_depth"] = median_from_tiles(
+            meta["means2d"], meta["conics"], meta["opacities"], meta["depths"],
+            meta["isect_offsets"], meta["flatten_ids"], inp.width, inp.height, meta["tile_size"])
     return out[..., :3], out[..., 3:4], alphas, meta
