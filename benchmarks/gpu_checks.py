@@ -23,6 +23,8 @@ about 4.5 MB, carried with the wheels: 52 MB together, the tree 11 MB, of the 64
    the CPU kernels, renders and gradients; the trainer and renderer tests) and counts what ran;
 3. trains a synthetic textured-plane scene (``brave6d.training.toy_scenes``) with the fast preset
    on the GPU and on the CPU (``benchmarks/training.py``): seconds per step and holdout PSNR;
+   3b. on the GPU, ``benchmarks/gpu_reference_loop.py`` on the same scene: the trainer and gsplat's
+   minimal loop (same seed, start and schedule), ms per step over steps 320-N and host syncs per step;
 4. renders a 100k-Gaussian splat for serving on each device (and 1M at 1280x800 on the GPU):
    median ms per frame with the median depth and with the expected depth, side by side;
 5. N agents stepping together (``benchmarks/vector_env_throughput.py``, issue #46 item 4): agent
@@ -334,6 +336,21 @@ def train_toy(out: Path, device: str, steps: int, every: int, width: int, views_
             "points": [{k: p[k] for k in ("step", "train_time_s", "holdout_psnr")} for p in report["points"]]}
 
 
+def reference_loop(out: Path, steps: int, width: int, views_per_ring: int) -> dict[str, Any]:
+    """Step 3b (issue #46 item 3): ``benchmarks/gpu_reference_loop.py`` on the toy scene of step 3,
+    the project's trainer and gsplat's minimal loop timed in one run (GPU only)."""
+    scene_dir = out / f"toy_scene_{width}"
+    js = out / "reference_loop.json"
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_reference_loop.py"), str(scene_dir),
+                           "--steps", str(steps), "--device", "cuda", "--json", str(js)],
+                          cwd=ROOT, capture_output=True, text=True)
+    (out / "reference_loop.log").write_text(proc.stdout + proc.stderr)
+    if proc.returncode != 0 or not js.is_file():
+        return {"ok": False, "exit": proc.returncode, "seconds": time.perf_counter() - t0}
+    return {"ok": True, **json.loads(js.read_text())}
+
+
 def same_step_ratio(training: dict[str, Any]) -> dict[str, Any] | None:
     """CPU over GPU training seconds at the last step both runs scored (the same work on each)."""
     cuda, cpu = training.get("cuda", {}), training.get("cpu", {})
@@ -442,6 +459,15 @@ def markdown(report: dict[str, Any]) -> str:
                   "|---|---|---|---|---|"]
         lines += [f"| {d} | {r['steps']} | {r['s_per_step']:.4f} | {r['holdout_psnr']:.2f} | {r['gaussians']} |"
                   for d, r in rows]
+    ref = report.get("reference_loop")
+    if ref and ref.get("ok"):
+        lines += ["", f"| loop ({ref.get('card', '?')}, steps {ref['window'][0]}-{ref['window'][1]}) | ms/step | "
+                  "host syncs/step | Gaussians | holdout PSNR (dB) |", "|---|---|---|---|---|"]
+        for name in ("project", "reference"):
+            r = ref[name]
+            syncs = "?" if r["syncs_per_step"] is None else f"{r['syncs_per_step']:.1f}"
+            lines.append(f"| {name} | {r['ms_per_step']:.2f} | {syncs} | {r['gaussians']} | {r['holdout_psnr']:.2f} |")
+        lines.append(f"\nproject / reference: {ref['project_over_reference']:.2f}x")
     same = report.get("same_step")
     if same:
         lines.append(f"\nAt step {same['step']}: CPU {same['cpu_s']:.1f} s, GPU {same['cuda_s']:.1f} s "
@@ -522,6 +548,9 @@ def run(args: argparse.Namespace) -> int:
         report["training"][device] = train_toy(out, device, steps, args.cpu_steps, args.width, args.views_per_ring)
         report["same_step"] = same_step_ratio(report["training"])
         save()
+    if "cuda" in devices and not args.skip_reference_loop:
+        report["reference_loop"] = reference_loop(out, args.steps, args.width, args.views_per_ring)
+        save()
     for device in devices:
         report["render"][device] = render_timing(device, args.gaussians, args.repeats)
     if "cuda" in devices and args.large_render_gaussians > 0:  # the issue's second serving row
@@ -565,6 +594,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--large-render-gaussians", type=int, default=1_000_000,
                    help="splat size of the GPU-only 1280x800 serving row (0: leave it out)")
     r.add_argument("--skip-tests", action="store_true", help="leave out step 2 (pytest)")
+    r.add_argument("--skip-reference-loop", action="store_true",
+                   help="leave out step 3b (gsplat's minimal loop beside the trainer, GPU only)")
     r.add_argument("--skip-vector-env", action="store_true", help="leave out step 5 (N agents' batched renders)")
     r.add_argument("--skip-learned", action="store_true", help="leave out step 6 (the learned estimator)")
     r.add_argument("--learned-steps", type=int, default=300,

@@ -138,13 +138,23 @@ def load_depth_targets(data: TrainingData, edge_ratio: float, device: torch.devi
     return targets
 
 
-def depth_loss(render_depth: Tensor, render_alpha: Tensor, target: DepthTarget, min_alpha: float = 0.5) -> Tensor:
+def depth_loss(render_depth: Tensor, render_alpha: Tensor, target: DepthTarget, min_alpha: float = 0.5,
+               masked_sums: bool = False) -> Tensor:
     """Mean relative L1 ``|d - d*| / d*`` of the rendered expected depth over the target's valid pixels
     where the render is opaque (alpha >= ``min_alpha``: elsewhere its expected depth is ill-defined;
     the colour loss fills holes). Relative, so that a millimetre counts the same at every ring.
-    Zero (with a gradient graph) when no pixel qualifies."""
+    Zero (with a gradient graph) when no pixel qualifies.
+
+    ``masked_sums``: the same loss as sums over a mask, without the pixel count on the host nor
+    boolean gathers (each waits for a GPU): the lean GPU step's form; equal up to the order of the
+    float sums."""
     d = render_depth.reshape(target.depth.shape)
     use = target.valid & (render_alpha.detach().reshape(target.depth.shape) >= min_alpha)
+    if masked_sums:
+        # unused pixels take the target's (or 1) on both sides: zero, with a finite zero gradient
+        ref = torch.where(use, target.depth, torch.ones_like(target.depth))
+        rel = (torch.where(use, d, ref) - ref).abs() / ref
+        return rel.sum() / use.sum().clamp(min=1)
     count = int(use.sum())
     if count == 0:
         return d.sum() * 0.0

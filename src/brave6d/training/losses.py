@@ -8,6 +8,7 @@ Images are ``[H, W, 3]`` or ``[B, H, W, 3]`` float tensors in [0, 1] (gsplat's l
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -17,7 +18,7 @@ from torch import Tensor
 from brave6d.training.ssim_window import SSIM_C1, SSIM_C2, SSIM_WINDOW, gaussian_window
 
 __all__ = ["PSNR_MAX", "SSIM_C1", "SSIM_C2", "SSIM_WINDOW", "fill_invalid", "gaussian_window", "l1_loss",
-           "photometric_loss", "psnr", "ssim", "ssim_map"]
+           "photometric_loss", "psnr", "psnr_tensor", "ssim", "ssim_map"]
 
 
 def _to_nchw(img: Tensor) -> Tensor:
@@ -28,15 +29,22 @@ def _to_nchw(img: Tensor) -> Tensor:
     return img.permute(0, 3, 1, 2)
 
 
+@functools.lru_cache(maxsize=16)
+def _ssim_window(channels: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The depthwise 11x11 window for ``channels``, built once per dtype and device (on a GPU a
+    window rebuilt per call is a host-to-device copy every training step)."""
+    g = gaussian_window(dtype=dtype).to(device)
+    return (g[:, None] * g[None, :]).expand(channels, 1, SSIM_WINDOW, SSIM_WINDOW).contiguous()
+
+
 def ssim_map(img1: Tensor, img2: Tensor) -> Tensor:
     """Per-pixel SSIM ``[B, C, H, W]`` of two images with the same shape."""
     if img1.shape != img2.shape:
         raise ValueError(f"ssim: shapes differ: {list(img1.shape)} vs {list(img2.shape)}")
     x, y = _to_nchw(img1), _to_nchw(img2)
     c = x.shape[1]
-    g = gaussian_window(dtype=x.dtype).to(x.device)
     # one depthwise 11x11 convolution (faster on CPU than two separable 1D passes)
-    window = (g[:, None] * g[None, :]).expand(c, 1, SSIM_WINDOW, SSIM_WINDOW).contiguous()
+    window = _ssim_window(c, x.dtype, x.device)
     pad = SSIM_WINDOW // 2
 
     def blur(t: Tensor) -> Tensor:
@@ -91,6 +99,17 @@ def fill_invalid(target: Tensor, render: Tensor, valid: Tensor | None) -> Tensor
     if valid is None:
         return target
     return torch.where(valid[..., None], target, render.detach())
+
+
+def psnr_tensor(img1: Tensor, img2: Tensor, valid: Tensor | None = None) -> Tensor:
+    """:func:`psnr` as a 0-d tensor on the images' device, without waiting for it (the trainer's
+    lean GPU step reads it only at its curve interval)."""
+    sq = (img1.detach().float() - img2.detach().float()) ** 2
+    if valid is not None:
+        mse = (sq * valid[..., None]).sum() / (valid.sum().clamp(min=1) * sq.shape[-1])
+    else:
+        mse = sq.mean()
+    return -10.0 * torch.log10(mse.clamp(min=1e-10))
 
 
 def psnr(img1: Tensor, img2: Tensor, valid: Tensor | None = None) -> float:

@@ -9,6 +9,9 @@ exponential decay over the run; the SH degree grows by one every ``schedule.sh_d
 
 Stability: NaN or inf in the loss or in a parameter stops training with :class:`TrainingDiverged`
 naming the step; checkpoints are only written from finite states, so the last one stays good.
+On a GPU the step is lean (``Trainer(lean=...)``): it never waits for the device; the same checks
+become a flag on the device, read at each curve point, checkpoint and the run's end, that still
+names the step where the NaN first appeared.
 Checkpoints (every ``schedule.checkpoint_every`` steps, atomic) hold parameters, optimiser and strategy
 state and every RNG, so that ``resume=True`` continues exactly where the run stopped: on the
 CPU a resumed run ends with the same parameters as an uninterrupted one, and equal seeds give
@@ -40,7 +43,7 @@ from brave6d.core.progress import progress_bar
 from brave6d.training.views import TrainingData, image_tensor
 from brave6d.training.device import resolve_device  # noqa: F401 - also importable from here
 from brave6d.training.depth_targets import DepthTarget, depth_loss, load_depth_targets
-from brave6d.training.losses import fill_invalid, photometric_loss, psnr
+from brave6d.training.losses import fill_invalid, photometric_loss, psnr, psnr_tensor
 from brave6d.training.model import PARAM_NAMES, GaussianModel
 from brave6d.training.presets import Preset
 from brave6d.training.strategy import DensifyStrategy
@@ -116,7 +119,14 @@ class Trainer:
         step_callback: Callable[[Trainer, int], None] | None = None,
         eval_callback: Callable[[Trainer], float] | None = None,
         checkpoint_hook: Callable[[Trainer], None] | None = None,
+        lean: bool | None = None,
     ) -> None:
+        """``lean`` (default: on a GPU, off on the CPU): the step never waits for the device. The
+        cameras are checked once here, renders skip the rasterizer's per-call value checks, the
+        depth loss is taken as masked sums, and a non-finite loss or parameter raises a flag on
+        the device (with the first step it happened at) that is read at each curve point,
+        checkpoint and the end of the run (TrainingDiverged then names that step); the step's
+        figures stay tensors until then. Off, every step checks on the host (the CPU's path)."""
         self.data = data
         self.preset = preset
         self.device = torch.device(device)
@@ -150,6 +160,11 @@ class Trainer:
         self.K = torch.from_numpy(data.camera.K).float().to(self.device)
         self.images = [torch.from_numpy(v.image).to(self.device) for v in data.train]
         self.valid = data.valid_tensor(self.device)
+        self.lean = self.device.type != "cpu" if lean is None else bool(lean)
+        self._bad_step = torch.full((), -1, dtype=torch.long, device=self.device)  # lean: first bad step
+        self._bad_what = torch.zeros((), dtype=torch.long, device=self.device)  # 1 loss, 2 parameters
+        if self.lean:
+            self._check_cameras()
         self._coarse: CoarseLevel | None = None  # half-resolution copies, made when a coarse step first needs them
         self._depth_targets: list[DepthTarget | None] | None = None  # loaded when a depth step first needs them
         self._filter_means: Tensor | None = None  # the means Parameter the 3D filter was computed for
@@ -172,7 +187,7 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def render(self, viewmat: Tensor, sh_degree: int | None = None,
-               level: CoarseLevel | None = None) -> tuple[Tensor, Tensor, dict[str, Any]]:
+               level: CoarseLevel | None = None, validate: bool = True) -> tuple[Tensor, Tensor, dict[str, Any]]:
         """Render the current model into one camera: ``(rgb [H, W, 3], alpha [H, W, 1], info)``
         (at the half resolution of ``level`` when given)."""
         from brave6d.training.rasterizer import rasterize
@@ -185,7 +200,7 @@ class Trainer:
         scales, opacities = m.render_scales_opacities()
         colors, depth, alphas, info = rasterize(
             m.means, m.quats, scales, opacities, coeffs, viewmat[None], K[None],
-            width, height, sh_degree=d, antialiased=m.antialiased)
+            width, height, sh_degree=d, antialiased=m.antialiased, validate=validate)
         info["render_depth"] = depth[0]
         return colors[0], alphas[0], info
 
@@ -227,6 +242,34 @@ class Trainer:
             self._coarse = CoarseLevel.of(self.images, self.K, self.valid, depths)
         return self._coarse
 
+    def _check_cameras(self) -> None:
+        """The lean step's one check of what every render would otherwise re-check."""
+        bad = [name for name, t in (("viewmats", self.viewmats), ("K", self.K)) if not bool(torch.isfinite(t).all())]
+        if bad:
+            raise DataError(f"training cameras: {' and '.join(bad)} are not finite")
+        if not bool((self.K[[0, 1], [0, 1]] > 0).all()):
+            raise DataError(f"training cameras: the focal lengths must be positive, K = {self.K.tolist()}")
+
+    def _flag(self, finite: Tensor, code: int) -> None:
+        """Lean: remember (on the device) the first step whose loss or parameters were not finite."""
+        first = (~finite) & (self._bad_step < 0)
+        self._bad_step = torch.where(first, torch.full_like(self._bad_step, self.step), self._bad_step)
+        self._bad_what = torch.where(first, torch.full_like(self._bad_what, code), self._bad_what)
+
+    def raise_if_flagged(self) -> None:
+        """Lean: read the device's flag (one wait) and stop as the host checks would have."""
+        if not self.lean:
+            return
+        bad_step = int(self._bad_step)
+        if bad_step < 0:
+            return
+        what = "the loss is not finite" if int(self._bad_what) == 1 else "parameters hold NaN/inf"
+        bad = self.model.non_finite()
+        if bad:
+            what += f" (now in {', '.join(bad)})"
+        self.step = bad_step  # _diverged names the step after the last good one
+        raise self._diverged(f"{what}, first at this step (flagged on the device)")
+
     def _check_params(self, when: str) -> None:
         # a NaN/inf anywhere makes the sum non-finite: one cheap reduction per tensor
         if all(bool(torch.isfinite(p.detach().sum())) for p in self.model.params.values()):
@@ -257,7 +300,8 @@ class Trainer:
         level = self.coarse_level() if step < p.schedule.coarse_steps else None
         gt = (self.images[i] if level is None else level.images[i]).float() / 255.0
         valid = self.valid if level is None else level.valid
-        render, alpha, info = self.render(self.viewmats[i], sh_degree_at(step, p, self.model.sh_degree), level)
+        render, alpha, info = self.render(self.viewmats[i], sh_degree_at(step, p, self.model.sh_degree), level,
+                                          validate=not self.lean)
         self.strategy.step_pre_backward(self.model.params, self.optimizers, self.strategy_state, step, info)
         gt = fill_invalid(gt, render, valid)
         loss, l1, _ = photometric_loss(render, gt, p.loss.ssim_lambda)
@@ -265,19 +309,32 @@ class Trainer:
             targets = self.depth_targets() if level is None else level.depths
             target = targets[i] if targets else None
             if target is not None:
-                loss = loss + p.loss.depth_lambda * depth_loss(info["render_depth"], alpha, target)
-        loss_value = float(loss.detach())
-        if not math.isfinite(loss_value):
-            raise self._diverged(f"the loss is {loss_value} (view {self.data.train[i].view_id})")
+                loss = loss + p.loss.depth_lambda * depth_loss(info["render_depth"], alpha, target,
+                                                               masked_sums=self.lean)
+        if self.lean:
+            self._flag(torch.isfinite(loss.detach()), 1)
+        else:
+            loss_value = float(loss.detach())
+            if not math.isfinite(loss_value):
+                raise self._diverged(f"the loss is {loss_value} (view {self.data.train[i].view_id})")
         loss.backward()
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
         self.strategy.step_post_backward(self.model.params, self.optimizers, self.strategy_state, step, info,
                                          packed=False)
-        self._check_params("after the optimiser step")
+        if self.lean:
+            sums = torch.stack([q.detach().sum() for q in self.model.params.values()])
+            self._flag(torch.isfinite(sums).all(), 2)
+        else:
+            self._check_params("after the optimiser step")
         self.step += 1
         self.refresh_filter_3d()
+        if self.lean:  # tensors on the device: read at the curve interval
+            loss_t, value_t = loss.detach(), psnr_tensor(render, gt, valid)
+            self.psnr_ema = value_t if self.psnr_ema is None else 0.9 * self.psnr_ema + 0.1 * value_t
+            self.loss_ema = loss_t if self.loss_ema is None else 0.9 * self.loss_ema + 0.1 * loss_t
+            return {"loss": loss_t, "l1": l1.detach(), "psnr": value_t}
         value = psnr(render, gt, valid)
         self.psnr_ema = value if self.psnr_ema is None else 0.9 * self.psnr_ema + 0.1 * value
         self.loss_ema = loss_value if self.loss_ema is None else 0.9 * self.loss_ema + 0.1 * loss_value
@@ -320,13 +377,16 @@ class Trainer:
                     written.append(str(self.save_checkpoint()))
                 if bar is not None:
                     bar.update(1)
-                    if self.step % 10 == 0 or self.step == end:
+                    # lean: the figures are device tensors, read at curve points only
+                    every = schedule.curve_every if self.lean else 10
+                    if self.step % every == 0 or self.step == end:
                         bar.set_postfix(loss=f"{self.loss_ema:.4f}", psnr=f"{self.psnr_ema:.2f}",
                                         n=self.model.num_gaussians, refresh=False)
                 if self.step_callback is not None:
                     self.step_callback(self, self.step)
             if self.curve and self.curve[-1]["step"] != self.step:
                 self._record_curve()
+            self.raise_if_flagged()
         finally:
             if bar is not None:
                 bar.close()
@@ -337,6 +397,7 @@ class Trainer:
                            resumed_from, written, self.cpu_elapsed)
 
     def _record_curve(self) -> None:
+        self.raise_if_flagged()
         self.curve.append({"step": float(self.step), "time_s": self.elapsed, "cpu_s": self.cpu_elapsed,
                            "train_psnr": float(self.psnr_ema) if self.psnr_ema is not None else float("nan"),
                            "loss": float(self.loss_ema) if self.loss_ema is not None else float("nan"),
@@ -356,7 +417,7 @@ class Trainer:
             "strategy_state": _to_cpu(self.strategy_state),
             "rng": {"torch": torch.get_rng_state(), "views": self.view_rng.get_state(), "order": list(self.order),
                     "cuda": torch.cuda.get_rng_state_all() if self.device.type == "cuda" else None},
-            "ema": [self.psnr_ema, self.loss_ema],
+            "ema": [None if v is None else float(v) for v in (self.psnr_ema, self.loss_ema)],
             "curve": list(self.curve),
             "preset": self.preset.to_json(),
             "train_views": self.data.fingerprint(),
@@ -404,6 +465,7 @@ class Trainer:
         Returns where the checkpoint is once the hook has run (it may move the folder).
         """
         assert self.checkpoint_dir is not None
+        self.raise_if_flagged()
         self._check_params("at the checkpoint")
         path = self.checkpoint_dir / f"ckpt_{self.step:06d}.pt"
         state = self.state_dict()

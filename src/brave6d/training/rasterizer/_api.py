@@ -45,6 +45,7 @@ def rasterize(
     absgrad: bool = False,
     median_depth: bool = False,
     antialiased: bool = False,
+    validate: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
     """Render 3D Gaussians into one or more pinhole cameras (gsplat conventions).
 
@@ -81,6 +82,10 @@ def rasterize(
             ``sqrt(max(det(cov2d) / det(cov2d + eps2d I), 0))``, so a Gaussian far below a pixel
             fades instead of growing into a pixel-sized blob (``info['opacities']`` [C,N] holds
             the compensated opacities).  False: gsplat's ``classic`` mode.
+        validate: check the values (NaN/inf in any input, focal lengths > 0). On a GPU each check
+            waits for the device; False leaves them out for a caller that checked its cameras
+            once and watches its parameters itself (the trainer's lean GPU step). Types, devices
+            and shapes are always checked.
 
     Returns:
         ``(render_colors [C,H,W,3], render_depth [C,H,W,1], render_alphas [C,H,W,1], info)``.
@@ -102,7 +107,7 @@ def rasterize(
     inputs = prepare_inputs(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane,
-        backgrounds=backgrounds, eps2d=eps2d, antialiased=antialiased,
+        backgrounds=backgrounds, eps2d=eps2d, antialiased=antialiased, validate=validate,
     )
     name = resolve_backend(backend, inputs.means.device)
     if name == "cuda":

@@ -151,6 +151,15 @@ def _check_colors(colors: Tensor, n: int, c: int, sh_degree: int | None) -> None
     )
 
 
+def check_values(named: dict[str, Tensor]) -> None:
+    """NaN/inf in any named tensor and non-positive focal lengths in ``Ks`` (RasterInputError)."""
+    for name, t in named.items():
+        _require_finite(name, t)
+    fxfy = named["Ks"].detach()[:, [0, 1], [0, 1]]
+    if bool((fxfy <= 0).any()):
+        raise RasterInputError("rasterize: focal lengths Ks[:, 0, 0] and Ks[:, 1, 1] must be > 0")
+
+
 def sanitize_quats(quats: Tensor) -> Tensor:
     """Replace zero / denormal quaternions by the identity (zero gradient there)."""
     if quats.numel() == 0:
@@ -162,10 +171,8 @@ def sanitize_quats(quats: Tensor) -> Tensor:
         if not bad_host.any():
             return quats
         bad = torch.from_numpy(bad_host)
-    else:
+    else:  # on a GPU: no host sync, the same values (where() keeps the good rows as they are)
         bad = (quats.detach().double() ** 2).sum(-1) < QUAT_MIN_SQNORM
-        if not bool(bad.any()):
-            return quats
     identity = torch.zeros_like(quats)
     identity[:, 0] = 1.0
     return torch.where(bad[:, None], identity, quats)
@@ -196,8 +203,14 @@ def prepare_inputs(
     backgrounds: Tensor | None,
     eps2d: float,
     antialiased: bool = False,
+    validate: bool = True,
 ) -> RasterInputs:
-    """Check every rasterizer argument and apply the neutralisation rules above."""
+    """Check every rasterizer argument and apply the neutralisation rules above.
+
+    ``validate=False`` leaves out the value checks (NaN/inf, focal lengths > 0), which on a GPU
+    each wait for the device: for callers that checked their cameras once and watch their
+    parameters themselves (the trainer's lean GPU step). Types, devices and shapes are always
+    checked (on the host, free)."""
     named = {
         "means": means,
         "quats": quats,
@@ -259,11 +272,8 @@ def prepare_inputs(
         else:
             _require_shape("backgrounds", backgrounds, (c, 3))
 
-    for name, t in named.items():
-        _require_finite(name, t)
-    fxfy = Ks.detach()[:, [0, 1], [0, 1]]
-    if bool((fxfy <= 0).any()):
-        raise RasterInputError("rasterize: focal lengths Ks[:, 0, 0] and Ks[:, 1, 1] must be > 0")
+    if validate:
+        check_values(named)
 
     return RasterInputs(
         means=means,
