@@ -69,9 +69,11 @@ PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x
              "manylinux1_x86_64", "manylinux_2_5_x86_64")
 #: the tests that run only on a CUDA GPU (the rest of CUDA_TESTS runs everywhere)
 GPU_ONLY_TESTS = ("test_cuda_backend_matches_cpu", "test_cuda_gradients_match_cpu", "test_cuda_render_batch",
-                  "test_cuda_median_depth_equals_cpu_without_the_cpu_kernels")
+                  "test_cuda_median_depth_equals_cpu_without_the_cpu_kernels",
+                  "test_cuda_photometric_loss_takes_the_fused_ssim")
 CUDA_TESTS = ("tests/test_rasterizer.py", "tests/test_train_pipeline.py", "tests/test_serve_renderer.py",
-              "tests/test_serve_render_batch.py", "tests/test_median_depth_gpu.py")
+              "tests/test_serve_render_batch.py", "tests/test_median_depth_gpu.py",
+              "tests/test_ssim_device.py")
 #: agents per vector-env run (step 5): the GPU's figures; on the CPU only the wiring (its figures,
 #: measured with every core, are in docs/BENCHMARKS.md)
 VECTOR_AGENTS = {"cuda": (1, 8, 64), "cpu": (8,)}

@@ -74,13 +74,21 @@ def photometric_loss(render: Tensor, target: Tensor, ssim_lambda: float = 0.2) -
     """``(1 - lambda) * L1 + lambda * (1 - SSIM)``; returns ``(loss, l1, ssim)``.
 
     On the CPU the SSIM term is :func:`brave6d.training.fused_ssim.fused_ssim` (the same number, its
-    gradient in compiled loops); elsewhere torch's autograd through :func:`ssim`. Imported here, not
-    above: numba is the CPU path's dependency only.
+    gradient in compiled loops); on a GPU :func:`brave6d.training.ssim_device.device_ssim` (Triton
+    kernels); elsewhere torch's autograd through :func:`ssim`. Imported here, not above: numba is
+    the CPU path's dependency only, triton the GPU's.
     """
     from brave6d.training.fused_ssim import can_fuse, fused_ssim
 
     l1 = l1_loss(render, target)
-    s = fused_ssim(render, target) if can_fuse(render, target) else ssim(render, target)
+    if can_fuse(render, target):
+        s = fused_ssim(render, target)
+    elif render.device.type == "cuda":
+        from brave6d.training.ssim_device import can_fuse_on_device, device_ssim
+
+        s = device_ssim(render, target) if can_fuse_on_device(render, target) else ssim(render, target)
+    else:
+        s = ssim(render, target)
     return (1.0 - ssim_lambda) * l1 + ssim_lambda * (1.0 - s), l1, s
 
 
