@@ -15,15 +15,15 @@ within 1e-5 of a threshold: transmittance 0.5, alpha 1/255, sigma 0).
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from typing import Any
 
 import numpy as np
 import torch
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
+from interpreter_common import FEW_DRAWS, write_report
 
 from brave6d.training.rasterizer import rasterize
 from brave6d.training.rasterizer.constants import ALPHA_MAX, ALPHA_THRESHOLD, TILE_SIZE
@@ -133,8 +133,7 @@ def main(out_path: str) -> int:
 
     drawn: list[dict[str, Any]] = []
 
-    @settings(max_examples=8, deadline=None, derandomize=True, database=None,
-              suppress_health_check=list(HealthCheck))
+    @settings(FEW_DRAWS, max_examples=8)
     @given(seed=st.integers(0, 2**20), n=st.integers(1, 80), width=st.integers(1, 40),
            height=st.integers(1, 40), lo=st.floats(0.01, 1.0), scale=st.floats(0.05, 30.0),
            aa=st.booleans())
@@ -143,11 +142,7 @@ def main(out_path: str) -> int:
         case = scene(seed, n, 1, width, height, (lo, min(1.0, lo + 0.5)), (scale, scale * 3))
         drawn.append({"seed": seed, "n": n, "size": [width, height], **compare(case, aa)})
 
-    drawn_scene()
-    results["hypothesis"] = drawn
-    with open(out_path, "w") as f:
-        json.dump(results, f, indent=1)
-    return 0
+    return write_report(out_path, results, drawn_scene, drawn)
 
 
 if __name__ == "__main__":

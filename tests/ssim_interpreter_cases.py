@@ -11,13 +11,13 @@ everything was finite; named hard cases first, then hypothesis-drawn image pairs
 
 from __future__ import annotations
 
-import json
 import sys
 from typing import Any
 
 import torch
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
+from interpreter_common import FEW_DRAWS, write_report
 
 from brave6d.training.losses import ssim
 from brave6d.training.ssim_device import device_ssim
@@ -56,8 +56,7 @@ def main(out_path: str) -> int:
     results: dict[str, Any] = {name: compare(a, b) for name, (a, b) in named().items()}
     drawn: list[dict[str, Any]] = []
 
-    @settings(max_examples=5, deadline=None, derandomize=True, database=None,
-              suppress_health_check=list(HealthCheck))
+    @FEW_DRAWS
     @given(seed=st.integers(0, 2**20), h=st.integers(1, 24), w=st.integers(1, 24), c=st.sampled_from([1, 3]),
            same=st.booleans())
     def pair(seed: int, h: int, w: int, c: int, same: bool) -> None:
@@ -66,11 +65,7 @@ def main(out_path: str) -> int:
         b = a.clone() if same else torch.rand(h, w, c, generator=g)
         drawn.append({"seed": seed, **compare(a, b)})
 
-    pair()
-    results["hypothesis"] = drawn
-    with open(out_path, "w") as f:
-        json.dump(results, f, indent=1)
-    return 0
+    return write_report(out_path, results, pair, drawn)
 
 
 if __name__ == "__main__":

@@ -14,29 +14,39 @@ import triton.language as tl
 
 
 @triton.jit
+def _tile(height, width, BH: tl.constexpr, BW: tl.constexpr):
+    """This program's pixels: rows [BH,1], columns [1,BW], its plane's offset and the in-image mask."""
+    rows = tl.program_id(1) * BH + tl.arange(0, BH)[:, None]
+    cols = tl.program_id(2) * BW + tl.arange(0, BW)[None, :]
+    base = tl.program_id(0).to(tl.int64) * height * width
+    return rows, cols, base, (rows < height) & (cols < width)
+
+
+@triton.jit
+def _tap(rows, cols, dy, dx, win_ptr, height, width, RADIUS: tl.constexpr):
+    """Window tap (dy, dx): its weight, where it lands inside the image, and the offsets there."""
+    r = rows + (dy - RADIUS)
+    c = cols + (dx - RADIUS)
+    ok = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+    return tl.load(win_ptr + dy) * tl.load(win_ptr + dx), ok, r * width + c
+
+
+@triton.jit
 def ssim_fwd_kernel(x_ptr, y_ptr, win_ptr, map_ptr, d_mu_ptr, d_xx_ptr, d_xy_ptr, height, width,
                     C1: tl.constexpr, C2: tl.constexpr, RADIUS: tl.constexpr,
                     BH: tl.constexpr, BW: tl.constexpr):
     """SSIM map of planes x, y and dmap/dmu_x, dmap/dE[x^2], dmap/dE[xy] (zero padding)."""
-    plane = tl.program_id(0)
-    rows = tl.program_id(1) * BH + tl.arange(0, BH)[:, None]
-    cols = tl.program_id(2) * BW + tl.arange(0, BW)[None, :]
-    base = plane.to(tl.int64) * height * width
+    rows, cols, base, inside = _tile(height, width, BH, BW)
     mu_x = tl.full([BH, BW], 0.0, tl.float32)
     mu_y = tl.full([BH, BW], 0.0, tl.float32)
     e_xx = tl.full([BH, BW], 0.0, tl.float32)
     e_yy = tl.full([BH, BW], 0.0, tl.float32)
     e_xy = tl.full([BH, BW], 0.0, tl.float32)
     for dy in tl.static_range(2 * RADIUS + 1):
-        wy = tl.load(win_ptr + dy)
-        r = rows + (dy - RADIUS)
-        row_ok = (r >= 0) & (r < height)
         for dx in tl.static_range(2 * RADIUS + 1):
-            w = wy * tl.load(win_ptr + dx)
-            c = cols + (dx - RADIUS)
-            ok = row_ok & (c >= 0) & (c < width)
-            a = tl.load(x_ptr + base + r * width + c, mask=ok, other=0.0)
-            b = tl.load(y_ptr + base + r * width + c, mask=ok, other=0.0)
+            w, ok, at = _tap(rows, cols, dy, dx, win_ptr, height, width, RADIUS)
+            a = tl.load(x_ptr + base + at, mask=ok, other=0.0)
+            b = tl.load(y_ptr + base + at, mask=ok, other=0.0)
             mu_x += w * a
             mu_y += w * b
             e_xx += w * a * a
@@ -55,7 +65,6 @@ def ssim_fwd_kernel(x_ptr, y_ptr, win_ptr, map_ptr, d_mu_ptr, d_xx_ptr, d_xy_ptr
             - 2.0 * mu_x * m / den_c + 2.0 * mu_x * m / den_d)
     d_xx = -m / den_d
     d_xy = 2.0 * num_a / (den_c * den_d)
-    inside = (rows < height) & (cols < width)
     out = base + rows * width + cols
     tl.store(map_ptr + out, m, mask=inside)
     tl.store(d_mu_ptr + out, d_mu, mask=inside)
@@ -68,26 +77,17 @@ def ssim_bwd_kernel(x_ptr, y_ptr, win_ptr, g_mu_ptr, g_xx_ptr, g_xy_ptr, grad_pt
                     RADIUS: tl.constexpr, BH: tl.constexpr, BW: tl.constexpr):
     """dL/dx = W * (dL/dm dm/dmu) + 2 x W * (dL/dm dm/dE[x^2]) + y W * (dL/dm dm/dE[xy]) (the
     window is symmetric, so its transpose is itself)."""
-    plane = tl.program_id(0)
-    rows = tl.program_id(1) * BH + tl.arange(0, BH)[:, None]
-    cols = tl.program_id(2) * BW + tl.arange(0, BW)[None, :]
-    base = plane.to(tl.int64) * height * width
+    rows, cols, base, inside = _tile(height, width, BH, BW)
     s_mu = tl.full([BH, BW], 0.0, tl.float32)
     s_xx = tl.full([BH, BW], 0.0, tl.float32)
     s_xy = tl.full([BH, BW], 0.0, tl.float32)
     for dy in tl.static_range(2 * RADIUS + 1):
-        wy = tl.load(win_ptr + dy)
-        r = rows + (dy - RADIUS)
-        row_ok = (r >= 0) & (r < height)
         for dx in tl.static_range(2 * RADIUS + 1):
-            w = wy * tl.load(win_ptr + dx)
-            c = cols + (dx - RADIUS)
-            ok = row_ok & (c >= 0) & (c < width)
-            at = base + r * width + c
+            w, ok, at = _tap(rows, cols, dy, dx, win_ptr, height, width, RADIUS)
+            at = base + at
             s_mu += w * tl.load(g_mu_ptr + at, mask=ok, other=0.0)
             s_xx += w * tl.load(g_xx_ptr + at, mask=ok, other=0.0)
             s_xy += w * tl.load(g_xy_ptr + at, mask=ok, other=0.0)
-    inside = (rows < height) & (cols < width)
     out = base + rows * width + cols
     x = tl.load(x_ptr + out, mask=inside, other=0.0)
     y = tl.load(y_ptr + out, mask=inside, other=0.0)

@@ -13,24 +13,15 @@ before triton's first import (the tests; CPU training uses :mod:`brave6d.trainin
 from __future__ import annotations
 
 import functools
-import os
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from brave6d.core.triton_support import compile_ahead, interpreting
 from brave6d.training.ssim_window import SSIM_C1, SSIM_C2, SSIM_WINDOW, gaussian_window
 
 BLOCK = (16, 32)  # rows x columns per program
-
-
-def interpreting() -> bool:
-    """Whether triton runs in interpreter mode (``TRITON_INTERPRET=1`` at its first import)."""
-    try:
-        from triton import knobs
-    except ImportError:  # triton < 3.4
-        return os.environ.get("TRITON_INTERPRET", "0") == "1"
-    return bool(knobs.runtime.interpret)
 
 
 def can_fuse_on_device(render: Tensor, target: Tensor) -> bool:
@@ -109,19 +100,11 @@ _SIGNATURES = {
 def compile_ssim_kernels(arch: int = 90) -> dict[str, dict[str, Any]]:
     """Compile both kernels ahead of time for CUDA compute capability ``arch`` without a GPU (the
     build check CI runs); Triton's stages by kernel (``fwd``, ``bwd``) and name."""
-    import triton
-    from triton.backends.compiler import GPUTarget
-    from triton.compiler import ASTSource
-
     from brave6d.training._ssim_triton import ssim_bwd_kernel, ssim_fwd_kernel
 
     shared = {"RADIUS": SSIM_WINDOW // 2, "BH": BLOCK[0], "BW": BLOCK[1]}
-    out = {}
-    for name, fn, consts in (("fwd", ssim_fwd_kernel, {"C1": SSIM_C1, "C2": SSIM_C2, **shared}),
-                             ("bwd", ssim_bwd_kernel, shared)):
-        src = ASTSource(fn, _SIGNATURES[name], constexprs=consts)
-        out[name] = dict(triton.compile(src, target=GPUTarget("cuda", arch, 32)).asm)
-    return out
+    return {"fwd": compile_ahead(ssim_fwd_kernel, _SIGNATURES["fwd"], {"C1": SSIM_C1, "C2": SSIM_C2, **shared}, arch),
+            "bwd": compile_ahead(ssim_bwd_kernel, _SIGNATURES["bwd"], shared, arch)}
 
 
 __all__ = ["can_fuse_on_device", "compile_ssim_kernels", "device_ssim"]

@@ -8,19 +8,8 @@ proves it against the CPU rasterizer without a GPU. See
 
 from __future__ import annotations
 
-import os
-
 import triton
 import triton.language as tl
-
-
-def interpreting() -> bool:
-    """Whether triton was imported in interpreter mode (``TRITON_INTERPRET=1``)."""
-    try:
-        from triton import knobs
-    except ImportError:  # triton < 3.4
-        return os.environ.get("TRITON_INTERPRET", "0") == "1"
-    return bool(knobs.runtime.interpret)
 
 
 @triton.jit
@@ -73,4 +62,4 @@ def median_depth_kernel(
     tl.store(out_ptr + pixel, median, mask=inside)
 
 
-__all__ = ["interpreting", "median_depth_kernel"]
+__all__ = ["median_depth_kernel"]

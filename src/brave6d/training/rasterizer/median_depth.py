@@ -22,6 +22,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from brave6d.core.triton_support import compile_ahead, interpreting
+
 from .constants import ALPHA_MAX, ALPHA_THRESHOLD, TILE_SIZE
 from ._validation import RasterBackendError, RasterInputError
 
@@ -84,7 +86,7 @@ def median_depth(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Ten
         RasterInputError: ``isect_offsets`` does not match the cameras and image size.
     """
     try:
-        from ._median_triton import interpreting, median_depth_kernel
+        from ._median_triton import median_depth_kernel
     except ImportError as exc:  # pragma: no cover - depends on the install
         raise RasterBackendError("median_depth needs triton (installed with torch's CUDA wheels; "
                                  "pip install triton for the CPU interpreter)") from exc
@@ -129,16 +131,11 @@ def compile_median_kernel(arch: int = 90, tile_size: int = TILE_SIZE) -> dict[st
     """Compile the kernel ahead of time for CUDA compute capability ``arch`` (90: H100/H200),
     without a GPU (Triton ships its own ptxas): the build check CI runs. Returns Triton's
     stages by name (``ttir``, ``ptx``, ``cubin``, ...)."""
-    import triton
-    from triton.backends.compiler import GPUTarget
-    from triton.compiler import ASTSource
-
     from ._median_triton import median_depth_kernel
 
     constants = {"TILE": tile_size, "BLOCK": tile_size * tile_size,
                  "ALPHA_MAX": ALPHA_MAX, "ALPHA_MIN": ALPHA_THRESHOLD}
-    source = ASTSource(median_depth_kernel, _KERNEL_SIGNATURE, constexprs=constants)
-    return dict(triton.compile(source, target=GPUTarget("cuda", arch, 32)).asm)
+    return compile_ahead(median_depth_kernel, _KERNEL_SIGNATURE, constants, arch)
 
 
 __all__ = ["compile_median_kernel", "median_depth", "tile_intersections"]
