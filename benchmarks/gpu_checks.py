@@ -70,10 +70,11 @@ PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x
 #: the tests that run only on a CUDA GPU (the rest of CUDA_TESTS runs everywhere)
 GPU_ONLY_TESTS = ("test_cuda_backend_matches_cpu", "test_cuda_gradients_match_cpu", "test_cuda_render_batch",
                   "test_cuda_median_depth_equals_cpu_without_the_cpu_kernels",
-                  "test_cuda_photometric_loss_takes_the_fused_ssim")
+                  "test_cuda_photometric_loss_takes_the_fused_ssim",
+                  "test_cuda_lean_step_waits_for_the_device_at_most_4_times_per_step")
 CUDA_TESTS = ("tests/test_rasterizer.py", "tests/test_train_pipeline.py", "tests/test_serve_renderer.py",
               "tests/test_serve_render_batch.py", "tests/test_median_depth_gpu.py",
-              "tests/test_ssim_device.py")
+              "tests/test_ssim_device.py", "tests/test_lean_step.py")
 #: agents per vector-env run (step 5): the GPU's figures; on the CPU only the wiring (its figures,
 #: measured with every core, are in docs/BENCHMARKS.md)
 VECTOR_AGENTS = {"cuda": (1, 8, 64), "cpu": (8,)}

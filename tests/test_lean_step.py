@@ -139,3 +139,28 @@ def test_rasterize_without_value_checks_renders_the_same() -> None:
     unchecked = rasterize(*args, validate=False)
     for a, b in zip(checked[:3], unchecked[:3]):
         assert torch.equal(a, b)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_cuda_lean_step_waits_for_the_device_at_most_4_times_per_step(record_property) -> None:
+    """Issue #46's target, counted with CUDA's sync debug mode over 30 steps past the coarse phase."""
+    import warnings
+
+    preset = FAST.with_steps(120).with_overrides(downscale=1, coarse_steps=5, time_budget_s=None)
+    model = GaussianModel.from_points(np.random.default_rng(0).normal(0, 0.03, (50, 3)), None, sh_degree=2)
+    trainer = Trainer(_data(), model, preset, None, device="cuda", show_progress=False)
+    assert trainer.lean
+    trainer.train(max_steps=40)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            for _ in range(30):
+                trainer.train_step()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    syncs = sum("synchroniz" in str(w.message) for w in caught) / 30
+    record_property("host_syncs_per_step", syncs)
+    assert syncs <= 4
+    trainer.raise_if_flagged()
+    assert not trainer.model.non_finite()

@@ -97,6 +97,10 @@ class DensifyStrategy:
         if state["count"] is None:
             state["count"] = torch.zeros(n_gaussians, device=grads.device)
         seen = (info["radii"] > 0.0).all(dim=-1)  # [C, N]
+        if grads.device.type != "cpu":  # masked sums: no nonzero() and boolean gather waiting for the GPU
+            state["grad2d"] += torch.where(seen, grads.norm(dim=-1), 0.0).sum(dim=0)
+            state["count"] += seen.sum(dim=0, dtype=torch.float32)
+            return
         ids = torch.where(seen)[1]
         state["grad2d"].index_add_(0, ids, grads[seen].norm(dim=-1))
         state["count"].index_add_(0, ids, torch.ones_like(ids, dtype=torch.float32))
