@@ -163,3 +163,29 @@ def test_cuda_render_batch_matches_cpu(record_property: Any) -> None:
     for k, v in worst.items():
         record_property(f"render_batch_{k}", v)
     assert worst["rgb"] <= 1 and worst["alpha"] < 1e-4 and worst["depth_bad_fraction"] < 0.005, worst
+
+
+@pytest.mark.parametrize("cull", [True, False])
+def test_a_batch_larger_than_a_call_holds_is_split_and_unchanged(monkeypatch: pytest.MonkeyPatch, cull: bool) -> None:
+    """More cameras x Gaussians than ``MAX_PAIRS_PER_CALL``: several rasterizer calls, the same views."""
+    r = SplatRenderer.from_splat(synthetic_splat(4000, sh_degree=1, seed=5), device="cpu", cull=cull)
+    poses = [VIEWS[0], VIEWS[0], VIEWS[1], VIEWS[0], AWAY]
+    singles = [r.render(T, CAMERA) for T in poses]
+    calls: list[int] = []
+    draw = r._rasterize
+
+    def counted(args, viewmats, *rest):  # noqa: ANN001, ANN202 - the renderer's own signature
+        calls.append(int(viewmats.shape[0]))
+        return draw(args, viewmats, *rest)
+
+    monkeypatch.setattr(r, "_rasterize", counted)
+    monkeypatch.setattr(renderer_module, "CPU_BATCH_OVERLAP", float("inf"))  # one group: only the cap splits
+    batched = r.render_batch(poses, CAMERA)
+    whole = list(calls)
+    calls.clear()
+    monkeypatch.setattr(renderer_module, "MAX_PAIRS_PER_CALL", 2 * 4000)
+    split = r.render_batch(poses, CAMERA)
+    assert len(whole) == 1 and len(calls) >= 3 and sum(calls) == len(poses) and max(calls) <= 2
+    for a, b, single in zip(batched, split, singles):
+        assert_same_view(b, single)
+        assert_same_view(a, single)

@@ -57,6 +57,11 @@ from brave6d.serve.splat_check import MIN_ALPHA, activated_opacity, check_splat
 #: (cameras x the union of their culled Gaussians) is at most this times that of separate calls.
 CPU_BATCH_OVERLAP = 1.25
 
+#: The most camera x Gaussian pairs one rasterizer call may hold: gsplat keeps each camera's
+#: projection of each Gaussian (about 50 bytes a pair), so 2^27 pairs stay near 7 GB. A batch
+#: larger than that is drawn in several calls (each view still equals its single render).
+MAX_PAIRS_PER_CALL = 1 << 27
+
 #: The depths a render may report (the module docstring; ``brave6d.training.rasterize``'s median_depth).
 DEPTH_MODES = ("median", "expected")
 
@@ -266,7 +271,7 @@ class SplatRenderer:
         import torch
 
         if culled is None or self.means.device.type == "cuda":
-            return [list(range(n_views))]
+            return self._fit(list(range(n_views)), culled)
         groups: list[list[int]] = []
         union = torch.zeros(self.num_gaussians, dtype=torch.bool, device=self.means.device)
         total = 0
@@ -282,7 +287,29 @@ class SplatRenderer:
                 union = torch.zeros_like(union)
                 union[idx] = True
                 total = int(idx.numel())
-        return groups
+        return [chunk for group in groups for chunk in self._fit(group, culled)]
+
+    def _fit(self, members: list[int], culled: list | None) -> list[list[int]]:  # type: ignore[type-arg]
+        """``members`` split into calls of at most ``MAX_PAIRS_PER_CALL`` cameras x Gaussians of their
+        union (a camera always gets a call, however large its own set)."""
+        import torch
+
+        if culled is None:
+            per_call = max(1, MAX_PAIRS_PER_CALL // max(self.num_gaussians, 1))
+            return [members[i:i + per_call] for i in range(0, len(members), per_call)]
+        chunks: list[list[int]] = []
+        union = torch.zeros(self.num_gaussians, dtype=torch.bool, device=self.means.device)
+        for i in members:
+            trial = union.clone()
+            trial[culled[i]] = True
+            if chunks and (len(chunks[-1]) + 1) * int(trial.sum()) <= MAX_PAIRS_PER_CALL:
+                chunks[-1].append(i)
+                union = trial
+            else:
+                chunks.append([i])
+                union = torch.zeros_like(union)
+                union[culled[i]] = True
+        return chunks
 
     def _gaussians(self, culled: list | None, members: list[int]) -> tuple:  # type: ignore[type-arg]
         """The Gaussians of one rasterizer call: the union of its cameras' culled sets (all of them
