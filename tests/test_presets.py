@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field, make_dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from hypothesis import given, reject, settings
 from hypothesis import strategies as st
@@ -67,7 +68,9 @@ SHIPPED: dict[str, Preset] = {**BENCHMARK_PRESETS, QUICK.name: QUICK}
 NEW_FIELDS: dict[str, dict[str, Any]] = {
     name: {"antialiasing": "mip" if name in ("fast", "fast-quick", "quality") else "classic", "filter_3d_scale": 0.2,
            "filter_3d_every": 8 if name == "fast-quick" else 100,  # fast-quick: FAST.with_steps(150)
-           "depth_lambda": 2.0 if name in ("fast", "fast-quick", "quality") else 0.0, "depth_edge_ratio": 0.02}
+           "depth_lambda": 2.0 if name in ("fast", "fast-quick", "quality") else 0.0, "depth_edge_ratio": 0.02,
+           # issue 47: a photo set's Gaussian budget (fast and the presets made from it)
+           "photo_set_pixels_per_gaussian": 70.0 if name in ("fast", "fast-quick", "fast-2000") else None}
     for name in OLD}
 CURRENT: dict[str, dict[str, Any]] = {name: {**OLD[name], **NEW_FIELDS[name]} for name in OLD}
 
@@ -219,7 +222,7 @@ def test_overrides_by_path_or_by_name() -> None:
     assert whole.densification == Densification(max_gaussians=5)
     assert FAST.path_of("refine_every") == "densification.refine_every" and FAST.path_of("steps") == "steps"
     with pytest.raises(BraveError, match=r"^preset fast: no field 'max_gausians' \(fields: name, steps, .*"
-                                         r"densification\.max_gaussians\)$"):
+                                         r"densification\.max_gaussians, densification\.photo_set_pixels_per_gaussian\)$"):
         FAST.with_overrides(max_gausians=1)
 
 
@@ -345,3 +348,29 @@ def test_the_reports_views_sweep_reads_the_trained_preset_from_its_record(tmp_pa
     assert (preset.schedule.eval_every, preset.densification.refine_stop) == (100, 180)
     atomic_write_json(scene.splat_dir / "metrics.json", {"preset_config": {}})  # no record: fast
     assert scene_preset(scene, sweep)[0].name == "fast"
+
+
+# ----------------------------------------------------------------------------- a photo set's Gaussian budget
+def _views(n: int, depth: bool) -> Any:
+    from brave6d.core.camera import PinholeCamera
+    from brave6d.training.views import TrainingData, View
+
+    cam = PinholeCamera(240, 160, 200.0, 200.0, 119.5, 79.5)
+    image = np.zeros((160, 240, 3), np.uint8)
+    views = [View(i, f"v{i}", 0, 0.5, np.eye(4), image, depth_path=Path("d.npy") if depth else None)
+             for i in range(n)]
+    return TrainingData(cam, views, [])
+
+
+def test_a_photo_set_trains_with_one_gaussian_per_70_training_pixels() -> None:
+    from brave6d.training.pipeline import photo_set_preset
+
+    preset, applied = photo_set_preset(FAST, _views(58, depth=False))  # the skull sample's size
+    assert preset.densification.max_gaussians == 58 * 240 * 160 // 70 == 31817
+    assert applied is not None and applied["training_pixels"] == 58 * 240 * 160 and applied["preset_max_gaussians"] == 100_000
+    assert photo_set_preset(FAST, _views(58, depth=True)) == (FAST, None)  # depth: the preset's cap
+    assert photo_set_preset(FAST, _views(400, depth=False)) == (FAST, None)  # the budget above the cap
+    assert photo_set_preset(DEFAULT, _views(58, depth=False)) == (DEFAULT, None)  # off in default
+    assert FAST.densification.photo_set_cap(1) == 1  # never zero
+    with pytest.raises(BraveError, match="photo_set_pixels_per_gaussian"):
+        FAST.with_values(photo_set_pixels_per_gaussian=0.0)

@@ -37,7 +37,7 @@ from brave6d.training.ply import write_ply, write_viewer_ply
 from brave6d.training.presets import Preset
 from brave6d.training.trainer import Trainer, list_checkpoints
 from brave6d.training.training_run import train
-from brave6d.training.views import load_scene
+from brave6d.training.views import TrainingData, load_scene
 
 log = logging.getLogger(__name__)
 
@@ -119,6 +119,7 @@ def train_scene(
         torch.cuda.reset_peak_memory_stats(dev)
     ckpt_dir = scene.checkpoints_dir
     data = load_scene(scene, preset.downscale, skip_bad_frames)  # the inputs, before anything is moved
+    preset, budget = photo_set_preset(preset, data)
     t_loaded = time.perf_counter()
     log.info("images: %s", data.undistortion)
     continuing = resume and bool(list_checkpoints(ckpt_dir))
@@ -165,6 +166,7 @@ def train_scene(
         "eval_time_s": t_eval,
         "total_time_s": time.perf_counter() - t_start,
         "num_gaussians": result.num_gaussians,
+        "gaussian_budget": budget,
         "memory": peak_memory_mb(dev),
         "holdout": holdout.to_json(),
         "n_train_views": len(data.train),
@@ -190,6 +192,25 @@ def train_scene(
     write_holdout(scene, data.test)  # the split, once, just before the metrics that score it
     write_metrics(scene.metrics_path, metrics)
     return metrics
+
+
+def photo_set_preset(preset: Preset, data: TrainingData) -> tuple[Preset, dict[str, Any] | None]:
+    """``preset`` with a photo set's Gaussian cap (:meth:`Densification.photo_set_cap`) when no
+    training view has depth, and what was applied (None: the preset as it is)."""
+    dens = preset.densification
+    if dens.photo_set_pixels_per_gaussian is None or any(v.depth_path is not None for v in data.train):
+        return preset, None
+    pixels = len(data.train) * data.camera.width * data.camera.height
+    cap = dens.photo_set_cap(pixels)
+    if cap == dens.max_gaussians:
+        return preset, None
+    log.info("a photo set (no depth in its %d training views, %d pixels): at most %d Gaussians, one per %g "
+             "training pixels (the preset's cap: %s)", len(data.train), pixels, cap,
+             dens.photo_set_pixels_per_gaussian, dens.max_gaussians)
+    return preset.with_values(max_gaussians=cap), {
+        "reason": "photo set: no training view has depth", "training_pixels": pixels,
+        "pixels_per_gaussian": dens.photo_set_pixels_per_gaussian, "max_gaussians": cap,
+        "preset_max_gaussians": dens.max_gaussians}
 
 
 def _numba_threads() -> int | None:

@@ -171,7 +171,15 @@ class Densification:
     """The densification strategy's options (gsplat DefaultStrategy's, Inria's values): refine (grow
     and prune) every ``refine_every`` steps after ``refine_start`` until ``refine_stop``, reset the
     opacities every ``reset_every`` steps while refining; ``max_gaussians``: growth is limited to the
-    highest gradients beyond this many Gaussians (None: no limit)."""
+    highest gradients beyond this many Gaussians (None: no limit).
+
+    ``photo_set_pixels_per_gaussian``: for a photo set (no training view has depth), the cap is
+    also at most one Gaussian per this many training pixels (None: off). Without depth only the
+    photos constrain the Gaussians, and a sparse set's surplus fits the training views at the
+    cost of new ones: on the shipped skull sample (58 photos at 240x160, 2.2M pixels) at 500 steps,
+    74k Gaussians gave 18.9 dB holdout PSNR, 10k-30k 21.7-22.5 dB; the fox (45 at 135x240) is flat
+    from 20k to 100k (28.7-29.1 dB) and loses 0.5 dB at 15k. ``fast``: 70 (docs/BENCHMARKS.md).
+    Captures with depth (the robot's) keep ``max_gaussians``."""
 
     refine_start: int = at(500, minimum=1)
     refine_stop: int = at(15_000, minimum=1)
@@ -182,6 +190,20 @@ class Densification:
     prune_opa: float = 0.005
     prune_scale3d: float = 0.1
     max_gaussians: int | None = None
+    photo_set_pixels_per_gaussian: float | None = None
+
+    def problems(self, steps: int) -> Problems:
+        ppg = self.photo_set_pixels_per_gaussian
+        if ppg is not None and not (math.isfinite(ppg) and ppg > 0.0):
+            yield "photo_set_pixels_per_gaussian", f"must be None or a finite number > 0, got {ppg}"
+
+    def photo_set_cap(self, training_pixels: int) -> int | None:
+        """The Gaussian cap of a photo set with ``training_pixels`` pixels (train views x W x H):
+        the smaller of ``max_gaussians`` and the per-pixel budget; ``max_gaussians`` when off."""
+        if self.photo_set_pixels_per_gaussian is None:
+            return self.max_gaussians
+        budget = max(1, int(training_pixels / self.photo_set_pixels_per_gaussian))
+        return budget if self.max_gaussians is None else min(self.max_gaussians, budget)
 
 
 @dataclass(frozen=True)
@@ -374,6 +396,7 @@ FAST = Preset(
         reset_every=1_000_000,  # no opacity reset: too few steps remain to recover from one
         grow_grad2d=2e-4,
         max_gaussians=100_000,
+        photo_set_pixels_per_gaussian=70.0,  # issue 47: sparse photo sets overfit with 100k
     ),
 )
 
