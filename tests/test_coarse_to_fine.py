@@ -67,8 +67,8 @@ def test_trainer_renders_coarse_first_then_full(tmp_path: Path) -> None:
     sizes = []
     original = trainer.render
 
-    def spy(viewmat, sh_degree=None, level=None):  # records the size each step renders at
-        out = original(viewmat, sh_degree, level)
+    def spy(viewmat, sh_degree=None, level=None, validate=True):  # records the size each step renders at
+        out = original(viewmat, sh_degree, level, validate)
         sizes.append(tuple(out[0].shape[:2]))
         return out
 
