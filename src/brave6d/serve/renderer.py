@@ -264,14 +264,17 @@ class SplatRenderer:
         return [idx if idx.numel() > 0 else empty for idx in culled]
 
     def _groups(self, culled: list | None, n_views: int) -> list[list[int]]:  # type: ignore[type-arg]
-        """The cameras' rasterizer calls: all in one on CUDA and without culling; on the CPU the
-        cameras in order, a camera joining the current call while the call's work (cameras x their
-        union) stays within ``CPU_BATCH_OVERLAP`` times the work of separate calls (the sum of the
-        sets): agents looking at the same Gaussians share a call, agents far apart do not."""
+        """The cameras' rasterizer calls, in camera order. A call never holds more than
+        ``MAX_PAIRS_PER_CALL`` cameras x Gaussians of their union (memory). On CUDA that is the only
+        limit; on the CPU a camera also joins the current call only while the call's work (cameras x
+        their union) stays within ``CPU_BATCH_OVERLAP`` times the work of separate calls (the sum of
+        the sets): agents looking at the same Gaussians share a call, agents far apart do not."""
         import torch
 
-        if culled is None or self.means.device.type == "cuda":
-            return self._fit(list(range(n_views)), culled)
+        if culled is None:
+            per_call = max(1, MAX_PAIRS_PER_CALL // max(self.num_gaussians, 1))
+            return [list(range(i, min(i + per_call, n_views))) for i in range(0, n_views, per_call)]
+        on_cpu = self.means.device.type != "cuda"
         groups: list[list[int]] = []
         union = torch.zeros(self.num_gaussians, dtype=torch.bool, device=self.means.device)
         total = 0
@@ -279,7 +282,8 @@ class SplatRenderer:
             trial = union.clone()
             trial[idx] = True
             work = (len(groups[-1]) + 1 if groups else 1) * int(trial.sum())
-            if groups and work <= CPU_BATCH_OVERLAP * (total + idx.numel()):
+            fits = work <= MAX_PAIRS_PER_CALL and (not on_cpu or work <= CPU_BATCH_OVERLAP * (total + idx.numel()))
+            if groups and fits:
                 groups[-1].append(i)
                 union, total = trial, total + int(idx.numel())
             else:
@@ -287,29 +291,7 @@ class SplatRenderer:
                 union = torch.zeros_like(union)
                 union[idx] = True
                 total = int(idx.numel())
-        return [chunk for group in groups for chunk in self._fit(group, culled)]
-
-    def _fit(self, members: list[int], culled: list | None) -> list[list[int]]:  # type: ignore[type-arg]
-        """``members`` split into calls of at most ``MAX_PAIRS_PER_CALL`` cameras x Gaussians of their
-        union (a camera always gets a call, however large its own set)."""
-        import torch
-
-        if culled is None:
-            per_call = max(1, MAX_PAIRS_PER_CALL // max(self.num_gaussians, 1))
-            return [members[i:i + per_call] for i in range(0, len(members), per_call)]
-        chunks: list[list[int]] = []
-        union = torch.zeros(self.num_gaussians, dtype=torch.bool, device=self.means.device)
-        for i in members:
-            trial = union.clone()
-            trial[culled[i]] = True
-            if chunks and (len(chunks[-1]) + 1) * int(trial.sum()) <= MAX_PAIRS_PER_CALL:
-                chunks[-1].append(i)
-                union = trial
-            else:
-                chunks.append([i])
-                union = torch.zeros_like(union)
-                union[culled[i]] = True
-        return chunks
+        return groups
 
     def _gaussians(self, culled: list | None, members: list[int]) -> tuple:  # type: ignore[type-arg]
         """The Gaussians of one rasterizer call: the union of its cameras' culled sets (all of them

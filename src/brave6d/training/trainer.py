@@ -270,9 +270,13 @@ class Trainer:
         self.step = bad_step  # _diverged names the step after the last good one
         raise self._diverged(f"{what}, first at this step (flagged on the device)")
 
+    def _params_finite(self) -> Tensor:
+        """A device bool: every parameter finite (a NaN/inf anywhere makes its sum non-finite: one
+        cheap reduction per tensor; an overflowing sum is told apart by ``non_finite``)."""
+        return torch.isfinite(torch.stack([p.detach().sum() for p in self.model.params.values()])).all()
+
     def _check_params(self, when: str) -> None:
-        # a NaN/inf anywhere makes the sum non-finite: one cheap reduction per tensor
-        if all(bool(torch.isfinite(p.detach().sum())) for p in self.model.params.values()):
+        if bool(self._params_finite()):
             return
         bad = self.model.non_finite()  # exact check (empty when only the sum overflowed)
         if bad:
@@ -324,8 +328,7 @@ class Trainer:
         self.strategy.step_post_backward(self.model.params, self.optimizers, self.strategy_state, step, info,
                                          packed=False)
         if self.lean:
-            sums = torch.stack([q.detach().sum() for q in self.model.params.values()])
-            self._flag(torch.isfinite(sums).all(), 2)
+            self._flag(self._params_finite(), 2)
         else:
             self._check_params("after the optimiser step")
         self.step += 1
