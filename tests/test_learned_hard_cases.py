@@ -107,6 +107,21 @@ def test_any_box_even_off_the_image_gives_a_finite_pose_or_a_named_refusal(estim
         assert np.all(np.isfinite(pose.cam_T_obj)) and pose.cam_T_obj[2, 3] > 0 and 0.0 <= pose.score <= 1.0
 
 
+@settings(max_examples=30, deadline=None)
+@given(x0=st.floats(-40.0, 330.0), y0=st.floats(-40.0, 210.0), w=st.floats(0.5, 400.0), h=st.floats(0.5, 300.0),
+       value=st.integers(0, 255), noise=st.booleans())
+def test_a_refined_box_is_finite_and_non_empty_anywhere_in_or_off_the_image(
+        estimator: LearnedEstimator, x0: float, y0: float, w: float, h: float, value: int, noise: bool) -> None:
+    from brave6d.evaluation.learned import Detection
+
+    rng = np.random.default_rng(int(x0 * 7 + y0) % 1000)
+    rgb = rng.integers(0, 256, size=(200, 320, 3), dtype=np.uint8) if noise else np.full((200, 320, 3), value, np.uint8)
+    det = Detection(1, (x0, y0, x0 + w, y0 + h), 0.7)
+    out = estimator.refine_box(rgb, K, det)
+    assert out.obj_id == 1 and out.score == 0.7
+    assert all(math.isfinite(b) for b in out.box) and out.box[2] > out.box[0] and out.box[3] > out.box[1]
+
+
 def test_an_object_the_model_never_saw_is_refused_naming_it(estimator: LearnedEstimator) -> None:
     rgb = np.zeros((200, 320, 3), np.uint8)
     for call in (lambda: estimator.best_detection(rgb, K, 7), lambda: estimator.estimate(rgb, K, 7, (10, 10, 40, 40))):

@@ -15,7 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from brave6d.evaluation.report.measurements import Measurement
-from brave6d.evaluation.report.sections.learned import COST_FILE, VARIANTS, cost_path, estimate_target, read_cost
+from brave6d.evaluation.report.sections.learned import COST_FILE, VARIANTS, best_detections, cost_path, \
+    estimate_target, read_cost
 from brave6d.evaluation.report.sections.learned import render_learned
 from brave6d.evaluation.report.sections.learned import ring_rows, xywh_to_box
 
@@ -98,31 +99,41 @@ def test_true_box_is_finite_and_ordered_or_none(bbox: list[float], stride: int) 
 
 
 class _Estimator:
-    """An estimator whose detector finds nothing and whose pose net refuses RGB-only input: the
-    section must record each variant's cause and give no pose."""
+    """An estimator whose detector finds nothing and whose pose net refuses object 2: the section
+    must record each variant's cause and give no pose where refused."""
 
-    def best_detection(self, rgb: np.ndarray, K: np.ndarray, obj_id: int) -> object:
-        from brave6d.evaluation.learned import LearnedRefused
+    obj_ids = [1, 2]
 
-        raise LearnedRefused("no-detection", f"no detection of object {obj_id}")
+    def detect(self, rgb: np.ndarray, K: np.ndarray) -> list:
+        return []
 
-    def estimate(self, rgb: np.ndarray, K: np.ndarray, obj_id: int, box: tuple, depth: object, score: float) -> object:
+    def refine_box(self, rgb: np.ndarray, K: np.ndarray, det: object) -> object:
+        raise AssertionError("nothing was detected, so nothing is refined")
+
+    def estimate_both(self, rgb: np.ndarray, K: np.ndarray, obj_id: int, box: tuple, depth: object,
+                      score: float) -> tuple:
         from types import SimpleNamespace
 
         from brave6d.evaluation.learned import LearnedRefused
 
-        if depth is None:
+        if obj_id == 2:
             raise LearnedRefused("pnp-failed", "too few correspondences")
-        return SimpleNamespace(cam_T_obj=np.eye(4), score=score)
+        rgb_pose = SimpleNamespace(cam_T_obj=np.eye(4), score=score)
+        return rgb_pose, (None if depth is None else SimpleNamespace(cam_T_obj=2 * np.eye(4), score=score))
 
 
 def test_each_variant_records_its_refusal_cause_and_no_pose() -> None:
-    rgb, K = np.zeros((40, 64, 3), np.uint8), np.eye(3)
-    out = estimate_target(_Estimator(), rgb, np.ones((40, 64), np.float32), K, 1, (1.0, 1.0, 10.0, 10.0))
+    rgb, K, depth = np.zeros((40, 64, 3), np.uint8), np.eye(3), np.ones((40, 64), np.float32)
+    found = best_detections(_Estimator(), rgb, K, [1, 2])
+    assert found == {1: "no-detection", 2: "no-detection"}
+    out = estimate_target(_Estimator(), rgb, depth, K, 1, (1.0, 1.0, 10.0, 10.0), found[1])
     assert out["detected_rgb"][1] == out["detected_depth"][1] == "no-detection"
-    assert out["true_box_rgb"][1] == "pnp-failed" and out["true_box_rgb"][0].cam_T_obj is None
-    assert out["true_box_depth"][1] is None and out["true_box_depth"][0].cam_T_obj is not None
-    assert estimate_target(_Estimator(), rgb, None, K, 1, None)["true_box_depth"][1] == "no-box"
+    assert out["true_box_rgb"][1] is None and out["true_box_depth"][1] is None
+    assert out["true_box_rgb"][0].cam_T_obj[0, 0] == 1.0 and out["true_box_depth"][0].cam_T_obj[0, 0] == 2.0
+    refused = estimate_target(_Estimator(), rgb, depth, K, 2, (1.0, 1.0, 10.0, 10.0), found[2])
+    assert refused["true_box_rgb"][1] == refused["true_box_depth"][1] == "pnp-failed"
+    assert refused["true_box_depth"][0].cam_T_obj is None
+    assert estimate_target(_Estimator(), rgb, None, K, 1, None, "no-detection")["true_box_depth"][1] == "no-box"
 
 
 def test_missing_model_is_named_where_the_report_was_told_to_look(tmp_path: Path) -> None:

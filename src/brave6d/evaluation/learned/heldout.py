@@ -1,7 +1,9 @@
 """Held-out figures of a trained estimator on the train_pbr images it never trained on.
 
 - detection, per object: recall at IoU 0.5 among the detections scoring at least the agents'
-  threshold, and AP at IoU 0.5 (all-point interpolated, every detection above 0.05);
+  threshold, and AP at IoU 0.5 (all-point interpolated, every detection above 0.05), of the boxes
+  the agents use (refined by the coordinate net's mask) and of the detector's own boxes (what the
+  refinement buys, beside what it costs per detection);
 - pose, per object and overall: BOP19 AR (the project's metrics, the split's own depth for VSD)
   given the true visible box and given the detected box, each RGB-only and refined with the
   split's depth.
@@ -41,6 +43,9 @@ class HeldoutScores:
     pose_ar_per_object: dict[str, dict[int, float]]
     refusals: dict[str, dict[str, int]] = field(default_factory=dict)
     seconds_per_estimate: float = 0.0
+    recall_raw: dict[int, float] = field(default_factory=dict)
+    ap_raw: dict[int, float] = field(default_factory=dict)
+    seconds_per_detection: dict[str, float] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {"images": self.images, "instances": self.instances,
@@ -49,6 +54,9 @@ class HeldoutScores:
                 "pose_ar": dict(self.pose_ar),
                 "pose_ar_per_object": {v: {str(k): x for k, x in d.items()} for v, d in self.pose_ar_per_object.items()},
                 "refusals": self.refusals, "seconds_per_estimate": self.seconds_per_estimate,
+                "detection_recall_iou50_unrefined": {str(k): v for k, v in self.recall_raw.items()},
+                "detection_ap_iou50_unrefined": {str(k): v for k, v in self.ap_raw.items()},
+                "seconds_per_detection": dict(self.seconds_per_detection),
                 "detection_threshold": DETECTION_THRESHOLD}
 
 
@@ -94,10 +102,8 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
     images = (data.split(True) if images is None else list(images))[:max_images]
     models = load_models(models_dir, sorted(data.objects))
     obj_ids = sorted(data.objects)
-    det_scores: dict[int, list[float]] = {o: [] for o in obj_ids}
-    det_hits: dict[int, list[bool]] = {o: [] for o in obj_ids}
-    n_gt = {o: 0 for o in obj_ids}
-    found = {o: 0 for o in obj_ids}
+    tallies = {kind: _Tally(obj_ids) for kind in ("refined", "raw")}
+    detect_s: dict[str, list[float]] = {"image": [], "refine": []}
     gts: list[Any] = []
     estimates: dict[str, list[Any]] = {v: [] for v in POSE_VARIANTS}
     refusals: dict[str, dict[str, int]] = {v: {} for v in POSE_VARIANTS}
@@ -109,10 +115,17 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
         depth_full_mm = read_png(record.depth_path, expect="depth").astype(np.float64)
         h, w = rgb.shape[:2]
         depth_work = cv2.resize(depth_full_mm, (w, h), interpolation=cv2.INTER_NEAREST) / 1000.0
-        detections = estimator.detect(rgb, K, min_score=0.05)  # boxes in rgb's (the crops' source) pixels
+        t0 = time.perf_counter()
+        raw = estimator.detect(rgb, K, min_score=0.05)  # boxes in rgb's (the crops' source) pixels
+        t1 = time.perf_counter()
+        detections = [estimator.refine_box(rgb, K, d) for d in raw]
+        detect_s["image"].append(t1 - t0)
+        if raw:
+            detect_s["refine"].append((time.perf_counter() - t1) / len(raw))
         instances = [data.instances[k] for k in record.instances]
         n_instances += len(instances)
-        _match_detections(detections, instances, det_scores, det_hits, n_gt, found)
+        tallies["raw"].match(raw, instances)
+        tallies["refined"].match(detections, instances)
         for inst in instances:
             gts.append(GTInstance(record.scene_id, record.im_id, inst.obj_id, inst.R, inst.t_mm,
                                   max(inst.visib_fract, MIN_VISIB_FRACT), record.K_full, record.size_full,
@@ -122,31 +135,57 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
             matched = max(confident, key=lambda d: iou(d.box, inst.box_crop), default=None)
             boxes = {"true_box": (inst.box_crop, 1.0),
                      "detected": (matched.box, matched.score) if matched is not None else None}
-            for variant in POSE_VARIANTS:
-                kind, mode = variant.rsplit("_", 1)
+            for kind in ("true_box", "detected"):
                 if boxes[kind] is None:
-                    refusals[variant]["no-detection"] = refusals[variant].get("no-detection", 0) + 1
+                    for mode in ("rgb", "depth"):
+                        _count(refusals[f"{kind}_{mode}"], "no-detection")
                     continue
                 box, score = boxes[kind]
                 t0 = time.perf_counter()
                 try:
-                    pose = estimator.estimate(rgb, K, inst.obj_id, box,
-                                              depth_work if mode == "depth" else None, score)
+                    poses = estimator.estimate_both(rgb, K, inst.obj_id, box, depth_work, score)
                 except LearnedRefused as exc:
-                    refusals[variant][exc.cause] = refusals[variant].get(exc.cause, 0) + 1
+                    for mode in ("rgb", "depth"):
+                        _count(refusals[f"{kind}_{mode}"], exc.cause)
                     continue
                 times.append(time.perf_counter() - t0)
-                estimates[variant].append(Estimate(record.scene_id, record.im_id, inst.obj_id, pose.score,
-                                                   pose.cam_T_obj[:3, :3], pose.cam_T_obj[:3, 3] * 1000.0))
+                for mode, pose in zip(("rgb", "depth"), poses):
+                    assert pose is not None
+                    estimates[f"{kind}_{mode}"].append(Estimate(record.scene_id, record.im_id, inst.obj_id, pose.score,
+                                                                pose.cam_T_obj[:3, :3], pose.cam_T_obj[:3, 3] * 1000.0))
     renderer = DepthRenderer()
     pose_ar, per_object = {}, {}
     for variant in POSE_VARIANTS:
         scores = evaluate_bop19(gts, estimates[variant], models, renderer=renderer, keep_errors=False)
         pose_ar[variant] = float(scores.ar)
         per_object[variant] = {int(o): float(s.ar) for o, s in scores.per_object.items()}
-    return HeldoutScores(len(images), n_instances, {o: found[o] / n_gt[o] if n_gt[o] else float("nan") for o in obj_ids},
-                         {o: average_precision(det_scores[o], det_hits[o], n_gt[o]) for o in obj_ids},
-                         pose_ar, per_object, refusals, float(np.median(times)) if times else 0.0)
+    refined, raw = tallies["refined"], tallies["raw"]
+    return HeldoutScores(len(images), n_instances, refined.recall(), refined.ap(), pose_ar, per_object, refusals,
+                         float(np.median(times)) if times else 0.0, raw.recall(), raw.ap(),
+                         {f"{k}_median_s": float(np.median(v)) if v else 0.0 for k, v in detect_s.items()})
+
+
+def _count(tally: dict[str, int], cause: str) -> None:
+    tally[cause] = tally.get(cause, 0) + 1
+
+
+class _Tally:
+    """Detections against true instances, per object: scores and hits for AP, hits above the threshold for recall."""
+
+    def __init__(self, obj_ids: list[int]) -> None:
+        self.scores: dict[int, list[float]] = {o: [] for o in obj_ids}
+        self.hits: dict[int, list[bool]] = {o: [] for o in obj_ids}
+        self.n_gt = {o: 0 for o in obj_ids}
+        self.found = {o: 0 for o in obj_ids}
+
+    def match(self, detections: list[Detection], instances: list[Any]) -> None:
+        _match_detections(detections, instances, self.scores, self.hits, self.n_gt, self.found)
+
+    def recall(self) -> dict[int, float]:
+        return {o: self.found[o] / self.n_gt[o] if self.n_gt[o] else float("nan") for o in self.n_gt}
+
+    def ap(self) -> dict[int, float]:
+        return {o: average_precision(self.scores[o], self.hits[o], self.n_gt[o]) for o in self.n_gt}
 
 
 def _match_detections(detections: list[Detection], instances: list[Any], det_scores: dict[int, list[float]],

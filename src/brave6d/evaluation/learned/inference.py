@@ -21,7 +21,7 @@ from brave6d.evaluation.learned.crops import box_crop, crop_to_image, normalise,
 from brave6d.evaluation.learned.data import resize_to_width
 from brave6d.evaluation.learned.model_file import LearnedModel, read_model
 from brave6d.evaluation.learned.networks import DETECTOR_STRIDE
-from brave6d.evaluation.learned.refine import Surface, box_points, icp_refine, sample_surface
+from brave6d.evaluation.learned.refine import ICP_MAX_POINTS, Surface, box_points, icp_refine, sample_surface
 
 Array = NDArray[np.float64]
 
@@ -34,6 +34,8 @@ MIN_CORRESPONDENCES = 6
 #: they are taken as collinear.
 MIN_SPREAD = 0.05
 _MAX_DETECTIONS = 20
+#: A visible mask of fewer cells than this does not refine a detection's box.
+MIN_MASK_CELLS = 3
 
 
 class LearnedRefused(BraveError):
@@ -93,6 +95,8 @@ class LearnedEstimator:
         self.pose.to(self.device).eval()
         self._by_class = {o.class_index: o for o in model.objects.values()}
         self.surfaces: dict[int, Surface] = {}
+        #: depth points ICP uses at most (None: all; what it costs and buys: docs/BENCHMARKS.md)
+        self.icp_max_points: int | None = ICP_MAX_POINTS
 
     @classmethod
     def load(cls, model_dir: Path | str, device: str = "cpu", models_dir: Path | str | None = None) -> LearnedEstimator:
@@ -164,24 +168,50 @@ class LearnedEstimator:
                 out.append(Detection(self._by_class[int(c)].obj_id, box, float(score)))
         return out
 
-    def best_detection(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, min_score: float = 0.05) -> Detection:
-        """The highest-scoring detection of ``obj_id`` (refused naming the cause when there is none)."""
+    def best_detection(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, min_score: float = 0.05,
+                       refine: bool = True) -> Detection:
+        """The highest-scoring detection of ``obj_id`` (refused naming the cause when there is none),
+        its box refined by :meth:`refine_box` unless ``refine`` is False."""
         self._check_object(obj_id)
         found = self.detect(rgb, K, min_score, obj_id)
         if not found:
             raise LearnedRefused("no-detection", f"learned estimator: no detection of object {obj_id} scoring "
                                                  f">= {min_score}")
-        return found[0]
+        return self.refine_box(rgb, K, found[0]) if refine else found[0]
+
+    def refine_box(self, rgb: NDArray[np.uint8], K: Array, detection: Detection) -> Detection:
+        """``detection`` with its box replaced by the extent of the coordinate net's visible mask on
+        the detection's crop (a second stage, as a two-stage detector's box head: the detector's box
+        of a 10-20 px object is a few pixels off, the mask's edges are not). A mask that reaches the
+        crop's border (the object may go on) is looked at once more around the grown box; a mask of
+        fewer than :data:`MIN_MASK_CELLS` cells leaves the box as it was."""
+        box = detection.box
+        for _ in range(2):
+            crop = self._crop_outputs(rgb, K, detection.obj_id, box)
+            ys, xs = np.nonzero(crop.visible)
+            n = crop.visible.shape[-1]
+            if len(xs) < MIN_MASK_CELLS:
+                break
+            cell = crop.side / n  # work pixels per mask cell
+            (x0, y0), (x1, y1) = crop_to_image(np.array([[xs.min(), ys.min()], [xs.max(), ys.max()]], dtype=np.float64),
+                                               crop.centre, crop.side, n)
+            grown = tuple(float(v) / crop.scale for v in (x0 + 0.5 - cell / 2, y0 + 0.5 - cell / 2,
+                                                          x1 + 0.5 + cell / 2, y1 + 0.5 + cell / 2))
+            if not all(math.isfinite(b) for b in grown):
+                break
+            box = grown  # type: ignore[assignment]
+            if xs.min() > 0 and ys.min() > 0 and xs.max() < n - 1 and ys.max() < n - 1:
+                break
+        return Detection(detection.obj_id, box, detection.score)
 
     def _check_object(self, obj_id: int) -> None:
         if int(obj_id) not in self.model.objects:
             raise LearnedRefused("unknown-object", f"learned estimator: object {obj_id} was not in the training "
                                                    f"split (the model knows {', '.join(map(str, self.obj_ids))})")
 
-    def estimate(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, box: tuple[float, float, float, float],
-                 depth_m: NDArray[np.floating] | None = None, score: float = 1.0) -> LearnedPose:
-        """The pose of ``obj_id`` inside ``box`` (``rgb``'s pixels); ``depth_m`` (metres, 0 = none, same
-        size as ``rgb``) scales the translation so the object's points meet the measured depth."""
+    def _crop_outputs(self, rgb: NDArray[np.uint8], K: Array, obj_id: int,
+                      box: tuple[float, float, float, float]) -> _CropOutputs:
+        """The coordinate net on the crop around ``box`` (``rgb``'s pixels), at the crops' source width."""
         import torch
 
         self._check_object(obj_id)
@@ -190,32 +220,66 @@ class LearnedEstimator:
         box_w = tuple(float(b) * s for b in box)
         if not all(math.isfinite(b) for b in box_w) or box_w[2] <= box_w[0] or box_w[3] <= box_w[1]:
             raise LearnedRefused("bad-input", f"learned estimator: box {tuple(box)} is empty or not finite")
-        crop_px = int(self.preset["crop_px"])
-        centre, side = box_crop(box_w)
-        crop = warp_rgb(work, centre, side, crop_px)
+        centre, side = box_crop(box_w)  # type: ignore[arg-type]
+        crop = warp_rgb(work, centre, side, int(self.preset["crop_px"]))
         with torch.no_grad():
             coords, mask = self.pose(torch.from_numpy(normalise(crop)[None]).to(self.device),
                                      torch.tensor([obj.class_index], device=self.device))
-        coords = coords[0].cpu().numpy().astype(np.float64)
         visible = torch.sigmoid(mask[0, 0]).cpu().numpy() >= 0.5
-        out_px = coords.shape[-1]
-        ys, xs = np.nonzero(visible)
-        points_2d = crop_to_image(np.stack([xs, ys], axis=1).astype(np.float64), centre, side, out_px)
-        points_3d = (coords[:, ys, xs].T * obj.radius_mm + obj.centre_mm) / 1000.0
-        R, t, inliers = solve_pnp(points_3d, points_2d, K_work, obj_id)
-        depth_scale, refined, fit = None, False, None
-        if depth_m is not None:
-            t, depth_scale = _depth_scaled(R, t, points_3d[inliers], (points_2d[inliers] + 0.5) / s - 0.5, depth_m)
-        cam_T_obj = np.eye(4)
-        cam_T_obj[:3, :3], cam_T_obj[:3, 3] = R, t
-        surface = self.surfaces.get(int(obj_id))
-        if depth_m is not None and surface is not None and depth_scale is not None:
-            d = surface.diameter_m
-            points = box_points(depth_m, np.asarray(K, dtype=np.float64), box, t[2] - d, t[2] + d)
-            cam_T_obj, refined, fit = icp_refine(cam_T_obj, points, surface)
+        return _CropOutputs(coords[0].cpu().numpy().astype(np.float64), visible, centre, side, s, K_work)
+
+    def estimate(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, box: tuple[float, float, float, float],
+                 depth_m: NDArray[np.floating] | None = None, score: float = 1.0) -> LearnedPose:
+        """The pose of ``obj_id`` inside ``box`` (``rgb``'s pixels); ``depth_m`` (metres, 0 = none, same
+        size as ``rgb``) scales the translation so the object's points meet the measured depth."""
+        return self.estimate_both(rgb, K, obj_id, box, depth_m, score)[1 if depth_m is not None else 0]
+
+    def estimate_both(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, box: tuple[float, float, float, float],
+                      depth_m: NDArray[np.floating] | None = None,
+                      score: float = 1.0) -> tuple[LearnedPose, LearnedPose | None]:
+        """(RGB-only pose, pose refined with ``depth_m`` or None without depth) from one pass of the
+        coordinate net and one PnP: what :meth:`estimate` gives for each, at half the cost of two calls."""
+        obj = self.model.objects[int(obj_id)] if int(obj_id) in self.model.objects else None
+        crop = self._crop_outputs(rgb, K, obj_id, box)
+        assert obj is not None
+        ys, xs = np.nonzero(crop.visible)
+        points_2d = crop_to_image(np.stack([xs, ys], axis=1).astype(np.float64), crop.centre, crop.side,
+                                  crop.visible.shape[-1])
+        points_3d = (crop.coords[:, ys, xs].T * obj.radius_mm + obj.centre_mm) / 1000.0
+        R, t, inliers = solve_pnp(points_3d, points_2d, crop.K_work, obj_id)
         ratio = len(inliers) / max(len(points_3d), 1)
-        return LearnedPose(cam_T_obj, float(np.clip(score * ratio, 0.0, 1.0)), len(inliers), len(points_3d),
-                           depth_scale, refined, fit)
+        pose_score = float(np.clip(score * ratio, 0.0, 1.0))
+        rgb_pose = LearnedPose(_rigid(R, t), pose_score, len(inliers), len(points_3d))
+        if depth_m is None:
+            return rgb_pose, None
+        s = crop.scale
+        t_d, depth_scale = _depth_scaled(R, t, points_3d[inliers], (points_2d[inliers] + 0.5) / s - 0.5, depth_m)
+        cam_T_obj, refined, fit = _rigid(R, t_d), False, None
+        surface = self.surfaces.get(int(obj_id))
+        if surface is not None and depth_scale is not None:
+            d = surface.diameter_m
+            points = box_points(depth_m, np.asarray(K, dtype=np.float64), box, t_d[2] - d, t_d[2] + d)
+            cam_T_obj, refined, fit = icp_refine(cam_T_obj, points, surface, max_points=self.icp_max_points)
+        return rgb_pose, LearnedPose(cam_T_obj, pose_score, len(inliers), len(points_3d), depth_scale, refined, fit)
+
+
+@dataclass(frozen=True)
+class _CropOutputs:
+    """The coordinate net's answer on one crop: coordinates (3, S, S) in [-1, 1], the visible mask
+    (S, S), the crop's centre and side (work pixels), the work image's scale and K."""
+
+    coords: Array
+    visible: NDArray[np.bool_]
+    centre: tuple[float, float]
+    side: float
+    scale: float
+    K_work: Array
+
+
+def _rigid(R: Array, t: Array) -> Array:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
 
 
 def solve_pnp(points_3d: Array, points_2d: Array, K: Array, obj_id: int = 0,

@@ -18,6 +18,9 @@ from numpy.typing import NDArray
 Array = NDArray[np.float64]
 #: Surface points sampled per model for ICP.
 SURFACE_POINTS = 2000
+#: ICP uses at most this many of the box's depth points (evenly spaced in the image's order): a near
+#: object fills thousands of pixels and ICP's time grows with them (docs/BENCHMARKS.md prices it).
+ICP_MAX_POINTS = 600
 _MIN_POINTS = 12
 
 
@@ -56,14 +59,17 @@ def box_points(depth_m: NDArray[np.floating], K: Array, box: tuple[float, float,
     return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
 
 
-def icp_refine(cam_T_obj: Array, points_cam: Array, surface: Surface,
-               iterations: int = 30) -> tuple[Array, bool, float]:
-    """Point-to-plane ICP of ``points_cam`` onto the surface points facing the camera, in two rounds
-    of shrinking reach (a quarter, then a tenth of the diameter); (pose, refined?, fit: the fraction
-    of the depth points within 5 % of the diameter of the posed surface)."""
+def icp_refine(cam_T_obj: Array, points_cam: Array, surface: Surface, iterations: int = 30,
+               max_points: int | None = ICP_MAX_POINTS) -> tuple[Array, bool, float]:
+    """Point-to-plane ICP of ``points_cam`` (at most ``max_points`` of them, evenly spaced; None: all)
+    onto the surface points facing the camera, in two rounds of shrinking reach (a quarter, then a
+    tenth of the diameter); (pose, refined?, fit: the fraction of the depth points within 5 % of the
+    diameter of the posed surface)."""
     import open3d as o3d
     from scipy.spatial import cKDTree
 
+    if max_points is not None and len(points_cam) > max_points:
+        points_cam = points_cam[np.linspace(0, len(points_cam) - 1, max(int(max_points), _MIN_POINTS)).astype(np.int64)]
     if len(points_cam) < _MIN_POINTS:
         return cam_T_obj, False, 0.0
     d = surface.diameter_m

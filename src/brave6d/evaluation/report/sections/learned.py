@@ -72,35 +72,52 @@ def xywh_to_box(bbox: Sequence[float], stride: int) -> tuple[float, float, float
     return box
 
 
+def best_detections(estimator: Any, rgb: Any, K: Any, obj_ids: Sequence[int]) -> dict[int, Any]:
+    """Per object of ``obj_ids``: its best detection in ``rgb``, box refined as the agents' is, or the
+    refusal's cause; one detector pass for all of them."""
+    from brave6d.evaluation.learned import LearnedRefused
+
+    try:
+        found = estimator.detect(rgb, K)
+    except LearnedRefused as exc:
+        return {o: exc.cause for o in obj_ids}
+    out: dict[int, Any] = {}
+    for obj_id in obj_ids:
+        best = next((d for d in found if d.obj_id == obj_id), None)
+        out[obj_id] = estimator.refine_box(rgb, K, best) if best is not None else "no-detection"
+    return out
+
+
 def estimate_target(estimator: Any, rgb: Any, depth_m: Any, K: Any, obj_id: int,
-                    true_box: tuple[float, float, float, float] | None) -> dict[str, tuple[ViewEstimate, str | None]]:
-    """The four :data:`VARIANTS` of one target: each an estimate (``cam_T_obj`` None when refused)
-    and the refusal's cause."""
+                    true_box: tuple[float, float, float, float] | None,
+                    detected: Any) -> dict[str, tuple[ViewEstimate, str | None]]:
+    """The four :data:`VARIANTS` of one target (``detected``: its detection, or why there is none):
+    each an estimate (``cam_T_obj`` None when refused) and the refusal's cause. A box's RGB-only and
+    depth variants share one pass of the pose network (each records that pass's seconds)."""
     import time
 
     from brave6d.evaluation.learned import LearnedRefused
 
-    boxes: dict[str, tuple[tuple[float, float, float, float], float] | str] = {}
-    boxes["true_box"] = (true_box, 1.0) if true_box is not None else "no-box"
-    try:
-        det = estimator.best_detection(rgb, K, obj_id)
-        boxes["detected"] = (det.box, det.score)
-    except LearnedRefused as exc:
-        boxes["detected"] = exc.cause
+    boxes: dict[str, tuple[tuple[float, float, float, float], float] | str] = {
+        "true_box": (true_box, 1.0) if true_box is not None else "no-box",
+        "detected": detected if isinstance(detected, str) else (detected.box, detected.score)}
     out: dict[str, tuple[ViewEstimate, str | None]] = {}
-    for variant in VARIANTS:
-        kind, mode = variant.rsplit("_", 1)
-        given = boxes[kind]
+    for kind, given in boxes.items():
         if isinstance(given, str):
-            out[variant] = (ViewEstimate(None, 0.0, 0.0, "learned"), given)
+            for mode in ("rgb", "depth"):
+                out[f"{kind}_{mode}"] = (ViewEstimate(None, 0.0, 0.0, "learned"), given)
             continue
         t0 = time.perf_counter()
         try:
-            pose = estimator.estimate(rgb, K, obj_id, given[0], depth_m if mode == "depth" else None, given[1])
-            out[variant] = (ViewEstimate(pose.cam_T_obj, pose.score, time.perf_counter() - t0, "learned"), None)
+            rgb_pose, depth_pose = estimator.estimate_both(rgb, K, obj_id, given[0], depth_m, given[1])
         except LearnedRefused as exc:
-            out[variant] = (ViewEstimate(None, 0.0, time.perf_counter() - t0, "learned"), exc.cause)
-    return out
+            for mode in ("rgb", "depth"):
+                out[f"{kind}_{mode}"] = (ViewEstimate(None, 0.0, time.perf_counter() - t0, "learned"), exc.cause)
+            continue
+        seconds = time.perf_counter() - t0
+        for mode, pose in (("rgb", rgb_pose), ("depth", depth_pose if depth_pose is not None else rgb_pose)):
+            out[f"{kind}_{mode}"] = (ViewEstimate(pose.cam_T_obj, pose.score, seconds, "learned"), None)
+    return {v: out[v] for v in VARIANTS}
 
 
 def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
@@ -125,7 +142,7 @@ def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
 
     layout, gts, infos = views.layout, views.gts, views.infos
     key = {**views.key(), "model": file_stamp(model_path), "card": file_stamp(card_path), "sweep": asdict(sweep),
-           "test_depth": "captured"}
+           "test_depth": "captured", "detected_boxes": "refined by the pose network's mask"}
     if (done := store.complete(NAME, key)) is not None:
         return done
     w, h = views.image_size
@@ -153,6 +170,9 @@ def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
             return point
         s, im_id = prepared(), item[0]
         size = (pair.depth_real.shape[1], pair.depth_real.shape[0])
+        sides = (("real", pair.rgb_real, pair.depth_real), ("splat", pair.rgb_splat, pair.depth_splat))
+        known = sorted({g.obj_id for g in gts[im_id]} & set(s["estimator"].obj_ids))
+        found = {side: best_detections(s["estimator"], rgb, pair.K, known) for side, rgb, _ in sides}
         objects = []
         for g, gi in zip(gts[im_id], infos[im_id]):
             if gi.visib_fract < MIN_VISIB_FRACT:
@@ -165,8 +185,10 @@ def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
                 objects.append(row)
                 continue
             box = xywh_to_box(gi.bbox_obj, sweep.stride)
-            for side, rgb, depth in (("real", pair.rgb_real, pair.depth_real), ("splat", pair.rgb_splat, pair.depth_splat)):
-                for variant, (est, cause) in estimate_target(s["estimator"], rgb, depth, pair.K, g.obj_id, box).items():
+            for side, rgb, depth in sides:
+                detected = found[side][g.obj_id]
+                for variant, (est, cause) in estimate_target(s["estimator"], rgb, depth, pair.K, g.obj_id, box,
+                                                             detected).items():
                     score = s["scorer"].score(est, g.obj_id, g.cam_T_model(), pair.K, size, pair.depth_real,
                                               gi.visib_fract)
                     row[f"{side}_{variant}_ar"] = score.ar
