@@ -263,6 +263,31 @@ class LearnedEstimator:
         return rgb_pose, LearnedPose(cam_T_obj, pose_score, len(inliers), len(points_3d), depth_scale, refined, fit)
 
 
+    def refine_views(self, obj_id: int, ref_T_obj: Array,
+                     views: list[tuple[Array, Array, NDArray[np.floating], tuple[float, float, float, float]]]
+                     ) -> tuple[Array, bool, float]:
+        """ICP of ``ref_T_obj`` (a pose in a reference camera's frame) onto the depth points in the
+        boxes of several views at once, each ``(ref_T_cam, K, depth_m, box)``: the sides that one view
+        cannot see pin the rotation down. (pose, refined?, fit) as :func:`icp_refine`; unchanged
+        without the object's surface or with too few points."""
+        self._check_object(obj_id)
+        surface = self.surfaces.get(int(obj_id))
+        if surface is None:
+            return np.asarray(ref_T_obj, dtype=np.float64), False, 0.0
+        d = surface.diameter_m
+        clouds, eyes = [], []
+        for ref_T_cam, K, depth_m, box in views:
+            ref_T_cam = np.asarray(ref_T_cam, dtype=np.float64)
+            z = float((np.linalg.inv(ref_T_cam) @ ref_T_obj)[2, 3])
+            points = box_points(depth_m, np.asarray(K, dtype=np.float64), box, z - d, z + d)
+            if self.icp_max_points is not None and len(points) > self.icp_max_points:
+                points = points[np.linspace(0, len(points) - 1, self.icp_max_points).astype(np.int64)]
+            clouds.append(points @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3])
+            eyes.append(ref_T_cam[:3, 3])
+        return icp_refine(np.asarray(ref_T_obj, dtype=np.float64), np.concatenate(clouds) if clouds else np.zeros((0, 3)),
+                          surface, max_points=None, eyes=np.asarray(eyes))
+
+
 @dataclass(frozen=True)
 class _CropOutputs:
     """The coordinate net's answer on one crop: coordinates (3, S, S) in [-1, 1], the visible mask

@@ -60,11 +60,13 @@ def box_points(depth_m: NDArray[np.floating], K: Array, box: tuple[float, float,
 
 
 def icp_refine(cam_T_obj: Array, points_cam: Array, surface: Surface, iterations: int = 30,
-               max_points: int | None = ICP_MAX_POINTS) -> tuple[Array, bool, float]:
+               max_points: int | None = ICP_MAX_POINTS, eyes: Array | None = None) -> tuple[Array, bool, float]:
     """Point-to-plane ICP of ``points_cam`` (at most ``max_points`` of them, evenly spaced; None: all)
     onto the surface points facing the camera, in two rounds of shrinking reach (a quarter, then a
     tenth of the diameter); (pose, refined?, fit: the fraction of the depth points within 5 % of the
-    diameter of the posed surface)."""
+    diameter of the posed surface). ``eyes``: the centres (points' frame, (M, 3)) of the cameras the
+    points were seen from when several were (a surface point facing any of them is a target);
+    default the origin alone."""
     import open3d as o3d
     from scipy.spatial import cKDTree
 
@@ -72,6 +74,7 @@ def icp_refine(cam_T_obj: Array, points_cam: Array, surface: Surface, iterations
         points_cam = points_cam[np.linspace(0, len(points_cam) - 1, max(int(max_points), _MIN_POINTS)).astype(np.int64)]
     if len(points_cam) < _MIN_POINTS:
         return cam_T_obj, False, 0.0
+    eyes = np.zeros((1, 3)) if eyes is None else np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
     d = surface.diameter_m
     reg = o3d.pipelines.registration
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_cam))
@@ -79,7 +82,8 @@ def icp_refine(cam_T_obj: Array, points_cam: Array, surface: Surface, iterations
     before = _fitness(T, points_cam, surface, 0.05 * d, cKDTree)
     for reach in (0.25 * d, 0.1 * d):
         R, t = T[:3, :3], T[:3, 3]
-        facing = ((surface.points @ R.T + t) * (surface.normals @ R.T)).sum(axis=1) < 0  # n . (camera - p) > 0
+        posed, normals = surface.points @ R.T + t, surface.normals @ R.T
+        facing = (np.einsum("mk,nk->nm", eyes, normals) - (posed * normals).sum(axis=1)[:, None] > 0).any(axis=1)
         if facing.sum() < _MIN_POINTS:
             return cam_T_obj, False, before
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(surface.points[facing]))
