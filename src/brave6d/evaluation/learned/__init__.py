@@ -8,7 +8,8 @@ Public API (imported lazily: ``import brave6d.evaluation.learned`` loads no torc
   the card: the demo's stage and a dataset run);
 - the trained model: ``read_model``, ``LearnedModel`` (``model.pt``), ``write_card`` /
   ``read_card`` (``card.json``, ``MODEL_CARD.md``);
-- inference: ``LearnedEstimator`` (``detect``, ``best_detection``, ``estimate``), ``Detection``,
+- inference: ``LearnedEstimator`` (``detect``, ``best_detection``, ``refine_box``, ``estimate``,
+  ``estimate_both``, ``refine_views``), ``Detection``,
   ``LearnedPose``, ``LearnedRefused`` (``cause`` in ``REFUSAL_CAUSES``), ``solve_pnp``;
 - held-out figures: ``score_heldout``, ``HeldoutScores``; the data: ``load_training_data``,
   ``TrainingData``.

@@ -6,7 +6,9 @@ weight-free baselines.
   or ``active=True`` (``learned-active``: moves until its detection is confident and large
   enough, the paper's convergence criterion, then estimates); ``use_depth`` refines the RGB
   pose's translation with the served depth (the ``-depth`` variants, reported separately);
-- :class:`LearnedAgentOptions`: the thresholds and moves.
+- :class:`LearnedAgentOptions`: the thresholds and moves;
+- ``fusion``: what several views give that one cannot (the object's position triangulated from
+  the views' rays, for the RGB-only active agent).
 
 The registry (:data:`brave6d.evaluation.agents.POLICIES`) builds them from a trained model folder
 given in :class:`brave6d.evaluation.agents.AgentSetup`.
