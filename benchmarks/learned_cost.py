@@ -33,7 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
 
-    from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, score_heldout, train_learned
+    from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, score_heldout, train_learned, \
+        training_seconds
     from brave6d.synth import SynthOptions, synthesize
 
     points = [tuple(int(x) for x in p.split(":")) for p in args.points.split(",")]
@@ -55,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
         estimator = LearnedEstimator.load(out, models_dir=args.models)
         held = score_heldout(estimator, result.data, args.models, show_progress=False)
         row = {"images": images, "steps": steps, "synth_s": images / rate if rate else None,
-               "train_s": sum(v for k, v in result.seconds.items() if k in ("detector", "pose")) if result.trained
+               "train_s": training_seconds(result.seconds) if result.trained
                else None, "wall_s": wall, "heldout_images": held.images,
                "heldout_ar": held.pose_ar, "recall_min": min(held.recall.values()),
                "recall": {str(k): v for k, v in held.recall.items()}}

@@ -19,7 +19,7 @@ from brave6d.synth import SynthOptions, synthesize
 from learned_helpers import DEMO_SPEC, untrained_model, write_models
 
 pytestmark = pytest.mark.slow
-PRESET = get_learn_preset("tiny").with_overrides(detector_steps=160, pose_steps=160, checkpoint_every=40)
+PRESET = get_learn_preset("tiny").with_overrides(detector_steps=240, pose_steps=240, checkpoint_every=40)
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +56,7 @@ def test_training_learns_what_an_untrained_model_cannot(split: tuple[Path, Path]
 def test_one_pass_for_both_variants_gives_what_two_estimates_give(split: tuple[Path, Path], trained: Path) -> None:
     from brave6d.evaluation.learned import LearnedRefused
 
-    estimator = LearnedEstimator.load(trained, models_dir=split[1])
+    estimator = LearnedEstimator.load(trained)  # no surfaces: no ICP (on a flat depth its rotation is unconstrained)
     data = load_training_data(split[0], split[1], PRESET.work_width, PRESET.heldout_every, show_progress=False)
     solved = 0
     for k in data.instances_of(False)[:8]:
@@ -71,8 +71,8 @@ def test_one_pass_for_both_variants_gives_what_two_estimates_give(split: tuple[P
         assert depth_pose is not None
         one = estimator.estimate(record.rgb_crop, record.K_crop, inst.obj_id, inst.box_crop)
         two = estimator.estimate(record.rgb_crop, record.K_crop, inst.obj_id, inst.box_crop, depth)
-        np.testing.assert_array_equal(rgb_pose.cam_T_obj, one.cam_T_obj)
-        np.testing.assert_array_equal(depth_pose.cam_T_obj, two.cam_T_obj)
+        np.testing.assert_allclose(rgb_pose.cam_T_obj, one.cam_T_obj, atol=1e-9)  # OpenCV threads: 1e-16
+        np.testing.assert_allclose(depth_pose.cam_T_obj, two.cam_T_obj, atol=1e-9)
         assert one.depth_scale is None and not one.icp
     assert solved >= 3
 
@@ -80,7 +80,7 @@ def test_one_pass_for_both_variants_gives_what_two_estimates_give(split: tuple[P
 def test_the_card_names_the_split_the_steps_and_the_heldout_figures(split: tuple[Path, Path], trained: Path) -> None:
     card = read_card(trained)
     assert card["images"] == 30 and card["heldout_images"] == 3 and card["trained_on_images"] == 27
-    assert card["objects"] == [1, 2, 3, 4] and card["preset"]["detector_steps"] == 160
+    assert card["objects"] == [1, 2, 3, 4] and card["preset"]["detector_steps"] == 240
     assert len(card["train_pbr_sha256"]) == 64 and card["device"] == "cpu" and card["train_seconds"] > 0
     held = card["heldout"]
     assert held["images"] == 3 and set(held["pose_ar"]) == {"true_box_rgb", "true_box_depth", "detected_rgb",
@@ -93,10 +93,13 @@ def test_the_card_names_the_split_the_steps_and_the_heldout_figures(split: tuple
 def test_a_stopped_run_resumes_to_the_same_weights(split: tuple[Path, Path], tmp_path: Path) -> None:
     preset = get_learn_preset("tiny").with_overrides(detector_steps=30, pose_steps=30, checkpoint_every=10)
     whole = train_learned(split[0], split[1], tmp_path / "whole", preset, "cpu", show_progress=False).model
-    for stop in (25, 45):  # inside the detector's phase, then inside the coordinate net's
+    for stop in (25, 45):  # both phases train at once (2 threads): each is stopped part-way
         out = tmp_path / f"stopped{stop}"
         first = train_learned(split[0], split[1], out, preset, "cpu", show_progress=False, stop_after_steps=stop)
         assert first.model is None and (out / "checkpoint.pt").is_file() and not (out / "model.pt").exists()
+        steps = {k: v["step"] for k, v in torch.load(out / "checkpoint.pt", weights_only=True)["phases"].items()}
+        if torch.get_num_threads() >= 2:  # at once, not one after the other
+            assert steps["detector"] > 0 and steps["pose"] > 0 and steps["detector"] < 30, steps
         resumed = train_learned(split[0], split[1], out, preset, "cpu", resume=True, show_progress=False).model
         assert resumed is not None and not (out / "checkpoint.pt").exists()
         for part in ("detector_state", "pose_state"):

@@ -59,10 +59,11 @@ def progress(
     )
 
 
-def progress_bar(total: int, desc: str = "", unit: str = "it", initial: int = 0) -> tqdm:
-    """A manual progress bar (call ``.update(n)``, ``.set_postfix(...)``, ``.close()``)."""
+def progress_bar(total: int, desc: str = "", unit: str = "it", initial: int = 0, position: int | None = None) -> tqdm:
+    """A manual progress bar (call ``.update(n)``, ``.set_postfix(...)``, ``.close()``); ``position``:
+    its line when several run at once."""
     interactive = sys.stderr.isatty()
-    return tqdm(total=total, desc=desc, unit=unit, initial=initial, dynamic_ncols=True,
+    return tqdm(total=total, desc=desc, unit=unit, initial=initial, dynamic_ncols=True, position=position,
                 mininterval=0.2 if interactive else 5.0, file=sys.stderr)
 
 

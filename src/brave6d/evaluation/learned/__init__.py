@@ -7,7 +7,7 @@ Public API (imported lazily: ``import brave6d.evaluation.learned`` loads no torc
   ``get_learn_preset``, ``PRESETS``; ``learn_and_card`` (train or reuse, score the held-out images, write
   the card: the demo's stage and a dataset run);
 - the trained model: ``read_model``, ``LearnedModel`` (``model.pt``), ``write_card`` /
-  ``read_card`` (``card.json``, ``MODEL_CARD.md``);
+  ``read_card`` (``card.json``, ``MODEL_CARD.md``), ``training_seconds`` (a run's wall-clock time);
 - inference: ``LearnedEstimator`` (``detect``, ``best_detection``, ``refine_box``, ``estimate``,
   ``estimate_both``, ``refine_views``), ``Detection``,
   ``LearnedPose``, ``LearnedRefused`` (``cause`` in ``REFUSAL_CAUSES``), ``solve_pnp``;
@@ -25,7 +25,7 @@ _LAZY = {
     "train_learned": ".training", "LearnResult": ".training", "learn_and_card": ".pipeline",
     "LearnPreset": ".presets", "get_learn_preset": ".presets", "PRESETS": ".presets",
     "read_model": ".model_file", "LearnedModel": ".model_file",
-    "write_card": ".card", "read_card": ".card",
+    "write_card": ".card", "read_card": ".card", "training_seconds": ".card",
     "LearnedEstimator": ".inference", "Detection": ".inference", "LearnedPose": ".inference",
     "LearnedRefused": ".inference", "REFUSAL_CAUSES": ".inference", "solve_pnp": ".inference",
     "score_heldout": ".heldout", "HeldoutScores": ".heldout",

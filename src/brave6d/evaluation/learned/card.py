@@ -37,6 +37,14 @@ def read_card(model_dir: Path | str) -> dict[str, Any]:
     return card
 
 
+def training_seconds(seconds: dict[str, float]) -> float:
+    """Wall-clock seconds of training (the phases may run at once): ``training`` when recorded, else
+    the phases' sum."""
+    if "training" in seconds:
+        return float(seconds["training"])
+    return float(sum(v for k, v in seconds.items() if k in ("detector", "pose")))
+
+
 def card_fields(train_pbr: Path, digest: str, images: int, heldout_images: int, objects: list[int], preset: dict[str, Any],
                 device: str, seconds: dict[str, float], losses: dict[str, float], model_sha256: str,
                 heldout: dict[str, Any] | None) -> dict[str, Any]:
@@ -45,7 +53,7 @@ def card_fields(train_pbr: Path, digest: str, images: int, heldout_images: int, 
             "heldout_images": heldout_images, "trained_on_images": images - heldout_images,
             "objects": objects, "preset": preset, "device": device, "machine": platform.machine(),
             "seconds": {k: round(v, 2) for k, v in seconds.items()},
-            "train_seconds": round(sum(v for k, v in seconds.items() if k in ("detector", "pose")), 2),
+            "train_seconds": round(training_seconds(seconds), 2),
             "final_loss": losses, "model_sha256": model_sha256, "heldout": heldout}
 
 

@@ -1,20 +1,28 @@
 """``brave6d learn train``: train the detector, then the coordinate net, on a train_pbr split.
 
-Seeded and resumable: the NumPy generator that draws every batch, torch's generator, the
-networks and their optimisers are checkpointed every ``checkpoint_every`` steps
-(``checkpoint.pt``, written atomically); ``resume=True`` continues from there and ends with the
-same weights as an uninterrupted run (CPU, same machine and thread count). A finished model whose
-inputs (train_pbr digest, models, preset, device kind) are unchanged is not trained again.
-A non-finite loss stops the run naming the network and the step; the last checkpoint stays.
+The two networks are independent, so on a CPU with two or more threads they train at once, each
+phase in its own thread on half the threads (small convolutions do not keep two threads busy:
+1.25x the throughput of one phase after the other on the 2-core box, docs/BENCHMARKS.md); on a GPU
+one after the other.
+
+Seeded and resumable: each phase has its own NumPy generator (drawing its batches), network and
+optimiser; each phase's snapshot is taken every ``checkpoint_every`` of its steps and both go into
+``checkpoint.pt`` (written atomically); ``resume=True`` continues each phase from its snapshot and
+ends with the same weights as an uninterrupted run (CPU, same machine and thread count). A finished
+model whose inputs (train_pbr digest, models, preset, device kind) are unchanged is not trained
+again. A non-finite loss stops the run naming the network and the step; the last checkpoint stays.
 """
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import logging
 import math
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,7 +39,8 @@ log = logging.getLogger(__name__)
 _WARMUP = 50
 #: Raised whenever a change to the training (targets, augmentation, losses, networks) gives other
 #: weights for the same inputs, so that a model trained by older code is not reused as current.
-TRAINING_REVISION = 2
+TRAINING_REVISION = 3
+PHASES = ("detector", "pose")
 
 
 @dataclass(frozen=True)
@@ -140,7 +149,8 @@ def learning_rate(step: int, steps: int, base: float) -> float:
 
 
 class _Trainer:
-    """Both phases with one NumPy generator; checkpoint and resume."""
+    """Both phases, each with its own generator, network and optimiser; at once on a CPU (module
+    docstring); checkpoint and resume per phase."""
 
     def __init__(self, data: TrainingData, preset: LearnPreset, device: Any, out: Path, key: str,
                  show_progress: bool, stop_after_steps: int | None = None) -> None:
@@ -151,102 +161,164 @@ class _Trainer:
         self.data, self.preset, self.device, self.out, self.key = data, preset, device, out, key
         self.show_progress = show_progress
         classes = len(data.objects)
-        self.detector = Detector(classes, preset.detector_width).to(device)
-        self.pose = CoordinateNet(classes, preset.pose_width).to(device)
-        self.opt_det = torch.optim.AdamW(self.detector.parameters(), lr=preset.detector_lr, weight_decay=1e-4)
-        self.opt_pose = torch.optim.AdamW(self.pose.parameters(), lr=preset.pose_lr, weight_decay=1e-4)
-        self.rng = np.random.default_rng(preset.seed)
-        self.phase, self.step = "detector", 0
-        self.seconds: dict[str, float] = {"detector": 0.0, "pose": 0.0}
+        self.nets = {"detector": Detector(classes, preset.detector_width).to(device),
+                     "pose": CoordinateNet(classes, preset.pose_width).to(device)}
+        self.opts = {"detector": torch.optim.AdamW(self.nets["detector"].parameters(), lr=preset.detector_lr,
+                                                   weight_decay=1e-4),
+                     "pose": torch.optim.AdamW(self.nets["pose"].parameters(), lr=preset.pose_lr, weight_decay=1e-4)}
+        seeds = np.random.SeedSequence(preset.seed).spawn(len(PHASES))
+        self.rngs = {phase: np.random.default_rng(seed) for phase, seed in zip(PHASES, seeds)}
+        self.steps = {phase: 0 for phase in PHASES}
+        self.seconds: dict[str, float] = {phase: 0.0 for phase in PHASES}
         self.losses: dict[str, float] = {}
         self.budget = stop_after_steps
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._snapshots: dict[str, dict[str, Any]] = {}
+
+    @property
+    def detector(self) -> Any:
+        return self.nets["detector"]
+
+    @property
+    def pose(self) -> Any:
+        return self.nets["pose"]
 
     def run(self, state: dict[str, Any] | None) -> bool:
         """Train what is left; False when the step budget stopped it first."""
+        import torch
+
         if state is not None:
             self._load(state)
-        train_images = self.data.split(False)
-        train_instances = self.data.instances_of(False)
-        if self.phase == "detector":
-            if not self._phase("detector", self.preset.detector_steps, train_images):
-                return False
-            self.phase, self.step = "pose", 0
-        return self._phase("pose", self.preset.pose_steps, train_instances)
+        pools = {"detector": self.data.split(False), "pose": self.data.instances_of(False)}
+        totals = {"detector": self.preset.detector_steps, "pose": self.preset.pose_steps}
+        left = [phase for phase in PHASES if self.steps[phase] < totals[phase]]
+        for phase in PHASES:  # a checkpoint written while the other phase runs holds its last consistent state
+            if phase not in self._snapshots:
+                self._snapshot(phase)
+        t0 = time.perf_counter()
+        threads = torch.get_num_threads()
+        if self.device.type == "cpu" and threads >= 2 and len(left) == 2:
+            torch.set_num_threads(max(1, threads // 2))  # process-wide: each phase's ops on half the threads
+            try:
+                with ThreadPoolExecutor(max_workers=2, thread_name_prefix="learn") as pool:
+                    futures = [pool.submit(self._phase, phase, totals[phase], pools[phase], position)
+                               for position, phase in enumerate(left)]
+                    done = [f.result() for f in futures]
+            finally:
+                torch.set_num_threads(threads)
+        else:
+            done = []
+            for phase in left:
+                done.append(self._phase(phase, totals[phase], pools[phase], None))
+                if not done[-1]:
+                    break
+        self.seconds["training"] = self.seconds.get("training", 0.0) + time.perf_counter() - t0
+        return all(done) and all(self.steps[p] >= totals[p] for p in PHASES)
 
-    def _phase(self, phase: str, steps: int, pool: list[int]) -> bool:
+    def _take_step(self) -> bool:
+        """Whether the step budget (shared by the phases) allows one more step."""
+        with self._lock:
+            if self._stop.is_set():
+                return False
+            if self.budget is None:
+                return True
+            if self.budget <= 0:
+                return False
+            self.budget -= 1
+            return True
+
+    def _phase(self, phase: str, steps: int, pool: list[int], position: int | None) -> bool:
         import torch
 
         from brave6d.core.progress import progress_bar
         from brave6d.evaluation.learned.losses import detector_loss, pose_loss
         from brave6d.evaluation.learned.targets import detector_batch, pose_batch
 
-        net, opt = (self.detector, self.opt_det) if phase == "detector" else (self.pose, self.opt_pose)
+        net, opt, rng = self.nets[phase], self.opts[phase], self.rngs[phase]
         base_lr = self.preset.detector_lr if phase == "detector" else self.preset.pose_lr
         net.train()
-        bar = progress_bar(steps, desc=f"learn: {phase}", unit="step", initial=self.step) if self.show_progress else None
+        bar = progress_bar(steps, desc=f"learn: {phase}", unit="step", initial=self.steps[phase],
+                           position=position) if self.show_progress else None
         recent: list[float] = []
         start = time.perf_counter()
-        while self.step < steps:
-            if self.budget is not None:
-                if self.budget <= 0:
-                    break
-                self.budget -= 1
-            for group in opt.param_groups:
-                group["lr"] = learning_rate(self.step, steps, base_lr)
-            if phase == "detector":
-                batch = detector_batch(self.data, pool, self.rng, self.preset.detector_batch, self.preset.detector_patch)
-                t = {k: torch.from_numpy(v).to(self.device) for k, v in batch.items()}
-                loss = detector_loss(*net(t["images"]), t)
-            else:
-                batch = pose_batch(self.data, pool, self.rng, self.preset.pose_batch, self.preset.crop_px)
-                t = {k: torch.from_numpy(v).to(self.device) for k, v in batch.items()}
-                loss = pose_loss(*net(t["crops"], t["classes"]), t)
-            value = float(loss.detach())
-            if not math.isfinite(value):
-                raise BraveError(f"learn: the {phase} loss is {value} at step {self.step}; training stopped "
-                                 f"(the last checkpoint is {self.out / CHECKPOINT}; lower the learning rate "
-                                 f"'{phase}_lr' of preset {self.preset.name!r})")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            self.step += 1
-            recent = (recent + [value])[-50:]
+        try:
+            while self.steps[phase] < steps and self._take_step():
+                step = self.steps[phase]
+                for group in opt.param_groups:
+                    group["lr"] = learning_rate(step, steps, base_lr)
+                if phase == "detector":
+                    batch = detector_batch(self.data, pool, rng, self.preset.detector_batch, self.preset.detector_patch)
+                    t = {k: torch.from_numpy(v).to(self.device) for k, v in batch.items()}
+                    loss = detector_loss(*net(t["images"]), t)
+                else:
+                    batch = pose_batch(self.data, pool, rng, self.preset.pose_batch, self.preset.crop_px)
+                    t = {k: torch.from_numpy(v).to(self.device) for k, v in batch.items()}
+                    loss = pose_loss(*net(t["crops"], t["classes"]), t)
+                value = float(loss.detach())
+                if not math.isfinite(value):
+                    self._stop.set()
+                    raise BraveError(f"learn: the {phase} loss is {value} at step {step}; training stopped "
+                                     f"(the last checkpoint is {self.out / CHECKPOINT}; lower the learning rate "
+                                     f"'{phase}_lr' of preset {self.preset.name!r})")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                self.steps[phase] += 1
+                recent = (recent + [value])[-50:]
+                if bar is not None:
+                    bar.update(1)
+                    if self.steps[phase] % 10 == 0:
+                        bar.set_postfix(loss=f"{np.mean(recent):.3f}")
+                if self.steps[phase] % self.preset.checkpoint_every == 0 and self.steps[phase] < steps:
+                    self.seconds[phase] += time.perf_counter() - start
+                    start = time.perf_counter()
+                    self.losses[phase] = float(np.mean(recent))
+                    self._snapshot(phase)
+                    self.save()
+        finally:
             if bar is not None:
-                bar.update(1)
-                if self.step % 10 == 0:
-                    bar.set_postfix(loss=f"{np.mean(recent):.3f}")
-            if self.step % self.preset.checkpoint_every == 0 and self.step < steps:
-                self.seconds[phase] += time.perf_counter() - start
-                start = time.perf_counter()
-                self.save()
-        if bar is not None:
-            bar.close()
+                bar.close()
         self.seconds[phase] += time.perf_counter() - start
-        self.losses[phase] = float(np.mean(recent)) if recent else float("nan")
+        if recent:
+            self.losses[phase] = float(np.mean(recent))
+        self.losses.setdefault(phase, float("nan"))
+        self._snapshot(phase)
         net.eval()
-        return self.step >= steps
+        return self.steps[phase] >= steps
+
+    def _snapshot(self, phase: str) -> None:
+        """This phase's state as of now (its own thread takes it between steps, so it is consistent)."""
+        snap = {"step": self.steps[phase], "net": _cpu_state(self.nets[phase]),
+                "opt": copy.deepcopy(self.opts[phase].state_dict()),
+                "rng": json.dumps(self.rngs[phase].bit_generator.state), "seconds": self.seconds[phase],
+                "loss": self.losses.get(phase, float("nan"))}
+        with self._lock:
+            self._snapshots[phase] = snap
 
     def save(self) -> None:
-        """Write the checkpoint (atomically)."""
-        import torch
-
-        save_torch(self.out / CHECKPOINT, {
-            "format": FORMAT, "inputs_key": self.key, "phase": self.phase, "step": self.step,
-            "detector": _cpu_state(self.detector), "pose": _cpu_state(self.pose),
-            "opt_det": self.opt_det.state_dict(), "opt_pose": self.opt_pose.state_dict(),
-            "rng": json.dumps(self.rng.bit_generator.state), "torch_rng": torch.get_rng_state(),
-            "seconds": dict(self.seconds), "losses": dict(self.losses)})
+        """Write the checkpoint (atomically): each phase's latest snapshot (its start when it has none yet)."""
+        for phase in PHASES:
+            if phase not in self._snapshots:
+                self._snapshot(phase)
+        with self._lock:
+            save_torch(self.out / CHECKPOINT, {"format": FORMAT, "inputs_key": self.key,
+                                               "phases": dict(self._snapshots),
+                                               "training_seconds": self.seconds.get("training", 0.0)})
 
     def _load(self, state: dict[str, Any]) -> None:
-        import torch
-
-        self.detector.load_state_dict(state["detector"])
-        self.pose.load_state_dict(state["pose"])
-        self.opt_det.load_state_dict(state["opt_det"])
-        self.opt_pose.load_state_dict(state["opt_pose"])
-        self.rng.bit_generator.state = json.loads(state["rng"])
-        torch.set_rng_state(state["torch_rng"])
-        self.phase, self.step = str(state["phase"]), int(state["step"])
-        self.seconds = {k: float(v) for k, v in state["seconds"].items()}
-        self.losses = {k: float(v) for k, v in state["losses"].items()}
-        log.info("%s: resuming the %s phase at step %d", self.out, self.phase, self.step)
+        phases = state.get("phases")
+        if not isinstance(phases, dict) or set(phases) != set(PHASES):
+            raise BraveError(f"{self.out / CHECKPOINT}: not a checkpoint of this training code (no per-phase "
+                             "snapshots); train without --resume to start again")
+        for phase, snap in phases.items():
+            self.nets[phase].load_state_dict(snap["net"])
+            self.opts[phase].load_state_dict(snap["opt"])
+            self.rngs[phase].bit_generator.state = json.loads(snap["rng"])
+            self.steps[phase] = int(snap["step"])
+            self.seconds[phase] = float(snap["seconds"])
+            if math.isfinite(float(snap["loss"])):
+                self.losses[phase] = float(snap["loss"])
+            self._snapshots[phase] = snap
+        self.seconds["training"] = float(state.get("training_seconds", 0.0))
+        log.info("%s: resuming at detector step %d, pose step %d", self.out, self.steps["detector"], self.steps["pose"])
