@@ -229,6 +229,7 @@ def train_learned_check(bundle: Path, out: Path, device: str, steps: int) -> dic
         "heldout_images": len(data.split(True)), "losses": result.losses,
         "seconds": {k: result.seconds[k] for k in ("detector", "pose")},
         "steps_per_s": {k: steps / max(result.seconds[k], 1e-9) for k in ("detector", "pose")},
+        "wall_s": result.seconds.get("training"),  # a CPU trains the two networks at once: less than their sum
         "model": f"{model_dir.name}/model.pt"}
     if importlib.util.find_spec("open3d") is None:
         report["heldout_skipped"] = ("open3d is not installed here (VSD and the depth refinement need it); score "
