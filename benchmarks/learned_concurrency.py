@@ -26,35 +26,25 @@ def _loops(data: Any, steps: int) -> dict[str, Any]:
     import torch
 
     from brave6d.evaluation.learned import get_learn_preset
-    from brave6d.evaluation.learned.losses import detector_loss, pose_loss
     from brave6d.evaluation.learned.networks import CoordinateNet, Detector
-    from brave6d.evaluation.learned.targets import detector_batch, pose_batch
+    from brave6d.evaluation.learned.training import phase_loss
 
     p = get_learn_preset("fast")
     classes = len(data.objects)
+    nets = {"detector": lambda: Detector(classes, p.detector_width), "pose": lambda: CoordinateNet(classes, p.pose_width)}
+    pools = {"detector": data.split(False), "pose": data.instances_of(False)}
+    rates = {"detector": p.detector_lr, "pose": p.pose_lr}
 
-    def detector() -> None:
-        net, rng = Detector(classes, p.detector_width), np.random.default_rng(0)
-        opt, pool = torch.optim.AdamW(net.parameters(), p.detector_lr), data.split(False)
+    def loop(phase: str, seed: int) -> None:
+        net, rng = nets[phase](), np.random.default_rng(seed)
+        opt = torch.optim.AdamW(net.parameters(), rates[phase])
         for _ in range(steps):
-            t = {k: torch.from_numpy(v) for k, v in detector_batch(data, pool, rng, p.detector_batch,
-                                                                   p.detector_patch).items()}
-            loss = detector_loss(*net(t["images"]), t)
+            loss = phase_loss(phase, net, data, pools[phase], rng, p, "cpu")
             opt.zero_grad()
             loss.backward()
             opt.step()
 
-    def pose() -> None:
-        net, rng = CoordinateNet(classes, p.pose_width), np.random.default_rng(1)
-        opt, pool = torch.optim.AdamW(net.parameters(), p.pose_lr), data.instances_of(False)
-        for _ in range(steps):
-            t = {k: torch.from_numpy(v) for k, v in pose_batch(data, pool, rng, p.pose_batch, p.crop_px).items()}
-            loss = pose_loss(*net(t["crops"], t["classes"]), t)
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-
-    return {"detector": detector, "pose": pose}
+    return {"detector": lambda: loop("detector", 0), "pose": lambda: loop("pose", 1)}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -21,7 +21,8 @@ from brave6d.evaluation.learned.crops import box_crop, crop_to_image, normalise,
 from brave6d.evaluation.learned.data import resize_to_width
 from brave6d.evaluation.learned.model_file import LearnedModel, read_model
 from brave6d.evaluation.learned.networks import DETECTOR_STRIDE
-from brave6d.evaluation.learned.refine import ICP_MAX_POINTS, Surface, box_points, icp_refine, sample_surface
+from brave6d.evaluation.learned.refine import ICP_MAX_POINTS, Surface, box_points, thinned, icp_refine, \
+    sample_surface
 
 Array = NDArray[np.float64]
 
@@ -239,9 +240,8 @@ class LearnedEstimator:
                       score: float = 1.0) -> tuple[LearnedPose, LearnedPose | None]:
         """(RGB-only pose, pose refined with ``depth_m`` or None without depth) from one pass of the
         coordinate net and one PnP: what :meth:`estimate` gives for each, at half the cost of two calls."""
-        obj = self.model.objects[int(obj_id)] if int(obj_id) in self.model.objects else None
-        crop = self._crop_outputs(rgb, K, obj_id, box)
-        assert obj is not None
+        crop = self._crop_outputs(rgb, K, obj_id, box)  # refuses an object the model does not know
+        obj = self.model.objects[int(obj_id)]
         ys, xs = np.nonzero(crop.visible)
         points_2d = crop_to_image(np.stack([xs, ys], axis=1).astype(np.float64), crop.centre, crop.side,
                                   crop.visible.shape[-1])
@@ -262,7 +262,6 @@ class LearnedEstimator:
             cam_T_obj, refined, fit = icp_refine(cam_T_obj, points, surface, max_points=self.icp_max_points)
         return rgb_pose, LearnedPose(cam_T_obj, pose_score, len(inliers), len(points_3d), depth_scale, refined, fit)
 
-
     def refine_views(self, obj_id: int, ref_T_obj: Array,
                      views: list[tuple[Array, Array, NDArray[np.floating], tuple[float, float, float, float]]]
                      ) -> tuple[Array, bool, float]:
@@ -279,9 +278,8 @@ class LearnedEstimator:
         for ref_T_cam, K, depth_m, box in views:
             ref_T_cam = np.asarray(ref_T_cam, dtype=np.float64)
             z = float((np.linalg.inv(ref_T_cam) @ ref_T_obj)[2, 3])
-            points = box_points(depth_m, np.asarray(K, dtype=np.float64), box, z - d, z + d)
-            if self.icp_max_points is not None and len(points) > self.icp_max_points:
-                points = points[np.linspace(0, len(points) - 1, self.icp_max_points).astype(np.int64)]
+            points = thinned(box_points(depth_m, np.asarray(K, dtype=np.float64), box, z - d, z + d),
+                                   self.icp_max_points)
             clouds.append(points @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3])
             eyes.append(ref_T_cam[:3, 3])
         return icp_refine(np.asarray(ref_T_obj, dtype=np.float64), np.concatenate(clouds) if clouds else np.zeros((0, 3)),

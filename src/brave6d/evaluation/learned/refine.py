@@ -59,6 +59,13 @@ def box_points(depth_m: NDArray[np.floating], K: Array, box: tuple[float, float,
     return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
 
 
+def thinned(points: Array, at_most: int | None) -> Array:
+    """``points`` thinned to ``at_most`` of them, evenly spaced in their order (all when None or fewer)."""
+    if at_most is None or len(points) <= at_most:
+        return points
+    return points[np.linspace(0, len(points) - 1, int(at_most)).astype(np.int64)]
+
+
 def icp_refine(cam_T_obj: Array, points_cam: Array, surface: Surface, iterations: int = 30,
                max_points: int | None = ICP_MAX_POINTS, eyes: Array | None = None) -> tuple[Array, bool, float]:
     """Point-to-plane ICP of ``points_cam`` (at most ``max_points`` of them, evenly spaced; None: all)
@@ -70,8 +77,7 @@ def icp_refine(cam_T_obj: Array, points_cam: Array, surface: Surface, iterations
     import open3d as o3d
     from scipy.spatial import cKDTree
 
-    if max_points is not None and len(points_cam) > max_points:
-        points_cam = points_cam[np.linspace(0, len(points_cam) - 1, max(int(max_points), _MIN_POINTS)).astype(np.int64)]
+    points_cam = thinned(points_cam, None if max_points is None else max(int(max_points), _MIN_POINTS))
     if len(points_cam) < _MIN_POINTS:
         return cam_T_obj, False, 0.0
     eyes = np.zeros((1, 3)) if eyes is None else np.asarray(eyes, dtype=np.float64).reshape(-1, 3)

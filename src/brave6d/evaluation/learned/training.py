@@ -148,6 +148,24 @@ def learning_rate(step: int, steps: int, base: float) -> float:
     return base * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0))))
 
 
+def phase_loss(phase: str, net: Any, data: TrainingData, pool: list[int], rng: np.random.Generator,
+               preset: LearnPreset, device: Any) -> Any:
+    """One training batch of ``phase`` (``detector`` or ``pose``) drawn by ``rng`` from ``pool`` (image
+    indices for the detector, instance indices for the pose network) and ``net``'s loss on it."""
+    import torch
+
+    from brave6d.evaluation.learned.losses import detector_loss, pose_loss
+    from brave6d.evaluation.learned.targets import detector_batch, pose_batch
+
+    if phase == "detector":
+        batch = detector_batch(data, pool, rng, preset.detector_batch, preset.detector_patch)
+        t = {k: torch.from_numpy(v).to(device) for k, v in batch.items()}
+        return detector_loss(*net(t["images"]), t)
+    batch = pose_batch(data, pool, rng, preset.pose_batch, preset.crop_px)
+    t = {k: torch.from_numpy(v).to(device) for k, v in batch.items()}
+    return pose_loss(*net(t["crops"], t["classes"]), t)
+
+
 class _Trainer:
     """Both phases, each with its own generator, network and optimiser; at once on a CPU (module
     docstring); checkpoint and resume per phase."""
@@ -204,17 +222,16 @@ class _Trainer:
                 with ThreadPoolExecutor(max_workers=2, thread_name_prefix="learn") as pool:
                     futures = [pool.submit(self._phase, phase, totals[phase], pools[phase], position)
                                for position, phase in enumerate(left)]
-                    done = [f.result() for f in futures]
+                    for future in futures:
+                        future.result()  # a phase's error (a non-finite loss) is raised here
             finally:
                 torch.set_num_threads(threads)
         else:
-            done = []
             for phase in left:
-                done.append(self._phase(phase, totals[phase], pools[phase], None))
-                if not done[-1]:
+                if not self._phase(phase, totals[phase], pools[phase], None):
                     break
         self.seconds["training"] = self.seconds.get("training", 0.0) + time.perf_counter() - t0
-        return all(done) and all(self.steps[p] >= totals[p] for p in PHASES)
+        return all(self.steps[p] >= totals[p] for p in PHASES)
 
     def _take_step(self) -> bool:
         """Whether the step budget (shared by the phases) allows one more step."""
@@ -229,11 +246,7 @@ class _Trainer:
             return True
 
     def _phase(self, phase: str, steps: int, pool: list[int], position: int | None) -> bool:
-        import torch
-
         from brave6d.core.progress import progress_bar
-        from brave6d.evaluation.learned.losses import detector_loss, pose_loss
-        from brave6d.evaluation.learned.targets import detector_batch, pose_batch
 
         net, opt, rng = self.nets[phase], self.opts[phase], self.rngs[phase]
         base_lr = self.preset.detector_lr if phase == "detector" else self.preset.pose_lr
@@ -247,14 +260,7 @@ class _Trainer:
                 step = self.steps[phase]
                 for group in opt.param_groups:
                     group["lr"] = learning_rate(step, steps, base_lr)
-                if phase == "detector":
-                    batch = detector_batch(self.data, pool, rng, self.preset.detector_batch, self.preset.detector_patch)
-                    t = {k: torch.from_numpy(v).to(self.device) for k, v in batch.items()}
-                    loss = detector_loss(*net(t["images"]), t)
-                else:
-                    batch = pose_batch(self.data, pool, rng, self.preset.pose_batch, self.preset.crop_px)
-                    t = {k: torch.from_numpy(v).to(self.device) for k, v in batch.items()}
-                    loss = pose_loss(*net(t["crops"], t["classes"]), t)
+                loss = phase_loss(phase, net, self.data, pool, rng, self.preset, self.device)
                 value = float(loss.detach())
                 if not math.isfinite(value):
                     self._stop.set()
