@@ -90,6 +90,28 @@ def test_the_card_names_the_split_the_steps_and_the_heldout_figures(split: tuple
     assert "detection recall" in text and card["model_sha256"] in text
 
 
+def test_a_reused_model_is_scored_again_when_the_detector_looks_at_another_width(
+        split: tuple[Path, Path], trained: Path, tmp_path: Path) -> None:
+    import shutil
+
+    from brave6d.core.atomic import file_sha256
+    from brave6d.evaluation.learned import write_card
+
+    out = tmp_path / "model"
+    shutil.copytree(trained, out)
+    weights = file_sha256(out / "model.pt")
+    card = read_card(out)
+    card.pop("format", None)
+    assert card["heldout"]["detect_widths"] == LearnedEstimator.load(out).detect_widths == [320]  # tiny: 320 wide crops
+    kept = learn_and_card(split[0], split[1], out, PRESET, device="cpu", show_progress=False)
+    assert kept["heldout"] == card["heldout"]  # up to date: kept as it was
+    card["heldout"] = dict(card["heldout"], detect_widths=[999], images=-1)
+    write_card(out, card)
+    again = learn_and_card(split[0], split[1], out, PRESET, device="cpu", show_progress=False)
+    assert again["heldout"]["detect_widths"] == [320] and again["heldout"]["images"] == 3  # scored again
+    assert file_sha256(out / "model.pt") == weights  # not trained again
+
+
 def test_a_stopped_run_resumes_to_the_same_weights(split: tuple[Path, Path], tmp_path: Path) -> None:
     preset = get_learn_preset("tiny").with_overrides(detector_steps=30, pose_steps=30, checkpoint_every=10)
     whole = train_learned(split[0], split[1], tmp_path / "whole", preset, "cpu", show_progress=False).model
@@ -126,6 +148,9 @@ def test_the_command_line_trains_and_refuses_bad_input_in_one_line(split: tuple[
     assert missing.returncode == 2 and "Traceback" not in missing.stderr and "nowhere" in missing.stderr
     unknown = subprocess.run(cmd[:-5] + ["--preset", "huge"] + cmd[-3:], capture_output=True, text=True)
     assert unknown.returncode == 2 and "no learn preset named 'huge'" in unknown.stderr
+    scales = subprocess.run([sys.executable, "-m", "brave6d.cli", "learn", "heldout", str(tmp_path), str(split[0]),
+                             "--models", str(split[1]), "--detect-scales", "1,0"], capture_output=True, text=True)
+    assert scales.returncode == 2 and "positive finite" in scales.stderr and "Traceback" not in scales.stderr
 
 
 def test_the_cost_benchmark_prices_images_and_steps(tmp_path: Path) -> None:

@@ -14,6 +14,8 @@ from scipy.spatial.transform import Rotation
 
 from brave6d.core.errors import BraveError
 from brave6d.evaluation.learned import REFUSAL_CAUSES, LearnedEstimator, LearnedRefused, get_learn_preset, solve_pnp
+from brave6d.evaluation.learned.crops import iou
+from brave6d.evaluation.learned.inference import NMS_IOU
 from learned_helpers import untrained_model
 
 K = np.array([[228.0, 0.0, 159.5], [0.0, 228.0, 99.5], [0.0, 0.0, 1.0]])
@@ -120,6 +122,50 @@ def test_a_refined_box_is_finite_and_non_empty_anywhere_in_or_off_the_image(
     out = estimator.refine_box(rgb, K, det)
     assert out.obj_id == 1 and out.score == 0.7
     assert all(math.isfinite(b) for b in out.box) and out.box[2] > out.box[0] and out.box[3] > out.box[1]
+
+
+@settings(max_examples=60, deadline=None)
+@given(scales=st.lists(st.floats(1e-3, 100.0), min_size=1, max_size=3), work=st.sampled_from([64, 320, 640]),
+       source=st.sampled_from([320, 640, 1280]))
+def test_the_detector_widths_stay_between_64_px_and_the_crops_source(scales: list[float], work: int, source: int) -> None:
+    est = LearnedEstimator(untrained_model(PRESET, [1]))
+    est.preset = dict(est.preset, work_width=work, crop_source_width=max(source, work))
+    est.detect_scales = tuple(scales)
+    widths = est.detect_widths
+    assert widths == sorted(set(widths)) and all(64 <= w <= max(source, work) for w in widths)
+    for x in scales:
+        if 64 <= work * x <= max(source, work):
+            assert any(abs(w - work * x) <= 0.5 for w in widths)
+
+
+def test_the_fast_preset_detects_at_one_or_two_widths_and_a_bad_scale_is_named() -> None:
+    fast = LearnedEstimator(untrained_model(get_learn_preset("fast"), [1, 2]))
+    assert fast.detect_widths == [320]  # the default: one pass at the training width
+    fast.detect_scales = (1.0, 1.375)
+    assert fast.detect_widths == [320, 440]  # 320 x (1, 1.375), under the crops' 640
+    paper = LearnedEstimator(untrained_model(get_learn_preset("paper"), [1]))
+    paper.detect_scales = (1.0, 1.375)
+    assert paper.detect_widths == [640]  # never wider than the camera's own pixels
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, size=(400, 640, 3), dtype=np.uint8)
+    K640 = np.array([[456.0, 0.0, 319.5], [0.0, 456.0, 199.5], [0.0, 0.0, 1.0]])
+    found = fast.detect(rgb, K640, min_score=0.0)
+    assert 0 < len(found) <= 20 and [d.score for d in found] == sorted((d.score for d in found), reverse=True)
+    for a in found:  # boxes in the input image's pixels; no two of one object overlap by the NMS IoU
+        assert all(math.isfinite(b) for b in a.box)
+        assert all(b is a or b.obj_id != a.obj_id or iou(a.box, b.box) < NMS_IOU for b in found)
+    fast.upscaled_max_box_px = 0.0  # the wider pass keeps nothing: what the training width alone finds
+    only_upscaled_small = fast.detect(rgb, K640, min_score=0.0)
+    fast.detect_scales = (1.0,)
+    assert [(d.obj_id, d.box, d.score) for d in fast.detect(rgb, K640, min_score=0.0)] == \
+        [(d.obj_id, d.box, d.score) for d in only_upscaled_small]
+    fast.detect_scales, fast.upscaled_max_box_px = (1.375,), math.inf
+    assert {(d.obj_id, d.box) for d in fast.detect(rgb, K640, min_score=0.0)} != \
+        {(d.obj_id, d.box) for d in only_upscaled_small}  # another width finds other boxes
+    for bad in ((), (0.0,), (1.0, -1.0), (float("nan"),), (float("inf"),)):
+        fast.detect_scales = bad
+        with pytest.raises(BraveError, match="detect_scales"):
+            fast.detect(rgb, K640)
 
 
 def test_an_object_the_model_never_saw_is_refused_naming_it(estimator: LearnedEstimator) -> None:

@@ -15,8 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from brave6d.evaluation.report.measurements import Measurement
-from brave6d.evaluation.report.sections.learned import COST_FILE, VARIANTS, best_detections, cost_path, \
-    estimate_target, read_cost
+from brave6d.evaluation.report.sections.learned import COST_FILE, DETECT_SCALE_FILE, VARIANTS, best_detections, \
+    cost_path, estimate_target, read_cost, read_detect_scale
 from brave6d.evaluation.report.sections.learned import render_learned
 from brave6d.evaluation.report.sections.learned import ring_rows, xywh_to_box
 
@@ -84,6 +84,31 @@ def test_cost_file_is_read_only_when_it_has_points(tmp_path: Path) -> None:
     assert read_cost(path) is None
     path.write_text(json.dumps({"points": []}))
     assert read_cost(path) == {"points": []}
+
+
+def _scale_row(scales: list[float], widths: list[int], recall: list[float], ms: float) -> dict:
+    return {"scales": scales, "detect_widths": widths, "recall": {str(i + 1): r for i, r in enumerate(recall)},
+            "ap": {str(i + 1): r - 0.05 for i, r in enumerate(recall)}, "recall_min": min(recall),
+            "detected_ar": {"detected_rgb": 0.2, "detected_depth": 0.55}, "detect_ms": ms, "refine_ms": 7.0}
+
+
+def test_the_detector_width_table_and_advice_come_from_the_benchmark_file(tmp_path: Path) -> None:
+    path = tmp_path / DETECT_SCALE_FILE
+    assert read_detect_scale(path) is None
+    path.write_text("[]")
+    assert read_detect_scale(path) is None
+    path.write_text(json.dumps({"rows": [_scale_row([1.0], [320], [0.8, 0.75], 27.0),
+                                         _scale_row([1.0, 1.375], [320, 440], [0.9, 0.86], 70.0)]}))
+    rows = read_detect_scale(path)
+    assert rows is not None and len(rows) == 2
+    m = _measurement([_point(0, 0.2, 0.6, 0.6)])
+    m.summary["detect_widths"] = [320, 440]
+    section = render_learned(m, tmp_path, None, rows)
+    assert "the estimator detects at 320 + 440 px" in section.body and "0.90 / 0.86" in section.body
+    assert "320 + 440 px give the best worst-object recall (0.86) for 70.0 ms" in section.advice
+    assert "the cheapest, 320 px, 0.75 for 27.0 ms" in section.advice
+    without = render_learned(_measurement([_point(0, 0.2, 0.6, 0.6)]), tmp_path, None, None)
+    assert "input widths" not in without.body and "Detector widths" not in without.advice
 
 
 @given(st.lists(st.floats(-1e6, 1e6), min_size=4, max_size=4), st.integers(1, 8))

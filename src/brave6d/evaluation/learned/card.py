@@ -91,7 +91,8 @@ def card_markdown(card: dict[str, Any]) -> str:
         ar = h["pose_ar"]
         lines += [f"| all | | | {_f(ar['true_box_rgb'])} | {_f(ar['true_box_depth'])} | {_f(ar['detected_rgb'])} | "
                   f"{_f(ar['detected_depth'])} |", "",
-                  f"Recall counts detections scoring >= {h['detection_threshold']}; AR is BOP19's (VSD, MSSD, "
+                  f"Recall counts detections scoring >= {h['detection_threshold']} (the detector looking at each image "
+                  f"{' and '.join(map(str, h.get('detect_widths') or ['?']))} px wide); AR is BOP19's (VSD, MSSD, "
                   f"MSPD). Median time per pose estimate: {h['seconds_per_estimate'] * 1000:.1f} ms."]
         refused = {v: c for v, c in h.get("refusals", {}).items() if c}
         if refused:

@@ -2,7 +2,7 @@
 
     brave6d learn train TRAIN_PBR --models MODELS_DIR --out MODEL_DIR [--preset fast|paper] [--device ...] [--resume]
         [--set FIELD=VALUE ...]
-    brave6d learn heldout MODEL_DIR TRAIN_PBR --models MODELS_DIR
+    brave6d learn heldout MODEL_DIR TRAIN_PBR --models MODELS_DIR [--detect-scales 1,1.375]
 """
 
 from __future__ import annotations
@@ -37,6 +37,23 @@ def configure(parser: argparse.ArgumentParser) -> None:
     heldout.add_argument("model_dir", type=Path, metavar="MODEL_DIR")
     heldout.add_argument("train_pbr", type=Path, metavar="TRAIN_PBR")
     heldout.add_argument("--models", type=Path, required=True, metavar="MODELS_DIR")
+    heldout.add_argument("--detect-scales", type=_scales, default=None, metavar="S[,S...]",
+                         help="the detector's input widths as multiples of the training width (default 1: one pass; "
+                              "1,1.375: a second, wider pass for small objects, 3x the detection time; "
+                              "docs/BENCHMARKS.md prices them)")
+
+
+def _scales(text: str) -> tuple[float, ...]:
+    """``1,1.375`` -> (1.0, 1.375): positive finite numbers, or argparse's one-line error."""
+    import math
+
+    try:
+        scales = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated numbers such as 1,1.375") from None
+    if not all(math.isfinite(x) and x > 0 for x in scales):
+        raise argparse.ArgumentTypeError(f"{text!r}: every scale must be a positive finite number")
+    return scales
 
 
 def parse_overrides(preset: LearnPreset, items: list[str]) -> dict[str, int | float]:
@@ -74,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"learn: model in {args.out / 'model.pt'} ({card['train_seconds']:.0f} s of training on "
               f"{card['device']}); card: {args.out / 'MODEL_CARD.md'}")
     else:
-        card = heldout_only(args.model_dir, args.train_pbr, args.models)
+        card = heldout_only(args.model_dir, args.train_pbr, args.models, args.detect_scales)
     h = card.get("heldout")
     if h:
         print(f"held-out: {h['images']} images; pose AR true box {h['pose_ar']['true_box_rgb']:.3f} "

@@ -50,3 +50,14 @@ def normalise(images: NDArray[np.uint8]) -> NDArray[np.float32]:
     """uint8 (..., H, W, 3) -> float32 (..., 3, H, W), roughly zero-mean unit-variance."""
     x = np.asarray(images, dtype=np.float32) / 255.0
     return np.moveaxis((x - _MEAN) / _STD, -1, -3).copy()
+
+
+def iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
+    """Intersection over union of two (x0, y0, x1, y1) boxes (0 for empty ones)."""
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    if w <= 0 or h <= 0:
+        return 0.0
+    inter = w * h
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / union) if union > 0 else 0.0

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from brave6d.evaluation.learned.crops import iou
 from brave6d.evaluation.learned.data import MIN_VISIB_FRACT, TrainingData
 from brave6d.evaluation.learned.inference import Detection, LearnedEstimator, LearnedRefused
 
@@ -46,6 +47,7 @@ class HeldoutScores:
     recall_raw: dict[int, float] = field(default_factory=dict)
     ap_raw: dict[int, float] = field(default_factory=dict)
     seconds_per_detection: dict[str, float] = field(default_factory=dict)
+    detect_widths: tuple[int, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         return {"images": self.images, "instances": self.instances,
@@ -57,18 +59,7 @@ class HeldoutScores:
                 "detection_recall_iou50_unrefined": {str(k): v for k, v in self.recall_raw.items()},
                 "detection_ap_iou50_unrefined": {str(k): v for k, v in self.ap_raw.items()},
                 "seconds_per_detection": dict(self.seconds_per_detection),
-                "detection_threshold": DETECTION_THRESHOLD}
-
-
-def iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
-    """Intersection over union of two (x0, y0, x1, y1) boxes (0 for empty ones)."""
-    w = min(a[2], b[2]) - max(a[0], b[0])
-    h = min(a[3], b[3]) - max(a[1], b[1])
-    if w <= 0 or h <= 0:
-        return 0.0
-    inter = w * h
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return float(inter / union) if union > 0 else 0.0
+                "detection_threshold": DETECTION_THRESHOLD, "detect_widths": list(self.detect_widths)}
 
 
 def average_precision(scores: list[float], hits: list[bool], n_gt: int) -> float:
@@ -162,7 +153,8 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
     refined, raw = tallies["refined"], tallies["raw"]
     return HeldoutScores(len(images), n_instances, refined.recall(), refined.ap(), pose_ar, per_object, refusals,
                          float(np.median(times)) if times else 0.0, raw.recall(), raw.ap(),
-                         {f"{k}_median_s": float(np.median(v)) if v else 0.0 for k, v in detect_s.items()})
+                         {f"{k}_median_s": float(np.median(v)) if v else 0.0 for k, v in detect_s.items()},
+                         tuple(estimator.detect_widths))
 
 
 def _count(tally: dict[str, int], cause: str) -> None:

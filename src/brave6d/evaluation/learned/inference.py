@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.core.errors import BraveError
-from brave6d.evaluation.learned.crops import box_crop, crop_to_image, normalise, warp_rgb
+from brave6d.evaluation.learned.crops import box_crop, crop_to_image, iou, normalise, warp_rgb
 from brave6d.evaluation.learned.data import resize_to_width
 from brave6d.evaluation.learned.model_file import LearnedModel, read_model
 from brave6d.evaluation.learned.networks import DETECTOR_STRIDE
@@ -37,6 +37,19 @@ MIN_SPREAD = 0.05
 _MAX_DETECTIONS = 20
 #: A visible mask of fewer cells than this does not refine a detection's box.
 MIN_MASK_CELLS = 3
+#: The detector looks at each image at these multiples of its training width (never wider than the
+#: crops' source) and keeps the best of overlapping detections. (1.0, 1.375) lets a small, far object
+#: cover more heatmap cells (held-out recall and AP up) while the training width keeps near objects
+#: within the sizes it trained on, for 3x the detection time; the learned agents score the same
+#: either way, so the default is one pass. Priced in docs/BENCHMARKS.md
+#: (benchmarks/learned_detect_scale.py).
+DETECT_SCALES: tuple[float, ...] = (1.0,)
+#: Detections of one object overlapping a better one at least this much (IoU) are dropped.
+NMS_IOU = 0.5
+#: Beside a narrower pass, a wider one keeps only detections whose box (geometric mean of w, h)
+#: measures at most this many pixels at the training width: the small objects its extra pixels
+#: help, not the near ones grown past the sizes the detector trained on (SNIP's valid ranges).
+UPSCALED_MAX_BOX_PX = 24.0
 
 
 class LearnedRefused(BraveError):
@@ -98,6 +111,10 @@ class LearnedEstimator:
         self.surfaces: dict[int, Surface] = {}
         #: depth points ICP uses at most (None: all; what it costs and buys: docs/BENCHMARKS.md)
         self.icp_max_points: int | None = ICP_MAX_POINTS
+        #: the detector's input widths over the training width (:data:`DETECT_SCALES`; (1.0,): as trained)
+        self.detect_scales: tuple[float, ...] = DETECT_SCALES
+        #: :data:`UPSCALED_MAX_BOX_PX` (math.inf: an upscaled pass keeps every size)
+        self.upscaled_max_box_px: float = UPSCALED_MAX_BOX_PX
 
     @classmethod
     def load(cls, model_dir: Path | str, device: str = "cpu", models_dir: Path | str | None = None) -> LearnedEstimator:
@@ -126,6 +143,18 @@ class LearnedEstimator:
         """Width of the images the coordinate net's crops come from (the learned agents' episode width)."""
         return int(self.preset.get("crop_source_width", self.preset["work_width"]))
 
+    @property
+    def detect_widths(self) -> list[int]:
+        """Widths of the images the detector looks at: the training width times each of
+        :attr:`detect_scales`, at most the crops' source width (upsampling past the camera's own
+        pixels adds nothing), each once."""
+        scales = tuple(self.detect_scales)
+        if not scales or not all(math.isfinite(x) and x > 0 for x in scales):
+            raise BraveError(f"learned estimator: detect_scales must be positive finite numbers, got {scales}")
+        width = int(self.preset["work_width"])
+        widths = [max(64, min(round(width * x), max(width, self.crop_source_width))) for x in scales]
+        return sorted(set(widths))
+
     def _work(self, rgb: NDArray[np.uint8], K: Array, width: int | None = None) -> tuple[NDArray[np.uint8], Array, float]:
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8 or min(rgb.shape[:2]) < 16:
@@ -140,11 +169,30 @@ class LearnedEstimator:
     def detect(self, rgb: NDArray[np.uint8], K: Array, min_score: float = 0.05,
                obj_id: int | None = None) -> list[Detection]:
         """The detections scoring at least ``min_score`` (of ``obj_id`` only, when given), best first,
-        at most 20 (boxes in ``rgb``'s pixels)."""
+        at most 20 (boxes in ``rgb``'s pixels): one detector pass per width of :attr:`detect_widths`,
+        a detection overlapping a better one of its object by :data:`NMS_IOU` or more dropped."""
+        base, widths = int(self.preset["work_width"]), self.detect_widths
+        found = []
+        for width in widths:
+            in_width = np.shape(rgb)[1] if np.ndim(rgb) >= 2 else base
+            limit = self.upscaled_max_box_px * in_width / base if width > widths[0] else math.inf
+            found += [d for d in self._detect_at(rgb, K, width, min_score, obj_id) if d.size_px <= limit]
+        found.sort(key=lambda d: -d.score)
+        kept: list[Detection] = []
+        for d in found:
+            if all(k.obj_id != d.obj_id or iou(k.box, d.box) < NMS_IOU for k in kept):
+                kept.append(d)
+                if len(kept) == _MAX_DETECTIONS:
+                    break
+        return kept
+
+    def _detect_at(self, rgb: NDArray[np.uint8], K: Array, width: int, min_score: float,
+                   obj_id: int | None) -> list[Detection]:
+        """One detector pass on ``rgb`` resized to ``width``: its heatmap peaks (best first, at most 20)."""
         import torch
         from torch.nn import functional as F
 
-        work, _, s = self._work(rgb, K)
+        work, _, s = self._work(rgb, K, width)
         with torch.no_grad():
             x = torch.from_numpy(normalise(work)[None]).to(self.device)
             heat, size, offset = self.detector(x)

@@ -24,10 +24,17 @@ def learn_and_card(train_pbr: Path | str, models_dir: Path | str, out: Path | st
 
     out = Path(out)
     result = train_learned(train_pbr, models_dir, out, preset, device, resume, show_progress)
-    if not result.trained and (out / CARD).is_file():
-        return read_card(out)
     data = result.data
     assert data is not None
+    if not result.trained and (out / CARD).is_file():
+        card = read_card(out)
+        if not heldout or _heldout_is_current(card, out):
+            return card
+        log.info("%s: the card's held-out figures were scored with other inference settings; scoring again", out)
+        card.pop("format", None)
+        card["heldout"] = _heldout(out, data, models_dir, show_progress)
+        write_card(out, card)
+        return read_card(out)
     scores = _heldout(out, data, models_dir, show_progress) if heldout else None
     import torch
 
@@ -38,8 +45,10 @@ def learn_and_card(train_pbr: Path | str, models_dir: Path | str, out: Path | st
     return read_card(out)
 
 
-def heldout_only(model_dir: Path | str, train_pbr: Path | str, models_dir: Path | str) -> dict[str, Any]:
-    """Score ``model_dir`` on ``train_pbr``'s held-out images and update its card."""
+def heldout_only(model_dir: Path | str, train_pbr: Path | str, models_dir: Path | str,
+                 detect_scales: tuple[float, ...] | None = None) -> dict[str, Any]:
+    """Score ``model_dir`` on ``train_pbr``'s held-out images and update its card (``detect_scales``:
+    the detector's input widths, default the estimator's)."""
     from brave6d.evaluation.learned.card import read_card, write_card
     from brave6d.evaluation.learned.data import load_training_data
     from brave6d.evaluation.learned.model_file import read_model
@@ -49,14 +58,25 @@ def heldout_only(model_dir: Path | str, train_pbr: Path | str, models_dir: Path 
                               crop_width=int(model.preset.get("crop_source_width", model.preset["work_width"])))
     card = read_card(model_dir)
     card.pop("format", None)
-    card["heldout"] = _heldout(Path(model_dir), data, models_dir, True)
+    card["heldout"] = _heldout(Path(model_dir), data, models_dir, True, detect_scales)
     write_card(Path(model_dir), card)
     return read_card(model_dir)
 
 
-def _heldout(model_dir: Path, data: Any, models_dir: Path | str, show_progress: bool) -> dict[str, Any]:
+def _heldout_is_current(card: dict[str, Any], model_dir: Path) -> bool:
+    """Whether the card's held-out figures were scored as the estimator now detects (its input widths)."""
+    from brave6d.evaluation.learned.inference import LearnedEstimator
+
+    h = card.get("heldout")
+    return isinstance(h, dict) and h.get("detect_widths") == LearnedEstimator.load(model_dir).detect_widths
+
+
+def _heldout(model_dir: Path, data: Any, models_dir: Path | str, show_progress: bool,
+             detect_scales: tuple[float, ...] | None = None) -> dict[str, Any]:
     from brave6d.evaluation.learned.heldout import score_heldout
     from brave6d.evaluation.learned.inference import LearnedEstimator
 
     estimator = LearnedEstimator.load(model_dir, models_dir=models_dir)
+    if detect_scales is not None:
+        estimator.detect_scales = tuple(detect_scales)
     return score_heldout(estimator, data, models_dir, show_progress=show_progress).to_json()

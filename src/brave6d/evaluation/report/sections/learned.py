@@ -13,7 +13,9 @@ renders of the same poses, against distance, and what its accuracy costs in time
   truth on the captured frame's test depth. Gap = AR(captured) - AR(splat) per ring: the learned
   estimator's realism gap.
 - Cost: ``<workdir>/learned/cost/learned_cost.json`` when ``benchmarks/learned_cost.py`` has
-  written it (held-out AR and the learned agents' AR against training time and train_pbr images).
+  written it (held-out AR and the learned agents' AR against training time and train_pbr images),
+  and ``detect_scale.json`` beside it when ``benchmarks/learned_detect_scale.py`` has (detection
+  recall, AP and milliseconds against the detector's input width).
 """
 
 from __future__ import annotations
@@ -47,6 +49,8 @@ LABELS = {"true_box_rgb": "true box, RGB", "true_box_depth": "true box, + depth"
 LARGE_GAP = 0.1
 #: Where ``benchmarks/learned_cost.py`` writes for the report (beside the demo's ``learned/model``).
 COST_FILE = Path("learned") / "cost" / "learned_cost.json"
+#: Where ``benchmarks/learned_detect_scale.py`` writes for the report (beside ``COST_FILE``).
+DETECT_SCALE_FILE = "detect_scale.json"
 
 
 @dataclass(frozen=True)
@@ -142,7 +146,8 @@ def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
 
     layout, gts, infos = views.layout, views.gts, views.infos
     key = {**views.key(), "model": file_stamp(model_path), "card": file_stamp(card_path), "sweep": asdict(sweep),
-           "test_depth": "captured", "detected_boxes": "refined by the pose network's mask"}
+           "test_depth": "captured", "detected_boxes": "refined by the pose network's mask",
+           "detect_widths": LearnedEstimator.load(model_dir).detect_widths}
     if (done := store.complete(NAME, key)) is not None:
         return done
     w, h = views.image_size
@@ -151,9 +156,9 @@ def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
     m = store.resume(NAME, key, settings, machine_info(device))
     views.describe(m)
     card = read_card(model_dir)
-    m.summary.update({"cost": str(cost_path(model_dir)), "model": str(model_dir), "card": {k: card.get(k) for k in
-                                                        ("images", "heldout_images", "train_seconds", "device",
-                                                         "heldout", "preset", "objects", "model_sha256")}})
+    m.summary.update({"cost": str(cost_path(model_dir)), "model": str(model_dir), "detect_widths": key["detect_widths"],
+                      "card": {k: card.get(k) for k in ("images", "heldout_images", "train_seconds", "device",
+                                                        "heldout", "preset", "objects", "model_sha256")}})
     state: dict[str, Any] = {}
 
     def prepared() -> dict[str, Any]:  # the networks and models only when a point is missing
@@ -235,6 +240,43 @@ def read_cost(path: Path) -> dict[str, Any] | None:
     return data if isinstance(data, dict) and isinstance(data.get("points"), list) else None
 
 
+def read_detect_scale(path: Path) -> list[dict[str, Any]] | None:
+    """``benchmarks/learned_detect_scale.py``'s rows from ``path`` (None when absent or unreadable)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    rows = data.get("rows") if isinstance(data, dict) else None
+    return rows if isinstance(rows, list) and all(isinstance(r, dict) for r in rows) else None
+
+
+def _detect_scale_part(rows: list[dict[str, Any]] | None, current: Any) -> tuple[str, str]:
+    """The table and advice of the detector's input widths (what each set buys in recall and AP, and costs in ms)."""
+    if not rows:
+        return "", ""
+
+    def widths(r: Mapping[str, Any]) -> str:
+        return " + ".join(str(w) for w in (r.get("detect_widths") or ["?"]))
+
+    table_rows = [(" + ".join(fmt(x, 3) for x in (r.get("scales") or [])), widths(r),
+                   " / ".join(fmt(v, 2) for v in (r.get("recall") or {}).values()), fmt(r.get("recall_min"), 2),
+                   " / ".join(fmt(v, 2) for v in (r.get("ap") or {}).values()),
+                   fmt((r.get("detected_ar") or {}).get("detected_rgb"), 3),
+                   fmt((r.get("detected_ar") or {}).get("detected_depth"), 3), fmt(r.get("detect_ms"), 1))
+                  for r in rows]
+    now = " + ".join(str(w) for w in current) if isinstance(current, list) and current else "?"
+    table = ("The detector's input widths (`benchmarks/learned_detect_scale.py`; the estimator detects at "
+             f"{now} px):\n\n"
+             + format_table(["scales", "widths px", "recall per object", "recall min", "AP per object", "AR det RGB",
+                             "AR det +D", "ms per image"], table_rows) + "\n")
+    best = max(rows, key=lambda r: num(r.get("recall_min")))
+    cheapest = min(rows, key=lambda r: num(r.get("detect_ms")))
+    advice = (f" Detector widths: {widths(best)} px give the best worst-object recall "
+              f"({fmt(best.get('recall_min'), 2)}) for {fmt(best.get('detect_ms'), 1)} ms per image; the cheapest, "
+              f"{widths(cheapest)} px, {fmt(cheapest.get('recall_min'), 2)} for {fmt(cheapest.get('detect_ms'), 1)} ms.")
+    return table, advice
+
+
 # ----------------------------------------------------------------------------- rendering
 def _heldout_table(card: Mapping[str, Any]) -> str:
     held = card.get("heldout") or {}
@@ -298,8 +340,9 @@ def _cost_part(cost: dict[str, Any] | None, ax: Any) -> tuple[str, str]:
     return table, advice
 
 
-def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | None = None) -> RenderedSection:
-    """Section 10 from its measurement (and the cost benchmark's result, when there is one)."""
+def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | None = None,
+                   detect_scale: list[dict[str, Any]] | None = None) -> RenderedSection:
+    """Section 10 from its measurement (and the cost benchmarks' results, when there are some)."""
     if m is None or not m.usable or not m.points:
         return unavailable(TITLE, m, "The learned estimator's study")
     rows = ring_rows(m.points)
@@ -321,6 +364,7 @@ def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | 
     legend(ax_ar)
     legend(ax_gap)
     cost_table, cost_advice = _cost_part(cost, ax_cost)
+    scale_table, scale_advice = _detect_scale_part(detect_scale, m.summary.get("detect_widths"))
     png = save_figure(fig, out_dir / FIGURE, "Learned estimator: AR against distance on captured frames and splat renders",
                       describe_machine(m.machine), settings_line(m))
     table = [(fmt(r["distance_m"] * 100, 0), r["views"], r["targets"], fmt(r["bbox_diag_px"], 0),
@@ -337,8 +381,8 @@ def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | 
             f"![learned estimator]({png.name})\n\n"
             "AR captured / splat (gap ± SE) per ring:\n\n"
             + format_table(["cm", "views", "targets", "box diag px", *(LABELS[v] for v in VARIANTS)], table) + "\n\n"
-            + cost_table + "\n" + provenance(m) + "\n" + nan_note(dropped, "plotted learned-estimator values"))
-    return RenderedSection(TITLE, body, advice_learned(rows, card) + cost_advice, [png])
+            + cost_table + "\n" + (scale_table + "\n" if scale_table else "") + provenance(m) + "\n" + nan_note(dropped, "plotted learned-estimator values"))
+    return RenderedSection(TITLE, body, advice_learned(rows, card) + cost_advice + scale_advice, [png])
 
 
 def advice_learned(rows: list[dict[str, Any]], card: Mapping[str, Any]) -> str:
@@ -393,7 +437,8 @@ class LearnedSection:
     def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
         m = measurements.get(NAME)
         cost = m.summary.get("cost") if m is not None else None
-        return render_learned(m, out_dir, read_cost(Path(str(cost))) if cost else None)
+        scale = read_detect_scale(Path(str(cost)).parent / DETECT_SCALE_FILE) if cost else None
+        return render_learned(m, out_dir, read_cost(Path(str(cost))) if cost else None, scale)
 
 
 SECTION = LearnedSection()
