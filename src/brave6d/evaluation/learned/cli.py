@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from brave6d.core.cli_types import int_in
+from brave6d.core.cli_types import float_in, int_in
 
 if TYPE_CHECKING:
     from brave6d.evaluation.learned.presets import LearnPreset
@@ -45,15 +45,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def _scales(text: str) -> tuple[float, ...]:
     """``1,1.375`` -> (1.0, 1.375): positive finite numbers, or argparse's one-line error."""
-    import math
-
+    positive = float_in(0, low_open=True)
     try:
-        scales = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated numbers such as 1,1.375") from None
-    if not all(math.isfinite(x) and x > 0 for x in scales):
-        raise argparse.ArgumentTypeError(f"{text!r}: every scale must be a positive finite number")
-    return scales
+        return tuple(positive(x) for x in text.split(","))
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: every scale must be a positive finite number ({exc})") from None
 
 
 def parse_overrides(preset: LearnPreset, items: list[str]) -> dict[str, int | float]:

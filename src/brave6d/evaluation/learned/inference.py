@@ -172,10 +172,10 @@ class LearnedEstimator:
         at most 20 (boxes in ``rgb``'s pixels): one detector pass per width of :attr:`detect_widths`,
         a detection overlapping a better one of its object by :data:`NMS_IOU` or more dropped."""
         base, widths = int(self.preset["work_width"]), self.detect_widths
+        small = self.upscaled_max_box_px * (np.shape(rgb)[1] if np.ndim(rgb) >= 2 else base) / base  # input pixels
         found = []
         for width in widths:
-            in_width = np.shape(rgb)[1] if np.ndim(rgb) >= 2 else base
-            limit = self.upscaled_max_box_px * in_width / base if width > widths[0] else math.inf
+            limit = small if width > widths[0] else math.inf
             found += [d for d in self._detect_at(rgb, K, width, min_score, obj_id) if d.size_px <= limit]
         found.sort(key=lambda d: -d.score)
         kept: list[Detection] = []

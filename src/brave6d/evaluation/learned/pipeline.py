@@ -28,7 +28,8 @@ def learn_and_card(train_pbr: Path | str, models_dir: Path | str, out: Path | st
     assert data is not None
     if not result.trained and (out / CARD).is_file():
         card = read_card(out)
-        if not heldout or _heldout_is_current(card, out):
+        assert result.model is not None  # a model reused, not trained, is always read
+        if not heldout or _heldout_is_current(card, result.model):
             return card
         log.info("%s: the card's held-out figures were scored with other inference settings; scoring again", out)
         card.pop("format", None)
@@ -63,12 +64,13 @@ def heldout_only(model_dir: Path | str, train_pbr: Path | str, models_dir: Path 
     return read_card(model_dir)
 
 
-def _heldout_is_current(card: dict[str, Any], model_dir: Path) -> bool:
-    """Whether the card's held-out figures were scored as the estimator now detects (its input widths)."""
+def _heldout_is_current(card: dict[str, Any], model: Any) -> bool:
+    """Whether the card's held-out figures were scored as the estimator of ``model`` (a
+    :class:`LearnedModel` in memory) now detects (its input widths)."""
     from brave6d.evaluation.learned.inference import LearnedEstimator
 
     h = card.get("heldout")
-    return isinstance(h, dict) and h.get("detect_widths") == LearnedEstimator.load(model_dir).detect_widths
+    return isinstance(h, dict) and h.get("detect_widths") == LearnedEstimator(model).detect_widths
 
 
 def _heldout(model_dir: Path, data: Any, models_dir: Path | str, show_progress: bool,
