@@ -28,6 +28,7 @@ from brave6d.core.transforms import (
     nearest_rotation,
     unit_quaternion,
     orthonormalize,
+    ring_orbit,
     parse_tum_line,
     pose_distance,
     quat_wxyz_to_matrix,
@@ -153,6 +154,27 @@ def test_look_at_parallel_to_up_is_finite_and_deterministic(direction: tuple) ->
     check_rigid(T1)
     np.testing.assert_array_equal(T1, T2)
     np.testing.assert_allclose(T1[:3, 2], np.asarray(direction) / np.linalg.norm(direction), atol=1e-9)
+
+
+@given(vec3, st.lists(st.floats(1e-3, 10.0), min_size=1, max_size=3), st.integers(1, 12), st.floats(-90.0, 90.0))
+def test_ring_orbit_cameras_sit_on_their_rings_looking_at_the_target(target: tuple, distances: list, per_ring: int,
+                                                                     elevation: float) -> None:
+    poses = ring_orbit(target, distances, per_ring, elevation)
+    assert [(ring, d) for ring, d, _ in poses] == [(r, d) for r, d in enumerate(distances) for _ in range(per_ring)]
+    t = np.asarray(target, float)
+    for _, d, T in poses:
+        check_rigid(T)
+        eye = T[:3, 3]
+        np.testing.assert_allclose(np.linalg.norm(eye - t), d, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(t).max()))
+        np.testing.assert_allclose(eye[2] - t[2], d * math.sin(math.radians(elevation)), atol=1e-9 * max(1.0, np.abs(t).max()))
+        cam_target = transform_points(invert(T), t[None])[0]
+        assert cam_target[2] > 0 and np.abs(cam_target[:2]).max() <= 1e-7 * max(1.0, np.abs(t).max())
+    # one ring's cameras spread evenly: neighbours a full turn / per_ring apart in azimuth
+    if per_ring >= 2 and abs(elevation) < 89.0:
+        eyes = np.array([T[:3, 3] - t for ring, _, T in poses if ring == 0])
+        az = np.arctan2(eyes[:, 1], eyes[:, 0])
+        step_error = np.angle(np.exp(1j * (np.diff(az) - 2 * math.pi / per_ring)))  # wrapped to (-pi, pi]
+        np.testing.assert_allclose(step_error, 0.0, atol=1e-6)
 
 
 def test_look_at_rejects_coincident_eye_and_target() -> None:

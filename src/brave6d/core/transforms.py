@@ -8,6 +8,7 @@ orthonormalises whatever matrix it is given.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -281,6 +282,22 @@ def look_at(
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return make_transform(np.stack([x, y, z], axis=1), e)
+
+
+def ring_orbit(target: ArrayLike, distances: Sequence[float], per_ring: int, elevation_deg: float
+               ) -> list[tuple[int, float, Matrix4]]:
+    """``(ring, distance, world_T_cam)`` of ``per_ring`` cameras on a ring per distance around ``target``,
+    all at ``elevation_deg`` above its horizontal plane and looking at it, spread evenly in azimuth
+    (each ring turned by half a step against the previous one, so rings do not line up)."""
+    centre = np.asarray(target, dtype=np.float64).reshape(3)
+    el = math.radians(elevation_deg)
+    poses = []
+    for ring, distance in enumerate(distances):
+        for i in range(per_ring):
+            az = 2.0 * math.pi * (i + 0.5 * ring) / per_ring
+            direction = np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)])
+            poses.append((ring, float(distance), look_at(centre + distance * direction, centre)))
+    return poses
 
 
 # ----------------------------------------------------------------------------- distances

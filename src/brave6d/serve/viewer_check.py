@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.core.camera import PinholeCamera
-from brave6d.core.transforms import look_at
+from brave6d.core.transforms import ring_orbit
 
 if TYPE_CHECKING:
     from brave6d.training import SplatData
@@ -50,17 +50,9 @@ class ViewScore:
 def orbit_poses(target: tuple[float, float, float], distances: tuple[float, ...] = DISTANCES_M,
                 per_distance: int = VIEWS_PER_DISTANCE, elevation_deg: float = 45.0
                 ) -> list[tuple[float, NDArray[np.float64]]]:
-    """``(distance, world_T_cam)`` of cameras on rings around ``target`` looking at it, spread evenly
-    in azimuth (each ring turned by half a step against the previous one)."""
-    centre = np.asarray(target, np.float64)
-    el = math.radians(elevation_deg)
-    poses = []
-    for level, distance in enumerate(distances):
-        for i in range(per_distance):
-            az = 2.0 * math.pi * (i + 0.5 * level) / per_distance
-            direction = np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)])
-            poses.append((distance, look_at(centre + distance * direction, centre)))
-    return poses
+    """``(distance, world_T_cam)`` of cameras on rings around ``target`` looking at it
+    (:func:`brave6d.core.transforms.ring_orbit`)."""
+    return [(distance, T) for _, distance, T in ring_orbit(target, distances, per_distance, elevation_deg)]
 
 
 def psnr_uint8(a: NDArray[np.uint8], b: NDArray[np.uint8]) -> float:

@@ -11,7 +11,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -25,38 +24,16 @@ from brave6d.core.atomic import depth_m_to_mm_u16, write_png
 from brave6d.core.calibration_io import write_handeye, write_intrinsics
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.layout import FrameLog, FrameRecord, SceneDir
-from brave6d.core.transforms import invert
+from brave6d.core.transforms import invert, ring_orbit
 
 if TYPE_CHECKING:
     from brave6d.training.views import TrainingData
 
 
-def look_at(eye: NDArray[np.float64], target: NDArray[np.float64], up: tuple[float, float, float] = (0, 0, 1)
-            ) -> NDArray[np.float64]:
-    """``base_T_cam`` of an OpenCV camera at ``eye`` looking at ``target``."""
-    z = np.asarray(target, float) - np.asarray(eye, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], axis=1)
-    T[:3, 3] = eye
-    return T
-
-
 def ring_poses(distances: list[float], per_ring: int, elevation_deg: float = 55.0,
                target: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> list[tuple[int, float, NDArray[np.float64]]]:
     """``(level, distance, base_T_cam)`` for cameras on rings around ``target``."""
-    out = []
-    el = math.radians(elevation_deg)
-    for level, dist in enumerate(distances):
-        for i in range(per_ring):
-            az = 2.0 * math.pi * (i + 0.5 * level) / per_ring
-            eye = np.asarray(target) + dist * np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el),
-                                                        math.sin(el)])
-            out.append((level, dist, look_at(eye, np.asarray(target, float))))
-    return out
+    return ring_orbit(target, distances, per_ring, elevation_deg)
 
 
 def texture(size: int = 1024, seed: int = 0) -> NDArray[np.uint8]:
