@@ -170,3 +170,35 @@ def test_the_cost_benchmark_prices_images_and_steps(tmp_path: Path) -> None:
     for p in report["points"]:
         assert p["heldout_images"] == p["images"] // 10 and p["train_s"] > 0 and p["synth_s"] > 0
         assert set(p["heldout_ar"]) == {"true_box_rgb", "true_box_depth", "detected_rgb", "detected_depth"}
+
+
+def test_the_patch_benchmark_prices_the_detector_and_resumes(split: tuple[Path, Path], trained: Path,
+                                                              tmp_path: Path) -> None:
+    import importlib.util
+    import json
+
+    from brave6d.core.errors import BraveError
+    from learned_helpers import ROOT
+
+    spec = importlib.util.spec_from_file_location("learned_detector_patch",
+                                                  ROOT / "benchmarks" / "learned_detector_patch.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    args = [str(split[0]), str(split[1]), str(split[0]), "--pose-from", str(trained), "--preset", "tiny",
+            "--out", str(tmp_path), "--points", "64:12,128:6"]
+    assert bench.main(args) == 0
+    rows = json.loads((tmp_path / "detector_patch.json").read_text())["rows"]
+    assert [(r["patch"], r["steps"]) for r in rows] == [(64, 12), (128, 6)]
+    for r in rows:
+        assert r["images"] == 30 and r["detector_s"] > 0 and set(r["recall"]) == {"1", "2", "3", "4"}
+        assert set(r["detected_ar"]) == {"detected_rgb", "detected_depth"}
+    # the scored model is the point's detector with the given model's coordinate net
+    scored = read_model(tmp_path / "detector-64-12" / "with-pose")
+    assert scored.preset["detector_patch"] == 64 and scored.preset["detector_steps"] == 12
+    pose = read_model(trained).pose_state
+    assert all(torch.equal(scored.pose_state[k], pose[k]) for k in pose)
+    # a second run keeps the finished points (a trained one found again without its row is refused)
+    stamp = (tmp_path / "detector-64-12" / "model.pt").stat().st_mtime_ns
+    assert bench.main(args) == 0 and (tmp_path / "detector-64-12" / "model.pt").stat().st_mtime_ns == stamp
+    with pytest.raises(BraveError, match="differ from 'fast'"):
+        bench.main(args[:5] + ["--out", str(tmp_path / "other")])

@@ -15,8 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from brave6d.evaluation.report.measurements import Measurement
-from brave6d.evaluation.report.sections.learned import COST_FILE, DETECT_SCALE_FILE, VARIANTS, best_detections, \
-    cost_path, estimate_target, read_cost, read_detect_scale
+from brave6d.evaluation.report.sections.learned import COST_FILE, DETECT_SCALE_FILE, DETECTOR_PATCH_FILE, VARIANTS, best_detections, \
+    cost_path, estimate_target, read_benchmark_rows, read_cost
 from brave6d.evaluation.report.sections.learned import render_learned
 from brave6d.evaluation.report.sections.learned import ring_rows, xywh_to_box
 
@@ -94,12 +94,12 @@ def _scale_row(scales: list[float], widths: list[int], recall: list[float], ms: 
 
 def test_the_detector_width_table_and_advice_come_from_the_benchmark_file(tmp_path: Path) -> None:
     path = tmp_path / DETECT_SCALE_FILE
-    assert read_detect_scale(path) is None
+    assert read_benchmark_rows(path) is None
     path.write_text("[]")
-    assert read_detect_scale(path) is None
+    assert read_benchmark_rows(path) is None
     path.write_text(json.dumps({"rows": [_scale_row([1.0], [320], [0.8, 0.75], 27.0),
                                          _scale_row([1.0, 1.375], [320, 440], [0.9, 0.86], 70.0)]}))
-    rows = read_detect_scale(path)
+    rows = read_benchmark_rows(path)
     assert rows is not None and len(rows) == 2
     m = _measurement([_point(0, 0.2, 0.6, 0.6)])
     m.summary["detect_widths"] = [320, 440]
@@ -109,6 +109,39 @@ def test_the_detector_width_table_and_advice_come_from_the_benchmark_file(tmp_pa
     assert "the cheapest, 320 px, 0.75 for 27.0 ms" in section.advice
     without = render_learned(_measurement([_point(0, 0.2, 0.6, 0.6)]), tmp_path, None, None)
     assert "input widths" not in without.body and "Detector widths" not in without.advice
+
+
+def _patch_row(patch: int, steps: int, seconds: float, recall: list[float]) -> dict:
+    return {"patch": patch, "steps": steps, "detector_s": seconds, "steps_per_s": steps / seconds,
+            "recall": {str(i + 1): r for i, r in enumerate(recall)}, "recall_min": min(recall),
+            "ap": {str(i + 1): r - 0.05 for i, r in enumerate(recall)},
+            "detected_ar": {"detected_rgb": 0.2, "detected_depth": 0.58}}
+
+
+def test_the_detector_patch_table_and_advice_come_from_the_benchmark_file(tmp_path: Path) -> None:
+    path = tmp_path / DETECTOR_PATCH_FILE
+    path.write_text(json.dumps({"rows": [_patch_row(128, 1200, 283.0, [0.83, 0.75]),
+                                         _patch_row(96, 1900, 285.0, [0.86, 0.81]),
+                                         _patch_row(96, 2100, 310.0, [0.88, 0.81])]}))
+    played = json.loads(path.read_text())
+    played["rows"][0]["agents"] = {"learned-static": 0.2, "learned-active": 0.28, "learned-static-depth": 0.5,
+                                   "learned-active-depth": 0.61}
+    played["rows"][1]["agents"] = {"learned-static": 0.15, "learned-active": 0.19, "learned-static-depth": 0.41,
+                                   "learned-active-depth": 0.5}
+    rows = read_benchmark_rows(path)
+    m = _measurement([_point(0, 0.2, 0.6, 0.6)])
+    m.summary["card"] = {"preset": {"detector_patch": 96, "detector_steps": 1900}}
+    section = render_learned(m, tmp_path, None, None, rows)
+    assert "this model trained 96 px x 1900 steps" in section.body
+    assert any(line.replace(" ", "").startswith("|96|2100|310|") for line in section.body.splitlines())
+    assert "96 px x 1900 steps give the best worst-object recall (0.81) in 285 s" in section.advice
+    assert "the quickest, 128 px x 1200 steps, 0.75 in 283 s" in section.advice
+    assert "training patches" not in render_learned(m, tmp_path, None, None, None).body
+    assert "As agents" not in section.advice
+    path.write_text(json.dumps(played))
+    with_agents = render_learned(m, tmp_path, None, None, read_benchmark_rows(path))
+    assert "0.200 / 0.280 (0.500 / 0.610)" in with_agents.body
+    assert "As agents, 128 px x 1200 steps give learned-active-depth the best AR (0.610)" in with_agents.advice
 
 
 @given(st.lists(st.floats(-1e6, 1e6), min_size=4, max_size=4), st.integers(1, 8))

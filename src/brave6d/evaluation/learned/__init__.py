@@ -6,7 +6,7 @@ Public API (imported lazily: ``import brave6d.evaluation.learned`` loads no torc
 - training: ``train_learned`` (``brave6d learn train``), ``LearnResult``, ``LearnPreset``,
   ``get_learn_preset``, ``PRESETS``; ``learn_and_card`` (train or reuse, score the held-out images, write
   the card: the demo's stage and a dataset run);
-- the trained model: ``read_model``, ``LearnedModel`` (``model.pt``), ``write_card`` /
+- the trained model: ``read_model``, ``write_model``, ``LearnedModel`` (``model.pt``), ``write_card`` /
   ``read_card`` (``card.json``, ``MODEL_CARD.md``), ``training_seconds`` (a run's wall-clock time);
 - inference: ``LearnedEstimator`` (``detect``, ``best_detection``, ``refine_box``, ``estimate``,
   ``estimate_both``, ``refine_views``), ``Detection``,
@@ -24,7 +24,7 @@ from brave6d.core.lazy import lazy_exports
 _LAZY = {
     "train_learned": ".training", "LearnResult": ".training", "learn_and_card": ".pipeline",
     "LearnPreset": ".presets", "get_learn_preset": ".presets", "PRESETS": ".presets",
-    "read_model": ".model_file", "LearnedModel": ".model_file",
+    "read_model": ".model_file", "write_model": ".model_file", "LearnedModel": ".model_file",
     "write_card": ".card", "read_card": ".card", "training_seconds": ".card",
     "LearnedEstimator": ".inference", "Detection": ".inference", "LearnedPose": ".inference",
     "LearnedRefused": ".inference", "REFUSAL_CAUSES": ".inference", "solve_pnp": ".inference",

@@ -14,8 +14,10 @@ renders of the same poses, against distance, and what its accuracy costs in time
   estimator's realism gap.
 - Cost: ``<workdir>/learned/cost/learned_cost.json`` when ``benchmarks/learned_cost.py`` has
   written it (held-out AR and the learned agents' AR against training time and train_pbr images),
-  and ``detect_scale.json`` beside it when ``benchmarks/learned_detect_scale.py`` has (detection
-  recall, AP and milliseconds against the detector's input width).
+  ``detect_scale.json`` beside it when ``benchmarks/learned_detect_scale.py`` has (detection
+  recall, AP and milliseconds against the detector's input width) and ``detector_patch.json`` when
+  ``benchmarks/learned_detector_patch.py`` has (recall, AP and AR against the detector's training
+  patch and steps, with their seconds).
 """
 
 from __future__ import annotations
@@ -51,6 +53,8 @@ LARGE_GAP = 0.1
 COST_FILE = Path("learned") / "cost" / "learned_cost.json"
 #: Where ``benchmarks/learned_detect_scale.py`` writes for the report (beside ``COST_FILE``).
 DETECT_SCALE_FILE = "detect_scale.json"
+#: Where ``benchmarks/learned_detector_patch.py`` writes for the report (beside ``COST_FILE``).
+DETECTOR_PATCH_FILE = "detector_patch.json"
 
 
 @dataclass(frozen=True)
@@ -240,8 +244,9 @@ def read_cost(path: Path) -> dict[str, Any] | None:
     return data if isinstance(data, dict) and isinstance(data.get("points"), list) else None
 
 
-def read_detect_scale(path: Path) -> list[dict[str, Any]] | None:
-    """``benchmarks/learned_detect_scale.py``'s rows from ``path`` (None when absent or unreadable)."""
+def read_benchmark_rows(path: Path) -> list[dict[str, Any]] | None:
+    """The rows of ``benchmarks/learned_detect_scale.py``'s or ``learned_detector_patch.py``'s JSON
+    ``path`` (None when absent or unreadable)."""
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
@@ -275,6 +280,49 @@ def _detect_scale_part(rows: list[dict[str, Any]] | None, current: Any) -> tuple
               f"({fmt(best.get('recall_min'), 2)}) for {fmt(best.get('detect_ms'), 1)} ms per image; the cheapest, "
               f"{widths(cheapest)} px, {fmt(cheapest.get('recall_min'), 2)} for {fmt(cheapest.get('detect_ms'), 1)} ms.")
     return table, advice
+
+
+def _detector_patch_part(rows: list[dict[str, Any]] | None, card: Mapping[str, Any]) -> tuple[str, str]:
+    """The table and advice of the detector's training patches (what each patch and step count buys in
+    recall and AR, and costs in training seconds)."""
+    if not rows:
+        return "", ""
+
+    def point(r: Mapping[str, Any]) -> str:
+        return f"{r.get('patch')} px x {r.get('steps')} steps"
+
+    table_rows = [(r.get("patch"), r.get("steps"), fmt(r.get("detector_s"), 0), fmt(r.get("steps_per_s"), 2),
+                   " / ".join(fmt(v, 2) for v in (r.get("recall") or {}).values()), fmt(r.get("recall_min"), 2),
+                   " / ".join(fmt(v, 2) for v in (r.get("ap") or {}).values()),
+                   fmt((r.get("detected_ar") or {}).get("detected_rgb"), 3),
+                   fmt((r.get("detected_ar") or {}).get("detected_depth"), 3), _agents_cell(r.get("agents")))
+                  for r in rows]
+    preset = card.get("preset") or {}
+    now = f"{preset.get('detector_patch', '?')} px x {preset.get('detector_steps', '?')} steps"
+    table = ("The detector's training patches (`benchmarks/learned_detector_patch.py`, the same coordinate net for "
+             f"every row; this model trained {now}):\n\n"
+             + format_table(["patch px", "steps", "detector s", "steps/s", "recall per object", "recall min",
+                             "AP per object", "AR det RGB", "AR det +D", "agents static / active (+D)"],
+                            table_rows) + "\n")
+    best = max(rows, key=lambda r: num(r.get("recall_min")))
+    cheapest = min(rows, key=lambda r: num(r.get("detector_s")))
+    advice = (f" Detector patches: {point(best)} give the best worst-object recall ({fmt(best.get('recall_min'), 2)}) "
+              f"in {fmt(best.get('detector_s'), 0)} s of training; the quickest, {point(cheapest)}, "
+              f"{fmt(cheapest.get('recall_min'), 2)} in {fmt(cheapest.get('detector_s'), 0)} s.")
+    played = [r for r in rows if isinstance(r.get("agents"), dict)]
+    if played:
+        agent = max(played, key=lambda r: num(r["agents"].get("learned-active-depth")))
+        advice += (f" As agents, {point(agent)} give learned-active-depth the best AR "
+                   f"({fmt(agent['agents'].get('learned-active-depth'), 3)}): choose the patch by this, not by recall alone.")
+    return table, advice
+
+
+def _agents_cell(agents: Any) -> str:
+    """``learned-static / learned-active (static-depth / active-depth)`` AR, or "-" when not played."""
+    if not isinstance(agents, dict):
+        return "-"
+    a = [fmt(agents.get(k), 3) for k in ("learned-static", "learned-active", "learned-static-depth", "learned-active-depth")]
+    return f"{a[0]} / {a[1]} ({a[2]} / {a[3]})"
 
 
 # ----------------------------------------------------------------------------- rendering
@@ -341,7 +389,8 @@ def _cost_part(cost: dict[str, Any] | None, ax: Any) -> tuple[str, str]:
 
 
 def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | None = None,
-                   detect_scale: list[dict[str, Any]] | None = None) -> RenderedSection:
+                   detect_scale: list[dict[str, Any]] | None = None,
+                   detector_patch: list[dict[str, Any]] | None = None) -> RenderedSection:
     """Section 10 from its measurement (and the cost benchmarks' results, when there are some)."""
     if m is None or not m.usable or not m.points:
         return unavailable(TITLE, m, "The learned estimator's study")
@@ -365,6 +414,7 @@ def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | 
     legend(ax_gap)
     cost_table, cost_advice = _cost_part(cost, ax_cost)
     scale_table, scale_advice = _detect_scale_part(detect_scale, m.summary.get("detect_widths"))
+    patch_table, patch_advice = _detector_patch_part(detector_patch, card)
     png = save_figure(fig, out_dir / FIGURE, "Learned estimator: AR against distance on captured frames and splat renders",
                       describe_machine(m.machine), settings_line(m))
     table = [(fmt(r["distance_m"] * 100, 0), r["views"], r["targets"], fmt(r["bbox_diag_px"], 0),
@@ -381,8 +431,9 @@ def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | 
             f"![learned estimator]({png.name})\n\n"
             "AR captured / splat (gap ± SE) per ring:\n\n"
             + format_table(["cm", "views", "targets", "box diag px", *(LABELS[v] for v in VARIANTS)], table) + "\n\n"
-            + cost_table + "\n" + (scale_table + "\n" if scale_table else "") + provenance(m) + "\n" + nan_note(dropped, "plotted learned-estimator values"))
-    return RenderedSection(TITLE, body, advice_learned(rows, card) + cost_advice + scale_advice, [png])
+            + cost_table + "\n" + (scale_table + "\n" if scale_table else "")
+            + (patch_table + "\n" if patch_table else "") + provenance(m) + "\n" + nan_note(dropped, "plotted learned-estimator values"))
+    return RenderedSection(TITLE, body, advice_learned(rows, card) + cost_advice + scale_advice + patch_advice, [png])
 
 
 def advice_learned(rows: list[dict[str, Any]], card: Mapping[str, Any]) -> str:
@@ -437,8 +488,11 @@ class LearnedSection:
     def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
         m = measurements.get(NAME)
         cost = m.summary.get("cost") if m is not None else None
-        scale = read_detect_scale(Path(str(cost)).parent / DETECT_SCALE_FILE) if cost else None
-        return render_learned(m, out_dir, read_cost(Path(str(cost))) if cost else None, scale)
+        if not cost:
+            return render_learned(m, out_dir)
+        folder = Path(str(cost)).parent
+        return render_learned(m, out_dir, read_cost(Path(str(cost))), read_benchmark_rows(folder / DETECT_SCALE_FILE),
+                              read_benchmark_rows(folder / DETECTOR_PATCH_FILE))
 
 
 SECTION = LearnedSection()
