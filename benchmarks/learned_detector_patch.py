@@ -80,7 +80,9 @@ def main(argv: list[str] | None = None) -> int:
         assert result.model is not None
         scored_dir = trained_dir / "with-pose"
         scored_dir.mkdir(exist_ok=True)
-        write_model(scored_dir, dataclasses.replace(result.model, pose_state=pose_model.pose_state))
+        pose_preset = {k: v for k, v in pose_model.preset.items() if k.startswith("pose_")}  # what trained that net
+        write_model(scored_dir, dataclasses.replace(result.model, pose_state=pose_model.pose_state,
+                                                    preset={**result.model.preset, **pose_preset}))
         estimator = LearnedEstimator.load(scored_dir, models_dir=args.models)
         held = score_heldout(estimator, test, args.models, images=list(range(len(test.images))))
         seconds = float(result.seconds["detector"])

@@ -195,6 +195,7 @@ def test_the_patch_benchmark_prices_the_detector_and_resumes(split: tuple[Path, 
     # the scored model is the point's detector with the given model's coordinate net
     scored = read_model(tmp_path / "detector-64-12" / "with-pose")
     assert scored.preset["detector_patch"] == 64 and scored.preset["detector_steps"] == 12
+    assert scored.preset["pose_steps"] == PRESET.pose_steps  # the preset says what trained each net
     pose = read_model(trained).pose_state
     assert all(torch.equal(scored.pose_state[k], pose[k]) for k in pose)
     # a second run keeps the finished points (a trained one found again without its row is refused)
