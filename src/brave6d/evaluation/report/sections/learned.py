@@ -255,6 +255,15 @@ def read_benchmark_rows(path: Path) -> list[dict[str, Any]] | None:
     return rows if isinstance(rows, list) and all(isinstance(r, dict) for r in rows) else None
 
 
+def _detection_cells(r: Mapping[str, Any]) -> tuple[str, ...]:
+    """A detection benchmark row's recall per object, worst recall, AP per object and AR given the
+    detected boxes (RGB, + depth): the columns both detector tables share."""
+    ar = r.get("detected_ar") or {}
+    return (" / ".join(fmt(v, 2) for v in (r.get("recall") or {}).values()), fmt(r.get("recall_min"), 2),
+            " / ".join(fmt(v, 2) for v in (r.get("ap") or {}).values()), fmt(ar.get("detected_rgb"), 3),
+            fmt(ar.get("detected_depth"), 3))
+
+
 def _detect_scale_part(rows: list[dict[str, Any]] | None, current: Any) -> tuple[str, str]:
     """The table and advice of the detector's input widths (what each set buys in recall and AP, and costs in ms)."""
     if not rows:
@@ -263,12 +272,8 @@ def _detect_scale_part(rows: list[dict[str, Any]] | None, current: Any) -> tuple
     def widths(r: Mapping[str, Any]) -> str:
         return " + ".join(str(w) for w in (r.get("detect_widths") or ["?"]))
 
-    table_rows = [(" + ".join(fmt(x, 3) for x in (r.get("scales") or [])), widths(r),
-                   " / ".join(fmt(v, 2) for v in (r.get("recall") or {}).values()), fmt(r.get("recall_min"), 2),
-                   " / ".join(fmt(v, 2) for v in (r.get("ap") or {}).values()),
-                   fmt((r.get("detected_ar") or {}).get("detected_rgb"), 3),
-                   fmt((r.get("detected_ar") or {}).get("detected_depth"), 3), fmt(r.get("detect_ms"), 1))
-                  for r in rows]
+    table_rows = [(" + ".join(fmt(x, 3) for x in (r.get("scales") or [])), widths(r), *_detection_cells(r),
+                   fmt(r.get("detect_ms"), 1)) for r in rows]
     now = " + ".join(str(w) for w in current) if isinstance(current, list) and current else "?"
     table = ("The detector's input widths (`benchmarks/learned_detect_scale.py`; the estimator detects at "
              f"{now} px):\n\n"
@@ -292,11 +297,7 @@ def _detector_patch_part(rows: list[dict[str, Any]] | None, card: Mapping[str, A
         return f"{r.get('patch')} px x {r.get('steps')} steps"
 
     table_rows = [(r.get("patch"), r.get("steps"), fmt(r.get("detector_s"), 0), fmt(r.get("steps_per_s"), 2),
-                   " / ".join(fmt(v, 2) for v in (r.get("recall") or {}).values()), fmt(r.get("recall_min"), 2),
-                   " / ".join(fmt(v, 2) for v in (r.get("ap") or {}).values()),
-                   fmt((r.get("detected_ar") or {}).get("detected_rgb"), 3),
-                   fmt((r.get("detected_ar") or {}).get("detected_depth"), 3), _agents_cell(r.get("agents")))
-                  for r in rows]
+                   *_detection_cells(r), _agents_cell(r.get("agents"))) for r in rows]
     preset = card.get("preset") or {}
     now = f"{preset.get('detector_patch', '?')} px x {preset.get('detector_steps', '?')} steps"
     table = ("The detector's training patches (`benchmarks/learned_detector_patch.py`, the same coordinate net for "
