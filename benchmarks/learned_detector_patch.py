@@ -62,15 +62,19 @@ def main(argv: list[str] | None = None) -> int:
     done: dict[str, Any] = {}
     if report_path.is_file():
         done = {f"{r['patch']}:{r['steps']}": r for r in json.loads(report_path.read_text()).get("rows", [])}
-    train = load_training_data(args.train_pbr, args.models, base.work_width, base.heldout_every,
-                               crop_width=base.crop_source_width)
-    test = load_training_data(args.test_pbr, args.models, base.work_width, 2, crop_width=base.crop_source_width)
+    if all(f"{patch}:{steps}" in done for patch, steps in points):
+        train = test = None  # every point is in the JSON: nothing to train or score, so nothing to read
+    else:
+        train = load_training_data(args.train_pbr, args.models, base.work_width, base.heldout_every,
+                                   crop_width=base.crop_source_width)
+        test = load_training_data(args.test_pbr, args.models, base.work_width, 2, crop_width=base.crop_source_width)
     rows = []
     for patch, steps in points:
         key = f"{patch}:{steps}"
         if key in done:
             rows.append(done[key])
             continue
+        assert train is not None and test is not None
         preset = base.with_overrides(detector_patch=patch, detector_steps=steps, pose_steps=1)
         trained_dir = out_dir / f"detector-{patch}-{steps}"
         result = train_learned(args.train_pbr, args.models, trained_dir, preset, "cpu", show_progress=True, data=train)
