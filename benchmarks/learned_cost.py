@@ -33,6 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
 
+    from brave6d.evaluation.demo import learned_agent_scores
     from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, score_heldout, train_learned, \
         training_seconds
     from brave6d.synth import SynthOptions, synthesize
@@ -55,14 +56,14 @@ def main(argv: list[str] | None = None) -> int:
         assert result.model is not None and result.data is not None
         estimator = LearnedEstimator.load(out, models_dir=args.models)
         held = score_heldout(estimator, result.data, args.models, show_progress=False)
+        summary = held.detection_summary()
         row = {"images": images, "steps": steps, "synth_s": images / rate if rate else None,
                "train_s": training_seconds(result.seconds) if result.trained
                else None, "wall_s": wall, "heldout_images": held.images,
-               "heldout_ar": held.pose_ar, "recall_min": min(held.recall.values()),
-               "recall": {str(k): v for k, v in held.recall.items()}}
+               "heldout_ar": held.pose_ar, "recall_min": summary["recall_min"], "recall": summary["recall"]}
         if args.bundle is not None:
-            row["agents"] = _agents(args.bundle, out, args.out / f"episodes-{images}-{steps}", args.episodes_per_object,
-                                    args.device)
+            row["agents"] = learned_agent_scores(args.bundle, out, args.out / f"episodes-{images}-{steps}",
+                                                 args.episodes_per_object, args.device)
         rows.append(row)
         print(json.dumps(row), flush=True)
     report = {"synth_images_per_s": rate, "workers": args.workers, "points": rows}
@@ -70,16 +71,6 @@ def main(argv: list[str] | None = None) -> int:
     _plot(rows, args.out / "learned_cost.png")
     _table(rows)
     return 0
-
-
-def _agents(bundle: Path, model: Path, out: Path, episodes: int, device: str) -> dict[str, float]:
-    from brave6d.evaluation.agents import LEARNED_AGENTS
-    from brave6d.evaluation.demo import run_baselines
-
-    run = run_baselines(bundle, out, device=device, episodes_per_object=episodes, agents=list(LEARNED_AGENTS),
-                        learned_model=model)
-    return {a.agent: a.ar for a in run.board.agents} | {f"{a.agent} adjustments": a.mean_adjustments
-                                                         for a in run.board.agents}
 
 
 def _table(rows: list[dict]) -> None:

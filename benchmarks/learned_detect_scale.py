@@ -46,10 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     for scales in (tuple(float(x) for x in part.split(",")) for part in args.sets.split(";")):
         estimator.detect_scales = scales
         held = score_heldout(estimator, data, args.models, images=images)
-        row = {"scales": list(scales), "detect_widths": estimator.detect_widths, "images": held.images,
-               "instances": held.instances, "recall": {str(k): v for k, v in held.recall.items()},
-               "ap": {str(k): v for k, v in held.ap.items()}, "recall_min": min(held.recall.values()),
-               "detected_ar": {k: held.pose_ar[k] for k in ("detected_rgb", "detected_depth")},
+        row = {"scales": list(scales), "detect_widths": estimator.detect_widths, **held.detection_summary(),
                "detect_ms": 1000.0 * held.seconds_per_detection["image_median_s"],
                "refine_ms": 1000.0 * held.seconds_per_detection["refine_median_s"]}
         rows.append(row)

@@ -92,6 +92,18 @@ def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: i
     return BaselineRun(outcomes, board, width, height, bundle.name)
 
 
+def learned_agent_scores(bundle_dir: Path, model: Path, out_dir: Path, episodes_per_object: int,
+                         device: str = "cpu") -> dict[str, float]:
+    """Each learned agent's AR and mean adjustments (key ``"<agent> adjustments"``) on ``bundle_dir``'s
+    seeded episodes with the model in ``model`` (the benchmarks that price a learned setting)."""
+    from brave6d.evaluation.agents import LEARNED_AGENTS
+
+    run = run_baselines(bundle_dir, out_dir, device=device, episodes_per_object=episodes_per_object,
+                        agents=list(LEARNED_AGENTS), learned_model=model)
+    return {a.agent: a.ar for a in run.board.agents} | {f"{a.agent} adjustments": a.mean_adjustments
+                                                         for a in run.board.agents}
+
+
 def _image_size(agent: object, width: int, height: int, bundle: object) -> tuple[int, int]:
     """The episode images of ``agent``: its own ``image_width`` when it asks for one (the learned
     agents: the resolution their pose network was trained at), else ``width`` x ``height``."""

@@ -61,6 +61,17 @@ class HeldoutScores:
                 "seconds_per_detection": dict(self.seconds_per_detection),
                 "detection_threshold": DETECTION_THRESHOLD, "detect_widths": list(self.detect_widths)}
 
+    def detection_summary(self) -> dict[str, Any]:
+        """The detection figures the benchmarks tabulate per setting (JSON keys): images, instances,
+        recall and AP per object (obj_id as text), the worst object's recall, recall of the
+        detector's own boxes and the pose AR given the detected boxes (RGB only, + depth)."""
+        return {"images": self.images, "instances": self.instances,
+                "recall": {str(k): v for k, v in self.recall.items()},
+                "recall_min": min(self.recall.values()) if self.recall else float("nan"),
+                "recall_unrefined": {str(k): v for k, v in self.recall_raw.items()},
+                "ap": {str(k): v for k, v in self.ap.items()},
+                "detected_ar": {k: self.pose_ar[k] for k in ("detected_rgb", "detected_depth") if k in self.pose_ar}}
+
 
 def average_precision(scores: list[float], hits: list[bool], n_gt: int) -> float:
     """All-point interpolated AP of detections (``scores``, whether each is a true positive) against ``n_gt``."""
