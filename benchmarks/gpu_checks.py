@@ -33,7 +33,8 @@ about 4.5 MB, carried with the wheels: 52 MB together, the tree 11 MB, of the 64
    leaves it out;
 6. trains the learned estimator (``brave6d.evaluation.learned``, the ``fast`` preset cut to
    ``--learned-steps`` steps per network) on the carried split, on the GPU and, the same steps, on
-   the CPU: seconds and steps/s per network, the CPU/GPU ratio, and the held-out figures of
+   the CPU, and once more on the GPU in bfloat16 (``precision=bf16``, row ``cuda bf16``): seconds and
+   steps/s per network, the CPU/GPU ratio, and the held-out figures of
    ``score_heldout`` (detection recall at IoU 0.5, pose AR) where Open3D is installed (its VSD and
    depth refinement need it; elsewhere the report says the scoring was skipped and why, and
    ``score-learned`` scores the returned models here: ``python benchmarks/gpu_checks.py
@@ -106,13 +107,13 @@ def prepare(dest: Path) -> list[Path]:
     return wheels
 
 
-def learned_preset(steps: int) -> Any:
+def learned_preset(steps: int, precision: str = "fp32") -> Any:
     """The ``fast`` preset cut to ``steps`` per network, its crops from the 320-wide split itself
-    (no checkpoint inside the timed run)."""
+    (no checkpoint inside the timed run), trained in ``precision``."""
     from brave6d.evaluation.learned import get_learn_preset
 
     return get_learn_preset("fast").with_overrides(crop_source_width=320, detector_steps=steps, pose_steps=steps,
-                                                   checkpoint_every=steps)
+                                                   checkpoint_every=steps, precision=precision)
 
 
 def prepare_learned(dest: Path, images: int = 30, workers: int = 1) -> dict[str, Any]:
@@ -205,9 +206,9 @@ def load_learned_bundle(bundle: Path) -> tuple[Any, Path, dict[str, Any]]:
     return TrainingData(bundle, images, instances, load_objects(models), meta["digest"]), models, meta["source"]
 
 
-def train_learned_check(bundle: Path, out: Path, device: str, steps: int) -> dict[str, Any]:
-    """Step 6 on ``device``: train the carried split for ``steps`` per network; seconds and steps/s per
-    network, the final losses, and the held-out figures where Open3D is installed."""
+def train_learned_check(bundle: Path, out: Path, device: str, steps: int, precision: str = "fp32") -> dict[str, Any]:
+    """Step 6 on ``device``: train the carried split for ``steps`` per network in ``precision``; seconds
+    and steps/s per network, the final losses, and the held-out figures where Open3D is installed."""
     import importlib.util
     import shutil
 
@@ -216,16 +217,16 @@ def train_learned_check(bundle: Path, out: Path, device: str, steps: int) -> dic
     if not (bundle / "data.json").is_file():
         return {"ok": False, "skipped": f"no prepared split in {bundle} (run `python benchmarks/gpu_checks.py "
                                         "prepare` here and carry .whl)"}
-    model_dir = out / f"learned_{device}"
+    model_dir = out / (f"learned_{device}" if precision == "fp32" else f"learned_{device}_{precision}")
     shutil.rmtree(model_dir, ignore_errors=True)  # a model left by an earlier run would be reused, not timed
     try:
         data, models, source = load_learned_bundle(bundle)
-        preset = learned_preset(steps)
+        preset = learned_preset(steps, precision)
         result = train_learned(bundle, models, model_dir, preset, device, show_progress=False, data=data)
     except Exception as err:  # noqa: BLE001 - the report says why; the other checks go on
         return {"ok": False, "error": f"{type(err).__name__}: {err}"}
     report: dict[str, Any] = {
-        "ok": True, "preset": preset.name, "steps": steps, "split": source, "images": len(data.images),
+        "ok": True, "preset": preset.name, "precision": precision, "steps": steps, "split": source, "images": len(data.images),
         "heldout_images": len(data.split(True)), "losses": result.losses,
         "seconds": {k: result.seconds[k] for k in ("detector", "pose")},
         "steps_per_s": {k: steps / max(result.seconds[k], 1e-9) for k in ("detector", "pose")},
@@ -576,6 +577,10 @@ def run(args: argparse.Namespace) -> int:
         for device in devices:
             report["learned"][device] = train_learned_check(args.learned_bundle, out, device, args.learned_steps)
             report["learned_ratio"] = learned_ratio(report["learned"])
+            save()
+        if "cuda" in devices:  # what bfloat16 buys on the GPU (the CPU's figure: docs/BENCHMARKS.md)
+            report["learned"]["cuda bf16"] = train_learned_check(args.learned_bundle, out, "cuda", args.learned_steps,
+                                                                 "bf16")
             save()
     failed = (report.get("gsplat_build", {"ok": True})["ok"] is False
               or report.get("tests", {"exit": 0})["exit"] != 0

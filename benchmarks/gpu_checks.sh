@@ -25,7 +25,7 @@ if [ -z "${TORCH_CUDA_ARCH_LIST:-}" ]; then
 fi
 status=0
 python3 benchmarks/gpu_checks.py run --out "$work" "$@" 2>&1 | tee "$out/gpu_checks.log" || status=$?
-for f in gpu_checks.json gpu_checks.md pytest.log training_cuda.json vector_env_cuda.json learned_cuda/model.pt; do
+for f in gpu_checks.json gpu_checks.md pytest.log training_cuda.json vector_env_cuda.json learned_cuda/model.pt learned_cuda_bf16/model.pt; do
   if [ -f "$work/$f" ] && [ "$work" != "$out" ]; then mkdir -p "$out/$(dirname "$f")"; cp "$work/$f" "$out/$f"; fi
 done
 exit "$status"

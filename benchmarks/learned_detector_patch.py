@@ -4,7 +4,7 @@ detector trained on square patches of that many pixels for that many steps (ever
 per object and the pose AR given its detected boxes.
 
     python benchmarks/learned_detector_patch.py TRAIN_PBR MODELS_DIR TEST_PBR --pose-from MODEL_DIR
-        [--points "128:1200,96:1900,64:3350"] [--preset fast] [--out DIR]
+        [--points "128:2400,96:3800,64:6700"] [--preset fast] [--out DIR]
         [--bundle BUNDLE --episodes-per-object 6]
 
 The detector is what a patch buys: a smaller patch costs less per step, so more steps fit in the same
@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("models", type=Path, help="BOP models folder")
     parser.add_argument("test_pbr", type=Path, help="a split never trained on (every image is scored)")
     parser.add_argument("--pose-from", type=Path, required=True, help="a trained model whose coordinate net is used")
-    parser.add_argument("--points", default="128:1200,96:1900,64:3350", help="patch:steps,...")
+    parser.add_argument("--points", default="128:2400,96:3800,64:6700", help="patch:steps,...")
     parser.add_argument("--preset", default="fast", help="the preset the detectors and --pose-from's model share")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--bundle", type=Path, default=None, help="a bundle to play the learned agents on")
@@ -47,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from brave6d.core.atomic import atomic_write_json
     from brave6d.core.errors import BraveError
+    from brave6d.evaluation.demo import learned_agent_scores
     from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, load_training_data, read_model, \
         score_heldout, train_learned, write_model
 
@@ -69,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
                                    crop_width=base.crop_source_width)
         test = load_training_data(args.test_pbr, args.models, base.work_width, 2, crop_width=base.crop_source_width)
     rows = []
+    scored_now = 0
     for patch, steps in points:
         key = f"{patch}:{steps}"
         if key in done:
@@ -91,15 +93,13 @@ def main(argv: list[str] | None = None) -> int:
         held = score_heldout(estimator, test, args.models, images=list(range(len(test.images))))
         seconds = float(result.seconds["detector"])
         row = {"patch": patch, "steps": steps, "detector_s": seconds, "steps_per_s": steps / seconds,
-               "final_loss": result.losses.get("detector"), "images": held.images, "instances": held.instances,
-               "recall": {str(k): v for k, v in held.recall.items()}, "recall_min": min(held.recall.values()),
-               "recall_unrefined": {str(k): v for k, v in held.recall_raw.items()},
-               "ap": {str(k): v for k, v in held.ap.items()},
-               "detected_ar": {k: held.pose_ar[k] for k in ("detected_rgb", "detected_depth")}}
+               "final_loss": result.losses.get("detector"), **held.detection_summary()}
         if args.bundle is not None:
-            row["agents"] = _agents(args.bundle, scored_dir, trained_dir / "episodes", args.episodes_per_object)
+            row["agents"] = learned_agent_scores(args.bundle, scored_dir, trained_dir / "episodes",
+                                                 args.episodes_per_object)
         rows.append(row)
         done[key] = row
+        scored_now += 1
         atomic_write_json(report_path, {"train_pbr": str(args.train_pbr), "test_pbr": str(args.test_pbr),
                                         "pose_from": str(args.pose_from), "rows": list(done.values())})
         print(json.dumps(row), flush=True)
@@ -112,18 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         if "agents" in r:
             print(f"{r['patch']} px x {r['steps']}: " + ", ".join(f"{k} {v:.3f}" for k, v in r["agents"].items()))
-    print(f"written: {report_path}")
+    print(f"written: {report_path}" if scored_now else f"every point was already in {report_path}; nothing written")
     return 0
-
-
-def _agents(bundle: Path, model: Path, out: Path, episodes: int) -> dict[str, float]:
-    """The learned agents' AR on ``bundle``'s seeded episodes with ``model``."""
-    from brave6d.evaluation.agents import LEARNED_AGENTS
-    from brave6d.evaluation.demo import run_baselines
-
-    board = run_baselines(bundle, out, device="cpu", episodes_per_object=episodes, agents=list(LEARNED_AGENTS),
-                          learned_model=model).board
-    return {a.agent: a.ar for a in board.agents}
 
 
 if __name__ == "__main__":

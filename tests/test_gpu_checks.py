@@ -114,8 +114,9 @@ def test_the_learned_step_trains_the_carried_split_without_open3d_and_is_scored_
     code = ("import json, sys; sys.modules['open3d'] = None  # as on the GPU machine\n"
             f"sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); import gpu_checks as g; from pathlib import Path\n"
             f"r = g.train_learned_check(Path({str(bundle)!r}), Path({str(device_out)!r}), 'cpu', 20)\n"
+            f"b = g.train_learned_check(Path({str(bundle)!r}), Path({str(device_out)!r}), 'cpu', 20, 'bf16')\n"
             f"g.write_report(Path({str(device_out)!r}), {{'cuda': None, 'torch': '', 'python': '', 'commit': '',"
-            " 'learned': {'cpu': r}})\n")
+            " 'learned': {'cpu': r, 'cpu bf16': b}})\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     run = json.loads((device_out / "gpu_checks.json").read_text())["learned"]["cpu"]
@@ -124,6 +125,9 @@ def test_the_learned_step_trains_the_carried_split_without_open3d_and_is_scored_
     assert all(math.isfinite(v) for v in run["losses"].values()) and (device_out / run["model"]).is_file()
     page = (device_out / "gpu_checks.md").read_text()
     assert "| cpu | 20 |" in page and "not scored" in page and "held-out scoring skipped: open3d" in page
+    bf16 = json.loads((device_out / "gpu_checks.json").read_text())["learned"]["cpu bf16"]
+    assert bf16["ok"] and bf16["precision"] == "bf16" and bf16["model"] != run["model"], bf16
+    assert all(math.isfinite(v) for v in bf16["losses"].values()) and "| cpu bf16 | 20 |" in page
 
     report = gpu_checks.score_returned(device_out, tmp_path / "scored", bundle)
     held = report["learned"]["cpu"]["heldout"]

@@ -129,6 +129,29 @@ def test_a_stopped_run_resumes_to_the_same_weights(split: tuple[Path, Path], tmp
             assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), (stop, part)
 
 
+def test_bfloat16_training_is_seeded_finite_and_resumes_to_the_same_weights(split: tuple[Path, Path],
+                                                                          tmp_path: Path) -> None:
+    preset = get_learn_preset("tiny").with_overrides(detector_steps=20, pose_steps=20, checkpoint_every=10,
+                                                     precision="bf16")
+    whole = train_learned(split[0], split[1], tmp_path / "whole", preset, "cpu", show_progress=False).model
+    again = train_learned(split[0], split[1], tmp_path / "again", preset, "cpu", show_progress=False).model
+    out = tmp_path / "stopped"
+    train_learned(split[0], split[1], out, preset, "cpu", show_progress=False, stop_after_steps=15)
+    resumed = train_learned(split[0], split[1], out, preset, "cpu", resume=True, show_progress=False).model
+    fp32 = train_learned(split[0], split[1], tmp_path / "fp32", preset.with_overrides(precision="fp32"), "cpu",
+                         show_progress=False).model
+    assert whole is not None and again is not None and resumed is not None and fp32 is not None
+    for part in ("detector_state", "pose_state"):
+        a, b, c = getattr(whole, part), getattr(again, part), getattr(resumed, part)
+        assert all(torch.isfinite(v).all() for v in a.values() if v.is_floating_point()), part
+        assert all(torch.equal(a[k], b[k]) and torch.equal(a[k], c[k]) for k in a), part
+        # the weights stay float32, and bfloat16's rounding gives other weights than fp32's run
+        assert all(v.dtype == torch.float32 for v in a.values() if v.is_floating_point())
+        other = getattr(fp32, part)
+        assert any(not torch.equal(a[k], other[k]) for k in a if a[k].is_floating_point()), part
+    assert read_model(tmp_path / "whole").preset["precision"] == "bf16"
+
+
 def test_a_finished_model_is_reused_and_other_inputs_move_it_aside(split: tuple[Path, Path], tmp_path: Path) -> None:
     preset = get_learn_preset("tiny").with_overrides(detector_steps=4, pose_steps=4)
     out = tmp_path / "m"
@@ -173,7 +196,7 @@ def test_the_cost_benchmark_prices_images_and_steps(tmp_path: Path) -> None:
 
 
 def test_the_patch_benchmark_prices_the_detector_and_resumes(split: tuple[Path, Path], trained: Path,
-                                                              tmp_path: Path) -> None:
+                                                              tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     import importlib.util
     import json
 
@@ -192,6 +215,8 @@ def test_the_patch_benchmark_prices_the_detector_and_resumes(split: tuple[Path, 
     for r in rows:
         assert r["images"] == 30 and r["detector_s"] > 0 and set(r["recall"]) == {"1", "2", "3", "4"}
         assert set(r["detected_ar"]) == {"detected_rgb", "detected_depth"}
+        assert r["recall_min"] == min(r["recall"].values()) and set(r["recall_unrefined"]) == set(r["recall"])
+    assert "written:" in capsys.readouterr().out
     # the scored model is the point's detector with the given model's coordinate net
     scored = read_model(tmp_path / "detector-64-12" / "with-pose")
     assert scored.preset["detector_patch"] == 64 and scored.preset["detector_steps"] == 12
@@ -201,5 +226,33 @@ def test_the_patch_benchmark_prices_the_detector_and_resumes(split: tuple[Path, 
     # a second run keeps the finished points (a trained one found again without its row is refused)
     stamp = (tmp_path / "detector-64-12" / "model.pt").stat().st_mtime_ns
     assert bench.main(args) == 0 and (tmp_path / "detector-64-12" / "model.pt").stat().st_mtime_ns == stamp
+    assert "nothing written" in capsys.readouterr().out
     with pytest.raises(BraveError, match="differ from 'fast'"):
         bench.main(args[:5] + ["--out", str(tmp_path / "other")])
+
+
+def test_the_precision_benchmark_prices_bf16_against_fp32_and_resumes(split: tuple[Path, Path], tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib.util
+    import json
+
+    from brave6d.core.errors import BraveError
+    from learned_helpers import ROOT
+
+    spec = importlib.util.spec_from_file_location("learned_precision", ROOT / "benchmarks" / "learned_precision.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    args = [str(split[0]), str(split[1]), str(split[0]), "--out", str(tmp_path), "--preset", "tiny",
+            "--points", "fp32:8:6,bf16:8:6"]
+    assert bench.main(args) == 0 and "written:" in capsys.readouterr().out
+    rows = json.loads((tmp_path / "precision.json").read_text())["rows"]
+    assert [(r["precision"], r["detector_steps"], r["pose_steps"]) for r in rows] == [("fp32", 8, 6), ("bf16", 8, 6)]
+    for r in rows:
+        assert r["images"] == 30 and r["train_s"] > 0 and set(r["recall"]) == {"1", "2", "3", "4"}
+        assert set(r["pose_ar"]) == {"true_box_rgb", "true_box_depth", "detected_rgb", "detected_depth"}
+        assert read_model(tmp_path / f"model-{r['precision']}-8-6").preset["precision"] == r["precision"]
+    stamp = (tmp_path / "model-bf16-8-6" / "model.pt").stat().st_mtime_ns
+    assert bench.main(args) == 0 and "nothing written" in capsys.readouterr().out
+    assert (tmp_path / "model-bf16-8-6" / "model.pt").stat().st_mtime_ns == stamp
+    with pytest.raises(BraveError, match=r"'bf16:8' is not precision:detector_steps:pose_steps"):
+        bench.main(args[:-1] + ["bf16:8"])

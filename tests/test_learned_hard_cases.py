@@ -222,16 +222,35 @@ def test_a_non_finite_loss_stops_training_naming_the_network_and_step(tmp_path, 
     assert not (tmp_path / "out" / "model.pt").exists()
 
 
+def test_auto_precision_is_bf16_only_where_the_device_has_it_and_the_model_says_what_ran(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    import torch
+
+    from brave6d.evaluation.learned import training
+
+    cpu, auto = torch.device("cpu"), get_learn_preset("fast").with_overrides(precision="auto")
+    for native, runs in ((True, "bf16"), (False, "fp32")):
+        monkeypatch.setattr(training, "native_bf16", lambda device, native=native: native)
+        assert training.resolve_precision(auto, cpu).precision == runs
+    assert training.resolve_precision(auto.with_overrides(precision="fp32"), cpu).precision == "fp32"
+    with caplog.at_level("WARNING"):  # asked for explicitly, bf16 runs (emulated), and says so
+        assert training.resolve_precision(auto.with_overrides(precision="bf16"), cpu).precision == "bf16"
+    assert "without native bfloat16" in caplog.text
+
+
 def test_preset_overrides_from_the_command_line_keep_types_and_name_bad_fields() -> None:
     from brave6d.evaluation.learned.cli import parse_overrides
 
     fast = get_learn_preset("fast")
     changed = fast.with_overrides(**parse_overrides(fast, ["work_width=640", "detector_lr=1e-3"]))
     assert changed.work_width == 640 and isinstance(changed.work_width, int) and changed.detector_lr == 1e-3
-    for bad, says in (("colour=1", "numeric field of the preset"), ("work_width", "FIELD=VALUE"),
+    assert fast.with_overrides(**parse_overrides(fast, ["precision=bf16"])).precision == "bf16"
+    for bad, says in (("colour=1", "a field of the preset"), ("work_width", "FIELD=VALUE"),
                       ("work_width=6.5", "not a valid integer"), ("detector_lr=fast", "not a valid number"),
-                      ("name=3", "numeric field")):
+                      ("name=3", "a field of the preset")):
         with pytest.raises(BraveError, match=says):
             parse_overrides(fast, [bad])
+    with pytest.raises(BraveError, match=r"precision must be one of auto, fp32, bf16, got 'fp16'"):
+        fast.with_overrides(**parse_overrides(fast, ["precision=fp16"]))
     with pytest.raises(BraveError, match="crop_source_width"):  # the preset's own checks still apply
         fast.with_overrides(**parse_overrides(fast, ["work_width=1280"]))

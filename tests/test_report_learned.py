@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from brave6d.evaluation.report.measurements import Measurement
-from brave6d.evaluation.report.sections.learned import COST_FILE, DETECT_SCALE_FILE, DETECTOR_PATCH_FILE, VARIANTS, best_detections, \
+from brave6d.evaluation.report.sections.learned import COST_FILE, DETECT_SCALE_FILE, DETECTOR_PATCH_FILE, PRECISION_FILE, VARIANTS, best_detections, \
     cost_path, estimate_target, read_benchmark_rows, read_cost
 from brave6d.evaluation.report.sections.learned import render_learned
 from brave6d.evaluation.report.sections.learned import ring_rows, xywh_to_box
@@ -142,6 +142,32 @@ def test_the_detector_patch_table_and_advice_come_from_the_benchmark_file(tmp_pa
     with_agents = render_learned(m, tmp_path, None, None, read_benchmark_rows(path))
     assert "0.200 / 0.280 (0.500 / 0.610)" in with_agents.body
     assert "As agents, 128 px x 1200 steps give learned-active-depth the best AR (0.610)" in with_agents.advice
+
+
+def _precision_row(precision: str, steps: tuple[int, int], seconds: float, recall: list[float], ar_depth: float) -> dict:
+    return {"point": f"{precision}:{steps[0]}:{steps[1]}", "precision": precision, "detector_steps": steps[0],
+            "pose_steps": steps[1], "train_s": seconds,
+            "recall": {str(i + 1): r for i, r in enumerate(recall)}, "recall_min": min(recall),
+            "ap": {str(i + 1): r - 0.05 for i, r in enumerate(recall)},
+            "detected_ar": {"detected_rgb": 0.2, "detected_depth": ar_depth},
+            "pose_ar": {"true_box_rgb": 0.25, "true_box_depth": 0.7, "detected_rgb": 0.2, "detected_depth": ar_depth}}
+
+
+def test_the_precision_table_and_advice_come_from_the_benchmark_file(tmp_path: Path) -> None:
+    path = tmp_path / PRECISION_FILE
+    path.write_text(json.dumps({"rows": [_precision_row("fp32", (1200, 1000), 111.0, [0.88, 0.75], 0.573),
+                                         _precision_row("bf16", (1200, 1000), 74.0, [0.82, 0.74], 0.569),
+                                         _precision_row("bf16", (2400, 2000), 128.0, [0.84, 0.91], 0.716)]}))
+    m = _measurement([_point(0, 0.2, 0.6, 0.6)])
+    m.summary["card"] = {"preset": {"precision": "bf16", "detector_steps": 2400, "pose_steps": 2000}}
+    section = render_learned(m, tmp_path, None, None, None, read_benchmark_rows(path))
+    assert "this model trained bf16 x 2400 + 2000 steps" in section.body
+    assert any(line.replace(" ", "").startswith("|bf16|2400+2000|128|0.250|0.700|") for line in section.body.splitlines())
+    assert "bf16 x 2400 + 2000 steps gives the best AR given detected boxes with depth (0.716" in section.advice
+    assert "the quickest, bf16 x 1200 + 1000 steps, 0.569 (0.74) in 74 s" in section.advice
+    assert "At the same steps bf16 trains in 0.67x fp32's time" in section.advice
+    without = render_learned(m, tmp_path, None, None, None, None)
+    assert "Training precision" not in without.body and "At the same steps" not in without.advice
 
 
 @given(st.lists(st.floats(-1e6, 1e6), min_size=4, max_size=4), st.integers(1, 8))

@@ -52,17 +52,21 @@ def _scales(text: str) -> tuple[float, ...]:
         raise argparse.ArgumentTypeError(f"{text!r}: every scale must be a positive finite number ({exc})") from None
 
 
-def parse_overrides(preset: LearnPreset, items: list[str]) -> dict[str, int | float]:
-    """``FIELD=VALUE`` strings as preset field changes, each value of its field's type (int or float)."""
+def parse_overrides(preset: LearnPreset, items: list[str]) -> dict[str, int | float | str]:
+    """``FIELD=VALUE`` strings as preset field changes, each value of its field's type (int, float
+    or text: ``precision``)."""
     from brave6d.core.errors import BraveError
 
-    out: dict[str, int | float] = {}
+    out: dict[str, int | float | str] = {}
     for item in items:
         name, sep, value = item.partition("=")
         current = getattr(preset, name.strip(), None) if sep else None
-        if not sep or name.strip() == "name" or not isinstance(current, (int, float)):
-            raise BraveError(f"learn train: --set {item!r}: expected FIELD=VALUE with FIELD a numeric field of the "
+        if not sep or name.strip() == "name" or not isinstance(current, (int, float, str)):
+            raise BraveError(f"learn train: --set {item!r}: expected FIELD=VALUE with FIELD a field of the "
                              f"preset ({', '.join(k for k, v in preset.to_json().items() if k != 'name')})")
+        if isinstance(current, str):
+            out[name.strip()] = value.strip()
+            continue
         try:
             out[name.strip()] = int(value) if isinstance(current, int) else float(value)
         except ValueError:

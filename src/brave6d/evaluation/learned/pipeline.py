@@ -40,7 +40,8 @@ def learn_and_card(train_pbr: Path | str, models_dir: Path | str, out: Path | st
     import torch
 
     fields = card_fields(Path(train_pbr), data.digest, len(data.images), len(data.split(True)), data.classes,
-                         preset.to_json(), "cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available())
+                         dict(result.model.preset) if result.model is not None else preset.to_json(),  # as it ran
+                         "cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available())
                          else "cpu", result.seconds, result.losses, file_sha256(out / MODEL), scores)
     write_card(out, fields)
     return read_card(out)

@@ -13,6 +13,9 @@ from typing import Any
 
 from brave6d.core.errors import BraveError
 
+#: The training precisions (``LearnPreset.precision``).
+PRECISIONS = ("auto", "fp32", "bf16")
+
 
 @dataclass(frozen=True)
 class LearnPreset:
@@ -24,7 +27,10 @@ class LearnPreset:
     pixels around objects (it is fully convolutional; whole images cost 4x more); ``crop_px``: the coordinate net's zoomed-in crop; ``*_steps``,
     ``*_batch``, ``*_lr``, ``*_width``: each network's schedule and size (base channels);
     ``heldout_every``: every n-th train_pbr image is held out (never trained on); ``checkpoint_every``:
-    steps between checkpoints (a stopped run resumes there)."""
+    steps between checkpoints (a stopped run resumes there); ``precision``: ``fp32``, ``bf16`` (the
+    networks' forward passes in bfloat16 under autocast, channels-last; the weights, optimiser and
+    losses stay float32: 1.5x the step rate of fp32 on the 2-core box, docs/BENCHMARKS.md prices it)
+    or ``auto`` (bf16 where the device has it natively: a CPU with AVX512-BF16 or AMX, a GPU; else fp32)."""
 
     name: str
     work_width: int = 320
@@ -42,11 +48,12 @@ class LearnPreset:
     heldout_every: int = 10
     checkpoint_every: int = 100
     seed: int = 0
+    precision: str = "fp32"
 
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name == "name":
+            if f.name in ("name", "precision"):
                 continue
             if isinstance(value, float) and not (math.isfinite(value) and value > 0):
                 raise BraveError(f"learn preset {self.name!r}: field '{f.name}' must be a positive finite number, "
@@ -59,6 +66,9 @@ class LearnPreset:
         if self.work_width < 64 or self.crop_px < 32 or self.crop_px % 16 or self.detector_patch % 16:
             raise BraveError(f"learn preset {self.name!r}: work_width >= 64, crop_px and detector_patch "
                              f"multiples of 16 are needed, got {self.work_width}, {self.crop_px}, {self.detector_patch}")
+        if self.precision not in PRECISIONS:
+            raise BraveError(f"learn preset {self.name!r}: precision must be one of {', '.join(PRECISIONS)}, "
+                             f"got {self.precision!r}")
         if self.heldout_every < 2:
             raise BraveError(f"learn preset {self.name!r}: heldout_every must be >= 2 (1 would hold out everything)")
 
@@ -75,8 +85,9 @@ class LearnPreset:
 
 
 PRESETS: dict[str, LearnPreset] = {
-    # the detector's 1200 steps end with the coordinate net's 1000 when both train at once on 2 cores
-    "fast": LearnPreset("fast", detector_steps=1200),
+    # bfloat16 where the CPU has it: 2400 + 2000 steps in about 1.15x the time of fp32's former 1200 + 1000
+    # (the detector's steps end with the coordinate net's when both train at once on 2 cores)
+    "fast": LearnPreset("fast", detector_steps=2400, pose_steps=2000, precision="auto"),
     "paper": LearnPreset("paper", work_width=640, crop_source_width=640, crop_px=128, detector_steps=20000, detector_batch=32,
                          detector_width=32, pose_steps=40000, pose_batch=64, pose_width=32, checkpoint_every=1000),
     # the miniature runs of the tests: a few hundred steps

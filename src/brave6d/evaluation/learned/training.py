@@ -90,6 +90,7 @@ def train_learned(train_pbr: Path | str, models_dir: Path | str, out: Path | str
     if data is None:
         data = load_training_data(train_pbr, models_dir, preset.work_width, preset.heldout_every, max_images=max_images,
                                   show_progress=show_progress, crop_width=preset.crop_source_width)
+    preset = resolve_precision(preset, dev)
     key = inputs_key(f"{data.digest}:{len(data.images)}", Path(models_dir), preset, dev.type)
     seconds = {"read": time.perf_counter() - t0}
     if (out / MODEL).is_file():
@@ -157,13 +158,48 @@ def phase_loss(phase: str, net: Any, data: TrainingData, pool: list[int], rng: n
     from brave6d.evaluation.learned.losses import detector_loss, pose_loss
     from brave6d.evaluation.learned.targets import detector_batch, pose_batch
 
+    low = preset.precision == "bf16"
     if phase == "detector":
         batch = detector_batch(data, pool, rng, preset.detector_batch, preset.detector_patch)
         t = {k: torch.from_numpy(v).to(device) for k, v in batch.items()}
-        return detector_loss(*net(t["images"]), t)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=low):
+            out = net(_memory_format(t["images"], low))
+        return detector_loss(*(o.float() for o in out), t)
     batch = pose_batch(data, pool, rng, preset.pose_batch, preset.crop_px)
     t = {k: torch.from_numpy(v).to(device) for k, v in batch.items()}
-    return pose_loss(*net(t["crops"], t["classes"]), t)
+    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=low):
+        out = net(_memory_format(t["crops"], low), t["classes"])
+    return pose_loss(*(o.float() for o in out), t)
+
+
+def _memory_format(images: Any, channels_last: bool) -> Any:
+    import torch
+
+    return images.contiguous(memory_format=torch.channels_last) if channels_last else images
+
+
+def native_bf16(device: Any) -> bool:
+    """Whether ``device`` computes in bfloat16 natively: a GPU that supports it, a CPU with AVX512-BF16
+    or AMX (elsewhere torch emulates it, slower than float32)."""
+    import torch
+
+    if device.type == "cuda":
+        return bool(torch.cuda.is_bf16_supported())
+    cpu = getattr(torch, "cpu", None)
+    checks = [getattr(cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
+    return any(bool(check()) for check in checks if check is not None)
+
+
+def resolve_precision(preset: LearnPreset, device: Any) -> LearnPreset:
+    """``preset`` with its precision as it will run on ``device``: ``auto`` -> ``bf16`` where the device
+    has it natively, else ``fp32`` (the card and the reuse checksum record what ran); an explicit
+    ``bf16`` without native support runs, with a warning."""
+    if preset.precision == "auto":
+        return preset.with_overrides(precision="bf16" if native_bf16(device) else "fp32")
+    if preset.precision == "bf16" and not native_bf16(device):
+        log.warning("learn: precision bf16 on a %s without native bfloat16 (AVX512-BF16 or AMX): it is emulated "
+                    "and may be slower than fp32 (set precision=fp32 or auto)", device.type.upper())
+    return preset
 
 
 class _Trainer:
@@ -181,6 +217,8 @@ class _Trainer:
         classes = len(data.objects)
         self.nets = {"detector": Detector(classes, preset.detector_width).to(device),
                      "pose": CoordinateNet(classes, preset.pose_width).to(device)}
+        if preset.precision == "bf16":  # bfloat16 convolutions run fastest on channels-last tensors
+            self.nets = {k: net.to(memory_format=torch.channels_last) for k, net in self.nets.items()}
         self.opts = {"detector": torch.optim.AdamW(self.nets["detector"].parameters(), lr=preset.detector_lr,
                                                    weight_decay=1e-4),
                      "pose": torch.optim.AdamW(self.nets["pose"].parameters(), lr=preset.pose_lr, weight_decay=1e-4)}

@@ -17,7 +17,8 @@ renders of the same poses, against distance, and what its accuracy costs in time
   ``detect_scale.json`` beside it when ``benchmarks/learned_detect_scale.py`` has (detection
   recall, AP and milliseconds against the detector's input width) and ``detector_patch.json`` when
   ``benchmarks/learned_detector_patch.py`` has (recall, AP and AR against the detector's training
-  patch and steps, with their seconds).
+  patch and steps, with their seconds) and ``precision.json`` when ``benchmarks/learned_precision.py``
+  has (recall and AR against the training precision and steps, with their seconds).
 """
 
 from __future__ import annotations
@@ -55,6 +56,8 @@ COST_FILE = Path("learned") / "cost" / "learned_cost.json"
 DETECT_SCALE_FILE = "detect_scale.json"
 #: Where ``benchmarks/learned_detector_patch.py`` writes for the report (beside ``COST_FILE``).
 DETECTOR_PATCH_FILE = "detector_patch.json"
+#: Where ``benchmarks/learned_precision.py`` writes for the report (beside ``COST_FILE``).
+PRECISION_FILE = "precision.json"
 
 
 @dataclass(frozen=True)
@@ -245,8 +248,8 @@ def read_cost(path: Path) -> dict[str, Any] | None:
 
 
 def read_benchmark_rows(path: Path) -> list[dict[str, Any]] | None:
-    """The rows of ``benchmarks/learned_detect_scale.py``'s or ``learned_detector_patch.py``'s JSON
-    ``path`` (None when absent or unreadable)."""
+    """The rows of ``benchmarks/learned_detect_scale.py``'s, ``learned_detector_patch.py``'s or
+    ``learned_precision.py``'s JSON ``path`` (None when absent or unreadable)."""
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
@@ -315,6 +318,47 @@ def _detector_patch_part(rows: list[dict[str, Any]] | None, card: Mapping[str, A
         agent = max(played, key=lambda r: num(r["agents"].get("learned-active-depth")))
         advice += (f" As agents, {point(agent)} give learned-active-depth the best AR "
                    f"({fmt(agent['agents'].get('learned-active-depth'), 3)}): choose the patch by this, not by recall alone.")
+    return table, advice
+
+
+def _precision_part(rows: list[dict[str, Any]] | None, card: Mapping[str, Any]) -> tuple[str, str]:
+    """The table and advice of the training precision and steps (what each buys in recall and AR, and
+    costs in training seconds)."""
+    if not rows:
+        return "", ""
+
+    def point(r: Mapping[str, Any]) -> str:
+        return f"{r.get('precision')} x {r.get('detector_steps')} + {r.get('pose_steps')} steps"
+
+    def ar(r: Mapping[str, Any], variant: str) -> float:
+        return num((r.get("pose_ar") or {}).get(variant))
+
+    table_rows = [(r.get("precision"), f"{r.get('detector_steps')} + {r.get('pose_steps')}", fmt(r.get("train_s"), 0),
+                   fmt(ar(r, "true_box_rgb"), 3), fmt(ar(r, "true_box_depth"), 3), *_detection_cells(r),
+                   _agents_cell(r.get("agents"))) for r in rows]
+    preset = card.get("preset") or {}
+    now = (f"{preset.get('precision', 'fp32')} x {preset.get('detector_steps', '?')} + "
+           f"{preset.get('pose_steps', '?')} steps")
+    table = ("Training precision and steps (`benchmarks/learned_precision.py`, both networks trained per row; this "
+             f"model trained {now}):\n\n"
+             + format_table(["precision", "steps det + pose", "train s", "AR true RGB", "AR true +D",
+                             "recall per object", "recall min", "AP per object", "AR det RGB", "AR det +D",
+                             "agents static / active (+D)"], table_rows) + "\n")
+    best = max(rows, key=lambda r: ar(r, "detected_depth"))
+    cheapest = min(rows, key=lambda r: num(r.get("train_s")))
+    advice = (f" Training: {point(best)} gives the best AR given detected boxes with depth "
+              f"({fmt(ar(best, 'detected_depth'), 3)}, worst-object recall {fmt(best.get('recall_min'), 2)}) in "
+              f"{fmt(best.get('train_s'), 0)} s; the quickest, {point(cheapest)}, "
+              f"{fmt(ar(cheapest, 'detected_depth'), 3)} ({fmt(cheapest.get('recall_min'), 2)}) in "
+              f"{fmt(cheapest.get('train_s'), 0)} s.")
+    same = {(r.get("detector_steps"), r.get("pose_steps")): r for r in rows if r.get("precision") == "fp32"}
+    pairs = [(same[(r.get("detector_steps"), r.get("pose_steps"))], r) for r in rows
+             if r.get("precision") == "bf16" and (r.get("detector_steps"), r.get("pose_steps")) in same]
+    if pairs:
+        fp32, bf16 = pairs[0]
+        advice += (f" At the same steps bf16 trains in {fmt(num(bf16.get('train_s')) / num(fp32.get('train_s')), 2)}x "
+                   f"fp32's time (AR detected + depth {fmt(ar(bf16, 'detected_depth'), 3)} vs "
+                   f"{fmt(ar(fp32, 'detected_depth'), 3)}): where the CPU has bfloat16, spend the time it saves on steps.")
     return table, advice
 
 
@@ -391,7 +435,8 @@ def _cost_part(cost: dict[str, Any] | None, ax: Any) -> tuple[str, str]:
 
 def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | None = None,
                    detect_scale: list[dict[str, Any]] | None = None,
-                   detector_patch: list[dict[str, Any]] | None = None) -> RenderedSection:
+                   detector_patch: list[dict[str, Any]] | None = None,
+                   precision: list[dict[str, Any]] | None = None) -> RenderedSection:
     """Section 10 from its measurement (and the cost benchmarks' results, when there are some)."""
     if m is None or not m.usable or not m.points:
         return unavailable(TITLE, m, "The learned estimator's study")
@@ -416,6 +461,7 @@ def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | 
     cost_table, cost_advice = _cost_part(cost, ax_cost)
     scale_table, scale_advice = _detect_scale_part(detect_scale, m.summary.get("detect_widths"))
     patch_table, patch_advice = _detector_patch_part(detector_patch, card)
+    precision_table, precision_advice = _precision_part(precision, card)
     png = save_figure(fig, out_dir / FIGURE, "Learned estimator: AR against distance on captured frames and splat renders",
                       describe_machine(m.machine), settings_line(m))
     table = [(fmt(r["distance_m"] * 100, 0), r["views"], r["targets"], fmt(r["bbox_diag_px"], 0),
@@ -433,8 +479,10 @@ def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | 
             "AR captured / splat (gap ± SE) per ring:\n\n"
             + format_table(["cm", "views", "targets", "box diag px", *(LABELS[v] for v in VARIANTS)], table) + "\n\n"
             + cost_table + "\n" + (scale_table + "\n" if scale_table else "")
-            + (patch_table + "\n" if patch_table else "") + provenance(m) + "\n" + nan_note(dropped, "plotted learned-estimator values"))
-    return RenderedSection(TITLE, body, advice_learned(rows, card) + cost_advice + scale_advice + patch_advice, [png])
+            + (patch_table + "\n" if patch_table else "") + (precision_table + "\n" if precision_table else "")
+            + provenance(m) + "\n" + nan_note(dropped, "plotted learned-estimator values"))
+    return RenderedSection(TITLE, body, advice_learned(rows, card) + cost_advice + scale_advice + patch_advice
+                           + precision_advice, [png])
 
 
 def advice_learned(rows: list[dict[str, Any]], card: Mapping[str, Any]) -> str:
@@ -493,7 +541,8 @@ class LearnedSection:
             return render_learned(m, out_dir)
         folder = Path(str(cost)).parent
         return render_learned(m, out_dir, read_cost(Path(str(cost))), read_benchmark_rows(folder / DETECT_SCALE_FILE),
-                              read_benchmark_rows(folder / DETECTOR_PATCH_FILE))
+                              read_benchmark_rows(folder / DETECTOR_PATCH_FILE),
+                              read_benchmark_rows(folder / PRECISION_FILE))
 
 
 SECTION = LearnedSection()
