@@ -34,11 +34,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     from brave6d.evaluation.demo import learned_agent_scores
-    from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, score_heldout, train_learned, \
-        training_seconds
+    from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, resolve_precision, score_heldout, \
+        train_learned, training_seconds
+    from brave6d.training import resolve_device
     from brave6d.synth import SynthOptions, synthesize
 
     points = [tuple(int(x) for x in p.split(":")) for p in args.points.split(",")]
+    fast = resolve_precision(get_learn_preset("fast"), resolve_device(args.device))  # each point at the steps it names
     total = max(n for n, _ in points)
     synth = synthesize(args.spec, args.out / "synth", SynthOptions(images=total, seed=0, workers=args.workers))
     rate = synth.images_per_s
@@ -47,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
             if (args.out / "learned_cost.json").is_file() else 0
     rows = []
     for images, steps in points:
-        preset = get_learn_preset("fast").with_overrides(detector_steps=steps, pose_steps=steps)
+        preset = fast.with_overrides(detector_steps=steps, pose_steps=steps)
         out = args.out / f"model-{images}-{steps}"
         t0 = time.perf_counter()
         result = train_learned(args.out / "synth", args.models, out, preset, args.device, show_progress=False,

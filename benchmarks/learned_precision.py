@@ -84,11 +84,12 @@ def main(argv: list[str] | None = None) -> int:
         assert result.model is not None
         estimator = LearnedEstimator.load(model_dir, models_dir=args.models)
         held = score_heldout(estimator, test, args.models, images=list(range(len(test.images))))
-        row = {"point": key, "precision": result.model.preset["precision"], "detector_steps": point[1],
-               "pose_steps": point[2], "train_s": training_seconds(result.seconds),
+        ran = result.model.preset  # as it ran (an ``auto`` point resolved)
+        row = {"point": key, "precision": ran["precision"], "detector_steps": ran["detector_steps"],
+               "pose_steps": ran["pose_steps"], "train_s": training_seconds(result.seconds),
                "seconds": {k: result.seconds[k] for k in ("detector", "pose")},
-               "steps_per_s": {"detector": point[1] / result.seconds["detector"],
-                               "pose": point[2] / result.seconds["pose"]},
+               "steps_per_s": {"detector": ran["detector_steps"] / result.seconds["detector"],
+                               "pose": ran["pose_steps"] / result.seconds["pose"]},
                "losses": result.losses, **held.detection_summary(), "pose_ar": dict(held.pose_ar)}
         if args.bundle is not None:
             row["agents"] = learned_agent_scores(args.bundle, model_dir, model_dir / "episodes",

@@ -4,7 +4,7 @@ on a dataset's own synthetic ``train_pbr`` (``brave6d synth``), no downloaded we
 Public API (imported lazily: ``import brave6d.evaluation.learned`` loads no torch):
 
 - training: ``train_learned`` (``brave6d learn train``), ``LearnResult``, ``LearnPreset``,
-  ``get_learn_preset``, ``PRESETS``; ``learn_and_card`` (train or reuse, score the held-out images, write
+  ``get_learn_preset``, ``PRESETS``, ``resolve_precision`` (a preset as it runs on a device); ``learn_and_card`` (train or reuse, score the held-out images, write
   the card: the demo's stage and a dataset run);
 - the trained model: ``read_model``, ``write_model``, ``LearnedModel`` (``model.pt``), ``write_card`` /
   ``read_card`` (``card.json``, ``MODEL_CARD.md``), ``training_seconds`` (a run's wall-clock time);
@@ -22,7 +22,7 @@ crops), ``targets`` (training batches), ``networks``, ``losses``, ``training``, 
 from brave6d.core.lazy import lazy_exports
 
 _LAZY = {
-    "train_learned": ".training", "LearnResult": ".training", "learn_and_card": ".pipeline",
+    "train_learned": ".training", "LearnResult": ".training", "resolve_precision": ".training", "learn_and_card": ".pipeline",
     "LearnPreset": ".presets", "get_learn_preset": ".presets", "PRESETS": ".presets",
     "read_model": ".model_file", "write_model": ".model_file", "LearnedModel": ".model_file",
     "write_card": ".card", "read_card": ".card", "training_seconds": ".card",

@@ -30,7 +30,9 @@ class LearnPreset:
     steps between checkpoints (a stopped run resumes there); ``precision``: ``fp32``, ``bf16`` (the
     networks' forward passes in bfloat16 under autocast, channels-last; the weights, optimiser and
     losses stay float32: 1.5x the step rate of fp32 on the 2-core box, docs/BENCHMARKS.md prices it)
-    or ``auto`` (bf16 where the device has it natively: a CPU with AVX512-BF16 or AMX, a GPU; else fp32)."""
+    or ``auto`` (bf16 where the device has it natively: a CPU with AVX512-BF16 or AMX, a GPU; else fp32);
+    ``fp32_step_share``: the share of both step counts an ``auto`` run trains when it falls back to fp32
+    (a preset sized for a time budget keeps to it: ``fast``'s 0.5)."""
 
     name: str
     work_width: int = 320
@@ -49,6 +51,7 @@ class LearnPreset:
     checkpoint_every: int = 100
     seed: int = 0
     precision: str = "fp32"
+    fp32_step_share: float = 1.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -66,6 +69,8 @@ class LearnPreset:
         if self.work_width < 64 or self.crop_px < 32 or self.crop_px % 16 or self.detector_patch % 16:
             raise BraveError(f"learn preset {self.name!r}: work_width >= 64, crop_px and detector_patch "
                              f"multiples of 16 are needed, got {self.work_width}, {self.crop_px}, {self.detector_patch}")
+        if self.fp32_step_share > 1.0:
+            raise BraveError(f"learn preset {self.name!r}: fp32_step_share must be in (0, 1], got {self.fp32_step_share}")
         if self.precision not in PRECISIONS:
             raise BraveError(f"learn preset {self.name!r}: precision must be one of {', '.join(PRECISIONS)}, "
                              f"got {self.precision!r}")
@@ -85,9 +90,10 @@ class LearnPreset:
 
 
 PRESETS: dict[str, LearnPreset] = {
-    # bfloat16 where the CPU has it: 2400 + 2000 steps in about 1.15x the time of fp32's former 1200 + 1000
-    # (the detector's steps end with the coordinate net's when both train at once on 2 cores)
-    "fast": LearnPreset("fast", detector_steps=2400, pose_steps=2000, precision="auto"),
+    # bfloat16 where the CPU has it: 2400 + 2000 steps in about 1.15x the time of fp32's 1200 + 1000, which
+    # a CPU without it trains instead (the detector's steps end with the coordinate net's when both train
+    # at once on 2 cores)
+    "fast": LearnPreset("fast", detector_steps=2400, pose_steps=2000, precision="auto", fp32_step_share=0.5),
     "paper": LearnPreset("paper", work_width=640, crop_source_width=640, crop_px=128, detector_steps=20000, detector_batch=32,
                          detector_width=32, pose_steps=40000, pose_batch=64, pose_width=32, checkpoint_every=1000),
     # the miniature runs of the tests: a few hundred steps

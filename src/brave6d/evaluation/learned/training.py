@@ -191,11 +191,15 @@ def native_bf16(device: Any) -> bool:
 
 
 def resolve_precision(preset: LearnPreset, device: Any) -> LearnPreset:
-    """``preset`` with its precision as it will run on ``device``: ``auto`` -> ``bf16`` where the device
-    has it natively, else ``fp32`` (the card and the reuse checksum record what ran); an explicit
-    ``bf16`` without native support runs, with a warning."""
+    """``preset`` as it will run on ``device``: ``auto`` -> ``bf16`` where the device has it natively,
+    else ``fp32`` with ``fp32_step_share`` of the steps (the card and the reuse checksum record what
+    ran); an explicit ``bf16`` without native support runs, with a warning."""
     if preset.precision == "auto":
-        return preset.with_overrides(precision="bf16" if native_bf16(device) else "fp32")
+        if native_bf16(device):
+            return preset.with_overrides(precision="bf16")
+        share = preset.fp32_step_share
+        return preset.with_overrides(precision="fp32", detector_steps=max(1, round(preset.detector_steps * share)),
+                                     pose_steps=max(1, round(preset.pose_steps * share)))
     if preset.precision == "bf16" and not native_bf16(device):
         log.warning("learn: precision bf16 on a %s without native bfloat16 (AVX512-BF16 or AMX): it is emulated "
                     "and may be slower than fp32 (set precision=fp32 or auto)", device.type.upper())
