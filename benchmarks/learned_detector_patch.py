@@ -4,7 +4,7 @@ detector trained on square patches of that many pixels for that many steps (ever
 per object and the pose AR given its detected boxes.
 
     python benchmarks/learned_detector_patch.py TRAIN_PBR MODELS_DIR TEST_PBR --pose-from MODEL_DIR
-        [--points "128:2400,96:3800,64:6700"] [--preset fast] [--out DIR]
+        [--points "128:4800,96:7600,64:13400"] [--preset fast] [--out DIR]
         [--bundle BUNDLE --episodes-per-object 6]
 
 The detector is what a patch buys: a smaller patch costs less per step, so more steps fit in the same
@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("models", type=Path, help="BOP models folder")
     parser.add_argument("test_pbr", type=Path, help="a split never trained on (every image is scored)")
     parser.add_argument("--pose-from", type=Path, required=True, help="a trained model whose coordinate net is used")
-    parser.add_argument("--points", default="128:2400,96:3800,64:6700", help="patch:steps,...")
+    parser.add_argument("--points", default="128:4800,96:7600,64:13400", help="patch:steps,...")
     parser.add_argument("--preset", default="fast", help="the preset the detectors and --pose-from's model share")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--bundle", type=Path, default=None, help="a bundle to play the learned agents on")

@@ -229,14 +229,14 @@ def test_auto_precision_is_bf16_only_where_the_device_has_it_and_the_model_says_
     from brave6d.evaluation.learned import training
 
     cpu, auto = torch.device("cpu"), get_learn_preset("fast")
-    assert auto.precision == "auto" and (auto.detector_steps, auto.pose_steps) == (2400, 2000)
-    # fast is sized for a time budget: without bfloat16 it trains half the steps (each costs about twice)
-    for native, runs, steps in ((True, "bf16", (2400, 2000)), (False, "fp32", (1200, 1000))):
+    assert auto.precision == "auto" and (auto.detector_steps, auto.pose_steps) == (4800, 4000)
+    # fast is sized for a time budget: without bfloat16 it trains a quarter of the steps
+    for native, runs, steps in ((True, "bf16", (4800, 4000)), (False, "fp32", (1200, 1000))):
         monkeypatch.setattr(training, "native_bf16", lambda device, native=native: native)
         ran = training.resolve_precision(auto, cpu)
         assert (ran.precision, ran.detector_steps, ran.pose_steps) == (runs, *steps)
     fp32 = training.resolve_precision(auto.with_overrides(precision="fp32"), cpu)  # asked for: all the steps
-    assert (fp32.precision, fp32.detector_steps) == ("fp32", 2400)
+    assert (fp32.precision, fp32.detector_steps) == ("fp32", 4800)
     with pytest.raises(BraveError, match=r"fp32_step_share must be in \(0, 1\], got 1.5"):
         auto.with_overrides(fp32_step_share=1.5)
     with caplog.at_level("WARNING"):  # asked for explicitly, bf16 runs (emulated), and says so
