@@ -401,6 +401,27 @@ def test_baseline_section_shows_the_files_agent_rows(tmp_path: Path) -> None:
     assert "0.450 more AR (0.250 -> 0.700: 0.090 AR per adjustment)" in section.advice
 
 
+def test_agent_motion_advice_pairs_each_active_agent_with_its_own_static_one() -> None:
+    from brave6d.evaluation.report.sections.baseline import advice_baseline
+
+    def row(agent: str, ar: float, adjustments: float) -> dict:
+        return {"agent": agent, "ar": ar, "adjustments": adjustments}
+
+    rows = [row("baseline-active", 0.949, 3.8), row("baseline-static", 0.936, 0.0), row("learned-active", 0.515, 4.0),
+            row("learned-static", 0.262, 0.0), row("learned-active-depth", 0.5, 3.5),
+            row("learned-static-depth", 0.62, 0.0)]
+    advice = advice_baseline(rows)
+    assert "baseline-active spends 3.8 more adjustments per episode than baseline-static for 0.013 more AR" in advice
+    assert "learned-active spends 4.0 more adjustments per episode than learned-static for 0.253 more AR" in advice
+    assert "learned-active-depth spends 3.5 more adjustments per episode than learned-static-depth and scores " \
+           "0.120 less AR" in advice
+    assert "than baseline-static and scores" not in advice  # never an active agent against another estimator
+    # without pairs: the most-moving agent against the least, as before; one agent: nothing to compare
+    assert "b spends 2.0 more adjustments per episode than a for 0.100 more AR" in advice_baseline(
+        [row("a", 0.5, 1.0), row("b", 0.6, 3.0)])
+    assert advice_baseline([row("baseline-active", 0.9, 3.0)]) == ""
+
+
 @pytest.mark.parametrize(("change", "field"), [
     (lambda raw: raw.update(format="brave6d-baseline/2"), "format"),
     (lambda raw: raw["episodes"][2].pop("adjustments"), "episodes[2].adjustments"),

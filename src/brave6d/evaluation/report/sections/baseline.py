@@ -109,17 +109,28 @@ def render_baseline(m: Measurement | None, out_dir: Path) -> RenderedSection:
 
 
 def advice_baseline(rows: list[dict[str, Any]]) -> str:
-    """AR gained per extra adjustment between the agent with the fewest and the most adjustments."""
-    ok = sorted((r for r in rows if math.isfinite(r["ar"]) and math.isfinite(r["adjustments"])),
-                key=lambda r: r["adjustments"])
-    if len(ok) < 2:
-        return ""
-    lo, hi = ok[0], ok[-1]
+    """AR gained per extra adjustment: each active agent against its static counterpart (the same
+    estimator from the start view: ``baseline-active`` / ``baseline-static``, ``learned-active-depth`` /
+    ``learned-static-depth``), or, without such pairs, the agent with the most adjustments against the
+    one with the fewest."""
+    ok = [r for r in rows if math.isfinite(r["ar"]) and math.isfinite(r["adjustments"])]
+    by_name = {r["agent"]: r for r in ok}
+    pairs = [(by_name[r["agent"].replace("active", "static", 1)], r) for r in ok
+             if "active" in r["agent"] and r["agent"].replace("active", "static", 1) in by_name]
+    if not pairs:
+        ordered = sorted(ok, key=lambda r: r["adjustments"])
+        pairs = [(ordered[0], ordered[-1])] if len(ordered) >= 2 else []
+    sentences = [text for lo, hi in pairs if (text := _motion_sentence(lo, hi))]
+    return f"**Agent motion:** {' '.join(sentences)}" if sentences else ""
+
+
+def _motion_sentence(lo: dict[str, Any], hi: dict[str, Any]) -> str:
+    """What ``hi``'s extra adjustments over ``lo`` bought in AR ("" when it made none)."""
     extra = hi["adjustments"] - lo["adjustments"]
     gain = hi["ar"] - lo["ar"]
     if extra <= 0:
         return ""
-    head = f"**Agent motion:** {hi['agent']} spends {fmt(extra, 1)} more adjustments per episode than {lo['agent']}"
+    head = f"{hi['agent']} spends {fmt(extra, 1)} more adjustments per episode than {lo['agent']}"
     if gain > 0:
         return (f"{head} for {fmt(gain, 3)} more AR ({fmt(lo['ar'], 3)} -> {fmt(hi['ar'], 3)}: "
                 f"{fmt(gain / extra, 3)} AR per adjustment).")
