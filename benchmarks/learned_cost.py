@@ -36,11 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     from brave6d.evaluation.demo import learned_agent_scores
     from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, resolve_precision, score_heldout, \
         train_learned, training_seconds
-    from brave6d.training import resolve_device
     from brave6d.synth import SynthOptions, synthesize
 
     points = [tuple(int(x) for x in p.split(":")) for p in args.points.split(",")]
-    fast = resolve_precision(get_learn_preset("fast"), resolve_device(args.device))  # each point at the steps it names
+    fast = resolve_precision(get_learn_preset("fast"), args.device)  # each point at the steps it names
     total = max(n for n, _ in points)
     synth = synthesize(args.spec, args.out / "synth", SynthOptions(images=total, seed=0, workers=args.workers))
     rate = synth.images_per_s

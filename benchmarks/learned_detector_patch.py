@@ -48,14 +48,12 @@ def main(argv: list[str] | None = None) -> int:
     from brave6d.core.atomic import atomic_write_json
     from brave6d.core.errors import BraveError
     from brave6d.evaluation.demo import learned_agent_scores
-    import torch
-
     from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, load_training_data, read_model, \
         resolve_precision, score_heldout, train_learned, write_model
 
     points = [tuple(int(x) for x in p.split(":")) for p in args.points.split(",")]
     pose_model = read_model(args.pose_from)
-    base = resolve_precision(get_learn_preset(args.preset), torch.device("cpu"))  # every point at the steps it names
+    base = resolve_precision(get_learn_preset(args.preset), "cpu")  # every point at the steps it names
     mismatch = [f for f in POSE_FIELDS if pose_model.preset.get(f) != getattr(base, f)]
     if mismatch:
         raise BraveError(f"{args.pose_from}: field(s) {', '.join(mismatch)} of its preset differ from "

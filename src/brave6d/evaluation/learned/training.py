@@ -158,24 +158,18 @@ def phase_loss(phase: str, net: Any, data: TrainingData, pool: list[int], rng: n
     from brave6d.evaluation.learned.losses import detector_loss, pose_loss
     from brave6d.evaluation.learned.targets import detector_batch, pose_batch
 
-    low = preset.precision == "bf16"
     if phase == "detector":
         batch = detector_batch(data, pool, rng, preset.detector_batch, preset.detector_patch)
-        t = {k: torch.from_numpy(v).to(device) for k, v in batch.items()}
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=low):
-            out = net(_memory_format(t["images"], low))
-        return detector_loss(*(o.float() for o in out), t)
-    batch = pose_batch(data, pool, rng, preset.pose_batch, preset.crop_px)
+        images, extra, loss = "images", (), detector_loss
+    else:
+        batch = pose_batch(data, pool, rng, preset.pose_batch, preset.crop_px)
+        images, extra, loss = "crops", ("classes",), pose_loss
     t = {k: torch.from_numpy(v).to(device) for k, v in batch.items()}
+    low = preset.precision == "bf16"
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=low):
-        out = net(_memory_format(t["crops"], low), t["classes"])
-    return pose_loss(*(o.float() for o in out), t)
-
-
-def _memory_format(images: Any, channels_last: bool) -> Any:
-    import torch
-
-    return images.contiguous(memory_format=torch.channels_last) if channels_last else images
+        x = t[images].contiguous(memory_format=torch.channels_last) if low else t[images]
+        out = net(x, *(t[k] for k in extra))
+    return loss(*(o.float() for o in out), t)
 
 
 def native_bf16(device: Any) -> bool:
@@ -191,9 +185,13 @@ def native_bf16(device: Any) -> bool:
 
 
 def resolve_precision(preset: LearnPreset, device: Any) -> LearnPreset:
-    """``preset`` as it will run on ``device``: ``auto`` -> ``bf16`` where the device has it natively,
-    else ``fp32`` with ``fp32_step_share`` of the steps (the card and the reuse checksum record what
-    ran); an explicit ``bf16`` without native support runs, with a warning."""
+    """``preset`` as it will run on ``device`` (``auto``, ``cpu``, ``cuda`` or a torch device): ``auto``
+    -> ``bf16`` where the device has it natively, else ``fp32`` with ``fp32_step_share`` of the steps
+    (the card and the reuse checksum record what ran); an explicit ``bf16`` without native support
+    runs, with a warning."""
+    from brave6d.training import resolve_device
+
+    device = resolve_device(device)
     if preset.precision == "auto":
         if native_bf16(device):
             return preset.with_overrides(precision="bf16")
