@@ -77,6 +77,38 @@ def test_one_pass_for_both_variants_gives_what_two_estimates_give(split: tuple[P
     assert solved >= 3
 
 
+
+def test_with_the_mesh_the_rgb_distance_comes_from_the_mask_area(split: tuple[Path, Path], trained: Path) -> None:
+    from brave6d.evaluation.learned import LearnedRefused
+    from brave6d.evaluation.learned.silhouette import MAX_AREA_Z_CHANGE
+
+    estimator = LearnedEstimator.load(trained, models_dir=split[1])
+    data = load_training_data(split[0], split[1], PRESET.work_width, PRESET.heldout_every, show_progress=False)
+    scaled = solved = 0
+    for k in data.instances_of(False)[:12]:
+        inst = data.instances[k]
+        record = next(r for r in data.images if k in r.instances)
+        poses = []
+        for on in (True, False):
+            estimator.mask_area_distance = on
+            try:
+                poses.append(estimator.estimate(record.rgb_crop, record.K_crop, inst.obj_id, inst.box_crop))
+            except LearnedRefused as exc:
+                poses.append(exc.cause)
+        estimator.mask_area_distance = True
+        if isinstance(poses[0], str) or isinstance(poses[1], str):
+            assert poses[0] == poses[1]  # the mask's area never makes PnP refuse
+            continue
+        solved += 1
+        with_area, pnp = poses
+        assert pnp.mask_scale is None
+        np.testing.assert_allclose(with_area.cam_T_obj[:3, :3], pnp.cam_T_obj[:3, :3], atol=1e-9)
+        if with_area.mask_scale is not None:
+            scaled += 1
+            assert abs(with_area.mask_scale - 1.0) <= MAX_AREA_Z_CHANGE
+            np.testing.assert_allclose(with_area.cam_T_obj[:3, 3], pnp.cam_T_obj[:3, 3] * with_area.mask_scale, rtol=1e-9)
+    assert solved >= 4 and scaled >= solved // 2
+
 def test_the_card_names_the_split_the_steps_and_the_heldout_figures(split: tuple[Path, Path], trained: Path) -> None:
     card = read_card(trained)
     assert card["images"] == 30 and card["heldout_images"] == 3 and card["trained_on_images"] == 27
@@ -256,3 +288,31 @@ def test_the_precision_benchmark_prices_bf16_against_fp32_and_resumes(split: tup
     assert (tmp_path / "model-bf16-8-6" / "model.pt").stat().st_mtime_ns == stamp
     with pytest.raises(BraveError, match=r"'bf16:8' is not precision:detector_steps:pose_steps"):
         bench.main(args[:-1] + ["bf16:8"])
+
+
+def test_the_rgb_distance_benchmark_scores_both_distances_side_by_side(split: tuple[Path, Path], trained: Path,
+                                                                       tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib.util
+    import json
+
+    from learned_helpers import ROOT
+
+    spec = importlib.util.spec_from_file_location("learned_rgb_distance", ROOT / "benchmarks" / "learned_rgb_distance.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert bench.main([str(trained), str(split[1]), str(split[0]), "--out", str(tmp_path)]) == 0
+    assert LearnedEstimator.mask_area_distance is True  # the benchmark puts the default back
+    data = json.loads((tmp_path / "rgb_distance.json").read_text())
+    rows = {r["setting"]: r for r in data["rows"]}
+    assert set(rows) == {"pnp", "mask-area"} and data["images"] == 30
+    for r in rows.values():
+        m = r["true_box_rgb"]
+        assert m["ar"] == pytest.approx(r["pose_ar"]["true_box_rgb"])  # one estimate, two scorers
+        assert m["ar"] == pytest.approx((m["vsd"] + m["mssd"] + m["mspd"]) / 3)
+        assert r["ms_per_estimate"] > 0
+    # the true distance moves each pose along its ray: both settings reach the same ceiling
+    assert rows["pnp"]["true_box_rgb"]["ceilings"]["true distance"] == pytest.approx(
+        rows["mask-area"]["true_box_rgb"]["ceilings"]["true distance"])
+    assert rows["pnp"]["true_box_rgb"]["ar"] != rows["mask-area"]["true_box_rgb"]["ar"]
+    assert "| mask-area |" in capsys.readouterr().out

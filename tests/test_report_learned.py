@@ -15,7 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from brave6d.evaluation.report.measurements import Measurement
-from brave6d.evaluation.report.sections.learned import COST_FILE, DETECT_SCALE_FILE, DETECTOR_PATCH_FILE, PRECISION_FILE, VARIANTS, best_detections, \
+from brave6d.evaluation.report.sections.learned import COST_FILE, DETECT_SCALE_FILE, DETECTOR_PATCH_FILE, PRECISION_FILE, \
+    RGB_DISTANCE_FILE, VARIANTS, best_detections, \
     cost_path, estimate_target, read_benchmark_rows, read_cost
 from brave6d.evaluation.report.sections.learned import render_learned
 from brave6d.evaluation.report.sections.learned import ring_rows, xywh_to_box
@@ -169,6 +170,33 @@ def test_the_precision_table_and_advice_come_from_the_benchmark_file(tmp_path: P
     without = render_learned(m, tmp_path, None, None, None, None)
     assert "Training precision" not in without.body and "At the same steps" not in without.advice
 
+
+
+def _distance_row(setting: str, true_rgb: float, ms: float, agents: dict | None = None) -> dict:
+    row = {"setting": setting, "ms_per_estimate": ms,
+           "pose_ar": {"true_box_rgb": true_rgb, "true_box_depth": 0.87, "detected_rgb": true_rgb - 0.01,
+                       "detected_depth": 0.8},
+           "true_box_rgb": {"ar": true_rgb, "vsd": 0.15, "mssd": 0.17, "mspd": 0.87,
+                            "ceilings": {"true distance": 0.655, "distance 1% off": 0.6}}}
+    return row | ({"agents": agents} if agents else {})
+
+
+def test_the_rgb_distance_table_and_advice_come_from_the_benchmark_file(tmp_path: Path) -> None:
+    path = tmp_path / RGB_DISTANCE_FILE
+    agents = {"learned-static": 0.3, "learned-active": 0.5, "learned-static-depth": 0.6, "learned-active-depth": 0.7}
+    path.write_text(json.dumps({"rows": [_distance_row("pnp", 0.396, 16.6), _distance_row("mask-area", 0.459, 19.5, agents)]}))
+    m = _measurement([_point(0, 0.2, 0.6, 0.6)])
+    section = render_learned(m, tmp_path, None, None, None, None, read_benchmark_rows(path))
+    assert any(line.replace(" ", "").startswith("|mask-area|0.459(0.150/0.170/0.870)|0.449|19.5|0.300/0.500(0.600/0.700)|")
+               for line in section.body.splitlines())
+    assert "true distance 0.655, distance 1% off 0.600" in section.body
+    assert "changes AR given true boxes by +0.063 (0.396 -> 0.459) for +2.9 ms per estimate: keep it on" in section.advice
+    assert "the RGB-only distance, not the rotation, is what holds RGB-only AR down" in section.advice
+    path.write_text(json.dumps({"rows": [_distance_row("pnp", 0.46, 16.6), _distance_row("mask-area", 0.44, 19.5)]}))
+    worse = render_learned(m, tmp_path, None, None, None, None, read_benchmark_rows(path))
+    assert "by -0.020" in worse.advice and "it does not pay here" in worse.advice
+    without = render_learned(m, tmp_path, None, None, None, None, None)
+    assert "RGB-only distance" not in without.body and "mask's area changes" not in without.advice
 
 @given(st.lists(st.floats(-1e6, 1e6), min_size=4, max_size=4), st.integers(1, 8))
 @settings(max_examples=200, deadline=None)

@@ -15,7 +15,8 @@ Public API (imported lazily: ``import brave6d.evaluation.learned`` loads no torc
   ``TrainingData``.
 
 Modules, one job each: ``data`` (train_pbr -> images, boxes, model coordinates), ``crops`` (zoomed-in
-crops), ``targets`` (training batches), ``networks``, ``losses``, ``training``, ``model_file``
+crops), ``silhouette`` (the RGB-only distance from the mask's area), ``targets`` (training
+batches), ``networks``, ``losses``, ``training``, ``model_file``
 (the model and checkpoint files), ``inference``, ``heldout``, ``card``, ``cli``.
 """
 

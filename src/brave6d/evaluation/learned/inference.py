@@ -1,5 +1,6 @@
-"""The learned estimator at work: detect, crop, regress coordinates, PnP-RANSAC, optionally
-refine the translation with a depth image.
+"""The learned estimator at work: detect, crop, regress coordinates, PnP-RANSAC, the distance from
+the mask's area where the model's mesh is known (:mod:`~brave6d.evaluation.learned.silhouette`),
+optionally refine the translation with a depth image.
 
 :class:`LearnedEstimator` takes any RGB image and its K (resized to the model's working width
 internally) and answers in the image's own pixels and camera frame. Every failure is a
@@ -23,6 +24,7 @@ from brave6d.evaluation.learned.model_file import LearnedModel, read_model
 from brave6d.evaluation.learned.networks import DETECTOR_STRIDE
 from brave6d.evaluation.learned.refine import ICP_MAX_POINTS, Surface, box_points, thinned, icp_refine, \
     sample_surface
+from brave6d.evaluation.learned.silhouette import Silhouette, mask_area_scale
 
 Array = NDArray[np.float64]
 
@@ -77,8 +79,9 @@ class Detection:
 @dataclass(frozen=True)
 class LearnedPose:
     """A pose (``cam_T_obj``, metres, the input image's camera frame), its score, the PnP inliers
-    and correspondences, and how depth refined it (``depth_scale``: the factor applied to t;
-    ``icp``: ICP onto the model's surface kept its result)."""
+    and correspondences, how the mask's area set its distance (``mask_scale``: the factor applied
+    to PnP's t; None: PnP's distance kept) and how depth refined it (``depth_scale``: the factor
+    applied to t; ``icp``: ICP onto the model's surface kept its result)."""
 
     cam_T_obj: Array
     score: float
@@ -87,10 +90,17 @@ class LearnedPose:
     depth_scale: float | None = None
     icp: bool = False  # depth refined the pose by ICP too
     fit: float | None = None  # fraction of the box's depth points on the posed surface (with depth and a surface)
+    mask_scale: float | None = None
 
 
 class LearnedEstimator:
     """A trained model ready to detect and estimate (see the module docstring)."""
+
+    #: The RGB-only distance from the mask's area against the model's silhouette
+    #: (:mod:`~brave6d.evaluation.learned.silhouette`; needs the mesh, given by :meth:`set_surface`);
+    #: False: PnP's own distance. Set on an instance, or on the class for every estimator (what
+    #: ``benchmarks/learned_rgb_distance.py`` does to price it in the agents).
+    mask_area_distance: bool = True
 
     def __init__(self, model: LearnedModel, device: str = "cpu") -> None:
         import torch
@@ -109,6 +119,7 @@ class LearnedEstimator:
         self.pose.to(self.device).eval()
         self._by_class = {o.class_index: o for o in model.objects.values()}
         self.surfaces: dict[int, Surface] = {}
+        self.silhouettes: dict[int, Silhouette] = {}
         #: depth points ICP uses at most (None: all; what it costs and buys: docs/BENCHMARKS.md)
         self.icp_max_points: int | None = ICP_MAX_POINTS
         #: the detector's input widths over the training width (:data:`DETECT_SCALES`; (1.0,): as trained)
@@ -130,8 +141,11 @@ class LearnedEstimator:
         return estimator
 
     def set_surface(self, obj_id: int, vertices_m: Array, faces: NDArray[np.int64]) -> None:
-        """The mesh of ``obj_id`` (metres, model frame): with it, depth refines the pose by ICP too."""
+        """The mesh of ``obj_id`` (metres, model frame): with it the RGB-only distance comes from the
+        mask's area and depth refines the pose by ICP too."""
         self._check_object(obj_id)
+        self.silhouettes[int(obj_id)] = Silhouette(np.asarray(vertices_m, dtype=np.float64),
+                                                   np.asarray(faces, dtype=np.int64))
         self.surfaces[int(obj_id)] = sample_surface(vertices_m, faces, self.model.objects[int(obj_id)].diameter_mm / 1000.0)
 
     @property
@@ -274,8 +288,9 @@ class LearnedEstimator:
         with torch.no_grad():
             coords, mask = self.pose(torch.from_numpy(normalise(crop)[None]).to(self.device),
                                      torch.tensor([obj.class_index], device=self.device))
-        visible = torch.sigmoid(mask[0, 0]).cpu().numpy() >= 0.5
-        return _CropOutputs(coords[0].cpu().numpy().astype(np.float64), visible, centre, side, s, K_work)
+        probability = torch.sigmoid(mask[0, 0]).float().cpu().numpy().astype(np.float64)
+        return _CropOutputs(coords[0].cpu().numpy().astype(np.float64), probability >= 0.5, centre, side, s, K_work,
+                            probability, (work.shape[1], work.shape[0]))
 
     def estimate(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, box: tuple[float, float, float, float],
                  depth_m: NDArray[np.floating] | None = None, score: float = 1.0) -> LearnedPose:
@@ -297,7 +312,11 @@ class LearnedEstimator:
         R, t, inliers = solve_pnp(points_3d, points_2d, crop.K_work, obj_id)
         ratio = len(inliers) / max(len(points_3d), 1)
         pose_score = float(np.clip(score * ratio, 0.0, 1.0))
-        rgb_pose = LearnedPose(_rigid(R, t), pose_score, len(inliers), len(points_3d))
+        silhouette = self.silhouettes.get(int(obj_id)) if self.mask_area_distance else None
+        mask_scale = None if silhouette is None else mask_area_scale(crop.probability, silhouette, R, t, crop.K_work,
+                                                                     crop.centre, crop.side, crop.image_size)
+        t_rgb = t if mask_scale is None else t * mask_scale
+        rgb_pose = LearnedPose(_rigid(R, t_rgb), pose_score, len(inliers), len(points_3d), mask_scale=mask_scale)
         if depth_m is None:
             return rgb_pose, None
         s = crop.scale
@@ -337,7 +356,8 @@ class LearnedEstimator:
 @dataclass(frozen=True)
 class _CropOutputs:
     """The coordinate net's answer on one crop: coordinates (3, S, S) in [-1, 1], the visible mask
-    (S, S), the crop's centre and side (work pixels), the work image's scale and K."""
+    (S, S), the crop's centre and side (work pixels), the work image's scale and K, the mask's
+    probabilities (S, S) and the work image's (width, height)."""
 
     coords: Array
     visible: NDArray[np.bool_]
@@ -345,6 +365,8 @@ class _CropOutputs:
     side: float
     scale: float
     K_work: Array
+    probability: Array
+    image_size: tuple[int, int]
 
 
 def _rigid(R: Array, t: Array) -> Array:

@@ -3,7 +3,8 @@ point-to-plane ICP of the depth points in the box onto the model's surface (Open
 
 PnP on a small object's coordinates gets the image position right but the distance and the
 rotation only roughly (tens of degrees on 20 px objects); the measured depth fixes both when the
-start is close enough. ICP keeps its result only when it is finite, moves the object by less than
+start is close enough. It starts from PnP's own translation (the mask-area distance of
+:mod:`~brave6d.evaluation.learned.silhouette` is the RGB-only pose's; the depth replaces it anyway). ICP keeps its result only when it is finite, moves the object by less than
 half its diameter and fits at least as many depth points as the start did.
 """
 

@@ -58,6 +58,8 @@ DETECT_SCALE_FILE = "detect_scale.json"
 DETECTOR_PATCH_FILE = "detector_patch.json"
 #: Where ``benchmarks/learned_precision.py`` writes for the report (beside ``COST_FILE``).
 PRECISION_FILE = "precision.json"
+#: Where ``benchmarks/learned_rgb_distance.py`` writes for the report (beside ``COST_FILE``).
+RGB_DISTANCE_FILE = "rgb_distance.json"
 
 
 @dataclass(frozen=True)
@@ -248,8 +250,9 @@ def read_cost(path: Path) -> dict[str, Any] | None:
 
 
 def read_benchmark_rows(path: Path) -> list[dict[str, Any]] | None:
-    """The rows of ``benchmarks/learned_detect_scale.py``'s, ``learned_detector_patch.py``'s or
-    ``learned_precision.py``'s JSON ``path`` (None when absent or unreadable)."""
+    """The rows of ``benchmarks/learned_detect_scale.py``'s, ``learned_detector_patch.py``'s,
+    ``learned_precision.py``'s or ``learned_rgb_distance.py``'s JSON ``path`` (None when absent or
+    unreadable)."""
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
@@ -362,6 +365,50 @@ def _precision_part(rows: list[dict[str, Any]] | None, card: Mapping[str, Any]) 
     return table, advice
 
 
+def _rgb_distance_part(rows: list[dict[str, Any]] | None) -> tuple[str, str]:
+    """The table and advice of the RGB-only distance (PnP's own against the mask's area): what each
+    gives given true and detected boxes and as agents, and costs per estimate; the ceilings say how
+    good a distance the RGB-only pose would need."""
+    by_name = {r.get("setting"): r for r in rows or []}
+    if not rows:
+        return "", ""
+
+    def ar(r: Mapping[str, Any], variant: str) -> float:
+        return num((r.get("pose_ar") or {}).get(variant))
+
+    table_rows = []
+    for r in rows:
+        m = r.get("true_box_rgb") or {}
+        table_rows.append((r.get("setting"), f"{fmt(ar(r, 'true_box_rgb'), 3)} ({fmt(m.get('vsd'), 3)} / "
+                           f"{fmt(m.get('mssd'), 3)} / {fmt(m.get('mspd'), 3)})", fmt(ar(r, "detected_rgb"), 3),
+                           fmt(r.get("ms_per_estimate"), 1), _agents_cell(r.get("agents"))))
+    ceilings = (rows[-1].get("true_box_rgb") or {}).get("ceilings") or {}
+    table = ("The RGB-only distance (`benchmarks/learned_rgb_distance.py`: PnP's own, or from the mask's area "
+             "against the model's silhouette; depth variants unchanged):\n\n"
+             + format_table(["distance", "AR true box RGB (VSD / MSSD / MSPD)", "AR detected RGB", "ms per estimate",
+                             "agents static / active (+D)"], table_rows) + "\n"
+             + ("\nThe same RGB-only poses given true boxes with the true distance: "
+                + ", ".join(f"{k} {fmt(v, 3)}" for k, v in ceilings.items()) + ".\n" if ceilings else ""))
+    pnp, area = by_name.get("pnp"), by_name.get("mask-area")
+    if pnp is None or area is None:
+        return table, ""
+    gain = ar(area, "true_box_rgb") - ar(pnp, "true_box_rgb")
+    cost = num(area.get("ms_per_estimate")) - num(pnp.get("ms_per_estimate"))
+    verdict = "keep it on (`LearnedEstimator.mask_area_distance`)" if gain > 0 else "it does not pay here: turn it off"
+    advice = (f" RGB-only, the distance from the mask's area changes AR given true boxes by {_signed(gain, 3)} "
+              f"({fmt(ar(pnp, 'true_box_rgb'), 3)} -> {fmt(ar(area, 'true_box_rgb'), 3)}) for "
+              f"{_signed(cost, 1)} ms per estimate: {verdict}.")
+    if ceilings:
+        advice += (f" With the true distance the same poses would score {fmt(ceilings.get('true distance'), 3)}: "
+                   "the RGB-only distance, not the rotation, is what holds RGB-only AR down.")
+    return table, advice
+
+
+def _signed(value: float, digits: int) -> str:
+    """``+0.063`` / ``-1.2`` (``n/a`` when not finite)."""
+    return f"{value:+.{digits}f}" if math.isfinite(value) else "n/a"
+
+
 def _agents_cell(agents: Any) -> str:
     """``learned-static / learned-active (static-depth / active-depth)`` AR, or "-" when not played."""
     if not isinstance(agents, dict):
@@ -436,7 +483,8 @@ def _cost_part(cost: dict[str, Any] | None, ax: Any) -> tuple[str, str]:
 def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | None = None,
                    detect_scale: list[dict[str, Any]] | None = None,
                    detector_patch: list[dict[str, Any]] | None = None,
-                   precision: list[dict[str, Any]] | None = None) -> RenderedSection:
+                   precision: list[dict[str, Any]] | None = None,
+                   rgb_distance: list[dict[str, Any]] | None = None) -> RenderedSection:
     """Section 10 from its measurement (and the cost benchmarks' results, when there are some)."""
     if m is None or not m.usable or not m.points:
         return unavailable(TITLE, m, "The learned estimator's study")
@@ -462,14 +510,15 @@ def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | 
     scale_table, scale_advice = _detect_scale_part(detect_scale, m.summary.get("detect_widths"))
     patch_table, patch_advice = _detector_patch_part(detector_patch, card)
     precision_table, precision_advice = _precision_part(precision, card)
+    distance_table, distance_advice = _rgb_distance_part(rgb_distance)
     png = save_figure(fig, out_dir / FIGURE, "Learned estimator: AR against distance on captured frames and splat renders",
                       describe_machine(m.machine), settings_line(m))
     table = [(fmt(r["distance_m"] * 100, 0), r["views"], r["targets"], fmt(r["bbox_diag_px"], 0),
               *(f"{fmt(r[f'real_{v}'], 2)} / {fmt(r[f'splat_{v}'], 2)} ({fmt(r[f'gap_{v}'], 2)} ± {fmt(r[f'gap_se_{v}'], 2)})"
                 for v in VARIANTS)) for r in rows]
     body = ("The learned estimator of the demo (`" + str(m.summary.get("model")) + "`: a detector and a coordinate "
-            "network trained from scratch on the scene's own synthetic train_pbr, PnP-RANSAC, optionally scaled and "
-            "ICP-refined with depth) on held-out synthetic images, then on the captured frames of the annotation's BOP "
+            "network trained from scratch on the scene's own synthetic train_pbr, PnP-RANSAC, the distance from the mask's "
+            "area, optionally scaled and ICP-refined with depth) on held-out synthetic images, then on the captured frames of the annotation's BOP "
             "export and on the splat's renders of the same poses, each target estimated four ways (true or detected "
             "box; RGB alone or with depth) and scored on the captured frame's test depth. The gap per ring is the "
             "learned estimator's realism gap (captured - splat); a ring's targets resolve it to about ± 2 SE. In the "
@@ -480,9 +529,10 @@ def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | 
             + format_table(["cm", "views", "targets", "box diag px", *(LABELS[v] for v in VARIANTS)], table) + "\n\n"
             + cost_table + "\n" + (scale_table + "\n" if scale_table else "")
             + (patch_table + "\n" if patch_table else "") + (precision_table + "\n" if precision_table else "")
+            + (distance_table + "\n" if distance_table else "")
             + provenance(m) + "\n" + nan_note(dropped, "plotted learned-estimator values"))
     return RenderedSection(TITLE, body, advice_learned(rows, card) + cost_advice + scale_advice + patch_advice
-                           + precision_advice, [png])
+                           + precision_advice + distance_advice, [png])
 
 
 def advice_learned(rows: list[dict[str, Any]], card: Mapping[str, Any]) -> str:
@@ -542,7 +592,8 @@ class LearnedSection:
         folder = Path(str(cost)).parent
         return render_learned(m, out_dir, read_cost(Path(str(cost))), read_benchmark_rows(folder / DETECT_SCALE_FILE),
                               read_benchmark_rows(folder / DETECTOR_PATCH_FILE),
-                              read_benchmark_rows(folder / PRECISION_FILE))
+                              read_benchmark_rows(folder / PRECISION_FILE),
+                              read_benchmark_rows(folder / RGB_DISTANCE_FILE))
 
 
 SECTION = LearnedSection()
