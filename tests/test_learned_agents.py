@@ -107,3 +107,18 @@ def test_a_confident_large_detection_stops_the_active_agent_and_a_small_one_move
     moved = small[LEARNED_ACTIVE_AGENT]  # its box (a corner cell of a flat heatmap) points off the table:
     assert moved.notes["moves"] >= 1 and moved.adjustments + moved.refused >= 1  # the server may refuse it
     assert moved.refused == moved.notes["refused_poses"]
+
+
+@pytest.mark.parametrize("name", LEARNED_AGENTS)
+def test_every_learned_agent_hands_its_estimator_the_targets_mesh(bundle, tmp_path: Path, name: str) -> None:
+    # the RGB-only distance (the mask's area against the silhouette) needs it as much as the depth ICP does;
+    # before, only the depth agents fetched it and an RGB agent's distance hung on which agent ran first
+    ids = sorted(o.obj_id for o in bundle.objects)
+    model = _model_dir(tmp_path, ids, "plain")
+    app = create_app(bundle, device="cpu", log_dir=tmp_path / "episodes", warm_up=False)
+    target = bundle.objects[0]
+    with ServerThread(app) as server, BraveClient(server.url) as client:
+        agent = make_agent(name, client, AgentSetup(learned_model=model))
+        assert target.obj_id not in agent.estimator.silhouettes
+        _check_finite(run_episode(client, agent, target.gt_id, seed=3, width=160, height=120))
+    assert target.obj_id in agent.estimator.silhouettes and target.obj_id in agent.estimator.surfaces

@@ -88,8 +88,7 @@ class LearnedAgent:
             self.obj_id = int(step.target["obj_id"])
             info = next((o for o in self.bundle_info.get("objects", []) if int(o["obj_id"]) == self.obj_id), {})
             self.diameter_m = float(info.get("diameter_mm", 30.0)) / 1000.0
-            if self.use_depth:
-                self._give_surface()
+            self._give_surface()  # RGB-only too: the distance from the mask's area needs the mesh
         elif not step.accepted:  # refused (a collision box): the next candidate pose, if any is left
             self.refused += 1
             self._next = self._candidates.pop(0) if self._candidates else None
@@ -166,7 +165,8 @@ class LearnedAgent:
         return True, (pose.fit or 0.0) if self.use_depth else 0.0, pose.score
 
     def _give_surface(self) -> None:
-        """Hand the estimator the target's mesh from the server (``GET /models``) for its depth ICP."""
+        """Hand the estimator the target's mesh from the server (``GET /models``): the RGB-only
+        distance from the mask's area and the depth ICP need it."""
         from brave6d.evaluation.agents.model import read_model_ply
 
         if self.obj_id in self.estimator.surfaces or self.obj_id not in self.estimator.model.objects:
