@@ -236,7 +236,8 @@ def train_learned_check(bundle: Path, out: Path, device: str, steps: int, precis
         report["heldout_skipped"] = ("open3d is not installed here (VSD and the depth refinement need it); score "
                                      "the returned model with `python benchmarks/gpu_checks.py score-learned`")
         return report
-    report["heldout"] = score_learned(LearnedEstimator(result.model, device), data, models)
+    # as the agents use it: the meshes give the RGB-only distance from the mask's area and the depth ICP
+    report["heldout"] = score_learned(LearnedEstimator.load(model_dir, device, models_dir=models), data, models)
     return report
 
 
@@ -258,7 +259,8 @@ def score_returned(device_out: Path, out: Path, bundle: Path) -> dict[str, Any]:
     data, models, _ = load_learned_bundle(bundle)
     for device, r in report.get("learned", {}).items():
         if r.get("ok") and "heldout" not in r and (device_out / r["model"]).is_file():
-            r["heldout"] = score_learned(LearnedEstimator.load((device_out / r["model"]).parent), data, models)
+            r["heldout"] = score_learned(LearnedEstimator.load((device_out / r["model"]).parent, models_dir=models),
+                                         data, models)
             r["heldout_scored_by"] = "score-learned (on this machine's CPU, after the run)"
             r.pop("heldout_skipped", None)
     write_report(out, report)
