@@ -296,13 +296,24 @@ class LearnedEstimator:
                  depth_m: NDArray[np.floating] | None = None, score: float = 1.0) -> LearnedPose:
         """The pose of ``obj_id`` inside ``box`` (``rgb``'s pixels); ``depth_m`` (metres, 0 = none, same
         size as ``rgb``) scales the translation so the object's points meet the measured depth."""
-        return self.estimate_both(rgb, K, obj_id, box, depth_m, score)[1 if depth_m is not None else 0]
+        if depth_m is None:
+            return self._poses(rgb, K, obj_id, box, None, score, rgb_distance=True)[0]
+        depth_pose = self._poses(rgb, K, obj_id, box, depth_m, score, rgb_distance=False)[1]
+        assert depth_pose is not None
+        return depth_pose
 
     def estimate_both(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, box: tuple[float, float, float, float],
                       depth_m: NDArray[np.floating] | None = None,
                       score: float = 1.0) -> tuple[LearnedPose, LearnedPose | None]:
         """(RGB-only pose, pose refined with ``depth_m`` or None without depth) from one pass of the
         coordinate net and one PnP: what :meth:`estimate` gives for each, at half the cost of two calls."""
+        return self._poses(rgb, K, obj_id, box, depth_m, score, rgb_distance=True)
+
+    def _poses(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, box: tuple[float, float, float, float],
+               depth_m: NDArray[np.floating] | None, score: float,
+               rgb_distance: bool) -> tuple[LearnedPose, LearnedPose | None]:
+        """:meth:`estimate_both`; ``rgb_distance`` False skips the RGB-only pose's mask-area distance
+        (its silhouette) when only the depth pose is wanted, which starts from PnP's translation."""
         crop = self._crop_outputs(rgb, K, obj_id, box)  # refuses an object the model does not know
         obj = self.model.objects[int(obj_id)]
         ys, xs = np.nonzero(crop.visible)
@@ -312,7 +323,7 @@ class LearnedEstimator:
         R, t, inliers = solve_pnp(points_3d, points_2d, crop.K_work, obj_id)
         ratio = len(inliers) / max(len(points_3d), 1)
         pose_score = float(np.clip(score * ratio, 0.0, 1.0))
-        silhouette = self.silhouettes.get(int(obj_id)) if self.mask_area_distance else None
+        silhouette = self.silhouettes.get(int(obj_id)) if self.mask_area_distance and rgb_distance else None
         mask_scale = None if silhouette is None else mask_area_scale(crop.probability, silhouette, R, t, crop.K_work,
                                                                      crop.centre, crop.side, crop.image_size)
         t_rgb = t if mask_scale is None else t * mask_scale

@@ -369,7 +369,6 @@ def _rgb_distance_part(rows: list[dict[str, Any]] | None) -> tuple[str, str]:
     """The table and advice of the RGB-only distance (PnP's own against the mask's area): what each
     gives given true and detected boxes and as agents, and costs per estimate; the ceilings say how
     good a distance the RGB-only pose would need."""
-    by_name = {r.get("setting"): r for r in rows or []}
     if not rows:
         return "", ""
 
@@ -389,6 +388,7 @@ def _rgb_distance_part(rows: list[dict[str, Any]] | None) -> tuple[str, str]:
                              "agents static / active (+D)"], table_rows) + "\n"
              + ("\nThe same RGB-only poses given true boxes with the true distance: "
                 + ", ".join(f"{k} {fmt(v, 3)}" for k, v in ceilings.items()) + ".\n" if ceilings else ""))
+    by_name = {r.get("setting"): r for r in rows}
     pnp, area = by_name.get("pnp"), by_name.get("mask-area")
     if pnp is None or area is None:
         return table, ""
