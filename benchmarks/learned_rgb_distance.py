@@ -1,6 +1,8 @@
-"""What the RGB-only distance from the mask's area buys and costs: a trained model scored on a test
-split twice, with PnP's own distance and with the distance from the mask's area against the
-model's silhouette (``LearnedEstimator.mask_area_distance``), side by side.
+"""What the RGB-only distance from the mask's area and the crops at several zooms buy and cost: a
+trained model scored on a test split three times, side by side: PnP's own distance from one crop,
+the distance from the mask's area against the model's silhouette
+(``LearnedEstimator.mask_area_distance``), and that with the coordinate net looking at three zooms
+of each box, one PnP over all their correspondences (``LearnedEstimator.crop_zooms``).
 
     python benchmarks/learned_rgb_distance.py MODEL_DIR MODELS_DIR TEST_PBR --out DIR
         [--bundle BUNDLE --episodes-per-object 6]
@@ -23,7 +25,9 @@ from pathlib import Path
 from typing import Any
 
 REPORT_FILE = "rgb_distance.json"
-SETTINGS = {"pnp": False, "mask-area": True}
+#: setting -> (LearnedEstimator.mask_area_distance, LearnedEstimator.crop_zooms)
+SETTINGS: dict[str, tuple[bool, tuple[float, ...]]] = {"pnp": (False, (1.0,)), "mask-area": (True, (1.0,)),
+                                                       "mask-area, 3 zooms": (True, (1.0, 0.75, 1.25))}
 CEILING_ERRORS = (0.01, 0.02)
 
 
@@ -85,10 +89,11 @@ def main(argv: list[str] | None = None) -> int:
     test = load_training_data(args.test_pbr, args.models, int(preset["work_width"]), 2,
                               crop_width=int(preset.get("crop_source_width", preset["work_width"])))
     rows = []
-    default = LearnedEstimator.mask_area_distance
+    default = LearnedEstimator.mask_area_distance, LearnedEstimator.crop_zooms
     try:
-        for name, on in SETTINGS.items():
-            LearnedEstimator.mask_area_distance = on  # the agents' estimators too
+        for name, (on, zooms) in SETTINGS.items():
+            # on the class: the agents' estimators too
+            LearnedEstimator.mask_area_distance, LearnedEstimator.crop_zooms = on, zooms
             estimator = LearnedEstimator.load(args.model, models_dir=args.models)
             held = score_heldout(estimator, test, args.models, images=list(range(len(test.images))))
             row: dict[str, Any] = {"setting": name, "pose_ar": dict(held.pose_ar),
@@ -100,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(row)
             print(json.dumps(row), flush=True)
     finally:
-        LearnedEstimator.mask_area_distance = default
+        LearnedEstimator.mask_area_distance, LearnedEstimator.crop_zooms = default
     path = args.out / REPORT_FILE
     atomic_write_json(path, {"model": str(args.model), "test_pbr": str(args.test_pbr), "images": len(test.images),
                              "rows": rows})

@@ -80,6 +80,15 @@ def test_non_finite_correspondences_are_refused(bad: float) -> None:
     assert info.value.cause == "bad-input"
 
 
+@pytest.mark.parametrize("threshold", [0.0, -1.0, np.nan, np.inf])
+def test_a_pnp_threshold_that_is_not_a_positive_pixel_count_is_refused(threshold: float) -> None:
+    from brave6d.core.errors import BraveError
+
+    points = np.random.default_rng(0).uniform(-0.01, 0.01, size=(20, 3))
+    with pytest.raises(BraveError, match="reprojection_px"):
+        solve_pnp(points, _project(points, np.eye(3), np.array([0.0, 0.0, 0.3])), K, reprojection_px=threshold)
+
+
 def test_random_correspondences_give_a_finite_pose_or_a_named_refusal() -> None:
     rng = np.random.default_rng(1)
     for _ in range(60):

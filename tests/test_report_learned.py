@@ -184,19 +184,24 @@ def _distance_row(setting: str, true_rgb: float, ms: float, agents: dict | None 
 def test_the_rgb_distance_table_and_advice_come_from_the_benchmark_file(tmp_path: Path) -> None:
     path = tmp_path / RGB_DISTANCE_FILE
     agents = {"learned-static": 0.3, "learned-active": 0.5, "learned-static-depth": 0.6, "learned-active-depth": 0.7}
-    path.write_text(json.dumps({"rows": [_distance_row("pnp", 0.396, 16.6), _distance_row("mask-area", 0.459, 19.5, agents)]}))
+    path.write_text(json.dumps({"rows": [_distance_row("pnp", 0.396, 16.6), _distance_row("mask-area", 0.459, 19.5, agents),
+                                         _distance_row("mask-area, 3 zooms", 0.489, 29.5)]}))
     m = _measurement([_point(0, 0.2, 0.6, 0.6)])
     section = render_learned(m, tmp_path, None, None, None, None, read_benchmark_rows(path))
     assert any(line.replace(" ", "").startswith("|mask-area|0.459(0.150/0.170/0.870)|0.449|19.5|0.300/0.500(0.600/0.700)|")
                for line in section.body.splitlines())
     assert "true distance 0.655, distance 1% off 0.600" in section.body
     assert "changes AR given true boxes by +0.063 (0.396 -> 0.459) for +2.9 ms per estimate: keep it on" in section.advice
-    assert "the RGB-only distance, not the rotation, is what holds RGB-only AR down" in section.advice
-    path.write_text(json.dumps({"rows": [_distance_row("pnp", 0.46, 16.6), _distance_row("mask-area", 0.44, 19.5)]}))
+    assert ("Three zooms of each box under one PnP change it by +0.030 (given detected boxes +0.030, with depth "
+            "+0.000) for +10.0 ms per estimate: keep them") in section.advice
+    assert "with it 1 % off 0.600: what is left between that and AR is the RGB-only distance" in section.advice
+    path.write_text(json.dumps({"rows": [_distance_row("pnp", 0.46, 16.6), _distance_row("mask-area", 0.44, 19.5),
+                                         _distance_row("mask-area, 3 zooms", 0.43, 29.5)]}))
     worse = render_learned(m, tmp_path, None, None, None, None, read_benchmark_rows(path))
     assert "by -0.020" in worse.advice and "it does not pay here" in worse.advice
+    assert "change it by -0.010" in worse.advice and "they do not pay here" in worse.advice
     without = render_learned(m, tmp_path, None, None, None, None, None)
-    assert "RGB-only distance" not in without.body and "mask's area changes" not in without.advice
+    assert "RGB-only pose" not in without.body and "mask's area changes" not in without.advice
 
 @given(st.lists(st.floats(-1e6, 1e6), min_size=4, max_size=4), st.integers(1, 8))
 @settings(max_examples=200, deadline=None)

@@ -1,5 +1,5 @@
-"""The learned estimator at work: detect, crop, regress coordinates, PnP-RANSAC, the distance from
-the mask's area where the model's mesh is known (:mod:`~brave6d.evaluation.learned.silhouette`),
+"""The learned estimator at work: detect, crop (at a few zooms), regress coordinates, one PnP-RANSAC
+over every crop's correspondences, the distance from the mask's area where the model's mesh is known (:mod:`~brave6d.evaluation.learned.silhouette`),
 optionally refine the translation with a depth image.
 
 :class:`LearnedEstimator` takes any RGB image and its K (resized to the model's working width
@@ -46,6 +46,16 @@ MIN_MASK_CELLS = 3
 #: either way, so the default is one pass. Priced in docs/BENCHMARKS.md
 #: (benchmarks/learned_detect_scale.py).
 DETECT_SCALES: tuple[float, ...] = (1.0,)
+#: The coordinate net looks at a box's crop at these zooms (the crop's side over the box's padded
+#: side) and one PnP-RANSAC fits the correspondences of all of them (the mask-area distance is the
+#: geometric mean of theirs): the net's errors at different scales partly cancel, which pins the
+#: rotation down (test-time augmentation, as GDR-Net's dynamic zoom-in trains for). (1.0,): one
+#: crop, a third of the time. Priced in docs/BENCHMARKS.md (benchmarks/learned_rgb_distance.py).
+CROP_ZOOMS: tuple[float, ...] = (1.0, 0.75, 1.25)
+#: PnP-RANSAC's inlier threshold, in the coordinate net's output cells of the zoom-1 crop (a cell
+#: spans 3 px of a far object's crop and 15 of a near one's: a threshold in pixels would be loose on
+#: one and strict on the other). Priced in docs/BENCHMARKS.md.
+PNP_REPROJECTION_CELLS = 1.5
 #: Detections of one object overlapping a better one at least this much (IoU) are dropped.
 NMS_IOU = 0.5
 #: Beside a narrower pass, a wider one keeps only detections whose box (geometric mean of w, h)
@@ -101,6 +111,8 @@ class LearnedEstimator:
     #: False: PnP's own distance. Set on an instance, or on the class for every estimator (what
     #: ``benchmarks/learned_rgb_distance.py`` does to price it in the agents).
     mask_area_distance: bool = True
+    #: :data:`CROP_ZOOMS` ((1.0,): one crop per estimate); on an instance or the class, as above.
+    crop_zooms: tuple[float, ...] = CROP_ZOOMS
 
     def __init__(self, model: LearnedModel, device: str = "cpu") -> None:
         import torch
@@ -305,8 +317,8 @@ class LearnedEstimator:
     def estimate_both(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, box: tuple[float, float, float, float],
                       depth_m: NDArray[np.floating] | None = None,
                       score: float = 1.0) -> tuple[LearnedPose, LearnedPose | None]:
-        """(RGB-only pose, pose refined with ``depth_m`` or None without depth) from one pass of the
-        coordinate net and one PnP: what :meth:`estimate` gives for each, at half the cost of two calls."""
+        """(RGB-only pose, pose refined with ``depth_m`` or None without depth) from the same crops and
+        one PnP: what :meth:`estimate` gives for each, at half the cost of two calls."""
         return self._poses(rgb, K, obj_id, box, depth_m, score, rgb_distance=True)
 
     def _poses(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, box: tuple[float, float, float, float],
@@ -314,18 +326,24 @@ class LearnedEstimator:
                rgb_distance: bool) -> tuple[LearnedPose, LearnedPose | None]:
         """:meth:`estimate_both`; ``rgb_distance`` False skips the RGB-only pose's mask-area distance
         (its silhouette) when only the depth pose is wanted, which starts from PnP's translation."""
-        crop = self._crop_outputs(rgb, K, obj_id, box)  # refuses an object the model does not know
+        crops = [self._crop_outputs(rgb, K, obj_id, zoomed(box, z)) for z in self._zooms()]  # refuses unknown objects
+        crop = crops[0]
         obj = self.model.objects[int(obj_id)]
-        ys, xs = np.nonzero(crop.visible)
-        points_2d = crop_to_image(np.stack([xs, ys], axis=1).astype(np.float64), crop.centre, crop.side,
-                                  crop.visible.shape[-1])
-        points_3d = (crop.coords[:, ys, xs].T * obj.radius_mm + obj.centre_mm) / 1000.0
-        R, t, inliers = solve_pnp(points_3d, points_2d, crop.K_work, obj_id)
+        points_2d, points_3d = [], []
+        for c in crops:
+            ys, xs = np.nonzero(c.visible)
+            points_2d.append(crop_to_image(np.stack([xs, ys], axis=1).astype(np.float64), c.centre, c.side,
+                                           c.visible.shape[-1]))
+            points_3d.append((c.coords[:, ys, xs].T * obj.radius_mm + obj.centre_mm) / 1000.0)
+        points_2d, points_3d = np.concatenate(points_2d), np.concatenate(points_3d)  # type: ignore[assignment]
+        cell_px = crop.side / crop.visible.shape[-1]
+        R, t, inliers = solve_pnp(points_3d, points_2d, crop.K_work, obj_id,
+                                  reprojection_px=PNP_REPROJECTION_CELLS * cell_px)
         ratio = len(inliers) / max(len(points_3d), 1)
         pose_score = float(np.clip(score * ratio, 0.0, 1.0))
         silhouette = self.silhouettes.get(int(obj_id)) if self.mask_area_distance and rgb_distance else None
-        mask_scale = None if silhouette is None else mask_area_scale(crop.probability, silhouette, R, t, crop.K_work,
-                                                                     crop.centre, crop.side, crop.image_size)
+        mask_scale = None if silhouette is None else _mean_scale(
+            [mask_area_scale(c.probability, silhouette, R, t, c.K_work, c.centre, c.side, c.image_size) for c in crops])
         t_rgb = t if mask_scale is None else t * mask_scale
         rgb_pose = LearnedPose(_rigid(R, t_rgb), pose_score, len(inliers), len(points_3d), mask_scale=mask_scale)
         if depth_m is None:
@@ -339,6 +357,12 @@ class LearnedEstimator:
             points = box_points(depth_m, np.asarray(K, dtype=np.float64), box, t_d[2] - d, t_d[2] + d)
             cam_T_obj, refined, fit = icp_refine(cam_T_obj, points, surface, max_points=self.icp_max_points)
         return rgb_pose, LearnedPose(cam_T_obj, pose_score, len(inliers), len(points_3d), depth_scale, refined, fit)
+
+    def _zooms(self) -> tuple[float, ...]:
+        zooms = tuple(self.crop_zooms)
+        if not zooms or not all(math.isfinite(z) and 0.25 <= z <= 4.0 for z in zooms):
+            raise BraveError(f"learned estimator: crop_zooms must be finite numbers in [0.25, 4], got {zooms}")
+        return zooms
 
     def refine_views(self, obj_id: int, ref_T_obj: Array,
                      views: list[tuple[Array, Array, NDArray[np.floating], tuple[float, float, float, float]]]
@@ -380,6 +404,19 @@ class _CropOutputs:
     image_size: tuple[int, int]
 
 
+def zoomed(box: tuple[float, float, float, float], zoom: float) -> tuple[float, float, float, float]:
+    """``box`` scaled by ``zoom`` about its centre."""
+    x0, y0, x1, y1 = box
+    cx, cy, hw, hh = (x0 + x1) / 2.0, (y0 + y1) / 2.0, zoom * (x1 - x0) / 2.0, zoom * (y1 - y0) / 2.0
+    return (cx - hw, cy - hh, cx + hw, cy + hh)
+
+
+def _mean_scale(scales: list[float | None]) -> float | None:
+    """The geometric mean of the crops' mask-area scales that were set (None: none was)."""
+    kept = [s for s in scales if s is not None]
+    return float(np.exp(np.mean(np.log(kept)))) if kept else None
+
+
 def _rigid(R: Array, t: Array) -> Array:
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
@@ -397,6 +434,8 @@ def solve_pnp(points_3d: Array, points_2d: Array, K: Array, obj_id: int = 0,
     if n < MIN_CORRESPONDENCES:
         raise LearnedRefused("few-correspondences", f"learned estimator: object {obj_id}: {n} correspondences, "
                                                     f"PnP needs at least {MIN_CORRESPONDENCES}")
+    if not (math.isfinite(reprojection_px) and reprojection_px > 0):
+        raise BraveError(f"solve_pnp: reprojection_px must be a positive finite number of pixels, got {reprojection_px}")
     p3 = np.asarray(points_3d, dtype=np.float64)
     p2 = np.asarray(points_2d, dtype=np.float64)
     if not (np.all(np.isfinite(p3)) and np.all(np.isfinite(p2))):

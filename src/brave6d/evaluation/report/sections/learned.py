@@ -366,9 +366,9 @@ def _precision_part(rows: list[dict[str, Any]] | None, card: Mapping[str, Any]) 
 
 
 def _rgb_distance_part(rows: list[dict[str, Any]] | None) -> tuple[str, str]:
-    """The table and advice of the RGB-only distance (PnP's own against the mask's area): what each
-    gives given true and detected boxes and as agents, and costs per estimate; the ceilings say how
-    good a distance the RGB-only pose would need."""
+    """The table and advice of the RGB-only pose's settings (PnP's own distance, the mask's area,
+    that with crops at several zooms): what each gives given true and detected boxes and as agents,
+    and costs per estimate; the ceilings say how good a distance the RGB-only pose would need."""
     if not rows:
         return "", ""
 
@@ -382,9 +382,9 @@ def _rgb_distance_part(rows: list[dict[str, Any]] | None) -> tuple[str, str]:
                            f"{fmt(m.get('mssd'), 3)} / {fmt(m.get('mspd'), 3)})", fmt(ar(r, "detected_rgb"), 3),
                            fmt(r.get("ms_per_estimate"), 1), _agents_cell(r.get("agents"))))
     ceilings = (rows[-1].get("true_box_rgb") or {}).get("ceilings") or {}
-    table = ("The RGB-only distance (`benchmarks/learned_rgb_distance.py`: PnP's own, or from the mask's area "
-             "against the model's silhouette; depth variants unchanged):\n\n"
-             + format_table(["distance", "AR true box RGB (VSD / MSSD / MSPD)", "AR detected RGB", "ms per estimate",
+    table = ("The RGB-only pose (`benchmarks/learned_rgb_distance.py`: PnP's own distance, or the distance from "
+             "the mask's area against the model's silhouette, from one crop or three zooms of it):\n\n"
+             + format_table(["setting", "AR true box RGB (VSD / MSSD / MSPD)", "AR detected RGB", "ms per estimate",
                              "agents static / active (+D)"], table_rows) + "\n"
              + ("\nThe same RGB-only poses given true boxes with the true distance: "
                 + ", ".join(f"{k} {fmt(v, 3)}" for k, v in ceilings.items()) + ".\n" if ceilings else ""))
@@ -398,9 +398,20 @@ def _rgb_distance_part(rows: list[dict[str, Any]] | None) -> tuple[str, str]:
     advice = (f" RGB-only, the distance from the mask's area changes AR given true boxes by {_signed(gain, 3)} "
               f"({fmt(ar(pnp, 'true_box_rgb'), 3)} -> {fmt(ar(area, 'true_box_rgb'), 3)}) for "
               f"{_signed(cost, 1)} ms per estimate: {verdict}.")
+    zooms = by_name.get("mask-area, 3 zooms")
+    if zooms is not None:
+        gain = ar(zooms, "true_box_rgb") - ar(area, "true_box_rgb")
+        cost = num(zooms.get("ms_per_estimate")) - num(area.get("ms_per_estimate"))
+        verdict = ("keep them (`LearnedEstimator.crop_zooms`)" if gain > 0
+                   else "they do not pay here: set `LearnedEstimator.crop_zooms = (1.0,)`")
+        advice += (f" Three zooms of each box under one PnP change it by {_signed(gain, 3)} "
+                   f"(given detected boxes {_signed(ar(zooms, 'detected_rgb') - ar(area, 'detected_rgb'), 3)}, "
+                   f"with depth {_signed(ar(zooms, 'detected_depth') - ar(area, 'detected_depth'), 3)}) for "
+                   f"{_signed(cost, 1)} ms per estimate: {verdict}.")
     if ceilings:
-        advice += (f" With the true distance the same poses would score {fmt(ceilings.get('true distance'), 3)}: "
-                   "the RGB-only distance, not the rotation, is what holds RGB-only AR down.")
+        advice += (f" With the true distance the same poses would score {fmt(ceilings.get('true distance'), 3)}, "
+                   f"with it 1 % off {fmt(ceilings.get('distance 1% off'), 3)}: what is left between that and AR is "
+                   "the RGB-only distance; below it, the rotation.")
     return table, advice
 
 
