@@ -31,44 +31,28 @@ SETTINGS: dict[str, tuple[bool, tuple[float, ...]]] = {"pnp": (False, (1.0,)), "
 CEILING_ERRORS = (0.01, 0.02)
 
 
-def true_box_rgb_metrics(estimator: Any, test: Any, models_dir: Path, seed: int = 0) -> dict[str, Any]:
-    """The RGB-only pose given each true box of ``test``: its AR and per-metric recalls, and the
-    ceilings (AR with the true distance, exact and off by :data:`CEILING_ERRORS`)."""
+def true_box_rgb_metrics(held: Any, models_dir: Path, seed: int = 0) -> dict[str, Any]:
+    """The RGB-only pose given each true box (``held``: :func:`score_heldout`'s scores, its estimates
+    kept): its AR and per-metric recalls, and the ceilings (AR of the same poses moved along their
+    rays to the true distance, exact and off by :data:`CEILING_ERRORS`)."""
     import numpy as np
 
-    from brave6d.core.atomic import read_png
-    from brave6d.evaluation.learned import LearnedRefused
-    from brave6d.evaluation.learned.data import MIN_VISIB_FRACT
-    from brave6d.evaluation.metrics import DepthRenderer, Estimate, GTInstance, evaluate_bop19, load_models
+    from brave6d.evaluation.metrics import DepthRenderer, Estimate, evaluate_bop19, load_models
 
     rng = np.random.default_rng(seed)
-    models = load_models(models_dir, sorted(test.objects))
-    gts: list[Any] = []
-    runs: dict[str, list[Any]] = {"estimate": [], "true distance": []} | {f"distance {e:.0%} off": []
-                                                                          for e in CEILING_ERRORS}
-    for record in test.images:
-        depth_mm = read_png(record.depth_path, expect="depth").astype(np.float64)
-        for k in record.instances:
-            inst = test.instances[k]
-            gts.append(GTInstance(record.scene_id, record.im_id, inst.obj_id, inst.R, inst.t_mm,
-                                  max(inst.visib_fract, MIN_VISIB_FRACT), record.K_full, record.size_full, depth_mm))
-            try:
-                pose = estimator.estimate(record.rgb_crop, record.K_crop, inst.obj_id, inst.box_crop)
-            except LearnedRefused:
-                continue
-            R, t = pose.cam_T_obj[:3, :3], pose.cam_T_obj[:3, 3] * 1000.0
-            t_true = t * (float(np.asarray(inst.t_mm).reshape(3)[2]) / t[2])
-            ids = (record.scene_id, record.im_id, inst.obj_id, pose.score)
-            runs["estimate"].append(Estimate(*ids, R, t))
-            runs["true distance"].append(Estimate(*ids, R, t_true))
-            for e in CEILING_ERRORS:
-                runs[f"distance {e:.0%} off"].append(Estimate(*ids, R, t_true * (1.0 + e * rng.standard_normal())))
+    models = load_models(models_dir, sorted({g.obj_id for g in held.gts}))
+    runs: dict[str, list[Any]] = {"true distance": []} | {f"distance {e:.0%} off": [] for e in CEILING_ERRORS}
+    for gt_index, e in held.estimates["true_box_rgb"]:
+        t_true = e.t * (float(np.asarray(held.gts[gt_index].t).reshape(3)[2]) / float(e.t[2]))
+        ids = (e.scene_id, e.im_id, e.obj_id, e.score)
+        runs["true distance"].append(Estimate(*ids, e.R, t_true))
+        for err in CEILING_ERRORS:
+            runs[f"distance {err:.0%} off"].append(Estimate(*ids, e.R, t_true * (1.0 + err * rng.standard_normal())))
     renderer = DepthRenderer()
-    scores = {name: evaluate_bop19(gts, estimates, models, renderer=renderer, keep_errors=False)
-              for name, estimates in runs.items()}
-    own = scores.pop("estimate")
-    return {"ar": own.ar, "vsd": own.ar_vsd, "mssd": own.ar_mssd, "mspd": own.ar_mspd,
-            "ceilings": {name: s.ar for name, s in scores.items()}}
+    metrics = held.pose_ar_metrics["true_box_rgb"]
+    return {"ar": held.pose_ar["true_box_rgb"], "vsd": metrics["vsd"], "mssd": metrics["mssd"], "mspd": metrics["mspd"],
+            "ceilings": {name: evaluate_bop19(held.gts, estimates, models, renderer=renderer, keep_errors=False).ar
+                         for name, estimates in runs.items()}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -95,10 +79,11 @@ def main(argv: list[str] | None = None) -> int:
             # on the class: the agents' estimators too
             LearnedEstimator.mask_area_distance, LearnedEstimator.crop_zooms = on, zooms
             estimator = LearnedEstimator.load(args.model, models_dir=args.models)
-            held = score_heldout(estimator, test, args.models, images=list(range(len(test.images))))
+            held = score_heldout(estimator, test, args.models, images=list(range(len(test.images))),
+                                 keep_estimates=True)
             row: dict[str, Any] = {"setting": name, "pose_ar": dict(held.pose_ar),
                                    "ms_per_estimate": 1000.0 * held.seconds_per_estimate,
-                                   "true_box_rgb": true_box_rgb_metrics(estimator, test, args.models)}
+                                   "true_box_rgb": true_box_rgb_metrics(held, args.models)}
             if args.bundle is not None:
                 row["agents"] = learned_agent_scores(args.bundle, args.model, args.out / f"episodes-{name}",
                                                      args.episodes_per_object)

@@ -33,8 +33,11 @@ POSE_VARIANTS = ("true_box_rgb", "true_box_depth", "detected_rgb", "detected_dep
 
 @dataclass
 class HeldoutScores:
-    """Per object: detection recall / AP at IoU 0.5; per variant: pose AR overall and per object;
-    refusals per variant by cause; seconds per estimate (median)."""
+    """Per object: detection recall / AP at IoU 0.5; per variant: pose AR overall, per object and
+    per metric (``pose_ar_metrics``: vsd, mssd, mspd); refusals per variant by cause; seconds per
+    estimate (median). With ``keep_estimates`` (:func:`score_heldout`): the ground truths scored
+    against (``gts``) and, per variant, each estimate with the index of its ground truth in ``gts``
+    (``estimates``), for benchmarks that score the same poses changed."""
 
     images: int
     instances: int
@@ -48,6 +51,9 @@ class HeldoutScores:
     ap_raw: dict[int, float] = field(default_factory=dict)
     seconds_per_detection: dict[str, float] = field(default_factory=dict)
     detect_widths: tuple[int, ...] = ()
+    pose_ar_metrics: dict[str, dict[str, float]] = field(default_factory=dict)
+    gts: list[Any] | None = None
+    estimates: dict[str, list[tuple[int, Any]]] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"images": self.images, "instances": self.instances,
@@ -55,6 +61,7 @@ class HeldoutScores:
                 "detection_ap_iou50": {str(k): v for k, v in self.ap.items()},
                 "pose_ar": dict(self.pose_ar),
                 "pose_ar_per_object": {v: {str(k): x for k, x in d.items()} for v, d in self.pose_ar_per_object.items()},
+                "pose_ar_metrics": {v: dict(d) for v, d in self.pose_ar_metrics.items()},
                 "refusals": self.refusals, "seconds_per_estimate": self.seconds_per_estimate,
                 "detection_recall_iou50_unrefined": {str(k): v for k, v in self.recall_raw.items()},
                 "detection_ap_iou50_unrefined": {str(k): v for k, v in self.ap_raw.items()},
@@ -92,9 +99,10 @@ def average_precision(scores: list[float], hits: list[bool], n_gt: int) -> float
 
 def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: Path | str,
                   max_images: int | None = None, show_progress: bool = True,
-                  images: list[int] | None = None) -> HeldoutScores:
+                  images: list[int] | None = None, keep_estimates: bool = False) -> HeldoutScores:
     """Score ``estimator`` on the held-out images of ``data`` (module docstring); ``images``: other
-    image indices instead (the tests score training images to see what a model learnt)."""
+    image indices instead (the tests score training images to see what a model learnt);
+    ``keep_estimates``: return the ground truths and estimates too (:class:`HeldoutScores`)."""
     import cv2
 
     from brave6d.core.atomic import read_png
@@ -107,7 +115,7 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
     tallies = {kind: _Tally(obj_ids) for kind in ("refined", "raw")}
     detect_s: dict[str, list[float]] = {"image": [], "refine": []}
     gts: list[Any] = []
-    estimates: dict[str, list[Any]] = {v: [] for v in POSE_VARIANTS}
+    estimates: dict[str, list[tuple[int, Any]]] = {v: [] for v in POSE_VARIANTS}  # (index in gts, estimate)
     refusals: dict[str, dict[str, int]] = {v: {} for v in POSE_VARIANTS}
     times: list[float] = []
     n_instances = 0
@@ -128,11 +136,12 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
         n_instances += len(instances)
         tallies["raw"].match(raw, instances)
         tallies["refined"].match(detections, instances)
+        first_gt = len(gts)
         for inst in instances:
             gts.append(GTInstance(record.scene_id, record.im_id, inst.obj_id, inst.R, inst.t_mm,
                                   max(inst.visib_fract, MIN_VISIB_FRACT), record.K_full, record.size_full,
                                   depth_full_mm))
-        for inst in instances:
+        for gt_index, inst in enumerate(instances, start=first_gt):
             confident = [d for d in detections if d.obj_id == inst.obj_id and d.score >= DETECTION_THRESHOLD]
             matched = max(confident, key=lambda d: iou(d.box, inst.box_crop), default=None)
             boxes = {"true_box": (inst.box_crop, 1.0),
@@ -153,19 +162,22 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
                 times.append(time.perf_counter() - t0)
                 for mode, pose in zip(("rgb", "depth"), poses):
                     assert pose is not None
-                    estimates[f"{kind}_{mode}"].append(Estimate(record.scene_id, record.im_id, inst.obj_id, pose.score,
-                                                                pose.cam_T_obj[:3, :3], pose.cam_T_obj[:3, 3] * 1000.0))
+                    estimates[f"{kind}_{mode}"].append((gt_index, Estimate(
+                        record.scene_id, record.im_id, inst.obj_id, pose.score, pose.cam_T_obj[:3, :3],
+                        pose.cam_T_obj[:3, 3] * 1000.0)))
     renderer = DepthRenderer()
-    pose_ar, per_object = {}, {}
+    pose_ar, per_object, per_metric = {}, {}, {}
     for variant in POSE_VARIANTS:
-        scores = evaluate_bop19(gts, estimates[variant], models, renderer=renderer, keep_errors=False)
+        scores = evaluate_bop19(gts, [e for _, e in estimates[variant]], models, renderer=renderer, keep_errors=False)
         pose_ar[variant] = float(scores.ar)
         per_object[variant] = {int(o): float(s.ar) for o, s in scores.per_object.items()}
+        per_metric[variant] = {"vsd": float(scores.ar_vsd), "mssd": float(scores.ar_mssd), "mspd": float(scores.ar_mspd)}
     refined, raw = tallies["refined"], tallies["raw"]
     return HeldoutScores(len(images), n_instances, refined.recall(), refined.ap(), pose_ar, per_object, refusals,
                          float(np.median(times)) if times else 0.0, raw.recall(), raw.ap(),
                          {f"{k}_median_s": float(np.median(v)) if v else 0.0 for k, v in detect_s.items()},
-                         tuple(estimator.detect_widths))
+                         tuple(estimator.detect_widths), per_metric, gts if keep_estimates else None,
+                         estimates if keep_estimates else None)
 
 
 def _count(tally: dict[str, int], cause: str) -> None:
