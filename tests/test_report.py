@@ -11,6 +11,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import Image
 
 from brave6d.core.atomic import atomic_write_json, read_json
@@ -18,7 +20,7 @@ from brave6d.evaluation.report.measurements import Measurement, MeasurementStore
 from brave6d.evaluation.report.build import ReportSettings, build_report, compose, figure_names, measure_all, stage_report
 from brave6d.evaluation.report.build import measurement_store, write_report
 from brave6d.evaluation.report.sections.baseline import by_agent, collect_baseline, render_baseline
-from brave6d.evaluation.report.common import RenderedSection, fmt, median, quantile
+from brave6d.evaluation.report.common import RenderedSection, evenly_spaced, fmt, median, quantile
 from brave6d.evaluation.report.sections.handeye import HandEyeSweep
 from brave6d.evaluation.report.sections.latency import LatencySweep, render_latency
 from brave6d.evaluation.report.plots import finite_pairs, new_figure, plot_line
@@ -639,3 +641,14 @@ def test_training_section_plots_two_schedules_and_advises_from_them(tmp_path: Pa
     (scene.splat_dir / "time_to_quality.json").write_text('{"a": 1}')
     section = render_training(collect_training(scene, MeasurementStore(tmp_path / "m3")), None, tmp_path / "out")
     assert "time_to_quality.json could not be read" in section.body
+
+
+@settings(max_examples=100, deadline=None)
+@given(n=st.integers(0, 200), k=st.integers(-3, 250))
+def test_evenly_spaced_picks_k_distinct_items_across_the_whole_list(n: int, k: int) -> None:
+    items = list(range(n))
+    chosen = evenly_spaced(items, k)
+    assert chosen == sorted(set(chosen)) and set(chosen) <= set(items)
+    assert len(chosen) == (n if k >= n else max(k, 0))
+    if 0 < k < n:  # one from each of k equal stretches
+        assert all(math.floor(i * n / k) <= c < math.floor((i + 1) * n / k) + 1 for i, c in enumerate(chosen))

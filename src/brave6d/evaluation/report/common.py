@@ -72,6 +72,14 @@ def quantile(values: Sequence[Any], q: float) -> float:
     return float(np.quantile(a, q)) if a.size else math.nan
 
 
+def evenly_spaced(items: Sequence[Any], k: int) -> list[Any]:
+    """``k`` of ``items`` at evenly spaced positions (all of them when ``k >= len``, none when ``k <= 0``)."""
+    n = len(items)
+    if k >= n:
+        return list(items)
+    return [items[math.floor((i + 0.5) * n / k)] for i in range(max(k, 0))]
+
+
 def seconds_per_frame(records: Sequence[FrameRecord], level: int | None = None) -> float | None:
     """Median time-stamp gap before each frame (of ``level`` if given), in capture order: the robot
     time one more view costs (travel + settle + exposure). None without increasing time stamps."""

@@ -21,15 +21,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.core.layout import SceneDir
+from brave6d.evaluation.report.common import evenly_spaced
 from brave6d.evaluation.report.measurements import Measurement, MeasurementStore, file_stamp
-
-
-def evenly_spaced(items: Sequence[Any], k: int) -> list[Any]:
-    """``k`` of ``items`` at evenly spaced positions (all of them when ``k >= len``)."""
-    n = len(items)
-    if k >= n:
-        return list(items)
-    return [items[math.floor((i + 0.5) * n / k)] for i in range(max(k, 0))]
 
 
 def choose_views(levels: Mapping[int, int], holdout: set[int], exported: set[int], holdout_per_level: int,

@@ -27,7 +27,7 @@ import numpy as np
 from brave6d.core.layout import SceneDir
 from brave6d.core.progress import format_table
 from brave6d.evaluation.report.measurements import Measurement, MeasurementStore, describe_machine, file_stamp, machine_info, run_sweep
-from brave6d.evaluation.report.common import RenderedSection, calibrated_capture, fmt, nan_note, num, provenance
+from brave6d.evaluation.report.common import RenderedSection, calibrated_capture, evenly_spaced, fmt, nan_note, num, provenance
 from brave6d.evaluation.report.common import seconds_per_frame, settings_line, unavailable
 from brave6d.evaluation.report.protocol import MeasureInputs
 from brave6d.evaluation.report.plots import legend, new_figure, plot_line, save_figure
@@ -139,14 +139,6 @@ def train_subset(data: Any, preset: Preset, device: Any) -> dict[str, Any]:
     return {"steps": run.steps, "train_s": run.result.train_seconds, "init_s": run.init_seconds, "eval_s": eval_s,
             "init": {"source": run.init["source"], "points": run.init["points"]}, "gaussians": run.num_gaussians,
             "psnr": curve[-1]["psnr"], "ssim": curve[-1]["ssim"], "curve": curve}
-
-
-def evenly_spaced(items: list[Any], k: int) -> list[Any]:
-    """``k`` of ``items`` at evenly spaced positions (all of them when ``k >= len``)."""
-    n = len(items)
-    if k >= n:
-        return list(items)
-    return [items[math.floor((i + 0.5) * n / k)] for i in range(k)]
 
 
 # ----------------------------------------------------------------------------- rendering
