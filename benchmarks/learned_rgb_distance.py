@@ -24,10 +24,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from brave6d.evaluation.learned.inference import CROP_ZOOMS
+
 REPORT_FILE = "rgb_distance.json"
-#: setting -> (LearnedEstimator.mask_area_distance, LearnedEstimator.crop_zooms)
+#: setting -> (LearnedEstimator.mask_area_distance, LearnedEstimator.crop_zooms); the last: the defaults
 SETTINGS: dict[str, tuple[bool, tuple[float, ...]]] = {"pnp": (False, (1.0,)), "mask-area": (True, (1.0,)),
-                                                       "mask-area, 3 zooms": (True, (1.0, 0.75, 1.25))}
+                                                       "mask-area, 3 zooms": (True, CROP_ZOOMS)}
 CEILING_ERRORS = (0.01, 0.02)
 
 

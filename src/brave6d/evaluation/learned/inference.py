@@ -326,7 +326,8 @@ class LearnedEstimator:
                rgb_distance: bool) -> tuple[LearnedPose, LearnedPose | None]:
         """:meth:`estimate_both`; ``rgb_distance`` False skips the RGB-only pose's mask-area distance
         (its silhouette) when only the depth pose is wanted, which starts from PnP's translation."""
-        crops = [self._crop_outputs(rgb, K, obj_id, zoomed(box, z)) for z in self._zooms()]  # refuses unknown objects
+        zooms = self._zooms()
+        crops = [self._crop_outputs(rgb, K, obj_id, zoomed(box, z)) for z in zooms]  # refuses unknown objects
         crop = crops[0]
         obj = self.model.objects[int(obj_id)]
         points_2d, points_3d = [], []
@@ -336,7 +337,7 @@ class LearnedEstimator:
                                            c.visible.shape[-1]))
             points_3d.append((c.coords[:, ys, xs].T * obj.radius_mm + obj.centre_mm) / 1000.0)
         points_2d, points_3d = np.concatenate(points_2d), np.concatenate(points_3d)  # type: ignore[assignment]
-        cell_px = crop.side / crop.visible.shape[-1]
+        cell_px = crop.side / zooms[0] / crop.visible.shape[-1]  # a cell of the zoom-1 crop, whatever zooms[0] is
         R, t, inliers = solve_pnp(points_3d, points_2d, crop.K_work, obj_id,
                                   reprojection_px=PNP_REPROJECTION_CELLS * cell_px)
         ratio = len(inliers) / max(len(points_3d), 1)
