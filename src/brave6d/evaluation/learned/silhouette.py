@@ -24,8 +24,8 @@ from numpy.typing import NDArray
 from brave6d.evaluation.learned.crops import crop_affine
 
 Array = NDArray[np.float64]
-#: Supersampled width at which a silhouette is rasterised (its area's edge bias: about half a
-#: supersampled pixel along the outline, well under 1 % of a 16-cell mask).
+#: Supersampled width at which a silhouette is rasterised (outline pixels count half: its area is
+#: within 0.1 % of the exact one on the demo's objects).
 RASTER_PX = 512
 #: A mask-area distance more than this far (relative) from PnP's is not used (see the module docstring).
 MAX_AREA_Z_CHANGE = 0.15
@@ -66,12 +66,18 @@ def silhouette_cells(mesh: Silhouette, R: Array, t_m: Array, K: Array, centre: t
     for triangle in np.round(xy[np.asarray(mesh.faces)] * 16.0).astype(np.int64):
         if np.all(np.abs(triangle) < 2**26):  # far outside the crop: nothing to draw
             cv2.fillConvexPoly(raster, triangle.astype(np.int32), 1, lineType=cv2.LINE_8, shift=4)
+    # filled polygons include the pixels their outline touches: 0.8 % too much area at 32x supersampling.
+    # A pixel on the outline (one with a 4-neighbour outside) is half inside on average, so it counts
+    # half (within 0.1 % of the exact area; beyond the crop's edge the silhouette goes on)
+    outline = raster - cv2.erode(raster, cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)),
+                                 borderType=cv2.BORDER_REPLICATE)
+    weight = raster.astype(np.float64) - 0.5 * outline
     # the raster's pixel centres in image pixels: only those inside the image count
     k = A[0, 0]
     axis = np.arange(cells * ss, dtype=np.float64)
     inside_x = np.abs((axis - A[0, 2]) / k + 0.5 - image_size[0] / 2.0) <= image_size[0] / 2.0
     inside_y = np.abs((axis - A[1, 2]) / k + 0.5 - image_size[1] / 2.0) <= image_size[1] / 2.0
-    return float(raster[np.ix_(inside_y, inside_x)].sum()) / ss**2
+    return float(weight[np.ix_(inside_y, inside_x)].sum()) / ss**2
 
 
 def mask_area_scale(probability: Array, mesh: Silhouette, R: Array, t_m: Array, K: Array,
