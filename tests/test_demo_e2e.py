@@ -88,9 +88,11 @@ def test_quick_demo_runs_every_stage(tmp_path: Path) -> None:
     assert final_m < start_m  # it approached the target
 
     learn = fig["learn"]  # a tiny train_pbr rendered and a model trained on it, scored on its held-out images
-    from brave6d.evaluation.learned.demo import QUICK_IMAGES
+    from brave6d.evaluation.learned.demo import QUICK_HELDOUT_IMAGES, QUICK_IMAGES
 
-    assert int(learn["train_pbr images"]) == QUICK_IMAGES == int(learn["rendered"]) and learn["preset"] == "tiny"
+    assert int(learn["train_pbr images"]) == QUICK_IMAGES and learn["preset"] == "tiny"
+    assert int(learn["rendered"]) == QUICK_IMAGES + QUICK_HELDOUT_IMAGES  # and a split apart that the card is scored on
+    assert int(learn["held-out images"]) == QUICK_HELDOUT_IMAGES
     assert 0.0 <= float(learn["held-out AR true box"]) <= 1.0 and float(learn["train s"]) > 0
     assert (tmp_path / "learned" / "model" / "model.pt").is_file() and (tmp_path / "learned" / "model" / "card.json").is_file()
 

@@ -3,6 +3,7 @@ steps, held-out scoring, the card, resuming bit for bit, reuse by checksum, the 
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -146,8 +147,6 @@ def test_the_card_names_the_split_the_steps_and_the_heldout_figures(split: tuple
 
 def test_a_reused_model_is_scored_again_when_the_detector_looks_at_another_width(
         split: tuple[Path, Path], trained: Path, tmp_path: Path) -> None:
-    import shutil
-
     from brave6d.core.atomic import file_sha256
     from brave6d.evaluation.learned import write_card
 
@@ -164,6 +163,29 @@ def test_a_reused_model_is_scored_again_when_the_detector_looks_at_another_width
     again = learn_and_card(split[0], split[1], out, PRESET, device="cpu", show_progress=False)
     assert again["heldout"]["detect_widths"] == [320] and again["heldout"]["images"] == 3  # scored again
     assert file_sha256(out / "model.pt") == weights  # not trained again
+    for stale in ({"detection_threshold": 0.3}, {"crop_zooms": [1.0]}):  # scored with other inference settings
+        write_card(out, dict(card, heldout=dict(again["heldout"], images=-1, **stale)))
+        assert learn_and_card(split[0], split[1], out, PRESET, device="cpu", show_progress=False)["heldout"]["images"] == 3
+
+
+def test_the_card_is_scored_on_every_image_of_a_split_rendered_apart(split: tuple[Path, Path], trained: Path,
+                                                                     tmp_path: Path) -> None:
+    from brave6d.evaluation.learned.pipeline import heldout_only
+
+    other = tmp_path / "heldout"
+    synthesize(DEMO_SPEC, other, SynthOptions(images=4, seed=5, workers=2, width=320, height=200))
+    out = tmp_path / "model"
+    shutil.copytree(trained, out)
+    slice_card = read_card(out)
+    assert slice_card["heldout"]["images"] == 3 and not slice_card["heldout"]["whole_split"]
+    card = learn_and_card(split[0], split[1], out, PRESET, device="cpu", show_progress=False, heldout_pbr=other)
+    h = card["heldout"]
+    assert h["whole_split"] and h["images"] == 4 and h["source_sha256"] != card["train_pbr_sha256"]
+    assert "never trained on" in (out / "MODEL_CARD.md").read_text() and str(other) in (out / "MODEL_CARD.md").read_text()
+    back = learn_and_card(split[0], split[1], out, PRESET, device="cpu", show_progress=False)  # the slice again
+    assert back["heldout"]["images"] == 3 and not back["heldout"]["whole_split"]
+    assert heldout_only(out, other, split[1])["heldout"]["images"] == 4  # another split: every image
+    assert heldout_only(out, split[0], split[1])["heldout"]["images"] == 3  # the training split: its slice
 
 
 def test_a_stopped_run_resumes_to_the_same_weights(split: tuple[Path, Path], tmp_path: Path) -> None:

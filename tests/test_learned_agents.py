@@ -122,3 +122,10 @@ def test_every_learned_agent_hands_its_estimator_the_targets_mesh(bundle, tmp_pa
         assert target.obj_id not in agent.estimator.silhouettes
         _check_finite(run_episode(client, agent, target.gt_id, seed=3, width=160, height=120))
     assert target.obj_id in agent.estimator.silhouettes and target.obj_id in agent.estimator.surfaces
+
+
+def test_held_out_recall_counts_the_detections_the_agents_use() -> None:
+    from brave6d.evaluation.agents.learned.agent import LearnedAgentOptions
+    from brave6d.evaluation.learned.heldout import DETECTION_THRESHOLD
+
+    assert LearnedAgentOptions().min_score == DETECTION_THRESHOLD

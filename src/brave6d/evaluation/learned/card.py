@@ -79,7 +79,11 @@ def card_markdown(card: dict[str, Any]) -> str:
              f"- weights: `model.pt`, sha256 `{card['model_sha256']}`", ""]
     h = card.get("heldout")
     if h:
+        where = (f"every image of `{h.get('source')}` (sha256 `{str(h.get('source_sha256'))[:16]}...`), a split "
+                 "rendered apart that the model never trained on" if h.get("whole_split")
+                 else "the train_pbr's held-out slice, never trained on")
         lines += [f"## Held-out train_pbr ({h['images']} images, {h['instances']} instances)", "",
+                  f"Scored on {where}.", "",
                   "| obj_id | detection recall @ IoU 0.5 | AP @ IoU 0.5 | AR, true box | AR, true box + depth | "
                   "AR, detected box | AR, detected + depth |", "|---|---|---|---|---|---|---|"]
         for o in card["objects"]:

@@ -33,7 +33,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                             "pose_steps=2000; the card records the preset as it ran")
     train.add_argument("--resume", action="store_true", help="continue the run whose checkpoint.pt is in MODEL_DIR")
     train.add_argument("--no-heldout", action="store_true", help="skip the held-out figures of the card")
-    heldout = sub.add_parser("heldout", help="score a trained model on the held-out images of its train_pbr")
+    train.add_argument("--heldout-split", type=Path, default=None, metavar="HELDOUT_PBR",
+                       help="score the card's held-out figures on every image of this split (rendered apart, "
+                            "e.g. brave6d synth with another seed) instead of TRAIN_PBR's held-out slice")
+    heldout = sub.add_parser("heldout", help="score a trained model on the held-out images of its train_pbr "
+                                                "(every image of another split)")
     heldout.add_argument("model_dir", type=Path, metavar="MODEL_DIR")
     heldout.add_argument("train_pbr", type=Path, metavar="TRAIN_PBR")
     heldout.add_argument("--models", type=Path, required=True, metavar="MODELS_DIR")
@@ -87,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         if args.overrides:
             preset = preset.with_overrides(**parse_overrides(preset, args.overrides))
         card = learn_and_card(args.train_pbr, args.models, args.out, preset, args.device, args.resume,
-                              heldout=not args.no_heldout)
+                              heldout=not args.no_heldout, heldout_pbr=args.heldout_split)
         print(f"learn: model in {args.out / 'model.pt'} ({card['train_seconds']:.0f} s of training on "
               f"{card['device']}); card: {args.out / 'MODEL_CARD.md'}")
     else:

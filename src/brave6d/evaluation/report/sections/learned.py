@@ -439,8 +439,9 @@ def _heldout_table(card: Mapping[str, Any]) -> str:
              *(fmt(per_obj.get(v, {}).get(oid), 3) for v in VARIANTS)) for oid in sorted(recall, key=int)]
     ar = held.get("pose_ar", {})
     rows.append(("all", "", "", *(fmt(ar.get(v), 3) for v in VARIANTS)))
-    return (f"Held-out train_pbr ({held.get('images')} images, {held.get('instances')} instances, never trained on; "
-            f"the model saw {card.get('images')} images, trained {fmt(card.get('train_seconds'), 0)} s on "
+    apart = ", a split rendered apart" if held.get("whole_split") else ""
+    return (f"Held-out train_pbr ({held.get('images')} images, {held.get('instances')} instances{apart}, never trained "
+            f"on; the model's split has {card.get('images')} images, trained {fmt(card.get('train_seconds'), 0)} s on "
             f"{card.get('device')}):\n\n"
             + format_table(["obj", "recall@0.5", "AP@0.5", *(f"AR {LABELS[v]}" for v in VARIANTS)], rows) + "\n")
 
