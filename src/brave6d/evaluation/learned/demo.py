@@ -4,8 +4,9 @@ the weight-free baselines.
 
 Writes ``<workdir>/learned/synth/`` (the split; resumable), ``<workdir>/learned/heldout/`` (a
 smaller split of another seed, never trained on, that the card's held-out figures are scored on)
-and ``<workdir>/learned/model/`` (``model.pt``, its card). A rerun with the same inputs renders nothing and trains nothing: the
-split skips the images it has, the model is reused by its inputs' checksum.
+and ``<workdir>/learned/model/`` (``model.pt``, its card). A rerun with the same inputs renders
+nothing and trains nothing: the splits skip the images they have, the model is reused by its
+inputs' checksum.
 """
 
 from __future__ import annotations
@@ -70,7 +71,8 @@ def stage_learn(ctx: RunContext) -> StageResult:
     ar = held.get("pose_ar", {})
     recall = held.get("detection_recall_iou50", {})
     return StageResult("learn", figures={
-        "train_pbr images": images, "rendered": synth.rendered + heldout.rendered, "synth s": round(synth_seconds, 1),
+        "train_pbr images": images, "rendered": synth.rendered + heldout.rendered,
+        "synth s": round(synth_seconds, 1),
         "train s": card["train_seconds"], "preset": preset.name,
         "held-out images": held.get("images", "n/a"), "held-out recall min": min(recall.values()) if recall else "n/a",
         "held-out AR true box": ar.get("true_box_rgb", "n/a"), "held-out AR detected": ar.get("detected_rgb", "n/a"),
