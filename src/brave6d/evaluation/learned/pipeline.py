@@ -21,6 +21,7 @@ def learn_and_card(train_pbr: Path | str, models_dir: Path | str, out: Path | st
     keeps its card when the card is there and was scored as the estimator now works."""
     from brave6d.core.atomic import file_sha256
     from brave6d.evaluation.learned.card import CARD, card_fields, read_card, write_card
+    from brave6d.evaluation.learned.data import scene_folders, split_digest
     from brave6d.evaluation.learned.model_file import MODEL
     from brave6d.evaluation.learned.training import train_learned
 
@@ -29,20 +30,26 @@ def learn_and_card(train_pbr: Path | str, models_dir: Path | str, out: Path | st
     data = result.data
     assert data is not None
     ran = dict(result.model.preset) if result.model is not None else preset.to_json()  # the preset as it ran
-    source = _heldout_data(data, heldout_pbr, models_dir, ran, show_progress) if heldout else data
-    whole = source.digest != data.digest  # a split the model never saw: every image counts
+    # the split scored: its checksum tells whether a card is current; it is read only to be scored
+    source_digest = data.digest if heldout_pbr is None else split_digest(scene_folders(heldout_pbr)[0].parent)[0]
+    whole = source_digest != data.digest  # a split the model never saw: every image counts
+
+    def score() -> dict[str, Any]:
+        return _heldout(out, _heldout_data(data, heldout_pbr, models_dir, ran, show_progress), models_dir,
+                        show_progress, whole=whole)
+
     if not result.trained and (out / CARD).is_file():
         card = read_card(out)
         assert result.model is not None  # a model reused, not trained, is always read
-        if not heldout or _heldout_is_current(card, result.model, source):
+        if not heldout or _heldout_is_current(card, result.model, source_digest):
             return card
         log.info("%s: the card's held-out figures were scored on other images or with other inference settings; "
                  "scoring again", out)
         card.pop("format", None)
-        card["heldout"] = _heldout(out, source, models_dir, show_progress, whole=whole)
+        card["heldout"] = score()
         write_card(out, card)
         return read_card(out)
-    scores = _heldout(out, source, models_dir, show_progress, whole=whole) if heldout else None
+    scores = score() if heldout else None
     import torch
 
     fields = card_fields(Path(train_pbr), data.digest, len(data.images), len(data.split(True)), data.classes,
@@ -84,10 +91,10 @@ def heldout_only(model_dir: Path | str, train_pbr: Path | str, models_dir: Path 
     return read_card(model_dir)
 
 
-def _heldout_is_current(card: dict[str, Any], model: Any, source: Any) -> bool:
-    """Whether the card's held-out figures were scored on ``source``'s images (a
-    :class:`TrainingData`) as the estimator of ``model`` (a :class:`LearnedModel` in memory) now
-    works: its detector's input widths, the detection threshold and the coordinate net's crop zooms."""
+def _heldout_is_current(card: dict[str, Any], model: Any, source_digest: str) -> bool:
+    """Whether the card's held-out figures were scored on the split of checksum ``source_digest`` as
+    the estimator of ``model`` (a :class:`LearnedModel` in memory) now works: its detector's input
+    widths, the detection threshold and the coordinate net's crop zooms."""
     from brave6d.evaluation.learned.heldout import DETECTION_THRESHOLD
     from brave6d.evaluation.learned.inference import LearnedEstimator
 
@@ -96,7 +103,7 @@ def _heldout_is_current(card: dict[str, Any], model: Any, source: Any) -> bool:
     return (isinstance(h, dict) and h.get("detect_widths") == estimator.detect_widths
             and h.get("detection_threshold") == DETECTION_THRESHOLD
             and h.get("crop_zooms") == [float(z) for z in estimator.crop_zooms]
-            and h.get("source_sha256", card.get("train_pbr_sha256")) == source.digest)
+            and h.get("source_sha256", card.get("train_pbr_sha256")) == source_digest)
 
 
 def _heldout(model_dir: Path, data: Any, models_dir: Path | str, show_progress: bool,
