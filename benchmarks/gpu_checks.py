@@ -13,7 +13,7 @@ The learned estimator's training data needs Open3D (its model coordinates are ra
 synthetic renderer, so ``prepare`` makes it here: a tiny train_pbr of the demo scene (30 images,
 320x200, ``brave6d synth``), the BOP models of its objects, and that split read for training, saved
 as ``.whl/learned/`` (arrays in ``data.npz``, the rest in ``data.json``, the held-out images' depth;
-about 4.5 MB, carried with the wheels: 52 MB together, the tree 11 MB, of the 64 MiB a call carries).
+about 4.5 MB, carried with the wheels: 16 MB together, the tree 15 MB, of the 64 MiB a call carries).
 
 ``run`` (what gpu_checks.sh calls) does, each step timed, and writes ``gpu_checks.json`` and
 ``gpu_checks.md`` into ``--out``:
@@ -63,8 +63,9 @@ if str(ROOT / "src") not in sys.path:  # the package, also without an install
     sys.path.insert(0, str(ROOT / "src"))
 
 #: What the GPU image lacks for the checks, at the versions CI tests (read from this environment).
+#: Not pycolmap (38 MB, over the call's 64 MiB with the tree): the checks start from random points.
 CARRIED = ("gsplat", "pydantic", "pydantic-core", "annotated-types", "typing-inspection", "plyfile", "trimesh",
-           "pycolmap", "fastapi", "starlette", "uvicorn", "websockets", "gymnasium", "farama-notifications")
+           "fastapi", "starlette", "uvicorn", "websockets", "gymnasium", "farama-notifications")
 GPU_PYTHON = "3.12"
 PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64",
              "manylinux1_x86_64", "manylinux_2_5_x86_64")
@@ -107,13 +108,14 @@ def prepare(dest: Path) -> list[Path]:
     return wheels
 
 
-def learned_preset(steps: int, precision: str = "fp32") -> Any:
-    """The ``fast`` preset cut to ``steps`` per network, its crops from the 320-wide split itself
-    (no checkpoint inside the timed run), trained in ``precision``."""
+def learned_preset(steps: int, precision: str = "fp32", name: str = "fast") -> Any:
+    """The preset ``name`` cut to ``steps`` per network, at the 320-wide split's own width (its
+    crops from the split itself; no checkpoint inside the timed run), trained in ``precision``.
+    ``paper`` keeps its networks, batches and 128 px crops: its detector sees 320 px, not 640."""
     from brave6d.evaluation.learned import get_learn_preset
 
-    return get_learn_preset("fast").with_overrides(crop_source_width=320, detector_steps=steps, pose_steps=steps,
-                                                   checkpoint_every=steps, precision=precision)
+    return get_learn_preset(name).with_overrides(work_width=320, crop_source_width=320, detector_steps=steps,
+                                                 pose_steps=steps, checkpoint_every=steps, precision=precision)
 
 
 def prepare_learned(dest: Path, images: int = 30, workers: int = 1) -> dict[str, Any]:
@@ -206,32 +208,39 @@ def load_learned_bundle(bundle: Path) -> tuple[Any, Path, dict[str, Any]]:
     return TrainingData(bundle, images, instances, load_objects(models), meta["digest"]), models, meta["source"]
 
 
-def train_learned_check(bundle: Path, out: Path, device: str, steps: int, precision: str = "fp32") -> dict[str, Any]:
-    """Step 6 on ``device``: train the carried split for ``steps`` per network in ``precision``; seconds
-    and steps/s per network, the final losses, and the held-out figures where Open3D is installed."""
+def train_learned_check(bundle: Path, out: Path, device: str, steps: int, precision: str = "fp32",
+                        preset_name: str = "fast") -> dict[str, Any]:
+    """Step 6 on ``device``: train the carried split for ``steps`` per network of ``preset_name`` in
+    ``precision``; seconds and steps/s per network, the final losses, and the held-out figures where
+    Open3D is installed."""
     import importlib.util
     import shutil
 
-    from brave6d.evaluation.learned import LearnedEstimator, train_learned
+    from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, train_learned
 
     if not (bundle / "data.json").is_file():
         return {"ok": False, "skipped": f"no prepared split in {bundle} (run `python benchmarks/gpu_checks.py "
                                         "prepare` here and carry .whl)"}
-    model_dir = out / (f"learned_{device}" if precision == "fp32" else f"learned_{device}_{precision}")
+    model_dir = out / "_".join(["learned", device] + ([preset_name] if preset_name != "fast" else [])
+                               + ([precision] if precision != "fp32" else []))
     shutil.rmtree(model_dir, ignore_errors=True)  # a model left by an earlier run would be reused, not timed
     try:
         data, models, source = load_learned_bundle(bundle)
-        preset = learned_preset(steps, precision)
+        preset = learned_preset(steps, precision, preset_name)
         result = train_learned(bundle, models, model_dir, preset, device, show_progress=False, data=data)
     except Exception as err:  # noqa: BLE001 - the report says why; the other checks go on
         return {"ok": False, "error": f"{type(err).__name__}: {err}"}
+    full = get_learn_preset(preset_name)
+    full_steps = {"detector": full.detector_steps, "pose": full.pose_steps}
     report: dict[str, Any] = {
         "ok": True, "preset": preset.name, "precision": precision, "steps": steps, "split": source, "images": len(data.images),
         "heldout_images": len(data.split(True)), "losses": result.losses,
         "seconds": {k: result.seconds[k] for k in ("detector", "pose")},
         "steps_per_s": {k: steps / max(result.seconds[k], 1e-9) for k in ("detector", "pose")},
         "wall_s": result.seconds.get("training"),  # a CPU trains the two networks at once: less than their sum
-        "model": f"{model_dir.name}/model.pt"}
+        "model": f"{model_dir.name}/model.pt", "full_preset_steps": full_steps,
+        # the preset's whole schedule at these rates, one network after the other
+        "full_preset_s": sum(full_steps[k] * result.seconds[k] / steps for k in ("detector", "pose"))}
     if importlib.util.find_spec("open3d") is None:
         report["heldout_skipped"] = ("open3d is not installed here (VSD and the depth refinement need it); score "
                                      "the returned model with `python benchmarks/gpu_checks.py score-learned`")
@@ -293,14 +302,15 @@ def build_gsplat() -> dict[str, Any]:
     return {"ok": _C is not None, "seconds": time.perf_counter() - t0, "gsplat": importlib.metadata.version("gsplat")}
 
 
-def run_tests(out: Path, tests: tuple[str, ...]) -> dict[str, Any]:
-    """The CUDA tests (and their CPU neighbours) under pytest; counts from its JUnit XML."""
+def run_tests(out: Path, tests: tuple[str, ...], only: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The CUDA tests (and their CPU neighbours, unless ``only`` names the tests to run) under
+    pytest; counts from its JUnit XML."""
     import xml.etree.ElementTree as ET
 
     xml = out / "pytest.xml"
     t0 = time.perf_counter()
     # the Triton-interpreter proofs are the CPU's stand-in for the GPU: here the GPU itself runs the kernels
-    skip = [f"--deselect={t}" for t in INTERPRETER_TESTS]
+    skip = [f"--deselect={t}" for t in INTERPRETER_TESTS] + (["-k", " or ".join(only)] if only else [])
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rs", f"--junitxml={xml}",
                            "-o", "junit_family=xunit1", *skip, *tests], cwd=ROOT, capture_output=True, text=True)
     (out / "pytest.log").write_text(proc.stdout + proc.stderr)
@@ -501,17 +511,19 @@ def learned_markdown(learned: dict[str, Any], ratio: dict[str, Any] | None) -> l
     lines: list[str] = []
     rows = [(d, r) for d, r in learned.items() if r.get("ok")]
     if rows:
-        lines += ["", "| learned estimator (fast preset) | steps/network | detector s (steps/s) | pose s (steps/s) "
-                  "| held-out recall@0.5 (min over objects) | AR true box (RGB) | AR detected box (RGB) |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += ["", "| learned estimator (fast preset unless named) | steps/network | detector s (steps/s) | pose s "
+                  "(steps/s) | the preset's whole schedule at this rate | held-out recall@0.5 (min over objects) "
+                  "| AR true box (RGB) | AR detected box (RGB) |",
+                  "|---|---|---|---|---|---|---|---|"]
         for d, r in rows:
-            held = r.get("heldout")
+            held, full = r.get("heldout"), r.get("full_preset_steps")
+            whole = (f"{r['full_preset_s'] / 60:.1f} min ({full['detector']} + {full['pose']} steps)" if full else "")
             figures = "not scored | | "
             if held:
                 recall = min(held["detection_recall_iou50"].values(), default=float("nan"))
                 figures = f"{recall:.2f} | {held['pose_ar']['true_box_rgb']:.3f} | {held['pose_ar']['detected_rgb']:.3f}"
             lines.append(f"| {d} | {r['steps']} | {r['seconds']['detector']:.1f} ({r['steps_per_s']['detector']:.1f}) "
-                         f"| {r['seconds']['pose']:.1f} ({r['steps_per_s']['pose']:.1f}) | {figures} |")
+                         f"| {r['seconds']['pose']:.1f} ({r['steps_per_s']['pose']:.1f}) | {whole} | {figures} |")
         first = rows[0][1]
         lines.append(f"\nLearned split: {first['images']} train_pbr images of {first['split']['spec']} at "
                      f"{first['split']['width']}x{first['split']['height']} ({first['heldout_images']} held out)"
@@ -549,40 +561,47 @@ def run(args: argparse.Namespace) -> int:
         """After each step: what is known so far on disk and on screen (a run cut short keeps it)."""
         write_report(out, report)
 
+    # every GPU figure first, the CPU's rows after them: a run cut short by the device's time keeps
+    # what only the GPU can show
     if cuda:
         report["gsplat_build"] = build_gsplat()
         save()
     if not args.skip_tests:
-        report["tests"] = run_tests(out, CUDA_TESTS)
+        # on the GPU only its own tests (their CPU neighbours run in CI), on a CPU the whole files
+        report["tests"] = run_tests(out, CUDA_TESTS, GPU_ONLY_TESTS if cuda else ())
         save()
+    if not args.skip_vector_env:
+        report["vector_env"] = {}
+    if not args.skip_learned:
+        report["learned"] = {}
     for device in devices:
         steps = args.steps if device == "cuda" else args.cpu_steps
         report["training"][device] = train_toy(out, device, steps, args.cpu_steps, args.width, args.views_per_ring)
         report["same_step"] = same_step_ratio(report["training"])
         save()
-    if "cuda" in devices and not args.skip_reference_loop:
-        report["reference_loop"] = reference_loop(out, args.steps, args.width, args.views_per_ring)
-        save()
-    for device in devices:
+        if device == "cuda" and not args.skip_reference_loop:
+            report["reference_loop"] = reference_loop(out, args.steps, args.width, args.views_per_ring)
+            save()
         report["render"][device] = render_timing(device, args.gaussians, args.repeats)
-    if "cuda" in devices and args.large_render_gaussians > 0:  # the issue's second serving row
-        report["render"]["cuda 1280x800"] = render_timing("cuda", args.large_render_gaussians,
-                                                          args.repeats, 1280, 800)
-    save()
-    if not args.skip_vector_env:
-        report["vector_env"] = {}
-        for device in devices:
+        if device == "cuda" and args.large_render_gaussians > 0:  # the issue's second serving row
+            report["render"]["cuda 1280x800"] = render_timing("cuda", args.large_render_gaussians,
+                                                              args.repeats, 1280, 800)
+        save()
+        if not args.skip_vector_env:
             report["vector_env"][device] = vector_env_check(out, device, args.gaussians)
             save()
-    if not args.skip_learned:
-        report["learned"] = {}
-        for device in devices:
-            report["learned"][device] = train_learned_check(args.learned_bundle, out, device, args.learned_steps)
-            report["learned_ratio"] = learned_ratio(report["learned"])
-            save()
-        if "cuda" in devices:  # what bfloat16 buys on the GPU (the CPU's figure: docs/BENCHMARKS.md)
+        if args.skip_learned:
+            continue
+        report["learned"][device] = train_learned_check(args.learned_bundle, out, device, args.learned_steps)
+        report["learned_ratio"] = learned_ratio(report["learned"])
+        save()
+        if device == "cuda":  # what bfloat16 buys on the GPU (the CPU's figure: docs/BENCHMARKS.md), and
+            # the paper preset's networks at the same steps (its whole schedule's time, extrapolated)
             report["learned"]["cuda bf16"] = train_learned_check(args.learned_bundle, out, "cuda", args.learned_steps,
                                                                  "bf16")
+            save()
+            report["learned"]["cuda paper bf16"] = train_learned_check(args.learned_bundle, out, "cuda",
+                                                                       args.learned_steps, "bf16", "paper")
             save()
     failed = (report.get("gsplat_build", {"ok": True})["ok"] is False
               or report.get("tests", {"exit": 0})["exit"] != 0
