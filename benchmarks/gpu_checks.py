@@ -63,9 +63,9 @@ if str(ROOT / "src") not in sys.path:  # the package, also without an install
     sys.path.insert(0, str(ROOT / "src"))
 
 #: What the GPU image lacks for the checks, at the versions CI tests (read from this environment).
-#: Not pycolmap (38 MB, over the call's 64 MiB with the tree): the checks start from random points.
+#: pycolmap too: the trainer writes every scene's sparse model, random start points included.
 CARRIED = ("gsplat", "pydantic", "pydantic-core", "annotated-types", "typing-inspection", "plyfile", "trimesh",
-           "fastapi", "starlette", "uvicorn", "websockets", "gymnasium", "farama-notifications")
+           "pycolmap", "fastapi", "starlette", "uvicorn", "websockets", "gymnasium", "farama-notifications")
 GPU_PYTHON = "3.12"
 PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64",
              "manylinux1_x86_64", "manylinux_2_5_x86_64")
