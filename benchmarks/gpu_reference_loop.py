@@ -76,7 +76,8 @@ def load(scene_dir: Path, steps: int, device: torch.device) -> tuple[Any, Any, A
     scene = SceneDir(scene_dir)
     data = load_scene(scene, preset.downscale)
     start = preset.initialisation
-    init = initial_points(scene, data, max_points=start.max_init_points, seed=preset.seed, method="random")
+    init = initial_points(scene, data, max_points=start.max_init_points, seed=preset.seed, method="random",
+                          write_sparse=False)  # no sparse/0 (nor pycolmap) for a benchmark
     model = GaussianModel.from_points(init.points, init.colors, start.sh_degree, start.init_opacity,
                                       start.init_scale, device=device)
     return data, preset, model

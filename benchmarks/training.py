@@ -36,6 +36,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--every", type=int, default=None, help="evaluate every K steps (default: steps / 10)")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     p.add_argument("--init", choices=["auto", "colmap", "depth", "random"], default="auto")
+    p.add_argument("--no-sparse-model", action="store_true",
+                   help="do not write the scene's sparse/0 (with --init depth or random: no pycolmap needed)")
     p.add_argument("--json", type=Path, default=None, help="output JSON (default: <scene>/splat/benchmark_training.json)")
     p.add_argument("--png", type=Path, default=None, help="output plot (default: next to the JSON)")
     return p.parse_args(argv)
@@ -67,7 +69,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     data = load_scene(scene, preset.downscale)
     start = preset.initialisation
-    init = initial_points(scene, data, max_points=start.max_init_points, seed=preset.seed, method=args.init)
+    init = initial_points(scene, data, max_points=start.max_init_points, seed=preset.seed, method=args.init,
+                          write_sparse=not args.no_sparse_model)
     init_s = time.perf_counter() - t0
     model = GaussianModel.from_points(init.points, init.colors, start.sh_degree, start.init_opacity,
                                       start.init_scale, device=device)

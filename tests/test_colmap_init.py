@@ -15,6 +15,7 @@ import pycolmap
 import pytest
 
 from brave6d.core.camera import PinholeCamera
+from brave6d.core.errors import BraveError
 from brave6d.training.colmap_init import (
     ColmapOptions,
     colmap_pinhole_params,
@@ -160,6 +161,26 @@ def test_random_fallback_warns(tmp_path: Path, caplog: pytest.LogCaptureFixture)
         init = initial_points(scene, data, method="depth", max_points=500)
     assert init.source == "random" and len(init) == 500
     assert "RANDOM" in caplog.text
+
+
+def test_without_the_model_the_same_points_come_without_pycolmap(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``write_sparse=False`` (the GPU checks' benchmarks): the same random start, no ``sparse/0``, and
+    pycolmap never imported; with the model, pycolmap's absence is a named error."""
+    import sys
+
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    scene = write_scene(tmp_path / "s", cam, plane_views(cam, [0.45], 4))
+    data = load_scene(scene)
+    monkeypatch.setitem(sys.modules, "pycolmap", None)  # as on the GPU machine
+    bare = initial_points(scene, data, method="random", max_points=300, write_sparse=False)
+    assert bare.source == "random" and len(bare) == 300 and not (scene.sparse_dir / "0").exists()
+    with pytest.raises(BraveError, match="pycolmap is needed"):
+        initial_points(scene, data, method="random", max_points=300)
+    monkeypatch.delitem(sys.modules, "pycolmap")
+    full = initial_points(scene, data, method="random", max_points=300)
+    assert (scene.sparse_dir / "0").is_dir()
+    np.testing.assert_array_equal(full.points, bare.points)
+    np.testing.assert_array_equal(full.colors, bare.colors)
 
 
 def test_voxel_downsample_and_random_points() -> None:

@@ -439,6 +439,7 @@ def initial_points(
     max_points: int = 300_000,
     seed: int = 0,
     method: str = "auto",
+    write_sparse: bool = True,
 ) -> InitPoints:
     """COLMAP points (writing ``sparse/0``), else an imported capture's points, else depth
     back-projection, else random points.
@@ -449,7 +450,9 @@ def initial_points(
     usual COLMAP-initialised benchmarks do), so ``auto`` takes them only when COLMAP, which
     triangulates the training views alone, finds too few points.
     Whatever the source, ``sparse/0`` receives all cameras and the points used (when ``scene``
-    is given), so other 3DGS tools start from the same model.
+    is given and ``write_sparse``), so other 3DGS tools start from the same model; a benchmark that
+    starts from depth or random points and needs no model passes ``write_sparse=False`` (then no
+    pycolmap either).
     """
     full = data.full_camera or data.camera
     names = {v.index: Path(v.rgb_path).name if v.rgb_path else f"{v.index:06d}.png" for v in data.views}
@@ -506,7 +509,7 @@ def initial_points(
         result = random_points(lo, hi, n, seed)
     result.details.update(notes)
     result = _drop_far_points(result, data)
-    if scene is not None:
+    if scene is not None and write_sparse:
         if rec is None:
             rec = empty_reconstruction(full, train_images)
         if result.source != "colmap":
