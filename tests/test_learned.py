@@ -205,6 +205,26 @@ def test_a_stopped_run_resumes_to_the_same_weights(split: tuple[Path, Path], tmp
             assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), (stop, part)
 
 
+def test_a_gpus_way_of_training_gives_the_cpus_weights(split: tuple[Path, Path], tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """What a GPU does (batches made ahead by a thread, losses read every few steps), run on the
+    CPU: the same weights as the CPU's way, also when stopped and resumed."""
+    from brave6d.evaluation.learned import training
+
+    preset = get_learn_preset("tiny").with_overrides(detector_steps=30, pose_steps=30, checkpoint_every=10)
+    whole = train_learned(split[0], split[1], tmp_path / "whole", preset, "cpu", show_progress=False).model
+    monkeypatch.setattr(training, "loss_reads", lambda device: 4)
+    ahead = train_learned(split[0], split[1], tmp_path / "ahead", preset, "cpu", show_progress=False, ahead=3).model
+    out = tmp_path / "stopped"
+    first = train_learned(split[0], split[1], out, preset, "cpu", show_progress=False, ahead=3, stop_after_steps=25)
+    assert first.model is None and (out / "checkpoint.pt").is_file()
+    resumed = train_learned(split[0], split[1], out, preset, "cpu", resume=True, show_progress=False, ahead=3).model
+    assert whole is not None and ahead is not None and resumed is not None
+    for part in ("detector_state", "pose_state"):
+        a, b, c = getattr(whole, part), getattr(ahead, part), getattr(resumed, part)
+        assert all(torch.equal(a[k], b[k]) and torch.equal(a[k], c[k]) for k in a), part
+
+
 def test_bfloat16_training_is_seeded_finite_and_resumes_to_the_same_weights(split: tuple[Path, Path],
                                                                           tmp_path: Path) -> None:
     preset = get_learn_preset("tiny").with_overrides(detector_steps=20, pose_steps=20, checkpoint_every=10,

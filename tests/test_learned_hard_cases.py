@@ -231,6 +231,36 @@ def test_a_non_finite_loss_stops_training_naming_the_network_and_step(tmp_path, 
     assert not (tmp_path / "out" / "model.pt").exists()
 
 
+def test_a_non_finite_loss_read_late_still_names_its_step_and_leaves_no_checkpoint_after_it(tmp_path,
+                                                                                           monkeypatch) -> None:
+    """A GPU reads its losses every few steps: a NaN at pose step 5, read with steps 4-7, names step 5,
+    and the checkpoint holds the pose network as of step 4 (finite), not the steps after the NaN."""
+    import torch
+
+    from brave6d.evaluation.learned import losses, training
+    from learned_helpers import DEMO_SPEC, write_models
+    from brave6d.synth import SynthOptions, synthesize
+
+    synthesize(DEMO_SPEC, tmp_path / "synth", SynthOptions(images=3, seed=0, width=160, height=100))
+    models = write_models(DEMO_SPEC, tmp_path / "models")
+    real, calls = losses.pose_loss, []
+
+    def nan_from_step_5(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - the loss's own signature
+        calls.append(1)
+        loss = real(*args, **kwargs)
+        return loss * float("nan") if len(calls) > 5 else loss
+
+    monkeypatch.setattr(losses, "pose_loss", nan_from_step_5)
+    monkeypatch.setattr(training, "loss_reads", lambda device: 4)
+    preset = PRESET.with_overrides(detector_steps=2, pose_steps=12, work_width=160, checkpoint_every=4)
+    with pytest.raises(BraveError, match=r"the pose loss is nan at step 5"):
+        training.train_learned(tmp_path / "synth", models, tmp_path / "out", preset, "cpu", show_progress=False,
+                               ahead=2)
+    assert not (tmp_path / "out" / "model.pt").exists() and len(calls) == 8  # stopped at the read of 4-7
+    saved = torch.load(tmp_path / "out" / "checkpoint.pt", weights_only=True)["phases"]["pose"]
+    assert saved["step"] == 4 and all(torch.isfinite(v).all() for v in saved["net"].values() if v.is_floating_point())
+
+
 def test_auto_precision_is_bf16_only_where_the_device_has_it_and_the_model_says_what_ran(
         monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
     import torch

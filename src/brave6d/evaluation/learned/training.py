@@ -3,7 +3,9 @@
 The two networks are independent, so on a CPU with two or more threads they train at once, each
 phase in its own thread on half the threads (small convolutions do not keep two threads busy:
 1.25x the throughput of one phase after the other on the 2-core box, docs/BENCHMARKS.md); on a GPU
-one after the other.
+one after the other, with each phase's batches made ahead by a thread (``learned/batches.py``) and
+its losses read every ``_GPU_READ_EVERY`` steps, so that the device does not wait on the host: the
+same batches and, on a CPU, the same weights as the CPU's way (tested).
 
 Seeded and resumable: each phase has its own NumPy generator (drawing its batches), network and
 optimiser; each phase's snapshot is taken every ``checkpoint_every`` of its steps and both go into
@@ -37,6 +39,8 @@ from brave6d.evaluation.learned.presets import LearnPreset
 
 log = logging.getLogger(__name__)
 _WARMUP = 50
+#: a GPU's steps between reads of their losses (each read waits for the device)
+_GPU_READ_EVERY = 10
 #: Raised whenever a change to the training (targets, augmentation, losses, networks) gives other
 #: weights for the same inputs, so that a model trained by older code is not reused as current.
 TRAINING_REVISION = 3
@@ -69,13 +73,15 @@ def inputs_key(train_pbr_digest: str, models_dir: Path, preset: LearnPreset, dev
 def train_learned(train_pbr: Path | str, models_dir: Path | str, out: Path | str, preset: LearnPreset,
                   device: str = "auto", resume: bool = False, show_progress: bool = True,
                   stop_after_steps: int | None = None, max_images: int | None = None,
-                  data: TrainingData | None = None) -> LearnResult:
+                  data: TrainingData | None = None, ahead: int | None = None) -> LearnResult:
     """Train (or reuse, or resume) the learned estimator of ``train_pbr`` into ``out`` (module
     docstring); ``stop_after_steps`` stops after that many steps of this call with a checkpoint
     (a job with a time slot; the tests' interruption); ``max_images`` trains on the split's first n
     images only (the benchmarks' accuracy against the split's size); ``data``: the split already
     read by :func:`load_training_data` with this preset's widths (``train_pbr`` and ``max_images``
-    are then not read: the GPU checks carry it to a machine without Open3D)."""
+    are then not read: the GPU checks carry it to a machine without Open3D); ``ahead``: batches made
+    ahead in a background thread (:mod:`~brave6d.evaluation.learned.batches`; default 3 on a GPU,
+    none on a CPU), the same batches either way."""
     import torch
 
     from brave6d.core.atomic import move_aside
@@ -108,7 +114,7 @@ def train_learned(train_pbr: Path | str, models_dir: Path | str, out: Path | str
                     out, moved)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(preset.seed)
-    trainer = _Trainer(data, preset, dev, out, key, show_progress, stop_after_steps)
+    trainer = _Trainer(data, preset, dev, out, key, show_progress, stop_after_steps, ahead)
     finished = trainer.run(state)
     seconds.update(trainer.seconds)
     if not finished:
@@ -149,27 +155,45 @@ def learning_rate(step: int, steps: int, base: float) -> float:
     return base * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0))))
 
 
-def phase_loss(phase: str, net: Any, data: TrainingData, pool: list[int], rng: np.random.Generator,
-               preset: LearnPreset, device: Any) -> Any:
+def phase_batch(phase: str, data: TrainingData, pool: list[int], rng: np.random.Generator,
+                preset: LearnPreset) -> dict[str, Any]:
     """One training batch of ``phase`` (``detector`` or ``pose``) drawn by ``rng`` from ``pool`` (image
-    indices for the detector, instance indices for the pose network) and ``net``'s loss on it."""
-    import torch
-
-    from brave6d.evaluation.learned.losses import detector_loss, pose_loss
+    indices for the detector, instance indices for the pose network), as NumPy arrays."""
     from brave6d.evaluation.learned.targets import detector_batch, pose_batch
 
     if phase == "detector":
-        batch = detector_batch(data, pool, rng, preset.detector_batch, preset.detector_patch)
-        images, extra, loss = "images", (), detector_loss
-    else:
-        batch = pose_batch(data, pool, rng, preset.pose_batch, preset.crop_px)
-        images, extra, loss = "crops", ("classes",), pose_loss
-    t = {k: torch.from_numpy(v).to(device) for k, v in batch.items()}
+        return detector_batch(data, pool, rng, preset.detector_batch, preset.detector_patch)
+    return pose_batch(data, pool, rng, preset.pose_batch, preset.crop_px)
+
+
+def batch_loss(phase: str, net: Any, batch: dict[str, Any], preset: LearnPreset) -> Any:
+    """``net``'s loss on ``batch`` (tensors on the net's device)."""
+    import torch
+
+    from brave6d.evaluation.learned.losses import detector_loss, pose_loss
+
+    images, extra, loss = ("images", (), detector_loss) if phase == "detector" else ("crops", ("classes",), pose_loss)
     low = preset.precision == "bf16"
-    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=low):
-        x = t[images].contiguous(memory_format=torch.channels_last) if low else t[images]
-        out = net(x, *(t[k] for k in extra))
-    return loss(*(o.float() for o in out), t)
+    device_type = batch[images].device.type
+    with torch.autocast(device_type, dtype=torch.bfloat16, enabled=low):
+        x = batch[images].contiguous(memory_format=torch.channels_last) if low else batch[images]
+        out = net(x, *(batch[k] for k in extra))
+    return loss(*(o.float() for o in out), batch)
+
+
+def phase_loss(phase: str, net: Any, data: TrainingData, pool: list[int], rng: np.random.Generator,
+               preset: LearnPreset, device: Any) -> Any:
+    """One batch of ``phase`` drawn by ``rng`` (:func:`phase_batch`) and ``net``'s loss on it."""
+    import torch
+
+    batch = phase_batch(phase, data, pool, rng, preset)
+    return batch_loss(phase, net, {k: torch.from_numpy(v).to(device) for k, v in batch.items()}, preset)
+
+
+def loss_reads(device: Any) -> int:
+    """Steps between reads of the losses: every step on a CPU (checked before the step is taken),
+    every ``_GPU_READ_EVERY`` on a GPU (a read waits for the device)."""
+    return 1 if device.type == "cpu" else _GPU_READ_EVERY
 
 
 def native_bf16(device: Any) -> bool:
@@ -209,9 +233,10 @@ class _Trainer:
     docstring); checkpoint and resume per phase."""
 
     def __init__(self, data: TrainingData, preset: LearnPreset, device: Any, out: Path, key: str,
-                 show_progress: bool, stop_after_steps: int | None = None) -> None:
+                 show_progress: bool, stop_after_steps: int | None = None, ahead: int | None = None) -> None:
         import torch
 
+        from brave6d.evaluation.learned.batches import GPU_AHEAD
         from brave6d.evaluation.learned.networks import CoordinateNet, Detector
 
         self.data, self.preset, self.device, self.out, self.key = data, preset, device, out, key
@@ -226,6 +251,9 @@ class _Trainer:
                      "pose": torch.optim.AdamW(self.nets["pose"].parameters(), lr=preset.pose_lr, weight_decay=1e-4)}
         seeds = np.random.SeedSequence(preset.seed).spawn(len(PHASES))
         self.rngs = {phase: np.random.default_rng(seed) for phase, seed in zip(PHASES, seeds)}
+        # each generator's state after the last batch trained (batches made ahead have moved it on)
+        self.rng_states = {phase: rng.bit_generator.state for phase, rng in self.rngs.items()}
+        self.ahead = (GPU_AHEAD if device.type == "cuda" else 0) if ahead is None else ahead
         self.steps = {phase: 0 for phase in PHASES}
         self.seconds: dict[str, float] = {phase: 0.0 for phase in PHASES}
         self.losses: dict[str, float] = {}
@@ -287,42 +315,55 @@ class _Trainer:
 
     def _phase(self, phase: str, steps: int, pool: list[int], position: int | None) -> bool:
         from brave6d.core.progress import progress_bar
+        from brave6d.evaluation.learned.batches import BatchSource
 
         net, opt, rng = self.nets[phase], self.opts[phase], self.rngs[phase]
         base_lr = self.preset.detector_lr if phase == "detector" else self.preset.pose_lr
         net.train()
         bar = progress_bar(steps, desc=f"learn: {phase}", unit="step", initial=self.steps[phase],
                            position=position) if self.show_progress else None
+        # a CPU checks each loss before its step; a GPU reads them every few steps (each read waits
+        # for the device), and a non-finite one stops the run there, before any checkpoint
+        read_every = loss_reads(self.device)
+        source = BatchSource(lambda r: phase_batch(phase, self.data, pool, r, self.preset), rng,
+                             steps - self.steps[phase], self.device, self.ahead)
         recent: list[float] = []
+        pending: list[tuple[int, Any]] = []
         start = time.perf_counter()
         try:
             while self.steps[phase] < steps and self._take_step():
                 step = self.steps[phase]
                 for group in opt.param_groups:
                     group["lr"] = learning_rate(step, steps, base_lr)
-                loss = phase_loss(phase, net, self.data, pool, rng, self.preset, self.device)
-                value = float(loss.detach())
-                if not math.isfinite(value):
-                    self._stop.set()
-                    raise BraveError(f"learn: the {phase} loss is {value} at step {step}; training stopped "
-                                     f"(the last checkpoint is {self.out / CHECKPOINT}; lower the learning rate "
-                                     f"'{phase}_lr' of preset {self.preset.name!r})")
+                batch, self.rng_states[phase] = source.next()
+                loss = batch_loss(phase, net, batch, self.preset)
+                pending.append((step, loss.detach()))
+                if read_every == 1:
+                    recent = (recent + self._read(phase, pending))[-50:]
+                    pending = []
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
                 self.steps[phase] += 1
-                recent = (recent + [value])[-50:]
+                done = self.steps[phase]
+                checkpoint = done % self.preset.checkpoint_every == 0 and done < steps
+                if pending and (len(pending) >= read_every or checkpoint or done >= steps):
+                    recent = (recent + self._read(phase, pending))[-50:]
+                    pending = []
                 if bar is not None:
                     bar.update(1)
-                    if self.steps[phase] % 10 == 0:
+                    if done % 10 == 0 and recent:
                         bar.set_postfix(loss=f"{np.mean(recent):.3f}")
-                if self.steps[phase] % self.preset.checkpoint_every == 0 and self.steps[phase] < steps:
+                if checkpoint:
                     self.seconds[phase] += time.perf_counter() - start
                     start = time.perf_counter()
                     self.losses[phase] = float(np.mean(recent))
                     self._snapshot(phase)
                     self.save()
+            if pending:  # the step budget stopped the phase between reads
+                recent = (recent + self._read(phase, pending))[-50:]
         finally:
+            source.close()
             if bar is not None:
                 bar.close()
         self.seconds[phase] += time.perf_counter() - start
@@ -333,11 +374,25 @@ class _Trainer:
         net.eval()
         return self.steps[phase] >= steps
 
+    def _read(self, phase: str, pending: list[tuple[int, Any]]) -> list[float]:
+        """The losses of ``pending`` (step, loss on the device) as floats, one wait for the device;
+        a non-finite one stops the training naming the network and the step."""
+        import torch
+
+        values = torch.stack([loss for _, loss in pending]).float().cpu().tolist()
+        for (step, _), value in zip(pending, values):
+            if not math.isfinite(value):
+                self._stop.set()
+                raise BraveError(f"learn: the {phase} loss is {value} at step {step}; training stopped "
+                                 f"(the last checkpoint is {self.out / CHECKPOINT}; lower the learning rate "
+                                 f"'{phase}_lr' of preset {self.preset.name!r})")
+        return values
+
     def _snapshot(self, phase: str) -> None:
         """This phase's state as of now (its own thread takes it between steps, so it is consistent)."""
         snap = {"step": self.steps[phase], "net": _cpu_state(self.nets[phase]),
                 "opt": copy.deepcopy(self.opts[phase].state_dict()),
-                "rng": json.dumps(self.rngs[phase].bit_generator.state), "seconds": self.seconds[phase],
+                "rng": json.dumps(self.rng_states[phase]), "seconds": self.seconds[phase],
                 "loss": self.losses.get(phase, float("nan"))}
         with self._lock:
             self._snapshots[phase] = snap
@@ -361,6 +416,7 @@ class _Trainer:
             self.nets[phase].load_state_dict(snap["net"])
             self.opts[phase].load_state_dict(snap["opt"])
             self.rngs[phase].bit_generator.state = json.loads(snap["rng"])
+            self.rng_states[phase] = self.rngs[phase].bit_generator.state
             self.steps[phase] = int(snap["step"])
             self.seconds[phase] = float(snap["seconds"])
             if math.isfinite(float(snap["loss"])):
