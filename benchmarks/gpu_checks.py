@@ -43,6 +43,12 @@ about 4.5 MB, carried with the wheels: 16 MB together, the tree 15 MB, of the 64
    score-learned FILES_AT --out DIR``). ``--skip-learned`` leaves it out; without the prepared
    folder it is reported as skipped.
 
+7. with ``--learned-full-steps DETECTOR:POSE`` (GPU only): the ``fast`` preset with those steps on a
+   whole train_pbr carried as JPEG (``prepare --learned-full WORKDIR/learned/synth
+   --learned-full-models WORKDIR/scene/annotation/bop/models``: the demo's 300 images in 30 MB); its
+   model comes back for ``brave6d learn heldout`` here. ``--learned-full-only`` runs it alone, as a
+   call of its own (4800:16000: about 7 min at the rates an H200 showed on 2026-11-29, an estimate).
+
 Without a GPU the CUDA parts are reported as not run (so the wiring is tested on the CPU).
 """
 
@@ -89,6 +95,10 @@ VECTOR_AGENTS = {"cuda": (1, 8, 64), "cpu": (8,)}
 #: the learned estimator's carried split (``prepare`` writes it, step 6 trains on it)
 LEARNED_BUNDLE = ROOT / ".whl" / "learned"
 LEARNED_SPEC = ROOT / "data" / "demo" / "scene.yaml"
+#: step 7's whole split (``prepare --learned-full``), its images as JPEG of this quality (the
+#: demo's 300 images in about 30 MB: with the tree and the wheels inside a call's 64 MiB)
+LEARNED_FULL = ROOT / ".whl" / "learned_full"
+LEARNED_FULL_JPEG = 90
 
 
 def prepare(dest: Path) -> list[Path]:
@@ -152,28 +162,90 @@ def prepare_learned(dest: Path, images: int = 30, workers: int = 1) -> dict[str,
     return {"images": len(data.images), "instances": len(data.instances), "mb": size_mb}
 
 
-def save_learned_bundle(data: Any, models_dir: Path, dest: Path, source: dict[str, Any]) -> None:
+def prepare_learned_full(train_pbr: Path, models: Path, dest: Path, quality: int = LEARNED_FULL_JPEG) -> dict[str, Any]:
+    """A whole train_pbr (the demo's ``learned/synth``) read here with the ``fast`` preset's widths
+    for step 7's long training on the GPU, into ``dest``: its images as JPEG (``quality``), no
+    depth (the model is scored here, on another split)."""
+    import shutil
+
+    from brave6d.evaluation.learned import get_learn_preset, load_training_data
+
+    t0 = time.perf_counter()
+    preset = get_learn_preset("fast")
+    data = load_training_data(train_pbr, models, preset.work_width, preset.heldout_every, show_progress=True,
+                              crop_width=preset.crop_source_width)
+    shutil.rmtree(dest, ignore_errors=True)
+    save_learned_bundle(data, models, dest, {"train_pbr": str(train_pbr), "images": len(data.images),
+                                             "width": preset.crop_source_width, "jpeg_quality": quality,
+                                             "prepare_s": time.perf_counter() - t0}, jpeg_quality=quality, depth=False)
+    size_mb = sum(f.stat().st_size for f in dest.rglob("*") if f.is_file()) / 1e6
+    print(f"learned full split: {len(data.images)} images, {len(data.instances)} instances, JPEG {quality}, "
+          f"{size_mb:.1f} MB in {dest}")
+    return {"images": len(data.images), "instances": len(data.instances), "mb": size_mb}
+
+
+def train_learned_full(bundle: Path, out: Path, steps: tuple[int, int], device: str = "cuda") -> dict[str, Any]:
+    """Step 7 on ``device`` (the GPU): the ``fast`` preset (``auto`` precision: bf16 there) with ``steps``
+    (detector, pose) on the whole carried split; seconds, steps/s and the model (scored here:
+    ``brave6d learn heldout``)."""
+    import shutil
+
+    from brave6d.evaluation.learned import get_learn_preset, train_learned
+
+    if not (bundle / "data.json").is_file():
+        return {"ok": False, "skipped": f"no prepared split in {bundle} (`python benchmarks/gpu_checks.py prepare "
+                                        "--learned-full TRAIN_PBR --learned-full-models MODELS`)"}
+    model_dir = out / "learned_full"
+    shutil.rmtree(model_dir, ignore_errors=True)
+    try:
+        data, models, source = load_learned_bundle(bundle)
+        preset = get_learn_preset("fast").with_overrides(detector_steps=steps[0], pose_steps=steps[1],
+                                                         checkpoint_every=max(steps))
+        result = train_learned(bundle, models, model_dir, preset, device, show_progress=False, data=data)
+    except Exception as err:  # noqa: BLE001 - the report says why; the other checks go on
+        return {"ok": False, "error": f"{type(err).__name__}: {err}"}
+    return {"ok": True, "device": device, "split": source, "images": len(data.images), "steps": {"detector": steps[0], "pose": steps[1]},
+            "precision": result.model.preset["precision"] if result.model else None, "losses": result.losses,
+            "seconds": {k: result.seconds[k] for k in ("detector", "pose")}, "wall_s": result.seconds.get("training"),
+            "steps_per_s": {k: n / max(result.seconds[k], 1e-9) for k, n in zip(("detector", "pose"), steps)},
+            "model": "learned_full/model.pt"}
+
+
+def save_learned_bundle(data: Any, models_dir: Path, dest: Path, source: dict[str, Any],
+                        jpeg_quality: int | None = None, depth: bool = True) -> None:
     """``data`` (a read :class:`TrainingData`) as plain arrays and JSON (any NumPy reads them, no
-    pickle), the models folder and the held-out images' depth (what ``score_heldout`` reads)."""
+    pickle), the models folder and, with ``depth``, the held-out images' depth (what
+    ``score_heldout`` reads). ``jpeg_quality``: the images as JPEG (a whole demo split fits a call)."""
     import shutil
 
     import numpy as np
 
+    def pixels(rgb: Any) -> Any:
+        if jpeg_quality is None:
+            return rgb
+        import cv2
+
+        ok, jpg = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+        if not ok:
+            raise SystemExit(f"gpu_checks prepare: could not encode an image of {data.root} as JPEG")
+        return jpg.reshape(-1)
+
+    suffix = "" if jpeg_quality is None else "_jpg"
     dest.mkdir(parents=True)
     shutil.copytree(models_dir, dest / "models")
     arrays: dict[str, Any] = {}
     images = []
     for i, im in enumerate(data.images):
-        arrays[f"rgb_{i}"] = im.rgb
+        arrays[f"rgb{suffix}_{i}"] = pixels(im.rgb)
         if im.rgb_crop is not im.rgb:
-            arrays[f"rgb_crop_{i}"] = im.rgb_crop
-        depth = None
-        if im.heldout:
-            depth = f"depth/{i:06d}.png"
+            arrays[f"rgb_crop{suffix}_{i}"] = pixels(im.rgb_crop)
+        depth_file = None
+        if im.heldout and depth:
+            depth_file = f"depth/{i:06d}.png"
             (dest / "depth").mkdir(exist_ok=True)
-            shutil.copyfile(im.depth_path, dest / depth)
+            shutil.copyfile(im.depth_path, dest / depth_file)
         images.append({"scene_id": im.scene_id, "im_id": im.im_id, "K": im.K.tolist(), "K_full": np.asarray(im.K_full).tolist(),
-                       "size_full": list(im.size_full), "heldout": im.heldout, "depth": depth,
+                       "size_full": list(im.size_full), "heldout": im.heldout, "depth": depth_file,
                        "K_crop": im.K_crop.tolist(), "instances": im.instances})
     instances = []
     for k, inst in enumerate(data.instances):
@@ -198,12 +270,22 @@ def load_learned_bundle(bundle: Path) -> tuple[Any, Path, dict[str, Any]]:
     models = bundle / "models"
     with np.load(bundle / "data.npz", allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
+    def pixels(key: str) -> Any:
+        if key in arrays:
+            return arrays[key]
+        import cv2
+
+        name, index = key.rsplit("_", 1)
+        jpg = arrays.get(f"{name}_jpg_{index}")  # a split saved as JPEG
+        return None if jpg is None else np.ascontiguousarray(cv2.imdecode(jpg, cv2.IMREAD_COLOR)[..., ::-1])
+
     images = []
     for i, m in enumerate(meta["images"]):
-        rgb = arrays[f"rgb_{i}"]
+        rgb = pixels(f"rgb_{i}")
+        crop = pixels(f"rgb_crop_{i}")
         images.append(ImageRecord(m["scene_id"], m["im_id"], rgb, np.array(m["K"]), np.array(m["K_full"]),
                                   tuple(m["size_full"]), m["heldout"], bundle / (m["depth"] or "no-depth"),
-                                  arrays.get(f"rgb_crop_{i}", rgb), np.array(m["K_crop"]), list(m["instances"])))
+                                  rgb if crop is None else crop, np.array(m["K_crop"]), list(m["instances"])))
     instances = [Instance(m["image"], m["obj_id"], m["class_index"], np.array(m["R"]), np.array(m["t_mm"]),
                           m["visib_fract"], tuple(m["box"]), tuple(m["region"]), arrays[f"coords_{k}"],
                           arrays[f"mask_{k}"], tuple(m["box_crop"]))
@@ -507,7 +589,23 @@ def markdown(report: dict[str, Any]) -> str:
                   f"{'yes' if r['within_target'] else 'no'} |" for d, r in rows]
     lines += vector_env_markdown(report.get("vector_env", {}))
     lines += learned_markdown(report.get("learned", {}), report.get("learned_ratio"))
+    lines += learned_full_markdown(report.get("learned_full"))
     return "\n".join(lines) + "\n"
+
+
+def learned_full_markdown(full: dict[str, Any] | None) -> list[str]:
+    """Step 7's line: the long training on the whole split, or why it did not run."""
+    if not full:
+        return []
+    if not full.get("ok"):
+        return ["- learned estimator on the whole split: " + (f"skipped ({full['skipped']})" if "skipped" in full
+                                                                else f"FAILED ({full['error']})")]
+    st, sec, rate = full["steps"], full["seconds"], full["steps_per_s"]
+    return ["", f"Learned estimator, `fast` with {st['detector']} + {st['pose']} steps ({full['precision']}) on the whole "
+                f"split ({full['images']} images of {full['split'].get('train_pbr')}, JPEG {full['split'].get('jpeg_quality')}): "
+                f"detector {sec['detector']:.0f} s ({rate['detector']:.1f} steps/s), pose {sec['pose']:.0f} s "
+                f"({rate['pose']:.1f} steps/s); the model in `{full['model']}` (score it here: `brave6d learn heldout "
+                "FILES_AT/learned_full SPLIT --models MODELS`)"]
 
 
 def learned_markdown(learned: dict[str, Any], ratio: dict[str, Any] | None) -> list[str]:
@@ -565,6 +663,11 @@ def run(args: argparse.Namespace) -> int:
         """After each step: what is known so far on disk and on screen (a run cut short keeps it)."""
         write_report(out, report)
 
+    if args.learned_full_only:  # a call of its own for step 7 (no gsplat build, no other step)
+        report["learned_full"] = (train_learned_full(args.learned_full, out, args.learned_full_steps) if cuda else
+                                  {"ok": False, "skipped": "no CUDA GPU"})
+        save()
+        return 0 if report["learned_full"].get("ok") else 1
     # every GPU figure first, the CPU's rows after them: a run cut short by the device's time keeps
     # what only the GPU can show
     if cuda:
@@ -611,12 +714,27 @@ def run(args: argparse.Namespace) -> int:
             report["learned"]["cuda, batches in line"] = train_learned_check(args.learned_bundle, out, "cuda",
                                                                              args.learned_steps, ahead=0)
             save()
+    if cuda and args.learned_full_steps:  # step 7: a long training on the whole split, GPU only
+        report["learned_full"] = train_learned_full(args.learned_full, out, args.learned_full_steps)
+        save()
     failed = (report.get("gsplat_build", {"ok": True})["ok"] is False
               or report.get("tests", {"exit": 0})["exit"] != 0
               or not all(r.get("ok") for part in ("training", "render") for r in report[part].values())
               or not all(r.get("ok") for r in report.get("vector_env", {}).values())
-              or any("error" in r for r in report.get("learned", {}).values()))
+              or any("error" in r for r in report.get("learned", {}).values())
+              or "error" in report.get("learned_full", {}))
     return 1 if failed else 0
+
+
+def _steps_pair(text: str) -> tuple[int, int]:
+    """``DETECTOR:POSE`` steps, both positive."""
+    try:
+        det, pose = (int(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected DETECTOR:POSE steps (e.g. 4800:16000), got {text!r}") from None
+    if det < 1 or pose < 1:
+        raise argparse.ArgumentTypeError(f"steps must be positive, got {text!r}")
+    return det, pose
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -626,6 +744,10 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("prepare", help="download the wheels the GPU image lacks, make the learned split (run here)")
     p.add_argument("--dest", type=Path, default=ROOT / ".whl")
     p.add_argument("--learned-images", type=int, default=30, help="train_pbr images of the learned split")
+    p.add_argument("--learned-full", type=Path, default=None, metavar="TRAIN_PBR",
+                   help="also carry this whole train_pbr for step 7 (the demo's WORKDIR/learned/synth)")
+    p.add_argument("--learned-full-models", type=Path, default=None, metavar="MODELS_DIR",
+                   help="its BOP models (the demo's WORKDIR/scene/annotation/bop/models)")
     r = sub.add_parser("run", help="run the checks (on the GPU machine: bash benchmarks/gpu_checks.sh)")
     r.add_argument("--out", type=Path, required=True, help="folder for the report and logs")
     r.add_argument("--steps", type=int, default=2000, help="GPU training steps")
@@ -644,14 +766,26 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--learned-steps", type=int, default=300,
                    help="learned estimator: training steps per network, on each device")
     r.add_argument("--learned-bundle", type=Path, default=LEARNED_BUNDLE, help="the split prepare made")
+    r.add_argument("--learned-full-steps", type=_steps_pair, default=None, metavar="DETECTOR:POSE",
+                   help="step 7 (GPU only): the fast preset with these steps on the whole split that "
+                        "`prepare --learned-full` made, e.g. 4800:16000")
+    r.add_argument("--learned-full", type=Path, default=LEARNED_FULL, help="the whole split prepare made")
+    r.add_argument("--learned-full-only", action="store_true",
+                   help="run step 7 alone (with --learned-full-steps; a device call of its own)")
     s = sub.add_parser("score-learned", help="here: score the learned models a run returned (no Open3D there)")
     s.add_argument("device_out", type=Path, help="the run's $OUT as fetched (holds gpu_checks.json)")
     s.add_argument("--out", type=Path, required=True, help="folder for the completed report")
     s.add_argument("--learned-bundle", type=Path, default=LEARNED_BUNDLE, help="the split prepare made")
     args = ap.parse_args(argv)
+    if args.command == "run" and args.learned_full_only and not args.learned_full_steps:
+        ap.error("--learned-full-only needs --learned-full-steps DETECTOR:POSE")
     if args.command == "prepare":
+        if (args.learned_full is None) != (args.learned_full_models is None):
+            raise SystemExit("gpu_checks prepare: --learned-full and --learned-full-models go together")
         prepare(args.dest)
         prepare_learned(args.dest / "learned", args.learned_images)
+        if args.learned_full is not None:
+            prepare_learned_full(args.learned_full, args.learned_full_models, args.dest / "learned_full")
         return 0
     if args.command == "score-learned":
         score_returned(args.device_out, args.out, args.learned_bundle)

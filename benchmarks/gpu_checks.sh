@@ -4,7 +4,7 @@
 #   device: run(command="bash benchmarks/gpu_checks.sh", carry=[".whl"], timeout_s=560)
 #   after:  python benchmarks/gpu_checks.py score-learned FILES_AT --out DIR   (held-out scores of the returned model)
 # Extra arguments go to `gpu_checks.py run` (e.g. --steps 1000 --skip-tests --learned-steps 500 --skip-learned
-# --skip-vector-env).
+# --skip-vector-env, or --learned-full-steps 4800:16000 after `prepare --learned-full ...`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out="${OUT:-/tmp/gpu_checks}"
@@ -29,7 +29,7 @@ status=0
 timeout -k 10 "${GPU_CHECKS_BUDGET_S:-480}" python3 benchmarks/gpu_checks.py run --out "$work" "$@" 2>&1 \
   | tee "$out/gpu_checks.log" || status=$?
 for f in gpu_checks.json gpu_checks.md pytest.log learned_cuda/model.pt learned_cuda_bf16/model.pt \
-         learned_cuda_paper_bf16/model.pt; do
+         learned_cuda_paper_bf16/model.pt learned_full/model.pt; do
   if [ -f "$work/$f" ] && [ "$work" != "$out" ]; then mkdir -p "$out/$(dirname "$f")"; cp "$work/$f" "$out/$f"; fi
 done
 exit "$status"

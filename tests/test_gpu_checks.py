@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -141,3 +142,47 @@ def test_the_learned_step_trains_the_carried_split_without_open3d_and_is_scored_
         gpu_checks.learned_markdown({"cpu": missing}, None))
     assert gpu_checks.learned_ratio({"cuda": {**run, "seconds": {"detector": 2.0, "pose": 1.0}}, "cpu": run}) == {
         "detector": run["seconds"]["detector"] / 2.0, "pose": run["seconds"]["pose"] / 1.0}
+
+
+def test_a_whole_split_travels_as_jpeg_and_trains_a_long_run(tmp_path: Path) -> None:
+    """Step 7's split (``prepare --learned-full``): a train_pbr read with the fast preset's widths,
+    its images as JPEG (close to the PNGs, far smaller), coordinates and boxes exact, no depth;
+    trained from the carried arrays (here on the CPU, a few steps) into the model step 7 returns."""
+    from learned_helpers import DEMO_SPEC, write_models
+
+    from brave6d.evaluation.learned import get_learn_preset, load_training_data
+    from brave6d.synth import SynthOptions, synthesize
+
+    synthesize(DEMO_SPEC, tmp_path / "synth", SynthOptions(images=6, seed=0, width=640, height=400))
+    models = write_models(DEMO_SPEC, tmp_path / "models")
+    made = gpu_checks.prepare_learned_full(tmp_path / "synth", models, tmp_path / "full")
+    assert made["images"] == 6 and made["instances"] > 0
+    data, _, source = gpu_checks.load_learned_bundle(tmp_path / "full")
+    fast = get_learn_preset("fast")
+    read = load_training_data(tmp_path / "synth", models, fast.work_width, fast.heldout_every, show_progress=False,
+                              crop_width=fast.crop_source_width)
+    assert source["jpeg_quality"] == gpu_checks.LEARNED_FULL_JPEG and data.digest == read.digest
+    assert not (tmp_path / "full" / "depth").exists()
+    for a, b in zip(data.images, read.images):
+        assert a.rgb.shape == b.rgb.shape == (200, 320, 3) and a.rgb_crop.shape == b.rgb_crop.shape == (400, 640, 3)
+        assert np.abs(a.rgb_crop.astype(int) - b.rgb_crop.astype(int)).mean() < 8.0  # JPEG 90 on sensor noise: 4-7 levels
+        assert not np.array_equal(a.rgb_crop, b.rgb_crop)  # but a loss: JPEG, not the PNG's pixels
+    assert all(np.array_equal(a.coords, b.coords) and a.box == b.box and a.box_crop == b.box_crop
+               for a, b in zip(data.instances, read.instances))
+    png_bytes = sum(f.stat().st_size for f in (tmp_path / "synth").rglob("rgb/*.png"))
+    assert made["mb"] * 1e6 < 0.6 * png_bytes, (made["mb"], png_bytes)
+    run = gpu_checks.train_learned_full(tmp_path / "full", tmp_path / "out", (4, 6), device="cpu")
+    assert run["ok"] and run["steps"] == {"detector": 4, "pose": 6} and (tmp_path / "out" / run["model"]).is_file()
+    assert all(math.isfinite(v) for v in run["losses"].values())
+    assert "on the whole split (6 images" in "\n".join(gpu_checks.learned_full_markdown(run))
+    missing = gpu_checks.train_learned_full(tmp_path / "nothing", tmp_path / "out", (4, 6), device="cpu")
+    assert not missing["ok"] and "prepare --learned-full" in missing["skipped"]
+
+
+@pytest.mark.parametrize("text", ["4800", "a:b", "0:10", "10:-1", "1:2:3"])
+def test_the_long_runs_steps_are_two_positive_numbers(text: str) -> None:
+    import argparse
+
+    with pytest.raises(argparse.ArgumentTypeError, match="DETECTOR:POSE|positive"):
+        gpu_checks._steps_pair(text)
+    assert gpu_checks._steps_pair("4800:16000") == (4800, 16000)
