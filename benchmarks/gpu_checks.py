@@ -45,8 +45,10 @@ about 4.5 MB, carried with the wheels: 16 MB together, the tree 15 MB, of the 64
 
 7. with ``--learned-full-steps DETECTOR:POSE`` (GPU only): the ``fast`` preset with those steps on a
    whole train_pbr carried as JPEG (``prepare --learned-full WORKDIR/learned/synth
-   --learned-full-models WORKDIR/scene/annotation/bop/models``: the demo's 300 images in 30 MB); its
-   model comes back for ``brave6d learn heldout`` here. ``--learned-full-only`` runs it alone, as a
+   --learned-full-models WORKDIR/scene/annotation/bop/models``: the demo's 300 images in 32 MB,
+   JPEG 90 4:4:4, which cost 0.008 AR RGB-only on the CPU); its
+   model comes back for ``score-learned ... --full-split SPLIT --full-models MODELS`` here.
+   ``--learned-full-only`` runs it alone, as a
    call of its own (4800:16000: about 7 min at the rates an H200 showed on 2026-11-29, an estimate).
 
 Without a GPU the CUDA parts are reported as not run (so the wiring is tested on the CPU).
@@ -96,7 +98,7 @@ VECTOR_AGENTS = {"cuda": (1, 8, 64), "cpu": (8,)}
 LEARNED_BUNDLE = ROOT / ".whl" / "learned"
 LEARNED_SPEC = ROOT / "data" / "demo" / "scene.yaml"
 #: step 7's whole split (``prepare --learned-full``), its images as JPEG of this quality (the
-#: demo's 300 images in about 30 MB: with the tree and the wheels inside a call's 64 MiB)
+#: demo's 300 images in about 32 MB: with the tree and the wheels inside a call's 64 MiB)
 LEARNED_FULL = ROOT / ".whl" / "learned_full"
 LEARNED_FULL_JPEG = 90
 
@@ -187,7 +189,7 @@ def prepare_learned_full(train_pbr: Path, models: Path, dest: Path, quality: int
 def train_learned_full(bundle: Path, out: Path, steps: tuple[int, int], device: str = "cuda") -> dict[str, Any]:
     """Step 7 on ``device`` (the GPU): the ``fast`` preset (``auto`` precision: bf16 there) with ``steps``
     (detector, pose) on the whole carried split; seconds, steps/s and the model (scored here:
-    ``brave6d learn heldout``)."""
+    ``score-learned --full-split``)."""
     import shutil
 
     from brave6d.evaluation.learned import get_learn_preset, train_learned
@@ -225,7 +227,9 @@ def save_learned_bundle(data: Any, models_dir: Path, dest: Path, source: dict[st
             return rgb
         import cv2
 
-        ok, jpg = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+        # full-resolution colour (4:4:4): the small objects' colours are what the detector tells apart
+        ok, jpg = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [
+            cv2.IMWRITE_JPEG_QUALITY, jpeg_quality, cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
         if not ok:
             raise SystemExit(f"gpu_checks prepare: could not encode an image of {data.root} as JPEG")
         return jpg.reshape(-1)
@@ -236,7 +240,10 @@ def save_learned_bundle(data: Any, models_dir: Path, dest: Path, source: dict[st
     arrays: dict[str, Any] = {}
     images = []
     for i, im in enumerate(data.images):
-        arrays[f"rgb{suffix}_{i}"] = pixels(im.rgb)
+        # as JPEG, the detector's image is made again from the crops' full-width one, as read did
+        derived = jpeg_quality is not None and im.rgb_crop is not im.rgb and tuple(im.size_full) == im.rgb_crop.shape[1::-1]
+        if not derived:
+            arrays[f"rgb{suffix}_{i}"] = pixels(im.rgb)
         if im.rgb_crop is not im.rgb:
             arrays[f"rgb_crop{suffix}_{i}"] = pixels(im.rgb_crop)
         depth_file = None
@@ -246,6 +253,7 @@ def save_learned_bundle(data: Any, models_dir: Path, dest: Path, source: dict[st
             shutil.copyfile(im.depth_path, dest / depth_file)
         images.append({"scene_id": im.scene_id, "im_id": im.im_id, "K": im.K.tolist(), "K_full": np.asarray(im.K_full).tolist(),
                        "size_full": list(im.size_full), "heldout": im.heldout, "depth": depth_file,
+                       "rgb_width": int(im.rgb.shape[1]) if derived else None,
                        "K_crop": im.K_crop.tolist(), "instances": im.instances})
     instances = []
     for k, inst in enumerate(data.instances):
@@ -279,10 +287,13 @@ def load_learned_bundle(bundle: Path) -> tuple[Any, Path, dict[str, Any]]:
         jpg = arrays.get(f"{name}_jpg_{index}")  # a split saved as JPEG
         return None if jpg is None else np.ascontiguousarray(cv2.imdecode(jpg, cv2.IMREAD_COLOR)[..., ::-1])
 
+    from brave6d.evaluation.learned.data import resize_to_width
+
     images = []
     for i, m in enumerate(meta["images"]):
-        rgb = pixels(f"rgb_{i}")
         crop = pixels(f"rgb_crop_{i}")
+        rgb = (resize_to_width(crop, np.array(m["K_crop"]), m["rgb_width"])[0] if m.get("rgb_width")
+               else pixels(f"rgb_{i}"))
         images.append(ImageRecord(m["scene_id"], m["im_id"], rgb, np.array(m["K"]), np.array(m["K_full"]),
                                   tuple(m["size_full"]), m["heldout"], bundle / (m["depth"] or "no-depth"),
                                   rgb if crop is None else crop, np.array(m["K_crop"]), list(m["instances"])))
@@ -344,21 +355,42 @@ def score_learned(estimator: Any, data: Any, models: Path) -> dict[str, Any]:
     return {**held.to_json(), "seconds": time.perf_counter() - t0}
 
 
-def score_returned(device_out: Path, out: Path, bundle: Path) -> dict[str, Any]:
+def score_returned(device_out: Path, out: Path, bundle: Path, full_split: Path | None = None,
+                   full_models: Path | None = None) -> dict[str, Any]:
     """Here, after a run on a machine without Open3D: score the models it returned (``device_out``, its
-    ``$OUT``) on the same carried split and write the completed report into ``out``."""
+    ``$OUT``) on the same carried split, and step 7's model on every image of ``full_split`` (a
+    train_pbr rendered apart, with its ``full_models``); write the completed report into ``out``."""
     from brave6d.evaluation.learned import LearnedEstimator
 
     report = json.loads((device_out / "gpu_checks.json").read_text())
-    data, models, _ = load_learned_bundle(bundle)
-    for device, r in report.get("learned", {}).items():
-        if r.get("ok") and "heldout" not in r and (device_out / r["model"]).is_file():
+    rows = [r for r in report.get("learned", {}).values()
+            if r.get("ok") and "heldout" not in r and (device_out / r["model"]).is_file()]
+    if rows:
+        data, models, _ = load_learned_bundle(bundle)
+        for r in rows:
             r["heldout"] = score_learned(LearnedEstimator.load((device_out / r["model"]).parent, models_dir=models),
                                          data, models)
             r["heldout_scored_by"] = "score-learned (on this machine's CPU, after the run)"
             r.pop("heldout_skipped", None)
+    full = report.get("learned_full") or {}
+    if full.get("ok") and full_split is not None and (device_out / full["model"]).is_file():
+        full["heldout"] = score_on_split((device_out / full["model"]).parent, full_split, full_models or full_split)
     write_report(out, report)
     return report
+
+
+def score_on_split(model_dir: Path, split: Path, models: Path) -> dict[str, Any]:
+    """``score_heldout``'s figures of the model in ``model_dir`` on every image of ``split`` (never
+    trained on: rendered apart), read with the ``fast`` preset's widths."""
+    from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, load_training_data, score_heldout
+
+    fast = get_learn_preset("fast")
+    data = load_training_data(split, models, fast.work_width, fast.heldout_every, show_progress=True,
+                              crop_width=fast.crop_source_width)
+    t0 = time.perf_counter()
+    held = score_heldout(LearnedEstimator.load(model_dir, models_dir=models), data, models,
+                         images=list(range(len(data.images))), show_progress=True)
+    return {**held.to_json(), "seconds": time.perf_counter() - t0, "split": str(split), "images": len(data.images)}
 
 
 def learned_ratio(learned: dict[str, Any]) -> dict[str, Any] | None:
@@ -604,8 +636,13 @@ def learned_full_markdown(full: dict[str, Any] | None) -> list[str]:
     return ["", f"Learned estimator, `fast` with {st['detector']} + {st['pose']} steps ({full['precision']}) on the whole "
                 f"split ({full['images']} images of {full['split'].get('train_pbr')}, JPEG {full['split'].get('jpeg_quality')}): "
                 f"detector {sec['detector']:.0f} s ({rate['detector']:.1f} steps/s), pose {sec['pose']:.0f} s "
-                f"({rate['pose']:.1f} steps/s); the model in `{full['model']}` (score it here: `brave6d learn heldout "
-                "FILES_AT/learned_full SPLIT --models MODELS`)"]
+                f"({rate['pose']:.1f} steps/s); the model in `{full['model']}`"
+                + (f"; on {h['images']} images of {h['split']} never trained on: AR given true boxes "
+                   f"{h['pose_ar']['true_box_rgb']:.3f} RGB-only / {h['pose_ar']['true_box_depth']:.3f} with depth, detected "
+                   f"{h['pose_ar']['detected_rgb']:.3f} / {h['pose_ar']['detected_depth']:.3f}, recall@0.5 "
+                   + " / ".join(f"{v:.2f}" for v in h["detection_recall_iou50"].values())
+                   if (h := full.get("heldout")) else " (score it here: `gpu_checks.py score-learned FILES_AT --out DIR "
+                                                     "--full-split SPLIT --full-models MODELS`)")]
 
 
 def learned_markdown(learned: dict[str, Any], ratio: dict[str, Any] | None) -> list[str]:
@@ -776,6 +813,10 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("device_out", type=Path, help="the run's $OUT as fetched (holds gpu_checks.json)")
     s.add_argument("--out", type=Path, required=True, help="folder for the completed report")
     s.add_argument("--learned-bundle", type=Path, default=LEARNED_BUNDLE, help="the split prepare made")
+    s.add_argument("--full-split", type=Path, default=None, metavar="TRAIN_PBR",
+                   help="score step 7's model on every image of this split (rendered apart, e.g. "
+                        "`brave6d synth data/demo/scene.yaml DIR --images 150 --seed 7`)")
+    s.add_argument("--full-models", type=Path, default=None, metavar="MODELS_DIR", help="that split's BOP models")
     args = ap.parse_args(argv)
     if args.command == "run" and args.learned_full_only and not args.learned_full_steps:
         ap.error("--learned-full-only needs --learned-full-steps DETECTOR:POSE")
@@ -788,7 +829,7 @@ def main(argv: list[str] | None = None) -> int:
             prepare_learned_full(args.learned_full, args.learned_full_models, args.dest / "learned_full")
         return 0
     if args.command == "score-learned":
-        score_returned(args.device_out, args.out, args.learned_bundle)
+        score_returned(args.device_out, args.out, args.learned_bundle, args.full_split, args.full_models)
         return 0
     return run(args)
 
