@@ -126,6 +126,6 @@ def test_every_learned_agent_hands_its_estimator_the_targets_mesh(bundle, tmp_pa
 
 def test_held_out_recall_counts_the_detections_the_agents_use() -> None:
     from brave6d.evaluation.agents.learned.agent import LearnedAgentOptions
-    from brave6d.evaluation.learned.heldout import DETECTION_THRESHOLD
+    from brave6d.evaluation.learned import DETECTION_THRESHOLD
 
     assert LearnedAgentOptions().min_score == DETECTION_THRESHOLD

@@ -11,7 +11,8 @@ Public API (imported lazily: ``import brave6d.evaluation.learned`` loads no torc
 - inference: ``LearnedEstimator`` (``detect``, ``best_detection``, ``refine_box``, ``estimate``,
   ``estimate_both``, ``refine_views``), ``Detection``,
   ``LearnedPose``, ``LearnedRefused`` (``cause`` in ``REFUSAL_CAUSES``), ``solve_pnp``;
-- held-out figures: ``score_heldout``, ``HeldoutScores``; the data: ``load_training_data``,
+- held-out figures: ``score_heldout``, ``HeldoutScores``, ``DETECTION_THRESHOLD`` (the score a
+  detection needs there and, by default, in the learned agents); the data: ``load_training_data``,
   ``TrainingData``.
 
 Modules, one job each: ``data`` (train_pbr -> images, boxes, model coordinates), ``crops`` (zoomed-in
@@ -29,7 +30,7 @@ _LAZY = {
     "write_card": ".card", "read_card": ".card", "training_seconds": ".card",
     "LearnedEstimator": ".inference", "Detection": ".inference", "LearnedPose": ".inference",
     "LearnedRefused": ".inference", "REFUSAL_CAUSES": ".inference", "solve_pnp": ".inference",
-    "score_heldout": ".heldout", "HeldoutScores": ".heldout",
+    "score_heldout": ".heldout", "HeldoutScores": ".heldout", "DETECTION_THRESHOLD": ".presets",
     "load_training_data": ".data", "TrainingData": ".data",
 }
 

@@ -23,13 +23,9 @@ from numpy.typing import NDArray
 from brave6d.evaluation.learned.crops import iou
 from brave6d.evaluation.learned.data import MIN_VISIB_FRACT, TrainingData
 from brave6d.evaluation.learned.inference import Detection, LearnedEstimator, LearnedRefused
+from brave6d.evaluation.learned.presets import DETECTION_THRESHOLD
 
 log = logging.getLogger(__name__)
-#: Detections scoring below this are not used by the agents (``LearnedAgentOptions.min_score``) nor
-#: counted for recall. 0.2 rather than 0.3: the misses at 0.3 are mostly fully visible small objects
-#: the detector finds, correctly boxed, at 0.2-0.3 (recall on 150 unseen images 0.90-0.98 -> 0.96-0.98
-#: per object; the learned agents score the same or better, docs/BENCHMARKS.md).
-DETECTION_THRESHOLD = 0.2
 IOU = 0.5
 POSE_VARIANTS = ("true_box_rgb", "true_box_depth", "detected_rgb", "detected_depth")
 

@@ -95,7 +95,7 @@ def _heldout_is_current(card: dict[str, Any], model: Any, source_digest: str) ->
     """Whether the card's held-out figures were scored on the split of checksum ``source_digest`` as
     the estimator of ``model`` (a :class:`LearnedModel` in memory) now works: its detector's input
     widths, the detection threshold and the coordinate net's crop zooms."""
-    from brave6d.evaluation.learned.heldout import DETECTION_THRESHOLD
+    from brave6d.evaluation.learned.presets import DETECTION_THRESHOLD
     from brave6d.evaluation.learned.inference import LearnedEstimator
 
     h = card.get("heldout")

@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from brave6d.core.errors import BraveError
 from brave6d.evaluation.agents.active import look_candidates
 from brave6d.evaluation.agents.episode import scene_bundle
+from brave6d.evaluation.learned import DETECTION_THRESHOLD
 
 Array = NDArray[np.float64]
 
@@ -41,7 +42,7 @@ PIXELS_AT_WIDTH = 320
 class LearnedAgentOptions:
     """Thresholds in [0, 1]; sizes in pixels of a 320-wide image (scaled to the episode's); distances in metres."""
 
-    min_score: float = 0.2  # detections below are ignored (the held-out recall's DETECTION_THRESHOLD)
+    min_score: float = DETECTION_THRESHOLD  # detections below are ignored (as the held-out recall does)
     confident_score: float = 0.5  # the active agent stops once its detection scores this ...
     min_box_px: float = 36.0  # ... and its box (geometric mean of w, h) is at least this large
     approach_box_px: float = 48.0  # a move aims for about this box size
