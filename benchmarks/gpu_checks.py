@@ -694,7 +694,7 @@ def run(args: argparse.Namespace) -> int:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
     report: dict[str, Any] = {"cuda": cuda, "torch": torch.__version__, "python": platform.python_version(),
                               "commit": commit.stdout.strip() or "unknown", "training": {}, "render": {}}
-    devices = ["cuda", "cpu"] if cuda else ["cpu"]
+    devices = (["cuda"] if args.skip_cpu else ["cuda", "cpu"]) if cuda else ["cpu"]
 
     def save() -> None:
         """After each step: what is known so far on disk and on screen (a run cut short keeps it)."""
@@ -800,6 +800,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="leave out step 3b (gsplat's minimal loop beside the trainer, GPU only)")
     r.add_argument("--skip-vector-env", action="store_true", help="leave out step 5 (N agents' batched renders)")
     r.add_argument("--skip-learned", action="store_true", help="leave out step 6 (the learned estimator)")
+    r.add_argument("--skip-cpu", action="store_true",
+                   help="on a GPU machine, leave out the CPU's rows (1-2 min of the H200's run of 2026-11-29; "
+                        "their figures are in docs/BENCHMARKS.md)")
     r.add_argument("--learned-steps", type=int, default=300,
                    help="learned estimator: training steps per network, on each device")
     r.add_argument("--learned-bundle", type=Path, default=LEARNED_BUNDLE, help="the split prepare made")
