@@ -159,9 +159,7 @@ def prepare_learned(dest: Path, images: int = 30, workers: int = 1) -> dict[str,
                                              "spec": LEARNED_SPEC.relative_to(ROOT).as_posix(),
                                              "prepare_s": time.perf_counter() - t0})
     shutil.rmtree(work, ignore_errors=True)
-    size_mb = sum(f.stat().st_size for f in dest.rglob("*") if f.is_file()) / 1e6
-    print(f"learned split: {len(data.images)} images, {len(data.instances)} instances, {size_mb:.1f} MB in {dest}")
-    return {"images": len(data.images), "instances": len(data.instances), "mb": size_mb}
+    return _bundle_made(data, dest, "learned split")
 
 
 def prepare_learned_full(train_pbr: Path, models: Path, dest: Path, quality: int = LEARNED_FULL_JPEG) -> dict[str, Any]:
@@ -180,9 +178,13 @@ def prepare_learned_full(train_pbr: Path, models: Path, dest: Path, quality: int
     save_learned_bundle(data, models, dest, {"train_pbr": str(train_pbr), "images": len(data.images),
                                              "width": preset.crop_source_width, "jpeg_quality": quality,
                                              "prepare_s": time.perf_counter() - t0}, jpeg_quality=quality, depth=False)
+    return _bundle_made(data, dest, f"learned full split (JPEG {quality})")
+
+
+def _bundle_made(data: Any, dest: Path, what: str) -> dict[str, Any]:
+    """What ``prepare`` saved in ``dest`` (images, instances, MB), said on screen too."""
     size_mb = sum(f.stat().st_size for f in dest.rglob("*") if f.is_file()) / 1e6
-    print(f"learned full split: {len(data.images)} images, {len(data.instances)} instances, JPEG {quality}, "
-          f"{size_mb:.1f} MB in {dest}")
+    print(f"{what}: {len(data.images)} images, {len(data.instances)} instances, {size_mb:.1f} MB in {dest}")
     return {"images": len(data.images), "instances": len(data.instances), "mb": size_mb}
 
 
@@ -190,27 +192,44 @@ def train_learned_full(bundle: Path, out: Path, steps: tuple[int, int], device: 
     """Step 7 on ``device`` (the GPU): the ``fast`` preset (``auto`` precision: bf16 there) with ``steps``
     (detector, pose) on the whole carried split; seconds, steps/s and the model (scored here:
     ``score-learned --full-split``)."""
+    from brave6d.evaluation.learned import get_learn_preset
+
+    preset = get_learn_preset("fast").with_overrides(detector_steps=steps[0], pose_steps=steps[1],
+                                                     checkpoint_every=max(steps))
+    report, trained = _train_carried(bundle, out / "learned_full", preset, device, None,
+                                     "--learned-full TRAIN_PBR --learned-full-models MODELS")
+    if trained is not None:
+        report.update({"device": device, "steps": {"detector": steps[0], "pose": steps[1]},
+                       "precision": trained[0].model.preset["precision"] if trained[0].model else None})
+    return report
+
+
+def _train_carried(bundle: Path, model_dir: Path, preset: Any, device: str, ahead: int | None,
+                   prepare_args: str) -> tuple[dict[str, Any], tuple[Any, Any, Path] | None]:
+    """Train ``preset`` on the split carried in ``bundle`` into ``model_dir`` (emptied first: a model
+    left by an earlier run would be reused, not timed): the report's common part (the split, losses,
+    seconds and steps/s per network, the model) and (the result, the data, the models folder), or
+    why it did not train (skipped: no split, naming the ``prepare`` arguments that make it; an error)
+    and None."""
     import shutil
 
-    from brave6d.evaluation.learned import get_learn_preset, train_learned
+    from brave6d.evaluation.learned import train_learned
 
     if not (bundle / "data.json").is_file():
-        return {"ok": False, "skipped": f"no prepared split in {bundle} (`python benchmarks/gpu_checks.py prepare "
-                                        "--learned-full TRAIN_PBR --learned-full-models MODELS`)"}
-    model_dir = out / "learned_full"
+        return {"ok": False, "skipped": f"no prepared split in {bundle} (run `python benchmarks/gpu_checks.py "
+                                        f"prepare{' ' + prepare_args if prepare_args else ''}` here and carry .whl)"}, None
     shutil.rmtree(model_dir, ignore_errors=True)
     try:
         data, models, source = load_learned_bundle(bundle)
-        preset = get_learn_preset("fast").with_overrides(detector_steps=steps[0], pose_steps=steps[1],
-                                                         checkpoint_every=max(steps))
-        result = train_learned(bundle, models, model_dir, preset, device, show_progress=False, data=data)
+        result = train_learned(bundle, models, model_dir, preset, device, show_progress=False, data=data, ahead=ahead)
     except Exception as err:  # noqa: BLE001 - the report says why; the other checks go on
-        return {"ok": False, "error": f"{type(err).__name__}: {err}"}
-    return {"ok": True, "device": device, "split": source, "images": len(data.images), "steps": {"detector": steps[0], "pose": steps[1]},
-            "precision": result.model.preset["precision"] if result.model else None, "losses": result.losses,
-            "seconds": {k: result.seconds[k] for k in ("detector", "pose")}, "wall_s": result.seconds.get("training"),
-            "steps_per_s": {k: n / max(result.seconds[k], 1e-9) for k, n in zip(("detector", "pose"), steps)},
-            "model": "learned_full/model.pt"}
+        return {"ok": False, "error": f"{type(err).__name__}: {err}"}, None
+    steps = {"detector": preset.detector_steps, "pose": preset.pose_steps}
+    return {"ok": True, "split": source, "images": len(data.images), "losses": result.losses,
+            "seconds": {k: result.seconds[k] for k in steps},
+            "steps_per_s": {k: n / max(result.seconds[k], 1e-9) for k, n in steps.items()},
+            "wall_s": result.seconds.get("training"),  # a CPU trains the two networks at once: less than their sum
+            "model": f"{model_dir.name}/model.pt"}, (result, data, models)
 
 
 def save_learned_bundle(data: Any, models_dir: Path, dest: Path, source: dict[str, Any],
@@ -310,33 +329,23 @@ def train_learned_check(bundle: Path, out: Path, device: str, steps: int, precis
     ``precision`` (``ahead``: batches made ahead, the trainer's default when None); seconds and
     steps/s per network, the final losses, and the held-out figures where Open3D is installed."""
     import importlib.util
-    import shutil
 
-    from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, train_learned
+    from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset
 
-    if not (bundle / "data.json").is_file():
-        return {"ok": False, "skipped": f"no prepared split in {bundle} (run `python benchmarks/gpu_checks.py "
-                                        "prepare` here and carry .whl)"}
     model_dir = out / "_".join(["learned", device] + ([preset_name] if preset_name != "fast" else [])
                                + ([precision] if precision != "fp32" else []) + ([f"ahead{ahead}"] if ahead is not None else []))
-    shutil.rmtree(model_dir, ignore_errors=True)  # a model left by an earlier run would be reused, not timed
-    try:
-        data, models, source = load_learned_bundle(bundle)
-        preset = learned_preset(steps, precision, preset_name)
-        result = train_learned(bundle, models, model_dir, preset, device, show_progress=False, data=data, ahead=ahead)
-    except Exception as err:  # noqa: BLE001 - the report says why; the other checks go on
-        return {"ok": False, "error": f"{type(err).__name__}: {err}"}
+    preset = learned_preset(steps, precision, preset_name)
+    report, trained = _train_carried(bundle, model_dir, preset, device, ahead, "")
+    if trained is None:
+        return report
+    result, data, models = trained
     full = get_learn_preset(preset_name)
     full_steps = {"detector": full.detector_steps, "pose": full.pose_steps}
-    report: dict[str, Any] = {
-        "ok": True, "preset": preset.name, "precision": precision, "ahead": ahead, "steps": steps, "split": source, "images": len(data.images),
-        "heldout_images": len(data.split(True)), "losses": result.losses,
-        "seconds": {k: result.seconds[k] for k in ("detector", "pose")},
-        "steps_per_s": {k: steps / max(result.seconds[k], 1e-9) for k in ("detector", "pose")},
-        "wall_s": result.seconds.get("training"),  # a CPU trains the two networks at once: less than their sum
-        "model": f"{model_dir.name}/model.pt", "full_preset_steps": full_steps,
+    report.update({
+        "preset": preset.name, "precision": precision, "ahead": ahead, "steps": steps,
+        "heldout_images": len(data.split(True)), "full_preset_steps": full_steps,
         # the preset's whole schedule at these rates, one network after the other
-        "full_preset_s": sum(full_steps[k] * result.seconds[k] / steps for k in ("detector", "pose"))}
+        "full_preset_s": sum(full_steps[k] * result.seconds[k] / steps for k in ("detector", "pose"))})
     if importlib.util.find_spec("open3d") is None:
         report["heldout_skipped"] = ("open3d is not installed here (VSD and the depth refinement need it); score "
                                      "the returned model with `python benchmarks/gpu_checks.py score-learned`")
