@@ -274,6 +274,11 @@ def test_auto_precision_is_bf16_only_where_the_device_has_it_and_the_model_says_
         monkeypatch.setattr(training, "native_bf16", lambda device, native=native: native)
         ran = training.resolve_precision(auto, cpu)
         assert (ran.precision, ran.detector_steps, ran.pose_steps) == (runs, *steps)
+        # long is sized for accuracy: fast's networks, every one of its six times as many pose steps either way
+        long = training.resolve_precision(get_learn_preset("long"), cpu)
+        assert (long.precision, long.detector_steps, long.pose_steps) == (runs, 4800, 24000)
+    fast, long = auto.to_json(), get_learn_preset("long").to_json()  # the same networks, images and detector
+    assert {k for k in fast if fast[k] != long[k]} == {"name", "pose_steps", "checkpoint_every", "fp32_step_share"}
     fp32 = training.resolve_precision(auto.with_overrides(precision="fp32"), cpu)  # asked for: all the steps
     assert (fp32.precision, fp32.detector_steps) == ("fp32", 4800)
     with pytest.raises(BraveError, match=r"fp32_step_share must be in \(0, 1\], got 1.5"):

@@ -1,6 +1,6 @@
 """``brave6d learn``: train the learned estimator on a train_pbr split, or score one on its held-out images.
 
-    brave6d learn train TRAIN_PBR --models MODELS_DIR --out MODEL_DIR [--preset fast|paper] [--device ...] [--resume]
+    brave6d learn train TRAIN_PBR --models MODELS_DIR --out MODEL_DIR [--preset fast|long|paper] [--device ...] [--resume]
         [--set FIELD=VALUE ...]
     brave6d learn heldout MODEL_DIR TRAIN_PBR --models MODELS_DIR [--detect-scales 1,1.375]
 """
@@ -25,7 +25,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--models", type=Path, required=True, metavar="MODELS_DIR",
                        help="BOP models folder (models_info.json, obj_XXXXXX.ply in mm)")
     train.add_argument("--out", type=Path, required=True, metavar="MODEL_DIR", help="where model.pt and its card go")
-    train.add_argument("--preset", default="fast", help="fast (2-core CPU, minutes), paper (GPU), tiny (tests)")
+    train.add_argument("--preset", default="fast", help="fast (2-core CPU, minutes), long (2-core CPU, half an hour: a better RGB-only pose), paper (GPU), tiny (tests)")
     train.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     train.add_argument("--seed", type=int_in(0, 2**31 - 1), default=None, help="seed (default: the preset's, 0)")
     train.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="overrides",
