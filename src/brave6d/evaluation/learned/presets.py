@@ -96,15 +96,18 @@ class LearnPreset:
 #: so that the agents' options take it without loading the networks.
 DETECTION_THRESHOLD = 0.2
 
+# bfloat16 where the CPU has it: 4800 + 4000 steps in about 2.3x the time of fp32's 1200 + 1000, which a
+# CPU without it trains instead, in the demo's time budget there (the detector's steps end with the
+# coordinate net's when both train at once on 2 cores)
+_FAST = LearnPreset("fast", detector_steps=4800, pose_steps=4000, precision="auto", fp32_step_share=0.25)
+
 PRESETS: dict[str, LearnPreset] = {
-    # bfloat16 where the CPU has it: 4800 + 4000 steps in about 2.3x the time of fp32's 1200 + 1000, which a
-    # CPU without it trains instead, in the demo's time budget there (the detector's steps end with the
-    # coordinate net's when both train at once on 2 cores)
-    "fast": LearnPreset("fast", detector_steps=4800, pose_steps=4000, precision="auto", fp32_step_share=0.25),
+    "fast": _FAST,
     # fast's networks and detector, six times its coordinate-net steps: the RGB-only pose reaches the
     # issue's AR 0.6 given true boxes on the 2-core CPU (about half an hour; fast: 0.53 in 4 min,
     # docs/BENCHMARKS.md). An accuracy preset, not a time budget: a CPU without bfloat16 trains every step
-    "long": LearnPreset("long", detector_steps=4800, pose_steps=24000, precision="auto", checkpoint_every=500),
+    "long": _FAST.with_overrides(name="long", pose_steps=6 * _FAST.pose_steps, checkpoint_every=500,
+                                 fp32_step_share=1.0),
     "paper": LearnPreset("paper", work_width=640, crop_source_width=640, crop_px=128, detector_steps=20000, detector_batch=32,
                          detector_width=32, pose_steps=40000, pose_batch=64, pose_width=32, checkpoint_every=1000),
     # the miniature runs of the tests: a few hundred steps
