@@ -112,7 +112,8 @@ def _learned(name: str, active: bool, use_depth: bool) -> Callable[[Any, AgentSe
 
         if setup.learned_model is None:
             raise BraveError(f"agent {name!r} needs a trained model: give its folder (brave6d learn train ... --out "
-                             "MODEL_DIR) as AgentSetup(learned_model=MODEL_DIR) or --learned-model MODEL_DIR")
+                             "MODEL_DIR) as AgentSetup(learned_model=MODEL_DIR), or to the benchmark script as "
+                             "python benchmarks/baselines.py --learned-model MODEL_DIR")
         return LearnedAgent(client, _estimator(Path(setup.learned_model).resolve(), setup.device), name, active,
                             use_depth)
 
