@@ -129,3 +129,56 @@ def test_held_out_recall_counts_the_detections_the_agents_use() -> None:
     from brave6d.evaluation.learned import DETECTION_THRESHOLD
 
     assert LearnedAgentOptions().min_score == DETECTION_THRESHOLD
+
+
+class _RecordingClient(BraveClient):
+    """The real client, keeping each pose the agent asked for and whether the server took it."""
+
+    def __init__(self, url: str) -> None:
+        super().__init__(url)
+        self.moves: list[tuple[np.ndarray, bool]] = []
+
+    def set_pose(self, world_T_cam, episode_id=None):  # type: ignore[no-untyped-def]
+        step = super().set_pose(world_T_cam, episode_id)
+        self.moves.append((np.asarray(world_T_cam, dtype=np.float64), step.accepted))
+        return step
+
+
+def test_an_active_agent_whose_moves_are_refused_still_submits_at_the_start_view(bundle, tmp_path: Path) -> None:
+    # a detector that sees the target everywhere as a tiny box: the agent comes closer, then wants to look
+    # from the sides. Replayed with the workspace shrunk around the start view and that first move (and a
+    # collision box at each other pose it then took) until the server refuses everything else, the agent
+    # must still fly back to the start view and submit there; before, it stayed where its refused moves
+    # left it
+    from dataclasses import replace
+
+    from brave6d.serve.geometry import OrientedBox, Workspace
+
+    ids = sorted(o.obj_id for o in bundle.objects)
+    model = _model_dir(tmp_path, ids, "tiny_boxes", (6.0, 8.0))
+    world, first_move = bundle.world, None
+    for replay in range(6):
+        app = create_app(replace(bundle, world=world), device="cpu", log_dir=tmp_path / f"episodes_{replay}",
+                         warm_up=False)
+        with ServerThread(app) as server, _RecordingClient(server.url) as client:
+            agent = make_agent(LEARNED_ACTIVE_AGENT, client, AgentSetup(learned_model=model))
+            outcome = run_episode(client, agent, bundle.objects[0].gt_id, seed=3, width=160, height=120)
+        _check_finite(outcome)
+        start = agent.views[0]["obs"].world_T_cam
+        taken = [pose for pose, ok in client.moves if ok]
+        if first_move is None:
+            assert taken and not np.allclose(taken[0], start), "the agent never left the start view"
+            first_move = taken[0]
+            corners = np.stack([start[:3, 3], first_move[:3, 3]])
+            world = replace(world, workspace=Workspace(tuple(corners.min(axis=0) - 0.01), tuple(corners.max(axis=0) + 0.01)))
+            continue
+        others = [p for p in taken if not (np.allclose(p, start) or np.allclose(p, first_move))]
+        if not others:
+            break
+        world = replace(world, boxes=world.boxes + tuple(
+            OrientedBox(f"blocked_{replay}_{i}", p, (1e-3, 1e-3, 1e-3)) for i, p in enumerate(others)))
+    else:
+        pytest.fail("the server never refused every pose but two")
+    assert np.allclose(taken[0], first_move) and outcome.refused >= 2  # it came closer, then was refused ...
+    assert np.allclose(taken[-1], start)  # ... and flew back to the start view and submitted there
+    assert outcome.notes["refused_poses"] == outcome.refused and outcome.adjustments == len(taken)

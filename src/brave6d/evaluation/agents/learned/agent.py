@@ -9,7 +9,9 @@ the nearest capture ring or 3 diameters; with no detection, along its optical ax
 starts looking at the target) to a fraction of the assumed distance. Then it flies back to the
 start view (one more adjustment) and submits there the estimate of the view that saw the target
 best, moved into the start view's frame: the nearer view's accuracy, scored where the object
-covers the fewer pixels MSPD counts in (as the weight-free active baseline does). With
+covers the fewer pixels MSPD counts in (as the weight-free active baseline does). A move whose
+every candidate pose the server refuses is given up and the plan goes on, so a refused approach or
+orbit still ends at the start view (a refused way back: at the best view). With
 ``fuse_views`` it uses all the views that estimated the target, as one view cannot: RGB-only, the
 object's position triangulated from the views' rays (parallax fixes the distance a single view
 only guesses from the object's size); with depth, ICP onto the depth points of every view whose
@@ -77,6 +79,7 @@ class LearnedAgent:
         self._orbit: list[Array] = []
         self._next: Array | None = None
         self._candidates: list[Array] = []
+        self._returned_to_best = False
 
     @property
     def bundle_info(self) -> dict[str, Any]:
@@ -92,7 +95,7 @@ class LearnedAgent:
             self._give_surface()  # RGB-only too: the distance from the mask's area needs the mesh
         elif not step.accepted:  # refused (a collision box): the next candidate pose, if any is left
             self.refused += 1
-            self._next = self._candidates.pop(0) if self._candidates else None
+            self._next = self._candidates.pop(0) if self._candidates else self._after_refusals()
             return
         self.current = self._look(step.observation)
         self.views.append(self.current)
@@ -212,6 +215,22 @@ class LearnedAgent:
                 self._candidates = []
                 return np.asarray(self.views[0]["obs"].world_T_cam, dtype=np.float64)
         return None
+
+    def _after_refusals(self) -> Array | None:
+        """Where to go once every candidate of a move was refused: give that move up and go on with
+        the plan (no more approach; the orbit's next look; back to the start view), so the episode
+        still ends at the start view; if the way back itself was refused, at the view that saw the
+        target best (None: already there)."""
+        if self._phase == "approach":
+            self._phase, self._orbit = "orbit", self._orbit_poses()
+        if self._phase != "return":
+            return self._plan()
+        best = self.views[max(range(len(self.views)), key=lambda i: self._rank(self.views[i]))]["obs"].world_T_cam
+        current = self.current["obs"].world_T_cam if self.current is not None else None
+        if current is None or np.allclose(best, current) or self._returned_to_best:
+            return None
+        self._returned_to_best = True
+        return np.asarray(best, dtype=np.float64)
 
     def _orbit_poses(self) -> list[Array]:
         """Looks at the target from ``orbit_deg`` azimuth offsets at the current distance (none when
