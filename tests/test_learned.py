@@ -424,3 +424,47 @@ def test_the_rgb_distance_benchmark_scores_both_distances_side_by_side(split: tu
     assert rows["pnp"]["true_box_rgb"]["ar"] != rows["mask-area"]["true_box_rgb"]["ar"]
     assert rows["mask-area"]["true_box_rgb"]["ar"] != rows["mask-area, 3 zooms"]["true_box_rgb"]["ar"]
     assert "| mask-area |" in capsys.readouterr().out
+
+
+def test_the_cards_detected_box_is_the_top_scoring_one_as_an_agent_takes_it(split: tuple[Path, Path],
+                                                                           trained: Path) -> None:
+    # each object is detected twice: first (score 0.9) a box beside the object, then (0.6) its true box.
+    # An agent takes the top-scoring box of the target's id; so must the card's "given detected boxes"
+    # (before, it took whichever detection overlapped the truth most: the true box here)
+    from brave6d.evaluation.learned.inference import Detection
+
+    data = load_training_data(split[0], split[1], PRESET.work_width, PRESET.heldout_every, show_progress=False)
+    images = data.split(False)[:4]
+    by_image = {data.images[i].rgb_crop.ctypes.data: data.images[i] for i in images}
+
+    class TwoBoxes(LearnedEstimator):
+        def __init__(self, model, device="cpu") -> None:  # type: ignore[no-untyped-def]
+            super().__init__(model, device)
+            self.detected_boxes: list[tuple[float, ...]] = []
+            self.true_boxes: set[tuple[float, ...]] = set()
+            self.beside: set[tuple[float, ...]] = set()
+
+        def detect(self, rgb, K, min_score=0.05, obj_id=None):  # type: ignore[no-untyped-def]
+            out = []
+            for k in by_image[rgb.ctypes.data].instances:
+                inst = data.instances[k]
+                x0, y0, x1, y1 = inst.box_crop
+                beside = (x1 + 2.0, y0, x1 + 2.0 + (x1 - x0), y1)
+                self.true_boxes.add(tuple(inst.box_crop))
+                self.beside.add(beside)
+                out += [Detection(inst.obj_id, beside, 0.9), Detection(inst.obj_id, tuple(inst.box_crop), 0.6)]
+            return sorted(out, key=lambda d: -d.score)
+
+        def refine_box(self, rgb, K, detection):  # type: ignore[no-untyped-def]
+            return detection
+
+        def estimate_both(self, rgb, K, obj_id, box, depth_m=None, score=1.0):  # type: ignore[no-untyped-def]
+            if score != 1.0:  # a detected box (true boxes are estimated with score 1)
+                self.detected_boxes.append(tuple(box))
+            return super().estimate_both(rgb, K, obj_id, box, depth_m, score)
+
+    estimator = TwoBoxes(read_model(trained))
+    scores = score_heldout(estimator, data, split[1], show_progress=False, images=images)
+    assert estimator.detected_boxes and set(estimator.detected_boxes) <= estimator.beside
+    assert not set(estimator.detected_boxes) & estimator.true_boxes
+    assert all(v == 1.0 for v in scores.recall.values() if v == v)  # the true boxes are still found (recall)

@@ -6,7 +6,8 @@
   refinement buys, beside what it costs per detection);
 - pose, per object and overall: BOP19 AR (the project's metrics, the split's own depth for VSD)
   given the true visible box and given the detected box, each RGB-only and refined with the
-  split's depth.
+  split's depth. The detected box is taken as an agent takes it: the top-scoring detection of the
+  object's id (at the agents' threshold), whether or not it is the one overlapping the truth.
 """
 
 from __future__ import annotations
@@ -143,8 +144,8 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
                                   max(inst.visib_fract, MIN_VISIB_FRACT), record.K_full, record.size_full,
                                   depth_full_mm))
         for gt_index, inst in enumerate(instances, start=first_gt):
-            confident = [d for d in detections if d.obj_id == inst.obj_id and d.score >= DETECTION_THRESHOLD]
-            matched = max(confident, key=lambda d: iou(d.box, inst.box_crop), default=None)
+            # the agents' way: the top-scoring detection of the object (they cannot tell which overlaps the truth)
+            matched = next((d for d in detections if d.obj_id == inst.obj_id and d.score >= DETECTION_THRESHOLD), None)
             boxes = {"true_box": (inst.box_crop, 1.0),
                      "detected": (matched.box, matched.score) if matched is not None else None}
             for kind in ("true_box", "detected"):
