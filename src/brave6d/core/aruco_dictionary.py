@@ -49,6 +49,12 @@ MAX_MARKERS = 1000
 _MAX_MARKERS_3_BITS = 120
 _CUSTOM_RE = re.compile(r"custom:(\d{1,9})x(\d{1,9})(?::(-?\d{1,10}))?")
 _MAX_FILE_BYTES = 4_000_000  # a 1000-marker 8-bit dictionary file is about 90 kB
+#: Most markers a dictionary file may hold (OpenCV's largest predefined dictionary, AprilTag 36h10, has 2320).
+MAX_FILE_MARKERS = 4096
+#: Largest marker side a dictionary file may have, in bits (OpenCV's predefined ones use 4-7).
+MAX_FILE_BITS = 16
+#: Files up to this size are cached with their bytes (the cache holds 16).
+_CACHED_BYTES = 1_000_000
 
 
 class CustomDictionary(NamedTuple):
@@ -126,72 +132,165 @@ def generate_custom(custom: CustomDictionary) -> cv2.aruco.Dictionary:
     return _from_bytes(data, custom.bits, max_correction)
 
 
-def _file_digest(path: Path) -> str:
-    """SHA-256 of a dictionary file (so an edited file is read again); ValueError naming it when
-    it cannot be one."""
+def _file_bytes(path: Path) -> bytes:
+    """The bytes of a dictionary file, read by :func:`brave6d.core.bounded_files.read_regular` (a
+    regular file of at most :data:`_MAX_FILE_BYTES`: a FIFO, ``/dev/zero`` or a huge file is refused
+    unread); ValueError naming it otherwise."""
+    from brave6d.core.bounded_files import UnreadableFile, read_regular
+
     try:
-        if path.stat().st_size > _MAX_FILE_BYTES:
-            raise ValueError(f"dictionary file {path}: over {_MAX_FILE_BYTES} bytes, too large for an ArUco dictionary")
-        return hashlib.sha256(path.read_bytes()).hexdigest()
-    except OSError as exc:
-        raise ValueError(f"dictionary file {path}: cannot be read ({exc.strerror or exc})") from None
+        return read_regular(path, _MAX_FILE_BYTES, what="an ArUco dictionary")
+    except UnreadableFile as exc:
+        raise ValueError(f"dictionary file {path}: cannot be read ({exc.problem})") from None
 
 
-def _node_int(fs: cv2.FileStorage, key: str, path: Path, low: int, high: int) -> int:
-    node = fs.getNode(key)
-    if node.empty() or not node.isInt():
+#: Entries a dictionary file may hold: its markers and a few fields besides.
+_MAX_ENTRIES = MAX_FILE_MARKERS + 16
+_KEY = r"[A-Za-z_][A-Za-z0-9_]{0,63}"
+_YAML_ENTRY = re.compile(rf"({_KEY})[ \t]*:[ \t]*(\"[^\"\n]*\"|'[^'\n]*'|[^\s\"'\[\]{{}},#&*!|>%@`][^\n#]*)?(?:#.*)?")
+_XML_ENTRY = re.compile(rf"\s*<({_KEY})>([^<]*)</\1>")
+_XML_SKIP = re.compile(r"\s*(?:<\?xml[^<>]*\?>|<!--(?:[^-]|-(?!->))*-->|<opencv_storage>|</opencv_storage>)")
+_INTEGER = re.compile(r"[+-]?\d{1,12}")
+
+
+def _not_flat(path: Path, why: str) -> ValueError:
+    return ValueError(f"dictionary file {path}: not an OpenCV YAML/JSON/XML dictionary file ({why}; write it with "
+                      "cv2.aruco.Dictionary.writeDictionary)")
+
+
+def _scalar(raw: str) -> int | str:
+    """A YAML / XML scalar as OpenCV reads it: quoted text is a string, a bare integer an int."""
+    raw = raw.strip()
+    if len(raw) >= 2 and raw[0] == raw[-1] and raw[0] in "\"'":
+        return raw[1:-1]
+    return int(raw) if _INTEGER.fullmatch(raw) else raw
+
+
+def _entries(data: bytes, path: Path) -> dict[str, int | str]:
+    """The flat ``key: value`` entries of an OpenCV dictionary file in any of its three formats.
+
+    Our own reader, so that OpenCV's parser never sees a file from elsewhere (a file nested 100,000
+    deep crashes it): every format is read in one linear pass, only a flat map of at most
+    :data:`_MAX_ENTRIES` integers and strings is accepted, and anything else (nesting, sequences,
+    anchors, a repeated key) is refused naming the line or the place."""
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise _not_flat(path, f"not UTF-8 text at byte {exc.start}") from None
+    head = text.lstrip()
+    if head.startswith("{"):
+        pairs = _json_entries(text, path)
+    elif head.startswith("<"):
+        pairs = _xml_entries(text, path)
+    else:
+        pairs = _yaml_entries(text, path)
+    out: dict[str, int | str] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _not_flat(path, f"'{key}' appears twice")
+        if len(out) >= _MAX_ENTRIES:
+            raise _not_flat(path, f"more than {_MAX_ENTRIES} entries")
+        out[key] = value
+    if not out:
+        raise _not_flat(path, "no entries")
+    return out
+
+
+def _json_entries(text: str, path: Path) -> list[tuple[str, int | str]]:
+    from brave6d.core.json_input import JsonInputError, JsonLimits, parse_json
+
+    try:
+        value = parse_json(text, f"dictionary file {path}", JsonLimits(max_bytes=_MAX_FILE_BYTES, max_depth=1))
+    except JsonInputError as exc:
+        raise ValueError(str(exc)) from None
+    if not isinstance(value, dict):
+        raise _not_flat(path, "its JSON is not an object")
+    pairs: list[tuple[str, int | str]] = []
+    for key, item in value.items():
+        if isinstance(item, bool) or not isinstance(item, int | str):
+            raise _not_flat(path, f"'{key[:40]}' is neither an integer nor a string")
+        pairs.append((key, item))
+    return pairs
+
+
+def _xml_entries(text: str, path: Path) -> list[tuple[str, int | str]]:
+    pairs: list[tuple[str, int | str]] = []
+    pos, end = 0, len(text.rstrip())
+    while pos < end:
+        skip = _XML_SKIP.match(text, pos)
+        if skip is not None and skip.end() > pos:
+            pos = skip.end()
+            continue
+        entry = _XML_ENTRY.match(text, pos)
+        if entry is None:
+            line = text.count("\n", 0, pos) + 1
+            raise _not_flat(path, f"line {line}: only <key>value</key> entries are read")
+        pairs.append((entry[1], _scalar(entry[2])))
+        if len(pairs) > _MAX_ENTRIES:
+            raise _not_flat(path, f"more than {_MAX_ENTRIES} entries")
+        pos = entry.end()
+    return pairs
+
+
+def _yaml_entries(text: str, path: Path) -> list[tuple[str, int | str]]:
+    pairs: list[tuple[str, int | str]] = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        bare = line.strip()
+        if not bare or bare.startswith("#") or (number == 1 and bare.startswith("%YAML")) or (
+                bare == "---" and not pairs):
+            continue
+        entry = _YAML_ENTRY.fullmatch(line)
+        if entry is None or entry[2] is None:
+            raise _not_flat(path, f"line {number}: only 'key: value' lines of integers and strings are read")
+        pairs.append((entry[1], _scalar(entry[2])))
+        if len(pairs) > _MAX_ENTRIES:
+            raise _not_flat(path, f"more than {_MAX_ENTRIES} entries")
+    return pairs
+
+
+def _entry_int(entries: dict[str, int | str], key: str, path: Path, low: int, high: int) -> int:
+    value = entries.get(key)
+    if not isinstance(value, int):
         raise ValueError(f"dictionary file {path}: no integer '{key}' (an OpenCV dictionary file has nmarkers, "
                          "markersize, maxCorrectionBits and marker_0 ...)")
-    value = int(node.real())
     if not low <= value <= high:
         raise ValueError(f"dictionary file {path}: {key} {value} is outside {low}..{high}")
     return value
 
 
-def _marker_bits(fs: cv2.FileStorage, i: int, bits: int, path: Path) -> np.ndarray:
-    node = fs.getNode(f"marker_{i}")
-    text = node.string() if not node.empty() and node.isString() else None
-    if text is None or len(text) != bits * bits or set(text) - {"0", "1"}:
+def _marker_bits(entries: dict[str, int | str], i: int, bits: int, path: Path) -> np.ndarray:
+    text = entries.get(f"marker_{i}")
+    if not isinstance(text, str) or len(text) != bits * bits or set(text) - {"0", "1"}:
         raise ValueError(f"dictionary file {path}: marker_{i} must be a string of {bits * bits} digits 0/1")
     return np.frombuffer(text.encode("ascii"), np.uint8).reshape(bits, bits) - ord("0")
 
 
 @functools.lru_cache(maxsize=16)
-def _read_file(path: Path, digest: str) -> tuple[bytes, int, int]:
-    """(bytesList bytes, markersize, maxCorrectionBits) of a dictionary file (``digest``: of its content)."""
-    try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_FORMAT_AUTO)
-    except (cv2.error, SystemError):  # OpenCV's parser raises either on text it cannot parse
-        fs = None
-    if fs is None or not fs.isOpened():
-        raise ValueError(f"dictionary file {path}: not an OpenCV YAML/JSON/XML file (write it with "
-                         "cv2.aruco.Dictionary.writeDictionary)")
-    try:
-        return _parse_file(fs, path)
-    except (cv2.error, SystemError) as exc:
-        raise ValueError(f"dictionary file {path}: unreadable ({str(exc).strip().splitlines()[-1][:120]})") from None
-    finally:
-        fs.release()
-
-
-def _parse_file(fs: cv2.FileStorage, path: Path) -> tuple[bytes, int, int]:
-    """What :func:`_read_file` returns, from an opened file; ValueError naming ``path``."""
-    bits = _node_int(fs, "markersize", path, 1, 32)
-    markers = _node_int(fs, "nmarkers", path, 1, 100_000)
-    has_correction = not fs.getNode("maxCorrectionBits").empty()
-    max_correction = _node_int(fs, "maxCorrectionBits", path, 0, bits * bits) if has_correction else 0
-    if not fs.getNode("dictEncoding").empty():
+def _parse_file(path: Path, digest: str, data: bytes) -> tuple[bytes, int, int]:
+    """(bytesList bytes, markersize, maxCorrectionBits) of a dictionary file's ``data`` (``digest``:
+    its SHA-256, the cache key with the path); ValueError naming ``path``. The markers are bits
+    we check and hand to OpenCV as arrays: OpenCV never parses the file."""
+    entries = _entries(data, path)
+    bits = _entry_int(entries, "markersize", path, 1, MAX_FILE_BITS)
+    markers = _entry_int(entries, "nmarkers", path, 1, MAX_FILE_MARKERS)
+    has_correction = "maxCorrectionBits" in entries
+    max_correction = _entry_int(entries, "maxCorrectionBits", path, 0, bits * bits) if has_correction else 0
+    if "dictEncoding" in entries:
         raise ValueError(f"dictionary file {path}: dictEncoding (a cell-ratio dictionary) is not supported")
-    rows = [cv2.aruco.Dictionary.getByteListFromBits(_marker_bits(fs, i, bits, path)) for i in range(markers)]
+    rows = [cv2.aruco.Dictionary.getByteListFromBits(_marker_bits(entries, i, bits, path)) for i in range(markers)]
     return np.ascontiguousarray(np.concatenate(rows)).tobytes(), bits, max_correction
 
 
 def read_dictionary_file(path: Path | str) -> cv2.aruco.Dictionary:
     """The dictionary in an OpenCV dictionary file, as ``Dictionary.readDictionary`` reads it, but
-    with one-line errors naming the file; read once per file version."""
+    read by our own bounded reader (:func:`_entries`), with one-line errors naming the file; read
+    once per file version."""
     path = Path(path)
-    data, bits, max_correction = _read_file(path, _file_digest(path))
-    return _from_bytes(data, bits, max_correction)
+    data = _file_bytes(path)
+    key = hashlib.sha256(data).hexdigest()
+    cached = _parse_file.__wrapped__ if len(data) > _CACHED_BYTES else _parse_file
+    out, bits, max_correction = cached(path, key, data)
+    return _from_bytes(out, bits, max_correction)
 
 
 def write_dictionary_file(dictionary: cv2.aruco.Dictionary, path: Path | str) -> Path:

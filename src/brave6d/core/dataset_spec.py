@@ -15,7 +15,8 @@ the learned model's ``learn``, ``learn_preset`` and ``learn_images``).
 Every name here becomes a path part (``WORKDIR/objects/<object>/``, ``scenes/<scene>/``, the
 release's ``<name>_...zip``, the serve cache's ``<name>-<version>-...``), so each follows the one
 rule of :mod:`brave6d.core.names`. Every file ``dataset.yaml`` names (meshes, with the files that travel
-with them, and scene specs, with their meshes) must lie inside its folder, symlinks resolved:
+with them, and scene specs, with every file they name: meshes, a board's ``dictionary_file``;
+:func:`brave6d.core.spec.named_files`) must lie inside its folder, symlinks resolved, before any is read:
 ``dataset run`` copies them into the work directory and on into releases, so a shared
 ``dataset.yaml`` must not be able to name a file elsewhere (``/etc/passwd``). Only the user widens
 that, with ``mesh_dirs`` (``--mesh-dir DIR``); no field of the file itself can. A captured scene
@@ -43,7 +44,8 @@ from brave6d.core.atomic import file_sha256
 from brave6d.core.errors import SpecError, validation_error_field
 from brave6d.core.layout import SceneDir, mesh_files
 from brave6d.core.names import FolderName
-from brave6d.core.spec import Category, ObjectSpec, PositiveFloat, SceneSpec, SymmetrySpec, mesh_fields, parse_scene_spec
+from brave6d.core.spec import (Category, ObjectSpec, PositiveFloat, SceneSpec, SymmetrySpec, check_named_files,
+                               named_files, parse_scene_spec)
 from brave6d.core.yaml_io import read_yaml
 
 #: The object fields the library gives (everything of a scene object but its pose).
@@ -270,10 +272,11 @@ def merge_scene_spec(dataset: DatasetSpec, scene_file: Path, mesh_dirs: Sequence
             merged_items.append({**lib, **item})
             given.append(set(item) & set(LIBRARY_FIELDS))
         data = {**data, "objects": merged_items}
-    scene = parse_scene_spec(data, scene_file, check_files=False)
+    scene = parse_scene_spec(data, scene_file, check_files=False)  # nothing it names is opened yet
     allowed = _allowed_folders(dataset, mesh_dirs) + ((own_folder,) if own_folder is not None else ())
-    for field, mesh in mesh_fields(scene):
-        _check_mesh(mesh, allowed, f"{scene_file}: field '{field}'")
+    for field, named in named_files(scene):  # every file it names, before any is read
+        _check_mesh(named, allowed, f"{scene_file}: field '{field}'", sidecars=field.endswith(".mesh"))
+    check_named_files(scene, scene_file)
     for i, (obj, fields) in enumerate(zip(scene.objects, given)):
         for name in sorted(fields):
             _check_same(dataset, library[obj.name], scene, obj, name, f"{scene_file}: field 'objects[{i}].{name}'")
@@ -308,13 +311,14 @@ def _confine(path: Path, allowed: tuple[Path, ...], where: str, travels_with: Pa
                     f"only files inside its folder: move it there, or allow its folder with {flag} DIR")
 
 
-def _check_mesh(path: Path, allowed: tuple[Path, ...], where: str) -> None:
-    """The mesh and the files that travel with it (:func:`brave6d.core.layout.mesh_files`) lie inside ``allowed``."""
+def _check_mesh(path: Path, allowed: tuple[Path, ...], where: str, sidecars: bool = True) -> None:
+    """The file a field names (a mesh, the board's dictionary file) and, for a mesh (``sidecars``),
+    the files that travel with it (:func:`brave6d.core.layout.mesh_files`) lie inside ``allowed``."""
     _confine(path, allowed, where)
     if not path.is_file():
         raise SpecError(f"{where}: file not found: {path}")
     real = path.resolve()
-    for sibling in mesh_files(real):
+    for sibling in mesh_files(real) if sidecars else ():
         _confine(sibling, allowed, where, travels_with=real)
 
 

@@ -5,8 +5,9 @@
 Every document is held to :class:`JsonLimits` before and while it is parsed:
 
 - its size in bytes (checked before it is read into memory, for a file from its length);
-- how deeply arrays and objects nest (checked on the raw text, before parsing: a cheap scan of the
-  brackets outside strings);
+- how deeply arrays and objects nest (checked on the raw text, before parsing: one linear scan of
+  the brackets outside strings, :func:`json_depth`; its time grows with the length of the text and
+  nothing else, whatever the text holds);
 - every number's literal length (CPython refuses to convert an integer of more than 4300 digits
   with a ``ValueError`` that is no ``JSONDecodeError``, and a 100,000-digit float takes long to
   convert) and, by default, that it is finite (``NaN``, ``Infinity`` and ``1e999`` are refused: they
@@ -29,8 +30,8 @@ from typing import Any
 
 from brave6d.core.errors import DataError
 
-#: A JSON string literal (escapes included): removed before the brackets are counted.
-_STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"', re.DOTALL)
+#: Bytes of raw text the depth scan takes at a time (its memory: a few arrays of this many entries).
+_SCAN_CHUNK = 1 << 20
 
 
 #: A key shown as ``.key`` in a field's name (others as ``['key']``).
@@ -159,21 +160,12 @@ def _first_refused(value: Any, field: str = "") -> tuple[str, str]:
 
 def read_json_file(path: Path | str, limits: JsonLimits = DEFAULT_LIMITS) -> Any:
     """Read and parse the JSON file ``path`` (:func:`parse_json`); a missing, unreadable, too large
-    or malformed file raises :class:`JsonInputError` naming it."""
+    or malformed file, or one that is no regular file (a FIFO, a device), raises
+    :class:`JsonInputError` naming it."""
+    from brave6d.core.bounded_files import read_regular
+
     p = Path(path)
-    try:
-        with open(p, "rb") as handle:
-            size = handle.seek(0, 2)
-            if size > limits.max_bytes:
-                raise JsonInputError(f"{p}: {size} bytes of JSON (at most {limits.max_bytes} are read)")
-            handle.seek(0)
-            data = handle.read(limits.max_bytes + 1)
-    except FileNotFoundError:
-        raise JsonInputError(f"{p}: file not found") from None
-    except IsADirectoryError:
-        raise JsonInputError(f"{p}: a folder, not a JSON file") from None
-    except OSError as exc:
-        raise JsonInputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    data = read_regular(p, limits.max_bytes, what="JSON", error=JsonInputError)
     return parse_json(data, str(p), limits)
 
 
@@ -181,15 +173,47 @@ def _check_depth(raw: bytes, where: str, max_depth: int) -> None:
     """Refuse ``raw`` when its arrays / objects nest more than ``max_depth`` deep (outside strings)."""
     if raw.count(b"[") + raw.count(b"{") <= max_depth:
         return
-    import numpy as np
-
-    bare = np.frombuffer(_STRING.sub(b'""', raw), dtype=np.uint8)
-    opens = (bare == ord("[")) | (bare == ord("{"))
-    at = np.flatnonzero(opens | (bare == ord("]")) | (bare == ord("}")))
-    if len(at) == 0:
-        return
-    depth = np.cumsum(np.where(opens[at], 1, -1), dtype=np.int64)
-    deepest = int(depth.max())
+    deepest = json_depth(raw)
     if deepest > max_depth:
         raise JsonInputError(f"{where}: JSON nested too deeply ({deepest} levels of arrays and objects, at most "
                              f"{max_depth} are read)")
+
+
+def json_depth(raw: bytes) -> int:
+    """How deeply the arrays and objects of the JSON text ``raw`` nest, brackets inside strings not
+    counted: one pass over the text, in pieces of :data:`_SCAN_CHUNK` bytes, vectorised (no regular
+    expression, which backtracks on an unterminated string: quadratic time).
+
+    A quote ends a string unless an odd run of backslashes comes just before it. In text that is
+    not JSON (a backslash outside a string) the count may differ from a parser's, but only after
+    the point where the parser stops with a syntax error, so no parser nests deeper than this."""
+    import numpy as np
+
+    depth = deepest = 0
+    in_string = False
+    backslashes = 0  # the run of backslashes that ended the previous piece
+    for start in range(0, len(raw), _SCAN_CHUNK):
+        b = np.frombuffer(raw, dtype=np.uint8, count=min(_SCAN_CHUNK, len(raw) - start), offset=start)
+        n = len(b)
+        at = np.arange(n, dtype=np.int64)
+        other = b != ord("\\")
+        last_other = np.maximum.accumulate(np.where(other, at, -1))  # the last non-backslash at or before i
+        quotes = np.flatnonzero(b == ord('"'))
+        if len(quotes):
+            before = np.where(quotes > 0, last_other[np.maximum(quotes - 1, 0)], -1)
+            run = quotes - 1 - before + np.where(before < 0, backslashes, 0)  # backslashes just before each quote
+            quotes = quotes[run % 2 == 0]
+        toggles = np.zeros(n, dtype=np.int64)
+        toggles[quotes] = 1
+        inside = (np.cumsum(toggles) + in_string) % 2 == 1  # at a bracket: inside a string
+        opens = ((b == ord("[")) | (b == ord("{"))) & ~inside
+        closes = ((b == ord("]")) | (b == ord("}"))) & ~inside
+        steps = np.flatnonzero(opens | closes)
+        if len(steps):
+            levels = depth + np.cumsum(np.where(opens[steps], 1, -1), dtype=np.int64)
+            deepest = max(deepest, int(levels.max()))
+            depth = int(levels[-1])
+        in_string = bool((in_string + len(quotes)) % 2)
+        tail = n - 1 - int(last_other[-1])
+        backslashes = tail + backslashes if tail == n else tail
+    return deepest

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from brave6d.core.bounded_files import open_regular
 from brave6d.core.errors import DataError
 
 #: Largest array read by default (a pose file of a million 4x4 float64 poses is 128 MB).
@@ -29,7 +30,7 @@ def npy_header(path: Path | str, max_bytes: int = MAX_NPY_BYTES) -> tuple[tuple[
     p = Path(path)
     fmt = np.lib.format
     try:
-        with open(p, "rb") as handle:
+        with open_regular(p) as handle:  # a FIFO or a device is refused, never waited on
             length = handle.seek(0, 2)
             handle.seek(0)
             version = fmt.read_magic(handle)
@@ -40,8 +41,6 @@ def npy_header(path: Path | str, max_bytes: int = MAX_NPY_BYTES) -> tuple[tuple[
             else:
                 raise DataError(f"{p}: NumPy file format version {version[0]}.{version[1]} is not read (1.0 and 2.0 are)")
             data = length - handle.tell()
-    except FileNotFoundError:
-        raise DataError(f"{p}: file not found") from None
     except OSError as exc:
         raise DataError(f"{p}: cannot read ({exc.strerror or exc})") from None
     except (ValueError, SyntaxError, TypeError) as exc:  # a header that is not NumPy's

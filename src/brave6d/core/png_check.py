@@ -31,6 +31,8 @@ import struct
 import zlib
 from pathlib import Path
 
+from brave6d.core.bounded_files import UnreadableFile, open_regular
+
 CHECKS = ("header", "crc", "decode")
 DEFAULT_CHECK = "crc"
 
@@ -58,12 +60,12 @@ def image_header_problem(source: bytes | Path, max_pixels: int = MAX_PIXELS) -> 
     first (its error is no ``OSError``)."""
     try:
         if isinstance(source, Path):
-            with open(source, "rb") as handle:
+            with open_regular(source) as handle:  # a FIFO or a device is refused, never waited on
                 head = handle.read(_HEAD)
         else:
             head = bytes(source[:_HEAD])
-    except FileNotFoundError:
-        return "missing"
+    except UnreadableFile as exc:
+        return "missing" if exc.problem == "file not found" else exc.problem
     except OSError as exc:
         return f"cannot read ({exc.strerror or exc})"
     if head.startswith(SIGNATURE):  # the IHDR alone (the file's end is the decoder's business)
@@ -83,7 +85,7 @@ def check_image_header(path: Path | str, max_pixels: int = MAX_PIXELS) -> tuple[
     problem = image_header_problem(p, max_pixels)
     if problem is not None:
         raise DataError(f"{p}: {'image not found' if problem == 'missing' else problem}")
-    with open(p, "rb") as handle:
+    with open_regular(p) as handle:
         head = handle.read(24)
     if head.startswith(SIGNATURE):
         return png_size(head)
@@ -142,10 +144,14 @@ def png_problem(source: bytes | Path, kind: str, size: tuple[int, int] | None = 
         if isinstance(source, Path) and check == "header":
             head, tail, length = _ends(source)
         else:
-            data = source.read_bytes() if isinstance(source, Path) else bytes(source)
+            if isinstance(source, Path):
+                with open_regular(source) as handle:
+                    data = handle.read()
+            else:
+                data = bytes(source)
             head, tail, length = data[:_HEAD], data[-len(IEND):], len(data)
-    except FileNotFoundError:
-        return "missing"
+    except UnreadableFile as exc:
+        return "missing" if exc.problem == "file not found" else exc.problem
     except OSError as exc:
         return f"cannot read ({exc.strerror or exc})"
     problem = _header_problem(head, tail, length, kind, size)
@@ -158,7 +164,7 @@ def png_problem(source: bytes | Path, kind: str, size: tuple[int, int] | None = 
 
 def _ends(path: Path) -> tuple[bytes, bytes, int]:
     """The first ``_HEAD`` bytes, the last ``len(IEND)`` bytes and the length of ``path``."""
-    with open(path, "rb") as handle:
+    with open_regular(path) as handle:
         head = handle.read(_HEAD)
         length = handle.seek(0, 2)
         handle.seek(max(length - len(IEND), 0))

@@ -20,6 +20,7 @@ from pydantic import (
     Field,
     SerializerFunctionWrapHandler,
     ValidationError,
+    ValidationInfo,
     field_validator,
     model_serializer,
     model_validator,
@@ -162,7 +163,7 @@ class ObjectSpec(MeshSpec):
 class RobotSpec(_Strict):
     """The arm. Speeds/accelerations are what moveL/moveJ receive."""
 
-    model: Literal["ur3e", "ur5e", "ur10e"] = "ur5e"
+    model: Literal["ur3e", "ur5e", "ur10e", "ur16e"] = "ur5e"
     linear_speed: Annotated[float, Field(gt=0, le=1.0)] = 0.25
     linear_acceleration: Annotated[float, Field(gt=0, le=5.0)] = 1.2
     joint_speed: Annotated[float, Field(gt=0, le=3.2)] = 1.05
@@ -210,6 +211,12 @@ class CameraSpec(_Strict):
         return PinholeCamera(self.width, self.height, self.fx, self.fy, cx, cy, tuple(self.dist))
 
 
+#: The validation context key that leaves every file a spec names unopened (its meshes, the board's
+#: dictionary file): a caller that must first check where they lie (a dataset,
+#: :func:`brave6d.core.dataset_spec.merge_scene_spec`) then calls :func:`check_named_files`.
+FILES_LATER = "files_later"
+
+
 class BoardSpec(_Strict):
     """A ChArUco board; ``pose`` is where it lies in the world (``world_T_board``)."""
 
@@ -226,21 +233,29 @@ class BoardSpec(_Strict):
     pose: Pose = Pose()
 
     @model_validator(mode="after")
-    def _check(self) -> BoardSpec:
+    def _check(self, info: ValidationInfo) -> BoardSpec:
         if self.marker_length_m >= self.square_length_m:
             raise ValueError("marker_length_m must be smaller than square_length_m")
         # local: keeps spec loading light for the CLI's --help (the module loads OpenCV)
-        from brave6d.core.aruco_dictionary import aruco_dictionary, check_dictionary
+        from brave6d.core.aruco_dictionary import check_dictionary
 
         if self.dictionary_file is not None and "dictionary" in self.model_fields_set:
             raise ValueError("give dictionary or dictionary_file, not both")
         check_dictionary(self.dictionary)
+        if not (info.context or {}).get(FILES_LATER):
+            self.check_markers()
+        return self
+
+    def check_markers(self) -> None:
+        """ValueError unless the dictionary (its file read now, when it has one) holds a marker for
+        every white square of the board."""
+        from brave6d.core.aruco_dictionary import aruco_dictionary
+
         needed = self.squares_x * self.squares_y // 2
         have = int(aruco_dictionary(self.dictionary, self.dictionary_file).bytesList.shape[0])
         if have < needed:
             raise ValueError(f"a {self.squares_x} x {self.squares_y} ChArUco board has {needed} markers, "
                              f"its dictionary ({self.dictionary_label}) only {have}")
-        return self
 
     @model_serializer(mode="wrap")
     def _omit_no_file(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
@@ -401,12 +416,15 @@ class SceneSpec(_Strict):
 
 # ----------------------------------------------------------------------------- loading
 def parse_scene_spec(data: Any, source: Path | str = "<memory>", check_files: bool = True) -> SceneSpec:
-    """Validate a parsed YAML mapping into a :class:`SceneSpec` (errors name ``source`` and the field)."""
+    """Validate a parsed YAML mapping into a :class:`SceneSpec` (errors name ``source`` and the field).
+    ``check_files=False``: no file the spec names is opened (the meshes' presence, the board's
+    dictionary file) until :func:`check_named_files`."""
     src = Path(source)
     if not isinstance(data, dict):
         raise SpecError(f"{src}: the spec must be a YAML mapping at the top level, got {type(data).__name__}")
     try:
-        spec = SceneSpec.model_validate({**data, "source": None if str(source) == "<memory>" else src.resolve()})
+        spec = SceneSpec.model_validate({**data, "source": None if str(source) == "<memory>" else src.resolve()},
+                                        context=None if check_files else {FILES_LATER: True})
     except ValidationError as exc:
         field_path, msg = validation_error_field(exc.errors(include_url=False))
         field_path = field_path or "<root>"
@@ -422,6 +440,25 @@ def mesh_fields(spec: SceneSpec) -> list[tuple[str, Path]]:
     return [(f"{label}[{i}].mesh", spec.resolve(item.mesh))
             for label, items in (("static_meshes", spec.static_meshes), ("objects", spec.objects))
             for i, item in enumerate(items)]
+
+
+def named_files(spec: SceneSpec) -> list[tuple[str, Path]]:
+    """Every file the spec names, ``(field, path)``: its meshes (:func:`mesh_fields`) and the
+    board's dictionary file (``board.dictionary_file``, already absolute)."""
+    named = mesh_fields(spec)
+    if spec.board.dictionary_file is not None:
+        named.append(("board.dictionary_file", spec.board.dictionary_file))
+    return named
+
+
+def check_named_files(spec: SceneSpec, src: Path | str) -> SceneSpec:
+    """What :func:`parse_scene_spec` with ``check_files=False`` left unopened, opened now: the board's
+    dictionary file is read and must hold the board's markers (SpecError naming ``src`` and the field)."""
+    try:
+        spec.board.check_markers()
+    except ValueError as exc:
+        raise SpecError(f"{src}: field 'board': {exc}") from None
+    return spec
 
 
 def _check_mesh_files(spec: SceneSpec, src: Path) -> None:

@@ -23,6 +23,8 @@ from brave6d.core.json_input import DEFAULT_LIMITS
 
 #: Deepest nesting accepted (scene specs and 3D-DAT files use fewer than ten levels).
 MAX_DEPTH = 100
+#: Largest YAML file read (a scene spec or a dataset.yaml is a few kB; 3D-DAT's files a few MB).
+MAX_YAML_BYTES = 64 * 2**20
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 
 
@@ -102,16 +104,16 @@ def read_yaml(path: Path | str, shown: str | None = None,
     """Read a UTF-8 YAML file strictly; any problem raises ``error`` with one line naming the file.
 
     ``shown`` is how the file is named in messages (default: the path as given). A missing file
-    is ``FILE: file not found``; bad YAML is ``FILE:LINE:COLUMN: invalid YAML: PROBLEM``.
+    is ``FILE: file not found``; bad YAML is ``FILE:LINE:COLUMN: invalid YAML: PROBLEM``; a file
+    that is no regular file (a FIFO, a device) or holds over :data:`MAX_YAML_BYTES` is refused unread.
     """
+    from brave6d.core.bounded_files import read_regular
+
     p = Path(path)
     name = str(p) if shown is None else shown
+    data = read_regular(p, MAX_YAML_BYTES, name, "YAML", error)
     try:
-        return parse_yaml(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise error(f"{name}: file not found") from None
-    except OSError as exc:
-        raise error(f"{name}: cannot read ({exc.strerror})") from None
+        return parse_yaml(data.decode("utf-8"))
     except yaml.YAMLError as exc:
         where, problem = yaml_problem(exc)
         raise error(f"{name}{where}: invalid YAML: {problem}") from None

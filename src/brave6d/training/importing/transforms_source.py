@@ -24,7 +24,8 @@ place) are taken with the intrinsics scaled to them, and ``details["images_downs
 A frame whose image file is missing is reported in ``missing`` (by its ``file_path``), not an error.
 Every path the file names (``file_path``, ``ply_file_path``) must lie inside the file's folder
 (:func:`brave6d.core.names.contained_path`: no absolute path, no ``..``, no symbolic link); the
-points file's header is checked before it is read (:func:`brave6d.core.ply_check.check_ply_header`).
+points file's header is checked before it is read and only its vertex rows are read, in one pass
+(:func:`brave6d.core.ply_check.read_ply_vertices`).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from numpy.typing import NDArray
 from brave6d.core.atomic import read_json
 from brave6d.core.errors import DataError, NonRigidTransformError
 from brave6d.core.names import contained_path
-from brave6d.core.ply_check import check_ply_header
+from brave6d.core.ply_check import read_ply_vertices
 from brave6d.core.png_check import check_image_header
 from brave6d.core.transforms import nearest_rigid
 from brave6d.training.importing.source import ImportedCapture, SourceCamera, SourceFrame, downscale_factor
@@ -227,16 +228,11 @@ def _points(path: Path, data: dict[str, Any]) -> tuple[NDArray[np.float64], NDAr
     ply = contained_path(path.parent, name, f"{path}: field 'ply_file_path'")
     if not ply.is_file():
         raise DataError(f"{path}: field 'ply_file_path': {ply} not found")
-    check_ply_header(ply)  # the element counts against the file's size, before plyfile allocates anything
-    from plyfile import PlyData
-
-    try:
-        vertex = PlyData.read(str(ply))["vertex"]
-        xyz = np.stack([np.asarray(vertex[c], np.float64) for c in ("x", "y", "z")], axis=1)
-    except (KeyError, ValueError, OSError, IndexError) as exc:
-        raise DataError(f"{ply}: not a point cloud PLY with x, y, z ({type(exc).__name__}: {exc})") from None
-    names = vertex.data.dtype.names or ()
-    if all(c in names for c in ("red", "green", "blue")):
+    vertex = read_ply_vertices(ply)  # the header against the file, then the vertex rows alone, in one pass
+    if not all(c in vertex for c in ("x", "y", "z")):
+        raise DataError(f"{ply}: not a point cloud PLY with x, y, z (its vertices hold {', '.join(vertex) or 'nothing'})")
+    xyz = np.stack([np.asarray(vertex[c], np.float64) for c in ("x", "y", "z")], axis=1)
+    if all(c in vertex for c in ("red", "green", "blue")):
         rgb = np.stack([np.asarray(vertex[c]) for c in ("red", "green", "blue")], axis=1).clip(0, 255).astype(np.uint8)
     else:
         rgb = np.full((len(xyz), 3), 128, np.uint8)
