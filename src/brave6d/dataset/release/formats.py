@@ -27,6 +27,8 @@ from typing import Any
 
 from brave6d.annotation import BOP19_MIN_VISIB_FRACT
 from brave6d.core.atomic import atomic_write_text, read_json
+from brave6d.core.bounded_files import read_regular
+from brave6d.core.names import relative_path_problem
 from brave6d.dataset.release.source import ReleaseError
 
 FORMAT = "brave6d-release/1"
@@ -43,6 +45,8 @@ SCENE_JSONS = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json")
 #: BOP19 targets: instances with at least this visible fraction (the BOP format's owner defines it).
 MIN_VISIB_FRACT = BOP19_MIN_VISIB_FRACT
 _SUM_LINE = re.compile(r"^([0-9a-f]{64}) [ *](.+)$")
+#: Largest ``SHA256SUMS`` read (a line per file: a release of a million files is about 100 MB).
+MAX_SUMS_BYTES = 256 * 2**20
 
 
 def base_zip(name: str) -> str:
@@ -83,15 +87,18 @@ def read_sha256sums(path: Path) -> dict[str, str]:
     if not path.is_file():
         raise ReleaseError(f"{path}: not found; not a release folder (build one with 'brave6d release build')")
     out: dict[str, str] = {}
-    for n, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), start=1):
+    text = read_regular(path, MAX_SUMS_BYTES, what="checksums", error=ReleaseError)
+    for n, line in enumerate(text.decode("utf-8", errors="replace").splitlines(), start=1):
         if not line.strip():
             continue
         m = _SUM_LINE.match(line)
         if m is None:
             raise ReleaseError(f"{path}:{n}: not a sha256sum line ('<64 hex digits>  <file name>')")
         name = m.group(2)
-        if name.startswith("/") or ".." in Path(name).parts or name in out:
-            raise ReleaseError(f"{path}:{n}: file name {name!r} is outside the release or listed twice")
+        problem = relative_path_problem(name)  # the one rule of names inside a folder
+        if problem is not None or name in out:
+            raise ReleaseError(f"{path}:{n}: file name {name[:200]!r} is outside the release or listed twice"
+                               f"{f' ({problem})' if problem else ''}")
         out[name] = m.group(1)
     return out
 

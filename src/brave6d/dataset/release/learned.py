@@ -7,8 +7,9 @@ into ``<name>/`` it is a model folder the learned agents load). The manifest's `
 entry records the zip, the model's and the card's SHA-256, the preset, the objects and the
 train_pbr it was trained on (images, SHA-256). Build refuses a model whose card does not match it
 (the card's ``model_sha256``, objects outside the library); verify checks the model against the
-manifest and the card, and reads it (tensors only) to check its objects are the card's. Every
-error names the file.
+manifest and the card, the card's schema and its preset's bounds, and reads the model (tensors
+only) to check its objects and preset are the card's and its weights load into their networks on the
+CPU (:mod:`brave6d.dataset.release.learned_checks`). Every error names the file.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from typing import Any
 
 from brave6d.core.atomic import file_sha256
 from brave6d.core.errors import DataError
+from brave6d.dataset.release.learned_checks import check_card, check_weights
 from brave6d.dataset.release.source import ReleaseError
 from brave6d.dataset.release.zips import open_zip
 
@@ -51,6 +53,7 @@ def _read_card(path: Path, shown: str) -> dict[str, Any]:
         raise ReleaseError(str(exc).replace(str(path), shown)) from None
     if not isinstance(card.get("model_sha256"), str) or not isinstance(card.get("objects"), list):
         raise ReleaseError(f"{shown}: fields 'model_sha256' and 'objects' are required")
+    check_card(card, shown)  # every field's type and range, the preset's bounds
     return card
 
 
@@ -113,5 +116,8 @@ def check_learned_zip(path: Path, entry: Any, library: set[int], manifest_name: 
             raise ReleaseError(str(exc).replace(str(Path(tmp) / MODEL), shown_model)) from None
         if sorted(model.objects) != sorted(card["objects"]):
             raise ReleaseError(f"{shown_model}: holds objects {sorted(model.objects)}, its card says {card['objects']}")
+        if model.preset != card["preset"]:
+            raise ReleaseError(f"{shown_model}: its preset differs from its card's ({shown_card}, field 'preset')")
+        check_weights(model, shown_model)  # the networks built on the CPU, the weights loaded into them
         zf.check_unread()
     return str(card.get("preset", {}).get("name"))

@@ -28,8 +28,10 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from brave6d.annotation import read_models_info, read_ply_mesh, read_scene_camera, read_scene_gt, read_scene_gt_info
-from brave6d.core.atomic import file_sha256, read_json
+from brave6d.core.atomic import read_json
+from brave6d.core.bounded_files import open_regular
 from brave6d.core.errors import DataError
+from brave6d.core.names import contained_path
 from brave6d.core.progress import progress
 from brave6d.dataset.release.formats import (CAMERA, DATASET_INFO, HOLDOUT, MANIFEST, SUMS, TARGETS, TARGETS_HOLDOUT,
                                      base_zip, bundle_folder, bundle_zip, models_zip, read_holdout,
@@ -119,7 +121,12 @@ def _check_sums(base: Path) -> dict[str, str]:
     for name in sorted(set(sums) - present):
         raise ReleaseError(f"{base / name}: listed in {SUMS} but missing")
     for name in progress(sorted(sums), desc="checksums", unit="file"):
-        digest = file_sha256(base / name)
+        try:
+            path = contained_path(base, name, f"{base / SUMS}: file {name!r}")  # no link, inside the release
+        except DataError as exc:
+            raise ReleaseError(str(exc)) from None
+        with open_regular(path, error=ReleaseError) as handle:  # a FIFO or a device is refused, never read
+            digest = hashlib.file_digest(handle, "sha256").hexdigest()
         if digest != sums[name]:
             raise ReleaseError(f"{base / name}: sha256 {digest[:12]}... does not match {SUMS} "
                                f"({sums[name][:12]}...); the file was altered or truncated")
