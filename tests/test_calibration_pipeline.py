@@ -222,7 +222,8 @@ def test_too_few_detections_names_the_frames(calibrated: SceneDir, tmp_path: Pat
 @pytest.mark.parametrize("args, expected", [
     (("calibrate", "all", "{missing}"), "not a scene directory"),
     (("calibrate", "plan", "{scene}", "--views", "2"), "at least 3 views"),
-    (("calibrate", "plan", "{scene}", "--robot", "ur:10.0.0.9"), "both must be 'sim'"),
+    (("calibrate", "plan", "{scene}", "--robot", "ur:10.0.0.9"), "a simulated camera cannot film a real arm"),
+    (("calibrate", "plan", "{scene}", "--robot", "sim", "--camera", "oak"), "a real camera cannot see the simulated"),
     (("calibrate", "capture", "{scene}", "--resume", "--force"), "exclude each other"),
     (("calibrate", "intrinsics", "{scene}", "--distortion", "7"), "unknown model"),
 ])

@@ -11,31 +11,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from brave6d.core.atomic import read_json, read_png
 from brave6d.core.errors import DataError
-from brave6d.core.layout import SceneDir, init_scene_dir
 from brave6d.capture.backends import open_rig
 from brave6d.capture.cli import make_plan
 from brave6d.capture.protocols import RobotError
 from brave6d.capture.runner import CaptureExistsError, CaptureOptions, run_capture
 
-
-def _small_scene(tmp_path: Path, demo_spec_path: Path, views: int = 4) -> SceneDir:
-    """The demo scene with a small camera and few views, so that a capture takes seconds."""
-    data = yaml.safe_load(demo_spec_path.read_text())
-    data["camera"].update({"width": 160, "height": 100})
-    data["capture"].update({"distances_m": [0.3, 0.45], "views_per_distance": views})
-    spec = tmp_path / "spec" / "scene.yaml"
-    spec.parent.mkdir()
-    (spec.parent / "meshes").symlink_to(demo_spec_path.parent / "meshes")
-    spec.write_text(yaml.safe_dump(data))
-    return init_scene_dir(tmp_path / "scene", spec)
+from capture_helpers import small_scene
 
 
 def test_capture_writes_frames_and_refuses_overwrite(tmp_path: Path, demo_spec_path: Path) -> None:
-    scene = _small_scene(tmp_path, demo_spec_path)
+    scene = small_scene(tmp_path, demo_spec_path)
     plan = make_plan(scene)
     spec = scene.load_spec()
     with open_rig(spec) as rig:
@@ -59,7 +47,7 @@ def test_capture_writes_frames_and_refuses_overwrite(tmp_path: Path, demo_spec_p
 
 
 def test_robot_fault_stops_arm_and_keeps_frames(tmp_path: Path, demo_spec_path: Path) -> None:
-    scene = _small_scene(tmp_path, demo_spec_path)
+    scene = small_scene(tmp_path, demo_spec_path)
     plan = make_plan(scene)
     spec = scene.load_spec()
     with open_rig(spec) as rig:
@@ -87,7 +75,7 @@ def test_robot_fault_stops_arm_and_keeps_frames(tmp_path: Path, demo_spec_path: 
 
 
 def test_resume_refuses_other_camera(tmp_path: Path, demo_spec_path: Path) -> None:
-    scene = _small_scene(tmp_path, demo_spec_path)
+    scene = small_scene(tmp_path, demo_spec_path)
     plan = make_plan(scene)
     spec = scene.load_spec()
     with open_rig(spec) as rig:
@@ -99,7 +87,7 @@ def test_resume_refuses_other_camera(tmp_path: Path, demo_spec_path: Path) -> No
 
 @pytest.mark.slow
 def test_killed_capture_resumes_without_loss_or_duplicates(tmp_path: Path, demo_spec_path: Path) -> None:
-    scene = _small_scene(tmp_path, demo_spec_path, views=8)
+    scene = small_scene(tmp_path, demo_spec_path, views=8)
     plan = make_plan(scene)
     n = len(plan.views)
     cmd = [sys.executable, "-m", "brave6d.cli", "capture", "run", str(scene.root)]
@@ -131,7 +119,7 @@ def test_replanning_is_refused_while_frames_exist_and_force_keeps_a_plan_beside_
     """Frames are named by their index in the plan: a new plan under old frames could write over them."""
     from brave6d.cli import main
 
-    scene = _small_scene(tmp_path, demo_spec_path, views=2)
+    scene = small_scene(tmp_path, demo_spec_path, views=2)
     assert main(["capture", "run", str(scene.root)]) == 0
     plan_before = scene.capture.plan_path.read_bytes()
     frames_before = scene.capture.frames_path.read_bytes()

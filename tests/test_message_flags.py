@@ -24,7 +24,7 @@ from brave6d.cli import COMMANDS
 ROOT = Path(__file__).resolve().parents[1]
 FLAG = re.compile(r"(?<![\w-])--[a-z][a-z0-9-]*[a-z0-9]")
 #: ``brave6d COMMAND [SUB]`` in a message; ``benchmarks/NAME.py`` or ``scripts/NAME``.
-NAMED_COMMAND = re.compile(r"brave6d ([a-z0-9]+)(?: ([a-z][a-z0-9-]*))?")
+NAMED_COMMAND = re.compile(r"brave6d ([a-z0-9][a-z0-9-]*)(?: ([a-z][a-z0-9-]*))?")
 NAMED_SCRIPT = re.compile(r"((?:benchmarks|scripts)/[\w./-]+\.(?:py|sh))")
 #: Flags of other programs that messages tell the user to run (the program, then its flags).
 FOREIGN = {"rosmaster": {"--core"}, "pip": {"--no-cache-dir"}}

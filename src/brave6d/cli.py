@@ -33,6 +33,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("init", "brave6d.init_cli", "create a scene directory from a scene spec"),
     Command("calibrate", "brave6d.calibration.cli", "capture the ChArUco board, calibrate intrinsics and the hand-eye transform"),
     Command("capture", "brave6d.capture.cli", "plan capture views and capture them with a robot and a camera"),
+    Command("ur-emulator", "brave6d.capture.ur_emulator.cli", "emulate a UR controller on a loopback address for ur-rtde (rehearse calibrate/capture with --robot ur:ADDRESS --camera sim)", exits_fast=True),
     Command("import", "brave6d.training.import_cli", "import a capture made elsewhere (COLMAP model or nerfstudio / instant-ngp transforms.json) into a scene directory"),
     Command("annotate", "brave6d.annotation.cli", "import 3D-DAT object poses and export BOP ground truth"),
     Command("train", "brave6d.training.cli", "train a 3D Gaussian Splatting scene and evaluate it on held-out views"),

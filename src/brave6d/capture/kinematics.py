@@ -1,4 +1,4 @@
-"""UR3e/UR5e/UR10e kinematics: forward kinematics from the official DH parameters and the
+"""UR3e/UR5e/UR10e/UR16e kinematics: forward kinematics from the official DH parameters and the
 analytic (closed-form) inverse kinematics with all up-to-8 solutions.
 
 Conventions: standard DH, ``T_i = Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i)`` with
@@ -66,6 +66,7 @@ UR_DH: dict[str, DHParams] = {
     "ur3e": DHParams(0.15185, -0.24355, -0.2132, 0.13105, 0.08535, 0.0921),
     "ur5e": DHParams(0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996),
     "ur10e": DHParams(0.1807, -0.6127, -0.57155, 0.17415, 0.11985, 0.11655),
+    "ur16e": DHParams(0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655),
 }
 
 #: Default joint limits of every UR e-series joint: +-2 pi (rows: joints, columns: lo, hi).

@@ -3,7 +3,8 @@
 Each frame is written image-first, record-last: the RGB and depth PNGs are written atomically,
 then one line is appended to ``frames.jsonl``. The record is the commit point, so a crash at
 any moment leaves every finished frame intact and at most some orphan images, which the resumed
-run simply overwrites. On Ctrl-C, a crash or a robot fault the arm is stopped first.
+run simply overwrites. On Ctrl-C, a crash or a robot fault the arm is stopped first; a robot or
+camera fault ends in one error line saying how many frames are kept and that ``--resume`` continues.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import BraveError, DataError
 from brave6d.core.layout import CaptureLayout, FrameLog, FrameRecord
 from brave6d.core.progress import progress_bar
-from brave6d.capture.protocols import Camera, Frame, Robot
+from brave6d.capture.protocols import Camera, CameraError, Frame, Robot, RobotError
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +128,10 @@ def run_capture(
             frame_log.append(record)
             written += 1
             bar.update(1)
+    except (RobotError, CameraError) as exc:  # the rig faulted: one line that says what is kept
+        robot.stop()
+        raise type(exc)(f"{exc} (capture stopped: {len(kept) + written} of {len(views)} frames kept in "
+                        f"{layout.frames_path}; run it again with --resume to continue)") from None
     except BaseException as exc:
         robot.stop()
         log.error("capture stopped after %d new frames (%d kept in %s): %s", written,

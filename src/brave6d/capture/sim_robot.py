@@ -125,8 +125,9 @@ class _Segment:
         return trapezoid_fraction(t - self.t0, self.distance, self.v_max, self.a_max)
 
 
-def _interp_pose(T0: NDArray[np.float64], T1: NDArray[np.float64], s: float) -> NDArray[np.float64]:
-    """Straight line in translation, slerp in rotation."""
+def interpolate_pose(T0: NDArray[np.float64], T1: NDArray[np.float64], s: float) -> NDArray[np.float64]:
+    """The pose a fraction ``s`` of the way from ``T0`` to ``T1``: straight line in translation, slerp in
+    rotation (the simulated robot's and the UR emulator's linear moves and pose-error blending)."""
     if s <= 0.0:
         return T0.copy()
     if s >= 1.0:
@@ -238,7 +239,7 @@ class SimRobot:
         s_values = np.linspace(0.0, 1.0, n + 1)
         qs = [self._q.copy()]
         for s in s_values[1:]:
-            T = _interp_pose(T0, T1, float(s))
+            T = interpolate_pose(T0, T1, float(s))
             q = self.kin.ik_closest(T, qs[-1], max_step=math.radians(30.0))
             if q is None:
                 res = self.kin.ik(T, qs[-1])
@@ -353,9 +354,9 @@ class SimRobot:
         s = seg.fraction(t)
         if s >= 1.0:
             return seg.q1.copy(), seg.T1.copy(), seg.E1.copy()
-        E = seg.E0.copy() if np.array_equal(seg.E0, seg.E1) else _interp_pose(seg.E0, seg.E1, s)
+        E = seg.E0.copy() if np.array_equal(seg.E0, seg.E1) else interpolate_pose(seg.E0, seg.E1, s)
         if seg.linear:
-            T = _interp_pose(seg.T0, seg.T1, s)
+            T = interpolate_pose(seg.T0, seg.T1, s)
             assert seg.path_s is not None and seg.path_q is not None
             q = np.array([np.interp(s, seg.path_s, seg.path_q[:, j]) for j in range(6)])
         else:
