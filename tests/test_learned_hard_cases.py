@@ -261,31 +261,50 @@ def test_a_non_finite_loss_read_late_still_names_its_step_and_leaves_no_checkpoi
     assert saved["step"] == 4 and all(torch.isfinite(v).all() for v in saved["net"].values() if v.is_floating_point())
 
 
-def test_auto_precision_is_bf16_only_where_the_device_has_it_and_the_model_says_what_ran(
+def test_a_preset_trains_the_same_steps_whatever_the_precision_and_the_model_says_what_ran(
         monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
     import torch
 
     from brave6d.evaluation.learned import training
+    from brave6d.evaluation.learned.presets import PRESETS
 
-    cpu, auto = torch.device("cpu"), get_learn_preset("fast")
-    assert auto.precision == "auto" and (auto.detector_steps, auto.pose_steps) == (4800, 4000)
-    # fast is sized for a time budget: without bfloat16 it trains a quarter of the steps
-    for native, runs, steps in ((True, "bf16", (4800, 4000)), (False, "fp32", (1200, 1000))):
-        monkeypatch.setattr(training, "native_bf16", lambda device, native=native: native)
-        ran = training.resolve_precision(auto, cpu)
-        assert (ran.precision, ran.detector_steps, ran.pose_steps) == (runs, *steps)
-        # long is sized for accuracy: fast's networks, every one of its six times as many pose steps either way
-        long = training.resolve_precision(get_learn_preset("long"), cpu)
-        assert (long.precision, long.detector_steps, long.pose_steps) == (runs, 4800, 24000)
+    cpu = torch.device("cpu")
+    for name, preset in PRESETS.items():  # one preset, one schedule: precision changes the time only
+        for native in (True, False):
+            monkeypatch.setattr(training, "native_bf16", lambda device, native=native: native)
+            ran = training.resolve_precision(preset, cpu)
+            assert ran.precision == (preset.precision if preset.precision != "auto" else ("bf16" if native else "fp32"))
+            assert {k for k, v in ran.to_json().items() if preset.to_json()[k] != v} <= {"precision"}, name
+    auto = get_learn_preset("fast")
+    assert auto.precision == "auto"
     fast, long = auto.to_json(), get_learn_preset("long").to_json()  # the same networks, images and detector
-    assert {k for k in fast if fast[k] != long[k]} == {"name", "pose_steps", "checkpoint_every", "fp32_step_share"}
-    fp32 = training.resolve_precision(auto.with_overrides(precision="fp32"), cpu)  # asked for: all the steps
-    assert (fp32.precision, fp32.detector_steps) == ("fp32", 4800)
-    with pytest.raises(BraveError, match=r"fp32_step_share must be in \(0, 1\], got 1.5"):
-        auto.with_overrides(fp32_step_share=1.5)
+    assert {k for k in fast if fast[k] != long[k]} == {"name", "pose_steps", "checkpoint_every"}
     with caplog.at_level("WARNING"):  # asked for explicitly, bf16 runs (emulated), and says so
         assert training.resolve_precision(auto.with_overrides(precision="bf16"), cpu).precision == "bf16"
     assert "without native bfloat16" in caplog.text
+
+
+def test_a_process_capped_below_bfloat16_trains_as_a_cpu_without_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    # ATEN_CPU_CAPABILITY=avx2 / ONEDNN_MAX_CPU_ISA=AVX2 make a bfloat16 CPU run as an AVX2-only one: native_bf16
+    # must then say no, so such a process trains (and is timed) in fp32 as that CPU would
+    import torch
+
+    from brave6d.evaluation.learned import training
+
+    cpu = torch.device("cpu")
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: True)
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX512")
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+    monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
+    assert training.native_bf16(cpu)
+    for isa in ("AVX2", "avx512_core", "AVX2_VNNI"):
+        monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", isa)
+        assert not training.native_bf16(cpu), isa
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX512_CORE_BF16")
+    assert training.native_bf16(cpu)
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX2")
+    assert not training.native_bf16(cpu)
+    assert training.resolve_precision(get_learn_preset("fast"), cpu).precision == "fp32"
 
 
 def test_preset_overrides_from_the_command_line_keep_types_and_name_bad_fields() -> None:
@@ -304,3 +323,17 @@ def test_preset_overrides_from_the_command_line_keep_types_and_name_bad_fields()
         fast.with_overrides(**parse_overrides(fast, ["precision=fp16"]))
     with pytest.raises(BraveError, match="crop_source_width"):  # the preset's own checks still apply
         fast.with_overrides(**parse_overrides(fast, ["work_width=1280"]))
+
+
+def test_the_estimators_crop_follows_the_box_where_the_preset_says_and_older_models_keep_one_size() -> None:
+    preset = PRESET.with_overrides(crop_source_width=640, crop_px=128, crop_px_min=48)
+    following = LearnedEstimator(untrained_model(preset, [1]))
+    # a box of 40 px in a 320-wide image is 80 px at the crops' source width: its padded crop 120 px -> 128
+    assert following.crop_px(320, (100.0, 100.0, 140.0, 130.0)) == 128
+    assert following.crop_px(640, (100.0, 100.0, 120.0, 110.0)) == 48  # 30 px padded: the smallest crop
+    assert following.crop_px(640, (100.0, 100.0, 140.0, 120.0)) == 64  # 60 px padded: its own size, to 16
+    older = untrained_model(PRESET, [1])
+    older.preset.pop("crop_px_min")  # a model trained before crops followed their boxes
+    assert LearnedEstimator(older).crop_px(640, (0.0, 0.0, 300.0, 300.0)) == PRESET.crop_px
+    with pytest.raises(BraveError, match="crop_px_min"):
+        PRESET.with_overrides(crop_px_min=96, crop_px=64)

@@ -91,3 +91,46 @@ def test_coordinate_crops_carry_the_coordinates_inside_the_box() -> None:
         assert 20 <= mask.sum() <= 256  # the box fills about 1/1.5 of the crop's side, jittered
         np.testing.assert_allclose(batch["coords"][b][:, mask], 0.5, atol=1e-3)
         assert np.all(batch["coords"][b][:, ~mask] == 0.0)
+
+
+@given(side=st.one_of(st.floats(-1e9, 1e9), st.just(math.nan), st.just(math.inf)), smallest=st.sampled_from([32, 48, 64]),
+       extra=st.sampled_from([0, 16, 64]))
+def test_a_crop_follows_its_box_in_steps_of_16_within_its_sizes(side: float, smallest: int, extra: int) -> None:
+    from brave6d.evaluation.learned.crops import crop_size
+
+    largest = smallest + extra
+    px = crop_size(side, smallest, largest)
+    assert px % 16 == 0 and smallest <= px <= largest
+    if math.isfinite(side) and smallest <= side <= largest:
+        assert side <= px < side + 16  # the box's own pixels, rounded up to the net's grain
+    assert crop_size(side + 17, smallest, largest) >= px if math.isfinite(side) and abs(side) < 1e8 else True
+
+
+def test_box_following_crops_batch_one_size_with_as_many_pixels_and_every_instance_alike() -> None:
+    # three objects, near (a 100 px box), middling (50) and far (20): crops of 128 / 80 / 48 px at
+    # crop_px_min 48 .. crop_px 128; each batch one size, holding about the pixels of 8 crops of 48 px
+    near = _data((10.0, 10.0, 90.0, 110.0), size=(320, 240))
+    middle, far = _data((150.0, 20.0, 200.0, 60.0)), _data((250.0, 150.0, 270.0, 170.0))
+    data = TrainingData(Path("none"), near.images + [middle.images[0], far.images[0]],
+                        near.instances + [replace_image(middle.instances[0], 1), replace_image(far.instances[0], 2)],
+                        near.objects, "digest")
+    from brave6d.evaluation.learned.targets import pose_sizes
+
+    assert {s: k for s, k in pose_sizes(data, [0, 1, 2], 48, 128).items()} == {48: [2], 80: [1], 128: [0]}
+    rng = np.random.default_rng(0)
+    seen = {0: 0, 1: 0, 2: 0}
+    for _ in range(300):
+        batch = pose_batch(data, [0, 1, 2], rng, 8, 128, 48)
+        n, _, size, _ = batch["crops"].shape
+        assert size in (48, 80, 128) and batch["coords"].shape[-1] == size // 4
+        assert abs(n * size * size - 8 * 48 * 48) <= 0.25 * 8 * 48 * 48  # the pixels of a batch of 8 small crops
+        seen[{48: 2, 80: 1, 128: 0}[size]] += n
+    assert max(seen.values()) < 1.3 * min(seen.values())  # each instance about as often as the others
+    fixed = pose_batch(data, [0, 1, 2], np.random.default_rng(0), 8, 64)  # crop_px_min None: one size, as before
+    assert fixed["crops"].shape == (8, 3, 64, 64)
+
+
+def replace_image(inst: Instance, image: int) -> Instance:
+    from dataclasses import replace
+
+    return replace(inst, image=image)

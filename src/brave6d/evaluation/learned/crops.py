@@ -8,6 +8,8 @@ for ``cv2.warpAffine``; :func:`crop_to_image` maps crop pixels back for PnP.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -36,6 +38,22 @@ def box_crop(box: tuple[float, float, float, float], pad: float = CROP_PAD) -> t
     x0, y0, x1, y1 = box
     centre = ((x0 + x1) / 2.0 - 0.5, (y0 + y1) / 2.0 - 0.5)
     return centre, max(x1 - x0, y1 - y0, 1.0) * pad
+
+
+def crop_size(side: float, smallest: int, largest: int) -> int:
+    """Pixels of the crop of a box whose padded crop measures ``side`` source pixels: the side itself,
+    rounded up to a multiple of 16 (the coordinate net's input grain), within ``[smallest, largest]``.
+    A near object's crop keeps the detail it shows (what an active agent comes closer for), a far
+    one's is not blown up past its own pixels."""
+    if not (math.isfinite(side) and side > 0):
+        return int(smallest)
+    return int(min(max(16 * math.ceil(side / 16.0), smallest), largest))
+
+
+def crops_per_batch(batch: int, size: int, smallest: int) -> int:
+    """How many ``size``-pixel crops make a training batch of ``batch`` crops of the ``smallest`` size: as
+    many pixels (fewer, larger crops), so a step costs about the same whatever its crops' size."""
+    return max(1, round(batch * (smallest / size) ** 2))
 
 
 def warp_rgb(rgb: NDArray[np.uint8], centre: tuple[float, float], side: float, size: int) -> NDArray[np.uint8]:

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.core.errors import BraveError
-from brave6d.evaluation.learned.crops import box_crop, crop_to_image, iou, normalise, warp_rgb
+from brave6d.evaluation.learned.crops import box_crop, crop_size, crop_to_image, iou, normalise, warp_rgb
 from brave6d.evaluation.learned.data import resize_to_width
 from brave6d.evaluation.learned.model_file import LearnedModel, read_model
 from brave6d.evaluation.learned.networks import DETECTOR_STRIDE
@@ -284,9 +284,19 @@ class LearnedEstimator:
             raise LearnedRefused("unknown-object", f"learned estimator: object {obj_id} was not in the training "
                                                    f"split (the model knows {', '.join(map(str, self.obj_ids))})")
 
+    def crop_px(self, rgb_width: int, box: tuple[float, float, float, float]) -> int:
+        """Pixels of the coordinate net's crop of ``box`` (pixels of an image ``rgb_width`` wide): the
+        box's own size at the crops' source width, within the preset's ``crop_px_min`` .. ``crop_px``
+        (:func:`~brave6d.evaluation.learned.crops.crop_size`; a model without ``crop_px_min``: ``crop_px``)."""
+        largest = int(self.preset["crop_px"])
+        s = self.crop_source_width / max(int(rgb_width), 1)
+        return crop_size(box_crop(tuple(float(b) * s for b in box))[1],  # type: ignore[arg-type]
+                         int(self.preset.get("crop_px_min", largest)), largest)
+
     def _crop_outputs(self, rgb: NDArray[np.uint8], K: Array, obj_id: int,
-                      box: tuple[float, float, float, float]) -> _CropOutputs:
-        """The coordinate net on the crop around ``box`` (``rgb``'s pixels), at the crops' source width."""
+                      box: tuple[float, float, float, float], size: int | None = None) -> _CropOutputs:
+        """The coordinate net on the crop around ``box`` (``rgb``'s pixels), at the crops' source width,
+        ``size`` pixels (None: :meth:`crop_px` of the box)."""
         import torch
 
         self._check_object(obj_id)
@@ -296,7 +306,7 @@ class LearnedEstimator:
         if not all(math.isfinite(b) for b in box_w) or box_w[2] <= box_w[0] or box_w[3] <= box_w[1]:
             raise LearnedRefused("bad-input", f"learned estimator: box {tuple(box)} is empty or not finite")
         centre, side = box_crop(box_w)  # type: ignore[arg-type]
-        crop = warp_rgb(work, centre, side, int(self.preset["crop_px"]))
+        crop = warp_rgb(work, centre, side, self.crop_px(work.shape[1], box_w) if size is None else size)
         with torch.no_grad():
             coords, mask = self.pose(torch.from_numpy(normalise(crop)[None]).to(self.device),
                                      torch.tensor([obj.class_index], device=self.device))
@@ -327,7 +337,8 @@ class LearnedEstimator:
         """:meth:`estimate_both`; ``rgb_distance`` False skips the RGB-only pose's mask-area distance
         (its silhouette) when only the depth pose is wanted, which starts from PnP's translation."""
         zooms = self._zooms()
-        crops = [self._crop_outputs(rgb, K, obj_id, zoomed(box, z)) for z in zooms]  # refuses unknown objects
+        size = self.crop_px(np.shape(rgb)[1], box) if np.ndim(rgb) >= 2 else None  # the box's, for every zoom
+        crops = [self._crop_outputs(rgb, K, obj_id, zoomed(box, z), size) for z in zooms]  # refuses unknown objects
         crop = crops[0]
         obj = self.model.objects[int(obj_id)]
         points_2d, points_3d = [], []

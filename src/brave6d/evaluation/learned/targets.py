@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from brave6d.evaluation.learned.crops import box_crop, crop_affine, normalise, warp_rgb
+from brave6d.evaluation.learned.crops import box_crop, crop_affine, crop_size, crops_per_batch, normalise, warp_rgb
 from brave6d.evaluation.learned.data import TrainingData
 from brave6d.evaluation.learned.networks import COORD_STRIDE, DETECTOR_STRIDE
 
@@ -106,23 +106,43 @@ def jittered_crop(box: tuple[float, float, float, float], rng: np.random.Generat
     return centre, side * rng.uniform(0.75, 1.25)
 
 
+def pose_sizes(data: TrainingData, instances: list[int], smallest: int, largest: int) -> dict[int, list[int]]:
+    """``instances`` grouped by the size of their crop (:func:`crop_size` of their box), smallest first."""
+    groups: dict[int, list[int]] = {}
+    for k in instances:
+        _, side = box_crop(data.instances[int(k)].box_crop)
+        groups.setdefault(crop_size(side, smallest, largest), []).append(int(k))
+    return dict(sorted(groups.items()))
+
+
 def pose_batch(data: TrainingData, instances: list[int], rng: np.random.Generator, batch: int,
-               crop_px: int) -> dict[str, NDArray[np.float32] | NDArray[np.int64]]:
-    """``batch`` jittered crops (B, 3, S, S) with their class indices, coordinate targets (B, 3, S/4,
-    S/4) and visible masks (B, 1, S/4, S/4) (the net's output stride)."""
+               crop_px: int, crop_px_min: int | None = None) -> dict[str, NDArray[np.float32] | NDArray[np.int64]]:
+    """A batch of jittered crops (B, 3, S, S) with their class indices, coordinate targets (B, 3, S/4,
+    S/4) and visible masks (B, 1, S/4, S/4) (the net's output stride). The crops follow their boxes'
+    size within ``crop_px_min`` .. ``crop_px`` (None: all ``crop_px``): one size per batch, drawn so
+    that every instance is seen equally often, with :func:`crops_per_batch` crops of it."""
     import cv2
 
-    picks = rng.choice(instances, size=batch, replace=len(instances) < batch)
-    out_px = crop_px // COORD_STRIDE
-    crops = np.zeros((batch, crop_px, crop_px, 3), np.uint8)
-    coords = np.zeros((batch, 3, out_px, out_px), np.float32)
-    masks = np.zeros((batch, 1, out_px, out_px), np.float32)
-    classes = np.zeros(batch, np.int64)
+    smallest = crop_px if crop_px_min is None else crop_px_min
+    sizes = pose_sizes(data, instances, smallest, crop_px)
+    if len(sizes) == 1:
+        size, pool = next(iter(sizes.items()))
+    else:
+        weights = np.array([len(pool) / crops_per_batch(batch, s, smallest) for s, pool in sizes.items()])
+        size = list(sizes)[int(rng.choice(len(sizes), p=weights / weights.sum()))]
+        pool = sizes[size]
+    n = crops_per_batch(batch, size, smallest)
+    picks = rng.choice(pool, size=n, replace=len(pool) < n)
+    out_px = size // COORD_STRIDE
+    crops = np.zeros((n, size, size, 3), np.uint8)
+    coords = np.zeros((n, 3, out_px, out_px), np.float32)
+    masks = np.zeros((n, 1, out_px, out_px), np.float32)
+    classes = np.zeros(n, np.int64)
     for b, k in enumerate(picks):
         inst = data.instances[int(k)]
         record = data.images[inst.image]
         centre, side = jittered_crop(inst.box_crop, rng)
-        crops[b] = _augmented_crop(record.rgb_crop, centre, side, crop_px, rng)
+        crops[b] = _augmented_crop(record.rgb_crop, centre, side, size, rng)
         A = crop_affine(centre, side, out_px)
         A[:, 2] += A[:, :2] @ np.asarray(inst.region, dtype=np.float64)  # region pixels -> crop pixels
         warp = dict(dsize=(out_px, out_px), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -43,7 +43,7 @@ _WARMUP = 50
 _GPU_READ_EVERY = 10
 #: Raised whenever a change to the training (targets, augmentation, losses, networks) gives other
 #: weights for the same inputs, so that a model trained by older code is not reused as current.
-TRAINING_REVISION = 3
+TRAINING_REVISION = 4
 PHASES = ("detector", "pose")
 
 
@@ -163,7 +163,7 @@ def phase_batch(phase: str, data: TrainingData, pool: list[int], rng: np.random.
 
     if phase == "detector":
         return detector_batch(data, pool, rng, preset.detector_batch, preset.detector_patch)
-    return pose_batch(data, pool, rng, preset.pose_batch, preset.crop_px)
+    return pose_batch(data, pool, rng, preset.pose_batch, preset.crop_px, preset.crop_px_min)
 
 
 def batch_loss(phase: str, net: Any, batch: dict[str, Any], preset: LearnPreset) -> Any:
@@ -176,7 +176,9 @@ def batch_loss(phase: str, net: Any, batch: dict[str, Any], preset: LearnPreset)
     low = preset.precision == "bf16"
     device_type = batch[images].device.type
     with torch.autocast(device_type, dtype=torch.bfloat16, enabled=low):
-        x = batch[images].contiguous(memory_format=torch.channels_last) if low else batch[images]
+        x = batch[images]
+        if channels_last(preset, x.device):
+            x = x.contiguous(memory_format=torch.channels_last)
         out = net(x, *(batch[k] for k in extra))
     return loss(*(o.float() for o in out), batch)
 
@@ -188,6 +190,12 @@ def phase_loss(phase: str, net: Any, data: TrainingData, pool: list[int], rng: n
 
     batch = phase_batch(phase, data, pool, rng, preset)
     return batch_loss(phase, net, {k: torch.from_numpy(v).to(device) for k, v in batch.items()}, preset)
+
+
+def channels_last(preset: LearnPreset, device: Any) -> bool:
+    """Whether the networks train on channels-last tensors: on a CPU always (oneDNN's convolutions run
+    1.3x faster so in float32 on an AVX2 CPU, docs/BENCHMARKS.md), on a GPU in bfloat16 (tensor cores)."""
+    return device.type == "cpu" or preset.precision == "bf16"
 
 
 def loss_reads(device: Any) -> int:
@@ -203,25 +211,40 @@ def native_bf16(device: Any) -> bool:
 
     if device.type == "cuda":
         return bool(torch.cuda.is_bf16_supported())
+    if not cpu_kernels_may_use_bf16():
+        return False
     cpu = getattr(torch, "cpu", None)
     checks = [getattr(cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
     return any(bool(check()) for check in checks if check is not None)
 
 
+#: oneDNN's instruction-set caps (``ONEDNN_MAX_CPU_ISA``) under which it has no bfloat16 instructions
+_ONEDNN_ISAS_WITHOUT_BF16 = ("SSE41", "AVX", "AVX2", "AVX2_VNNI", "AVX512_CORE", "AVX512_CORE_VNNI")
+
+
+def cpu_kernels_may_use_bf16() -> bool:
+    """False where torch's or oneDNN's CPU kernels are capped below bfloat16 (``ATEN_CPU_CAPABILITY``
+    under AVX512, ``ONEDNN_MAX_CPU_ISA`` under AVX512_CORE_BF16): such a process runs as a CPU without
+    it would, so it trains as one (docs/GUIDE.md: measuring as an AVX2-only CPU)."""
+    import os
+
+    import torch
+
+    if not str(torch.backends.cpu.get_cpu_capability()).upper().startswith("AVX512"):
+        return False
+    return os.environ.get("ONEDNN_MAX_CPU_ISA", os.environ.get("DNNL_MAX_CPU_ISA", "ALL")).strip().upper() \
+        not in _ONEDNN_ISAS_WITHOUT_BF16
+
+
 def resolve_precision(preset: LearnPreset, device: Any) -> LearnPreset:
     """``preset`` as it will run on ``device`` (``auto``, ``cpu``, ``cuda`` or a torch device): ``auto``
-    -> ``bf16`` where the device has it natively, else ``fp32`` with ``fp32_step_share`` of the steps
-    (the card and the reuse checksum record what ran); an explicit ``bf16`` without native support
-    runs, with a warning."""
+    -> ``bf16`` where the device has it natively, else ``fp32``, the same steps either way (the card and
+    the reuse checksum record what ran); an explicit ``bf16`` without native support runs, with a warning."""
     from brave6d.training import resolve_device
 
     device = resolve_device(device)
     if preset.precision == "auto":
-        if native_bf16(device):
-            return preset.with_overrides(precision="bf16")
-        share = preset.fp32_step_share
-        return preset.with_overrides(precision="fp32", detector_steps=max(1, round(preset.detector_steps * share)),
-                                     pose_steps=max(1, round(preset.pose_steps * share)))
+        return preset.with_overrides(precision="bf16" if native_bf16(device) else "fp32")
     if preset.precision == "bf16" and not native_bf16(device):
         log.warning("learn: precision bf16 on a %s without native bfloat16 (AVX512-BF16 or AMX): it is emulated "
                     "and may be slower than fp32 (set precision=fp32 or auto)", device.type.upper())
@@ -244,7 +267,7 @@ class _Trainer:
         classes = len(data.objects)
         self.nets = {"detector": Detector(classes, preset.detector_width).to(device),
                      "pose": CoordinateNet(classes, preset.pose_width).to(device)}
-        if preset.precision == "bf16":  # bfloat16 convolutions run fastest on channels-last tensors
+        if channels_last(preset, device):
             self.nets = {k: net.to(memory_format=torch.channels_last) for k, net in self.nets.items()}
         self.opts = {"detector": torch.optim.AdamW(self.nets["detector"].parameters(), lr=preset.detector_lr,
                                                    weight_decay=1e-4),
