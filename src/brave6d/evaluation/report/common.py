@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from brave6d.core.layout import FrameRecord, SceneDir
+from brave6d.evaluation.metrics.pairing import paired_standard_error  # noqa: F401 (the sections import it from here)
 from brave6d.evaluation.report.measurements import Measurement, describe_machine
 
 
@@ -39,13 +40,6 @@ def fmt(value: Any, digits: int = 2) -> str:
     """Fixed-point text of a number (``n/a`` for None/NaN), the form used in tables and advice."""
     v = num(value)
     return "n/a" if not math.isfinite(v) else f"{v:.{digits}f}"
-
-
-def paired_standard_error(differences: Sequence[float]) -> float:
-    """Standard error of the mean of paired per-target differences (AR on the capture, or the truth,
-    minus AR on the splat, same target): how finely a gap is resolved; NaN with fewer than two."""
-    d = np.asarray([x for x in differences if math.isfinite(x)], dtype=np.float64)
-    return float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) >= 2 else math.nan
 
 
 def finite(values: Sequence[Any]) -> np.ndarray:
