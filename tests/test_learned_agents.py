@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from brave6d.core.errors import BraveError
-from brave6d.evaluation.agents import LEARNED_ACTIVE_AGENT, LEARNED_AGENTS, LEARNED_STATIC_AGENT, POLICIES, AgentSetup, \
+from brave6d.evaluation.agents import ABLATION_AGENTS, LEARNED_ACTIVE_AGENT, LEARNED_AGENTS, LEARNED_STATIC_AGENT, POLICIES, AgentSetup, \
     make_agent, run_episode, runnable_agents
 from brave6d.evaluation.learned import REFUSAL_CAUSES, get_learn_preset
 from brave6d.evaluation.learned.model_file import write_model
@@ -67,9 +67,10 @@ def _check_finite(outcome) -> None:
 
 
 def test_the_registry_lists_the_learned_agents_and_needs_a_model() -> None:
-    assert list(POLICIES)[2:] == list(LEARNED_AGENTS) and len(LEARNED_AGENTS) == 4
-    assert runnable_agents() == ["baseline-static", "baseline-active"]
-    assert runnable_agents(AgentSetup(learned_model=Path("m"))) == list(POLICIES)
+    assert list(POLICIES)[2:6] == list(LEARNED_AGENTS) and len(LEARNED_AGENTS) == 4
+    assert list(POLICIES)[6:] == list(ABLATION_AGENTS) and len(ABLATION_AGENTS) == 6
+    assert runnable_agents() == ["baseline-static", "baseline-active"]  # ablations play only when named
+    assert runnable_agents(AgentSetup(learned_model=Path("m"))) == list(POLICIES)[:6]
     with pytest.raises(BraveError, match="needs a trained model"):
         make_agent(LEARNED_STATIC_AGENT, object())
 
@@ -182,3 +183,26 @@ def test_an_active_agent_whose_moves_are_refused_still_submits_at_the_start_view
     assert np.allclose(taken[0], first_move) and outcome.refused >= 2  # it came closer, then was refused ...
     assert np.allclose(taken[-1], start)  # ... and flew back to the start view and submitted there
     assert outcome.notes["refused_poses"] == outcome.refused and outcome.adjustments == len(taken)
+
+
+def test_each_ablation_agent_uses_only_its_part(bundle, tmp_path: Path) -> None:
+    # a detector that sees the target everywhere, a little small: the full agent would come closer,
+    # look from the sides and fuse; each ablation does only its own part
+    ids = sorted(o.obj_id for o in bundle.objects)
+    model = _model_dir(tmp_path, ids, "smallish", (6.0, 8.0))
+    out = _play(bundle, tmp_path, model, [LEARNED_ACTIVE_AGENT, "learned-active-closeness", "learned-active-selection",
+                                          "learned-active-fusion"])
+    for outcome in out.values():
+        _check_finite(outcome)
+    full, close, select, fuse = (out[n] for n in (LEARNED_ACTIVE_AGENT, "learned-active-closeness",
+                                                  "learned-active-selection", "learned-active-fusion"))
+    assert full.notes["moves"] >= 1 and close.notes["moves"] == full.notes["moves"]  # both come closer ...
+    assert close.notes["views"] < full.notes["views"]  # ... but closeness alone looks from no side
+    assert "fused" not in close.notes or close.notes["fused"] is None
+    assert select.notes["moves"] == 0 == fuse.notes["moves"]  # no approach: side looks at the start distance
+    assert select.notes["views"] >= 2 and fuse.notes["views"] >= 2
+    if 0 in fuse.notes["posed_views"]:  # fusion alone starts from the start view's estimate (when it has one)
+        assert fuse.notes["estimated_in_view"] == 0
+    posed = close.notes["posed_views"]  # closeness alone takes the nearest view's
+    assert not posed or close.notes["estimated_in_view"] in posed
+    assert "fused" not in select.notes or select.notes["fused"] is None

@@ -43,8 +43,13 @@ LEARNED_STATIC_DEPTH_AGENT = "learned-static-depth"
 LEARNED_ACTIVE_DEPTH_AGENT = "learned-active-depth"
 #: The agents that need a trained model (``AgentSetup.learned_model``): RGB-only, then depth-refined.
 LEARNED_AGENTS = (LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT, LEARNED_STATIC_DEPTH_AGENT, LEARNED_ACTIVE_DEPTH_AGENT)
+#: The learned active agent with one of its parts alone (what each buys; report section 10), RGB-only
+#: then with depth: name -> the base agent and the part (``agents.learned.ablation.ABLATIONS``). They
+#: play only when asked for by name (never in :func:`runnable_agents`).
+ABLATION_AGENTS = {f"{base}-{part}": (base, part) for base in (LEARNED_ACTIVE_AGENT, LEARNED_ACTIVE_DEPTH_AGENT)
+                   for part in ("closeness", "selection", "fusion")}
 
-__all__ = ["ACTIVE_AGENT", "LEARNED_ACTIVE_AGENT", "LEARNED_ACTIVE_DEPTH_AGENT", "LEARNED_AGENTS",
+__all__ = ["ABLATION_AGENTS", "ACTIVE_AGENT", "LEARNED_ACTIVE_AGENT", "LEARNED_ACTIVE_DEPTH_AGENT", "LEARNED_AGENTS",
            "LEARNED_STATIC_AGENT", "LEARNED_STATIC_DEPTH_AGENT", "POLICIES", "AgentSetup", "runnable_agents", "REFUSAL_CAUSES", "STATIC_AGENT", "ActiveOptions", "ActivePolicy", "Agent",
            "BaselineAgent", "BaselineOptions", "BoxHint", "CameraPolicy", "Cluster", "EpisodeOutcome", "EpisodeState",
            "EstimateRefused", "FrameOptions", "FramePose", "ModelCloud", "ModelOptions", "Perception",
@@ -106,16 +111,17 @@ def _estimator(model_dir: Path, device: str) -> Any:
     return LearnedEstimator.load(model_dir, device)
 
 
-def _learned(name: str, active: bool, use_depth: bool) -> Callable[[Any, AgentSetup], Agent]:
+def _learned(name: str, active: bool, use_depth: bool, part: str | None = None) -> Callable[[Any, AgentSetup], Agent]:
     def factory(client: Any, setup: AgentSetup) -> Agent:
-        from brave6d.evaluation.agents.learned import LearnedAgent
+        from brave6d.evaluation.agents.learned import LearnedAgent, LearnedAgentOptions
+        from brave6d.evaluation.agents.learned.ablation import ABLATIONS
 
         if setup.learned_model is None:
             raise BraveError(f"agent {name!r} needs a trained model: give its folder (brave6d learn train ... --out "
                              "MODEL_DIR) as AgentSetup(learned_model=MODEL_DIR), or to the benchmark script as "
                              "python benchmarks/baselines.py --learned-model MODEL_DIR")
         return LearnedAgent(client, _estimator(Path(setup.learned_model).resolve(), setup.device), name, active,
-                            use_depth)
+                            use_depth, ABLATIONS[part] if part is not None else LearnedAgentOptions())
 
     return factory
 
@@ -129,13 +135,15 @@ POLICIES: dict[str, Callable[[Any, AgentSetup], Agent]] = {
     LEARNED_ACTIVE_AGENT: _learned(LEARNED_ACTIVE_AGENT, active=True, use_depth=False),
     LEARNED_STATIC_DEPTH_AGENT: _learned(LEARNED_STATIC_DEPTH_AGENT, active=False, use_depth=True),
     LEARNED_ACTIVE_DEPTH_AGENT: _learned(LEARNED_ACTIVE_DEPTH_AGENT, active=True, use_depth=True),
+    **{name: _learned(name, active=True, use_depth=base == LEARNED_ACTIVE_DEPTH_AGENT, part=part)
+       for name, (base, part) in ABLATION_AGENTS.items()},
 }
 
 
 def runnable_agents(setup: AgentSetup | None = None) -> list[str]:
     """The registered agents ``setup`` can build, in registry order (the learned ones need a model)."""
     setup = setup or AgentSetup()
-    return [n for n in POLICIES if n not in LEARNED_AGENTS or setup.learned_model is not None]
+    return [n for n in POLICIES if n not in ABLATION_AGENTS and (n not in LEARNED_AGENTS or setup.learned_model is not None)]
 
 
 def make_agent(name: str, client: Any, setup: AgentSetup | None = None) -> Agent:

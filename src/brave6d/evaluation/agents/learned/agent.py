@@ -54,6 +54,18 @@ class LearnedAgentOptions:
     nearest_m: float | None = None  # nearest approach; None: the nearest capture ring (or 3 diameters)
     orbit_deg: tuple[float, ...] = (35.0, -35.0)  # then look from these azimuth offsets too
     fuse_views: bool = True  # the active agent's submission uses every view that saw the target (below)
+    approach: bool = True  # the active agent comes closer while its view is not good enough
+    view_choice: str = "best"  # whose estimate is submitted: see VIEW_CHOICES
+
+    def __post_init__(self) -> None:
+        if self.view_choice not in VIEW_CHOICES:
+            raise BraveError(f"learned agent: view_choice must be one of {', '.join(VIEW_CHOICES)}, "
+                             f"got {self.view_choice!r}")
+
+
+#: How the agent picks the view whose estimate it submits (``LearnedAgentOptions.view_choice``):
+#: the best-ranked (``_rank``), the nearest to the target (the closest look), or the start view.
+VIEW_CHOICES = ("best", "nearest", "start")
 
 
 class LearnedAgent:
@@ -113,10 +125,11 @@ class LearnedAgent:
         final = self.current
         if final is None:
             raise BraveError(f"{self.name}: submit before any view was seen")
-        best = max(range(len(self.views)), key=lambda i: self._rank(self.views[i]))
+        best = self._chosen_view()
         view = self.views[best]
         notes: dict[str, Any] = {"views": len(self.views), "moves": self.moves, "refused_poses": self.refused,
-                                 "estimated_in_view": best, "detection_score_start": self.views[0]["score"],
+                                 "estimated_in_view": best,
+                                 "posed_views": [i for i, v in enumerate(self.views) if v["pose"] is not None], "detection_score_start": self.views[0]["score"],
                                  "box_px_start": self.views[0]["size_px"], "detection_score_final": view["score"],
                                  "box_px_final": view["size_px"]}
         pose = view["pose"]
@@ -160,6 +173,18 @@ class LearnedAgent:
         out[:3, 3] = point
         return out, f"triangulated from {len(posed)} views"
 
+    def _chosen_view(self) -> int:
+        """The index of the view whose estimate is submitted (``options.view_choice``; a view with a pose
+        before one without)."""
+        choice = self.options.view_choice
+        if choice == "start" and self.views[0]["pose"] is not None:
+            return 0
+        if choice == "nearest":
+            posed = [i for i, v in enumerate(self.views) if v["pose"] is not None]
+            if posed:
+                return min(posed, key=lambda i: float(np.linalg.norm(self.views[i]["pose"].cam_T_obj[:3, 3])))
+        return max(range(len(self.views)), key=lambda i: self._rank(self.views[i]))
+
     def _rank(self, view: dict[str, Any]) -> tuple[bool, float, float]:
         """Views with a pose first; then, with depth, the one whose pose explains the most depth
         points of its box (ICP's fit); then the pose's score (detection score x PnP inlier ratio)."""
@@ -202,7 +227,7 @@ class LearnedAgent:
         """The next camera pose of the active agent: closer while it needs to, then the orbit's
         looks from the sides, then back to the start view; None when it is done (module docstring)."""
         if self._phase == "approach":
-            step = self._approach()
+            step = self._approach() if self.options.approach else None
             if step is not None:
                 return step
             self._phase, self._orbit = "orbit", self._orbit_poses()
@@ -225,7 +250,7 @@ class LearnedAgent:
             self._phase, self._orbit = "orbit", self._orbit_poses()
         if self._phase != "return":
             return self._plan()
-        best = self.views[max(range(len(self.views)), key=lambda i: self._rank(self.views[i]))]["obs"].world_T_cam
+        best = self.views[self._chosen_view()]["obs"].world_T_cam
         current = self.current["obs"].world_T_cam if self.current is not None else None
         if current is None or np.allclose(best, current) or self._returned_to_best:
             return None
