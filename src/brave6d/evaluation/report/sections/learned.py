@@ -48,6 +48,8 @@ FIGURE = "learned.png"
 VARIANTS = ("true_box_rgb", "true_box_depth", "detected_rgb", "detected_depth")
 LABELS = {"true_box_rgb": "true box, RGB", "true_box_depth": "true box, + depth", "detected_rgb": "detected, RGB",
           "detected_depth": "detected, + depth"}
+#: The BOP19 metrics each target's AR averages (recorded per target and per ring).
+METRICS = ("vsd", "mssd", "mspd")
 #: A per-ring gap (captured - splat) at least this large is named (the issue's realism limit).
 LARGE_GAP = 0.1
 #: Where ``benchmarks/learned_cost.py`` writes for the report (beside the demo's ``learned/model``).
@@ -166,6 +168,7 @@ def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
     views.describe(m)
     card = read_card(model_dir)
     m.summary.update({"cost": str(cost_path(model_dir)), "model": str(model_dir), "detect_widths": key["detect_widths"],
+                      "evaluation": str(Path(workdir) / "evaluation"),
                       "card": {k: card.get(k) for k in ("images", "heldout_images", "train_seconds", "device",
                                                         "heldout", "preset", "objects", "model_sha256")}})
     state: dict[str, Any] = {}
@@ -206,6 +209,8 @@ def measure_learned(inputs: MeasureInputs, sweep: LearnedSweep) -> Measurement:
                     score = s["scorer"].score(est, g.obj_id, g.cam_T_model(), pair.K, size, pair.depth_real,
                                               gi.visib_fract)
                     row[f"{side}_{variant}_ar"] = score.ar
+                    for metric in METRICS:
+                        row[f"{side}_{variant}_{metric}"] = getattr(score, f"ar_{metric}")
                     row[f"{side}_{variant}_cause"] = cause
                     row[f"{side}_{variant}_s"] = est.seconds
             objects.append(row)
@@ -231,8 +236,74 @@ def ring_rows(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             row[f"real_{v}"], row[f"splat_{v}"] = mean(real), mean(splat)
             row[f"gap_{v}"] = row[f"real_{v}"] - row[f"splat_{v}"]
             row[f"gap_se_{v}"] = paired_standard_error([a - b for a, b in zip(real, splat)])
+            for side, values in (("real", real), ("splat", splat)):
+                row[f"se_{side}_{v}"] = standard_error(values)
+                for metric in METRICS:
+                    row[f"{side}_{v}_{metric}"] = mean([o.get(f"{side}_{v}_{metric}") for o in tg])
         rows.append(row)
     return rows
+
+
+def near_far(rows: Sequence[Mapping[str, Any]], variant: str = "true_box_rgb", side: str = "splat"
+             ) -> tuple[float, float, float, float] | None:
+    """AR at the nearest ring, at the farthest, their difference and its standard error (the rings'
+    targets are different ones: the two SEs combined); None with fewer than two rings."""
+    ok = [r for r in rows if r.get("targets")]
+    if len(ok) < 2:
+        return None
+    near, far = ok[0], ok[-1]
+    a, b = num(near.get(f"{side}_{variant}")), num(far.get(f"{side}_{variant}"))
+    se = math.hypot(num(near.get(f"se_{side}_{variant}")), num(far.get(f"se_{side}_{variant}")))
+    return a, b, a - b, se
+
+
+def standard_error(values: Sequence[Any]) -> float:
+    """Standard error of the mean of the finite ``values`` (NaN with fewer than two)."""
+    return paired_standard_error([num(v) for v in values])
+
+
+#: The active agents and the gain over their static twin the benchmark claims for each (issue #62).
+CLAIMED_GAIN = {"learned-active": 0.10, "learned-active-depth": 0.05}
+#: The parts of the active agent that the ablation plays alone (``agents.learned.ablation``).
+ABLATION_PARTS = ("closeness", "selection", "fusion")
+
+
+def ablation_rows(played: Sequence[Any]) -> list[dict[str, Any]]:
+    """Per learned active agent: its gain over its static twin, paired by start, and each part's alone
+    (:data:`ABLATION_PARTS`), from the evaluation's episodes (``played``: :data:`pairing.Played`)."""
+    from brave6d.evaluation.metrics.pairing import paired_difference
+
+    rows = []
+    for active, claimed in CLAIMED_GAIN.items():
+        static = active.replace("active", "static")
+        for part in (None, *ABLATION_PARTS):
+            name = active if part is None else f"{active}-{part}"
+            d = paired_difference(played, name, static)
+            if d is not None:
+                rows.append({"agent": name, "part": part or "all (the agent)", "static": static, **d.to_json(),
+                             "verdict": d.verdict(claimed if part is None else None)})
+    return rows
+
+
+def read_played(evaluation: Path) -> list[Any]:
+    """The scored episodes of the evaluation stage's leaderboards (``evaluation/leaderboard.json`` and the
+    ablation's, ``evaluation/ablation/leaderboard.json``) as pairing reads them; [] when there are none."""
+    from brave6d.evaluation.metrics.pairing import played_of_rows
+
+    played: list[Any] = []
+    for path in (evaluation / "leaderboard.json", evaluation / ABLATION_DIR / "leaderboard.json"):
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        rows = data.get("episodes") if isinstance(data, dict) else None
+        if isinstance(rows, list):
+            played += played_of_rows([r for r in rows if isinstance(r, dict)])
+    return played
+
+
+#: Where the evaluation stage writes the ablation's episodes and leaderboard (under ``<workdir>/evaluation``).
+ABLATION_DIR = "ablation"
 
 
 def cost_path(model_dir: Path) -> Path:
@@ -492,17 +563,86 @@ def _cost_part(cost: dict[str, Any] | None, ax: Any) -> tuple[str, str]:
     return table, advice
 
 
+def _distance_part(rows: list[dict[str, Any]]) -> tuple[str, str]:
+    """Why AR moves with distance (per ring: the RGB-only pose's VSD / MSSD / MSPD on the splat, given
+    true boxes) and whether the nearest ring beats the farthest (the benchmark's premise: coming closer
+    helps), with its standard error."""
+    v = "true_box_rgb"
+    ok = [r for r in rows if r.get("targets")]
+    if not ok or not all(math.isfinite(num(r.get(f"splat_{v}_vsd"))) for r in ok):
+        return "", ""
+    table = ("The RGB-only pose given true boxes, per ring, on the splat's renders (captured frames in brackets): "
+             "VSD and MSSD count 3D errors against the object's size, MSPD pixels in the image, so a constant "
+             "angular error costs more MSPD the nearer the camera:\n\n"
+             + format_table(["cm", "targets", "AR", "AR VSD", "AR MSSD", "AR MSPD"],
+                            [(fmt(r["distance_m"] * 100, 0), r["targets"],
+                              f"{fmt(r[f'splat_{v}'], 3)} ({fmt(r[f'real_{v}'], 3)})",
+                              *(f"{fmt(r[f'splat_{v}_{k}'], 2)} ({fmt(r[f'real_{v}_{k}'], 2)})" for k in METRICS))
+                             for r in ok]) + "\n")
+    nf = near_far(ok)
+    if nf is None:
+        return table, ""
+    a, b, d, se = nf
+    near, far = fmt(ok[0]["distance_m"] * 100, 0), fmt(ok[-1]["distance_m"] * 100, 0)
+    verdict = ("resolved at two standard errors" if math.isfinite(se) and abs(d) >= 2 * se else
+               f"not resolved at two standard errors with {ok[0]['targets']} and {ok[-1]['targets']} targets: "
+               "more views per ring (`LearnedSweep.holdout_per_level`) would tell")
+    advice = (f" Coming closer, RGB-only given true boxes on the splat: AR {fmt(a, 3)} at {near} cm against "
+              f"{fmt(b, 3)} at {far} cm ({_signed(d, 3)} ± {fmt(se, 3)}, {verdict}).")
+    return table, advice
+
+
+def _ablation_part(rows: list[dict[str, Any]], ax: Any) -> tuple[str, str]:
+    """What each part of the learned active agent buys alone (paired by start against its static twin),
+    as a table, a plot on ``ax`` and a verdict on the agents' claimed gains."""
+    if not rows:
+        ax.set_axis_off()
+        ax.text(0.5, 0.5, "no learned-agent episodes yet", ha="center", va="center")
+        return ("The learned active agent's parts: no paired episodes of the learned agents in this work "
+                "directory's evaluation yet (`brave6d demo --only evaluate`).\n", "")
+    labels = [r["agent"] for r in rows]
+    y = list(range(len(rows)))
+    means = [num(r["mean"]) for r in rows]
+    errors = [2.0 * num(r["se"]) if r.get("se") is not None else 0.0 for r in rows]
+    ax.barh(y, means, xerr=errors, color=["C0" if "depth" not in n else "C1" for n in labels], alpha=0.8)
+    ax.set_yticks(y, labels, fontsize=7)
+    ax.axvline(0.0, color="0.3", lw=0.8)
+    ax.invert_yaxis()
+    ax.set_xlabel("AR gain over the static twin (paired by start; bars: ± 2 SE)")
+    table = ("What the learned active agent's parts buy, each alone (`learned-active-closeness`: comes closer, "
+             "submits the nearest view's estimate; `-selection`: stays at the start distance, looks from the sides, "
+             "submits the best-ranked view's; `-fusion`: stays, looks from the sides, fuses every view into the start "
+             "view's estimate), each minus its static twin over the same seeded starts:\n\n"
+             + format_table(["agent", "part", "paired starts", "AR", "static AR", "gain", "SE", "resolved?"],
+                            [(r["agent"], r["part"], r["pairs"], fmt(r["active_ar"], 3), fmt(r["static_ar"], 3),
+                              _signed(num(r["mean"]), 3), fmt(r.get("se"), 3), r["verdict"]) for r in rows]) + "\n")
+    advice = ""
+    for active, claimed in CLAIMED_GAIN.items():
+        full = next((r for r in rows if r["agent"] == active), None)
+        if full is None:
+            continue
+        parts = {r["part"]: num(r["mean"]) for r in rows if r["agent"].startswith(active + "-")
+                 and r["part"] in ABLATION_PARTS and ("depth" in active) == ("depth" in r["agent"])}
+        source = max(parts, key=lambda k: parts[k]) if parts else None
+        advice += (f" {active} gains {_signed(num(full['mean']), 3)} ± {fmt(full.get('se'), 3)} over {full['static']} "
+                   f"(claimed {_signed(claimed, 2)}: {full['verdict']})"
+                   + (f"; alone, {source} buys the most ({_signed(parts[source], 3)})" if source else "") + ".")
+    return table, advice
+
+
 def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | None = None,
                    detect_scale: list[dict[str, Any]] | None = None,
                    detector_patch: list[dict[str, Any]] | None = None,
                    precision: list[dict[str, Any]] | None = None,
-                   rgb_distance: list[dict[str, Any]] | None = None) -> RenderedSection:
-    """Section 10 from its measurement (and the cost benchmarks' results, when there are some)."""
+                   rgb_distance: list[dict[str, Any]] | None = None,
+                   played: Sequence[Any] = ()) -> RenderedSection:
+    """Section 10 from its measurement (and the cost benchmarks' results, when there are some; ``played``:
+    the evaluation's scored episodes, :func:`read_played`, for the active agent's ablation)."""
     if m is None or not m.usable or not m.points:
         return unavailable(TITLE, m, "The learned estimator's study")
     rows = ring_rows(m.points)
     card = m.summary.get("card") or {}
-    fig, (ax_ar, ax_gap, ax_cost) = new_figure(3, panel=(4.6, 3.8))
+    fig, (ax_ar, ax_gap, ax_parts, ax_cost) = new_figure(4, panel=(4.6, 3.8))
     cm = [r["distance_m"] * 100.0 for r in rows]
     dropped = 0
     for i, v in enumerate(VARIANTS):
@@ -523,6 +663,8 @@ def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | 
     patch_table, patch_advice = _detector_patch_part(detector_patch, card)
     precision_table, precision_advice = _precision_part(precision, card)
     distance_table, distance_advice = _rgb_distance_part(rgb_distance)
+    near_table, near_advice = _distance_part(rows)
+    parts_table, parts_advice = _ablation_part(ablation_rows(played), ax_parts)
     png = save_figure(fig, out_dir / FIGURE, "Learned estimator: AR against distance on captured frames and splat renders",
                       describe_machine(m.machine), settings_line(m))
     table = [(fmt(r["distance_m"] * 100, 0), r["views"], r["targets"], fmt(r["bbox_diag_px"], 0),
@@ -539,12 +681,12 @@ def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | 
             f"![learned estimator]({png.name})\n\n"
             "AR captured / splat (gap ± SE) per ring:\n\n"
             + format_table(["cm", "views", "targets", "box diag px", *(LABELS[v] for v in VARIANTS)], table) + "\n\n"
-            + cost_table + "\n" + (scale_table + "\n" if scale_table else "")
+            + (near_table + "\n" if near_table else "") + parts_table + "\n" + cost_table + "\n" + (scale_table + "\n" if scale_table else "")
             + (patch_table + "\n" if patch_table else "") + (precision_table + "\n" if precision_table else "")
             + (distance_table + "\n" if distance_table else "")
             + provenance(m) + "\n" + nan_note(dropped, "plotted learned-estimator values"))
-    return RenderedSection(TITLE, body, advice_learned(rows, card) + cost_advice + scale_advice + patch_advice
-                           + precision_advice + distance_advice, [png])
+    return RenderedSection(TITLE, body, advice_learned(rows, card) + near_advice + parts_advice + cost_advice
+                           + scale_advice + patch_advice + precision_advice + distance_advice, [png])
 
 
 def advice_learned(rows: list[dict[str, Any]], card: Mapping[str, Any]) -> str:
@@ -598,14 +740,16 @@ class LearnedSection:
 
     def render(self, measurements: Mapping[str, Measurement | None], out_dir: Path) -> RenderedSection:
         m = measurements.get(NAME)
+        evaluation = m.summary.get("evaluation") if m is not None else None
+        played = read_played(Path(str(evaluation))) if evaluation else []
         cost = m.summary.get("cost") if m is not None else None
         if not cost:
-            return render_learned(m, out_dir)
+            return render_learned(m, out_dir, played=played)
         folder = Path(str(cost)).parent
         return render_learned(m, out_dir, read_cost(Path(str(cost))), read_benchmark_rows(folder / DETECT_SCALE_FILE),
                               read_benchmark_rows(folder / DETECTOR_PATCH_FILE),
                               read_benchmark_rows(folder / PRECISION_FILE),
-                              read_benchmark_rows(folder / RGB_DISTANCE_FILE))
+                              read_benchmark_rows(folder / RGB_DISTANCE_FILE), played)
 
 
 SECTION = LearnedSection()
