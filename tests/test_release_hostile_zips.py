@@ -585,3 +585,31 @@ def test_a_long_name_and_version_still_serve(copy: Path, tmp_path: Path) -> None
     assert sources[0].locate().is_dir()
     (cache,) = (tmp_path / "cache").iterdir()
     assert manifest["version"] in cache.name and len(cache.name) > 100
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["symlink", "fifo", "dot-dot"])
+def test_a_checksum_list_naming_a_link_a_fifo_or_a_path_outside_is_refused(copy: Path, tmp_path: Path,
+                                                                           kind: str) -> None:
+    """Issue 65, class 3: SHA256SUMS names pass the one rule of paths inside a folder, and each is
+    opened as a regular file without following a link (a FIFO made verify wait forever; a link could
+    lead to /dev/zero or to a file outside the release)."""
+    from brave6d.dataset.release.formats import read_sha256sums
+
+    sums = copy / "SHA256SUMS"
+    if kind == "dot-dot":
+        sums.write_text(sums.read_text() + f"{'0' * 64}  ../outside.zip\n")
+        with pytest.raises(ReleaseError, match=r"file name '\.\./outside\.zip' is outside the release"):
+            read_sha256sums(sums)
+        return
+    target = copy / "extra.bin"
+    if kind == "symlink":
+        (tmp_path / "secret").write_bytes(b"secret")
+        target.symlink_to(tmp_path / "secret")
+    else:
+        os.mkfifo(target)
+    sums.write_text(sums.read_text() + f"{'0' * 64}  extra.bin\n")
+    with pytest.raises(ReleaseError) as info:
+        verify_release(copy)
+    assert "extra.bin" in str(info.value) and ("symbolic link" in str(info.value) or "FIFO" in str(info.value)
+                                               or "missing" in str(info.value)), str(info.value)

@@ -93,3 +93,38 @@ def test_without_ros2_the_build_says_why_and_ships_the_rest(workdir: Path, tmp_p
     monkeypatch.delenv(ros2_wheel.ROS2_PYTHON_ENV)
     monkeypatch.setattr(ros2_wheel.importlib.util, "find_spec", lambda name, *a: None)
     assert ros2_wheel.ros2_python() is None
+
+
+def _with_member(release: Path, tmp_path: Path, member: str, data: bytes) -> Path:
+    """A copy of ``release`` whose wheel also holds ``member`` (the wheel, the manifest's entry and
+    SHA256SUMS made again: a hostile author re-signs what they change)."""
+    import zipfile
+
+    copy = Path(shutil.copytree(release, tmp_path / "copy"))
+    wheel = wheel_of(copy)
+    with zipfile.ZipFile(wheel, "a") as zf:
+        zf.writestr(member, data)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["ros2_interfaces"]["sha256"] = file_sha256(wheel)
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    _resum(copy)
+    return copy
+
+
+@pytest.mark.parametrize("member, says", [
+    ("evil.pth", "a .pth file"),
+    ("brave6d_msgs/deep/evil.pth", "a .pth file"),
+    ("sitecustomize.py", "a top-level module"),
+    (f"brave6d_ros2_interfaces-{interfaces.wheel_version()}.data/scripts/brave6d-evil", "install hooks"),
+    (f"brave6d_ros2_interfaces-{interfaces.wheel_version()}.data/purelib/evil.py", "install hooks"),
+    (f"brave6d_ros2_interfaces-{interfaces.wheel_version()}.dist-info/entry_points.txt", "entry points"),
+    ("usercustomize/__init__.py", "is not a Python package name"),
+])
+def test_verify_refuses_a_wheel_that_would_run_code_once_installed(release: Path, tmp_path: Path, member: str,
+                                                                   says: str) -> None:
+    """A ``.pth`` file in site-packages runs its import lines at every Python start; verify passed a
+    wheel carrying one (issue 65, class 5). It never installs the wheel either way."""
+    copy = _with_member(release, tmp_path, member, b"import os; os.system('touch /tmp/pwned')\n")
+    with pytest.raises(ReleaseError) as info:
+        verify_release(copy)
+    assert f"{member}: " in str(info.value) and says in str(info.value) and "\n" not in str(info.value)

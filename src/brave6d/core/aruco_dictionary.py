@@ -149,13 +149,19 @@ _MAX_ENTRIES = MAX_FILE_MARKERS + 16
 _KEY = r"[A-Za-z_][A-Za-z0-9_]{0,63}"
 _YAML_ENTRY = re.compile(rf"({_KEY})[ \t]*:[ \t]*(\"[^\"\n]*\"|'[^'\n]*'|[^\s\"'\[\]{{}},#&*!|>%@`][^\n#]*)?(?:#.*)?")
 _XML_ENTRY = re.compile(rf"\s*<({_KEY})>([^<]*)</\1>")
-_XML_SKIP = re.compile(r"\s*(?:<\?xml[^<>]*\?>|<!--(?:[^-]|-(?!->))*-->|<opencv_storage>|</opencv_storage>)")
+_XML_SKIP = re.compile(r"\s*(?:<\?xml[^<>]*\?>|<opencv_storage>|</opencv_storage>)")
 _INTEGER = re.compile(r"[+-]?\d{1,12}")
+_SPACE = re.compile(r"\s*")
 
 
 def _not_flat(path: Path, why: str) -> ValueError:
     return ValueError(f"dictionary file {path}: not an OpenCV YAML/JSON/XML dictionary file ({why}; write it with "
                       "cv2.aruco.Dictionary.writeDictionary)")
+
+
+def _too_many(path: Path) -> ValueError:
+    return ValueError(f"dictionary file {path}: more than {_MAX_ENTRIES} entries (a dictionary of at most "
+                      f"{MAX_FILE_MARKERS} markers is read)")
 
 
 def _scalar(raw: str) -> int | str:
@@ -189,7 +195,7 @@ def _entries(data: bytes, path: Path) -> dict[str, int | str]:
         if key in out:
             raise _not_flat(path, f"'{key}' appears twice")
         if len(out) >= _MAX_ENTRIES:
-            raise _not_flat(path, f"more than {_MAX_ENTRIES} entries")
+            raise _too_many(path)
         out[key] = value
     if not out:
         raise _not_flat(path, "no entries")
@@ -221,13 +227,20 @@ def _xml_entries(text: str, path: Path) -> list[tuple[str, int | str]]:
         if skip is not None and skip.end() > pos:
             pos = skip.end()
             continue
+        start = _SPACE.match(text, pos).end()  # type: ignore[union-attr] - \s* always matches
+        if text.startswith("<!--", start):  # a comment: skipped with one find (a regex would backtrack)
+            close = text.find("-->", start + 4)
+            if close < 0:
+                raise _not_flat(path, f"line {text.count(chr(10), 0, start) + 1}: a comment that never ends")
+            pos = close + 3
+            continue
         entry = _XML_ENTRY.match(text, pos)
         if entry is None:
             line = text.count("\n", 0, pos) + 1
             raise _not_flat(path, f"line {line}: only <key>value</key> entries are read")
         pairs.append((entry[1], _scalar(entry[2])))
         if len(pairs) > _MAX_ENTRIES:
-            raise _not_flat(path, f"more than {_MAX_ENTRIES} entries")
+            raise _too_many(path)
         pos = entry.end()
     return pairs
 
@@ -244,7 +257,7 @@ def _yaml_entries(text: str, path: Path) -> list[tuple[str, int | str]]:
             raise _not_flat(path, f"line {number}: only 'key: value' lines of integers and strings are read")
         pairs.append((entry[1], _scalar(entry[2])))
         if len(pairs) > _MAX_ENTRIES:
-            raise _not_flat(path, f"more than {_MAX_ENTRIES} entries")
+            raise _too_many(path)
     return pairs
 
 

@@ -190,30 +190,33 @@ def json_depth(raw: bytes) -> int:
     import numpy as np
 
     depth = deepest = 0
-    in_string = False
+    in_string = 0  # 1 while the text between pieces is inside a string
     backslashes = 0  # the run of backslashes that ended the previous piece
     for start in range(0, len(raw), _SCAN_CHUNK):
         b = np.frombuffer(raw, dtype=np.uint8, count=min(_SCAN_CHUNK, len(raw) - start), offset=start)
         n = len(b)
-        at = np.arange(n, dtype=np.int64)
-        other = b != ord("\\")
-        last_other = np.maximum.accumulate(np.where(other, at, -1))  # the last non-backslash at or before i
         quotes = np.flatnonzero(b == ord('"'))
-        if len(quotes):
-            before = np.where(quotes > 0, last_other[np.maximum(quotes - 1, 0)], -1)
-            run = quotes - 1 - before + np.where(before < 0, backslashes, 0)  # backslashes just before each quote
-            quotes = quotes[run % 2 == 0]
-        toggles = np.zeros(n, dtype=np.int64)
-        toggles[quotes] = 1
-        inside = (np.cumsum(toggles) + in_string) % 2 == 1  # at a bracket: inside a string
-        opens = ((b == ord("[")) | (b == ord("{"))) & ~inside
-        closes = ((b == ord("]")) | (b == ord("}"))) & ~inside
-        steps = np.flatnonzero(opens | closes)
-        if len(steps):
-            levels = depth + np.cumsum(np.where(opens[steps], 1, -1), dtype=np.int64)
-            deepest = max(deepest, int(levels.max()))
-            depth = int(levels[-1])
-        in_string = bool((in_string + len(quotes)) % 2)
-        tail = n - 1 - int(last_other[-1])
-        backslashes = tail + backslashes if tail == n else tail
+        last_other = None  # per byte: the last position at or before it that is no backslash
+        slash = b == ord("\\")
+        if backslashes or slash.any():
+            last_other = np.maximum.accumulate(np.where(slash, np.int32(-1), np.arange(n, dtype=np.int32)))
+            if len(quotes):
+                before = np.where(quotes > 0, last_other[np.maximum(quotes - 1, 0)], -1)
+                run = quotes - 1 - before + np.where(before < 0, backslashes, 0)  # backslashes just before
+                quotes = quotes[(run & 1) == 0]  # the quotes that open or close a string
+        brackets = np.flatnonzero((b == ord("[")) | (b == ord("]")) | (b == ord("{")) | (b == ord("}")))
+        if len(brackets):
+            outside = ((np.searchsorted(quotes, brackets) + in_string) & 1) == 0
+            steps = brackets[outside]
+            if len(steps):
+                kinds = b[steps]
+                levels = depth + np.cumsum(np.where((kinds == ord("[")) | (kinds == ord("{")), 1, -1))
+                deepest = max(deepest, int(levels.max()))
+                depth = int(levels[-1])
+        in_string = (in_string + len(quotes)) & 1
+        if last_other is None:
+            backslashes = 0
+        else:
+            tail = n - 1 - int(last_other[-1])
+            backslashes = tail + backslashes if tail == n else tail
     return deepest

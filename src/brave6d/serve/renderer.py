@@ -22,7 +22,8 @@
 * SH bands that are all zero (a degree-2 model saved with 45 ``f_rest``) are not evaluated.
 * Renders run under ``torch.no_grad`` and one lock: the CPU kernels use every core, and
   concurrent renders would only slow each other down. ``render_ms`` is the wall time of the
-  rasterizer call (including waiting for the GPU), ``queue_ms`` the wait for the lock.
+  rasterizer call (including waiting for the GPU), ``queue_ms`` the wait for the lock. A render whose
+  request was withdrawn while it waited for the lock is skipped (:data:`STILL_WANTED`).
 * Many views at once (:meth:`SplatRenderer.render_batch`, N agents on one scene): a rasterizer
   call draws several cameras over the union of their culled sets, each view bit for bit its
   :meth:`SplatRenderer.render`; on CUDA one gsplat call takes every camera, on the CPU cameras
@@ -40,7 +41,8 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -64,6 +66,15 @@ MAX_PAIRS_PER_CALL = 1 << 27
 
 #: The depths a render may report (the module docstring; ``brave6d.training.rasterize``'s median_depth).
 DEPTH_MODES = ("median", "expected")
+
+#: Asked once a render holds the device lock, before it draws: a callable returning False withdraws
+#: the render (:class:`RenderWithdrawn`), so a request whose client has gone, or that timed out while
+#: it waited for the device, costs no render (set per action by :mod:`brave6d.serve.inflight`).
+STILL_WANTED: ContextVar[Callable[[], bool] | None] = ContextVar("brave6d_render_still_wanted", default=None)
+
+
+class RenderWithdrawn(Exception):
+    """The render's request was withdrawn while it waited for the device: nothing was drawn."""
 
 if TYPE_CHECKING:
     from brave6d.training import SplatData
@@ -236,6 +247,9 @@ class SplatRenderer:
         images: list[tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.float32]] | None] = [None] * len(poses)
         t_wait = time.perf_counter()
         with self.lock:
+            wanted = STILL_WANTED.get()
+            if wanted is not None and not wanted():
+                raise RenderWithdrawn()
             t0 = time.perf_counter()
             with torch.no_grad():
                 culled = self._culled(viewmats, K, camera, near, far)

@@ -67,8 +67,30 @@ def uvicorn_config(app: Any, host: str = "127.0.0.1", port: int = 8765, log_leve
     config = uvicorn.Config(app, host=host, port=port, log_level=log_level, ws_max_size=limits.max_body_bytes,
                             http=protocols.http, ws=protocols.ws if protocols.ws is not None else "none",
                             timeout_keep_alive=5, limit_concurrency=LIMIT_CONCURRENCY, access_log=False,
-                            lifespan="on")
+                            lifespan="on", timeout_graceful_shutdown=SHUTDOWN_GRACE_S)
     return config, protocols.clients
+
+
+#: Seconds uvicorn waits for requests still running at shutdown (they are withdrawn at once, see
+#: :func:`draining_server`; one render in progress finishes) before it cancels them.
+SHUTDOWN_GRACE_S = 30.0
+
+
+def draining_server(config: Any) -> Any:
+    """A ``uvicorn.Server`` for ``config`` that, when its shutdown starts (Ctrl-C, SIGTERM,
+    ``should_exit``), first calls the app's ``state.drain`` (:meth:`brave6d.serve.inflight.InFlight.drain`):
+    every action in flight is withdrawn and answers 503, so the shutdown waits for at most the render
+    in progress instead of every queued one, and logs no traceback."""
+    import uvicorn
+
+    class DrainingServer(uvicorn.Server):
+        async def shutdown(self, sockets: Any = None) -> None:
+            drain = getattr(getattr(self.config.app, "state", None), "drain", None)
+            if callable(drain):
+                drain()
+            await super().shutdown(sockets=sockets)
+
+    return DrainingServer(config)
 
 
 class ServerThread:
@@ -81,12 +103,10 @@ class ServerThread:
 
     def __init__(self, app: Any, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning",
                  limits: ServerLimits | None = None) -> None:
-        import uvicorn
-
         self.sock = listening_socket(host, port)
         self.host, self.port = host, self.sock.getsockname()[1]
         config, self.clients = uvicorn_config(app, host, self.port, log_level, limits)
-        self.server = uvicorn.Server(config)
+        self.server = draining_server(config)
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]},
                                        name="brave6d-uvicorn", daemon=True)
 
