@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 from brave6d.core.runtime import prepare_process
@@ -25,6 +26,10 @@ settings.register_profile("ci", deadline=None, derandomize=True, max_examples=60
 settings.register_profile("dev", deadline=None, max_examples=100,
                           suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "dev"))
+
+# A render server signs its episode logs with a key it makes on first use (~/.config/brave6d): the
+# tests use a key file of their own, which the servers, nodes and commands they start inherit.
+os.environ.setdefault("BRAVE6D_LOG_KEY", str(Path(tempfile.mkdtemp(prefix="brave6d-test-key-")) / "episode-log.key"))
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEMO_SPEC = REPO_ROOT / "data" / "demo" / "scene.yaml"

@@ -19,7 +19,8 @@ from brave6d.evaluation.metrics import (AGENT_RUNS_FORMAT, AgentRuns, AgentRunsR
 
 def _board_agent(agent: str, ar: float, mean_adjustments: float) -> dict[str, Any]:
     """An agent row as ``AgentScore.to_json`` gives it (with the per-object table the file leaves out)."""
-    return {"agent": agent, "episodes": 1, "submitted": 1, "n_targets": 1, "ar": ar, "ar_vsd": ar, "ar_mssd": ar,
+    return {"agent": agent, "mode": "scored", "episodes": 1, "submitted": 1, "n_targets": 1, "ar": ar, "ar_vsd": ar,
+            "ar_mssd": ar,
             "ar_mspd": ar, "mean_adjustments": mean_adjustments, "mean_wall_time_s": None,
             "per_object": [{"obj_id": 2, "name": "nut"}]}
 
@@ -64,8 +65,9 @@ def test_round_trip(tmp_path: Path) -> None:
     assert path == tmp_path / "evaluation" / "baseline.json"
     assert read_agent_runs(path) == runs
     raw = json.loads(path.read_text())
-    assert list(raw) == ["format", "bundle", "image_size", "metrics", "agents", "episodes"]
-    assert raw["format"] == "brave6d-baseline/1" and raw["image_size"] == [320, 200]
+    assert list(raw) == ["format", "mode", "bundle", "image_size", "metrics", "agents", "episodes"]
+    assert raw["format"] == "brave6d-baseline/2" and raw["image_size"] == [320, 200]
+    assert raw["mode"] == "scored" and raw["agents"][0]["mode"] == "scored"  # the agents' mode, carried
     assert "per_object" not in raw["agents"][0] and "log" not in raw["episodes"][0]  # board-only fields stay out
     assert [p.name for p in path.parent.iterdir()] == ["baseline.json"]  # no temporary file left behind
 
@@ -83,7 +85,8 @@ def _write_raw(tmp_path: Path, change: Any) -> Path:
     (lambda r: r["agents"][0].pop("mean_adjustments"), "agents[0].mean_adjustments", "Field required"),
     (lambda r: r["episodes"][0].update(AR=0.5), "episodes[0].AR", "Extra inputs are not permitted"),
     (lambda r: r.update(image_size=[320]), "image_size[1]", "Field required"),
-    (lambda r: r.update(format="brave6d-baseline/2"), "format", "brave6d-baseline/2"),
+    (lambda r: r.update(format="brave6d-baseline/3"), "format", "brave6d-baseline/3"),
+    (lambda r: r.update(mode="evaluation"), "mode", "scored"),
     (lambda r: r.pop("format"), "format", "null"),
 ])
 def test_a_malformed_file_is_refused_naming_the_file_and_field(tmp_path: Path, change: Any, field: str,

@@ -364,7 +364,9 @@ def test_evaluation_stage_runs_both_baselines_on_every_object(stage,  # type: ig
     for name in ("leaderboard.csv", "leaderboard.json", "episodes.csv", "per_object.csv", "baseline.json"):
         assert (out / name).is_file(), name
     summary = json.loads((out / "baseline.json").read_text())
-    assert summary["format"] == "brave6d-baseline/1" and summary["image_size"] == [320, 240]
+    assert summary["format"] == "brave6d-baseline/2" and summary["image_size"] == [320, 240]
+    assert summary["mode"] == "scored" and {a["mode"] for a in summary["agents"]} == {"scored"}
+    assert result.figures["mode"] == "scored"  # the baselines play the default, scored server
     assert {a["agent"] for a in summary["agents"]} == set(runnable_agents()) == {"baseline-active", "baseline-static"}
     assert {"agent", "ar", "ar_vsd", "ar_mssd", "ar_mspd", "mean_adjustments", "mean_wall_time_s", "episodes"} <= \
         set(summary["agents"][0])
@@ -417,7 +419,7 @@ def test_active_baseline_submits_from_its_start_view(stage) -> None:  # type: ig
 
 
 def test_client_and_gym_env_submit(bundle: Bundle, tmp_path: Path) -> None:
-    app = create_app(bundle, device="cpu", log_dir=tmp_path, warm_up=False)
+    app = create_app(bundle, device="cpu", log_dir=tmp_path, warm_up=False, mode="training")  # the gym agent cheats
     with ServerThread(app) as server, BraveClient(server.url) as client:
         assert server.host == "127.0.0.1"
         agent = make_agent(STATIC_AGENT, client)
@@ -425,7 +427,7 @@ def test_client_and_gym_env_submit(bundle: Bundle, tmp_path: Path) -> None:
         again = run_episode(client, agent, "cube_blue", seed=5, width=160, height=120)
         np.testing.assert_array_equal(first.estimates[0].cam_T_obj, again.estimates[0].cam_T_obj)
         assert first.submission["submitted"] and first.adjustments == 0
-        env = BraveEnv(client=client, target="cube_red", width=64, height=48, agent="gym-agent")
+        env = BraveEnv(client=client, target="cube_red", width=64, height=48, agent="gym-agent", mode="training")
         obs, info = env.reset(seed=1)
         truth = next(o for o in info["objects"] if o.is_target)
         obs, reward, terminated, truncated, info = env.submit([PoseEstimate(truth.obj_id, truth.cam_T_obj)])

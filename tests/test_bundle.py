@@ -176,7 +176,7 @@ def test_ground_truth_equals_the_bop_export(tmp_path: Path) -> None:
     # the bundle took BOP's models (bit-identical files)
     assert (bundle_dir / "models/obj_000001.ply").read_bytes() == layout.model_path(1).read_bytes()
 
-    with TestClient(create_app(b, device="cpu"), base_url="http://localhost") as client:
+    with TestClient(create_app(b, device="cpu", mode="training"), base_url="http://localhost") as client:
         first = next(iter(sorted(poses)))
         eid = client.post("/episodes", json={"start": {"world_T_cam": poses[first].tolist()}, "depth": "none",
                                              "rgb": "none"}).json()["episode_id"]

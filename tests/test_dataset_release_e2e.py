@@ -81,7 +81,8 @@ def _serve_and_score(release: Path, tmp_path: Path, scenes: list[str], capsys: p
         assert client.health()["loaded_scenes"] == [scenes[-1]]  # max_loaded=1: the first was unloaded
     capsys.readouterr()
     assert cli_main(["evaluate", str(logs), "--out", str(tmp_path / "board")]) == 0
-    assert f"2 episodes on 2 scene(s) ({', '.join(sorted(scenes))})" in capsys.readouterr().out
+    # the static baseline plays a scored server (the default): its episodes are ranked
+    assert f"2 scored episodes ranked on 2 scene(s) ({', '.join(sorted(scenes))})" in capsys.readouterr().out
     rows = (tmp_path / "board" / "per_scene.csv").read_text().splitlines()
     assert sorted(r.split(",")[1] for r in rows[1:]) == sorted(scenes)
     assert len((tmp_path / "board" / "per_category.csv").read_text().splitlines()) >= 2

@@ -77,7 +77,7 @@ def test_log_keeps_the_version_one_layout(tmp_path: Path) -> None:
     line = json.loads(EpisodeLog.format(records()[2]))
     assert line["estimates"][0]["R"] == OBJ[:3, :3].reshape(-1).tolist()
     assert line["final_view"]["world_T_cam"] == POSE.tolist() and line["event"] == "submit"
-    assert json.loads(EpisodeLog.format(records()[0]))["format_version"] == LOG_FORMAT_VERSION == 3
+    assert json.loads(EpisodeLog.format(records()[0]))["format_version"] == LOG_FORMAT_VERSION == 4
 
 
 def test_version_one_log_reads_without_a_scene(tmp_path: Path) -> None:
@@ -112,7 +112,7 @@ def test_unversioned_log_reads_as_version_one(tmp_path: Path) -> None:
     assert [r.model_dump(mode="json") for r in old] == [r.model_dump(mode="json") for r in new]
 
 
-@pytest.mark.parametrize("version", [0, 4, "1", True])
+@pytest.mark.parametrize("version", [0, 5, "1", True])
 def test_unknown_version_names_file_and_line(tmp_path: Path, version: object) -> None:
     lines = [EpisodeLog.format(r) for r in records()]
     head = {**json.loads(lines[0]), "format_version": version}
@@ -140,3 +140,36 @@ def test_partial_last_line_is_ignored_but_not_a_broken_middle(tmp_path: Path) ->
 def test_non_finite_values_are_refused_before_writing() -> None:
     with pytest.raises(ValueError):
         EpisodeLog.format(records()[3].model_copy(update={"duration_s": float("nan")}))
+
+
+def test_version_three_log_reads_without_a_mode(tmp_path: Path) -> None:
+    """Version 4 added ``reset``'s ``mode``, ``final_view.depth_sha256`` and the ``digest`` record: a
+    version-3 log reads with them None (its server served the ground truth: scoring reads it as training)."""
+    lines = [EpisodeLog.format(r) for r in records()]
+    head = {**json.loads(lines[0]), "format_version": 3}
+    del head["mode"]
+    back = read_episode_log(write(tmp_path / "v3.jsonl", [json.dumps(head) + "\n", *lines[1:]]))
+    assert back[0].format_version == 3 and back[0].mode is None and back[2].final_view.depth_sha256 is None
+
+
+def test_a_signed_log_ends_with_its_digest(tmp_path: Path) -> None:
+    from brave6d.serve import DigestRecord, LogKey, check_log_digest
+
+    key = LogKey.random()
+    log = EpisodeLog(tmp_path / "e1.jsonl", key)
+    for r in records():
+        log.write(r)
+    log.close()
+    back = read_episode_log(tmp_path / "e1.jsonl")
+    assert isinstance(back[-1], DigestRecord) and back[-1].key_id == key.key_id and back[-1].lines == 4
+    assert check_log_digest(tmp_path / "e1.jsonl", key, "e1", back[-1].signed()).status == "verified"
+    assert check_log_digest(tmp_path / "e1.jsonl", LogKey.random(), "e1", back[-1].signed()).status == "unknown key"
+    assert "secret" not in repr(key) and key.secret.hex() not in repr(key)
+    text = (tmp_path / "e1.jsonl").read_text()
+    (tmp_path / "e1.jsonl").write_text(text.replace('"score": 0.25', '"score": 0.26'))
+    with pytest.raises(DataError, match="episode e1: the log does not match the digest"):
+        check_log_digest(tmp_path / "e1.jsonl", key, "e1", back[-1].signed())
+    unsigned = EpisodeLog(tmp_path / "e2.jsonl")  # no key: no digest record
+    unsigned.write(records()[0])
+    unsigned.close()
+    assert [r.event for r in read_episode_log(tmp_path / "e2.jsonl")] == ["reset"]

@@ -176,8 +176,9 @@ def test_agents_ranked_and_aggregated_exactly(tmp_path: Path, models: dict[int, 
     assert [s.im_id for s in board.episodes if s.episode.agent == "alpha"] == [0, 1, 2]  # by start time
     written = write_leaderboard(board, tmp_path / "out")
     assert {p.name for p in written} == {"leaderboard.csv", "leaderboard.json", "episodes.csv", "per_object.csv",
-                                         "per_scene.csv", "per_category.csv"}
-    assert (tmp_path / "out" / "leaderboard.csv").read_text().splitlines()[0].startswith("agent,episodes,submitted")
+                                         "per_scene.csv", "per_category.csv", "not_ranked.csv"}
+    assert (tmp_path / "out" / "leaderboard.csv").read_text().splitlines()[0].startswith("agent,mode,episodes,submitted")
+    assert {a.mode for a in board.agents} == {"training"}  # hand-made logs name no mode: older than the modes
     data = json.loads((tmp_path / "out" / "leaderboard.json").read_text())
     assert data["agents"][0]["agent"] == "alpha" and len(data["episodes"]) == 5
 
@@ -213,7 +214,8 @@ def test_cli_prints_leaderboard_and_writes_files(tmp_path: Path, bundle: Bundle,
     write_episode(logs, "c1", None, [])
     parser = argparse.ArgumentParser()
     cli.configure(parser)
-    args = parser.parse_args([str(logs), "--bundle", str(bundle.root), "--out", str(tmp_path / "lb")])
+    args = parser.parse_args([str(logs), "--bundle", str(bundle.root), "--out", str(tmp_path / "lb"),
+                              "--mode", "training"])  # hand-made logs name no mode: they read as training
     assert cli.run(args) == 0
     out = capsys.readouterr().out
     assert "| agent" in out and "oracle" in out and "unknown" in out and "AR_MSPD" in out
@@ -236,7 +238,7 @@ def test_bundle_found_from_the_logs(tmp_path: Path, bundle: Bundle) -> None:
 @pytest.mark.parametrize("text, match", [
     ('{"event": "move"}\n', "first record must be a 'reset'"),
     ('{"event": "reset", "episode_id": "x"}\n', r":1: 'reset' record does not match .* field 'bundle'"),
-    ('{"event": "reset", "format_version": 4}\n', r":1: episode log format version 4 is not supported"),
+    ('{"event": "reset", "format_version": 5}\n', r":1: episode log format version 5 is not supported"),
     ('{"event": "reset", "format_version": "1"}\n', r":1: episode log format version '1' is not supported"),
     ('{"event": "reset"}\nnot json\n{"event": "close"}\n', r":2: not valid JSON"),
 ])
@@ -278,7 +280,7 @@ def test_scores_are_finite_for_any_rigid_estimate(tmp_path_factory: pytest.TempP
 def served(bundle: Bundle, tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
     log_dir = tmp_path_factory.mktemp("estimates_logs")
     app = create_app(bundle, scene=SceneServer(bundle, device="cpu"), log_dir=log_dir,
-                     limits=ServerLimits(max_episodes=100), warm_up=False)
+                     limits=ServerLimits(max_episodes=100), warm_up=False, mode="training")  # the oracle reads the truth
     with TestClient(app, base_url="http://localhost") as client:
         yield client, log_dir
 
@@ -306,7 +308,7 @@ def test_submission_is_logged_with_the_final_view(served, bundle: Bundle) -> Non
     assert reply["submitted"] and reply["closed"] and reply["estimates"] == 1 and reply["adjustments"] == 1
     assert reply["depth_file"] == f"{eid}_final_depth.png" and reply["agent"] == "oracle-1"
     records = read_episode_log(log_dir / f"{eid}.jsonl")
-    assert [r.event for r in records] == ["reset", "move", "submit", "close"]
+    assert [r.event for r in records] == ["reset", "move", "submit", "close", "digest"]
     sub = records[2]
     assert sub.final_view.width == 160 and sub.final_view.height == 120
     np.testing.assert_allclose(sub.final_view.K, obs["K"])

@@ -154,7 +154,8 @@ def test_a_submitted_episode_is_scored_on_the_reference(bundle: Bundle, perturbe
     """The logged final depth is the reference at the final pose (not the splat the agent saw), the
     log and the score say so, and the exact pose scores 1."""
     server = SceneServer(bundle, device="cpu", renderer=SplatRenderer(perturbed_splat, "cpu"))
-    app = create_app(bundle, scene=server, log_dir=tmp_path, limits=ServerLimits(max_episodes=10), warm_up=False)
+    app = create_app(bundle, scene=server, log_dir=tmp_path, limits=ServerLimits(max_episodes=10), warm_up=False,
+                     mode="training")  # the oracle reads the truth
     with TestClient(app, base_url="http://localhost") as client:
         r = client.post("/episodes", json={"start": {"world_T_cam": ABOVE_RED.tolist()}, "target": "cube_red",
                                            "width": 160, "height": 100, "rgb": "none", "agent": "oracle"})

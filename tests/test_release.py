@@ -316,7 +316,7 @@ def test_serve_every_scene_of_a_release(release: Path, tmp_path: Path, capsys: p
     assert catalog.names() == ["scene_a", "scene_b"] and [s.scene_id for s in catalog.sources] == [1, 2]
     assert {o.category for s in catalog.sources for o in s.objects} == {"toys_office"}
     assert not list(cache.rglob("splat.ply"))  # nothing unpacked before a scene is used
-    manager = EpisodeManager(catalog, tmp_path / "logs")
+    manager = EpisodeManager(catalog, tmp_path / "logs", mode="training")  # the episodes submit the truth
     _episode(manager, "scene_b", 0.0)
     assert [p.parent.name for p in cache.rglob("splat.ply")] == ["000002"]  # only the scene used
     _episode(manager, 1, 0.05)
@@ -326,8 +326,8 @@ def test_serve_every_scene_of_a_release(release: Path, tmp_path: Path, capsys: p
     again.bundle("scene_a")
     assert splat.stat().st_mtime_ns == stamp  # the unpacked bundle is reused, not unpacked again
 
-    assert main(["evaluate", str(tmp_path / "logs"), "--out", str(tmp_path / "board")]) == 0
-    assert "2 episodes on 2 scene(s) (scene_a, scene_b)" in capsys.readouterr().out
+    assert main(["evaluate", str(tmp_path / "logs"), "--out", str(tmp_path / "board"), "--mode", "training"]) == 0
+    assert "2 training episodes ranked on 2 scene(s) (scene_a, scene_b)" in capsys.readouterr().out
     rows = (tmp_path / "board" / "per_scene.csv").read_text().splitlines()
     ar = {r.split(",")[1]: float(r.split(",")[4]) for r in rows[1:]}
     assert set(ar) == {"scene_a", "scene_b"} and ar["scene_b"] > ar["scene_a"]  # the 5 cm miss scores less

@@ -157,7 +157,7 @@ def test_report_from_fabricated_measurements(tmp_path: Path) -> None:
     assert re.search(r"\| 3 +\| 3/4 ", md)  # the failed trial is counted, not hidden
     assert re.search(r"\| 4,000 +\| 16\.0 +\| 64\.0 +\|", md)  # latency = Gaussians x pixels / 1e6
     assert re.search(r"\| 5/5 +\| 10 +\| 20 +\| 20\.80 +\| 0\.5500 ", md)  # views: robot s = 5 * 1.5 + 5 * 2.5
-    assert re.search(r"\| active +\| 2 +\| 0\.700 +\| 5\.0 ", md)
+    assert re.search(r"\| active +\| n/a +\| 2 +\| 0\.700 +\| 5\.0 ", md)  # a measurement without a mode
     assert "holdout PSNR 21.50 dB" in md
     # advice derived from the numbers
     advice = md.split("## How to choose settings")[1]
@@ -375,11 +375,11 @@ def _agent_runs_file(workdir: Path) -> Path:
                 "registration_method": "resting", "registration_score": 0.7}
 
     def agent(name: str, ar: float, adjustments: float, wall: float | None) -> dict:
-        return {"agent": name, "episodes": 2, "submitted": 2, "n_targets": 2, "ar": ar, "ar_vsd": ar, "ar_mssd": ar,
-                "ar_mspd": ar, "mean_adjustments": adjustments, "mean_wall_time_s": wall}
+        return {"agent": name, "mode": "scored", "episodes": 2, "submitted": 2, "n_targets": 2, "ar": ar, "ar_vsd": ar,
+                "ar_mssd": ar, "ar_mspd": ar, "mean_adjustments": adjustments, "mean_wall_time_s": wall}
 
     runs = AgentRuns.model_validate({
-        "bundle": "b", "image_size": [320, 200], "metrics": ["vsd", "mssd", "mspd"],
+        "mode": "scored", "bundle": "b", "image_size": [320, 200], "metrics": ["vsd", "mssd", "mspd"],
         "agents": [agent("active", 0.7, 5.0, 4.0), agent("static", 0.25, 0.0, None)],
         "episodes": [episode("active", "nut", 0.5, 4, 3.0), episode("active", "cup", 1.0, 6, 5.0),
                      episode("static", "nut", 0.2, 0, 1.0), episode("static", "cup", 0.4, 0, None)]})
@@ -397,10 +397,26 @@ def test_baseline_section_shows_the_files_agent_rows(tmp_path: Path) -> None:
     assert rows["active"]["ar"] == 0.7 and rows["active"]["adjustments"] == 5.0  # pooled AR, not the 0.75 mean
     assert rows["static"]["ar"] == 0.25 and rows["static"]["wall_s"] == 1.0  # no mean wall time in the file: episodes'
     section = render_baseline(m, tmp_path / "report")
-    assert re.search(r"\| active +\| 2 +\| 0\.700 +\| 5\.0 +\| 4\.0 +\|", section.body)
-    assert re.search(r"\| static +\| 2 +\| 0\.250 +\| 0\.0 +\| 1\.0 +\|", section.body)
+    assert re.search(r"\| active +\| scored +\| 2 +\| 0\.700 +\| 5\.0 +\| 4\.0 +\|", section.body)
+    assert re.search(r"\| static +\| scored +\| 2 +\| 0\.250 +\| 0\.0 +\| 1\.0 +\|", section.body)
+    assert "ran in **scored** mode" in section.body and m.summary["mode"] == "scored"
     assert "AR is the leaderboard's" in section.body and "1 plotted episode values had no finite" not in section.body
     assert "0.450 more AR (0.250 -> 0.700: 0.090 AR per adjustment)" in section.advice
+
+
+def test_a_version_one_summary_reads_as_training_mode(tmp_path: Path) -> None:
+    """Version 1 predates the modes: its server served the ground truth, and section 5 says so."""
+    path = _agent_runs_file(tmp_path)
+    raw = json.loads(path.read_text())
+    raw["format"] = "brave6d-baseline/1"
+    del raw["mode"]
+    for a in raw["agents"]:
+        del a["mode"]
+    path.write_text(json.dumps(raw))
+    m = collect_baseline(tmp_path, MeasurementStore(tmp_path / "m"))
+    assert m.status == "complete" and m.summary["mode"] == "training"
+    body = render_baseline(m, tmp_path / "report").body
+    assert "ran in **training** mode" in body and re.search(r"\| active +\| training +\|", body)
 
 
 def test_agent_motion_advice_pairs_each_active_agent_with_its_own_static_one() -> None:
@@ -425,7 +441,7 @@ def test_agent_motion_advice_pairs_each_active_agent_with_its_own_static_one() -
 
 
 @pytest.mark.parametrize(("change", "field"), [
-    (lambda raw: raw.update(format="brave6d-baseline/2"), "format"),
+    (lambda raw: raw.update(format="brave6d-baseline/3"), "format"),
     (lambda raw: raw["episodes"][2].pop("adjustments"), "episodes[2].adjustments"),
     (lambda raw: raw["agents"][0].update(ar="n/a"), "agents[0].ar"),
 ])

@@ -2,7 +2,10 @@
 bundle with a collision box, a rospy agent (a separate process) that moves (a refused set_pose and a
 refused cmd_twist into the box included), reads images, camera info and /tf, submits estimates and
 gets the scored result, which must equal what the HTTP path (brave6d.serve.ServerThread + BraveClient)
-returns and scores for the same actions. Skipped, naming the Debian packages, when ROS 1 is absent."""
+returns and scores for the same actions (both in training mode: the agent's estimates are the ground truth
+it reads from /tf). In the default, scored mode an agent that searches everything it received for the
+target's true pose finds nothing; in training mode it finds it. Skipped, naming the Debian packages,
+when ROS 1 is absent."""
 
 from __future__ import annotations
 
@@ -43,7 +46,7 @@ ACTIONS: list[dict[str, Any]] = [
     {"op": "submit", "offset_m": [0.01, 0.0, 0.0]},
 ]
 VOLATILE = {"time", "timings_ms", "episode_id", "elapsed_s", "duration_s", "render_ms_median", "depth_file",
-            "agent", "bundle_root"}
+            "agent", "bundle_root", "digest"}
 
 
 def _via_ros(T: Any) -> np.ndarray:
@@ -97,7 +100,7 @@ def _http_episode(bundle_dir: Path, log_dir: Path, estimates: list[dict[str, Any
     """The same actions over HTTP (poses as the node received them); the steps and the submit reply."""
     from brave6d.serve import BraveClient, ServerThread, create_app
 
-    app = create_app(bundle_dir, device="cpu", log_dir=log_dir)
+    app = create_app(bundle_dir, device="cpu", log_dir=log_dir, mode="training")
     steps = []
     with ServerThread(app) as server, BraveClient(server.url, depth="f32") as client:
         for a in ACTIONS:
@@ -113,14 +116,14 @@ def _http_episode(bundle_dir: Path, log_dir: Path, estimates: list[dict[str, Any
     return {"steps": steps, "submit": out, "episode_id": steps[0].episode_id}
 
 
-def test_ros1_agent_episode_equals_the_http_path(tmp_path: Path) -> None:
-    from brave6d.evaluation.metrics import EvalConfig, models_from_bundle, read_episode, score_episodes
+def _node_and_agent(tmp_path: Path, bundle_dir: Path, actions: list[dict[str, Any]], *flags: str,
+                    then: list[list[str]] = ()) -> dict[str, Any]:  # type: ignore[assignment]
+    """rosmaster, ``brave6d ros1 BUNDLE *flags`` and a rospy agent process playing ``actions``
+    (``brave6d.ros_interface.ros1.client``), then each command of ``then`` (its completed process in the
+    record's ``then``); the agent's record, after a clean shutdown of both."""
     from brave6d.ros_interface.ros1.master import RosMaster
-    from brave6d.serve import load_bundle, make_synthetic_bundle
 
-    bundle_dir = make_synthetic_bundle(tmp_path / "scene", n_gaussians=4000, width=160, height=120)
-    bundle = load_bundle(bundle_dir)
-    (tmp_path / "actions.json").write_text(json.dumps({"actions": ACTIONS, "timeout_s": 120}), encoding="utf-8")
+    (tmp_path / "actions.json").write_text(json.dumps({"actions": actions, "timeout_s": 120}), encoding="utf-8")
     node = agent = None
     with RosMaster(log_file=tmp_path / "rosmaster.log") as master:
         env = {**_env(), **loopback_environment(master.uri)}
@@ -128,7 +131,8 @@ def test_ros1_agent_episode_equals_the_http_path(tmp_path: Path) -> None:
             node = subprocess.Popen(
                 [sys.executable, "-c", "import sys; from brave6d.cli import main; sys.exit(main(sys.argv[1:]))",
                  "ros1", str(bundle_dir), "--master-uri", master.uri, "--device", "cpu",
-                 "--log-dir", str(tmp_path / "ros_episodes"), "--twist-duration", str(TWIST_S), "--agent", "ros1"],
+                 "--log-dir", str(tmp_path / "ros_episodes"), "--twist-duration", str(TWIST_S), "--agent", "ros1",
+                 *flags],
                 env=env, cwd=ROOT, stdout=open(tmp_path / "node.log", "wb"), stderr=subprocess.STDOUT,
                 start_new_session=True)
             agent = subprocess.run([sys.executable, "-m", "brave6d.ros_interface.ros1.client", str(tmp_path / "actions.json"),
@@ -136,13 +140,58 @@ def test_ros1_agent_episode_equals_the_http_path(tmp_path: Path) -> None:
                                    timeout=300, start_new_session=True)
             assert agent.returncode == 0, agent.stdout[-3000:] + agent.stderr[-3000:] + \
                 (tmp_path / "node.log").read_text(errors="replace")[-3000:]
+            after = [subprocess.run([sys.executable, *cmd], env=env, cwd=ROOT, capture_output=True, text=True,
+                                    timeout=300, start_new_session=True) for cmd in then]
         finally:
             node_status = _stop(node) if node is not None else None
     # clean shutdown: the node exited on SIGINT, and nothing of its group or the master's is left
     assert node is not None and node_status == 0, (tmp_path / "node.log").read_text(errors="replace")[-3000:]
     assert not _group_alive(node.pid) and master.proc is None
+    return {**json.loads((tmp_path / "ros_out" / "record.json").read_text(encoding="utf-8")), "then": after}
 
-    record = json.loads((tmp_path / "ros_out" / "record.json").read_text(encoding="utf-8"))
+
+@pytest.mark.parametrize("mode", ["scored", "training"])
+def test_ros1_agent_finds_the_truth_only_in_training_mode(mode: str, tmp_path: Path) -> None:
+    from truth_search import target_truths, truth_found
+
+    from brave6d.serve import load_bundle, make_synthetic_bundle
+
+    bundle_dir = make_synthetic_bundle(tmp_path / "scene", n_gaussians=2000, width=96, height=72)
+    bundle = load_bundle(bundle_dir)
+    actions = [{"op": "reset", "target": "cube_red", "seed": 3}, *ACTIONS[1:4], {"op": "submit"}]
+    example = ["-m", "brave6d.ros_interface.ros1.example_agent", "--target", "cube_red", "--seed", "3", "--max-steps", "2"]
+    record = _node_and_agent(tmp_path, bundle_dir, actions, *(["--training"] if mode == "training" else []),
+                             then=[example, [*example, "--oracle"]])
+    replies = [*record["steps"], record["submit"]]  # status, /tf, camera info, images' headers; the result
+    assert all(s["status"]["mode"] == mode for s in record["steps"]) and record["submit"]["json"]["mode"] == mode
+    cameras = [np.asarray(s["frames"]["brave6d_camera_optical_frame"]) for s in record["steps"]]
+    found = truth_found(replies, target_truths(next(o.world_T_obj for o in bundle.objects if o.name == "cube_red"),
+                                               cameras))
+    if mode == "scored":
+        assert found == [] and all(set(s["frames"]) == {"brave6d_camera_optical_frame"} for s in record["steps"])
+        assert all(s["status"]["objects"] == [] and s["target_frame"] == "" for s in record["steps"])
+        assert record["steps"][0]["status"]["target"]["name"] == "cube_red"
+    else:
+        assert found, "training mode: the search found no true pose (it cannot fail?)"
+    # docs/ROS.md's example agent: its naive estimate plays either mode; its --oracle needs training
+    naive, oracle = record["then"]
+    assert naive.returncode == 0 and "result: AR" in naive.stdout and f"{mode} mode" in naive.stdout, naive.stderr
+    if mode == "scored":
+        assert oracle.returncode == 1 and "start it with --training" in oracle.stderr, oracle.stdout + oracle.stderr
+    else:
+        assert oracle.returncode == 0, oracle.stdout + oracle.stderr
+        ar = float(oracle.stdout.split("result: AR ")[1].split()[0])
+        assert ar >= 0.66, oracle.stdout  # the exact pose: MSSD and MSPD 1 (VSD on this splat's depth may miss)
+
+
+def test_ros1_agent_episode_equals_the_http_path(tmp_path: Path) -> None:
+    from brave6d.evaluation.metrics import EvalConfig, models_from_bundle, read_episode, score_episodes
+    from brave6d.serve import load_bundle, make_synthetic_bundle
+
+    bundle_dir = make_synthetic_bundle(tmp_path / "scene", n_gaussians=4000, width=160, height=120)
+    bundle = load_bundle(bundle_dir)
+    # training mode: the agent submits the ground truth it reads from /tf (shifted by 1 cm)
+    record = _node_and_agent(tmp_path, bundle_dir, ACTIONS, "--training")
     ros_steps = record["steps"]
     http = _http_episode(bundle_dir, tmp_path / "http_episodes", record["estimates"])
     assert len(ros_steps) == len(http["steps"]) == len(ACTIONS) - 1

@@ -36,7 +36,8 @@ from brave6d.serve import EpisodeManager, SceneServer, load_bundle, make_synthet
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01))
 FREE2 = look_at((0.30, 0.10, 0.35), (0.46, 0.0, 0.01))
 IN_POST = look_at((0.30, 0.25, 0.15), (0.46, 0.0, 0.01))  # the synthetic scene's "post" collision box
-VOLATILE = {"time", "timings_ms", "episode_id", "elapsed_s", "duration_s", "render_ms_median", "depth_file"}
+VOLATILE = {"time", "timings_ms", "episode_id", "elapsed_s", "duration_s", "render_ms_median", "depth_file",
+            "digest"}  # the digest covers the episode id
 
 
 @pytest.fixture(scope="module")
@@ -55,8 +56,9 @@ def scorer() -> EpisodeScorer:
     return EpisodeScorer()
 
 
-def _manager(scene: SceneServer, tmp_path: Path, name: str) -> EpisodeManager:
-    return EpisodeManager(scene, tmp_path / name, max_episodes=4)
+def _manager(scene: SceneServer, tmp_path: Path, name: str, mode: str = "training") -> EpisodeManager:
+    """A manager in training mode by default: these tests compare the ground truth the bridge passes on."""
+    return EpisodeManager(scene, tmp_path / name, max_episodes=4, mode=mode)
 
 
 def _stable(value: Any) -> Any:
@@ -162,6 +164,24 @@ def test_ground_truth_frames_and_poses(scene: SceneServer, tmp_path: Path) -> No
     assert [o.name for o in step.objects if o.is_target] == ["cube_blue"]
     assert FRAME_WORLD == "world" and FRAME_CAMERA_OPTICAL == "brave6d_camera_optical_frame"
     bridge.close()
+
+
+@pytest.mark.slow
+def test_a_scored_bridge_passes_on_no_ground_truth(scene: SceneServer, scorer: EpisodeScorer, tmp_path: Path) -> None:
+    """Scored: no objects (so no gt/ frame on /tf), the target named without a frame; the score after submit."""
+    bridge = EpisodeBridge(_manager(scene, tmp_path, "scored", mode="scored"), scorer=scorer)
+    for step in (bridge.reset(target="cube_blue", start=FREE), bridge.set_pose(FREE2)):
+        assert step.objects == () and step.target() is None and step.target_frame == "" and step.mode == "scored"
+        status = step.status()
+        assert status["objects"] == [] and status["mode"] == "scored"
+        assert status["target"] == {"name": "cube_blue", "obj_id": 2, "gt_id": 1, "frame": None}
+    result = bridge.submit([Estimate(2, make_transform(np.eye(3), [0.0, 0.0, 0.3]))])
+    assert result.mode == "scored" and 0.0 <= result.ar <= 1.0
+    assert read_episode(Path(result.log or "")).mode == "scored"
+    trained = EpisodeBridge(_manager(scene, tmp_path, "training"))
+    step = trained.reset(target="cube_blue", start=FREE)
+    assert step.target_frame == "gt/cube_blue_1" and step.status()["target"]["frame"] == "gt/cube_blue_1"
+    trained.close()
 
 
 def test_actions_without_an_open_episode_are_refused_in_one_line() -> None:

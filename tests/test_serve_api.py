@@ -43,7 +43,8 @@ def log_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def client(bundle: Bundle, scene: SceneServer, log_dir: Path) -> TestClient:
-    with TestClient(create_app(bundle, scene=scene, log_dir=log_dir, limits=ServerLimits(max_episodes=1000)),
+    with TestClient(create_app(bundle, scene=scene, log_dir=log_dir, limits=ServerLimits(max_episodes=1000),
+                               mode="training"),
                     base_url=LOCAL) as c:
         yield c
 
@@ -452,9 +453,10 @@ def test_episode_log(client: TestClient, log_dir: Path) -> None:
     client.post(f"/episodes/{eid}/move", json={"linear": [0, 0, 0.02], "duration": 0.5})
     client.post(f"/episodes/{eid}/close")
     records = read_episode_log(log_dir / f"{eid}.jsonl")
-    assert [r.event for r in records] == ["reset", "set_pose", "move", "close"]
-    reset_rec, refused, moved, closed = records
+    assert [r.event for r in records] == ["reset", "set_pose", "move", "close", "digest"]  # digest: the signature
+    reset_rec, refused, moved, closed, _ = records
     assert reset_rec.format_version == LOG_FORMAT_VERSION and reset_rec.scene == "synthetic_tabletop" and reset_rec.scene_id is None
+    assert reset_rec.mode == "training"
     assert reset_rec.target.name == "cube_red" and reset_rec.width == 320
     np.testing.assert_allclose(reset_rec.world_T_cam, FREE)
     assert refused.accepted is False and refused.refusal["box"] == "post"

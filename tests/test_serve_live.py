@@ -43,7 +43,8 @@ def bundle(scene_dir: Path) -> Bundle:
 @pytest.fixture(scope="module")
 def server(bundle: Bundle, tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
     log_dir = tmp_path_factory.mktemp("live_episodes")
-    app = create_app(bundle, device="cpu", log_dir=log_dir, limits=ServerLimits(max_episodes=64))
+    # training mode: these agents read the ground truth (tests/test_scored_mode.py plays the default, scored)
+    app = create_app(bundle, device="cpu", log_dir=log_dir, limits=ServerLimits(max_episodes=64), mode="training")
     with ServerThread(app) as srv:
         srv.log_dir = log_dir
         yield srv
@@ -82,7 +83,8 @@ def test_python_client_episode(server: ServerThread, bundle: Bundle) -> None:
 
 
 def test_gym_style_environment(server: ServerThread) -> None:
-    env = BraveEnv(server.url, target="cube_red", width=160, height=120, max_steps=4, step_duration=0.5)
+    env = BraveEnv(server.url, target="cube_red", width=160, height=120, max_steps=4, step_duration=0.5,
+                   mode="training")
     obs, info = env.reset(seed=3)
     assert set(obs) == {"rgb", "depth", "K", "world_T_cam"}
     assert isinstance(env, gymnasium.Env) and isinstance(env.observation_space, gymnasium.spaces.Dict)
@@ -209,7 +211,8 @@ def test_demo_stages_run_one_agent_episode(scene_dir: Path, tmp_path: Path) -> N
     logs = list((tmp_path / "episodes").glob("*.jsonl"))
     assert len(logs) == 1
     events = [r.event for r in read_episode_log(logs[0])]
-    assert events[0] == "reset" and events[-1] == "close" and "set_pose" in events
+    assert events[0] == "reset" and events[-2:] == ["close", "digest"] and "set_pose" in events
+    assert served.figures["mode"] == "training"  # the scripted agent steers with the ground truth
 
 
 def test_scripted_agent_approaches_the_target(server: ServerThread) -> None:

@@ -38,8 +38,8 @@ def scene(bundle: Bundle) -> SceneServer:
     return SceneServer(bundle, "cpu")
 
 
-def make_vector(scene: SceneServer, n: int = N) -> BraveVectorEnv:
-    return BraveVectorEnv(scene, n, target="cube_red", width=W, height=H, max_steps=MAX_STEPS)
+def make_vector(scene: SceneServer, n: int = N, mode: str = "scored") -> BraveVectorEnv:
+    return BraveVectorEnv(scene, n, target="cube_red", width=W, height=H, max_steps=MAX_STEPS, mode=mode)
 
 
 def assert_same_obs(batched: dict[str, np.ndarray], i: int, single: dict[str, np.ndarray]) -> None:
@@ -48,10 +48,12 @@ def assert_same_obs(batched: dict[str, np.ndarray], i: int, single: dict[str, np
 
 
 def test_vector_env_equals_independent_single_envs(bundle: Bundle, scene: SceneServer) -> None:
-    app = create_app(bundle, device="cpu", scene=scene, warm_up=False)
-    vec = make_vector(scene)
+    # training mode: the rewards (the target's visible area) are compared too; scored, they are all 0
+    app = create_app(bundle, device="cpu", scene=scene, warm_up=False, mode="training")
+    vec = make_vector(scene, mode="training")
     with ServerThread(app) as server:
-        singles = [BraveEnv(server.url, target="cube_red", width=W, height=H, max_steps=MAX_STEPS) for _ in range(N)]
+        singles = [BraveEnv(server.url, target="cube_red", width=W, height=H, max_steps=MAX_STEPS, mode="training")
+                   for _ in range(N)]
         obs, _ = vec.reset(seed=SEED)
         for i, env in enumerate(singles):
             assert_same_obs(obs, i, env.reset(seed=SEED + i)[0])

@@ -113,7 +113,7 @@ def test_viewer_renders_moves_and_shows_refusal(synthetic_bundle: Path, tmp_path
     from brave6d.serve.app import create_app
     from brave6d.serve.runner import ServerThread
 
-    app = create_app(synthetic_bundle, device="cpu", log_dir=tmp_path / "episodes")
+    app = create_app(synthetic_bundle, device="cpu", log_dir=tmp_path / "episodes", mode="training")  # draws the truth
     with ServerThread(app) as server:
         browser.call("Page.enable")
         browser.call("Page.navigate", url=f"{server.url}/viewer/?seed=5&width=320&height=240&target=0")
@@ -173,6 +173,35 @@ def test_viewer_renders_moves_and_shows_refusal(synthetic_bundle: Path, tmp_path
         out = Path(os.environ.get("BRAVE6D_VIEWER_SCREENSHOT", tmp_path / "viewer.png"))
         out.write_bytes(base64.b64decode(shot["data"]))
         assert out.stat().st_size > 1000
+
+
+def test_viewer_of_a_scored_server_shows_images_only(synthetic_bundle: Path, tmp_path: Path,
+                                                    browser: DevTools) -> None:
+    """A scored server (the default) sends no object poses: the viewer draws the render without axes or
+    object rows, says the mode, and still orbits (around the bundle's start target) and moves."""
+    from brave6d.serve.app import create_app
+    from brave6d.serve.runner import ServerThread
+
+    with ServerThread(create_app(synthetic_bundle, device="cpu", log_dir=tmp_path / "episodes")) as server:
+        browser.call("Page.enable")
+        browser.call("Page.navigate", url=f"{server.url}/viewer/?seed=5&width=320&height=240&target=0")
+        browser.wait_for("document.body.dataset.state === 'ready' && Number(document.body.dataset.frames) >= 1")
+        assert browser.eval("document.body.dataset.serverMode") == "scored"
+        assert "scored mode" in browser.eval("document.getElementById('scene').textContent")
+        assert browser.eval("window.braveViewer.labels.length") == 0
+        assert browser.eval("document.querySelectorAll('#objects tbody tr').length") == 0
+        episode = browser.eval("window.braveViewer.episodeId")
+        pose0 = httpx.get(f"{server.url}/episodes/{episode}").json()["world_T_cam"]
+        box = browser.eval("(() => { const r = document.getElementById('view').getBoundingClientRect();"
+                           " return [r.left, r.top]; })()")
+        x, y = box[0] + 160, box[1] + 120
+        browser.call("Input.dispatchMouseEvent", type="mousePressed", x=x, y=y, button="left", buttons=1, clickCount=1)
+        for k in range(1, 6):
+            browser.call("Input.dispatchMouseEvent", type="mouseMoved", x=x + 8 * k, y=y, button="left", buttons=1)
+        browser.call("Input.dispatchMouseEvent", type="mouseReleased", x=x + 40, y=y, button="left", buttons=0,
+                     clickCount=1)
+        browser.wait_for("Number(document.body.dataset.frames) >= 2 && window.braveViewer.idle")
+        assert httpx.get(f"{server.url}/episodes/{episode}").json()["world_T_cam"] != pose0
 
 
 def test_viewer_free_view_of_a_bundle_without_objects(tmp_path: Path, browser: DevTools) -> None:

@@ -74,7 +74,9 @@ def bundle_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="session")
 def node(bundle_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[NodeProcess]:
-    proc = NodeProcess(bundle_dir, tmp_path_factory.mktemp("ros2_logs"))
+    """The node in training mode: these tests compare the ground truth it publishes (test_rclpy_scored.py
+    runs one in the default, scored mode)."""
+    proc = NodeProcess(bundle_dir, tmp_path_factory.mktemp("ros2_logs"), "--training")
     try:
         proc.wait_ready()
         yield proc

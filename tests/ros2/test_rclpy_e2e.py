@@ -44,7 +44,8 @@ def over_ros(T: np.ndarray) -> np.ndarray:
 
 def http_episode(bundle_dir: Path, log_dir: Path, estimates_from: Any) -> tuple[list[Any], dict, Path]:
     """The same actions through the HTTP API; (steps, submit reply, log path)."""
-    app = create_app(load_bundle(bundle_dir), device="cpu", log_dir=log_dir, limits=ServerLimits(max_episodes=4))
+    app = create_app(load_bundle(bundle_dir), device="cpu", log_dir=log_dir, limits=ServerLimits(max_episodes=4),
+                     mode="training")
     with TestClient(app, base_url="http://localhost") as client:
         r = client.post("/episodes", json={"target": "cube_red", "start": {"world_T_cam": over_ros(FREE).tolist()},
                                            "agent": "ros-test"})

@@ -270,19 +270,24 @@ def read_json_as(path: Path | str, parse: Callable[[Any], T]) -> T:
 
 def write_png(path: Path | str, image: NDArray[Any]) -> Path:
     """Write an 8-bit RGB (H, W, 3), 8-bit grey or 16-bit grey (H, W) image as PNG, atomically."""
+    return atomic_write_bytes(path, png_bytes(image, str(path)))
+
+
+def png_bytes(image: NDArray[Any], where: str = "image") -> bytes:
+    """The PNG file :func:`write_png` writes for ``image`` (errors name ``where``)."""
     import cv2
 
     arr = np.ascontiguousarray(image)
     if arr.dtype not in (np.uint8, np.uint16):
-        raise DataError(f"{path}: PNG images must be uint8 or uint16, got {arr.dtype}")
+        raise DataError(f"{where}: PNG images must be uint8 or uint16, got {arr.dtype}")
     if arr.ndim == 3 and arr.shape[2] == 3:
         arr = arr[:, :, ::-1]  # RGB -> BGR for OpenCV
     elif arr.ndim != 2:
-        raise DataError(f"{path}: expected (H, W) or (H, W, 3) image, got shape {arr.shape}")
+        raise DataError(f"{where}: expected (H, W) or (H, W, 3) image, got shape {arr.shape}")
     ok, buf = cv2.imencode(".png", arr)
     if not ok:
-        raise DataError(f"{path}: PNG encoding failed")
-    return atomic_write_bytes(path, buf.tobytes())
+        raise DataError(f"{where}: PNG encoding failed")
+    return buf.tobytes()
 
 
 def read_png(path: Path | str, expect: str = "any", size: tuple[int, int] | None = None,

@@ -12,6 +12,13 @@ The object models (and categories) come from the bundles: ``--bundle``, else eve
 server recorded in the logs (one per scene of a served release), else a ``bundle`` folder beside
 the log folder (the server's default layout). Besides the agents' table it prints and writes each
 agent's AR per scene (``per_scene.csv``) and per object category (``per_category.csv``).
+
+Ranking (docs/SECURITY.md): by default (``--mode scored``) only episodes of a scored server whose
+keyed digest verifies with this machine's key (``--log-key``, else ``$BRAVE6D_LOG_KEY``, else
+``~/.config/brave6d/episode-log.key``) are ranked; training-mode episodes, unsigned logs and logs
+signed with another key are listed apart, each named with why (``not_ranked.csv``). A log edited
+after the server wrote it (an estimate, a pose, a count, its depth image) is refused, naming the
+episode. ``--mode training`` ranks training-mode episodes instead (a development board).
 """
 
 from __future__ import annotations
@@ -42,6 +49,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="score every visible instance of the final views, not only each episode's target")
     parser.add_argument("--metrics", nargs="+", choices=["vsd", "mssd", "mspd"], default=["vsd", "mssd", "mspd"],
                         help="metrics to evaluate (default: all three, BOP's AR)")
+    parser.add_argument("--mode", choices=["scored", "training"], default="scored",
+                        help="which episodes are ranked: 'scored' (default: episodes of a scored server whose "
+                             "digest verifies) or 'training' (episodes of a --training server: a development "
+                             "board); the others are listed apart, named")
+    parser.add_argument("--log-key", type=Path, default=None, metavar="FILE",
+                        help="the server's log key, to check the episodes' digests (default: $BRAVE6D_LOG_KEY, "
+                             "else ~/.config/brave6d/episode-log.key when it exists)")
 
 
 def resolve_bundles(episodes: Sequence[EpisodeRecord], log_paths: Sequence[Path], explicit: Path | None) -> list[Path]:
@@ -96,28 +110,37 @@ def default_out(log_paths: Sequence[Path]) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from brave6d.evaluation.metrics import EvalConfig, read_episodes, score_episodes, write_leaderboard
-    from brave6d.serve import load_bundle
+    from brave6d.evaluation.metrics import EvalConfig, rank_episodes, read_episodes, score_episodes, write_leaderboard
+    from brave6d.serve import evaluation_log_key, load_bundle
 
     paths = list(args.episode_logs)
     if any(p.suffix.lower() == ".csv" for p in paths):
         return score_csvs(paths, args.split, args.models)
-    episodes = read_episodes(paths)
+    episodes = read_episodes(paths, evaluation_log_key(args.log_key))  # an edited log is refused here
+    ranked, apart = rank_episodes(episodes, args.mode)
+    if not ranked:
+        raise DataError(f"none of the {len(episodes)} episodes can be ranked on a {args.mode} leaderboard: "
+                        + "; ".join(f"{n.episode.episode_id} ({n.episode.agent}): {n.reason}" for n in apart[:5])
+                        + (f"; and {len(apart) - 5} more" if len(apart) > 5 else "")
+                        + ("" if args.mode == "training" else " (score training runs with --mode training)"))
     bundles = [load_bundle(p) for p in resolve_bundles(episodes, paths, args.bundle)]
     if args.bundle is not None:
         check_bundle_name(episodes, bundles[0].name)
     models, categories = library_of(bundles)
     board = score_episodes(episodes, models, EvalConfig(metrics=tuple(args.metrics)), all_objects=args.all_objects,
-                           categories=categories)
+                           categories=categories, mode=args.mode)
     out = args.out if args.out is not None else default_out(paths)
     written = write_leaderboard(board, out)
     print(board.table())
     for table in (board.group_table("scene"), board.group_table("category"), board.object_table()):
         print()
         print(table)
-    scenes = sorted({e.scene for e in episodes})
-    print(f"\n{len(episodes)} episodes on {len(scenes)} scene(s) ({', '.join(scenes)}); written: "
-          + ", ".join(str(p) for p in written))
+    if board.not_ranked:
+        print(f"\nNot ranked on this {args.mode} leaderboard ({len(board.not_ranked)} episodes, not_ranked.csv):")
+        print(board.not_ranked_table())
+    scenes = sorted({e.scene for e in ranked})
+    print(f"\n{len(ranked)} {args.mode} episodes ranked on {len(scenes)} scene(s) ({', '.join(scenes)}), "
+          f"{len(apart)} listed apart; written: " + ", ".join(str(p) for p in written))
     return 0
 
 

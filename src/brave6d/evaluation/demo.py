@@ -1,7 +1,8 @@
 """The demo's evaluation stage: both baselines on every demo object, scored like any agent.
 
 ``stage_evaluate`` serves the scene's bundle on a loopback port in a background thread (as the
-serve stage does), runs every registered agent (:data:`brave6d.evaluation.agents.POLICIES`: the static and
+serve stage does), in scored mode (no ground truth reaches the agents; every log signed), runs every
+registered agent (:data:`brave6d.evaluation.agents.POLICIES`: the static and
 the active baseline) on every object instance, :data:`EPISODES_PER_OBJECT` episodes each (all
 agents from the same seeded starts), scores the episode logs
 with :mod:`brave6d.evaluation.metrics.episodes` and writes, under ``<workdir>/evaluation/``:
@@ -64,10 +65,11 @@ def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: i
     """Serve ``bundle_dir`` on loopback, run the registered ``agents`` (default: every agent that can
     run, in registry order: the learned ones only with ``learned_model``) on every object,
     ``episodes_per_object`` times from seeded random starts (seed ``seed + gt_id + 1000 r`` for
-    repeat ``r``: every agent starts alike), score the logs; writes nothing but the logs."""
+    repeat ``r``: every agent starts alike), score the logs; writes nothing but the logs. The server
+    runs in scored mode and the leaderboard ranks the scored episodes whose digest verifies."""
     from brave6d.evaluation.agents import LEARNED_AGENTS, AgentSetup, make_agent, run_episode, runnable_agents
     from brave6d.evaluation.metrics import models_from_bundle, read_episodes, score_episodes
-    from brave6d.serve import BraveClient, ServerThread, create_app, load_bundle
+    from brave6d.serve import SCORED, BraveClient, ServerThread, create_app, load_bundle
 
     bundle = load_bundle(bundle_dir)
     if not bundle.objects:
@@ -75,7 +77,7 @@ def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: i
     logs = out_dir / "episodes"
     clear_logs(logs)
     height = max(16, round(width * bundle.render.height / bundle.render.width))
-    app = create_app(bundle, device=device, log_dir=logs)
+    app = create_app(bundle, device=device, log_dir=logs, mode=SCORED)
     outcomes = []
     with ServerThread(app) as server, BraveClient(server.url) as client:
         setup = AgentSetup(learned_model)
@@ -89,7 +91,10 @@ def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: i
                     outcomes.append(run_episode(client, agent, obj.gt_id, seed=seed + obj.gt_id + 1000 * repeat,
                                                 width=w, height=h))
     episodes = read_episodes([logs])
-    board = score_episodes(episodes, models_from_bundle(bundle, {o.obj_id for o in bundle.objects}))
+    board = score_episodes(episodes, models_from_bundle(bundle, {o.obj_id for o in bundle.objects}), mode=SCORED)
+    if board.not_ranked:  # every episode here ran scored on this server: one not ranked is a bug
+        raise BraveError(f"{len(board.not_ranked)} of the agents' episodes cannot be ranked: "
+                         + "; ".join(f"{n.episode.episode_id}: {n.reason}" for n in board.not_ranked[:3]))
     return BaselineRun(outcomes, board, width, height, bundle.name)
 
 
@@ -148,6 +153,7 @@ def stage_evaluate(ctx: RunContext) -> StageResult:
     active, static = scores.get(ACTIVE_AGENT), scores.get(STATIC_AGENT)
     l_active, l_static = scores.get(LEARNED_ACTIVE_AGENT), scores.get(LEARNED_STATIC_AGENT)
     return StageResult("evaluate", figures={
+        "mode": run.board.mode,
         "episodes": len(run.board.episodes),
         "AR active": active.ar if active else "n/a",
         "AR static": static.ar if static else "n/a",

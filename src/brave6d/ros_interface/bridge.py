@@ -11,6 +11,10 @@ Each step gets one stamp (``stamp_ns``, wall-clock nanoseconds taken when the st
 ready); every message built from that step carries it. A refused action answers the previous
 view (the camera did not move) under a new stamp, so every action produces exactly one
 observation. Calls are serialised by a lock (ROS callbacks run on several threads).
+
+The manager's mode decides what a step holds: in ``scored`` mode its results carry no ground truth,
+so a :class:`BridgeStep` has no objects (no ``gt/`` frame is published, the status lists none) and
+only the target's identity (``target_ref``); in ``training`` mode every object's truth.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -34,6 +38,10 @@ from brave6d.ros_interface.frames import (
     pose_to_matrix,
 )
 from brave6d.ros_interface.scoring import EpisodeScorer
+from brave6d.serve import SCORED
+
+if TYPE_CHECKING:
+    from brave6d.serve import TargetRef
 
 __all__ = [
     "EpisodeBridge", "BridgeStep", "GroundTruthObject", "Estimate", "EpisodeResult", "EpisodeScorer",
@@ -86,18 +94,27 @@ class BridgeStep:
     action: str = "reset"
     refusal_detail: dict[str, Any] | None = None  # serve's Refusal.to_json(): reason, message, box
     move: dict[str, Any] | None = None  # for move: fraction of the duration travelled, substeps, path_m
+    target_ref: TargetRef | None = None  # the target's ids and name, in either mode
+    mode: str = SCORED
 
     def target(self) -> GroundTruthObject | None:
+        """The target's ground truth (training mode; None in scored mode)."""
         return next((o for o in self.objects if o.is_target), None)
 
-    def status(self) -> dict[str, Any]:
-        """The JSON status both nodes publish on ``~status`` (no images)."""
+    @property
+    def target_frame(self) -> str:
+        """The target's ``gt/`` tf frame when it is published (training mode), else ""."""
         tgt = self.target()
-        return {"episode_id": self.episode_id, "action": self.action, "step": self.step,
+        return tgt.frame if tgt is not None else ""
+
+    def status(self) -> dict[str, Any]:
+        """The JSON status both nodes publish on ``~status`` (no images; no ground truth when scored)."""
+        ref = self.target_ref
+        return {"episode_id": self.episode_id, "action": self.action, "step": self.step, "mode": self.mode,
                 "accepted": self.accepted, "collided": self.collided, "refusal": self.refusal_detail,
                 "adjustments": self.adjustments, "stamp_ns": self.stamp_ns, "move": self.move,
-                "target": None if tgt is None else {"name": tgt.name, "obj_id": tgt.obj_id, "gt_id": tgt.gt_id,
-                                                     "frame": tgt.frame},
+                "target": None if ref is None else {"name": ref.name, "obj_id": ref.obj_id, "gt_id": ref.gt_id,
+                                                     "frame": self.target_frame or None},
                 "objects": [{"name": o.name, "obj_id": o.obj_id, "gt_id": o.gt_id, "frame": o.frame,
                              "is_target": o.is_target, "visib_fract": o.visib_fract} for o in self.objects],
                 "world_T_cam": self.world_T_cam.tolist()}
@@ -131,11 +148,12 @@ class EpisodeResult:
     refusals: int
     submitted: int  # number of estimates handed in
     log: str | None = field(default=None)
+    mode: str = SCORED
 
     def to_json(self) -> dict[str, Any]:
         return {"episode_id": self.episode_id, "ar": self.ar, "ar_vsd": self.ar_vsd, "ar_mssd": self.ar_mssd,
                 "ar_mspd": self.ar_mspd, "adjustments": self.adjustments, "steps": self.steps,
-                "refusals": self.refusals, "submitted": self.submitted, "log": self.log}
+                "refusals": self.refusals, "submitted": self.submitted, "log": self.log, "mode": self.mode}
 
 
 def _stamp() -> int:
@@ -188,7 +206,8 @@ class EpisodeBridge:
             adjustments=int(result.adjustments), stamp_ns=_stamp(), rgb=obs.rgb, depth_m=obs.depth,
             K=np.asarray(obs.camera.K, dtype=np.float64), width=int(obs.camera.width),
             height=int(obs.camera.height), world_T_cam=T, objects=objects, action=result.action,
-            refusal_detail=None if ref is None else ref.to_json(), move=result.move)
+            refusal_detail=None if ref is None else ref.to_json(), move=result.move, target_ref=result.target,
+            mode=result.mode)
 
     # ------------------------------------------------------------------ actions
     def reset(self, scene: str | int | None = None, target: int | str | None = None, seed: int | None = None,
@@ -238,7 +257,7 @@ class EpisodeBridge:
             score = self.scorer.score(log_path, self.manager.scenes.bundle(scene_name))
             return EpisodeResult(eid, score.ar, score.ar_vsd, score.ar_mssd, score.ar_mspd,
                                  int(out["adjustments"]), int(out["steps"]), int(out["refusals"]),
-                                 int(out["estimates"]), str(log_path))
+                                 int(out["estimates"]), str(log_path), str(out.get("mode", self.manager.mode)))
 
     def close(self) -> dict[str, Any]:
         """Close the open episode without a submission (nothing to do when none is open)."""

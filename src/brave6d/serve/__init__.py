@@ -33,7 +33,13 @@ a name is used). Other stages import only these names:
 - the reference geometry scores are measured against (:mod:`brave6d.serve.reference`):
   ``build_scene_reference``, ``ReferenceSettings``, ``ReferenceGeometry`` (depth by ray casting),
   ``read_reference``, ``ReferenceGeometryError``, ``REFERENCE`` (its file name in a bundle);
-- test scenes: ``make_synthetic_bundle``, ``make_synthetic_scene``.
+- test scenes: ``make_synthetic_bundle``, ``make_synthetic_scene``;
+- the modes (:mod:`brave6d.serve.modes`): ``SCORED`` (the default: no ground truth reaches an agent),
+  ``TRAINING``, ``MODES``, ``check_mode``; the serving commands' flags ``add_mode_flags`` (``--training``,
+  ``--log-key``) and ``mode_of``;
+- the episode logs' keyed digest (:mod:`brave6d.serve.log_digest`): ``LogKey``, ``server_log_key`` (made on
+  first use), ``evaluation_log_key``, ``read_log_key``, ``default_log_key_path``, ``LOG_KEY_ENV``,
+  ``check_log_digest``, ``DigestCheck``, and the log's ``DigestRecord``.
 
 The modules behind them, one job each: ``bundle`` (export + verified load), ``limits`` (image-size
 cap, pose and twist bounds, the server's limits and the bounds of its flags), ``connections``
@@ -43,7 +49,8 @@ cap, pose and twist bounds, the server's limits and the bounds of its flags), ``
 (runs the episodes of a catalog), ``schema`` (wire
 models), ``episode_log`` (log schema, writer, reader), ``app`` (FastAPI: REST + WebSocket +
 viewer), ``client``, ``gym_env``, ``runner`` (uvicorn), ``cli`` and ``export_cli`` (``brave6d
-serve``/``export``), ``demo``, ``synthetic``; ``serve/viewer/`` is the static browser viewer
+serve``/``export``), ``demo``, ``synthetic``, ``modes`` (what each mode shows), ``log_digest`` (the
+logs' keyed digest); ``serve/viewer/`` is the static browser viewer
 served at ``/viewer/``.
 """
 
@@ -74,6 +81,11 @@ _LAZY = {
     "build_scene_reference": ".reference", "ReferenceSettings": ".reference", "ReferenceGeometry": ".reference",
     "ReferenceGeometryError": ".reference", "read_reference": ".reference", "REFERENCE": ".bundle",
     "make_synthetic_bundle": ".toy_scene", "make_synthetic_scene": ".toy_scene",
+    "SCORED": ".modes", "TRAINING": ".modes", "MODES": ".modes", "check_mode": ".modes",
+    "add_mode_flags": ".cli", "mode_of": ".cli",
+    "LogKey": ".log_digest", "server_log_key": ".log_digest", "evaluation_log_key": ".log_digest",
+    "read_log_key": ".log_digest", "default_log_key_path": ".log_digest", "LOG_KEY_ENV": ".log_digest",
+    "check_log_digest": ".log_digest", "DigestCheck": ".log_digest", "DigestRecord": ".episode_log",
 }
 
 __all__ = sorted(_LAZY)

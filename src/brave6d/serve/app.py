@@ -53,6 +53,11 @@ server keeps serving. A step (``set_pose``/``move``) is one transaction: its obs
 counters and log line are computed first and committed together, so a failed request changes
 neither the episode nor its log.
 
+Modes (:mod:`brave6d.serve.modes`): in ``scored`` mode (the default) no reply carries an object's
+pose, box, visible fraction or placement (observations list no objects, ``GET /bundle`` no
+``world_T_obj``, the ``.npz`` no ``cam_T_obj``); ``training`` serves them all. Every step reply,
+``GET /health`` and ``GET /bundle`` say which mode runs.
+
 Access: the ``Host`` header must name 127.0.0.1, localhost or [::1] (any port) or one of
 ``allowed_hosts`` (else 400: a DNS-rebinding page cannot reach the API); with ``token``, every
 request but the viewer's static files and the docs needs ``Authorization: Bearer <token>`` or
@@ -103,6 +108,8 @@ from brave6d.serve.limits import (
     ServerLimits,
 )
 from brave6d.serve.catalog import SceneCatalog, warm_scene
+from brave6d.serve.log_digest import LogKey
+from brave6d.serve.modes import SCORED, public_bundle
 from brave6d.serve.episode_manager import EpisodeManager
 from brave6d.serve.episodes import (
     ActionResult,
@@ -294,14 +301,14 @@ def encode_observation(obs: RenderedView, rgb: str = "png", depth: str = "f32") 
 def step_json(result: ActionResult, opts: ObsOptions, t_start: float) -> dict[str, Any]:
     """The JSON body of a step reply (a :class:`brave6d.serve.schema.StepMessage`)."""
     obs, enc_ms = encode_observation(result.observation, opts.rgb, opts.depth)
-    target = result.observation.target()
+    target = result.target
     timings = {**result.timings_ms, "encode": enc_ms, "total": (time.perf_counter() - t_start) * 1000.0}
     return StepMessage(
         episode_id=result.episode_id, action=result.action, step=result.step, accepted=result.accepted,
         collided=result.collided, refusal=result.refusal.to_json() if result.refusal else None,
         adjustments=result.adjustments, move=result.move,
         target={"gt_id": target.gt_id, "obj_id": target.obj_id, "name": target.name} if target else {},
-        observation=obs, timings_ms=timings).model_dump()
+        observation=obs, timings_ms=timings, mode=result.mode).model_dump()
 
 
 def render_json(view: RenderedView, scene: str, opts: ObsOptions, t_start: float) -> dict[str, Any]:
@@ -557,13 +564,14 @@ class TokenMiddleware:
 def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "auto", log_dir: Path | str | None = None,
                limits: ServerLimits = ServerLimits(), scene: SceneServer | None = None,
                verify: bool = True, warm_up: bool = True, allowed_hosts: Sequence[str] = (),
-               token: str | None = None) -> FastAPI:
+               token: str | None = None, mode: str = SCORED, log_key: LogKey | str | None = "default") -> FastAPI:
     """The FastAPI app serving ``bundle``: a loaded :class:`Bundle` or a bundle folder (verified,
     loaded now), or a :class:`brave6d.serve.catalog.SceneCatalog` of several scenes (loaded on first use).
 
     Requests must name one of :data:`LOOPBACK_HOSTS` or ``allowed_hosts`` (``"*"``: any;
     ``"*.example.org"``: its subdomains) in their ``Host`` header, else 400; with ``token``,
     every request outside :data:`PUBLIC_PATHS` must carry it (see :class:`TokenMiddleware`).
+    ``mode`` (``"scored"`` or ``"training"``) and ``log_key`` are the :class:`EpisodeManager`'s.
     """
     if token is not None:
         check_token(token)
@@ -578,7 +586,8 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
         catalog = SceneCatalog.of_scene(scene)
     single = catalog.sources[0].name if len(catalog.sources) == 1 else None
     manager = EpisodeManager(catalog, log_dir, max_episodes=limits.max_episodes,
-                             idle_timeout_s=limits.idle_timeout_s, lock_timeout_s=limits.request_timeout_s)
+                             idle_timeout_s=limits.idle_timeout_s, lock_timeout_s=limits.request_timeout_s,
+                             mode=mode, log_key=log_key)
     executor = ThreadPoolExecutor(max_workers=limits.workers, thread_name_prefix="brave6d-serve")
     npz_files = NpzFiles()
 
@@ -592,9 +601,9 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
         lifespan=lifespan,
         title="BRAVE-6D render server",
         version="1",
-        description="Move a camera through a trained 3D Gaussian Splatting scene and get RGB-D views with "
-                    "ground-truth object poses. World = robot base frame, metres, OpenCV camera axes; "
-                    "errors are {error, field, status}. See serve/app.py.",
+        description="Move a camera through a trained 3D Gaussian Splatting scene and get RGB-D views (with "
+                    "ground-truth object poses in training mode only). World = robot base frame, metres, OpenCV "
+                    "camera axes; errors are {error, field, status}. See serve/app.py.",
     )
     app.router.route_class = _JsonRoute  # every route below reads its body through the one JSON reader
     app.state.manager = manager
@@ -674,7 +683,7 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
     @app.get("/health", summary="liveness")
     def health() -> dict[str, Any]:
         loaded = catalog.loaded_scenes()
-        return {"status": "ok", "bundle": single, "scenes": len(catalog.sources),
+        return {"status": "ok", "mode": manager.mode, "bundle": single, "scenes": len(catalog.sources),
                 "loaded_scenes": catalog.loaded_names(), "device": catalog.device_name(),
                 "gaussians": sum(s.renderer.num_gaussians for s in loaded), "episodes_open": manager.open_count(),
                 "renders": sum(s.renderer.renders for s in loaded)}
@@ -688,7 +697,8 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
     async def get_bundle(scene: str | None = None) -> dict[str, Any]:
         loop = asyncio.get_running_loop()
         b = await loop.run_in_executor(executor, catalog.bundle, scene)  # a release's scene may be unpacked first
-        return {**b.summary(), "scene_id": catalog.source(scene).scene_id, "device": catalog.device_name(),
+        return {**public_bundle(b.summary(), manager.mode), "scene_id": catalog.source(scene).scene_id,
+                "device": catalog.device_name(),
                 "limits": {"min_size": MIN_SIZE, "max_width": MAX_WIDTH, "max_height": MAX_HEIGHT,
                            "max_move_duration_s": MAX_MOVE_DURATION_S, "max_coord_m": MAX_COORD_M,
                            "max_linear_speed_m_s": MAX_LINEAR_SPEED_M_S,
@@ -763,9 +773,9 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
              response_class=Response)
     def get_npz(episode_id: str) -> Response:
         ep = manager.get(episode_id)
-        if ep.last is None:
+        if ep.shown is None:
             return _error(409, "no observation yet")
-        data = npz_files.get(ep.last)
+        data = npz_files.get(ep.shown)  # scored: the view without its objects
         return StreamingResponse(npz_reply_chunks(data), media_type="application/octet-stream",
                                  headers={"Content-Disposition": f'attachment; filename="{episode_id}.npz"',
                                           "Content-Length": str(len(data))})

@@ -19,6 +19,12 @@ holds at most ``--max-client-connections`` (64) of the server's 256 connections;
 not read its replies is cut after ``--write-timeout`` (20 s) or ``--max-unsent-bytes``. Every number is
 bounded when the flags are parsed (:data:`brave6d.serve.limits.BOUNDS`): a value outside (NaN, inf,
 negative, too large) ends the command with a line naming the flag, exit status 2.
+
+Modes (:mod:`brave6d.serve.modes`): the server runs ``scored`` (no object pose, box, visible fraction
+or placement reaches a client; the logs record the mode) unless ``--training`` asks for the paper's
+interface with the ground truth. Every episode log is signed with the key in ``--log-key`` (default
+``$BRAVE6D_LOG_KEY``, else ``~/.config/brave6d/episode-log.key``, made on first use), which
+``brave6d evaluate`` checks (:mod:`brave6d.serve.log_digest`).
 """
 
 from __future__ import annotations
@@ -75,6 +81,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="rasterizer device (auto: cuda when torch sees a GPU)")
     parser.add_argument("--log-dir", type=Path, default=None,
                         help="where episode logs (JSONL) go (default: 'episodes' beside the bundle)")
+    add_mode_flags(parser)
     d = ServerLimits()
     parser.add_argument("--max-episodes", type=limit_arg("max_episodes"), default=d.max_episodes,
                         help=f"open episodes at most (default {d.max_episodes})")
@@ -103,6 +110,25 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="reply bytes one connection may have waiting in the server; more and it is closed "
                              f"(default {d.max_unsent_bytes}; a connection's next request is read once its "
                              "reply has gone)")
+
+
+def add_mode_flags(parser: argparse.ArgumentParser) -> None:
+    """``--training`` and ``--log-key``: the flags every serving command (HTTP, ROS 1, ROS 2) shares."""
+    parser.add_argument("--training", action="store_true",
+                        help="training mode: serve every object's ground truth (poses, boxes, visible fractions, "
+                             "placements) as the paper's interface does; default: scored mode, where none of it "
+                             "reaches an agent and the episodes can be ranked (docs/SECURITY.md)")
+    parser.add_argument("--log-key", type=Path, default=None, metavar="FILE",
+                        help="the secret key the episode logs are signed with (default: $BRAVE6D_LOG_KEY, else "
+                             "~/.config/brave6d/episode-log.key, made on first use); 'brave6d evaluate' needs "
+                             "the same key to rank scored episodes")
+
+
+def mode_of(args: argparse.Namespace) -> str:
+    """The mode the serving flags ask for."""
+    from brave6d.serve.modes import SCORED, TRAINING
+
+    return TRAINING if getattr(args, "training", False) else SCORED
 
 
 @dataclass(frozen=True)
@@ -176,8 +202,12 @@ def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
         except SceneUnavailable as exc:  # at start, the bundle given is the user's: say what is wrong with it
             raise exc.cause if isinstance(exc.cause, BraveError) else exc from None
     log_dir = args.log_dir if args.log_dir is not None else Path(args.bundle).resolve().parent / "episodes"
+    from brave6d.serve.log_digest import server_log_key
+
+    mode = mode_of(args)
+    key = server_log_key(args.log_key)
     app = create_app(scenes, device=args.device, log_dir=log_dir, limits=limits,
-                     allowed_hosts=access.allowed_hosts, token=access.token)
+                     allowed_hosts=access.allowed_hosts, token=access.token, mode=mode, log_key=key)
     try:
         sock = listening_socket(args.host, args.port)
     except OSError as exc:
@@ -192,6 +222,8 @@ def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
                  f"GET /scenes)")
     print(f"brave6d serve: {what} on http://{host}:{port}  viewer: {viewer}  API: /docs  "
           f"episode logs: {log_dir}", flush=True)
+    served = "every object's ground truth served: not ranked" if mode != "scored" else "no ground truth served"
+    print(f"mode: {mode} ({served}); episode logs signed with key {key.key_id} ({key.source})", flush=True)
     if access.token_generated:
         print(f"token (send as 'Authorization: Bearer <token>' or '?token=<token>'): {access.token}", flush=True)
     level = "info" if getattr(args, "verbose", 0) else "warning"

@@ -132,6 +132,11 @@ class StepResult:
     def target(self) -> dict[str, Any]:
         return self.message.target
 
+    @property
+    def mode(self) -> str:
+        """The server's mode: ``"scored"`` (no ground truth in the observation) or ``"training"``."""
+        return self.message.mode
+
 
 @dataclass(frozen=True)
 class PoseEstimate:

@@ -5,7 +5,8 @@ port in a background thread, run one short episode with a scripted agent through
 client, stop the server. The scripted agent demonstrates the API, it is not a baseline: it
 steers with the target's ground-truth pose (turn to centre the target, fly towards it until
 ``stop_distance``), and it tries one teleport into the table to show a refusal (the pose and
-the adjustment count must not change).
+the adjustment count must not change). Reading the truth, it needs a server in training mode
+(:mod:`brave6d.serve.modes`), which this stage starts; it closes its episode without a submission.
 """
 
 from __future__ import annotations
@@ -49,7 +50,8 @@ def run_scripted_episode(client: BraveClient, target: int | str | None = None, w
     render_ms = [step.timings_ms.get("render", 0.0)]
     tgt = step.observation.target()
     if tgt is None:
-        raise BraveError("the server returned no target object")
+        raise BraveError(f"the server returned no target object ({step.mode} mode): the scripted agent steers "
+                         "with the ground truth, which only a server in training mode sends")
     start_distance = float(np.linalg.norm(tgt.cam_T_obj[:3, 3]))
 
     # one refused teleport: 5 cm below the table top
@@ -119,7 +121,7 @@ def stage_serve(ctx: RunContext) -> StageResult:
     from brave6d.serve.runner import ServerThread
 
     bundle = load_bundle(ctx.scene.bundle_dir)
-    app = create_app(bundle, device=ctx.device, log_dir=ctx.workdir / "episodes")
+    app = create_app(bundle, device=ctx.device, log_dir=ctx.workdir / "episodes", mode="training")
     size = (320, 240)
     with ServerThread(app) as server, BraveClient(server.url) as client:
         report = run_scripted_episode(client, target=0, width=size[0], height=size[1], seed=0,
@@ -127,7 +129,7 @@ def stage_serve(ctx: RunContext) -> StageResult:
     if not report.refusal_kept_pose:
         raise BraveError("serve demo: a refused move changed the pose or the adjustment count")
     return StageResult("serve", figures={
-        "device": app.state.scene.device, "steps": report.steps, "adjustments": report.adjustments,
+        "device": app.state.scene.device, "mode": "training", "steps": report.steps, "adjustments": report.adjustments,
         "refusals": report.refusals, "distance m": f"{report.start_distance_m:.3f}->{report.final_distance_m:.3f}",
         "visib": report.final_visib_fract if report.final_visib_fract is not None else "n/a",
         f"render ms @{size[0]}x{size[1]}": report.render_ms_median,

@@ -8,7 +8,9 @@ by scoring (``brave6d.evaluation.metrics``) through :func:`read_episode_log`.
 * ``set_pose`` / ``move``: the request, the poses before and after, refusal, counters, timings;
 * ``submit``: the estimates and everything scoring needs that only the server knows about the
   final view (pose, ``K``, size, depth file beside the log, every object's ground truth);
-* ``close``: the totals.
+* ``close``: the totals;
+* ``digest`` (version 4, last): the keyed digest of every line before it
+  (:mod:`brave6d.serve.log_digest`), written when the episode closes.
 
 Version 1 is the format the server has written since the first release; logs written before
 the version field existed carry no ``format_version`` and are exactly version 1, so they are
@@ -17,7 +19,11 @@ server, ``scene_id``: its BOP scene id in a release, else null), since one serve
 every scene of a release; a version-1 log reads with both null. Version 3 adds the submit's
 ``final_view.depth_source``: the geometry the final depth (VSD's test depth) and the visible
 fractions were measured on, ``"reference"`` (the bundle's reference geometry) or ``"splat"`` (a
-bundle without one); older logs read with None, which means the splat. Any other version is refused with the file and line. A line that does not
+bundle without one); older logs read with None, which means the splat. Version 4 adds the mode the
+server ran in (``reset``'s ``mode``: ``"scored"``, where no ground truth reached the agent, or
+``"training"``; older logs read with None: their servers served the truth, so they count as
+training), the SHA-256 of the final depth image (``final_view.depth_sha256``) and the closing
+``digest`` record. Any other version is refused with the file and line. A line that does not
 match the schema is an error naming the file, the line and the field; a partial last line (the
 server stopped mid-write) is ignored.
 """
@@ -34,15 +40,17 @@ from pydantic import Field, TypeAdapter, ValidationError
 
 from brave6d.core.errors import DataError, validation_error_field
 from brave6d.core.json_input import JsonInputError, parse_json
+from brave6d.serve.log_digest import LogKey, SignedDigest, digest_record_json
+from brave6d.serve.modes import Mode
 from brave6d.serve.schema import Finite, Matrix3, Matrix4, ObjectState, TargetRef, Vector3, WireModel, matrix_type
 
 #: A rotation as an array, written as 9 numbers row-major (as the log has always held it).
 Rotation9 = matrix_type(3, 3, flat=True)
 
 #: The version every new log is written in (the ``format_version`` of its ``reset`` record).
-LOG_FORMAT_VERSION = 3
+LOG_FORMAT_VERSION = 4
 #: The versions :func:`read_episode_log` reads.
-READABLE_VERSIONS = (1, 2, 3)
+READABLE_VERSIONS = (1, 2, 3, 4)
 #: File name (beside the log) of the depth image of the view an episode's estimates refer to.
 FINAL_DEPTH_SUFFIX = "_final_depth.png"
 
@@ -79,6 +87,8 @@ class ResetRecord(_Record):
     #: the target's ground truth in this view (None when the view has no target)
     target_cam_T_obj: Matrix4 | None = None
     target_visib_fract: Finite | None = None
+    #: the server's mode (version 4; None in older logs, whose servers served the ground truth)
+    mode: Mode | None = None
 
 
 class ActionRecord(_Record):
@@ -121,6 +131,8 @@ class FinalView(WireModel):
     depth_unit: Literal["mm"] = "mm"
     #: what the depth file was measured on (version 3; None in older logs: the splat)
     depth_source: Literal["reference", "splat"] | None = None
+    #: SHA-256 of the depth file (version 4; covered by the log's digest)
+    depth_sha256: str | None = None
 
 
 class SubmitRecord(_Record):
@@ -152,12 +164,27 @@ class CloseRecord(_Record):
     world_T_cam: Matrix4
 
 
-LogRecord = Annotated[ResetRecord | ActionRecord | SubmitRecord | CloseRecord, Field(discriminator="event")]
+class DigestRecord(_Record):
+    """The log's last line (version 4): the keyed digest of every line before it, see
+    :mod:`brave6d.serve.log_digest` (``key_id`` names the key without revealing it)."""
+
+    event: Literal["digest"] = "digest"
+    algorithm: Literal["hmac-sha256"] = "hmac-sha256"
+    key_id: str
+    lines: int
+    digest: str
+
+    def signed(self) -> SignedDigest:
+        return SignedDigest(self.key_id, self.lines, self.digest)
+
+
+AnyRecord = ResetRecord | ActionRecord | SubmitRecord | CloseRecord | DigestRecord
+LogRecord = Annotated[AnyRecord, Field(discriminator="event")]
 _RECORD = TypeAdapter(LogRecord)
 
 
 # ----------------------------------------------------------------------------- writing
-def format_record(record: ResetRecord | ActionRecord | SubmitRecord | CloseRecord) -> str:
+def format_record(record: AnyRecord) -> str:
     """One JSONL line of ``record`` (``ValueError`` for a value that is not finite, so that a step
     can format its record before it changes anything)."""
     return json.dumps(record.model_dump(mode="json"), allow_nan=False) + "\n"
@@ -166,15 +193,20 @@ def format_record(record: ResetRecord | ActionRecord | SubmitRecord | CloseRecor
 class EpisodeLog:
     """Append-only JSONL log of one episode (one flushed line per record; fsync on close).
 
-    ``path`` None: a log that writes nothing (a server started without a log folder).
+    ``path`` None: a log that writes nothing (a server started without a log folder). With ``key``,
+    every line is fed into the log's keyed digest, and :meth:`close` appends the ``digest`` record.
     """
 
-    def __init__(self, path: Path | None) -> None:
+    def __init__(self, path: Path | None, key: LogKey | None = None) -> None:
         self.path = path
         self._handle: IO[str] | None = None
+        self._key = key
+        self._mac = key.mac() if key is not None and path is not None else None
+        self._lines = 0
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
-            self._handle = open(path, "a", encoding="utf-8")  # noqa: SIM115 - kept open for the episode
+            # newline="\n": the bytes on disk are the ones the digest saw
+            self._handle = open(path, "a", encoding="utf-8", newline="\n")  # noqa: SIM115 - kept open
 
     @staticmethod
     def format(record: ResetRecord | ActionRecord | SubmitRecord | CloseRecord) -> str:
@@ -186,12 +218,21 @@ class EpisodeLog:
             return
         self._handle.write(line)
         self._handle.flush()
+        if self._mac is not None:
+            self._mac.update(line.encode("utf-8"))
+            self._lines += line.count("\n")
 
     def write(self, record: ResetRecord | ActionRecord | SubmitRecord | CloseRecord) -> None:
         self.append(self.format(record))
 
-    def close(self) -> None:
+    def close(self, sign: bool = True) -> None:
+        """Close the file; with a key (and ``sign``), after appending the ``digest`` record."""
         if self._handle is not None:
+            if sign and self._mac is not None and self._key is not None:
+                record = DigestRecord(**digest_record_json(self._key, self._mac, self._lines))
+                self._handle.write(format_record(record))
+                self._handle.flush()
+                self._mac = None
             try:
                 os.fsync(self._handle.fileno())
             except OSError:
@@ -206,12 +247,12 @@ def _first_error(exc: ValidationError) -> str:
     return f"field '{loc}': {msg}" if loc else msg
 
 
-def read_episode_log(path: Path | str) -> list[ResetRecord | ActionRecord | SubmitRecord | CloseRecord]:
+def read_episode_log(path: Path | str) -> list[AnyRecord]:
     """The records of an episode log, validated against the schema of its version.
 
     Errors (:class:`DataError`) name the file and line: a line that is not JSON (except a partial
     last line, which is ignored), a first record that is not ``reset``, a version this reader does
-    not know, a record that does not match the schema.
+    not know, a record that does not match the schema, a ``digest`` record that is not the last.
     """
     p = Path(path)
     try:
@@ -235,8 +276,11 @@ def read_episode_log(path: Path | str) -> list[ResetRecord | ActionRecord | Subm
         raws.append((n, raw))
     if raws:
         _check_header(raws[0][1], p, raws[0][0])
-    records: list[ResetRecord | ActionRecord | SubmitRecord | CloseRecord] = []
+    records: list[AnyRecord] = []
     for n, raw in raws:
+        if records and isinstance(records[-1], DigestRecord):
+            raise DataError(f"{p}:{n}: a record after the log's 'digest' record: lines were added after the "
+                            "server closed the log")
         try:
             records.append(_RECORD.validate_python(raw))
         except ValidationError as exc:

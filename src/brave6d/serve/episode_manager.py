@@ -5,10 +5,16 @@ server, the checks of every input); this module runs them on the scenes of a
 :class:`brave6d.serve.catalog.SceneCatalog`, one lock per episode, and writes each episode's log.
 It sits above both, so that the catalog (which loads :class:`SceneServer` s) and the episodes never
 import each other.
+
+The manager's ``mode`` (:mod:`brave6d.serve.modes`) decides what its results show: in ``scored``
+mode every :class:`ActionResult`'s observation is the view without its ground truth (no objects),
+whatever front end (HTTP, ROS, the vector env) passes it on; the log keeps the truth either way.
+With a log folder, every log is signed with the server's key (:mod:`brave6d.serve.log_digest`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import secrets
 import threading
@@ -21,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from brave6d.core.atomic import depth_m_to_mm_u16, write_png
+from brave6d.core.atomic import atomic_write_bytes, depth_m_to_mm_u16, png_bytes
 from brave6d.core.camera import PinholeCamera
 from brave6d.serve.catalog import SceneCatalog
 from brave6d.serve.episode_log import FINAL_DEPTH_SUFFIX, ActionRecord, CloseRecord, EpisodeLog, ResetRecord
@@ -45,6 +51,8 @@ from brave6d.serve.episodes import (
     target_ref,
 )
 from brave6d.serve.geometry import MoveResult, Refusal, integrate_twist
+from brave6d.serve.log_digest import LogKey, server_log_key
+from brave6d.serve.modes import SCORED, check_mode
 
 log = logging.getLogger(__name__)
 
@@ -92,12 +100,22 @@ def _commit(ticket: Ticket | None, apply: Any) -> None:
 class EpisodeManager:
     """Creates, runs and expires episodes (thread-safe) on the scenes of a
     :class:`brave6d.serve.catalog.SceneCatalog` (or on one loaded :class:`SceneServer`). An open episode
-    keeps its scene loaded; closing it lets the catalog evict the scene when room is needed."""
+    keeps its scene loaded; closing it lets the catalog evict the scene when room is needed.
+
+    ``mode``: ``"scored"`` (default: no ground truth in the results) or ``"training"``. ``log_key``:
+    the key the logs are signed with (default: the server's key file, made on first use,
+    :func:`brave6d.serve.log_digest.server_log_key`; None: unsigned logs); unused without ``log_dir``."""
 
     def __init__(self, scenes: Any, log_dir: Path | str | None = None, max_episodes: int = 32,
-                 idle_timeout_s: float = 900.0, keep_closed: int = 256, lock_timeout_s: float = 30.0) -> None:
+                 idle_timeout_s: float = 900.0, keep_closed: int = 256, lock_timeout_s: float = 30.0,
+                 mode: str = SCORED, log_key: LogKey | str | None = "default") -> None:
         self.scenes: SceneCatalog = scenes if isinstance(scenes, SceneCatalog) else SceneCatalog.of_scene(scenes)
         self.log_dir = Path(log_dir) if log_dir is not None else None
+        self.mode = check_mode(mode)
+        self.log_key: LogKey | None = None
+        if self.log_dir is not None and log_key is not None:
+            self.log_key = server_log_key() if log_key == "default" else (
+                log_key if isinstance(log_key, LogKey) else server_log_key(log_key))
         self.max_episodes = max_episodes
         self.idle_timeout_s = idle_timeout_s
         self.keep_closed = keep_closed
@@ -131,6 +149,10 @@ class EpisodeManager:
         with self._lock:
             return [{"episode_id": e.id, "scene": e.scene_name, "closed": e.closed, "steps": e.steps, "adjustments": e.adjustments,
                      "target": e.target.name} for e in self._episodes.values()]
+
+    def shown(self, view: RenderedView) -> RenderedView:
+        """``view`` as this server's mode lets an agent see it (scored: without the objects)."""
+        return view if self.mode != SCORED else view.without_truth()
 
     def get(self, episode_id: str) -> Episode:
         with self._lock:
@@ -198,7 +220,8 @@ class EpisodeManager:
                 raise TooManyEpisodes(f"too many open episodes ({self.max_episodes}); close one first")
             eid = secrets.token_hex(8)
             ep = Episode(eid, server, scene_name, tgt, camera, T0, used_seed,
-                         EpisodeLog(self.log_dir / f"{eid}.jsonl" if self.log_dir else None), agent)
+                         EpisodeLog(self.log_dir / f"{eid}.jsonl" if self.log_dir else None, self.log_key), agent,
+                         mode=self.mode)
             self._episodes[eid] = ep  # reserve the slot
         ep.lock.acquire()
         try:
@@ -210,22 +233,24 @@ class EpisodeManager:
                     episode_id=eid, bundle=bundle.name, agent=agent, target=target_ref(tgt), scene=scene_name,
                     scene_id=scene_id, width=w, height=h,
                     K=camera.K, seed=used_seed, start="given" if start is not None else "random", world_T_cam=T0,
-                    timings_ms=timings, **_target_truth(obs)))
+                    timings_ms=timings, mode=self.mode, **_target_truth(obs)))
+                shown = self.shown(obs)
 
                 def apply() -> None:
                     ep.log.append(line)
-                    ep.last = obs
+                    ep.last, ep.shown = obs, shown
                     ep.render_ms.append(obs.timings_ms["render"])
 
                 _commit(ticket, apply)
             except BaseException:  # the episode never existed
                 with self._lock:
                     self._episodes.pop(eid, None)
-                ep.log.close()
+                ep.log.close(sign=False)
                 if ep.log.path is not None and ep.log.path.exists():
                     ep.log.path.unlink()
                 raise
-            return ActionResult(eid, "reset", 0, True, False, None, 0, obs, None, timings)
+            return ActionResult(eid, "reset", 0, True, False, None, 0, shown, None, timings, target_ref(tgt),
+                                self.mode)
         finally:
             ep.lock.release()
 
@@ -329,10 +354,10 @@ class EpisodeManager:
         if accepted:
             if obs is None:  # not rendered beforehand in a batch (move_many)
                 obs = self._scene(ep).observe(T, ep.camera, ep.target.gt_id)
-            after, timings = T, {**obs.timings_ms}
+            after, timings, shown = T, {**obs.timings_ms}, self.shown(obs)
         else:
-            assert ep.last is not None
-            obs, after = ep.last, before
+            assert ep.last is not None and ep.shown is not None
+            obs, after, shown = ep.last, before, ep.shown
             timings = {"render": 0.0, "render_queue": 0.0, "visibility": 0.0, "observe": 0.0}
         steps, adjustments = ep.steps + 1, ep.adjustments + int(accepted)
         collided = refusal is not None or stopped_by is not None
@@ -347,7 +372,7 @@ class EpisodeManager:
             ep.log.append(line)  # first: a failed write leaves the state as it was
             ep.steps, ep.adjustments, ep.world_T_cam = steps, adjustments, after
             if accepted:
-                ep.last = obs
+                ep.last, ep.shown = obs, shown
                 ep.render_ms.append(obs.timings_ms["render"])
                 ep.collisions += int(stopped_by is not None)
             else:
@@ -355,7 +380,8 @@ class EpisodeManager:
             ep.last_active = time.monotonic()
 
         _commit(ticket, apply)
-        return ActionResult(ep.id, action, steps, accepted, collided, reason, adjustments, obs, move, timings)
+        return ActionResult(ep.id, action, steps, accepted, collided, reason, adjustments, shown, move, timings,
+                            target_ref(ep.target), self.mode)
 
     def submit(self, episode_id: str, estimates: list[dict[str, Any]], agent: str | None = None,
                ticket: Ticket | None = None) -> dict[str, Any]:
@@ -370,15 +396,18 @@ class EpisodeManager:
             known = {o.obj_id for o in scene.bundle.objects}
             clean = [check_estimate(i, e.get("obj_id", -1), e.get("R", ()), e.get("t_m", ()), e.get("score", 1.0),
                                     known) for i, e in enumerate(estimates)]
-            depth = depth_m_to_mm_u16(ep.last.test_depth)  # the reference's depth when the bundle has one
             depth_file = f"{ep.id}{FINAL_DEPTH_SUFFIX}" if ep.log.path is not None else None
+            depth = b""
+            if depth_file is not None:  # the reference's depth when the bundle has one
+                depth = png_bytes(depth_m_to_mm_u16(ep.last.test_depth), depth_file)
             name = agent if agent is not None else ep.agent
-            line = ep.log.format(submission_record(ep, clean, scene.bundle, depth_file, name))
+            line = ep.log.format(submission_record(ep, clean, scene.bundle, depth_file, name,
+                                                   hashlib.sha256(depth).hexdigest()))
             out: dict[str, Any] = {}
 
             def apply() -> None:
                 if ep.log.path is not None and depth_file is not None:
-                    write_png(ep.log.path.with_name(depth_file), depth)
+                    atomic_write_bytes(ep.log.path.with_name(depth_file), depth)
                 ep.log.append(line)
                 ep.agent = name
                 ep.submitted = True
@@ -404,11 +433,11 @@ class EpisodeManager:
         ep.close_reason = reason
         ep.log.write(CloseRecord(reason=reason, **summary))
         ep.log.close()
-        ep.last = None  # free the images (closed episodes are kept for GET /episodes/{id})
+        ep.last = ep.shown = None  # free the images (closed episodes are kept for GET /episodes/{id})
         if ep.scene is not None:
             self.scenes.release(ep.scene)
             ep.scene = None
-        return {"episode_id": ep.id, "closed": True, "reason": reason, **summary}
+        return {"episode_id": ep.id, "closed": True, "reason": reason, "mode": ep.mode, **summary}
 
     def close_all(self, reason: str = "server shutdown") -> None:
         with self._lock:

@@ -45,7 +45,7 @@ import math
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property, partial
 from typing import Any
 
@@ -59,6 +59,7 @@ from brave6d.serve.bundle import Bundle, BundleObject, load_model_m
 from brave6d.serve.episode_log import EpisodeLog, FinalView, LoggedEstimate, SubmitRecord
 from brave6d.serve.geometry import CollisionWorld, Refusal
 from brave6d.serve.limits import MAX_ANGULAR_SPEED_RAD_S, MAX_COORD_M, MAX_LINEAR_SPEED_M_S, MAX_MOVE_DURATION_S
+from brave6d.serve.modes import SCORED
 from brave6d.serve.reference import SPLAT_GEOMETRY, ReferenceGeometry, bundle_reference
 from brave6d.serve.renderer import RenderOutput, SplatRenderer
 from brave6d.serve.schema import ObjectState, TargetRef
@@ -165,6 +166,10 @@ class RenderedView:
     def target(self) -> ObjectState | None:
         return next((o for o in self.objects if o.is_target), None)
 
+    def without_truth(self) -> RenderedView:
+        """This view as a scored server shows it: the images, camera and pose, no objects."""
+        return replace(self, objects=())
+
 
 @dataclass
 class ActionResult:
@@ -180,6 +185,8 @@ class ActionResult:
     observation: RenderedView
     move: dict[str, Any] | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    target: TargetRef | None = None  # the episode's target (ids and name), in either mode
+    mode: str = SCORED
 
 
 class SceneServer:
@@ -314,7 +321,9 @@ class Episode:
     closed: bool = False
     close_reason: str | None = None
     submitted: bool = False
-    last: RenderedView | None = None
+    last: RenderedView | None = None  # the last view with its ground truth (the log's and the submit's)
+    shown: RenderedView | None = None  # the last view as the agent got it (no ground truth when scored)
+    mode: str = SCORED
     render_ms: list[float] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -324,7 +333,7 @@ class Episode:
                 "width": self.camera.width, "height": self.camera.height, "K": self.camera.K.tolist(),
                 "world_T_cam": self.world_T_cam.tolist(), "adjustments": self.adjustments,
                 "steps": self.steps, "refusals": self.refusals, "collisions": self.collisions,
-                "seed": self.seed, "agent": self.agent, "submitted": self.submitted,
+                "seed": self.seed, "agent": self.agent, "submitted": self.submitted, "mode": self.mode,
                 "age_s": time.monotonic() - self.created,
                 "log": str(self.log.path) if self.log.path else None}
 
@@ -398,16 +407,18 @@ def check_twist(linear: Any, angular: Any, duration: Any) -> tuple[NDArray[np.fl
 
 
 def submission_record(ep: Episode, estimates: list[LoggedEstimate], bundle: Bundle, depth_file: str | None,
-                      agent: str | None) -> SubmitRecord:
+                      agent: str | None, depth_sha256: str | None = None) -> SubmitRecord:
     """The ``submit`` log record: the estimates and what only the server knows about the final
-    view (pose, ``K``, image size, depth file, every object's ground truth in that camera frame)."""
+    view (pose, ``K``, image size, depth file and its SHA-256, every object's ground truth in that
+    camera frame)."""
     obs = ep.last
     assert obs is not None
     return SubmitRecord(
         episode_id=ep.id, agent=agent, bundle=bundle.name, bundle_root=str(bundle.root.resolve()),
         target=target_ref(ep.target), estimates=estimates,
         final_view=FinalView(world_T_cam=obs.world_T_cam, K=obs.camera.K, width=obs.camera.width,
-                             height=obs.camera.height, depth_file=depth_file, depth_source=obs.geometry),
+                             height=obs.camera.height, depth_file=depth_file, depth_source=obs.geometry,
+                             depth_sha256=depth_sha256 if depth_file is not None else None),
         objects=list(obs.objects), adjustments=ep.adjustments, steps=ep.steps, refusals=ep.refusals,
         collisions=ep.collisions, elapsed_s=time.monotonic() - ep.created)
 

@@ -11,9 +11,13 @@
     env.close()
 
 **Observation** (a dict of arrays, what a robot would sense): ``rgb`` (H, W, 3) uint8, ``depth``
-(H, W) float32 metres (0 = no data), ``K`` (3, 3), ``world_T_cam`` (4, 4). Ground truth (the
-objects' ``cam_T_obj`` and visible fractions) goes to ``info["objects"]``, never into the
-observation, because the benchmark's agents must estimate it.
+(H, W) float32 metres (0 = no data), ``K`` (3, 3), ``world_T_cam`` (4, 4); never the ground truth,
+which the benchmark's agents must estimate.
+
+**Mode** (``mode``, :mod:`brave6d.serve.modes`): ``"scored"`` (the default) plays on a scored
+server, which sends no ground truth at all; ``"training"`` on a ``--training`` server, whose
+objects' ``cam_T_obj`` and visible fractions go to ``info["objects"]``. A server in the other
+mode is refused at ``reset`` (a one-line :class:`BraveError` saying how to start it).
 
 **Actions**:
 
@@ -27,11 +31,13 @@ observation, because the benchmark's agents must estimate it.
   hand in the final pose estimates (camera frame of the current view); the episode ends with
   ``terminated = True``; ``info["submission"]`` holds the server's reply.
 
-**Reward** (documented choice): the increase of the target's visible pixel area since the
-previous step, as a fraction of the image area (``px_count_visib`` difference / (W * H));
-0 for a refused action. ``truncated`` is True after ``max_steps`` steps. ``info`` holds
-``accepted``, ``collided``, ``refusal``, ``adjustments`` (position adjustments, the benchmark's
-cost), ``objects``, ``target``, ``timings_ms`` and ``episode_id``.
+**Reward** (documented choice): in training mode, the increase of the target's visible pixel area
+since the previous step, as a fraction of the image area (``px_count_visib`` difference / (W * H));
+0 for a refused action. In scored mode always 0: the visible area is ground truth, and the
+episode's score is ``brave6d evaluate``'s once ``submit`` has closed it. ``truncated`` is True
+after ``max_steps`` steps. ``info`` holds ``accepted``, ``collided``, ``refusal``, ``adjustments``
+(position adjustments, the benchmark's cost), ``target`` (its ids and name), ``mode``,
+``timings_ms``, ``episode_id`` and, in training mode only, ``objects``.
 
 The class is a ``gymnasium.Env`` and its spaces are ``gymnasium.spaces`` (``Box``, ``Dict``).
 """
@@ -47,7 +53,9 @@ import numpy as np
 from gymnasium import spaces
 from numpy.typing import NDArray
 
+from brave6d.core.errors import BraveError
 from brave6d.serve.client import BraveClient, Observation, PoseEstimate, ServerError, StepResult
+from brave6d.serve.modes import SCORED, TRAINING, check_mode
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +95,9 @@ class BraveEnv(gym.Env):  # type: ignore[misc]
     def __init__(self, base_url: str = "http://127.0.0.1:8765", *, client: BraveClient | None = None,
                  target: int | str | None = None, width: int = 320, height: int = 240, max_steps: int = 100,
                  step_duration: float = 0.5, max_linear: float = 0.1, max_angular: float = 0.5,
-                 frame: str = "camera", render_mode: str | None = "rgb_array", agent: str | None = None) -> None:
+                 frame: str = "camera", render_mode: str | None = "rgb_array", agent: str | None = None,
+                 mode: str = SCORED) -> None:
+        self.mode = check_mode(mode, "BraveEnv: mode")
         self.client = client if client is not None else BraveClient(base_url)
         self.agent = agent
         self._own_client = client is None
@@ -112,11 +122,26 @@ class BraveEnv(gym.Env):  # type: ignore[misc]
                 "depth": o.depth if o.depth is not None else np.zeros((h, w), np.float32),
                 "K": o.K, "world_T_cam": o.world_T_cam}
 
-    @staticmethod
-    def _info(step: StepResult) -> dict[str, Any]:
-        return {"episode_id": step.episode_id, "accepted": step.accepted, "collided": step.collided,
-                "refusal": step.refusal, "adjustments": step.adjustments, "target": step.target,
-                "objects": step.observation.objects, "timings_ms": step.timings_ms, "move": step.move}
+    def _info(self, step: StepResult) -> dict[str, Any]:
+        info = {"episode_id": step.episode_id, "accepted": step.accepted, "collided": step.collided,
+                "refusal": step.refusal, "adjustments": step.adjustments, "target": step.target, "mode": self.mode,
+                "timings_ms": step.timings_ms, "move": step.move}
+        if self.mode == TRAINING:
+            info["objects"] = step.observation.objects
+        return info
+
+    def _check_mode(self, step: StepResult) -> None:
+        """Refuse (after closing the new episode) a server whose mode is not the env's."""
+        if step.mode == self.mode:
+            return
+        try:
+            self.client.close()
+        except (ServerError, httpx.HTTPError) as exc:
+            log.debug("closing the refused episode failed: %s", exc)
+        self._done = True
+        how = ("start it with --training" if self.mode == TRAINING else
+               "start it without --training, or pass BraveEnv(..., mode='training') to develop with the truth")
+        raise BraveError(f"BraveEnv(mode={self.mode!r}): the server runs in {step.mode} mode: {how}")
 
     # -------------------------------------------------------------- Gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -135,6 +160,7 @@ class BraveEnv(gym.Env):  # type: ignore[misc]
         step = self.client.reset(target=opts.get("target", self.target), width=opts.get("width", self.width),
                                  height=opts.get("height", self.height), start=opts.get("start"), seed=seed,
                                  agent=opts.get("agent", self.agent))
+        self._check_mode(step)
         self._steps = 0
         self._done = False
         self._last = step.observation
@@ -147,13 +173,13 @@ class BraveEnv(gym.Env):  # type: ignore[misc]
             summary = self.client.close()
             self._done = True
             obs = self._obs(self._last)
-            return obs, 0.0, True, False, {"episode_id": summary.get("episode_id"), "stopped": True,
+            return obs, 0.0, True, False, {"episode_id": summary.get("episode_id"), "stopped": True, "mode": self.mode,
                                            "adjustments": summary.get("adjustments"), "summary": summary}
         if isinstance(action, dict) and "submit" in action:
             reply = self.client.submit(list(action["submit"]), agent=action.get("agent"))
             self._done = True
             return self._obs(self._last), 0.0, True, False, {
-                "episode_id": reply.get("episode_id"), "submitted": True,
+                "episode_id": reply.get("episode_id"), "submitted": True, "mode": self.mode,
                 "adjustments": reply.get("adjustments"), "submission": reply, "summary": reply}
         if isinstance(action, dict) and ("world_T_cam" in action or "position" in action or "look_at" in action):
             step = self.client.set_pose(action.get("world_T_cam", action))
@@ -164,14 +190,14 @@ class BraveEnv(gym.Env):  # type: ignore[misc]
             a = np.clip(np.asarray(action, dtype=np.float64).reshape(6), -1.0, 1.0)
             if not np.any(a):  # a null twist: nothing to ask the server (no adjustment)
                 self._steps += 1
-                return self._end_step(self._last, 0.0, {"accepted": True, "noop": True,
+                return self._end_step(self._last, 0.0, {"accepted": True, "noop": True, "mode": self.mode,
                                                         "episode_id": self.client.episode_id})
             step = self.client.move(a[:3] * self.max_linear, a[3:] * self.max_angular, self.step_duration, self.frame)
         before = visible_px(self._last)
         self._last = step.observation
         self._steps += 1
         reward = visibility_reward(step.accepted, before, visible_px(step.observation), step.observation.width,
-                                   step.observation.height)
+                                   step.observation.height) if self.mode == TRAINING else 0.0
         return self._end_step(step.observation, reward, self._info(step))
 
     def submit(self, estimates: list[PoseEstimate | dict[str, Any]], agent: str | None = None

@@ -129,7 +129,9 @@ class StepMessage(WireModel):
     """The reply to ``reset``, ``set_pose`` and ``move``: the outcome and the (new or kept) view.
 
     ``refusal`` is ``{code, message, ...}`` when the action was refused or stopped; ``target`` is a
-    :class:`TargetRef` as a dict (``{}`` when the view has no target); ``move`` says how far a move got.
+    :class:`TargetRef` as a dict (``{}`` when the view has no target); ``move`` says how far a move got;
+    ``mode`` is the server's (:mod:`brave6d.serve.modes`: a ``scored`` server's observations list no
+    objects; a server older than the modes sent none, and served the truth: ``training``).
     """
 
     episode_id: str
@@ -143,6 +145,7 @@ class StepMessage(WireModel):
     target: dict[str, Any]
     observation: ObservationMessage
     timings_ms: dict[str, float]
+    mode: str = "training"
 
 
 class RenderMessage(WireModel):

@@ -26,6 +26,10 @@ step ignores the sub-environment's action and returns its first observation with
 with a start seed drawn from the sub-environment's generator, so a seeded run repeats.
 ``info`` holds ``episode_id``, ``accepted``, ``collided`` and ``adjustments`` per sub-environment
 (gymnasium's ``_key`` masks beside them).
+
+``mode`` is :class:`BraveEnv`'s: ``"scored"`` (default; the episodes run on an
+:class:`EpisodeManager` of that mode, whose views carry no ground truth, so the reward is 0) or
+``"training"`` (the visible-area reward). Given an :class:`EpisodeManager`, its mode must be ``mode``.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from brave6d.core.errors import BraveError
 from brave6d.serve.episode_manager import EpisodeManager, MoveRequest
 from brave6d.serve.episodes import ActionResult, RenderedView, SceneServer
 from brave6d.serve.gym_env import observation_space, twist_space, visibility_reward, visible_px
+from brave6d.serve.modes import SCORED, check_mode
 
 Obs = dict[str, NDArray[Any]]
 
@@ -71,10 +76,15 @@ class BraveVectorEnv(VectorEnv):  # type: ignore[misc]
     def __init__(self, scene: SceneServer | EpisodeManager, num_envs: int, *, target: int | str | None = None,
                  width: int = 320, height: int = 240, max_steps: int = 100, step_duration: float = 0.5,
                  max_linear: float = 0.1, max_angular: float = 0.5, frame: str = "camera",
-                 agent: str | None = None) -> None:
+                 agent: str | None = None, mode: str = SCORED) -> None:
         if num_envs < 1:
             raise BraveError(f"BraveVectorEnv: num_envs must be at least 1, got {num_envs}")
-        self.manager = scene if isinstance(scene, EpisodeManager) else EpisodeManager(scene, max_episodes=num_envs)
+        mode = check_mode(mode, "BraveVectorEnv: mode")
+        if isinstance(scene, EpisodeManager) and scene.mode != mode:
+            raise BraveError(f"BraveVectorEnv(mode={mode!r}): the episode manager given runs in {scene.mode} mode")
+        self.manager = scene if isinstance(scene, EpisodeManager) else EpisodeManager(scene, max_episodes=num_envs,
+                                                                                       mode=mode)
+        self.mode = mode
         self.num_envs = int(num_envs)
         self.target, self.agent, self.frame = target, agent, frame
         self.width, self.height, self.max_steps = int(width), int(height), int(max_steps)

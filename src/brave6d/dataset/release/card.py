@@ -127,6 +127,11 @@ brave6d serve {n}/{bundle_folder(first)}
 ```
 
 The bundle checks its own checksums on load; see the BRAVE-6D README for agents and the Python client.
+The server runs scored: no object pose, box or visible fraction reaches an agent, and each episode's
+log (in `episodes/` beside the bundle) records the mode and is signed with the server's key;
+`brave6d evaluate episodes/` ranks those episodes. `--training` serves the ground truth for developing
+agents (its episodes are never ranked). The bundle itself holds the objects' placements
+(`objects.json`): a result others can trust runs the agent where it cannot read the bundle.
 
 ## License
 

@@ -12,7 +12,8 @@ Public API (imported lazily: ``import brave6d.evaluation.metrics`` loads neither
   ``load_models``, ``load_ply_mesh`` (the dataset's JSON files are parsed by ``annotation``);
 - episode scoring: ``read_episodes``, ``read_episode``, ``find_episode_logs``, ``score_episodes``,
   ``episode_to_bop``, ``models_from_bundle``, ``write_leaderboard``, ``EpisodeRecord``,
-  ``Leaderboard``, ``AgentScore``, ``EpisodeScore``, ``GroupScore`` (an agent's AR per scene / category);
+  ``Leaderboard``, ``AgentScore``, ``EpisodeScore``, ``GroupScore`` (an agent's AR per scene / category),
+  ``rank_episodes`` and ``NotRanked`` (which episodes a scored or training leaderboard ranks, and why not);
 - the agent-run summary (``<workdir>/evaluation/baseline.json``): ``AgentRuns``, ``AgentRunsRow``,
   ``AgentRunsEpisode``, ``AGENT_RUNS_FORMAT``, ``agent_runs_from_board``, ``agent_runs_path``,
   ``read_agent_runs``, ``write_agent_runs``.
@@ -37,6 +38,7 @@ _LAZY = {
     "score_episodes": ".episodes", "episode_to_bop": ".episodes", "models_from_bundle": ".episodes",
     "write_leaderboard": ".episodes", "EpisodeRecord": ".episodes", "Leaderboard": ".episodes",
     "AgentScore": ".episodes", "EpisodeScore": ".episodes", "GroupScore": ".episodes",
+    "rank_episodes": ".episodes", "NotRanked": ".episodes",
     "AgentRuns": ".agent_runs", "AgentRunsRow": ".agent_runs", "AgentRunsEpisode": ".agent_runs",
     "AGENT_RUNS_FORMAT": ".agent_runs", "agent_runs_from_board": ".agent_runs", "agent_runs_path": ".agent_runs",
     "read_agent_runs": ".agent_runs", "write_agent_runs": ".agent_runs",

@@ -5,8 +5,9 @@ agents' episodes; the report's baseline section reads it (:func:`read_agent_runs
 leaderboard rows (``agents``, best AR first) and one row per episode (``episodes``), plus the
 bundle, image size and metrics they were scored with.
 
-The format is versioned by its ``format`` field (:data:`AGENT_RUNS_FORMAT`); a file of another
-version is refused, as is a field the schema does not know (``extra="forbid"``): the file has a
+The format is versioned by its ``format`` field (:data:`AGENT_RUNS_FORMAT`; version 2 adds the
+mode the episodes ran in, per agent and for the run: a version-1 file reads as ``training``, the
+only interface there was when it was written); a file of another version is refused, as is a field the schema does not know (``extra="forbid"``): the file has a
 single writer, so an unknown field means another version of the format, never a note to skip.
 Errors name the file and the field. NaN and inf are refused (they are not JSON).
 """
@@ -26,8 +27,11 @@ from brave6d.core.errors import DataError, validation_error_field
 if TYPE_CHECKING:
     from brave6d.evaluation.metrics.episodes import Leaderboard
 
-#: The ``format`` field of the files this module writes and reads.
-AGENT_RUNS_FORMAT = "brave6d-baseline/1"
+#: The ``format`` field of the files this module writes, and the formats it reads.
+AGENT_RUNS_FORMAT = "brave6d-baseline/2"
+READABLE_FORMATS = ("brave6d-baseline/1", AGENT_RUNS_FORMAT)
+#: The episodes' mode in a version-1 file (written before the modes: its server served the truth).
+VERSION_1_MODE = "training"
 
 
 def agent_runs_path(workdir: Path | str) -> Path:
@@ -46,6 +50,7 @@ class AgentRunsRow(_Row):
     not evaluated), its mean adjustments and mean wall time (None when no episode timed itself)."""
 
     agent: str
+    mode: Literal["scored", "training", "mixed"] = VERSION_1_MODE
     episodes: int
     submitted: int
     n_targets: int
@@ -83,7 +88,9 @@ class AgentRunsEpisode(_Row):
 class AgentRuns(_Row):
     """The whole file (field order is the file's key order)."""
 
-    format: Literal["brave6d-baseline/1"] = AGENT_RUNS_FORMAT
+    format: Literal["brave6d-baseline/1", "brave6d-baseline/2"] = AGENT_RUNS_FORMAT
+    #: the mode the leaderboard ranked (version 1: training)
+    mode: Literal["scored", "training", "mixed"] = VERSION_1_MODE
     bundle: str
     image_size: tuple[int, int]
     metrics: list[str]
@@ -109,8 +116,10 @@ def agent_runs_from_board(board: Leaderboard, notes: Mapping[str, Mapping[str, A
             target_distance_m=row["target_distance_m"], found=note.get("found"),
             registration_method=note.get("registration_method"),
             registration_score=note.get("registration_score")))
-    return AgentRuns(bundle=bundle, image_size=image_size, metrics=list(board.config.metrics), agents=agents,
-                     episodes=episodes)
+    modes = {a.mode for a in agents}
+    mode = getattr(board, "mode", None) or (modes.pop() if len(modes) == 1 else "mixed")
+    return AgentRuns(mode=mode, bundle=bundle, image_size=image_size, metrics=list(board.config.metrics),
+                     agents=agents, episodes=episodes)
 
 
 def write_agent_runs(path: Path | str, runs: AgentRuns) -> Path:
@@ -125,9 +134,9 @@ def read_agent_runs(path: Path | str) -> AgentRuns:
     data = read_json(p)
     if not isinstance(data, dict):
         raise DataError(f"{p}: an agent-run summary must be a JSON object, got {type(data).__name__}")
-    if data.get("format") != AGENT_RUNS_FORMAT:
+    if data.get("format") not in READABLE_FORMATS:
         raise DataError(f"{p}: field 'format': {json.dumps(data.get('format'))} is not supported "
-                        f"(this reader reads {AGENT_RUNS_FORMAT!r})")
+                        f"(this reader reads {', '.join(map(repr, READABLE_FORMATS))})")
     try:
         return AgentRuns.model_validate(data)
     except ValidationError as exc:

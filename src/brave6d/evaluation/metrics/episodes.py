@@ -28,6 +28,13 @@ summed exactly: recall is matched targets / targets, so per-episode true-positiv
 The same exact sums give each agent's AR per scene (episodes of one served scene: the log's
 ``scene``, else its bundle's name) and per object category (the targets whose object belongs to
 the category, from the ``categories`` map ``obj_id -> category`` the bundles give).
+
+Modes and digests (docs/SECURITY.md): every episode carries the mode its server ran in
+(``scored``: no ground truth reached the agent; ``training``; a log older than the modes counts as
+training, since its server served the truth) and what its keyed digest says (``verified``,
+``unsigned``, ``unknown key``; a log changed after the server wrote it is refused, naming the
+episode). With ``mode`` given, :func:`score_episodes` ranks only the episodes of that mode (scored:
+only those whose digest verifies, :func:`rank_episodes`) and lists the others apart, each with why.
 """
 
 from __future__ import annotations
@@ -48,12 +55,18 @@ from brave6d.core.errors import DataError
 from brave6d.evaluation.metrics.recall import METRICS, BopScores, EvalConfig, Estimate, GTInstance, ObjectModel, evaluate_bop19
 from brave6d.evaluation.metrics.depth_renderer import DepthRenderer
 from brave6d.serve import (
+    SCORED,
+    TRAINING,
     ActionRecord,
     CloseRecord,
+    DigestRecord,
     LoggedEstimate,
+    LogKey,
     ObjectState,
     ResetRecord,
     SubmitRecord,
+    check_log_digest,
+    evaluation_log_key,
     read_episode_log,
 )
 
@@ -92,6 +105,10 @@ class EpisodeRecord:
     depth_path: Path | None
     #: the geometry of the test depth: "reference" or "splat" (None: not submitted, no depth scored)
     test_depth: str | None = None
+    #: the server's mode (logs older than the modes: training) and what the log's digest says
+    mode: str = TRAINING
+    digest: str = "unsigned"
+    key_id: str | None = None
 
 
 def find_episode_logs(paths: Iterable[Path | str]) -> list[Path]:
@@ -119,18 +136,31 @@ def _seconds_between(a: str | None, b: str | None) -> float | None:
     return max(0.0, (t1 - t0).total_seconds())
 
 
-def read_episode(path: Path | str) -> EpisodeRecord:
-    """One episode log (JSONL written by the render server) -> :class:`EpisodeRecord`."""
+#: ``read_episode``'s ``log_key`` default: the default key file's key when this machine has one.
+DEFAULT_KEY = "default"
+
+
+def read_episode(path: Path | str, log_key: LogKey | str | None = DEFAULT_KEY) -> EpisodeRecord:
+    """One episode log (JSONL written by the render server) -> :class:`EpisodeRecord`, its digest
+    checked with ``log_key`` (default: :func:`brave6d.serve.evaluation_log_key`; None: no key, a signed
+    log reads as ``unknown key``). A log (or final depth image) changed after the server wrote it is
+    a :class:`DataError` naming the file and the episode."""
     p = Path(path)
+    key = evaluation_log_key() if log_key == DEFAULT_KEY else log_key
     records = read_episode_log(p)
     reset = records[0]
     assert isinstance(reset, ResetRecord)  # read_episode_log refuses a log that does not start with one
     target_gt_id = reset.target.gt_id
     submit = next((r for r in records if isinstance(r, SubmitRecord)), None)
+    signed = records[-1].signed() if isinstance(records[-1], DigestRecord) else None
+    depth = p.with_name(submit.final_view.depth_file) if submit is not None and submit.final_view.depth_file else None
+    check = check_log_digest(p, key if isinstance(key, LogKey) else None, reset.episode_id, signed, depth,
+                             submit.final_view.depth_sha256 if submit is not None else None)
     agent = str((submit.agent if submit is not None else None) or reset.agent or UNKNOWN_AGENT)
     common = {"episode_id": reset.episode_id, "path": p, "agent": agent, "bundle": reset.bundle,
               "scene": reset.scene or reset.bundle or UNKNOWN_SCENE, "scene_id": reset.scene_id,
-              "started": reset.time, "seed": reset.seed}
+              "started": reset.time, "seed": reset.seed, "mode": reset.mode or TRAINING, "digest": check.status,
+              "key_id": check.key_id}
     if submit is not None:
         view = submit.final_view
         target = next((o for o in submit.objects if o.gt_id == target_gt_id), None)
@@ -160,9 +190,47 @@ def read_episode(path: Path | str) -> EpisodeRecord:
         K=reset.K, width=reset.width, height=reset.height, objects=(target,), estimates=(), depth_path=None)
 
 
-def read_episodes(paths: Iterable[Path | str]) -> list[EpisodeRecord]:
-    """Every episode of the given log files and folders (see :func:`find_episode_logs`)."""
-    return [read_episode(p) for p in find_episode_logs(paths)]
+def read_episodes(paths: Iterable[Path | str], log_key: LogKey | str | None = DEFAULT_KEY) -> list[EpisodeRecord]:
+    """Every episode of the given log files and folders (see :func:`find_episode_logs`), digests
+    checked with ``log_key`` (see :func:`read_episode`)."""
+    key = evaluation_log_key() if log_key == DEFAULT_KEY else log_key
+    return [read_episode(p, key) for p in find_episode_logs(paths)]
+
+
+@dataclass(frozen=True)
+class NotRanked:
+    """An episode a leaderboard lists apart, and why."""
+
+    episode: EpisodeRecord
+    reason: str
+
+    def to_json(self) -> dict[str, Any]:
+        e = self.episode
+        return {"agent": e.agent, "episode_id": e.episode_id, "log": e.path.name, "mode": e.mode,
+                "digest": e.digest, "reason": self.reason}
+
+
+def rank_episodes(episodes: Sequence[EpisodeRecord], mode: str = SCORED
+                  ) -> tuple[list[EpisodeRecord], list[NotRanked]]:
+    """The episodes a ``mode`` leaderboard ranks, and the others with why: a scored board ranks the
+    scored episodes whose digest verifies; a training board the training episodes (a development
+    board: unsigned logs count)."""
+    ranked: list[EpisodeRecord] = []
+    apart: list[NotRanked] = []
+    for e in episodes:
+        if e.mode != mode:
+            why = ("training mode: the server gave the agent the ground truth" if e.mode == TRAINING
+                   else f"{e.mode} mode")
+            apart.append(NotRanked(e, why))
+        elif mode == SCORED and e.digest == "unknown key":
+            apart.append(NotRanked(e, f"signed with key {e.key_id}, which this machine does not hold (pass the "
+                                      "server's key: --log-key FILE)"))
+        elif mode == SCORED and e.digest != "verified":
+            apart.append(NotRanked(e, "no digest: the server did not close the episode (stopped first), so its "
+                                      "log cannot be checked"))
+        else:
+            ranked.append(e)
+    return ranked, apart
 
 
 # ----------------------------------------------------------------------------- BOP inputs
@@ -246,6 +314,7 @@ class EpisodeScore:
                 "n_targets": self.scores.n_targets, "ar": self.scores.ar, "ar_vsd": self.scores.ar_vsd,
                 "ar_mssd": self.scores.ar_mssd, "ar_mspd": self.scores.ar_mspd,
                 "adjustments": e.adjustments, "wall_time_s": e.wall_time_s, "test_depth": e.test_depth,
+                "mode": e.mode, "digest": e.digest,
                 "target_distance_m": float(np.linalg.norm(e.target.cam_T_obj[:3, 3])),
                 "target_visib_fract": e.target.visib_fract}
 
@@ -263,9 +332,11 @@ class AgentScore:
     mean_adjustments: float
     mean_wall_time_s: float | None
     per_object: dict[int, dict[str, Any]] = field(default_factory=dict)
+    #: the mode of the agent's episodes ("mixed" when they ran in both)
+    mode: str = TRAINING
 
     def to_json(self) -> dict[str, Any]:
-        return {"agent": self.agent, "episodes": self.episodes, "submitted": self.submitted,
+        return {"agent": self.agent, "mode": self.mode, "episodes": self.episodes, "submitted": self.submitted,
                 "n_targets": self.n_targets, "ar": self.ar,
                 **{f"ar_{m}": self.ar_per_metric.get(m) for m in METRICS},
                 "mean_adjustments": self.mean_adjustments, "mean_wall_time_s": self.mean_wall_time_s,
@@ -301,6 +372,9 @@ class Leaderboard:
     all_objects: bool = False
     scenes: list[GroupScore] = field(default_factory=list)
     categories: list[GroupScore] = field(default_factory=list)
+    #: the mode ranked (None: every episode given, whatever its mode) and the episodes listed apart
+    mode: str | None = None
+    not_ranked: list[NotRanked] = field(default_factory=list)
 
     def group_table(self, kind: str) -> str:
         """The per-scene (``kind="scene"``) or per-category (``"category"``) table."""
@@ -315,10 +389,20 @@ class Leaderboard:
     def table(self) -> str:
         from brave6d.core.progress import format_table
 
-        rows = [[a.agent, a.episodes, a.ar, *(_cell(a.ar_per_metric.get(m)) for m in METRICS),
+        rows = [[a.agent, a.mode, a.episodes, a.ar, *(_cell(a.ar_per_metric.get(m)) for m in METRICS),
                  a.mean_adjustments, _cell(a.mean_wall_time_s)] for a in self.agents]
-        return format_table(["agent", "episodes", "AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "mean adjustments",
+        return format_table(["agent", "mode", "episodes", "AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "mean adjustments",
                              "wall time s"], rows)
+
+    def not_ranked_table(self) -> str:
+        """The episodes listed apart (agent, episode, mode, digest, why); "" when there are none."""
+        from brave6d.core.progress import format_table
+
+        if not self.not_ranked:
+            return ""
+        return format_table(["agent", "episode", "mode", "digest", "not ranked because"],
+                            [[n.episode.agent, n.episode.episode_id, n.episode.mode, n.episode.digest, n.reason]
+                             for n in self.not_ranked])
 
     def object_table(self) -> str:
         from brave6d.core.progress import format_table
@@ -330,13 +414,14 @@ class Leaderboard:
                              "mean adjustments"], rows)
 
     def to_json(self) -> dict[str, Any]:
-        return {"format": "brave6d-leaderboard/1", "metrics": list(self.config.metrics),
+        return {"format": "brave6d-leaderboard/1", "mode": self.mode, "metrics": list(self.config.metrics),
                 "targets": "every visible instance" if self.all_objects else "the episode's target",
                 "visib_gt_min": self.config.visib_gt_min, "test_depth": test_depth_geometries(self.episodes),
                 "agents": [a.to_json() for a in self.agents],
                 "per_scene": [g.to_json("scene") for g in self.scenes],
                 "per_category": [g.to_json("category") for g in self.categories],
-                "episodes": [e.to_json() for e in self.episodes]}
+                "episodes": [e.to_json() for e in self.episodes],
+                "not_ranked": [n.to_json() for n in self.not_ranked]}
 
 
 def test_depth_geometries(scored: Sequence[EpisodeScore]) -> list[str]:
@@ -374,10 +459,12 @@ def _agent_score(agent: str, scored: Sequence[EpisodeScore], metrics: Sequence[s
         row["ar"] = float(np.mean([row[f"ar_{m}"] for m in metrics]))
         row["mean_adjustments"] = float(np.mean([s.episode.adjustments for s in mine]))
         per_object[obj_id] = row
+    modes = {s.episode.mode for s in scored}
     return AgentScore(agent, len(scored), sum(1 for s in scored if s.episode.submitted), n_targets,
                       float(np.mean(list(per_metric.values()))), per_metric,
                       float(np.mean([s.episode.adjustments for s in scored])) if scored else 0.0,
-                      _mean_or_none([s.episode.wall_time_s for s in scored]), per_object)
+                      _mean_or_none([s.episode.wall_time_s for s in scored]), per_object,
+                      modes.pop() if len(modes) == 1 else "mixed")
 
 
 def _exact_ar(scored: Sequence[EpisodeScore], metrics: Sequence[str]) -> dict[str, float]:
@@ -422,10 +509,15 @@ def _category_scores(agent: str, scored: Sequence[EpisodeScore], metrics: Sequen
 
 def score_episodes(episodes: Sequence[EpisodeRecord], models: Mapping[int, ObjectModel],
                    config: EvalConfig | None = None, all_objects: bool = False,
-                   renderer: DepthRenderer | None = None, categories: Mapping[int, str] | None = None) -> Leaderboard:
+                   renderer: DepthRenderer | None = None, categories: Mapping[int, str] | None = None,
+                   mode: str | None = None) -> Leaderboard:
     """BOP AR per episode and per agent, and each agent's AR per scene and per object category
     (``categories``: ``obj_id -> category``; objects not in it count as uncategorised); see the
-    module docstring. ``models`` in mm."""
+    module docstring. ``models`` in mm. ``mode``: rank only the episodes :func:`rank_episodes` ranks
+    for it and list the others apart (None: score every episode given)."""
+    apart: list[NotRanked] = []
+    if mode is not None:
+        episodes, apart = rank_episodes(episodes, mode)
     cfg = config or EvalConfig()
     ids = assign_image_ids(episodes)
     used = {e.test_depth for e in episodes if e.test_depth is not None}
@@ -456,14 +548,16 @@ def score_episodes(episodes: Sequence[EpisodeRecord], models: Mapping[int, Objec
         mine = [s for s in scored if s.episode.agent == a.agent]
         scenes += _scene_scores(a.agent, mine, cfg.metrics)
         cats += _category_scores(a.agent, mine, cfg.metrics, categories or {})
-    return Leaderboard(agents, scored, cfg, all_objects, scenes, cats)
+    return Leaderboard(agents, scored, cfg, all_objects, scenes, cats, mode, apart)
 
 
 # ----------------------------------------------------------------------------- files
-LEADERBOARD_COLUMNS = ("agent", "episodes", "submitted", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd",
+LEADERBOARD_COLUMNS = ("agent", "mode", "episodes", "submitted", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd",
                        "mean_adjustments", "mean_wall_time_s")
 EPISODE_COLUMNS = ("agent", "episode_id", "scene", "served_scene_id", "scene_id", "im_id", "target", "obj_id", "seed", "submitted", "estimates",
-                   "ar", "ar_vsd", "ar_mssd", "ar_mspd", "adjustments", "wall_time_s", "target_distance_m", "test_depth")
+                   "ar", "ar_vsd", "ar_mssd", "ar_mspd", "adjustments", "wall_time_s", "target_distance_m", "test_depth",
+                   "mode", "digest")
+NOT_RANKED_COLUMNS = ("agent", "episode_id", "log", "mode", "digest", "reason")
 GROUP_COLUMNS = ("episodes", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd", "mean_adjustments")
 OBJECT_COLUMNS = ("agent", "obj_id", "name", "episodes", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd",
                   "mean_adjustments")
@@ -482,8 +576,8 @@ def _csv_text(columns: Sequence[str], rows: Iterable[Mapping[str, Any]]) -> str:
 
 
 def write_leaderboard(board: Leaderboard, out_dir: Path | str) -> list[Path]:
-    """Write ``leaderboard.csv``/``.json``, ``episodes.csv``, ``per_object.csv``, ``per_scene.csv`` and
-    ``per_category.csv`` (atomic)."""
+    """Write ``leaderboard.csv``/``.json``, ``episodes.csv``, ``per_object.csv``, ``per_scene.csv``,
+    ``per_category.csv`` and ``not_ranked.csv`` (the episodes listed apart; atomic)."""
     from brave6d.core.atomic import atomic_write_json, atomic_write_text
 
     out = Path(out_dir)
@@ -498,4 +592,5 @@ def write_leaderboard(board: Leaderboard, out_dir: Path | str) -> list[Path]:
                                                           (g.to_json("scene") for g in board.scenes))),
         atomic_write_text(out / "per_category.csv", _csv_text(("agent", "category", *GROUP_COLUMNS),
                                                              (g.to_json("category") for g in board.categories))),
+        atomic_write_text(out / "not_ranked.csv", _csv_text(NOT_RANKED_COLUMNS, (n.to_json() for n in board.not_ranked))),
     ]

@@ -25,7 +25,7 @@ DEFAULT_MASTER = "http://127.0.0.1:11311"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    from brave6d.serve import limit_arg  # every number bounded at parse time, as the render server's flags
+    from brave6d.serve import add_mode_flags, limit_arg  # every number bounded at parse time, as the server's
 
     parser.add_argument("scenes", type=Path, metavar="BUNDLE_OR_RELEASE",
                         help="a bundle folder ('brave6d export') or a dataset release ('brave6d release build')")
@@ -43,6 +43,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--twist-duration", type=limit_arg("move_duration_s"), default=None,
                         help="seconds each ~cmd_twist message is integrated for (default 0.1: a 10 Hz control loop)")
     parser.add_argument("--agent", default="ros1", help="the agent name written in the episode logs (default ros1)")
+    add_mode_flags(parser)  # --training, --log-key: as brave6d serve's
     parser.add_argument("--node-name", default=None, help="the node's name (default brave6d_sim)")
     parser.add_argument("--idle-timeout", type=limit_arg("idle_timeout_s"), default=900.0,
                         help="close an episode idle for this many seconds (default 900)")
@@ -94,18 +95,20 @@ def _serve(args: argparse.Namespace, sources_of: SourcesOf, uri: str, node_name:
     from brave6d.ros_interface.bridge import EpisodeBridge
     from brave6d.ros_interface.ros1.messages import load_messages
     from brave6d.ros_interface.ros1.node import Ros1Node
-    from brave6d.serve import EpisodeManager, open_scenes
+    from brave6d.serve import EpisodeManager, mode_of, open_scenes, server_log_key
 
     msgs = load_messages()
     scenes = open_scenes(sources_of(args.scenes, None), device=args.device)
     log_dir = args.log_dir if args.log_dir is not None else Path(args.scenes).resolve().parent / "episodes"
-    manager = EpisodeManager(scenes, log_dir, max_episodes=4, idle_timeout_s=args.idle_timeout)
+    manager = EpisodeManager(scenes, log_dir, max_episodes=4, idle_timeout_s=args.idle_timeout,
+                             mode=mode_of(args), log_key=server_log_key(args.log_key))
     bridge = EpisodeBridge(manager, agent=args.agent, width=args.width, height=args.height)
     rospy.init_node(node_name, anonymous=False)
     node = Ros1Node(bridge, msgs, twist_duration_s=twist_duration, default_scene=args.scene)
     rospy.on_shutdown(lambda: manager.close_all("node shutdown"))
     print(f"brave6d ros1: node {rospy.get_name()} on {uri} (ROS_IP {os.environ.get('ROS_IP', '-')}), scenes "
-          f"{', '.join(scenes.names())}, twist duration {node.twist_duration_s:g} s, episode logs {log_dir}; "
+          f"{', '.join(scenes.names())}, {manager.mode} mode, twist duration {node.twist_duration_s:g} s, "
+          f"episode logs {log_dir}; "
           f"messages: PYTHONPATH={msgs.path}", flush=True)
     rospy.spin()
     return 0

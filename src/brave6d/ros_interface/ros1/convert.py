@@ -2,8 +2,8 @@
 
 Outgoing (one :class:`~brave6d.ros_interface.bridge.BridgeStep` -> every message of its observation, all
 with the step's stamp): ``sensor_msgs/Image`` rgb8 and 32FC1 (metres, NaN = no data, REP 118),
-``sensor_msgs/CameraInfo`` (plumb_bob, zero distortion), ``tf2_msgs/TFMessage`` (world -> camera,
-world -> gt/<name>_<gt_id>) and ``brave6d_msgs/EpisodeStatus``. Incoming: ``PoseStamped`` (frame
+``sensor_msgs/CameraInfo`` (plumb_bob, zero distortion), ``tf2_msgs/TFMessage`` (world -> camera and,
+in training mode only, world -> gt/<name>_<gt_id>) and ``brave6d_msgs/EpisodeStatus``. Incoming: ``PoseStamped`` (frame
 "world") -> world_T_cam, ``TwistStamped`` -> (linear, angular, frame), ``ObjectEstimate[]`` ->
 :class:`~brave6d.ros_interface.bridge.Estimate`. A message that breaks a convention raises a
 :class:`BraveError` naming the topic and field.
@@ -84,7 +84,8 @@ def transform(stamp_ns: int, parent: str, child: str, parent_T_child: NDArray[np
 
 
 def tf_message(step: BridgeStep) -> Any:
-    """world -> the camera's optical frame, and world -> each object's ground-truth frame."""
+    """world -> the camera's optical frame, and world -> each object's ground-truth frame (training mode:
+    a scored step has no objects)."""
     from tf2_msgs.msg import TFMessage
 
     transforms = [transform(step.stamp_ns, FRAME_WORLD, FRAME_CAMERA_OPTICAL, step.world_T_cam)]
@@ -94,12 +95,11 @@ def tf_message(step: BridgeStep) -> Any:
 
 def status_message(msgs: Any, step: BridgeStep) -> Any:
     ref = step.refusal_detail or {}
-    tgt = step.target()
     return msgs.msg.EpisodeStatus(
         header=header(step.stamp_ns, FRAME_WORLD), episode_id=step.episode_id, action=step.action,
         step=step.step, accepted=step.accepted, collided=step.collided, refusal_reason=ref.get("reason") or "",
         refusal_message=ref.get("message") or "", refusal_box=ref.get("box") or "", adjustments=step.adjustments,
-        target_frame=tgt.frame if tgt is not None else "", error="", json=json.dumps(step.status()))
+        target_frame=step.target_frame, error="", json=json.dumps(step.status()))
 
 
 def error_status(msgs: Any, stamp_ns: int, episode_id: str | None, error: str) -> Any:

@@ -6,8 +6,9 @@ It resets (a seeded random start looking at the target), approaches the target w
 ``~cmd_twist`` until it is ``--distance`` metres away or a move is refused, reads the images,
 camera info and ``/tf``, and submits one estimate: by default a naive one (the target's position
 back-projected from the depth at the image centre, identity rotation: a perception stand-in that
-shows the plumbing), with ``--oracle`` the ground truth from the ``gt/`` frames (for testing the
-pipeline only: an agent must not read ``gt/``). It prints the scored result.
+shows the plumbing; it runs against a node in its default, scored mode), with ``--oracle`` the
+ground truth from the ``gt/`` frames (for testing the pipeline only: it needs a node started with
+``--training``, the only mode that publishes ``gt/`` frames). It prints the scored result.
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--distance", type=float, default=0.22, help="stop approaching at this distance (m)")
     parser.add_argument("--max-steps", type=int, default=20)
     parser.add_argument("--speed", type=float, default=0.3, help="approach speed (m/s, camera z)")
-    parser.add_argument("--oracle", action="store_true", help="submit the ground truth read from /tf (testing only)")
+    parser.add_argument("--oracle", action="store_true",
+                        help="submit the ground truth read from /tf (testing only; needs a node run with --training)")
     args = parser.parse_args(argv)
     require_ros1()
     import rospy
@@ -52,9 +54,14 @@ def main(argv: list[str] | None = None) -> int:
     client = Ros1Client(args.node)
     obs = client.reset(target=args.target, seed=args.seed)
     status = obs.status_json
-    target = next(o for o in status["objects"] if o["is_target"])
+    target = status["target"]  # the target's name and ids (its gt/ frame only in training mode)
     print(f"episode {status['episode_id']}: target {target['name']} (obj_id {target['obj_id']}), "
-          f"image {obs.rgb.width}x{obs.rgb.height}, fx {obs.rgb_info.K[0]:.1f}")
+          f"image {obs.rgb.width}x{obs.rgb.height}, fx {obs.rgb_info.K[0]:.1f}, {status.get('mode')} mode")
+    if args.oracle and not target.get("frame"):
+        print("--oracle reads the target's gt/ frame on /tf, which a node publishes only in training mode: "
+              "start it with --training", file=sys.stderr)
+        client.close()
+        return 1
     for _ in range(args.max_steps):
         z = float(np.nanmedian(obs.depth_array()[obs.rgb.height // 2 - 4: obs.rgb.height // 2 + 5,
                                                  obs.rgb.width // 2 - 4: obs.rgb.width // 2 + 5]))

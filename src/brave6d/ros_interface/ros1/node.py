@@ -111,11 +111,10 @@ class Ros1Node:
             step = self.bridge.reset(scene=req.scene or self.default_scene, target=_target_arg(req.target),
                                      seed=None if req.seed < 0 else int(req.seed), start=start)
             self.publish(step)
-            tgt = step.target()
-            return self.msgs.srv.ResetResponse(success=True, message=f"episode {step.episode_id} started",
+            return self.msgs.srv.ResetResponse(success=True, message=f"episode {step.episode_id} started "
+                                               f"({step.mode} mode)",
                                                header=convert.header(step.stamp_ns, convert.FRAME_WORLD),
-                                               episode_id=step.episode_id,
-                                               target_frame=tgt.frame if tgt is not None else "")
+                                               episode_id=step.episode_id, target_frame=step.target_frame)
         except Exception as exc:  # noqa: BLE001
             self.publish_error(name, exc)
             return self.msgs.srv.ResetResponse(success=False, message=_one_line(name, exc))

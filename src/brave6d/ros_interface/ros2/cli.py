@@ -4,7 +4,8 @@ rclpy (the ``ros2`` extra: ROS 2 Kilted wheels with Fast DDS; docs/ROS.md).
 Loopback by default (:mod:`brave6d.ros_interface.ros2.transport`): UDP on 127.0.0.1 and shared
 memory, discovery ``LOCALHOST``, so ROS 2 agents on this machine started with ROS 2's defaults
 see it and no other host does. ``--allow-remote`` keeps ROS 2's defaults (every interface,
-``SUBNET`` discovery): every host on the network can then drive episodes and read the ground truth.
+``SUBNET`` discovery): every host on the network can then drive episodes (and, with ``--training``,
+read the ground truth).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ MAX_DOMAIN_ID = 232
 def configure(parser: argparse.ArgumentParser) -> None:
     from brave6d.core.cli_types import int_in
     from brave6d.ros_interface.ros2.defaults import DEFAULT_NAMESPACE, DEFAULT_TWIST_DURATION_S
-    from brave6d.serve import limit_arg  # every number bounded at parse time, as the render server's flags
+    from brave6d.serve import add_mode_flags, limit_arg  # every number bounded at parse time, as the server's
 
     parser.add_argument("scenes", type=Path, metavar="BUNDLE_OR_RELEASE",
                         help="a bundle folder ('brave6d export') or a dataset release ('brave6d release build')")
@@ -58,6 +59,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--idle-timeout", type=limit_arg("idle_timeout_s"), default=900.0,
                         help="close an episode idle for this many seconds (default 900)")
     parser.add_argument("--agent", default="ros2", help="agent name written in the episode logs (default ros2)")
+    add_mode_flags(parser)  # --training, --log-key: as brave6d serve's
 
 
 def domain_id_from(value: int | None, environ: dict[str, str] | None = None) -> int:
@@ -95,11 +97,12 @@ def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
 
     from brave6d.ros_interface.bridge import EpisodeBridge
     from brave6d.ros_interface.ros2.node import Ros2Node
-    from brave6d.serve import EpisodeManager, open_scenes
+    from brave6d.serve import EpisodeManager, mode_of, open_scenes, server_log_key
 
     scenes = open_scenes(sources_of(args.scenes, None), device=args.device)
     log_dir = args.log_dir if args.log_dir is not None else Path(args.scenes).resolve().parent / "episodes"
-    manager = EpisodeManager(scenes, log_dir, max_episodes=4, idle_timeout_s=args.idle_timeout)
+    manager = EpisodeManager(scenes, log_dir, max_episodes=4, idle_timeout_s=args.idle_timeout,
+                             mode=mode_of(args), log_key=server_log_key(args.log_key))
     bridge = EpisodeBridge(manager, agent=args.agent, width=args.width, height=args.height)
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain_id)
@@ -109,7 +112,8 @@ def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
     executor.add_node(node.node)
     reach = "any host (--allow-remote)" if args.allow_remote else "this machine only"
     print(f"brave6d ros2: {', '.join(map(str, scenes.names()))} on ROS 2 domain {domain_id} ({reach}), "
-          f"services and topics under {node.namespace}/ and /tf; episode logs: {log_dir}", flush=True)
+          f"{manager.mode} mode, services and topics under {node.namespace}/ and /tf; episode logs: {log_dir}",
+          flush=True)
     stop = _StopOnSignals()
     try:
         while not stop.signal and context.ok():  # rcl_wait returns every SPIN_S, so Python's handlers run

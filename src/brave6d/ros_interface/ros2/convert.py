@@ -82,7 +82,8 @@ def transform_stamped(T: Any, parent: str, child: str, stamp_ns: int) -> Transfo
 
 
 def tf_message(step: BridgeStep) -> TFMessage:
-    """``world -> brave6d_camera_optical_frame`` and ``world -> gt/<name>_<gt_id>`` per object."""
+    """``world -> brave6d_camera_optical_frame`` and, in training mode, ``world -> gt/<name>_<gt_id>`` per
+    object (a scored step has no objects)."""
     transforms = [transform_stamped(step.world_T_cam, FRAME_WORLD, FRAME_CAMERA_OPTICAL, step.stamp_ns)]
     transforms += [transform_stamped(o.world_T_obj, FRAME_WORLD, o.frame, step.stamp_ns) for o in step.objects]
     return TFMessage(transforms=transforms)
@@ -90,7 +91,7 @@ def tf_message(step: BridgeStep) -> TFMessage:
 
 def fill_step(msg: Any, step: BridgeStep) -> Any:
     """Fill a ``brave6d_msgs/Step`` from the bridge's step (the status JSON included)."""
-    target = step.target()
+    target = step.target_ref
     msg.episode_id = step.episode_id
     msg.step = int(step.step)
     msg.accepted = bool(step.accepted)
@@ -99,7 +100,7 @@ def fill_step(msg: Any, step: BridgeStep) -> Any:
     msg.adjustments = int(step.adjustments)
     msg.stamp = stamp(step.stamp_ns)
     msg.camera_pose = pose_msg(step.world_T_cam)
-    msg.target_frame = "" if target is None else target.frame
+    msg.target_frame = step.target_frame  # "" in scored mode: no gt/ frame is published
     msg.target_obj_id = -1 if target is None else int(target.obj_id)
     msg.status_json = json.dumps(step.status())
     return msg

@@ -6,7 +6,9 @@ from brave6d. Against ``brave6d ros2 BUNDLE`` on this machine, with no ROS varia
 It resets, waits for the first view's images (RGB and depth, sensor-data QoS), backs off 5 cm
 along the optical axis with one ``move``, then submits the target's pose taken from its
 ground-truth tf frame ``gt/<name>_<gt_id>``: an oracle that shows the plumbing, not a pose
-estimator (a real agent estimates from the images). Prints the scored result as JSON.
+estimator (a real agent estimates from the images). The node publishes ``gt/`` frames only in
+training mode: run it as ``brave6d ros2 BUNDLE --training`` for this agent (in the default, scored
+mode it stops, saying so). Prints the scored result as JSON.
 """
 
 import json
@@ -98,6 +100,9 @@ def main() -> int:
         return seen[key]
 
     first = call("reset", Reset.Request()).step
+    if not first.target_frame:  # a scored node publishes no ground truth (its next reset closes this episode)
+        raise SystemExit("this oracle reads the target's gt/ frame on /tf, which the node publishes only in "
+                         "training mode: start it with 'brave6d ros2 BUNDLE --training'")
     images = view(first)
     rgb = np.frombuffer(images["rgb"].data, np.uint8).reshape(images["rgb"].height, images["rgb"].width, 3)
     print(f"episode {first.episode_id}: target {first.target_frame}, image {rgb.shape[1]}x{rgb.shape[0]}",

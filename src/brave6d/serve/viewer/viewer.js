@@ -4,7 +4,9 @@
 // object poses, the same pose checks (a pose outside the workspace or in a box shows the red banner).
 // Drag orbits around the target, the wheel and WASD/QE move the camera (camera-frame twists),
 // the arrow keys turn it. Object axes (x red, y green, z blue) and ids are drawn from the
-// ground-truth poses (cam_T_obj) and the intrinsics K of each observation. Refused moves show
+// ground-truth poses (cam_T_obj) and the intrinsics K of each observation, which only a server in
+// training mode sends (a scored server sends no object poses: the view shows the images alone, and
+// the orbit centres on the bundle's start target, or the target's placement in training mode). Refused moves show
 // a red banner with the server's reason; moves stopped part-way at a collision an orange one.
 // State for tests: document.body.dataset.{frames, refusals, state, lastRefusal}; window.braveViewer.
 // A server started with a token is opened as /viewer/?token=TOKEN: the page sends it with every
@@ -202,7 +204,11 @@
     }
     const gt = Number(document.getElementById("target").value || 0);
     const o = state.bundle.objects.find((b) => b.gt_id === gt) || state.bundle.objects[0];
-    const T = o.world_T_obj;
+    const T = o.world_T_obj; // training mode only: a scored server lists no placements
+    if (!T) {
+      const c = (state.bundle.start && state.bundle.start.target) || [0, 0, 0];
+      return [c[0], c[1], c[2]];
+    }
     return [T[0][3], T[1][3], T[2][3] + 0.01];
   }
 
@@ -367,7 +373,9 @@
       return;
     }
     document.getElementById("scene").textContent =
-      state.bundle.name + " (" + state.bundle.gaussians + " Gaussians, " + state.bundle.device + ")";
+      state.bundle.name + " (" + state.bundle.gaussians + " Gaussians, " + state.bundle.device + ", " +
+      (state.bundle.mode || "training") + " mode)";
+    body.dataset.serverMode = state.bundle.mode || "training";
     const select = document.getElementById("target");
     for (const o of state.bundle.objects) {
       const opt = document.createElement("option");

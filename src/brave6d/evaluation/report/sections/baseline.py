@@ -2,8 +2,9 @@
 
 Reads the agent-run summary ``<workdir>/evaluation/baseline.json`` through its schema
 (:func:`brave6d.evaluation.metrics.read_agent_runs`): one point per episode (agent, AR, adjustments, wall
-time, object) and the file's leaderboard rows, whose pooled AR and means the table shows. A
-missing file, or one that does not match the schema, becomes a section note naming the file (and
+time, object) and the file's leaderboard rows, whose pooled AR and means the table shows, with the
+mode the episodes ran in (``scored``: no ground truth reached the agents; a file older than the
+modes: ``training``). A missing file, or one that does not match the schema, becomes a section note naming the file (and
 the field), never an exception.
 """
 
@@ -43,7 +44,7 @@ def collect_baseline(workdir: Path, store: MeasurementStore) -> Measurement:
                     machine=machine_info("cpu"))
     m.points = [{"agent": e.agent, "ar": e.ar, "adjustments": float(e.adjustments), "wall_s": num(e.wall_time_s),
                  "object": e.object} for e in runs.episodes]
-    m.summary = {"episodes": len(runs.episodes), "agents": agent_rows(runs)}
+    m.summary = {"episodes": len(runs.episodes), "agents": agent_rows(runs), "mode": runs.mode}
     m.status = "complete"
     store.save(m)
     return m
@@ -52,7 +53,7 @@ def collect_baseline(workdir: Path, store: MeasurementStore) -> Measurement:
 def agent_rows(runs: AgentRuns) -> list[dict[str, Any]]:
     """The file's leaderboard rows as the section's agent figures (AR, mean adjustments, mean wall time)."""
     return [{"agent": a.agent, "ar": a.ar, "adjustments": a.mean_adjustments, "wall_s": num(a.mean_wall_time_s),
-             "episodes": a.episodes} for a in runs.agents]
+             "episodes": a.episodes, "mode": a.mode} for a in runs.agents]
 
 
 # ----------------------------------------------------------------------------- rendering
@@ -65,7 +66,7 @@ def by_agent(points: list[dict[str, Any]], from_file: list[dict[str, Any]] | Non
         groups[str(p.get("agent"))].append(p)
     rows = []
     for agent, pts in sorted(groups.items()):
-        row = {"agent": agent, "episodes": len(pts)}
+        row = {"agent": agent, "episodes": len(pts), "mode": given.get(agent, {}).get("mode", "n/a")}
         for k in ("ar", "adjustments", "wall_s"):
             values = finite([p.get(k) for p in pts])
             row[k] = float(values.mean()) if values.size else math.nan
@@ -98,14 +99,27 @@ def render_baseline(m: Measurement | None, out_dir: Path) -> RenderedSection:
     legend(ax)
     png = save_figure(fig, out_dir / FIGURE, "Baseline agents: Average Recall against adjustments",
                       describe_machine(m.machine), f"source: {m.settings.get('source')}")
-    table = [(r["agent"], r["episodes"], fmt(r["ar"], 3), fmt(r["adjustments"], 1), fmt(r["wall_s"], 1)) for r in rows]
+    table = [(r["agent"], r["mode"], r["episodes"], fmt(r["ar"], 3), fmt(r["adjustments"], 1), fmt(r["wall_s"], 1))
+             for r in rows]
     ar_text = ("AR is the leaderboard's, pooled over each agent's episodes" if pooled
                else "AR is the mean over each agent's episodes")
-    body = (f"From `{m.settings.get('source')}` ({m.summary.get('episodes')} episodes; {ar_text}).\n\n"
+    body = (f"From `{m.settings.get('source')}` ({m.summary.get('episodes')} episodes; {ar_text}). "
+            + mode_sentence(m.summary.get("mode")) + "\n\n"
             f"![AR against adjustments]({png.name})\n\n"
-            + format_table(["agent", "episodes", "AR", "mean adjustments", "wall s"], table)
+            + format_table(["agent", "mode", "episodes", "AR", "mean adjustments", "wall s"], table)
             + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted episode values"))
     return RenderedSection(TITLE, body, advice_baseline(rows), [png])
+
+
+def mode_sentence(mode: Any) -> str:
+    """What the run's mode means for its figures."""
+    if mode == "scored":
+        return ("The episodes ran in **scored** mode: no object pose, box or visible fraction reached the agents, "
+                "and every log's keyed digest verified.")
+    if mode == "training":
+        return ("The episodes ran in **training** mode: the server gave the agents every object's ground truth, "
+                "so these figures are not a benchmark result (the agents may not have read it).")
+    return f"Mode: {mode or 'not recorded'}."
 
 
 def advice_baseline(rows: list[dict[str, Any]]) -> str:
