@@ -24,7 +24,9 @@ a name is used). Other stages import only these names:
   a scene whose files cannot be located, unpacked or verified, even after ``SceneSource.refresh``);
 - the client: ``BraveClient``, ``PoseEstimate``, ``ServerError``, ``Observation``, ``StepResult``,
   ``decode_observation``, and ``BraveEnv`` (a ``gymnasium.Env``); ``BraveVectorEnv`` (a
-  ``gymnasium.vector.VectorEnv``: N agents on one scene in process, their renders batched);
+  ``gymnasium.vector.VectorEnv``: N agents on one scene in process, their renders batched); what a
+  client reads of a server it does not trust (:mod:`brave6d.serve.replies`): ``ClientLimits``,
+  ``ReplyError``, ``parse_reply``; the largest image, ``MAX_WIDTH`` x ``MAX_HEIGHT``;
 - the wire schema (:mod:`brave6d.serve.schema`): ``ObservationMessage``, ``StepMessage``, ``ObjectState``,
   ``EncodedImage``, ``TargetRef``, ``ErrorMessage``;
 - the episode log (:mod:`brave6d.serve.episode_log`, versioned): ``read_episode_log``, ``EpisodeLog``,
@@ -71,6 +73,8 @@ _LAZY = {
     "SceneUnavailable": ".catalog",
     "BraveClient": ".client", "PoseEstimate": ".client", "ServerError": ".client", "Observation": ".client",
     "StepResult": ".client", "decode_observation": ".client", "BraveEnv": ".gym_env",
+    "ReplyError": ".replies", "ClientLimits": ".replies", "parse_reply": ".replies",
+    "MAX_WIDTH": ".limits", "MAX_HEIGHT": ".limits",
     "BraveVectorEnv": ".vector_env",
     "ObservationMessage": ".schema", "StepMessage": ".schema", "ObjectState": ".schema",
     "EncodedImage": ".schema", "TargetRef": ".schema", "ErrorMessage": ".schema",

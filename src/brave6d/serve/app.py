@@ -46,8 +46,11 @@ pose must be free as a reset's ``start`` must be (inside the workspace, clear of
 else 422 naming ``pose``). Its observation lists no objects: it is the splat and nothing the score uses.
 
 Robustness: request bodies (and WebSocket messages) are limited to ``max_body_bytes``
-(413); each action runs under ``request_timeout_s`` (504; a timed-out action is withdrawn
-before it changes anything); malformed JSON is 400, invalid values 422, unknown episodes 404,
+(413) and read by the one JSON reader, whose every check is linear in the input (one over 64 KiB
+on a thread of its own, off the event loop); each action runs under ``request_timeout_s`` (504; a
+timed-out action is withdrawn before it changes anything), is withdrawn the same way when its
+client disconnects (its render skipped, not drawn) and at shutdown (503):
+:mod:`brave6d.serve.inflight`; malformed JSON is 400, invalid values 422, unknown episodes 404,
 closed or busy episodes 409, too many open episodes 429; unexpected errors are 500 and the
 server keeps serving. A step (``set_pose``/``move``) is one transaction: its observation,
 counters and log line are computed first and committed together, so a failed request changes
@@ -77,6 +80,7 @@ import weakref
 from collections.abc import AsyncIterator, Callable, Coroutine, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -113,13 +117,12 @@ from brave6d.serve.modes import SCORED, public_bundle
 from brave6d.serve.episode_manager import EpisodeManager
 from brave6d.serve.episodes import (
     ActionResult,
-    Cancelled,
     EpisodeError,
     EpisodeNotFound,
     RenderedView,
     SceneServer,
-    Ticket,
 )
+from brave6d.serve.inflight import InFlight
 from brave6d.serve.schema import EncodedImage, ErrorMessage, ObservationMessage, RenderMessage, StepMessage
 
 log = logging.getLogger(__name__)
@@ -422,6 +425,26 @@ def request_json_limits(limits: ServerLimits) -> JsonLimits:
     return JsonLimits(max_bytes=limits.max_body_bytes, finite=False)
 
 
+#: Request bodies and WebSocket messages larger than this are parsed on the app's parser thread, off
+#: the event loop: while one is read (a 1 MiB body takes about 0.1 s to refuse) the loop serves the others.
+PARSE_OFF_LOOP_BYTES = 64 * 1024
+
+
+async def parse_request_json(data: bytes | str, where: str, limits: ServerLimits, parser: Any) -> Any:
+    """``data`` through the one JSON reader with :func:`request_json_limits`; a document over
+    :data:`PARSE_OFF_LOOP_BYTES` is parsed in ``parser`` (a one-thread pool: large bodies take turns,
+    and the event loop never waits for one). Every check of the reader is linear in the input."""
+    if len(data) <= PARSE_OFF_LOOP_BYTES:
+        return parse_json(data, where, request_json_limits(limits))
+    loop = asyncio.get_running_loop()
+    return await loop.run_in_executor(parser, parse_json, data, where, request_json_limits(limits))
+
+
+#: The ASGI ``receive`` of the HTTP request whose handler runs (set by :class:`_JsonRoute`), so that
+#: an action can be withdrawn when its client disconnects (:mod:`brave6d.serve.inflight`).
+_REQUEST_RECEIVE: ContextVar[Callable[[], Any] | None] = ContextVar("brave6d_request_receive", default=None)
+
+
 class _JsonRequest(Request):
     """A request whose JSON body is read by the one JSON reader (:mod:`brave6d.core.json_input`):
     a body over its depth or number limits is 400 naming the place, never 500."""
@@ -429,20 +452,26 @@ class _JsonRequest(Request):
     async def json(self) -> Any:
         if not hasattr(self, "_json"):
             try:
-                self._json = parse_json(await self.body(), "body", request_json_limits(self.app.state.limits))
+                self._json = await parse_request_json(await self.body(), "body", self.app.state.limits,
+                                                      self.app.state.json_parser)
             except JsonInputError as exc:
                 raise StarletteHTTPException(400, f"malformed JSON: {str(exc).removeprefix('body: ')}") from None
         return self._json
 
 
 class _JsonRoute(APIRoute):
-    """The routes' class: each handler gets a :class:`_JsonRequest`."""
+    """The routes' class: each handler gets a :class:`_JsonRequest`, and its actions watch the
+    request's connection (:data:`_REQUEST_RECEIVE`)."""
 
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         handler = super().get_route_handler()
 
         async def route(request: Request) -> Response:
-            return await handler(_JsonRequest(request.scope, request.receive))
+            token = _REQUEST_RECEIVE.set(request.receive)
+            try:
+                return await handler(_JsonRequest(request.scope, request.receive))
+            finally:
+                _REQUEST_RECEIVE.reset(token)
         return route
 
 
@@ -589,13 +618,17 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
                              idle_timeout_s=limits.idle_timeout_s, lock_timeout_s=limits.request_timeout_s,
                              mode=mode, log_key=log_key)
     executor = ThreadPoolExecutor(max_workers=limits.workers, thread_name_prefix="brave6d-serve")
+    inflight = InFlight(executor, limits.request_timeout_s)
+    json_parser = ThreadPoolExecutor(max_workers=1, thread_name_prefix="brave6d-json")
     npz_files = NpzFiles()
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
         yield
+        inflight.drain()
         manager.close_all()
         executor.shutdown(wait=False, cancel_futures=True)
+        json_parser.shutdown(wait=False, cancel_futures=True)
 
     app = FastAPI(
         lifespan=lifespan,
@@ -612,6 +645,9 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
     app.state.bundle = bundle if isinstance(bundle, Bundle) else None
     app.state.limits = limits
     app.state.executor = executor
+    app.state.json_parser = json_parser
+    app.state.inflight = inflight
+    app.state.drain = inflight.drain  # brave6d.serve.runner's server calls it when its shutdown starts
     app.add_middleware(BodyLimitMiddleware, limit=limits.max_body_bytes)
     if token is not None:
         app.add_middleware(TokenMiddleware, token=token)
@@ -647,32 +683,17 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
         return _error(500, f"internal error: {type(exc).__name__}: {exc}")
 
     async def run_action(fn: Any, *args: Any, **kwargs: Any) -> Any:
-        """Run a blocking action in the pool; on timeout withdraw it (504) unless already committed."""
-        ticket = Ticket()
-        loop = asyncio.get_running_loop()
-        fut = loop.run_in_executor(executor, lambda: fn(*args, ticket=ticket, **kwargs))
-        done, _ = await asyncio.wait({fut}, timeout=limits.request_timeout_s)
-        if not done and ticket.cancel():
-            fut.add_done_callback(lambda f: f.exception())  # consume the Cancelled raised later
-            raise _Timeout()
-        try:
-            return await fut
-        except Cancelled:  # pragma: no cover - only when cancel won the race
-            raise _Timeout() from None
-
-    class _Timeout(EpisodeError):
-        status = 504
-
-        def __init__(self) -> None:
-            super().__init__(f"the request took longer than {limits.request_timeout_s:g} s and was withdrawn "
-                             "(nothing changed); the server is overloaded or the image is too large")
+        """Run a blocking action in the pool, withdrawn (nothing committed) when its client goes (499),
+        on timeout (504) or at shutdown (503): :class:`brave6d.serve.inflight.InFlight`."""
+        return await inflight.run(fn, *args, receive=_REQUEST_RECEIVE.get(), **kwargs)
 
     def respond(result: ActionResult, opts: ObsOptions, t0: float, status: int = 200) -> JSONResponse:
         body = step_json(result, opts, t0)
         return JSONResponse(body, status_code=status, headers=timing_headers(body["timings_ms"]))
 
     err = {400: {"model": ErrorMessage}, 404: {"model": ErrorMessage}, 409: {"model": ErrorMessage},
-           413: {"model": ErrorMessage}, 422: {"model": ErrorMessage}, 429: {"model": ErrorMessage}, 504: {"model": ErrorMessage}}
+           413: {"model": ErrorMessage}, 422: {"model": ErrorMessage}, 429: {"model": ErrorMessage},
+           503: {"model": ErrorMessage}, 504: {"model": ErrorMessage}}
 
     # -------------------------------------------------------------- routes
     @app.get("/", include_in_schema=False)
@@ -813,7 +834,7 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
             return {"error": f"message larger than {limits.max_body_bytes} bytes", "field": "message", "status": 413}
         request_id = None
         try:
-            raw = parse_json(text, "message", request_json_limits(limits))  # the one JSON reader
+            raw = await parse_request_json(text, "message", limits, json_parser)  # the one JSON reader
             request_id = echo_request_id(raw)
             msg = WsMessage.model_validate(raw)
         except ValidationError as exc:

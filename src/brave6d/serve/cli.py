@@ -176,11 +176,9 @@ def access_for(host: str, allow_remote: bool, token: str | None, allow_hosts: li
 def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
     """Serve the scenes ``sources_of(args.bundle, args.cache_dir)`` gives (see the module docstring)."""
     quiet_openmp()
-    import uvicorn
-
     from brave6d.serve.app import LOOPBACK_HOSTS, create_app
     from brave6d.serve.catalog import SceneUnavailable, open_scenes
-    from brave6d.serve.runner import is_loopback, listening_socket, uvicorn_config
+    from brave6d.serve.runner import draining_server, is_loopback, listening_socket, uvicorn_config
 
     # every number was bounded when the flags were parsed (limit_arg); ServerLimits checks again
     limits = ServerLimits(max_body_bytes=args.max_body_bytes, request_timeout_s=args.request_timeout,
@@ -227,7 +225,7 @@ def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
     if access.token_generated:
         print(f"token (send as 'Authorization: Bearer <token>' or '?token=<token>'): {access.token}", flush=True)
     level = "info" if getattr(args, "verbose", 0) else "warning"
-    server = uvicorn.Server(uvicorn_config(app, args.host, port, level, limits)[0])
+    server = draining_server(uvicorn_config(app, args.host, port, level, limits)[0])  # Ctrl-C withdraws what runs
     # uvicorn shuts down gracefully on Ctrl-C, then raises the signal again with the handler it
     # found. With Python's default handler that goes through asyncio's Runner, which turns it into
     # a task cancellation and, once in a CI run, into a normal return (exit status 0); a handler

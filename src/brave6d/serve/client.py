@@ -16,12 +16,16 @@ Poses are ``world_T_cam`` 4x4 arrays (OpenCV camera axes, metres). A refused act
 error: it returns a :class:`StepResult` with ``accepted == False``. HTTP errors (4xx/5xx) raise
 :class:`ServerError` with the server's message, field and status. A server started with a
 token (``brave6d serve --token``) needs it: ``BraveClient(url, token=...)`` or ``$BRAVE6D_TOKEN``.
+
+The server is not trusted: every reply is read within :class:`~brave6d.serve.replies.ClientLimits`
+(size as sent and decompressed, JSON depth and number length, image headers before decoding, the
+``.npz`` directory and ``.npy`` headers) and every call ends by its deadline (``timeout`` seconds,
+the whole call, however the server drips its bytes); a reply that breaks a limit raises
+:class:`ReplyError` in one line (:mod:`brave6d.serve.replies`).
 """
 
 from __future__ import annotations
 
-import base64
-import io
 import os
 from dataclasses import dataclass
 from typing import Any, Self, TypeVar
@@ -31,7 +35,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from pydantic import ValidationError
 
-from brave6d.core.errors import BraveError
+from brave6d.core.errors import BraveError, validation_error_field
+from brave6d.serve.replies import (ClientLimits, ReplyError, call_deadline, deadline_transport, decode_depth, decode_rgb,
+                                   one_line, parse_reply, read_body, read_npz)
 from brave6d.serve.schema import ObjectState, ObservationMessage, RenderMessage, StepMessage
 
 M = TypeVar("M", ObservationMessage, StepMessage, RenderMessage)
@@ -153,35 +159,29 @@ class PoseEstimate:
                 "score": float(self.score)}
 
 
-def decode_observation(data: dict[str, Any] | ObservationMessage) -> Observation:
-    """An observation from the server's JSON (validated against :class:`brave6d.serve.schema.ObservationMessage`)."""
-    message = data if isinstance(data, ObservationMessage) else _validated(ObservationMessage, data)
-    rgb = None
-    if message.rgb is not None:
-        import cv2
-
-        buf = np.frombuffer(base64.b64decode(message.rgb.data), dtype=np.uint8)
-        bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR)
-        rgb = np.ascontiguousarray(bgr[:, :, ::-1])
-    depth = None
-    if message.depth is not None:
-        h, w = message.depth.shape
-        depth = np.frombuffer(base64.b64decode(message.depth.data), dtype="<f4").reshape(h, w).astype(np.float32)
+def decode_observation(data: dict[str, Any] | ObservationMessage, what: str = "reply",
+                       limits: ClientLimits = ClientLimits()) -> Observation:
+    """An observation from the server's JSON (validated against :class:`brave6d.serve.schema.ObservationMessage`),
+    its images decoded within ``limits`` (:mod:`brave6d.serve.replies`; ``what`` names the request in errors)."""
+    message = data if isinstance(data, ObservationMessage) else _validated(ObservationMessage, data, what)
+    rgb = None if message.rgb is None else decode_rgb(message.rgb, message.width, message.height, what, limits)
+    depth = None if message.depth is None else decode_depth(message.depth, message.width, message.height, what, limits)
     return Observation(message, rgb, depth)
 
 
-def decode_step(data: dict[str, Any]) -> StepResult:
+def decode_step(data: dict[str, Any], what: str = "reply", limits: ClientLimits = ClientLimits()) -> StepResult:
     """A step reply from the server's JSON (validated against :class:`brave6d.serve.schema.StepMessage`)."""
-    message = _validated(StepMessage, data)
-    return StepResult(message, decode_observation(message.observation))
+    message = _validated(StepMessage, data, what)
+    return StepResult(message, decode_observation(message.observation, what, limits))
 
 
-def _validated(model: type[M], data: dict[str, Any]) -> M:
+def _validated(model: type[M], data: dict[str, Any], what: str = "reply") -> M:
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise BraveError(f"the server's reply does not match {model.__name__} (client and server versions "
-                         f"differ?): {exc}") from None
+        field, message = validation_error_field(exc.errors(include_url=False))
+        raise ReplyError(f"{what}: the server's reply does not match {model.__name__} (client and server versions "
+                         f"differ?): field '{one_line(field or '<root>', 80)}': {one_line(message, 200)}") from None
 
 
 def _given(**fields: Any) -> dict[str, Any]:
@@ -200,16 +200,19 @@ class BraveClient:
     """Synchronous client of one server; remembers the current episode (``episode_id``)."""
 
     def __init__(self, base_url: str = DEFAULT_URL, timeout: float = 120.0, rgb: str = "png", depth: str = "f32",
-                 transport: Any = None, token: str | None = None) -> None:
-        """``token``: the server's token (default ``$BRAVE6D_TOKEN``; none when unset)."""
+                 transport: Any = None, token: str | None = None, limits: ClientLimits | None = None) -> None:
+        """``token``: the server's token (default ``$BRAVE6D_TOKEN``; none when unset). ``timeout``: the
+        seconds one call may take in all (its deadline); ``limits``: what a reply may hold (default
+        :class:`ClientLimits` with that deadline)."""
         import httpx
 
+        self.limits = limits if limits is not None else ClientLimits(deadline_s=timeout)
         token = token if token is not None else os.environ.get(TOKEN_ENV) or None
-        kwargs: dict[str, Any] = {"base_url": base_url, "timeout": timeout}
+        headers = {"Accept-Encoding": "identity"}  # a compressed reply is still read, within the limits
         if token is not None:
-            kwargs["headers"] = {"Authorization": f"Bearer {token}"}
-        if transport is not None:
-            kwargs["transport"] = transport
+            headers["Authorization"] = f"Bearer {token}"
+        kwargs: dict[str, Any] = {"base_url": base_url, "timeout": timeout, "headers": headers,
+                                  "transport": transport if transport is not None else deadline_transport()}
         self._http = httpx.Client(**kwargs)
         self.rgb = rgb
         self.depth = depth
@@ -217,15 +220,41 @@ class BraveClient:
         self.scene: str | int | None = None  # the scene of the last reset (None: the server's only scene)
 
     # -------------------------------------------------------------- plumbing
-    def _request(self, method: str, path: str, **kwargs: Any) -> Any:
-        r = self._http.request(method, path, **kwargs)
-        if r.status_code >= 400:
+    def _request(self, method: str, path: str, **kwargs: Any) -> bytes:
+        """The body of the reply to ``method path``, read within :attr:`limits` and by the call's
+        deadline; an error status raises :class:`ServerError`, a reply this client refuses
+        :class:`ReplyError`."""
+        import httpx
+
+        what = f"{method} {path.split('?')[0][:100]}"
+        try:
+            with call_deadline(self.limits.deadline_s), self._http.stream(method, path, **kwargs) as r:
+                body = read_body(r, self.limits, what)
+                status = r.status_code
+        except httpx.TimeoutException:
+            raise ReplyError(f"{what}: no whole reply within the call's deadline of {self.limits.deadline_s:g} s "
+                             "(the server is slow, overloaded or holds the reply back)") from None
+        if status >= 400:
             try:
-                body = r.json()
-                raise ServerError(r.status_code, str(body.get("error", body)), body.get("field"))
-            except ValueError:
-                raise ServerError(r.status_code, r.text[:200]) from None
-        return r
+                err = parse_reply(body, self.limits, what)
+            except ReplyError:
+                err = None
+            if isinstance(err, dict):
+                field = err.get("field")
+                raise ServerError(status, one_line(err.get("error", err)), one_line(field, 100) if field else None)
+            raise ServerError(status, one_line(body[:300].decode("utf-8", "replace")))
+        return body
+
+    def _json(self, method: str, path: str, **kwargs: Any) -> Any:
+        """The JSON reply to ``method path`` (:meth:`_request`) through the one JSON reader."""
+        return parse_reply(self._request(method, path, **kwargs), self.limits, f"{method} {path.split('?')[0][:100]}")
+
+    def _dict(self, method: str, path: str, **kwargs: Any) -> dict[str, Any]:
+        """:meth:`_json` when the reply is a JSON object, else :class:`ReplyError`."""
+        out = self._json(method, path, **kwargs)
+        if not isinstance(out, dict):
+            raise ReplyError(f"{method} {path.split('?')[0][:100]}: the server's reply is not a JSON object")
+        return out
 
     def _eid(self, episode_id: str | None) -> str:
         eid = episode_id or self.episode_id
@@ -238,29 +267,29 @@ class BraveClient:
 
     # -------------------------------------------------------------- API
     def health(self) -> dict[str, Any]:
-        return self._request("GET", "/health").json()
+        return self._dict("GET", "/health")
 
     def scenes(self) -> dict[str, Any]:
         """The scenes the server serves (``GET /scenes``: names, scene ids, objects, loaded or not)."""
-        return self._request("GET", "/scenes").json()
+        return self._dict("GET", "/scenes")
 
     def bundle(self, scene: str | int | None = None) -> dict[str, Any]:
         """A scene's bundle description (``scene`` may be omitted when the server has one)."""
         params = {"scene": str(scene)} if scene is not None else None
-        return self._request("GET", "/bundle", params=params).json()
+        return self._dict("GET", "/bundle", params=params)
 
     def model(self, obj_id: int, scene: str | int | None = None) -> bytes:
         """The object's model file (BOP PLY, mm)."""
         params = {"scene": str(scene)} if scene is not None else None
-        return self._request("GET", f"/bundle/models/{obj_id}", params=params).content
+        return self._request("GET", f"/bundle/models/{obj_id}", params=params)
 
     def render(self, pose: ArrayLike | dict[str, Any], width: int | None = None, height: int | None = None,
                scene: str | int | None = None) -> Observation:
         """A free view (``POST /render``): the splat of ``scene`` at ``pose`` (a 4x4 ``world_T_cam`` or a
         pose dict), no episode, no object poses; works on a bundle without objects."""
         body = {"pose": pose_json(pose), **self._opts(), **_given(scene=scene, width=width, height=height)}
-        reply = _validated(RenderMessage, self._request("POST", "/render", json=body).json())
-        return decode_observation(reply.observation)
+        reply = _validated(RenderMessage, self._dict("POST", "/render", json=body), "POST /render")
+        return decode_observation(reply.observation, "POST /render", self.limits)
 
     def reset(self, target: int | str | None = None, width: int | None = None, height: int | None = None,
               start: ArrayLike | dict[str, Any] | None = None, seed: int | None = None,
@@ -271,30 +300,31 @@ class BraveClient:
                                           agent=agent)}
         if start is not None:
             body["start"] = pose_json(start)
-        step = decode_step(self._request("POST", "/episodes", json=body).json())
+        step = decode_step(self._dict("POST", "/episodes", json=body), "POST /episodes", self.limits)
         self.episode_id = step.episode_id
         self.scene = scene
         return step
 
     def set_pose(self, world_T_cam: ArrayLike | dict[str, Any], episode_id: str | None = None) -> StepResult:
         body = {"pose": pose_json(world_T_cam), **self._opts()}
-        return decode_step(self._request("POST", f"/episodes/{self._eid(episode_id)}/set_pose", json=body).json())
+        path = f"/episodes/{self._eid(episode_id)}/set_pose"
+        return decode_step(self._dict("POST", path, json=body), f"POST {path}", self.limits)
 
     def move(self, linear: ArrayLike = (0.0, 0.0, 0.0), angular: ArrayLike = (0.0, 0.0, 0.0), duration: float = 1.0,
              frame: str = "camera", episode_id: str | None = None) -> StepResult:
         body = {"linear": [float(v) for v in np.asarray(linear, dtype=float).reshape(3)],
                 "angular": [float(v) for v in np.asarray(angular, dtype=float).reshape(3)],
                 "duration": float(duration), "frame": frame, **self._opts()}
-        return decode_step(self._request("POST", f"/episodes/{self._eid(episode_id)}/move", json=body).json())
+        path = f"/episodes/{self._eid(episode_id)}/move"
+        return decode_step(self._dict("POST", path, json=body), f"POST {path}", self.limits)
 
     def state(self, episode_id: str | None = None) -> dict[str, Any]:
-        return self._request("GET", f"/episodes/{self._eid(episode_id)}").json()
+        return self._dict("GET", f"/episodes/{self._eid(episode_id)}")
 
     def observation_npz(self, episode_id: str | None = None) -> dict[str, NDArray[Any]]:
         """The last observation as arrays (rgb, depth, K, world_T_cam, cam_T_obj, gt_id, obj_id, visib_fract)."""
-        content = self._request("GET", f"/episodes/{self._eid(episode_id)}/observation.npz").content
-        with np.load(io.BytesIO(content)) as npz:
-            return {k: npz[k] for k in npz.files}
+        path = f"/episodes/{self._eid(episode_id)}/observation.npz"
+        return read_npz(self._request("GET", path), f"GET {path}", self.limits)
 
     def submit(self, estimates: list[PoseEstimate | dict[str, Any]], agent: str | None = None,
                episode_id: str | None = None) -> dict[str, Any]:
@@ -304,7 +334,7 @@ class BraveClient:
         body: dict[str, Any] = {"estimates": [e.to_json() if isinstance(e, PoseEstimate) else e for e in estimates]}
         if agent is not None:
             body["agent"] = agent
-        out = self._request("POST", f"/episodes/{eid}/estimates", json=body).json()
+        out = self._dict("POST", f"/episodes/{eid}/estimates", json=body)
         if eid == self.episode_id:
             self.episode_id = None
         return out
@@ -312,7 +342,7 @@ class BraveClient:
     def close(self, episode_id: str | None = None) -> dict[str, Any]:
         """Close the episode (the current one by default); returns its totals."""
         eid = self._eid(episode_id)
-        out = self._request("POST", f"/episodes/{eid}/close").json()
+        out = self._dict("POST", f"/episodes/{eid}/close")
         if eid == self.episode_id:
             self.episode_id = None
         return out

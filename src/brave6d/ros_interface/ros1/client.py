@@ -31,6 +31,13 @@ from brave6d.ros_interface.ros1.ros_env import require_ros1
 IMAGE_BUFF_SIZE = 1 << 26  # rospy's default (64 KiB) splits big images into many reads
 
 
+def _node_json(text: str, where: str) -> Any:
+    """JSON text a node sent, through the one JSON reader with the client's limits (one-line errors)."""
+    from brave6d.serve import ClientLimits, parse_reply
+
+    return parse_reply(text.encode("utf-8", "surrogatepass"), ClientLimits(), where)
+
+
 @dataclass
 class Ros1Observation:
     """One observation's messages (all with stamp ``stamp_ns``) and when they arrived (perf_counter)."""
@@ -46,7 +53,9 @@ class Ros1Observation:
 
     @property
     def status_json(self) -> dict[str, Any]:
-        return json.loads(self.status.json)
+        """The status's JSON, read as any reply from a node this client does not trust (the client
+        limits of :mod:`brave6d.serve.replies`: size, depth, number length)."""
+        return _node_json(self.status.json, "EpisodeStatus.json")
 
     def rgb_array(self) -> NDArray[np.uint8]:
         return convert.image_array(self.rgb)
@@ -281,7 +290,7 @@ def run_actions(client: Ros1Client, actions: list[dict[str, Any]], out: Path) ->
             record["submit"] = {"success": res.success, "message": res.message, "ar": res.ar, "ar_vsd": res.ar_vsd,
                                 "ar_mssd": res.ar_mssd, "ar_mspd": res.ar_mspd, "adjustments": res.adjustments,
                                 "steps": res.steps, "refusals": res.refusals, "submitted": res.submitted,
-                                "json": json.loads(res.json) if res.json else None}
+                                "json": _node_json(res.json, "SubmitEstimates.json") if res.json else None}
             record["estimates"] = estimates
             continue
         elif op == "close":

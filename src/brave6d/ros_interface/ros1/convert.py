@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from brave6d.core.errors import BraveError
 from brave6d.ros_interface.bridge import BridgeStep, Estimate, EpisodeResult
+from brave6d.serve import MAX_HEIGHT, MAX_WIDTH
 from brave6d.ros_interface.frames import (
     FRAME_CAMERA_OPTICAL,
     FRAME_WORLD,
@@ -166,12 +167,18 @@ def result_response(msgs: Any, result: EpisodeResult) -> Any:
         refusals=result.refusals, submitted=result.submitted, json=json.dumps(result.to_json()))
 
 
-def image_array(msg: Any) -> NDArray[Any]:
-    """A ``sensor_msgs/Image`` (rgb8 or 32FC1) as a numpy array (for agents)."""
+def image_array(msg: Any, max_pixels: int = MAX_WIDTH * MAX_HEIGHT) -> NDArray[Any]:
+    """A ``sensor_msgs/Image`` (rgb8 or 32FC1) as a numpy array (for agents). The node is not trusted:
+    its size (at most ``max_pixels``), row step and data length must agree, else :class:`BraveError`."""
+    if msg.encoding not in ("rgb8", "32FC1"):
+        raise BraveError(f"image encoding {str(msg.encoding)[:40]!r} is not handled here (rgb8 and 32FC1 are)")
+    pixel = 3 if msg.encoding == "rgb8" else 4
+    height, width, step = msg.height, msg.width, msg.step
+    if not (0 < width and 0 < height and width * height <= max_pixels and step >= pixel * width
+            and step % pixel == 0 and len(msg.data) == height * step):
+        raise BraveError(f"image {width}x{height} ({msg.encoding}, step {step}, {len(msg.data)} bytes): its size, "
+                         f"row step and data disagree or it has more than {max_pixels} pixels")
     if msg.encoding == "rgb8":
-        return np.frombuffer(msg.data, dtype=np.uint8).reshape(msg.height, msg.step)[:, : 3 * msg.width].reshape(
-            msg.height, msg.width, 3)
-    if msg.encoding == "32FC1":
-        dtype = ">f4" if msg.is_bigendian else "<f4"
-        return np.frombuffer(msg.data, dtype=dtype).reshape(msg.height, msg.step // 4)[:, : msg.width].astype(np.float32)
-    raise BraveError(f"image encoding {msg.encoding!r} is not handled here (rgb8 and 32FC1 are)")
+        return np.frombuffer(msg.data, dtype=np.uint8).reshape(height, step)[:, : 3 * width].reshape(height, width, 3)
+    dtype = ">f4" if msg.is_bigendian else "<f4"
+    return np.frombuffer(msg.data, dtype=dtype).reshape(height, step // 4)[:, :width].astype(np.float32)
