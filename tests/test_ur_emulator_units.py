@@ -17,7 +17,7 @@ from brave6d.capture.kinematics import URKinematics
 from brave6d.capture.sim_robot import trapezoid_time
 from brave6d.capture.ur_emulator import Controller, ControllerConfig, FaultSpecError, check_loopback, parse_fault
 from brave6d.capture.ur_emulator import rtde_protocol as rtde
-from brave6d.capture.ur_emulator.commands import DONE, READY
+from brave6d.capture.ur_emulator.commands import COMMANDS, DONE, READY, REALTIME
 from brave6d.capture.ur_emulator.motion import Motion
 
 Q_A = np.array([0.2, -1.2, 1.5, -1.8, -1.5, 0.3])
@@ -123,11 +123,32 @@ def test_a_stop_brakes_part_way_along_the_same_path() -> None:
 
 
 # ----------------------------------------------------------------------------- the script loop
+def _script(commands: dict = COMMANDS) -> str:
+    """A control script with the branches the emulator checks (the real one comes from ur-rtde: the
+    network tests check the table against it)."""
+    branches = "".join(f"        elif cmd == {c}:\n            {e.script_marker}\n" for c, e in sorted(commands.items()))
+    realtime = " or ".join(f"cmd == {c}" for c in sorted(REALTIME))
+    return (f"def rtde_control():\n    def process_cmd(cmd):\n        if cmd == 0:\n            pass\n{branches}"
+            f"    end\n    signal_ready()\n    while True:\n        if {realtime}:\n            pass\n        end\n"
+            "    end\nend\n")
+
+
 def _controller(**kw: object) -> tuple[Controller, list[float]]:
     clock = [0.0]
     c = Controller(ControllerConfig(**kw), wall=lambda: clock[0])  # type: ignore[arg-type]
-    c.start_program("def rtde_control():\n  def process_cmd(cmd):\n  end\n  signal_ready()\nend\n")
+    c.start_program(_script())
     return c, clock
+
+
+def test_a_script_whose_commands_differ_is_not_run() -> None:
+    c = Controller(ControllerConfig())
+    renumbered = {(48 if k == 47 else k): v for k, v in COMMANDS.items()}
+    c.start_program(_script(renumbered))
+    assert c.runtime_state == 1
+    assert any("script refused: its commands differ" in e.text and "command 47 (isSteady)" in e.text
+               for e in c.events)
+    c.start_program(_script())
+    assert c.runtime_state == 2
 
 
 def _command(c: Controller, cmd: int, doubles: list[float] = (), async_flag: int = 0) -> None:
@@ -190,11 +211,11 @@ def test_a_protective_stop_pauses_and_a_new_program_waits_for_the_unlock() -> No
     clock[0] += 0.3
     c.protective_stop("test")
     assert c.runtime_state == 4 and c.tick()["safety_status_bits"] == 1 << 2
-    c.start_program("def rtde_control():\n  def process_cmd(cmd):\n  end\n  signal_ready()\nend\n")
+    c.start_program(_script())
     assert c.runtime_state == 4  # refused during the protective stop
     assert c.unlock_protective_stop().startswith("Cannot unlock protective stop until 5s")
     clock[0] += 5.0
     assert c.unlock_protective_stop() == "Protective stop releasing"
-    c.start_program("def rtde_control():\n  def process_cmd(cmd):\n  end\n  signal_ready()\nend\n")
+    c.start_program(_script())
     assert c.runtime_state == 2 and c.tick()["safety_status_bits"] == 1
     assert math.isfinite(c.current_q()[0]) and not np.allclose(c.current_q(), Q_A + 0.5)

@@ -22,7 +22,12 @@ What the capture needs from the real camera, and how it is done:
   frame whose exposure STARTED after the call, never a stale queued frame (images taken
   before the arm settled are a known failure).
 
-depthai is imported lazily; tests pass a fake module as ``dai_module``.
+* no device: ``Device.getAllAvailableDevices()`` is asked first, so the refusal is one line within
+  a second (``dai.Pipeline()`` alone retries for about 12 s).
+
+depthai is imported lazily. Everything except the device's own nodes (Camera, StereoDepth) also runs
+on any pipeline's outputs (:meth:`OakCamera.on_outputs`): the tests drive it through a host-only
+pipeline with real ``dai.ImgFrame`` and ``dai.CalibrationHandler`` objects.
 """
 
 from __future__ import annotations
@@ -72,6 +77,43 @@ class OakCamera:
                  manual_focus: FocusSetting = None, manual_white_balance_k: int | None = None,
                  *, settle_frames: int = 30, lock_timeout_s: float = 5.0, frame_timeout_s: float = 3.0,
                  stereo_size: tuple[int, int] = (640, 400), dai_module: ModuleType | Any | None = None) -> None:
+        self._setup(width, height, depth, fps, manual_exposure_us, iso, settle_frames, lock_timeout_s,
+                    frame_timeout_s, dai_module)
+        try:
+            self._open_device(manual_exposure_us, iso, manual_focus, manual_white_balance_k, stereo_size)
+        except BaseException:
+            self.close()
+            raise
+
+    @classmethod
+    def on_outputs(cls, pipeline: Any, calibration: Any, rgb: Any, control: Any, depth: Any = None, *,
+                   width: int, height: int, fps: float = 10.0, serial: str = "", model: str = "OAK",
+                   manual_exposure_us: int | None = None, iso: int | None = None,
+                   manual_focus: FocusSetting = None, manual_white_balance_k: int | None = None,
+                   settle_frames: int = 30, lock_timeout_s: float = 5.0, frame_timeout_s: float = 3.0,
+                   dai_module: ModuleType | Any | None = None) -> OakCamera:
+        """The camera on the outputs of a pipeline that is not started yet: ``rgb`` (BGR888i frames),
+        ``control`` (an input taking ``dai.CameraControl``), optional ``depth`` (uint16 mm aligned to
+        RGB), with ``calibration`` (a ``dai.CalibrationHandler``). Everything but the device's own
+        nodes runs as with a connected OAK: a host-only pipeline (``dai.Pipeline(createImplicitDevice=
+        False)`` with host nodes) exercises it without hardware."""
+        cam = cls.__new__(cls)
+        cam._setup(width, height, depth is not None, fps, manual_exposure_us, iso, settle_frames, lock_timeout_s,
+                   frame_timeout_s, dai_module)
+        try:
+            cam._pipeline = pipeline
+            cam._read_calibration(calibration, serial, model)
+            focus = cam._resolve_focus(manual_focus)
+            cam._attach(rgb, control, depth)
+            cam._start(manual_exposure_us, iso, focus, manual_white_balance_k)
+        except BaseException:
+            cam.close()
+            raise
+        return cam
+
+    def _setup(self, width: int, height: int, depth: bool, fps: float, manual_exposure_us: int | None,
+               iso: int | None, settle_frames: int, lock_timeout_s: float, frame_timeout_s: float,
+               dai_module: ModuleType | Any | None) -> None:
         if width < 16 or height < 16:
             raise BraveError(f"oak camera: image size {width}x{height} is too small")
         if (manual_exposure_us is None) != (iso is None):
@@ -82,19 +124,19 @@ class OakCamera:
         self._settle_frames = int(settle_frames)
         self._lock_timeout_s = float(lock_timeout_s)
         self._frame_timeout_s = float(frame_timeout_s)
-        self._dai = dai_module if dai_module is not None else _import_depthai()
         self._pipeline: Any = None
+        self._depth_queue: Any = None
         self._closed = False
-        try:
-            self._open(manual_exposure_us, iso, manual_focus, manual_white_balance_k, stereo_size)
-        except BaseException:
-            self.close()
-            raise
+        self._dai = dai_module if dai_module is not None else _import_depthai()
 
     # ------------------------------------------------------------------ opening
-    def _open(self, exposure_us: int | None, iso: int | None, focus: FocusSetting, white_balance_k: int | None,
-              stereo_size: tuple[int, int]) -> None:
+    def _open_device(self, exposure_us: int | None, iso: int | None, focus: FocusSetting,
+                     white_balance_k: int | None, stereo_size: tuple[int, int]) -> None:
         dai = self._dai
+        if not _try(dai.Device.getAllAvailableDevices):
+            # at once, in one line: dai.Pipeline() would retry for about 12 s before saying the same
+            raise CameraError("no OAK camera found (depthai lists no available device): check the USB cable, "
+                              "power and the udev rules, and that no other program holds the camera")
         try:
             self._pipeline = dai.Pipeline()
         except RuntimeError as exc:
@@ -104,18 +146,10 @@ class OakCamera:
             raise CameraError(f"cannot open the OAK camera: {exc}") from None
         device = self._pipeline.getDefaultDevice()
         socket = dai.CameraBoardSocket.CAM_A
-        calib = device.readCalibration()
-        self.intrinsics_source = "factory calibration (getCameraIntrinsics)"
-        self._intrinsics = self._factory_intrinsics(calib, socket)
-        self._calibration_lens_position = _try(lambda: int(calib.getLensPosition(socket)))
-        self.serial = str(_try(device.getDeviceId) or "")
-        self.model = str(_try(device.getProductName) or "") or "OAK"
-
+        self._read_calibration(device.readCalibration(), str(_try(device.getDeviceId) or ""),
+                               str(_try(device.getProductName) or "") or "OAK")
+        focus = self._resolve_focus(focus)
         cam = self._pipeline.create(dai.node.Camera).build(socket)
-        if focus == "calibration":
-            if self._calibration_lens_position is None or self._calibration_lens_position < 0:
-                raise CameraError("oak camera: manual_focus='calibration' but the device reports no calibrated lens position")
-            focus = self._calibration_lens_position
         if exposure_us is not None and iso is not None:
             cam.initialControl.setManualExposure(int(exposure_us), int(iso))
         if focus is not None:
@@ -124,42 +158,56 @@ class OakCamera:
             cam.initialControl.setManualWhiteBalance(int(white_balance_k))
         rgb_out = cam.requestOutput((self.width, self.height), type=dai.ImgFrame.Type.BGR888i,
                                     resizeMode=dai.ImgResizeMode.CROP, fps=self.fps, enableUndistortion=False)
-        self._rgb_queue = rgb_out.createOutputQueue(maxSize=4, blocking=False)
-        self._control_queue = cam.inputControl.createInputQueue()
-        self._depth_queue = None
+        depth_out = None
         if self.depth:
             stereo = self._pipeline.create(dai.node.StereoDepth).build(
-                autoCreateCameras=True, presetMode=dai.node.StereoDepth.PresetMode.DEFAULT, size=stereo_size, fps=self.fps)
+                autoCreateCameras=True, presetMode=dai.node.StereoDepth.PresetMode.DEFAULT, size=stereo_size,
+                fps=self.fps)
             stereo.setLeftRightCheck(True)
             stereo.setSubpixel(True)
             stereo.setDepthAlign(socket)
             stereo.setOutputSize(self.width, self.height)
-            self._depth_queue = stereo.depth.createOutputQueue(maxSize=4, blocking=False)
+            depth_out = stereo.depth
+        self._attach(rgb_out, cam.inputControl, depth_out)
+        self._start(exposure_us, iso, focus, white_balance_k)
+
+    def _read_calibration(self, calib: Any, serial: str, model: str) -> None:
+        socket = self._dai.CameraBoardSocket.CAM_A
+        self.intrinsics_source = "factory calibration (getCameraIntrinsics)"
+        self._intrinsics = factory_intrinsics(calib, self.width, self.height, self._dai)
+        self._calibration_lens_position = _try(lambda: int(calib.getLensPosition(socket)))
+        self.serial, self.model = serial, model
+
+    def _resolve_focus(self, focus: FocusSetting) -> int | None:
+        if focus != "calibration":
+            return focus
+        if self._calibration_lens_position is None or self._calibration_lens_position < 0:
+            raise CameraError("oak camera: manual_focus='calibration' but the device reports no calibrated "
+                              "lens position")
+        return self._calibration_lens_position
+
+    def _attach(self, rgb_out: Any, control_in: Any, depth_out: Any) -> None:
+        self._rgb_queue = rgb_out.createOutputQueue(maxSize=4, blocking=False)
+        self._control_queue = control_in.createInputQueue()
+        self._depth_queue = depth_out.createOutputQueue(maxSize=4, blocking=False) if depth_out is not None else None
+
+    def _start(self, exposure_us: int | None, iso: int | None, focus: int | None, white_balance_k: int | None) -> None:
+        dai = self._dai
         try:
             self._pipeline.start()
         except RuntimeError as exc:
             raise CameraError(f"oak camera: the pipeline did not start: {exc}") from None
+        if any(v is not None for v in (exposure_us, focus, white_balance_k)):
+            # the device took these as initialControl as well; any other source only this way
+            control = dai.CameraControl()
+            if exposure_us is not None and iso is not None:
+                control.setManualExposure(int(exposure_us), int(iso))
+            if focus is not None:
+                control.setManualFocus(int(focus))
+            if white_balance_k is not None:
+                control.setManualWhiteBalance(int(white_balance_k))
+            self._control_queue.send(control)
         self.settings = self._lock_settings(exposure_us, iso, focus, white_balance_k)
-
-    def _factory_intrinsics(self, calib: Any, socket: Any) -> PinholeCamera:
-        dai = self._dai
-        model = _try(lambda: calib.getDistortionModel(socket))
-        if model is not None and model != dai.CameraModel.Perspective:
-            raise CameraError(f"oak camera: CAM_A uses the {model} lens model; only the perspective (OpenCV "
-                              "rational) model is supported")
-        try:
-            K = np.asarray(calib.getCameraIntrinsics(socket, self.width, self.height), dtype=np.float64)
-            dist = np.asarray(calib.getDistortionCoefficients(socket), dtype=np.float64).ravel()
-        except RuntimeError as exc:
-            raise CameraError(f"oak camera: cannot read the factory calibration of CAM_A: {exc}") from None
-        if len(dist) > 14:
-            dist = dist[:14]
-        if len(dist) not in (4, 5, 8, 12, 14):
-            raise CameraError(f"oak camera: unexpected number of distortion coefficients ({len(dist)})")
-        try:
-            return PinholeCamera.from_K(K, self.width, self.height, dist)
-        except BraveError as exc:
-            raise CameraError(f"oak camera: factory intrinsics are unusable: {exc}") from None
 
     def _lock_settings(self, exposure_us: int | None, iso: int | None, focus: int | None,
                        white_balance_k: int | None) -> dict[str, Any]:
@@ -273,6 +321,8 @@ class OakCamera:
         if self._pipeline is not None:
             try:
                 self._pipeline.stop()
+                if self._pipeline.isRunning() is False:
+                    self._pipeline.wait()  # its threads joined: a pipeline freed while they run crashes Python
             except Exception as exc:  # closing must not mask the original error
                 log.warning("oak camera: stopping the pipeline failed: %s", exc)
 
@@ -296,6 +346,30 @@ class OakCamera:
 
 
 # ----------------------------------------------------------------------------- helpers
+def factory_intrinsics(calib: Any, width: int, height: int, dai: ModuleType | Any) -> PinholeCamera:
+    """CAM_A's intrinsics for a ``width`` x ``height`` output from a ``dai.CalibrationHandler`` (depthai
+    scales the stored camera matrix itself) and its distortion coefficients (OpenCV rational model);
+    only the perspective lens model is supported."""
+    socket = dai.CameraBoardSocket.CAM_A
+    model = _try(lambda: calib.getDistortionModel(socket))
+    if model is not None and model != dai.CameraModel.Perspective:
+        raise CameraError(f"oak camera: CAM_A uses the {model} lens model; only the perspective (OpenCV "
+                          "rational) model is supported")
+    try:
+        K = np.asarray(calib.getCameraIntrinsics(socket, width, height), dtype=np.float64)
+        dist = np.asarray(calib.getDistortionCoefficients(socket), dtype=np.float64).ravel()
+    except RuntimeError as exc:
+        raise CameraError(f"oak camera: cannot read the factory calibration of CAM_A: {exc}") from None
+    if len(dist) > 14:
+        dist = dist[:14]
+    if len(dist) not in (4, 5, 8, 12, 14):
+        raise CameraError(f"oak camera: unexpected number of distortion coefficients ({len(dist)})")
+    try:
+        return PinholeCamera.from_K(K, width, height, dist)
+    except BraveError as exc:
+        raise CameraError(f"oak camera: factory intrinsics are unusable: {exc}") from None
+
+
 def _import_depthai() -> ModuleType:
     return require("depthai", "robot", "--camera oak")
 

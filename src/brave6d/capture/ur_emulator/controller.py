@@ -40,7 +40,8 @@ from brave6d.core.spec import RobotPoseError
 from brave6d.core.transforms import invert, matrix_to_ur_pose, ur_pose_to_matrix
 from brave6d.capture.kinematics import UR_DH, URKinematics
 from brave6d.capture.ur_emulator import rtde_protocol as rtde
-from brave6d.capture.ur_emulator.commands import COMMANDS, DONE, NO_CMD, READY, REALTIME, STOP_SCRIPT, is_control_script
+from brave6d.capture.ur_emulator.commands import (
+    COMMANDS, DONE, NO_CMD, READY, REALTIME, STOP_SCRIPT, check_against_script, is_control_script)
 from brave6d.capture.ur_emulator.faults import Fault
 from brave6d.capture.ur_emulator.motion import Motion, Move, PathError
 
@@ -435,6 +436,11 @@ class Controller:
                 self.event(f"script of {len(script)} bytes ignored: only ur-rtde's control script is emulated")
                 return
             self.script = script
+            problems = check_against_script(script)
+            if problems:
+                self.event(f"script refused: its commands differ from the emulator's ({len(problems)}: "
+                           f"{problems[0]}); this emulator follows ur-rtde 1.6.5")
+                return
             if self.safety_mode != SAFETY_NORMAL:
                 self.event("script refused: the arm is in a protective stop (unlock it first)")
                 return
