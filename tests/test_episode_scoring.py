@@ -75,7 +75,7 @@ def depth_of(cam_T_obj: np.ndarray) -> np.ndarray:
 
 def write_episode(folder: Path, eid: str, agent: str | None, estimates: list[np.ndarray] | None,
                   gt: np.ndarray = GT, adjustments: int = 0, bundle_name: str = "synthetic_tabletop",
-                  started: str = "2026-01-01T00:00:00.000+00:00", scene: str | None = None) -> Path:
+                  started: str = "2026-01-01T00:00:00.000+00:00", scene: str | None = None, seed: int = 7) -> Path:
     """A reset (+ submit with ``estimates``, cam_T_obj 4x4 of obj 1; None: no submission) log,
     written through the server's log schema (:mod:`brave6d.serve.episode_log`)."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -88,7 +88,7 @@ def write_episode(folder: Path, eid: str, agent: str | None, estimates: list[np.
                            cam_T_obj=make_transform(np.eye(3), [0.2, 0.0, 0.5]), px_count_all=10, px_count_visib=0,
                            visib_fract=0.0)]
     reset = ResetRecord(time=started, episode_id=eid, bundle=bundle_name, agent=agent, target=target, scene=scene,
-                        width=CAMERA.width, height=CAMERA.height, K=CAMERA.K, seed=7, start="random",
+                        width=CAMERA.width, height=CAMERA.height, K=CAMERA.K, seed=seed, start="random",
                         world_T_cam=np.eye(4), timings_ms={}, target_cam_T_obj=gt, target_visib_fract=1.0)
     lines = [EpisodeLog.format(reset)]
     if estimates is not None:
@@ -176,11 +176,29 @@ def test_agents_ranked_and_aggregated_exactly(tmp_path: Path, models: dict[int, 
     assert [s.im_id for s in board.episodes if s.episode.agent == "alpha"] == [0, 1, 2]  # by start time
     written = write_leaderboard(board, tmp_path / "out")
     assert {p.name for p in written} == {"leaderboard.csv", "leaderboard.json", "episodes.csv", "per_object.csv",
-                                         "per_scene.csv", "per_category.csv", "not_ranked.csv"}
+                                         "per_scene.csv", "per_category.csv", "not_ranked.csv", "paired.csv"}
     assert (tmp_path / "out" / "leaderboard.csv").read_text().splitlines()[0].startswith("agent,mode,episodes,submitted")
     assert {a.mode for a in board.agents} == {"training"}  # hand-made logs name no mode: older than the modes
     data = json.loads((tmp_path / "out" / "leaderboard.json").read_text())
     assert data["agents"][0]["agent"] == "alpha" and len(data["episodes"]) == 5
+
+
+def test_the_leaderboard_gives_active_minus_static_paired_by_start(tmp_path: Path,
+                                                                  models: dict[int, ObjectModel]) -> None:
+    off = GT @ make_transform(np.eye(3), [0.3, 0.0, 0.0])
+    for seed in range(4):  # the active agent right from every start, the static one from half of them
+        write_episode(tmp_path, f"act{seed}", "mine-active", [GT], seed=seed, started=f"2026-01-01T00:00:0{seed}.000+00:00")
+        write_episode(tmp_path, f"sta{seed}", "mine-static", [GT if seed % 2 else off], seed=seed,
+                      started=f"2026-01-01T00:01:0{seed}.000+00:00")
+    write_episode(tmp_path, "lone", "mine-active", [GT], seed=9)  # a start the static agent never played
+    board = score_episodes(read_episodes([tmp_path]), models)
+    [d] = board.paired
+    assert (d.active, d.static, d.pairs) == ("mine-active", "mine-static", 4)
+    assert d.mean == pytest.approx(0.5) and d.se == pytest.approx(0.5 / math.sqrt(4) * math.sqrt(4 / 3))
+    assert "not resolved: about 6 paired starts would resolve 0.500" in board.paired_table()  # 1.7 SE
+    write_leaderboard(board, tmp_path / "out")
+    assert (tmp_path / "out" / "paired.csv").read_text().splitlines()[1].startswith("mine-active,mine-static,4,0.5")
+    assert json.loads((tmp_path / "out" / "leaderboard.json").read_text())["paired"][0]["pairs"] == 4
 
 
 def test_scores_per_scene_and_category_are_exact(tmp_path: Path, models: dict[int, ObjectModel]) -> None:

@@ -404,6 +404,34 @@ def test_baseline_section_shows_the_files_agent_rows(tmp_path: Path) -> None:
     assert "0.450 more AR (0.250 -> 0.700: 0.090 AR per adjustment)" in section.advice
 
 
+def test_baseline_section_gives_active_minus_static_paired_by_start(tmp_path: Path) -> None:
+    from brave6d.evaluation.metrics import AgentRuns, agent_runs_path, write_agent_runs
+
+    def episode(agent: str, seed: int, ar: float) -> dict:
+        return {"agent": agent, "variant": "active" if "active" in agent else "static", "object": "nut", "gt_id": 0,
+                "obj_id": 1, "seed": seed, "episode_id": f"{agent}-{seed}", "ar": ar, "ar_vsd": ar, "ar_mssd": ar,
+                "ar_mspd": ar, "adjustments": 3 if "active" in agent else 0, "wall_time_s": 1.0,
+                "target_distance_m": 0.3, "found": True, "registration_method": None, "registration_score": None}
+
+    def agent(name: str, ar: float) -> dict:
+        return {"agent": name, "mode": "scored", "episodes": 6, "submitted": 6, "n_targets": 6, "ar": ar, "ar_vsd": ar,
+                "ar_mssd": ar, "ar_mspd": ar, "mean_adjustments": 3.0 if "active" in name else 0.0,
+                "mean_wall_time_s": 1.0}
+
+    static = [0.2, 0.8, 0.4, 0.6, 0.1, 0.9]  # starts of very different difficulty, the active agent +0.1 on each
+    write_agent_runs(agent_runs_path(tmp_path), AgentRuns.model_validate({
+        "mode": "scored", "bundle": "b", "image_size": [320, 200], "metrics": ["vsd", "mssd", "mspd"],
+        "agents": [agent("x-active", 0.6), agent("x-static", 0.5)],
+        "episodes": [episode("x-static", i, a) for i, a in enumerate(static)]
+        + [episode("x-active", i, a + 0.1) for i, a in enumerate(static)]}))
+    m = collect_baseline(tmp_path, MeasurementStore(tmp_path / "m"))
+    [paired] = m.summary["paired"]
+    assert paired["pairs"] == 6 and abs(paired["mean"] - 0.1) < 1e-9 and paired["se"] < 1e-9
+    section = render_baseline(m, tmp_path / "report")
+    assert re.search(r"\| x-active +\| x-static +\| 6 +\| \+0\.100 +\| 0\.000 +\| resolved", section.body)
+    assert "Paired by start, x-active - x-static = +0.100 ± 0.000 over 6 starts (resolved (no spread))" in section.advice
+
+
 def test_a_version_one_summary_reads_as_training_mode(tmp_path: Path) -> None:
     """Version 1 predates the modes: its server served the ground truth, and section 5 says so."""
     path = _agent_runs_file(tmp_path)

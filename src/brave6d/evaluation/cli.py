@@ -132,6 +132,9 @@ def run(args: argparse.Namespace) -> int:
     out = args.out if args.out is not None else default_out(paths)
     written = write_leaderboard(board, out)
     print(board.table())
+    if board.paired:
+        print(f"\nActive minus static, paired by start (paired.csv; resolved: at least 2 SE from zero):")
+        print(board.paired_table())
     for table in (board.group_table("scene"), board.group_table("category"), board.object_table()):
         print()
         print(table)

@@ -54,6 +54,7 @@ from brave6d.core.atomic import read_png
 from brave6d.core.errors import DataError
 from brave6d.evaluation.metrics.recall import METRICS, BopScores, EvalConfig, Estimate, GTInstance, ObjectModel, evaluate_bop19
 from brave6d.evaluation.metrics.depth_renderer import DepthRenderer
+from brave6d.evaluation.metrics.pairing import PairedDifference, paired_differences, paired_table, played_of_scores
 from brave6d.serve import (
     SCORED,
     TRAINING,
@@ -376,6 +377,15 @@ class Leaderboard:
     mode: str | None = None
     not_ranked: list[NotRanked] = field(default_factory=list)
 
+    @property
+    def paired(self) -> list[PairedDifference]:
+        """Each ``X-active`` agent minus its ``X-static`` twin, paired by start (``metrics.pairing``)."""
+        return paired_differences(played_of_scores(self.episodes), [a.agent for a in self.agents])
+
+    def paired_table(self) -> str:
+        """The paired differences as a table with their verdicts; "" when no agent has a static twin."""
+        return paired_table(self.paired) if self.paired else ""
+
     def group_table(self, kind: str) -> str:
         """The per-scene (``kind="scene"``) or per-category (``"category"``) table."""
         from brave6d.core.progress import format_table
@@ -421,7 +431,8 @@ class Leaderboard:
                 "per_scene": [g.to_json("scene") for g in self.scenes],
                 "per_category": [g.to_json("category") for g in self.categories],
                 "episodes": [e.to_json() for e in self.episodes],
-                "not_ranked": [n.to_json() for n in self.not_ranked]}
+                "not_ranked": [n.to_json() for n in self.not_ranked],
+                "paired": [d.to_json() for d in self.paired]}
 
 
 def test_depth_geometries(scored: Sequence[EpisodeScore]) -> list[str]:
@@ -558,6 +569,7 @@ EPISODE_COLUMNS = ("agent", "episode_id", "scene", "served_scene_id", "scene_id"
                    "ar", "ar_vsd", "ar_mssd", "ar_mspd", "adjustments", "wall_time_s", "target_distance_m", "test_depth",
                    "mode", "digest")
 NOT_RANKED_COLUMNS = ("agent", "episode_id", "log", "mode", "digest", "reason")
+PAIRED_COLUMNS = ("active", "static", "pairs", "mean", "se", "active_ar", "static_ar", "resolved", "pairs_to_resolve")
 GROUP_COLUMNS = ("episodes", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd", "mean_adjustments")
 OBJECT_COLUMNS = ("agent", "obj_id", "name", "episodes", "n_targets", "ar", "ar_vsd", "ar_mssd", "ar_mspd",
                   "mean_adjustments")
@@ -577,7 +589,8 @@ def _csv_text(columns: Sequence[str], rows: Iterable[Mapping[str, Any]]) -> str:
 
 def write_leaderboard(board: Leaderboard, out_dir: Path | str) -> list[Path]:
     """Write ``leaderboard.csv``/``.json``, ``episodes.csv``, ``per_object.csv``, ``per_scene.csv``,
-    ``per_category.csv`` and ``not_ranked.csv`` (the episodes listed apart; atomic)."""
+    ``per_category.csv``, ``not_ranked.csv`` (the episodes listed apart) and ``paired.csv`` (active minus
+    static, paired by start; atomic)."""
     from brave6d.core.atomic import atomic_write_json, atomic_write_text
 
     out = Path(out_dir)
@@ -593,4 +606,5 @@ def write_leaderboard(board: Leaderboard, out_dir: Path | str) -> list[Path]:
         atomic_write_text(out / "per_category.csv", _csv_text(("agent", "category", *GROUP_COLUMNS),
                                                              (g.to_json("category") for g in board.categories))),
         atomic_write_text(out / "not_ranked.csv", _csv_text(NOT_RANKED_COLUMNS, (n.to_json() for n in board.not_ranked))),
+        atomic_write_text(out / "paired.csv", _csv_text(PAIRED_COLUMNS, (d.to_json() for d in board.paired))),
     ]

@@ -60,7 +60,7 @@ class PairedDifference:
         if self.pairs < 2 or not math.isfinite(self.se):
             return "too few starts to tell its error"
         if _resolves(self.mean, self.se) and (claimed is None or self.mean >= claimed):
-            return f"resolved ({abs(self.mean) / self.se:.1f} SE)" if self.se > 0 else "resolved"
+            return f"resolved ({abs(self.mean) / self.se:.1f} SE)" if self.se > _NO_SPREAD else "resolved (no spread)"
         need = self.pairs_to_resolve(claimed)
         target = abs(self.mean if claimed is None else claimed)
         return f"not resolved: about {need} paired starts would resolve {target:.3f}" if need else "not resolved"
@@ -72,10 +72,14 @@ class PairedDifference:
                 "pairs_to_resolve": self.pairs_to_resolve()}
 
 
+#: A standard error this small is rounding, not spread (every start gave the same difference).
+_NO_SPREAD = 1e-12
+
+
 def _resolves(mean: float, se: float) -> bool:
     if not (math.isfinite(mean) and math.isfinite(se)):
         return False
-    return mean != 0 if se == 0 else abs(mean) >= RESOLVED_SE * se
+    return abs(mean) > _NO_SPREAD if se <= _NO_SPREAD else abs(mean) >= RESOLVED_SE * se
 
 
 #: One played episode as pairing sees it: (agent, start, AR); a start is (scene, target gt_id, obj_id, seed).

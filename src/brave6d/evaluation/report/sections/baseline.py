@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +44,8 @@ def collect_baseline(workdir: Path, store: MeasurementStore) -> Measurement:
                     machine=machine_info("cpu"))
     m.points = [{"agent": e.agent, "ar": e.ar, "adjustments": float(e.adjustments), "wall_s": num(e.wall_time_s),
                  "object": e.object} for e in runs.episodes]
-    m.summary = {"episodes": len(runs.episodes), "agents": agent_rows(runs), "mode": runs.mode}
+    m.summary = {"episodes": len(runs.episodes), "agents": agent_rows(runs), "mode": runs.mode,
+                 "paired": paired_rows(runs)}
     m.status = "complete"
     store.save(m)
     return m
@@ -54,6 +55,14 @@ def agent_rows(runs: AgentRuns) -> list[dict[str, Any]]:
     """The file's leaderboard rows as the section's agent figures (AR, mean adjustments, mean wall time)."""
     return [{"agent": a.agent, "ar": a.ar, "adjustments": a.mean_adjustments, "wall_s": num(a.mean_wall_time_s),
              "episodes": a.episodes, "mode": a.mode} for a in runs.agents]
+
+
+def paired_rows(runs: AgentRuns) -> list[dict[str, Any]]:
+    """Each ``X-active`` agent minus ``X-static``, paired by start (``metrics.pairing``), with its verdict."""
+    from brave6d.evaluation.metrics.pairing import paired_differences
+
+    played = [(e.agent, (runs.bundle, e.gt_id, e.obj_id, e.seed), e.ar) for e in runs.episodes if e.seed is not None]
+    return [{**d.to_json(), "verdict": d.verdict()} for d in paired_differences(played, [a.agent for a in runs.agents])]
 
 
 # ----------------------------------------------------------------------------- rendering
@@ -107,8 +116,20 @@ def render_baseline(m: Measurement | None, out_dir: Path) -> RenderedSection:
             + mode_sentence(m.summary.get("mode")) + "\n\n"
             f"![AR against adjustments]({png.name})\n\n"
             + format_table(["agent", "mode", "episodes", "AR", "mean adjustments", "wall s"], table)
-            + "\n\n" + provenance(m) + "\n" + nan_note(dropped, "plotted episode values"))
-    return RenderedSection(TITLE, body, advice_baseline(rows), [png])
+            + "\n\n" + _paired_part(m.summary.get("paired") or [])
+            + provenance(m) + "\n" + nan_note(dropped, "plotted episode values"))
+    return RenderedSection(TITLE, body, advice_baseline(rows, m.summary.get("paired") or []), [png])
+
+
+def _paired_part(paired: list[dict[str, Any]]) -> str:
+    """The active agents minus their static twins, paired by start ("" when no agent has a twin)."""
+    if not paired:
+        return ""
+    return ("Active minus static, **paired by start** (the same seeded starts; the starts' own difficulty "
+            "cancels), beside the pooled AR above; resolved: at least two standard errors from zero:\n\n"
+            + format_table(["active", "static", "paired starts", "active - static", "SE", "resolved?"],
+                           [(r["active"], r["static"], r["pairs"], f"{num(r['mean']):+.3f}", fmt(r.get("se"), 3),
+                             r.get("verdict", "")) for r in paired]) + "\n\n")
 
 
 def mode_sentence(mode: Any) -> str:
@@ -122,7 +143,7 @@ def mode_sentence(mode: Any) -> str:
     return f"Mode: {mode or 'not recorded'}."
 
 
-def advice_baseline(rows: list[dict[str, Any]]) -> str:
+def advice_baseline(rows: list[dict[str, Any]], paired: Sequence[Mapping[str, Any]] = ()) -> str:
     """AR gained per extra adjustment: each active agent against its static counterpart (the same
     estimator from the start view: ``baseline-active`` / ``baseline-static``, ``learned-active-depth`` /
     ``learned-static-depth``), or, without such pairs, the agent with the most adjustments against the
@@ -135,6 +156,8 @@ def advice_baseline(rows: list[dict[str, Any]]) -> str:
         ordered = sorted(ok, key=lambda r: r["adjustments"])
         pairs = [(ordered[0], ordered[-1])] if len(ordered) >= 2 else []
     sentences = [text for lo, hi in pairs if (text := _motion_sentence(lo, hi))]
+    sentences += [f"Paired by start, {r['active']} - {r['static']} = {num(r['mean']):+.3f} ± {fmt(r.get('se'), 3)} "
+                  f"over {r['pairs']} starts ({r.get('verdict', '')})." for r in paired]
     return f"**Agent motion:** {' '.join(sentences)}" if sentences else ""
 
 
