@@ -97,9 +97,13 @@ def test_quick_demo_runs_every_stage(tmp_path: Path) -> None:
     assert (tmp_path / "learned" / "model" / "model.pt").is_file() and (tmp_path / "learned" / "model" / "card.json").is_file()
 
     evaluate = fig["evaluate"]
-    from brave6d.evaluation.agents import POLICIES
+    from brave6d.evaluation.agents import ABLATION_AGENTS, POLICIES
 
-    assert int(evaluate["episodes"]) == len(POLICIES) * n_objects  # every registered agent, one episode per object
+    # every registered agent but the ablations, one episode per object; the ablations played apart
+    assert int(evaluate["episodes"]) == (len(POLICIES) - len(ABLATION_AGENTS)) * n_objects
+    ablation = read_json(tmp_path / "evaluation" / "ablation" / "leaderboard.json")
+    assert {a["agent"] for a in ablation["agents"]} == set(ABLATION_AGENTS) and len(ablation["episodes"]) == \
+        len(ABLATION_AGENTS) * n_objects
     assert 0.2 < float(evaluate["AR active"]) <= 1.0 and 0.2 < float(evaluate["AR static"]) <= 1.0
     assert float(evaluate["mean adjustments"]) > 0  # the active agent moved the camera
     assert 0.0 <= float(evaluate["AR learned-active"]) <= 1.0 and 0.0 <= float(evaluate["AR learned-static"]) <= 1.0
@@ -110,4 +114,6 @@ def test_quick_demo_runs_every_stage(tmp_path: Path) -> None:
     targets = [o for p in learned["points"] for o in p["objects"]]
     assert learned["status"] == "complete" and targets
     assert all(0.0 <= o[f"{side}_true_box_rgb_ar"] <= 1.0 for o in targets for side in ("real", "splat"))
-    assert "## 10. The learned estimator" in (tmp_path / "report" / "report.md").read_text()
+    page = (tmp_path / "report" / "report.md").read_text()
+    assert "## 10. The learned estimator" in page and re.search(r"\| learned-active-closeness +\| closeness", page)
+    assert "Active minus static, **paired by start**" in page  # section 5

@@ -324,3 +324,21 @@ def test_the_page_gives_each_active_part_alone_paired_by_start_and_says_what_is_
     assert "alone, closeness buys the most (+0.100)" in section.advice
     empty = render_learned(_measurement([_point(0, 0.2, 0.6, 0.6)]), tmp_path)
     assert "no paired episodes of the learned agents" in empty.body
+
+
+def test_the_ablation_reads_both_leaderboards_of_the_evaluation(tmp_path: Path) -> None:
+    import json as _json
+
+    from brave6d.evaluation.report.sections.learned import ablation_rows, read_played
+
+    def rows(agent: str, ar: float) -> list[dict]:
+        return [{"agent": agent, "scene": "demo", "target_gt_id": g, "obj_id": g + 1, "seed": g, "ar": ar + 0.1 * g}
+                for g in range(4)]
+
+    (tmp_path / "ablation").mkdir(parents=True)
+    (tmp_path / "leaderboard.json").write_text(_json.dumps({"episodes": rows("learned-static", 0.2)
+                                                            + rows("learned-active", 0.3)}))
+    (tmp_path / "ablation" / "leaderboard.json").write_text(_json.dumps({"episodes": rows("learned-active-closeness", 0.25)}))
+    by_agent = {r["agent"]: r for r in ablation_rows(read_played(tmp_path))}
+    assert by_agent["learned-active"]["pairs"] == 4 and abs(by_agent["learned-active-closeness"]["mean"] - 0.05) < 1e-9
+    assert read_played(tmp_path / "absent") == []

@@ -10,7 +10,10 @@ with :mod:`brave6d.evaluation.metrics.episodes` and writes, under ``<workdir>/ev
 * ``episodes/`` the episode logs and final depth images (cleared first);
 * ``leaderboard.csv``/``.json``, ``episodes.csv``, ``per_object.csv`` (as ``brave6d evaluate``);
 * ``baseline.json``: the agent-run summary (per agent and per episode AR and adjustments, what
-  the accuracy-vs-time report plots), written through :func:`brave6d.evaluation.metrics.write_agent_runs`.
+  the accuracy-vs-time report plots), written through :func:`brave6d.evaluation.metrics.write_agent_runs`;
+* ``ablation/``: with a learned model, the learned active agents' parts alone
+  (:data:`brave6d.evaluation.agents.ABLATION_AGENTS`) from the first :data:`ABLATION_EPISODES_PER_OBJECT`
+  starts: their logs and leaderboard (report section 10 pairs them with ``learned-static``).
 """
 
 from __future__ import annotations
@@ -37,6 +40,12 @@ IMAGE_WIDTH = 320
 #: with one episode per object the AR of four objects swings by +-0.1 between seeds; the learned
 #: agents' AR over 24 episodes has a standard error of about 0.04, over 48 about 0.03.
 EPISODES_PER_OBJECT = 12
+#: Episodes per object of each of the learned active agent's parts alone (``ABLATION_AGENTS``, from the
+#: first of the same seeded starts as the other agents; report section 10 pairs them with learned-static):
+#: about a minute for the six of them, resolving a part's gain to about +-0.04.
+ABLATION_EPISODES_PER_OBJECT = 6
+#: Where, under ``<workdir>/evaluation``, the ablation's logs and leaderboard go.
+ABLATION_DIR = "ablation"
 
 
 @dataclass
@@ -131,7 +140,8 @@ def agent_runs_of(run: BaselineRun) -> AgentRuns:
 def stage_evaluate(ctx: RunContext) -> StageResult:
     """Demo stage: run and score the registered agents on every demo object (see the module docstring)."""
     from brave6d.core.progress import StageResult
-    from brave6d.evaluation.agents import ACTIVE_AGENT, LEARNED_ACTIVE_AGENT, LEARNED_STATIC_AGENT, STATIC_AGENT
+    from brave6d.evaluation.agents import ABLATION_AGENTS, ACTIVE_AGENT, LEARNED_ACTIVE_AGENT, LEARNED_STATIC_AGENT, \
+        STATIC_AGENT
     from brave6d.evaluation.metrics import agent_runs_path, write_agent_runs, write_leaderboard
 
     from brave6d.serve import is_bundle
@@ -149,9 +159,16 @@ def stage_evaluate(ctx: RunContext) -> StageResult:
     write_leaderboard(run.board, out)
     write_agent_runs(agent_runs_path(ctx.workdir), agent_runs_of(run))
     log.info("baseline leaderboard:\n%s\n%s", run.board.table(), run.board.object_table())
+    if (model / "model.pt").is_file():  # the learned active agent's parts alone, from the first starts
+        ablation = run_baselines(bundle_dir, out / ABLATION_DIR, device=ctx.device,
+                                 episodes_per_object=1 if ctx.quick else ABLATION_EPISODES_PER_OBJECT,
+                                 agents=list(ABLATION_AGENTS), learned_model=model)
+        write_leaderboard(ablation.board, out / ABLATION_DIR)
     scores = {a.agent: a for a in run.board.agents}
     active, static = scores.get(ACTIVE_AGENT), scores.get(STATIC_AGENT)
     l_active, l_static = scores.get(LEARNED_ACTIVE_AGENT), scores.get(LEARNED_STATIC_AGENT)
+    paired = {d.active: d for d in run.board.paired}
+    gain = paired.get(LEARNED_ACTIVE_AGENT)
     return StageResult("evaluate", figures={
         "mode": run.board.mode,
         "episodes": len(run.board.episodes),
@@ -161,4 +178,5 @@ def stage_evaluate(ctx: RunContext) -> StageResult:
         "AR learned-active": l_active.ar if l_active else "n/a",
         "AR learned-static": l_static.ar if l_static else "n/a",
         "learned-active adjustments": l_active.mean_adjustments if l_active else "n/a",
+        "learned active - static (paired)": f"{gain.mean:+.3f} +- {gain.se:.3f}" if gain else "n/a",
     })

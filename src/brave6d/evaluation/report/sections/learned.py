@@ -288,6 +288,7 @@ def ablation_rows(played: Sequence[Any]) -> list[dict[str, Any]]:
 def read_played(evaluation: Path) -> list[Any]:
     """The scored episodes of the evaluation stage's leaderboards (``evaluation/leaderboard.json`` and the
     ablation's, ``evaluation/ablation/leaderboard.json``) as pairing reads them; [] when there are none."""
+    from brave6d.evaluation.demo import ABLATION_DIR
     from brave6d.evaluation.metrics.pairing import played_of_rows
 
     played: list[Any] = []
@@ -300,10 +301,6 @@ def read_played(evaluation: Path) -> list[Any]:
         if isinstance(rows, list):
             played += played_of_rows([r for r in rows if isinstance(r, dict)])
     return played
-
-
-#: Where the evaluation stage writes the ablation's episodes and leaderboard (under ``<workdir>/evaluation``).
-ABLATION_DIR = "ablation"
 
 
 def cost_path(model_dir: Path) -> Path:
