@@ -468,3 +468,31 @@ def test_the_cards_detected_box_is_the_top_scoring_one_as_an_agent_takes_it(spli
     assert estimator.detected_boxes and set(estimator.detected_boxes) <= estimator.beside
     assert not set(estimator.detected_boxes) & estimator.true_boxes
     assert all(v == 1.0 for v in scores.recall.values() if v == v)  # the true boxes are still found (recall)
+
+
+def test_the_distance_benchmark_bins_the_split_by_camera_distance(split: tuple[Path, Path], trained: Path,
+                                                                  tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib.util
+    import json
+
+    from scipy.spatial.transform import Rotation
+
+    from learned_helpers import ROOT
+
+    spec = importlib.util.spec_from_file_location("learned_distance", ROOT / "benchmarks" / "learned_distance.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    # the rotation error takes the symmetry nearest the estimate: a brick turned by its own 90 degrees is exact
+    quarter = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    syms = np.stack([np.eye(3), quarter])
+    assert bench.rotation_error_deg(np.eye(3), quarter, syms) == pytest.approx(0.0, abs=1e-6)
+    assert bench.rotation_error_deg(np.eye(3), quarter, np.eye(3)[None]) == pytest.approx(90.0)
+    assert bench.main([str(split[1]), str(split[0]), f"tiny={trained}", "--edges", "0,0.3,0.4,10",
+                       "--json", str(tmp_path / "d.json")]) == 0
+    [result] = json.loads((tmp_path / "d.json").read_text())["results"]
+    assert sum(b["targets"] for b in result["bins"]) == result["instances"] > 0
+    for b in result["bins"]:
+        m = b["true_box_rgb_metrics"]
+        assert b["true_box_rgb"] == pytest.approx((m["vsd"] + m["mssd"] + m["mspd"]) / 3)
+        assert 0 <= b["rotation_deg_median"] <= 180 and b["distance_error_pct_median"] >= 0
+    assert "nearest bin - farthest bin" in capsys.readouterr().out
