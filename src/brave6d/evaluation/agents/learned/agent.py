@@ -129,9 +129,9 @@ class LearnedAgent:
         view = self.views[best]
         notes: dict[str, Any] = {"views": len(self.views), "moves": self.moves, "refused_poses": self.refused,
                                  "estimated_in_view": best,
-                                 "posed_views": [i for i, v in enumerate(self.views) if v["pose"] is not None], "detection_score_start": self.views[0]["score"],
-                                 "box_px_start": self.views[0]["size_px"], "detection_score_final": view["score"],
-                                 "box_px_final": view["size_px"]}
+                                 "posed_views": [i for i, v in enumerate(self.views) if v["pose"] is not None],
+                                 "detection_score_start": self.views[0]["score"], "box_px_start": self.views[0]["size_px"],
+                                 "detection_score_final": view["score"], "box_px_final": view["size_px"]}
         pose = view["pose"]
         if pose is None:
             notes["refused"] = view["cause"]
