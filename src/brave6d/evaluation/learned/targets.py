@@ -124,7 +124,7 @@ def pose_batch(data: TrainingData, instances: list[int], rng: np.random.Generato
     import cv2
 
     smallest = crop_px if crop_px_min is None else crop_px_min
-    sizes = pose_sizes(data, instances, smallest, crop_px)
+    sizes = pose_sizes(data, instances, smallest, crop_px) if smallest < crop_px else {crop_px: list(instances)}
     if len(sizes) == 1:
         size, pool = next(iter(sizes.items()))
     else:
