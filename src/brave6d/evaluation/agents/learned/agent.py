@@ -64,7 +64,8 @@ class LearnedAgentOptions:
 
 
 #: How the agent picks the view whose estimate it submits (``LearnedAgentOptions.view_choice``):
-#: the best-ranked (``_rank``), the nearest to the target (the closest look), or the start view.
+#: the best-ranked (``_rank``), the nearest to the target (the closest look: the largest detection box,
+#: not the estimate's own distance, which a wrong detection can put anywhere), or the start view.
 VIEW_CHOICES = ("best", "nearest", "start")
 
 
@@ -182,7 +183,7 @@ class LearnedAgent:
         if choice == "nearest":
             posed = [i for i, v in enumerate(self.views) if v["pose"] is not None]
             if posed:
-                return min(posed, key=lambda i: float(np.linalg.norm(self.views[i]["pose"].cam_T_obj[:3, 3])))
+                return max(posed, key=lambda i: self.views[i]["size_px"])  # the closest look: its largest box
         return max(range(len(self.views)), key=lambda i: self._rank(self.views[i]))
 
     def _rank(self, view: dict[str, Any]) -> tuple[bool, float, float]:
