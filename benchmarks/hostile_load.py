@@ -14,7 +14,9 @@ parsed and refused) and the normal client's median latency before and while they
 ``abandon``: ``--abandoned`` (300) maximum-size free views (1280 x 960) sent from 127.0.0.2 on at most
 ``--connections`` (60) connections at a time, each connection closed (reset) ``--drop-after-s`` after
 its request went, without reading the reply. Reports the normal client's render latency before,
-while the abandoners send and after they leave (its 504s counted), then sends SIGINT to the server
+while the abandoners send and after they leave (its 504s counted), how many abandoned requests the
+per-client connection cap refused at once (429) and how many renders the server drew in that time
+(the normal client's and the abandoned ones), then sends SIGINT to the server
 while ``--live`` (20) connected clients wait for maximum-size renders and reports how long it took to
 exit, its exit status and how many tracebacks its log holds.
 
@@ -29,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import signal
 import socket
@@ -51,6 +52,7 @@ if str(REPO / "src") not in sys.path:  # the package, also without an install
     sys.path.insert(0, str(REPO / "src"))
 
 from brave6d.core.transforms import look_at  # noqa: E402
+from non_reading_clients import start_server  # noqa: E402 - the same server start (benchmarks/ is on the path)
 
 PEER = "127.0.0.2"  # Linux routes all of 127/8 to loopback: the hostile clients' own address
 FREE = look_at((0.25, -0.15, 0.30), (0.46, 0.0, 0.01))
@@ -59,19 +61,6 @@ BIG = {"pose": {"world_T_cam": FREE.tolist()}, "width": 1280, "height": 960}
 LATENCY_RATIO_LIMIT = 2.0
 BODY_COST_LIMIT_S = 1.0
 SHUTDOWN_LIMIT_S = 30.0
-
-
-def start_server(bundle: Path, log_dir: Path, flags: list[str], stderr: Path) -> tuple[subprocess.Popen[str], str]:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO / "src"), os.environ.get("PYTHONPATH")]))}
-    proc = subprocess.Popen([sys.executable, "-m", "brave6d.cli", "serve", str(bundle), "--port", "0", "--device",
-                             "cpu", "--log-dir", str(log_dir), *flags], env=env, stdout=subprocess.PIPE,
-                            stderr=stderr.open("w"), text=True)
-    banner = proc.stdout.readline() if proc.stdout else ""
-    match = re.search(r"on http://(127\.0\.0\.1:\d+)", banner)
-    if not match:
-        proc.kill()
-        raise RuntimeError(f"the server did not start: {banner!r} {stderr.read_text()[-2000:]}")
-    return proc, f"http://{match.group(1)}"
 
 
 def stop_server(proc: subprocess.Popen[str]) -> None:
@@ -170,15 +159,25 @@ def post_raw(address: tuple[str, int], body: bytes, timeout: float = 120.0) -> t
     return (int(match.group(1)) if match else -1), elapsed
 
 
-def abandon(address: tuple[str, int], drop_after_s: float) -> None:
-    """Send one maximum-size free view from :data:`PEER` and reset the connection unread."""
+def abandon(address: tuple[str, int], drop_after_s: float) -> bool:
+    """Send one maximum-size free view from :data:`PEER` and reset the connection unread; whether
+    the server had refused the connection at once (429: the client's connection cap)."""
     body = json.dumps(BIG).encode()
     s = socket.create_connection(address, timeout=30, source_address=(PEER, 0))
-    s.sendall((f"POST /render HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
-               f"Content-Length: {len(body)}\r\n\r\n").encode() + body)
+    try:
+        s.sendall((f"POST /render HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+                   f"Content-Length: {len(body)}\r\n\r\n").encode() + body)
+    except OSError:
+        pass
     time.sleep(drop_after_s)  # the server has read the request: it is queued or rendering
+    s.setblocking(False)
+    try:
+        refused = s.recv(64).startswith(b"HTTP/1.1 429")
+    except OSError:
+        refused = False
     s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
     s.close()
+    return refused
 
 
 def scenario_json(url: str, bodies: int, kib: int, settle_s: float) -> dict[str, Any]:
@@ -226,6 +225,7 @@ def scenario_abandon(url: str, proc: subprocess.Popen[str], abandoned: int, conn
         t0 = time.perf_counter()
         c.post("/render", json=BIG).raise_for_status()
         out["big_render_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
+        renders = c.get("/health").json()["renders"]
     with Timer(url) as timer:
         time.sleep(settle_s)
         timer.phase = "before"
@@ -233,10 +233,16 @@ def scenario_abandon(url: str, proc: subprocess.Popen[str], abandoned: int, conn
         timer.phase = "while sending"
         t0 = time.perf_counter()
         with ThreadPoolExecutor(connections) as pool:
-            list(pool.map(lambda _: abandon(address, drop_after_s), range(abandoned)))
+            refused = sum(pool.map(lambda _: abandon(address, drop_after_s), range(abandoned)))
         out["sending_s"] = round(time.perf_counter() - t0, 1)
+        out["refused_429"] = refused
         timer.phase = "after"
         time.sleep(2 * settle_s)
+        with httpx.Client(base_url=url, timeout=120) as c:  # renders drawn: the normal client's and the abandoned
+            out["renders_drawn"] = c.get("/health").json()["renders"] - renders
+        normal = 3 + sum(1 for phase in ("warm-up", "before", "while sending", "after")  # 3: the timer's warm-up
+                         for w, _, code in timer.samples.get(phase, []) if w == "render" and code == 200)
+        out["abandoned_drawn"] = out["renders_drawn"] - normal  # give or take the normal client's last one
         for phase in ("before", "while sending", "after"):
             key = phase.replace(" ", "_")
             out[f"render_ms_{key}"] = timer.median_ms(phase, "render")

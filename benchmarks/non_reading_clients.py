@@ -58,16 +58,20 @@ def rss_mb(pid: int) -> float:
     raise RuntimeError(f"no VmRSS for pid {pid}")
 
 
-def start_server(bundle: Path, log_dir: Path, flags: list[str]) -> tuple[subprocess.Popen[str], str]:
+def start_server(bundle: Path, log_dir: Path, flags: list[str], stderr: Path | None = None
+                 ) -> tuple[subprocess.Popen[str], str]:
+    """``brave6d serve bundle`` on a free loopback port, its standard error to ``stderr`` (None: dropped);
+    the process and its URL (also benchmarks/hostile_load.py's server)."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO / "src"), os.environ.get("PYTHONPATH")]))}
     proc = subprocess.Popen([sys.executable, "-m", "brave6d.cli", "serve", str(bundle), "--port", "0", "--device",
                              "cpu", "--log-dir", str(log_dir), *flags], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True)
+                            stderr=subprocess.DEVNULL if stderr is None else stderr.open("w"), text=True)
     banner = proc.stdout.readline() if proc.stdout else ""
     match = re.search(r"on http://(127\.0\.0\.1:\d+)", banner)
     if not match:
         proc.kill()
-        raise RuntimeError(f"the server did not start: {banner!r}")
+        log = stderr.read_text()[-2000:] if stderr is not None else ""
+        raise RuntimeError(f"the server did not start: {banner!r} {log}")
     return proc, f"http://{match.group(1)}"
 
 

@@ -20,6 +20,8 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from test_hostile_imports import _import_refused
 from test_import_capture import object_capture
 from test_input_messages import _one_line_error
@@ -210,3 +212,18 @@ def test_short_or_ragged_ascii_points_are_one_line(tmp_path: Path, body: bytes, 
     with pytest.raises(DataError, match=says) as info:
         read_ply_vertices(path)
     assert "\n" not in str(info.value)
+
+
+@given(fmt=st.sampled_from(["ascii", "binary_little_endian", "binary_big_endian"]), rows=st.integers(0, 5),
+       body=st.binary(max_size=120), extra=st.sampled_from(["", "property list uchar int idx\n", "property uchar red\n"]))
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+def test_any_points_ply_body_reads_or_is_one_line(tmp_path: Path, fmt: str, rows: int, body: bytes, extra: str) -> None:
+    path = tmp_path / "p.ply"
+    path.write_bytes(f"ply\nformat {fmt} 1.0\nelement vertex {rows}\nproperty float x\nproperty float y\n"
+                     f"property float z\n{extra}end_header\n".encode() + body)
+    try:
+        columns = read_ply_vertices(path)
+    except DataError as exc:
+        assert "\n" not in str(exc) and str(path) in str(exc)
+        return
+    assert all(len(c) == rows for c in columns.values()) and {"x", "y", "z"} <= set(columns)

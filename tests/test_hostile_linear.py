@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from brave6d.core.aruco_dictionary import read_dictionary_file
 from brave6d.core.json_input import JsonInputError, JsonLimits, json_depth, parse_json
@@ -180,3 +182,57 @@ def test_a_refusal_is_still_a_refusal_at_every_size() -> None:
     for n in (20_000, 80_000):
         with pytest.raises(JsonInputError, match="nested too deeply"):
             parse_json(JSON_SHAPES["unterminated string of escaped quotes"](n), "doc.json")
+
+
+# ----------------------------------------------------------------------------- the depth scan counts as a parser does
+def _parser_depth(text: str) -> tuple[int, bool]:
+    """The deepest nesting a JSON parser reaches in ``text`` before it stops, and whether it reached
+    the end (a backslash outside a string stops a parser there)."""
+    depth = deepest = 0
+    inside = escaped = False
+    for ch in text:
+        if inside:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                inside = False
+        elif ch == "\\":
+            return deepest, False
+        elif ch == '"':
+            inside = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    return deepest, True
+
+
+@given(text=st.text(alphabet='[]{}"\\a,', max_size=80), piece=st.sampled_from([1, 2, 3, 7, 1 << 20]))
+@settings(max_examples=400, deadline=None)
+def test_the_depth_scan_counts_brackets_outside_strings_as_a_parser_does(text: str, piece: int) -> None:
+    """Escapes, quotes and brackets in any order, the scan cut into pieces of any size: the depth is
+    the parser's; where a parser stops early (a backslash outside a string) it is never less."""
+    import brave6d.core.json_input as json_input
+
+    deepest, whole = _parser_depth(text)
+    saved = json_input._SCAN_CHUNK
+    json_input._SCAN_CHUNK = piece
+    try:
+        scanned = json_depth(text.encode())
+    finally:
+        json_input._SCAN_CHUNK = saved
+    assert scanned == deepest if whole else scanned >= deepest
+
+
+@given(data=st.binary(max_size=400))
+@settings(max_examples=200, deadline=None)
+def test_any_reply_is_json_or_one_reply_error(data: bytes) -> None:
+    from brave6d.serve.replies import ReplyError
+
+    try:
+        parse_reply(read_body(_Reply(data), ClientLimits(), "GET /x"), ClientLimits(), "GET /x")
+    except ReplyError as exc:
+        assert "\n" not in str(exc) and str(exc).startswith("GET /x")

@@ -121,11 +121,16 @@ def test_timed_out_actions_leave_no_traceback_at_shutdown(scene: SceneServer, tm
     done callback: one 'Exception in callback' traceback per such action."""
     caplog.set_level(logging.WARNING)
     app = create_app(scene.bundle, scene=scene, warm_up=False, log_dir=tmp_path / "episodes",
-                     limits=ServerLimits(request_timeout_s=0.5))
+                     limits=ServerLimits(request_timeout_s=0.5, workers=4))
     server = ServerThread(app).start()
-    with scene.renderer.lock:
+
+    def render() -> int:
         with httpx.Client(base_url=server.url, timeout=60) as c:
-            assert [c.post("/render", json=BIG).status_code for _ in range(3)] == [504] * 3
+            return c.post("/render", json=BIG).status_code
+
+    with scene.renderer.lock:
+        with ThreadPoolExecutor(8) as pool:  # 4 wait for the device, 4 stay queued in the pool
+            assert list(pool.map(lambda _: render(), range(8))) == [504] * 8
         server.stop()
     time.sleep(0.5)
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR or r.exc_info]
