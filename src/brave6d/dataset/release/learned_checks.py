@@ -36,7 +36,7 @@ MAX_CLASSES = 10_000
 #: (type, low, high) of every preset field a release may carry. The widths bound the networks'
 #: size (channels; ``paper`` uses 32), the image sizes the memory of a batch (``paper``: 640).
 PRESET_BOUNDS: dict[str, tuple[type, float, float]] = {
-    "work_width": (int, 64, 4096), "crop_source_width": (int, 64, 8192), "crop_px": (int, 32, 512),
+    "work_width": (int, 64, 4096), "crop_source_width": (int, 64, 8192), "crop_px": (int, 32, 512), "crop_px_min": (int, 32, 512),
     "detector_steps": (int, 1, 10**8), "detector_batch": (int, 1, 4096), "detector_patch": (int, 16, 2048),
     "detector_lr": (float, 1e-12, 10.0), "detector_width": (int, 1, 256),
     "pose_steps": (int, 1, 10**8), "pose_batch": (int, 1, 4096), "pose_lr": (float, 1e-12, 10.0),

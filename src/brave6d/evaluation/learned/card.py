@@ -73,7 +73,7 @@ def card_markdown(card: dict[str, Any]) -> str:
              f"- objects (obj_id): {', '.join(map(str, card['objects']))}",
              f"- preset `{p['name']}`: detector {p['detector_steps']} steps x {p['detector_batch']} images at "
              f"{p['work_width']} px wide; coordinate net {p['pose_steps']} steps x {p['pose_batch']} crops of "
-             f"{p['crop_px']} px; seed {p['seed']}; {p.get('precision', 'fp32')}",
+             f"{_crop_sizes(p)} px; seed {p['seed']}; {p.get('precision', 'fp32')}",
              f"- trained on {card['device']} ({card['machine']}) in {card['train_seconds']:.0f} s "
              f"(detector {card['seconds'].get('detector', 0):.0f} s, coordinate net {card['seconds'].get('pose', 0):.0f} s)",
              f"- weights: `model.pt`, sha256 `{card['model_sha256']}`", ""]
@@ -103,3 +103,9 @@ def card_markdown(card: dict[str, Any]) -> str:
             lines += ["", "Refused estimates: " + "; ".join(
                 f"{v}: " + ", ".join(f"{n} {cause}" for cause, n in sorted(c.items())) for v, c in refused.items())]
     return "\n".join(lines) + "\n"
+
+
+def _crop_sizes(preset: dict[str, Any]) -> str:
+    """The coordinate net's crop size, or the range its crops follow their boxes in."""
+    smallest = preset.get("crop_px_min", preset["crop_px"])
+    return str(preset["crop_px"]) if smallest == preset["crop_px"] else f"{smallest}-{preset['crop_px']}"
