@@ -144,11 +144,20 @@ def test_the_cli_imports_and_says_where_scale_and_up_came_from(tmp_path: Path, c
     assert np.linalg.norm(centres["f000"] - centres["f006"]) == pytest.approx(2.0, rel=1e-9)
 
 
-def test_import_asks_for_scale_and_up_when_not_given(tmp_path: Path) -> None:
+def test_import_without_scale_or_up_takes_the_documented_defaults(tmp_path: Path, capsys) -> None:
+    """No --scale / --scale-from-distance: the source's units are kept (1 m per unit), and the output and
+    the record say so and what depends on it; no --up: auto (photos taken upright)."""
     source, _ = object_capture(tmp_path / "src")
-    with pytest.raises(DataError, match=r"--scale FACTOR.*--up x,y,z"):
-        import_capture(source, tmp_path / "scene", ImportOptions())
-    assert not (tmp_path / "scene").exists()
+    code = cli_main(["import", str(source), str(tmp_path / "scene")])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "scale: 1 m per source unit, from the default, 1 (no --scale or --scale-from-distance given" in out
+    assert "--scale-from-distance FRAME_A FRAME_B METRES for a metric scene" in out and "up: --up auto" in out
+    world = json.loads(SceneDir(tmp_path / "scene").import_record_path.read_text())["world"]
+    assert world["metres_per_source_unit"] == 1.0 and world["scale_from"].startswith("the default, 1")
+    given = import_capture(source, tmp_path / "given", options(scale=ScaleChoice(factor=1.0), up=UpChoice(None)))
+    for (_, a), (_, b) in zip(camera_poses(SceneDir(tmp_path / "scene")), camera_poses(given.scene)):
+        np.testing.assert_array_equal(a, b)  # the same world as --scale 1 --up auto
 
 
 def test_up_auto_finds_a_tilted_up_and_makes_it_z(tmp_path: Path) -> None:

@@ -80,6 +80,39 @@ def test_resume_continues_from_the_last_checkpoint(trained: SceneDir) -> None:
     assert metrics["init"]["source"] == "checkpoint"
 
 
+def test_a_run_its_budget_stops_says_how_far_short_and_how_to_continue(tmp_path: Path, capsys) -> None:
+    """The budget counts the whole command: a budget spent before the first step (on loading the images and
+    making the initial points) trains no step, and says so in one line with the command that continues; that
+    command (--resume with more time) finishes the schedule."""
+    scene = write_scene(tmp_path / "s", CAM, plane_views(CAM, [0.45, 0.6], 5))
+    assert cli.run(parse(str(scene.root), "--preset", "fast", "--steps", "12", "--device", "cpu", "--init", "depth",
+                         "--time-budget", "0.001")) == 0
+    out = capsys.readouterr().out
+    metrics = json.loads(scene.metrics_path.read_text())
+    assert (metrics["steps"], metrics["planned_steps"], metrics["stopped_by"]) == (0, 12, "time budget")
+    assert metrics["time_budget"]["used_s"] >= metrics["init_time_s"] > 0.001
+    assert "0 of 12 planned steps (stopped by the time budget: 0 s, the whole command)" in out
+    lines = [line for line in out.splitlines() if line.startswith("stopped by the time budget")]
+    assert len(lines) == 1 and "after 0 of 12 steps, 12 short (loading and the initial points took" in lines[0], out
+    command = lines[0].split("continue with ")[1].split(" (another")[0].split()
+    assert command[:4] == ["brave6d", "train", str(scene.root), "--preset"] and "--resume" in command
+    assert cli.run(parse(*command[2:], "--device", "cpu")) == 0  # the line's own command, as printed
+    resumed = capsys.readouterr().out
+    metrics = json.loads(scene.metrics_path.read_text())
+    assert (metrics["steps"], metrics["stopped_by"], metrics["resumed_from_step"]) == (12, "steps", 0)
+    assert "12 of 12 planned steps (all planned steps)" in resumed and "stopped by the time budget" not in resumed
+
+
+def test_the_budget_line_gives_the_time_the_steps_left_need() -> None:
+    metrics = {"steps": 631, "planned_steps": 2000, "stopped_by": "time budget", "train_time_s": 631 * 1.2,
+               "init_time_s": 60.0, "time_budget": {"budget_s": 840.0}}
+    line = cli.budget_stop_line(metrics, "S", "fast")
+    assert line == ("stopped by the time budget (840 s) after 631 of 2000 steps, 1369 short (about 27 min more at "
+                    "1.20 s per step): continue with brave6d train S --preset fast --resume --time-budget 1920")
+    assert cli.budget_stop_line({**metrics, "steps": 2000, "stopped_by": "steps"}, "S") is None
+    assert cli.steps_text(metrics) == "631 of 2000 planned steps (stopped by the time budget: 840 s, the whole command)"
+
+
 def test_bad_frame_stops_without_the_flag(trained: SceneDir) -> None:
     with pytest.raises(BraveError, match=r"000003\.png"):
         cli.run(parse(str(trained.root), "--preset", "fast", "--steps", "5", "--device", "cpu"))
@@ -112,7 +145,8 @@ def test_demo_stage_quick(tmp_path: Path, demo_spec_path: Path) -> None:
     ctx = RunContext(workdir=tmp_path, scene=scene, spec=load_scene_spec(demo_spec_path), quick=True, device="cpu")
     result = stage_train(ctx)
     assert result.name == "train" and result.status == "ok"
-    assert result.figures["steps"] == QUICK.steps
+    assert result.figures["steps"] == result.figures["planned steps"] == QUICK.steps
+    assert result.figures["stopped by"] == "steps"
     assert "holdout PSNR" in result.figures and "PSNR@0.45m" in result.figures and "PSNR@0.60m" in result.figures
     assert (scene.splat_dir / "point_cloud.ply").is_file()
 

@@ -510,7 +510,8 @@ def check_out(target: Path, scene: SceneDir, force: bool) -> bool:
 
 def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, include_holdout_images: bool = True,
                   camera_radius: float = DEFAULT_CAMERA_RADIUS, width: int | None = None, height: int | None = None,
-                  near: float = 0.01, far: float = 100.0, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                  near: float | None = None, far: float | None = None,
+                  background: tuple[float, float, float] = (0.0, 0.0, 0.0),
                   depth_alpha_min: float = 0.5, force: bool = False, reference: bool = True,
                   reference_settings: ReferenceSettings | None = None) -> ExportResult:
     """Write the bundle of ``scene_dir`` (default ``<scene>/bundle``) atomically; see the module docstring.
@@ -518,6 +519,8 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
     ``out`` is replaced only if it is absent, empty or a bundle; with ``force`` anything else there
     is moved aside (:func:`brave6d.core.atomic.move_aside`) once the new bundle is complete.
     ``reference``: build the reference geometry (:func:`reference_mesh`) with ``reference_settings``.
+    ``near`` / ``far`` (None): the planes the splat was trained with, in the scene's units
+    (:func:`brave6d.training.serve_planes`: 0.02 and 200 scene extents, about 0.01 and 100 m on the demo).
     """
     from brave6d.training import read_ply, write_viewer_ply
 
@@ -532,6 +535,12 @@ def export_bundle(scene_dir: Path | str, out: Path | str | None = None, *, inclu
         raise BraveError(f"render {size_error} (the server's image-size cap)")
     if camera_radius < 0 or not np.isfinite(camera_radius):
         raise BraveError(f"camera radius must be a finite number >= 0, got {camera_radius}")
+    if near is None or far is None:
+        from brave6d.training import serve_planes
+
+        trained_near, trained_far = serve_planes(scene.root)
+        near = trained_near if near is None else near
+        far = trained_far if far is None else far
     splat_src = find_splat_ply(scene)
     splat = read_ply(splat_src)
     check_splat(splat, splat_src)

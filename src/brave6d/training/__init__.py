@@ -9,6 +9,9 @@ Other stages (serve, evaluation) import only these names:
 - the holdout split (:mod:`brave6d.training.holdout`, no torch): ``read_holdout`` (the one reader of
   ``splat/holdout.json``, every stage's), ``write_holdout``, ``HoldoutSplit``, ``HeldOutView``,
   ``holdout_split`` (the rule);
+- the training frame (:mod:`brave6d.training.scene_frame`): ``SceneFrame`` (the scene moved and scaled once so
+  that training never sees its units) and ``serve_planes`` (the near/far planes a bundle of a scene is served
+  with: its training's, in the scene's units);
 - settings: ``Preset``, ``get_preset``, ``ANTIALIASING_MODES`` (``classic``, ``mip``), ``resolve_device`` (``auto``/``cpu``/``cuda`` -> torch device);
 - training data in memory: ``TrainingData`` (a shared camera, train and holdout ``View`` lists) and ``View``
   (one frame: pose, image), what ``load_scene`` returns and ``train`` takes;
@@ -35,7 +38,7 @@ __all__ = ["ImportOptions", "ImportResult", "ImportedCapture", "PoseCheck", "Pos
            "ANTIALIASING_MODES", "SH_C0", "GaussianModel", "apply_filter_3d", "compute_filter_3d", "HeldOutView", "HoldoutPoint", "HoldoutSplit", "Preset", "SplatData", "TrainedSplat",
            "evaluate_holdout", "get_preset", "holdout_split", "load_scene", "rasterize", "read_holdout", "read_ply",
            "resolve_device", "sh_degree_for", "train", "train_scene", "write_holdout", "write_ply",
-           "bake_filter_3d", "write_viewer_ply"]
+           "bake_filter_3d", "write_viewer_ply", "SceneFrame", "serve_planes"]
 
 _LAZY = {
     "rasterize": ".rasterizer",
@@ -77,6 +80,8 @@ _LAZY = {
     "Preset": ".presets",
     "get_preset": ".presets",
     "resolve_device": ".device",
+    "SceneFrame": ".scene_frame",
+    "serve_planes": ".scene_frame",
 }
 
 

@@ -6,6 +6,7 @@ Registered in ``brave6d/cli.py`` as ``Command("train", "brave6d.training.cli", .
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from brave6d.core.layout import SceneDir
@@ -24,7 +25,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="number of steps; the preset's step schedules (SH, densification, "
                              "checkpoints) are scaled with it")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
-                        help="stop training after this many seconds (default: the preset's)")
+                        help="stop training once the command has run this many seconds, loading and the initial "
+                             "points (COLMAP) included; a --resume run gets it again (default: the preset's: fast 840)")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the newest checkpoint in splat/checkpoints; without it a new training "
                              "starts, and the previous one's outputs are moved aside (splat/<name>.old-<stamp>) "
@@ -58,6 +60,9 @@ def run(args: argparse.Namespace) -> int:
                           skip_bad_frames=args.skip_bad_frames, init_method=args.init,
                           check_poses=not args.skip_pose_check)
     print(summary(metrics))
+    line = budget_stop_line(metrics, args.scene_dir, args.preset, args.steps)
+    if line:
+        print(line)
     print(f"\nsplat: {metrics['outputs']['ply']}\nmetrics: {scene.metrics_path}")
     previous = metrics["outputs"].get("previous_training") or []
     if previous:
@@ -71,10 +76,41 @@ def summary(metrics: dict) -> str:
     rows = [(f"level {lvl} ({m['distance_m']:.2f} m)", m["n_views"], f"{m['psnr']:.2f}", f"{m['ssim']:.4f}")
             for lvl, m in hold["per_level"].items()]
     rows.append(("all", hold["n_views"], f"{hold['psnr']:.2f}", f"{hold['ssim']:.4f}"))
-    head = (f"preset {metrics['preset']} on {metrics['device']}: {metrics['steps']} steps in "
+    head = (f"preset {metrics['preset']} on {metrics['device']}: {steps_text(metrics)} in "
             f"{metrics['train_time_s']:.0f} s of training ({metrics['train_cpu_s']:.0f} CPU-s; "
-            f"{metrics['total_time_s']:.0f} s in all), "
+            f"{metrics['total_time_s']:.0f} s in all, {metrics['init_time_s']:.0f} s of it loading and initial points), "
             f"{metrics['num_gaussians']} Gaussians, {metrics['images']['metrics_resolution']} images")
     if metrics.get("pose_check"):
         head += "\n" + metrics["pose_check"]
     return head + "\n" + format_table(["holdout", "views", "PSNR [dB]", "SSIM"], rows)
+
+
+def steps_text(metrics: dict) -> str:
+    """``631 of 2000 planned steps (stopped by the time budget: 840 s, the whole command)``."""
+    planned = metrics.get("planned_steps")
+    done = metrics["steps"]
+    text = f"{done} of {planned} planned steps" if planned is not None else f"{done} steps"
+    stopped = metrics.get("stopped_by")
+    budget = metrics.get("time_budget") or {}
+    if stopped == "time budget" and budget.get("budget_s") is not None:
+        return text + f" (stopped by the time budget: {budget['budget_s']:.0f} s, the whole command)"
+    return text + (f" (stopped by {stopped})" if stopped and stopped != "steps" else " (all planned steps)")
+
+
+def budget_stop_line(metrics: dict, scene_dir: Path | str, preset: str = "fast", steps: int | None = None) -> str | None:
+    """One line for a run its time budget stopped: how far short it is and the command that continues it
+    (``--resume`` with enough time for the steps left at this run's pace); None when it finished."""
+    if metrics.get("stopped_by") != "time budget":
+        return None
+    done, planned = int(metrics["steps"]), int(metrics.get("planned_steps") or metrics["steps"])
+    budget = float((metrics.get("time_budget") or {}).get("budget_s") or 0.0)
+    command = f"brave6d train {scene_dir} --preset {preset}{f' --steps {steps}' if steps is not None else ''} --resume"
+    head = f"stopped by the time budget ({budget:.0f} s) after {done} of {planned} steps, {planned - done} short"
+    if done == 0:  # no pace to go by: the initialisation took the budget (a resumed run does not redo it)
+        return (f"{head} (loading and the initial points took {float(metrics.get('init_time_s', 0.0)):.0f} s of "
+                f"it): continue with {command} (another {budget:.0f} s; --time-budget SECONDS for more)")
+    per_step = float(metrics["train_time_s"]) / done
+    # the steps left at this pace, 10 % more, and a minute to load the images again
+    more = int(math.ceil(((planned - done) * per_step * 1.1 + 60.0) / 60.0) * 60)
+    return (f"{head} (about {(planned - done) * per_step / 60.0:.0f} min more at {per_step:.2f} s per step): "
+            f"continue with {command} --time-budget {more}")

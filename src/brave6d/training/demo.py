@@ -7,12 +7,15 @@ CPU demo's), in its miniature variant (:func:`quick_variant`) when the run is ``
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 from brave6d.core.progress import StageResult
 from brave6d.core.run_context import RunContext
 from brave6d.training.colmap_init import ColmapOptions
 from brave6d.training.presets import Preset, get_preset
+
+log = logging.getLogger(__name__)
 
 #: The preset of a run that chooses none: ``fast``, tuned for the CPU demo (a GPU cluster chooses
 #: ``default``: ``brave6d dataset run --preset default`` or ``preset: default`` in its ``cluster`` block).
@@ -39,6 +42,7 @@ def run_preset(name: str | None, quick: bool = False) -> Preset:
 
 def stage_train(ctx: RunContext) -> StageResult:
     """Train the scene with the run's preset (:func:`run_preset`) and evaluate the holdout."""
+    from brave6d.training.cli import budget_stop_line
     from brave6d.training.pipeline import require_capture, train_scene
 
     preset = run_preset(ctx.preset, ctx.quick)  # an unknown name fails here, before anything is loaded
@@ -52,6 +56,11 @@ def stage_train(ctx: RunContext) -> StageResult:
     }
     for m_level in hold["per_level"].values():
         figures[f"PSNR@{m_level['distance_m']:.2f}m"] = round(m_level["psnr"], 2)
-    figures.update({"gaussians": m["num_gaussians"], "steps": m["steps"], "train s": round(m["train_time_s"], 1),
+    figures.update({"gaussians": m["num_gaussians"], "steps": m["steps"], "planned steps": m["planned_steps"],
+                    "stopped by": m["stopped_by"], "train s": round(m["train_time_s"], 1),
                     "init": m["init"].get("source", "?")})
+    # the way to continue (a quick run's miniature preset has no command-line name: it says what stopped it only)
+    line = None if ctx.quick else budget_stop_line(m, ctx.scene.root, ctx.preset or DEFAULT_PRESET)
+    if line:
+        log.warning("%s", line)
     return StageResult("train", figures=figures)

@@ -35,7 +35,8 @@ EDGE_RATIO = 0.02
 
 @dataclass(frozen=True)
 class DepthTarget:
-    """One view's target depth in metres (float32 [H, W], 0 where ``valid`` is False) and its mask."""
+    """One view's target depth (float32 [H, W], 0 where ``valid`` is False; in the poses' units: metres
+    in the world, extents in a training frame) and its mask."""
 
     depth: Tensor
     valid: Tensor  # bool [H, W]
@@ -120,14 +121,18 @@ def depth_target(depth_m: NDArray[np.floating] | None, width: int, height: int,
 
 def load_depth_targets(data: TrainingData, edge_ratio: float, device: torch.device | str = "cpu"
                        ) -> list[DepthTarget | None]:
-    """The depth target of every training view at the training resolution (None: no usable depth).
+    """The depth target of every training view at the training resolution (None: no usable depth), in
+    the units of ``data``'s poses (metres divided by :attr:`TrainingData.length_unit`).
 
     Training views without depth train on colour alone; when no view has any, the run says so once.
     """
     cam = data.camera
+    unit = data.length_unit  # metres per unit of the poses (a training frame's extent; 1 in the world)
     targets: list[DepthTarget | None] = []
     for view in data.train:
-        target = depth_target(load_depth_m(view, data.depth_camera), cam.width, cam.height, edge_ratio)
+        depth_m = load_depth_m(view, data.depth_camera)
+        depth = depth_m if depth_m is None or unit == 1.0 else (depth_m.astype(np.float64) / unit).astype(np.float32)
+        target = depth_target(depth, cam.width, cam.height, edge_ratio)
         targets.append(None if target is None else target.to(device))
     used = sum(t is not None for t in targets)
     if used == 0:

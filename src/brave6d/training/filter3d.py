@@ -34,7 +34,8 @@ def compute_filter_3d(means: Tensor, viewmats: Tensor, Ks: Tensor, width: int, h
     """The 3D filter's standard deviation [N] (world units) from the training cameras.
 
     ``viewmats`` [C, 4, 4] world-to-camera (OpenCV axes), ``Ks`` [C, 3, 3] or [3, 3] pinhole
-    intrinsics of images of ``width`` x ``height`` pixels.
+    intrinsics of images of ``width`` x ``height`` pixels. ``near_plane`` in the means' units: the
+    trainer passes its own (:data:`brave6d.training.scene_frame.NEAR_PLANE` scene extents).
     """
     if not scale >= 0.0:
         raise ValueError(f"compute_filter_3d: scale must be >= 0, got {scale}")

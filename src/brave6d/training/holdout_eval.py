@@ -54,17 +54,22 @@ class HoldoutMetrics:
 
 @torch.no_grad()
 def render_view(model: GaussianModel, view: View, data: TrainingData, sh_degree: int | None = None) -> torch.Tensor:
-    """Render ``model`` into ``view``'s camera: float [H, W, 3] in [0, 1]."""
+    """Render ``model`` into ``view``'s camera: float [H, W, 3] in [0, 1] (``model`` and ``data`` in
+    the same frame: the world's, or both in a training frame)."""
     from brave6d.training.rasterizer import rasterize
+
+    from brave6d.training.scene_frame import near_far
 
     d = model.sh_degree if sh_degree is None else sh_degree
     device = model.device
     viewmat = torch.from_numpy(view.viewmat).float().to(device)[None]
     K = torch.from_numpy(data.camera.K).float().to(device)[None]
     scales, opacities = model.render_scales_opacities()
+    near, far = near_far(data.scene_extent())  # the trainer's planes: relative to the scene
     colors, _, _, _ = rasterize(model.means, model.quats, scales, opacities,
                                 model.sh_coeffs(d), viewmat, K, data.camera.width,
-                                data.camera.height, sh_degree=d, antialiased=model.antialiased)
+                                data.camera.height, sh_degree=d, near_plane=near, far_plane=far,
+                                antialiased=model.antialiased)
     return colors[0].clamp(0.0, 1.0)
 
 

@@ -23,13 +23,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="COLMAP: the images folder (default: SOURCE/images, or images/ beside sparse/)")
     scale = parser.add_mutually_exclusive_group()
     scale.add_argument("--scale", type=float_in(0.0, None, low_open=True), default=None, metavar="FACTOR",
-                       help="metres per source unit (1 when the source's poses are in metres)")
+                       help="metres per source unit (1 when the source's poses are in metres). Neither this nor "
+                            "--scale-from-distance: 1, the source's units kept as metres (training does not depend "
+                            "on the scale; the server's camera radius, the agents' steps and annotated objects do)")
     scale.add_argument("--scale-from-distance", nargs=3, default=None, metavar=("FRAME_A", "FRAME_B", "METRES"),
                        help="the real distance in metres between the camera centres of two frames (named as in "
                             "the source: COLMAP image name or transforms.json file_path; or by their file name)")
     parser.add_argument("--up", default=None, metavar="x,y,z|auto",
-                        help="the world's up direction in the source's coordinates, or 'auto': the mean of the "
-                             "cameras' up vectors (photos taken upright)")
+                        help="the world's up direction in the source's coordinates, or 'auto' (the default): "
+                             "perpendicular to the cameras' image rows (photos taken upright; cameras rolled "
+                             "different ways are refused)")
     parser.add_argument("--downscale", type=int_in(1, 64), default=1,
                         help="resample the images by this whole factor at import (default: %(default)s)")
     parser.add_argument("--name", default=None, help="the scene's name (default: the scene folder's name)")

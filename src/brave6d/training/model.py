@@ -21,29 +21,37 @@ from brave6d.training.ply import SH_C0, SplatData, read_ply, write_ply
 
 PARAM_NAMES = ("means", "quats", "scales", "opacities", "sh0", "shN")
 
-#: Smallest squared neighbour distance used for the initial scale (Inria clamps at 1e-7).
-MIN_NN_DIST2 = 1e-7
-
-
 def rgb_to_sh0(rgb: Tensor) -> Tensor:
     """Degree-0 SH coefficient of a colour in [0, 1]."""
     return (rgb - 0.5) / SH_C0
 
 
-def initial_log_scales(points: np.ndarray, fallback: float = 1e-3) -> np.ndarray:
+#: A lone point's initial scale, in scene extents (it has no neighbours to measure).
+LONE_POINT_SCALE = 1e-3
+
+
+def initial_log_scales(points: np.ndarray, extent: float = 1.0) -> np.ndarray:
     """Log of the RMS distance to the 3 nearest neighbours, per point (Inria's init).
 
-    Coincident points get the floor ``sqrt(1e-7)``; a lone point gets ``fallback``.
+    ``extent``: the scene's extent in the points' units (1 in a training frame,
+    :mod:`brave6d.training.scene_frame`). Coincident points get the floor ``MIN_INIT_DISTANCE``
+    extents (Inria's ``sqrt(1e-7)`` on the demo's scene); a lone point gets ``LONE_POINT_SCALE`` extents.
     """
+    from brave6d.training.scene_frame import MIN_INIT_DISTANCE
+
+    if not (math.isfinite(extent) and extent > 0.0):
+        raise ValueError(f"initial_log_scales: the extent must be a positive number, got {extent}")
     n = len(points)
     if n == 0:
         return np.zeros((0, 3), np.float32)
+    fallback = LONE_POINT_SCALE * extent
     if n == 1:
         return np.full((1, 3), math.log(fallback), np.float32)
+    floor2 = (MIN_INIT_DISTANCE * extent) ** 2
     k = min(4, n)
     dist, _ = cKDTree(points).query(points, k=k)
     d2 = np.mean(dist[:, 1:] ** 2, axis=1)
-    d2 = np.maximum(np.nan_to_num(d2, nan=MIN_NN_DIST2, posinf=fallback**2), MIN_NN_DIST2)
+    d2 = np.maximum(np.nan_to_num(d2, nan=floor2, posinf=fallback**2), floor2)
     return np.repeat(np.log(np.sqrt(d2))[:, None], 3, axis=1).astype(np.float32)
 
 
@@ -67,14 +75,18 @@ class GaussianModel:
         init_opacity: float = 0.1,
         init_scale: float = 1.0,
         device: torch.device | str = "cpu",
+        extent: float = 1.0,
     ) -> GaussianModel:
-        """Isotropic Gaussians at ``points`` (N, 3) with ``colors`` (N, 3) in [0, 1] (grey if None)."""
+        """Isotropic Gaussians at ``points`` (N, 3) with ``colors`` (N, 3) in [0, 1] (grey if None).
+
+        ``extent``: the scene's extent in the points' units (1: points in a training frame, as
+        :func:`brave6d.training.train` gives; a caller in world units passes ``data.scene_extent()``)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if not np.isfinite(pts).all():
             raise ValueError("GaussianModel.from_points: points contain NaN or inf")
         n = len(pts)
         rgb = np.full((n, 3), 0.5) if colors is None else np.asarray(colors, dtype=np.float64).reshape(n, 3)
-        log_scales = initial_log_scales(pts) + np.float32(math.log(init_scale))
+        log_scales = initial_log_scales(pts, extent) + np.float32(math.log(init_scale))
         quats = np.zeros((n, 4), np.float32)
         quats[:, 0] = 1.0
         opacity = min(max(init_opacity, 1e-6), 1.0 - 1e-6)

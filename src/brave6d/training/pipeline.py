@@ -32,10 +32,10 @@ from brave6d.core.layout import SceneDir
 from brave6d.training.colmap_init import ColmapOptions
 from brave6d.training.device import resolve_device
 from brave6d.training.holdout import HOLDOUT_PROTOCOL, write_holdout
-from brave6d.training.holdout_eval import evaluate_holdout, peak_memory_mb, plot_curves, write_metrics
+from brave6d.training.holdout_eval import peak_memory_mb, plot_curves, write_metrics
 from brave6d.training.ply import write_ply, write_viewer_ply
 from brave6d.training.presets import Preset
-from brave6d.training.trainer import Trainer, list_checkpoints
+from brave6d.training.trainer import Trainer, TrainResult, list_checkpoints
 from brave6d.training.training_run import train
 from brave6d.training.views import TrainingData, load_scene
 
@@ -130,7 +130,7 @@ def train_scene(
         trained = train(data, preset, dev, scene=scene, init_method=init_method, colmap=colmap,
                         checkpoint_dir=ckpt_dir if run is None else run.staging, resume=continuing,
                         checkpoint_hook=None if run is None else run.take_place, show_progress=show_progress,
-                        check_poses=check_poses)
+                        check_poses=check_poses, budget_started_at=t_start)
         if run is not None:
             run.finish()  # a run without any checkpoint (no steps) still replaces the outputs
     finally:
@@ -146,7 +146,7 @@ def train_scene(
     write_viewer_ply(scene.splat_viewer_ply_path, splat)
     t_eval = time.perf_counter()
     shutil.rmtree(scene.holdout_images_dir, ignore_errors=True)  # --resume: no stale views from an earlier split
-    holdout = evaluate_holdout(model, data, scene.holdout_images_dir)
+    holdout = trained.holdout(scene.holdout_images_dir)  # in the training frame, as during training
     t_eval = time.perf_counter() - t_eval
     if result.curve:
         result.curve[-1]["holdout_psnr"] = holdout.psnr
@@ -158,6 +158,7 @@ def train_scene(
         "steps": result.steps,
         "planned_steps": preset.steps,
         "stopped_by": result.stopped_by,
+        "time_budget": budget_record(result),
         "resumed_from_step": result.resumed_from,
         "train_time_s": result.train_seconds,
         "train_cpu_s": result.train_cpu_seconds,
@@ -180,6 +181,7 @@ def train_scene(
                   if scene.import_record_path.is_file() else
                   "base_T_tcp (robot) @ tcp_T_cam (calibrated, calibration/handeye.json)"),
         "init": trained.init,
+        "scene_frame": trained.frame.to_json() if trained.frame is not None else None,
         "pose_check": trained.pose_check,
         "outputs": {"ply": str(ply_path), "curves": str(scene.curves_path),
                     "holdout_split": str(scene.holdout_split_path),
@@ -192,6 +194,19 @@ def train_scene(
     write_holdout(scene, data.test)  # the split, once, just before the metrics that score it
     write_metrics(scene.metrics_path, metrics)
     return metrics
+
+
+#: What a preset's time budget counts (``metrics.json``'s ``time_budget.counts``, the summary, the docs).
+BUDGET_COUNTS = ("the whole train command from its start: loading the images, the pose check, the initial points "
+                 "(COLMAP) and the training steps; the holdout evaluation and the writing after the last step come on top")
+
+
+def budget_record(result: TrainResult) -> dict[str, Any] | None:
+    """``metrics.json``'s ``time_budget``: the budget, what it counts and how much of it the run used."""
+    if result.budget_s is None:
+        return None
+    return {"budget_s": result.budget_s, "counts": BUDGET_COUNTS, "used_s": result.budget_used_s,
+            "stopped_training": result.stopped_by == "time budget"}
 
 
 def photo_set_preset(preset: Preset, data: TrainingData) -> tuple[Preset, dict[str, Any] | None]:

@@ -1,5 +1,10 @@
 """The 3DGS training loop: one camera per step, Adam, densification, checkpoints, guards.
 
+Every length is a multiple of the scene's extent (``data.scene_extent()``: the near plane, the
+densification's size limits, the positions' learning rate and their Adam epsilon, the initial
+scales' floor; :mod:`brave6d.training.scene_frame`), so the same scene in other units trains the
+same; :func:`brave6d.training.train` goes further and trains in the scene's training frame (extent 1).
+
 Per step (gsplat's ``simple_trainer`` order): render the next training view (views are drawn
 without replacement, a new random order every epoch), loss
 ``(1 - lambda) * L1 + lambda * (1 - SSIM)`` (plus ``depth_lambda`` times the relative depth error
@@ -18,6 +23,12 @@ CPU a resumed run ends with the same parameters as an uninterrupted one, and equ
 equal results. They hold tensors and plain values (numbers, strings, lists, dicts) only and are
 read with ``torch.load(weights_only=True)``: a checkpoint from elsewhere cannot run code, and
 one that needs anything else to load is refused with an error naming it.
+
+The time budget (``preset.time_budget_s``) is wall time from ``budget_started_at`` (``brave6d
+train`` passes the start of the command, so loading and the initial points count; by default the
+start of :meth:`Trainer.train`), checked before each step: evaluations and checkpoints during the
+run count, the holdout evaluation and the writing after the last step do not. A resumed run is a new
+command and gets the whole budget again.
 """
 
 from __future__ import annotations
@@ -46,11 +57,13 @@ from brave6d.training.depth_targets import DepthTarget, depth_loss, load_depth_t
 from brave6d.training.losses import fill_invalid, photometric_loss, psnr, psnr_tensor
 from brave6d.training.model import PARAM_NAMES, GaussianModel
 from brave6d.training.presets import Preset
+from brave6d.training.scene_frame import SceneFrame, near_far
 from brave6d.training.strategy import DensifyStrategy
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_VERSION = 1
+#: 2: parameters in the run's frame, recorded with it (``frame``); version 1 (world units, no frame) still loads.
+CHECKPOINT_VERSION = 2
 _CKPT = re.compile(r"^ckpt_(\d{6,})\.pt$")
 
 
@@ -74,6 +87,9 @@ class TrainResult:
     resumed_from: int | None = None
     checkpoints: list[str] = field(default_factory=list)
     train_cpu_seconds: float = 0.0  # process CPU time of the steps (wall time x busy threads)
+    planned_steps: int = 0  # the preset's steps
+    budget_s: float | None = None  # the time budget it ran under (None: none)
+    budget_used_s: float = 0.0  # wall seconds counted against the budget when training stopped
 
 
 def means_lr(step: int, preset: Preset, extent: float) -> float:
@@ -81,6 +97,12 @@ def means_lr(step: int, preset: Preset, extent: float) -> float:
     t = min(max(step / max(preset.steps, 1), 0.0), 1.0)
     rates = preset.learning_rates
     return extent * math.exp((1.0 - t) * math.log(rates.means_lr_init) + t * math.log(rates.means_lr_final))
+
+
+def adam_epsilon(name: str, preset: Preset, extent: float) -> float:
+    """Adam's epsilon for parameter ``name``: the preset's, divided by the extent for the positions (their
+    gradients scale as 1 / extent; every other parameter is without units)."""
+    return preset.learning_rates.adam_eps / (extent if name == "means" else 1.0)
 
 
 def base_lrs(preset: Preset) -> dict[str, float]:
@@ -120,13 +142,15 @@ class Trainer:
         eval_callback: Callable[[Trainer], float] | None = None,
         checkpoint_hook: Callable[[Trainer], None] | None = None,
         lean: bool | None = None,
+        budget_started_at: float | None = None,
     ) -> None:
         """``lean`` (default: on a GPU, off on the CPU): the step never waits for the device. The
         cameras are checked once here, renders skip the rasterizer's per-call value checks, the
         depth loss is taken as masked sums, and a non-finite loss or parameter raises a flag on
         the device (with the first step it happened at) that is read at each curve point,
         checkpoint and the end of the run (TrainingDiverged then names that step); the step's
-        figures stay tensors until then. Off, every step checks on the host (the CPU's path)."""
+        figures stay tensors until then. Off, every step checks on the host (the CPU's path).
+        ``budget_started_at``: the ``time.perf_counter()`` the time budget counts from (the module doc)."""
         self.data = data
         self.preset = preset
         self.device = torch.device(device)
@@ -139,7 +163,12 @@ class Trainer:
         self.step_callback = step_callback
         self.eval_callback = eval_callback
         self.checkpoint_hook = checkpoint_hook  # called after each checkpoint is written
-        self.extent = data.scene_extent()
+        try:
+            self.extent = data.scene_extent()  # every length below is a multiple of it
+        except DataError as exc:
+            raise DataError(f"training cameras: viewmats are not finite ({exc})") from None
+        self.near_plane, self.far_plane = near_far(self.extent)
+        self.budget_started_at = budget_started_at
         self.strategy = DensifyStrategy(preset.densification)
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.extent)
         self.optimizers = self._make_optimizers()
@@ -175,9 +204,10 @@ class Trainer:
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         p = self.preset
         lrs = {"means": means_lr(0, p, self.extent), **base_lrs(p)}
+        eps = {name: adam_epsilon(name, p, self.extent) for name in PARAM_NAMES}
         # fused Adam: the same update, one kernel per tensor (25x faster than the default on CPU)
         return {name: torch.optim.Adam([{"params": self.model.params[name], "lr": lrs[name], "name": name}],
-                                       eps=p.learning_rates.adam_eps, betas=(0.9, 0.999), fused=True)
+                                       eps=eps[name], betas=(0.9, 0.999), fused=True)
                 for name in PARAM_NAMES}
 
     def _next_view(self) -> int:
@@ -200,7 +230,8 @@ class Trainer:
         scales, opacities = m.render_scales_opacities()
         colors, depth, alphas, info = rasterize(
             m.means, m.quats, scales, opacities, coeffs, viewmat[None], K[None],
-            width, height, sh_degree=d, antialiased=m.antialiased, validate=validate)
+            width, height, sh_degree=d, near_plane=self.near_plane, far_plane=self.far_plane,
+            antialiased=m.antialiased, validate=validate)
         info["render_depth"] = depth[0]
         return colors[0], alphas[0], info
 
@@ -229,7 +260,7 @@ class Trainer:
         if force or stale:
             cam = self.data.camera
             m.filter_3d = compute_filter_3d(means, self.viewmats, self.K, cam.width, cam.height,
-                                            aa.filter_3d_scale)
+                                            aa.filter_3d_scale, near_plane=self.near_plane)
             self._filter_means, self._filter_step = means, self.step
 
     def coarse_level(self) -> CoarseLevel:
@@ -351,6 +382,8 @@ class Trainer:
             resumed_from = self.load_latest_checkpoint()
         end = self.preset.steps if max_steps is None else min(max_steps, self.preset.steps)
         budget = self.preset.time_budget_s
+        started = time.perf_counter() if self.budget_started_at is None else self.budget_started_at
+        used = 0.0
         schedule = self.preset.schedule
         bar = progress_bar(total=self.preset.steps, desc="train", unit="step", initial=self.step) \
             if self.show_progress else None
@@ -360,7 +393,8 @@ class Trainer:
             if not self.curve:
                 self._record_curve()
             while self.step < end:
-                if budget is not None and self.elapsed >= budget:
+                used = time.perf_counter() - started
+                if budget is not None and used >= budget:
                     stopped_by = "time budget"
                     log.warning("time budget of %.0f s reached after %d of %d steps", budget, self.step,
                                 self.preset.steps)
@@ -396,8 +430,10 @@ class Trainer:
         self.refresh_filter_3d(force=True)  # the exported filter matches the final means
         if self.checkpoint_dir is not None and stopped_by == "time budget":
             written.append(str(self.save_checkpoint()))
+        if stopped_by == "steps":
+            used = time.perf_counter() - started
         return TrainResult(self.step, self.elapsed, self.model.num_gaussians, stopped_by, self.curve,
-                           resumed_from, written, self.cpu_elapsed)
+                           resumed_from, written, self.cpu_elapsed, self.preset.steps, budget, used)
 
     def _record_curve(self) -> None:
         self.raise_if_flagged()
@@ -425,6 +461,7 @@ class Trainer:
             "preset": self.preset.to_json(),
             "train_views": self.data.fingerprint(),
             "extent": self.extent,
+            "frame": None if self.data.frame is None else self.data.frame.to_json(),
         }
 
     def load_state_dict(self, ckpt: dict[str, Any], source: str = "checkpoint") -> None:
@@ -437,11 +474,12 @@ class Trainer:
             raise DataError(f"{source}: not a usable brave6d checkpoint ({type(exc).__name__}: {exc})") from None
 
     def _load_state(self, ckpt: dict[str, Any], source: str) -> None:
-        if ckpt.get("version") != CHECKPOINT_VERSION:
+        if ckpt.get("version") not in (1, CHECKPOINT_VERSION):
             raise DataError(f"{source}: checkpoint version {ckpt.get('version')} is not {CHECKPOINT_VERSION}")
         if ckpt["train_views"] != self.data.fingerprint():
             raise DataError(f"{source}: the checkpoint was trained on other views (the capture, the holdout "
                             "or the skipped frames changed); start again without --resume")
+        ckpt = _in_frame(ckpt, self.data.frame, source)
         self.model = GaussianModel.from_tensors(ckpt["params"], int(ckpt["sh_degree"]), self.device)
         self.optimizers = self._make_optimizers()
         for name, opt in self.optimizers.items():
@@ -459,6 +497,7 @@ class Trainer:
         self.psnr_ema, self.loss_ema = ckpt["ema"]
         self.curve = list(ckpt["curve"])
         self.extent = float(ckpt["extent"])
+        self.near_plane, self.far_plane = near_far(self.extent)
         self._filter_means = None  # a new model: its filter is computed again
         self.refresh_filter_3d()
 
@@ -512,6 +551,41 @@ class Trainer:
                             "start again without --resume")
         log.warning("--resume: no checkpoint in %s; starting from step 0", self.checkpoint_dir)
         return None
+
+
+def _in_frame(ckpt: dict[str, Any], frame: SceneFrame | None, source: str) -> dict[str, Any]:
+    """``ckpt`` with its parameters in ``frame`` (the run's training frame; None: world units).
+
+    A checkpoint records the frame its parameters are in (version 2). It must be the run's: the
+    frame comes from the camera centres, so another one means the cameras moved. A version 1
+    checkpoint (world units, written before training frames) is moved into ``frame``: the
+    positions and their Adam moments, the log scales, the extent."""
+    saved = ckpt.get("frame")
+    if saved is not None or ckpt.get("version") == CHECKPOINT_VERSION:
+        theirs = None if saved is None else SceneFrame.from_json(saved)
+        if theirs != frame:
+            raise DataError(f"{source}: the checkpoint was trained in another frame ({saved} against "
+                            f"{None if frame is None else frame.to_json()}): the cameras moved since; start again "
+                            "without --resume")
+        return ckpt
+    if frame is None:
+        return ckpt
+    u = frame.unit
+    params = dict(ckpt["params"])
+    params["means"] = torch.from_numpy(frame.points(params["means"].double().numpy())).float()
+    params["scales"] = (params["scales"].double() - math.log(u)).float()
+    optimizers = dict(ckpt["optimizers"])
+    means_opt = {**optimizers["means"], "state": {k: {**v} for k, v in optimizers["means"]["state"].items()}}
+    for moments in means_opt["state"].values():
+        if "exp_avg" in moments:
+            moments["exp_avg"] = moments["exp_avg"] / u
+        if "exp_avg_sq" in moments:
+            moments["exp_avg_sq"] = moments["exp_avg_sq"] / (u * u)
+    optimizers["means"] = means_opt
+    strategy = {**ckpt["strategy_state"], "scene_scale": 1.0}
+    log.info("%s: a version 1 checkpoint (world units) moved into the training frame (unit %.6g)", source, u)
+    return {**ckpt, "params": params, "optimizers": optimizers, "strategy_state": strategy, "extent": 1.0,
+            "frame": frame.to_json()}
 
 
 _UNSUPPORTED_GLOBAL = re.compile(r"Unsupported global: GLOBAL ([\w.]+)")

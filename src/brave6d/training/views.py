@@ -28,6 +28,7 @@ from brave6d.core.errors import DataError
 from brave6d.core.layout import FrameRecord, SceneDir
 from brave6d.core.transforms import invert
 from brave6d.training.holdout import holdout_split
+from brave6d.training.scene_frame import SceneFrame, scene_radius
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +73,8 @@ class TrainingData:
     undistortion: str = "none"  # how images were undistorted (for metrics.json)
     depth_camera: PinholeCamera | None = None  # set when depth files are still distorted (raw)
     valid_mask: NDArray[np.bool_] | None = None  # [H, W] pixels undistortion filled; None: all
+    #: set: the poses are in this training frame (:mod:`brave6d.training.scene_frame`, extent 1); None: the world's
+    frame: SceneFrame | None = None
 
     def valid_tensor(self, device: torch.device | str) -> Tensor | None:
         """:attr:`valid_mask` as a bool tensor on ``device`` (None: every pixel is valid)."""
@@ -86,10 +89,17 @@ class TrainingData:
         return self.camera.K
 
     def scene_extent(self) -> float:
-        """Inria's scene radius: 1.1 x the largest distance of a camera centre from their mean."""
-        centres = np.array([v.base_T_cam[:3, 3] for v in self.views])
-        radius = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()) if len(centres) else 0.0
-        return 1.1 * max(radius, 1e-3)
+        """Inria's scene radius (:func:`brave6d.training.scene_frame.scene_radius`): 1.1 x the largest
+        distance of a camera centre from their mean; exactly 1 in a training frame. Every length the
+        trainer uses is a multiple of it."""
+        if self.frame is not None:
+            return 1.0
+        return scene_radius([v.base_T_cam[:3, 3] for v in self.views])
+
+    @property
+    def length_unit(self) -> float:
+        """World units (metres for a capture) per unit of these poses: what a depth in metres is divided by."""
+        return 1.0 if self.frame is None else self.frame.unit
 
     def fingerprint(self) -> list[str]:
         """Identifies the split (a resumed run must train on the same views)."""

@@ -59,8 +59,8 @@ MIN_REFERENCE_POINTS = 10
 class ImportOptions:
     """How to import: the source's format and images folder, the world (scale, up), the checks."""
 
-    scale: ScaleChoice | None = None
-    up: UpChoice | None = None
+    scale: ScaleChoice | None = None  # None: ScaleChoice.default() (the source's units kept as metres)
+    up: UpChoice | None = None  # None: UpChoice(None), auto (photos taken upright)
     format: str = "auto"
     images: Path | None = None  # COLMAP: the images folder (default: found beside the model)
     downscale: int = 1  # integer factor the images are resampled by (area averaging)
@@ -127,13 +127,16 @@ def import_capture(source: Path | str, scene_dir: Path | str, options: ImportOpt
     if not capture.frames:
         shown = ", ".join(capture.missing[:8]) + (f" and {len(capture.missing) - 8} more" if len(capture.missing) > 8 else "")
         raise DataError(f"{capture.source}: no frame has an image file" + (f" (missing: {shown})" if shown else ""))
-    if options.scale is None or options.up is None:
-        raise DataError(_ask_for_world(capture, options))
+    scale = options.scale if options.scale is not None else ScaleChoice.default()
+    up = options.up if options.up is not None else UpChoice(None)
+    if options.scale is None:
+        log.info("no --scale or --scale-from-distance: the source's units are kept (1 m per unit; the record says "
+                 "what depends on it)")
     names = [f.name for f in capture.frames]
     duplicates = sorted(n for n, c in Counter(names).items() if c > 1)
     if duplicates:
         raise DataError(f"{capture.source}: frames listed twice: {', '.join(duplicates[:8])}")
-    change = world_change({f.name: f.world_T_cam for f in capture.frames}, capture.points, options.scale, options.up)
+    change = world_change({f.name: f.world_T_cam for f in capture.frames}, capture.points, scale, up)
     plan = _camera_plan(capture.frames, options.downscale)
     poses = [change.pose(f.world_T_cam) for f in capture.frames]
     for frame, pose in zip(capture.frames, poses):
@@ -182,18 +185,6 @@ def _check_target(scene: SceneDir, force: bool) -> None:
     if _has_content(scene.root) and not force:
         raise DataError(f"{scene.root}: exists and is not empty; pick a new folder, or pass --force to move it "
                         "aside (nothing is deleted)")
-
-
-def _ask_for_world(capture: ImportedCapture, options: ImportOptions) -> str:
-    asks = []
-    if options.scale is None:
-        asks.append("the metric scale: --scale FACTOR (metres per source unit; 1 when the source is in metres) or "
-                    "--scale-from-distance FRAME_A FRAME_B METRES (two camera centres' real distance)")
-    if options.up is None:
-        asks.append("the world's up direction: --up x,y,z (in the source's world) or --up auto (the mean of the "
-                    "cameras' up vectors: photos taken upright)")
-    return (f"{capture.source}: a {capture.format} capture records neither metres nor which way is up, and the "
-            f"render server needs both; give {' and '.join(asks)}")
 
 
 def _reference(capture: ImportedCapture, change: WorldChange, points: NDArray[np.float64]

@@ -48,7 +48,9 @@ def write_imported_points(scene: SceneDir, xyz: NDArray[np.float64], rgb: NDArra
 
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
     rgb = np.asarray(rgb, np.uint8).reshape(-1, 3)
-    vertex = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+    # float64: the points keep the world change's precision, so the same capture imported at two scales
+    # gives the same points in the training frame (brave6d.training.scene_frame); a float32 file reads too
+    vertex = np.empty(len(xyz), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
                                        ("red", "u1"), ("green", "u1"), ("blue", "u1")])
     for i, c in enumerate("xyz"):
         vertex[c] = xyz[:, i]

@@ -8,10 +8,15 @@ the import says which:
 
 - scale: ``--scale FACTOR`` (metres per source unit; 1 when the source is metric, e.g. ARKit
   poses) or ``--scale-from-distance FRAME_A FRAME_B METRES`` (the distance between two camera
-  centres, measured in the real world);
-- up: ``--up x,y,z`` (a direction in the source's world) or ``--up auto``: for photos taken
-  upright, the direction perpendicular to every camera's image rows, on the side of their up
-  vectors (:func:`resolve_up`); how far the rows are from level is recorded.
+  centres, measured in the real world); neither: :data:`DEFAULT_SCALE` (the source's units are
+  kept and called metres). Training does not depend on the choice (it trains in the scene's own
+  frame, :mod:`brave6d.training.scene_frame`); what does is everything metric downstream: the
+  render server's camera radius and the agents' steps and distances, annotated objects' sizes,
+  BOP's millimetre thresholds;
+- up: ``--up x,y,z`` (a direction in the source's world) or ``--up auto`` (the default): for photos
+  taken upright, the direction perpendicular to every camera's image rows, on the side of their up
+  vectors (:func:`resolve_up`); how far the rows are from level is recorded, and cameras rolled
+  different ways are refused (then ``--up x,y,z`` is needed).
 
 The new world is ``p_new = scale * R_up @ (p_source - centre)``: rotated so that "up" is +z (the
 smallest rotation that does so), scaled to metres and moved so that the scene's centre (where the
@@ -38,14 +43,31 @@ MIN_UP_AGREEMENT = 0.15
 MAX_ROLL_DEG = 20.0
 
 
+#: Metres per source unit when the import is given no scale: the source's units are kept.
+DEFAULT_SCALE = 1.0
+#: What the default scale means, for the import's output and record.
+DEFAULT_SCALE_NOTE = ("the default, 1 (no --scale or --scale-from-distance given: the source's units are kept and "
+                      "called metres; training does not depend on it, but the server's camera radius, the agents' "
+                      "steps and distances and annotated objects are metric: give --scale-from-distance FRAME_A "
+                      "FRAME_B METRES for a metric scene)")
+
+
 @dataclass(frozen=True)
 class ScaleChoice:
-    """Metres per source unit, or how to measure it."""
+    """Metres per source unit, or how to measure it; :meth:`default`: none was given."""
 
     factor: float | None = None
     distance: tuple[str, str, float] | None = None  # (frame a, frame b, metres)
+    is_default: bool = False
+
+    @classmethod
+    def default(cls) -> ScaleChoice:
+        """The scale of an import given none: :data:`DEFAULT_SCALE` (module docstring)."""
+        return cls(factor=DEFAULT_SCALE, is_default=True)
 
     def describe(self) -> str:
+        if self.is_default:
+            return DEFAULT_SCALE_NOTE
         if self.factor is not None:
             return f"--scale {self.factor:g} (given)"
         assert self.distance is not None

@@ -78,6 +78,7 @@ def collect_training(scene: SceneDir, store: MeasurementStore, benchmark: Path |
                       for k, v in (hold.get("per_level") or {}).items()},
         "n_train": metrics.get("n_train_views"), "n_holdout": metrics.get("n_holdout_views"),
         "stopped_by": metrics.get("stopped_by"), "planned_steps": metrics.get("planned_steps"),
+        "time_budget": metrics.get("time_budget"),
         "init": (metrics.get("init") or {}).get("source"),
         "benchmark": None,
     }
@@ -293,9 +294,20 @@ def _scene_text(m: Measurement) -> str:
                        for v in (s.get("per_level") or {}).values())
     return (f"The scene's training ({m.settings.get('preset')}, {m.settings.get('image')} images, "
             f"{s.get('n_train')} training / {s.get('n_holdout')} holdout views, init {s.get('init')}): "
-            f"{s.get('steps')} steps in {fmt(s.get('train_s'), 1)} s of training ({fmt(s.get('total_s'), 1)} s in all, "
-            f"stopped by {s.get('stopped_by')}), {s.get('gaussians')} Gaussians, holdout PSNR {fmt(s.get('psnr'))} dB, "
+            f"{s.get('steps')} of {s.get('planned_steps')} planned steps in {fmt(s.get('train_s'), 1)} s of training "
+            f"({fmt(s.get('total_s'), 1)} s in all, stopped by {_stopped_by(s)}), {s.get('gaussians')} Gaussians, "
+            f"holdout PSNR {fmt(s.get('psnr'))} dB, "
             f"SSIM {fmt(s.get('ssim'), 4)}" + (f" (per distance: {levels})" if levels else "") + ".")
+
+
+def _stopped_by(summary: dict[str, Any]) -> str:
+    """What stopped the run, in words: its steps, or its time budget (and what that counts)."""
+    if summary.get("stopped_by") == "time budget":
+        budget = summary.get("time_budget") or {}
+        seconds = budget.get("budget_s")
+        return ("its time budget" + (f" of {fmt(seconds, 0)} s for the whole train command, initial points included"
+                                     if seconds is not None else "") + ": continue it with brave6d train --resume")
+    return "reaching its planned steps" if summary.get("stopped_by") == "steps" else str(summary.get("stopped_by"))
 
 
 def advice_training(sources: list[tuple[str, list[dict[str, Any]], str]], training: Measurement | None) -> str:
