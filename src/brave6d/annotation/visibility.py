@@ -101,6 +101,31 @@ class Silhouette:
         return Silhouette(self.xs[inside], self.ys[inside], self.hit_index[inside], self.cast_depth, self.cast_rays)
 
 
+@dataclass(frozen=True)
+class SilhouetteBatch:
+    """One instance's silhouettes seen from many cameras (:meth:`SilhouetteCaster.silhouettes_many`):
+    the hit pixels of all cameras, camera ``owner[i]``'s pixel ``(xs[i], ys[i])`` with its z-depth and
+    camera-frame ray, grouped by camera in camera order."""
+
+    cameras: int
+    owner: NDArray[np.int64]
+    xs: NDArray[np.int64]
+    ys: NDArray[np.int64]
+    depth: NDArray[np.float32]
+    rays: NDArray[np.float32]
+
+    @property
+    def px_count_all(self) -> NDArray[np.int64]:
+        """(cameras,) pixels of each camera's whole silhouette."""
+        return np.bincount(self.owner, minlength=self.cameras)
+
+    def within(self, width: int, height: int) -> SilhouetteBatch:
+        """The pixels inside a ``width`` x ``height`` image."""
+        inside = (self.xs >= 0) & (self.xs < width) & (self.ys >= 0) & (self.ys < height)
+        return SilhouetteBatch(self.cameras, self.owner[inside], self.xs[inside], self.ys[inside], self.depth[inside],
+                               self.rays[inside])
+
+
 _EMPTY = Silhouette(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32),
                     np.zeros((0, 3), np.float32))
 
@@ -187,6 +212,62 @@ class SilhouetteCaster:
         T = np.asarray(world_T_cam, dtype=np.float64)
         _, geometry = self._cast(self._world, T[:3, 3], T[:3, :3], rays_cam)
         return self._owner[geometry]  # -1 indexes the sentinel
+
+    def silhouettes_many(self, world_T_cams: ArrayLike, camera: PinholeCamera) -> Iterator[SilhouetteBatch]:
+        """:meth:`silhouettes` of many camera poses at once (many agents), one ray cast per instance
+        for all of them: each instance's :class:`SilhouetteBatch`, in instance order. Its pixels of
+        camera ``c`` equal ``silhouettes(world_T_cams[c], camera)``'s of that instance bit for bit
+        (the same operations per pose and per ray)."""
+        poses = np.asarray(world_T_cams, dtype=np.float64).reshape(-1, 4, 4)
+        cam_T_world = np.stack([invert(T) for T in poses]) if len(poses) else np.zeros((0, 4, 4))
+        for (key, world_T_model), model_T_world in zip(self.instances, self._model_T_world):
+            rois = self._rois(key, cam_T_world @ world_T_model, camera)
+            sizes = (rois[:, 1] - rois[:, 0] + 1) * (rois[:, 3] - rois[:, 2] + 1)
+            owner = np.repeat(np.arange(len(poses)), sizes)
+            index = np.arange(len(owner)) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+            width = np.repeat(rois[:, 1] - rois[:, 0] + 1, sizes)
+            u = (np.repeat(rois[:, 0], sizes) + index % np.maximum(width, 1)).astype(np.float64)
+            v = (np.repeat(rois[:, 2], sizes) + index // np.maximum(width, 1)).astype(np.float64)
+            rays = pixel_rays(camera, u, v)
+            model_T_cam = model_T_world @ poses
+            t, _ = self._cast_many(self._model_scenes[key], model_T_cam[owner, :3, 3], model_T_cam[:, :3, :3], owner,
+                                   rays)
+            hit = np.isfinite(t)
+            yield SilhouetteBatch(len(poses), owner[hit], u[hit].astype(np.int64), v[hit].astype(np.int64), t[hit],
+                                  rays[hit])
+
+    def first_instance_many(self, world_T_cams: ArrayLike, owner: NDArray[np.int64],
+                            rays_cam: NDArray[np.float32]) -> NDArray[np.int64]:
+        """:meth:`first_instance` of rays from many camera poses: ray ``r`` leaves camera ``owner[r]``."""
+        poses = np.asarray(world_T_cams, dtype=np.float64).reshape(-1, 4, 4)
+        _, geometry = self._cast_many(self._world, poses[owner, :3, 3], poses[:, :3, :3], owner, rays_cam)
+        return self._owner[geometry]
+
+    def _cast_many(self, scene: o3d.t.geometry.RaycastingScene, origins: NDArray[np.float64],
+                   Rs: NDArray[np.float64], owner: NDArray[np.int64], rays_cam: NDArray[np.float32]
+                   ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        """:meth:`_cast` of rays from many cameras in one call: ray ``r`` from ``origins[r]`` along
+        ``Rs[owner[r]] @ d`` (the same float32 arithmetic per ray)."""
+        rays = np.empty((len(rays_cam), 6), dtype=np.float32)
+        rays[:, :3] = origins
+        R32 = np.asarray(Rs, dtype=np.float32)[owner]
+        for k in range(3):
+            rays[:, 3 + k] = rays_cam[:, 0] * R32[:, k, 0] + rays_cam[:, 1] * R32[:, k, 1] + rays_cam[:, 2] * R32[:, k, 2]
+        with self._lock:
+            out = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
+        t = out["t_hit"].numpy()
+        geometry = out["geometry_ids"].numpy().astype(np.int64)
+        return t, np.where(np.isfinite(t), geometry, -1)
+
+    def _rois(self, key: int, cam_T_models: NDArray[np.float64], camera: PinholeCamera) -> NDArray[np.int64]:
+        """(C, 4) :meth:`_roi` of each pose; an empty range (``u1 < u0``) where it is None."""
+        out = np.zeros((len(cam_T_models), 4), dtype=np.int64)
+        out[:, 1] = -1
+        for c, cam_T_model in enumerate(cam_T_models):
+            roi = self._roi(key, cam_T_model, camera)
+            if roi is not None:
+                out[c] = roi
+        return out
 
     def _roi(self, key: int, cam_T_model: NDArray[np.float64],
              camera: PinholeCamera) -> tuple[int, int, int, int] | None:

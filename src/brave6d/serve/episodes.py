@@ -254,7 +254,23 @@ class SceneServer:
         t0 = time.perf_counter()
         outs = self.renderer.render_batch(poses, camera, **self._render_settings())
         render_s = time.perf_counter() - t0
-        return [self._view(out, T, camera, gt_id, render_s) for out, T, gt_id in zip(outs, poses, target_gt_ids)]
+        t1 = time.perf_counter()
+        vis = self._visibilities(poses, camera, outs)
+        vis_s = (time.perf_counter() - t1) / max(len(poses), 1)  # each view's share of the batch
+        return [self._view(out, T, camera, gt_id, render_s, (v, vis_s))
+                for out, T, gt_id, v in zip(outs, poses, target_gt_ids, vis)]
+
+    def _visibilities(self, poses: Sequence[Matrix4], camera: PinholeCamera, outs: Sequence[RenderOutput]
+                      ) -> list[list[Visibility | None]]:
+        """Every object's visibility in each view, all views at once
+        (:meth:`VisibilityComputer.compute_many`, equal to :meth:`_view`'s one view at a time)."""
+        if self.visibility is None or not len(poses):
+            return [[None] * len(self.bundle.objects) for _ in poses]
+        if self.reference is not None:
+            many = self.visibility.compute_many(np.asarray(poses), camera, occluder_depths=self.reference.depth_along_many)
+        else:
+            many = self.visibility.compute_many(np.asarray(poses), camera, splat_depths=[out.depth for out in outs])
+        return [list(v) for v in many]
 
     def _render_settings(self) -> dict[str, Any]:
         """The bundle's render settings as the renderer's keyword arguments."""
@@ -263,11 +279,14 @@ class SceneServer:
                 "depth_mode": r.depth_mode}
 
     def _view(self, out: RenderOutput, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None,
-              render_s: float) -> RenderedView:
-        """One rendered view plus its visible fractions and objects' poses (``render_s``: the render's wall time)."""
+              render_s: float, computed: tuple[list[Visibility | None], float] | None = None) -> RenderedView:
+        """One rendered view plus its visible fractions and objects' poses (``render_s``: the render's
+        wall time; ``computed``: the visible fractions and their seconds, when computed for a batch)."""
         t1 = time.perf_counter()
         vis: list[Visibility | None] = [None] * len(self.bundle.objects)
-        if self.visibility is not None:
+        if computed is not None:
+            vis, t1 = computed[0], t1 - computed[1]
+        elif self.visibility is not None:
             occluders = partial(self.reference.depth_along, world_T_cam) if self.reference is not None else None
             vis = list(self.visibility.compute(world_T_cam, camera, out.depth, occluders))
         t2 = time.perf_counter()

@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -292,11 +292,28 @@ class ReferenceGeometry:
     def depth_along(self, world_T_cam: NDArray[np.float64], rays_cam: NDArray[np.float32]) -> NDArray[np.float32]:
         """(N,) z-depth in metres of the first surface along camera-frame rays ``(x, y, 1)`` (N, 3)
         from the camera at ``world_T_cam``; 0 = no surface. Never NaN/inf."""
+        return self._cast(self._world_rays(world_T_cam, rays_cam))
+
+    def depth_along_many(self, world_T_cams: Sequence[NDArray[np.float64]],
+                         rays_cam: Sequence[NDArray[np.float32]]) -> list[NDArray[np.float32]]:
+        """:meth:`depth_along` of many cameras' rays in one cast (many agents): the ``k``-th array
+        equals ``depth_along(world_T_cams[k], rays_cam[k])`` bit for bit."""
+        if not len(rays_cam):
+            return []
+        rays = [self._world_rays(T, d) for T, d in zip(world_T_cams, rays_cam)]
+        t = self._cast(np.concatenate(rays))
+        return np.split(t, np.cumsum([len(r) for r in rays])[:-1])
+
+    @staticmethod
+    def _world_rays(world_T_cam: NDArray[np.float64], rays_cam: NDArray[np.float32]) -> NDArray[np.float32]:
         T = np.asarray(world_T_cam, dtype=np.float64)
         d = np.asarray(rays_cam, dtype=np.float32).reshape(-1, 3)
         rays = np.empty((len(d), 6), dtype=np.float32)
         rays[:, :3] = T[:3, 3]
         rays[:, 3:] = d @ T[:3, :3].T.astype(np.float32)  # z = 1 in the camera: t is the z-depth
+        return rays
+
+    def _cast(self, rays: NDArray[np.float32]) -> NDArray[np.float32]:
         with self._lock:
             t = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))["t_hit"].numpy()
         return np.where(np.isfinite(t) & (t > 0), t, np.float32(0.0)).astype(np.float32)

@@ -93,3 +93,69 @@ class VisibilityComputer:
             out.append(Visibility(sil.px_count_all, px_vis, px_vis / sil.px_count_all,
                                   sil.bbox_all if px_vis else None, self._bbox(seen.xs[vis], seen.ys[vis])))
         return out
+
+    def compute_many(self, world_T_cams: NDArray[np.float64], camera: PinholeCamera,
+                     splat_depths: Sequence[NDArray[np.float32]] | None = None,
+                     occluder_depths: ManyOccluders | None = None) -> list[list[Visibility]]:
+        """:meth:`compute` of many views at once (many agents on one scene): one ray cast per
+        instance for all silhouettes, one for all first hits, one for all occluder depths
+        (``occluder_depths(poses, rays per view) -> depths per view``, the reference geometry's
+        ``depth_along_many``) instead of one per view and instance. ``result[c]`` equals
+        ``compute(world_T_cams[c], camera, splat_depths[c], its occluders)`` bit for bit."""
+        poses = np.asarray(world_T_cams, dtype=np.float64).reshape(-1, 4, 4)
+        n_views = len(poses)
+        per_instance = []
+        for sil in self._caster.silhouettes_many(poses, camera):
+            seen = sil.within(camera.width, camera.height)
+            per_instance.append((sil, seen, np.searchsorted(seen.owner, np.arange(n_views + 1))))
+        owners = np.concatenate([seen.owner for _, seen, _ in per_instance])
+        first = self._caster.first_instance_many(poses, owners, np.concatenate([seen.rays for _, seen, _ in per_instance]))
+        occluders: list[NDArray[np.float32] | None] = [None] * len(per_instance)
+        if occluder_depths is not None:  # one call: per instance and view, the rays of compute's
+            pairs = [(n, c) for n in range(len(per_instance)) for c in range(n_views)]
+            segments = [per_instance[n][1].rays[per_instance[n][2][c]:per_instance[n][2][c + 1]] for n, c in pairs]
+            depths = occluder_depths([poses[c] for _, c in pairs], segments)
+            for n in range(len(per_instance)):
+                occluders[n] = np.concatenate(depths[n * n_views:(n + 1) * n_views]) if n_views else np.zeros(0, np.float32)
+        elif splat_depths is not None:
+            for n, (_, seen, _) in enumerate(per_instance):
+                sd = np.zeros(len(seen.owner), np.float32)
+                for c in range(n_views):
+                    lo, hi = per_instance[n][2][c], per_instance[n][2][c + 1]
+                    sd[lo:hi] = splat_depths[c][seen.ys[lo:hi], seen.xs[lo:hi]]
+                occluders[n] = sd
+        out: list[list[Visibility]] = [[] for _ in range(n_views)]
+        offset = 0
+        for n, (sil, seen, bounds) in enumerate(per_instance):
+            vis = first[offset:offset + len(seen.owner)] == n
+            offset += len(seen.owner)
+            sd = occluders[n]
+            if sd is not None:
+                vis &= ~((sd > 0) & (sd < seen.depth - self.tol))
+            all_counts = sil.px_count_all
+            vis_counts = np.bincount(seen.owner[vis], minlength=n_views)
+            box_all = _bboxes(sil.owner, sil.xs, sil.ys, n_views)
+            box_vis = _bboxes(seen.owner[vis], seen.xs[vis], seen.ys[vis], n_views)
+            for c in range(n_views):
+                px_all, px_vis = int(all_counts[c]), int(vis_counts[c])
+                out[c].append(_NOT_SEEN if px_all == 0 else
+                              Visibility(px_all, px_vis, px_vis / px_all, box_all[c] if px_vis else None, box_vis[c]))
+        return out
+
+
+#: Occluder depths of many views: ``(poses, camera-frame rays per view) -> z-depths per view``.
+ManyOccluders = Callable[[Sequence[NDArray[np.float64]], Sequence[NDArray[np.float32]]], list[NDArray[np.float32]]]
+
+
+def _bboxes(owner: NDArray[np.int64], xs: NDArray[np.int64], ys: NDArray[np.int64], n: int
+            ) -> list[tuple[int, int, int, int] | None]:
+    """Per view ``c < n``, ``bbox_xywh`` of the pixels whose ``owner`` is ``c`` (grouped by owner, in order)."""
+    out: list[tuple[int, int, int, int] | None] = [None] * n
+    if not len(owner):
+        return out
+    starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    x0, x1 = np.minimum.reduceat(xs, starts).tolist(), np.maximum.reduceat(xs, starts).tolist()
+    y0, y1 = np.minimum.reduceat(ys, starts).tolist(), np.maximum.reduceat(ys, starts).tolist()
+    for k, c in enumerate(owner[starts].tolist()):
+        out[c] = (x0[k], y0[k], x1[k] - x0[k], y1[k] - y0[k])
+    return out
