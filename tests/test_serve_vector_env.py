@@ -130,3 +130,58 @@ def test_autoreset_draws_fresh_episodes_reproducibly(scene: SceneServer) -> None
     np.testing.assert_array_equal(obs_a["world_T_cam"], obs_b["world_T_cam"])
     a.close()
     b.close()
+
+
+VOLATILE = {"time", "timings_ms", "duration_s", "elapsed_s", "episode_id", "digest", "render_ms_median"}
+
+
+def log_records(log_dir, episode_id: str) -> list[dict]:
+    """An episode's log records without what differs between two runs (times, ids, the keyed digest)."""
+    from brave6d.serve.episode_log import read_episode_log
+
+    records = [{k: v for k, v in r.model_dump(mode="json").items() if k not in VOLATILE}
+               for r in read_episode_log(log_dir / f"{episode_id}.jsonl")]
+    for r in records:
+        if "final_view" in r:  # the depth file is named after the episode
+            assert r["final_view"].pop("depth_file") == f"{episode_id}_final_depth.png"
+    return records
+
+
+@pytest.mark.parametrize("mode", ["scored", "training"])
+def test_vector_env_logs_and_submissions_equal_single_episodes(scene: SceneServer, tmp_path, mode: str) -> None:
+    """Random walks of 6 agents (free, stopped and refused moves, null twists) through the vector
+    env and through one ``EpisodeManager.move`` at a time: the same observations, rewards and log
+    lines, and the same submissions (final view, every object's truth, the final depth file)."""
+    n, steps = 6, 12
+    vec = BraveVectorEnv(EpisodeManager(scene, tmp_path / "vec", mode=mode, log_key=None), n, target="cube_red",
+                         width=W, height=H, max_steps=100, mode=mode, max_linear=0.2)
+    single = EpisodeManager(scene, tmp_path / "one", mode=mode, log_key=None)
+    obs, _ = vec.reset(seed=SEED)
+    ids = [single.reset(target="cube_red", width=W, height=H, seed=SEED + i).episode_id for i in range(n)]
+    rng = np.random.default_rng(5)
+    outcomes = set()
+    for step in range(steps):  # each twist twice: a move stopped at a box is refused when repeated
+        if step % 2 == 0:
+            actions = rng.uniform(-1, 1, (n, 6)) * (rng.random((n, 1)) > 0.15)  # some null twists
+        obs, rewards, _, _, info = vec.step(actions)
+        for i in range(n):
+            if not actions[i].any():
+                continue
+            res = single.move(ids[i], actions[i, :3] * 0.2, actions[i, 3:] * 0.5, 0.5)
+            outcomes.add("refused" if not res.accepted else "stopped" if res.collided else "free")
+            np.testing.assert_array_equal(obs["rgb"][i], res.observation.rgb)
+            np.testing.assert_array_equal(obs["world_T_cam"][i], res.observation.world_T_cam)
+            assert (info["accepted"][i], info["collided"][i], info["adjustments"][i]) == (
+                res.accepted, res.collided, res.adjustments)
+    assert outcomes == {"free", "stopped", "refused"}
+    estimate = [{"obj_id": scene.bundle.objects[0].obj_id, "R": np.eye(3).tolist(), "t_m": [0.0, 0.0, 0.3]}]
+    for i in range(n):
+        vec.manager.submit(vec._ids[i], estimate)
+        single.submit(ids[i], estimate)
+        a, b = log_records(tmp_path / "vec", vec._ids[i]), log_records(tmp_path / "one", ids[i])
+        assert a == b and [r["event"] for r in a][-2:] == ["submit", "close"]
+        assert (a[0]["mode"], "target_visib_fract" in a[1]) == (mode, True)
+        depth = f"{{}}{'_final_depth.png'}"
+        assert (tmp_path / "vec" / depth.format(vec._ids[i])).read_bytes() == (
+            tmp_path / "one" / depth.format(ids[i])).read_bytes()
+    vec.close()
