@@ -129,6 +129,8 @@ class URRobot:
         self._receive: Any = None
         self._last_linear = False
         self._closed = False
+        #: the state stream was seen to show the pose the controller held after the last move
+        self._state_current = False
         self._connect()
 
     # ------------------------------------------------------------------ connection
@@ -230,6 +232,7 @@ class URRobot:
         """Health check, start the move (asynchronous), follow it to the end, health check; stop the
         arm on any error or Ctrl-C."""
         self.check_health(f"before {what}")
+        self._state_current = False
         try:
             before = (self._async_status() >> 24) & 0x7F
             ok = move()
@@ -239,6 +242,7 @@ class URRobot:
             self._follow(what, before)
             self.check_health(f"after {what}")
             self._await_fresh_state()
+            self._state_current = True
         except KeyboardInterrupt:
             self.stop()
             raise
@@ -336,7 +340,9 @@ class URRobot:
                         f"UR robot at {self.host} did not come to rest within {self.steady_timeout_s:.1f} s"
                     )
                 self._sleep(self.poll_interval_s)
-            self._await_fresh_state()
+            if not self._state_current:  # already checked when the last move ended
+                self._await_fresh_state()
+                self._state_current = True
             if settle_time_s > 0:
                 self._sleep(settle_time_s)
         except KeyboardInterrupt:
@@ -351,10 +357,13 @@ class URRobot:
         pose the controller holds now. The two interfaces are separate connections: on a loaded PC the
         state stream can lag the command stream by a second, and a pose recorded from it would be the
         pose before the move."""
-        fresh = ur_pose_to_matrix(self._call("getForwardKinematics"))  # answered by the controller, now
+        try:
+            fresh = ur_pose_to_matrix(self._call("getForwardKinematics"))  # answered by the controller, now
+        except ValueError:
+            raise RobotError(f"UR robot at {self.host} did not answer get_forward_kin() with a pose") from None
         deadline = self._monotonic() + self.steady_timeout_s
         while True:
-            reported = ur_pose_to_matrix(self._call("getActualTCPPose", receive=True))
+            reported = self.tcp_pose()
             if float(np.max(np.abs(reported - fresh))) < FRESH_POSE_TOLERANCE:
                 return
             if self._monotonic() > deadline:

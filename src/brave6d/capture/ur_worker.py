@@ -68,7 +68,14 @@ class RTDEWorker:
         self._buf = b""
         self._next_id = 0
         self._dead: str | None = None
-        self.call("worker", "connect", host, timeout=connect_timeout_s)
+        try:
+            self.call("worker", "connect", host, timeout=connect_timeout_s)
+        except BaseException as exc:
+            self._kill()  # a failed connection leaves no process behind
+            self.close()
+            if isinstance(exc, RuntimeError) and not isinstance(exc, RobotClientError):
+                self.log_path.unlink(missing_ok=True)  # ur-rtde answered: its error says it all
+            raise
 
     # -------------------------------------------------------------- calls
     def call(self, target: str, method: str, *args: Any, timeout: float | None = None) -> Any:

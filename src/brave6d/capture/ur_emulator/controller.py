@@ -42,7 +42,7 @@ from brave6d.capture.kinematics import UR_DH, URKinematics
 from brave6d.capture.ur_emulator import rtde_protocol as rtde
 from brave6d.capture.ur_emulator.commands import (
     COMMANDS, DONE, NO_CMD, READY, REALTIME, STOP_SCRIPT, check_against_script, is_control_script)
-from brave6d.capture.ur_emulator.faults import Fault
+from brave6d.capture.ur_emulator.faults import Fault, parse_fault
 from brave6d.capture.ur_emulator.motion import Motion, Move, PathError
 
 Array = NDArray[np.float64]
@@ -574,10 +574,26 @@ class Controller:
                 self.event(f"injected fault {fault}: dropped {dropped} RTDE connection(s); RTDE refuses "
                            f"connections for {DROP_OUTAGE_S:g} s")
 
-    def inject(self, kind: str) -> None:
-        """Fire a fault now (the side channel's ``fault`` request)."""
+    def inject(self, text: str) -> None:
+        """A fault while the emulator runs (the side channel's ``fault`` request): ``pstop``, ``drop`` or
+        ``program-stop`` now, any ``--fault`` text (``pstop@move=N`` counts moves since the start), or
+        ``remote-on`` / ``slow=0`` / ``refuse=0`` to undo a standing one."""
         with self.lock:
-            self._scheduled.append((self.now(), Fault(kind)))
+            if text in ("pstop", "drop", "program-stop"):
+                self._scheduled.append((self.now(), Fault(text)))
+            elif text == "remote-on":
+                self.remote_control = True
+            else:
+                fault = parse_fault(text)
+                if fault.kind == "remote-off":
+                    self.remote_control = False
+                elif fault.kind == "slow":
+                    self.slow_s = fault.seconds
+                elif fault.kind == "refuse":
+                    self.refuse_left = fault.count
+                else:
+                    self._pending.append(fault)
+            self.event(f"fault injected over the side channel: {text}")
 
     def take_refusal(self) -> bool:
         """True (and one fewer left) while the refuse=N fault still has connections to refuse."""

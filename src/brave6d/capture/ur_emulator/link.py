@@ -109,9 +109,10 @@ class EmulatorLink:
     def script(self) -> str | None:
         return self.request("script")["script"]
 
-    def inject(self, kind: str) -> None:
-        """Fire a fault now: ``pstop``, ``drop`` or ``program-stop``."""
-        self.request("fault", kind=kind)
+    def inject(self, fault: str) -> None:
+        """A fault now (``pstop``, ``drop``, ``program-stop``), any ``--fault`` text (``pstop@move=N``
+        counts the emulator's moves since it started), or ``remote-on`` / ``slow=0`` / ``refuse=0``."""
+        self.request("fault", fault=fault)
 
 
 def probe(address: str, port: int = SIDE_PORT, timeout_s: float = 1.0) -> bool:

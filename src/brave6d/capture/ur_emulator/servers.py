@@ -493,9 +493,9 @@ class EmulatorServer:
         if op == "script":
             return {"script": c.script}
         if op == "fault":
-            kind = request.get("kind")
-            if kind not in ("pstop", "drop", "program-stop"):
-                raise ValueError(f"fault kind {kind!r}: pstop, drop or program-stop")
-            c.inject(str(kind))
+            text = request.get("fault")
+            if not isinstance(text, str):
+                raise ValueError("'fault' must be a --fault text, pstop, drop, program-stop or remote-on")
+            c.inject(text)
             return {"ok": True}
         raise ValueError(f"unknown op {op!r}")
