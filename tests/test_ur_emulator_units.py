@@ -219,3 +219,62 @@ def test_a_protective_stop_pauses_and_a_new_program_waits_for_the_unlock() -> No
     c.start_program(_script())
     assert c.runtime_state == 2 and c.tick()["safety_status_bits"] == 1
     assert math.isfinite(c.current_q()[0]) and not np.allclose(c.current_q(), Q_A + 0.5)
+
+
+def test_a_region_fault_stops_the_arm_where_its_path_enters_the_box() -> None:
+    kin = URKinematics("ur5e")
+    target = Q_A + np.array([0.6, 0.0, 0.0, 0.0, 0.0, 0.0])
+    mid = kin.fk(Q_A + np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0]))[:3, 3]  # the TCP half way along the move
+    box = ",".join(f"{v:.4f}" for v in (*(mid - 0.01), *(mid + 0.01)))
+    far = ",".join(f"{v:.4f}" for v in (*(mid + 0.5), *(mid + 0.6)))
+    for spec, stops in ((f"pstop@box={box}", True), (f"pstop@box={far}", False)):
+        c, clock = _controller(faults=(parse_fault(spec),))
+        _command(c, 1, [*Q_A, 1.0, 2.0], async_flag=1)
+        clock[0] += 10.0
+        c.tick()
+        _command(c, 0)
+        _command(c, 1, [*target, 1.0, 2.0], async_flag=1)
+        for _ in range(40):
+            clock[0] += 0.05
+            c.tick()
+        assert (c.safety_mode == 3) is stops
+        q = c.current_q()
+        if stops:  # braked just past the box's edge, short of the target
+            assert 0.2 < q[0] - Q_A[0] < 0.35
+            assert any(e.text == f"PROTECTIVE STOP: injected fault {spec}" for e in c.events)
+        else:
+            np.testing.assert_allclose(q, target, atol=1e-12)
+
+
+def test_a_move_that_would_leave_the_safety_box_ends_in_a_protective_stop() -> None:
+    kin = URKinematics("ur5e")
+    z = kin.fk(Q_A)[2, 3]
+    c, clock = _controller(safety_box=((-2.0, -2.0, z - 0.05), (2.0, 2.0, 2.0)))
+    _command(c, 1, [*Q_A, 1.0, 2.0], async_flag=1)
+    clock[0] += 10.0
+    c.tick()
+    _command(c, 0)
+    below = kin.fk(Q_A)
+    below[2, 3] -= 0.2
+    assert not c.pose_within_safety_limits(below)
+    _command(c, 3, [*matrix_to_ur_pose(below), 0.25, 1.2], async_flag=1)  # moveL straight down through the floor
+    for _ in range(40):
+        clock[0] += 0.05
+        c.tick()
+    assert c.safety_mode == 3
+    assert any(e.text.startswith("PROTECTIVE STOP: safety limit") for e in c.events)
+    assert kin.fk(c.current_q())[2, 3] > z - 0.08  # stopped near the floor, not 0.2 m below
+
+
+def test_a_timed_fault_fires_once_at_its_time() -> None:
+    c, clock = _controller(faults=(parse_fault("program-stop@t=2"),))
+    clock[0] += 1.9
+    c.tick()
+    assert c.runtime_state == 2
+    clock[0] += 0.2
+    c.tick()
+    assert c.runtime_state == 1
+    c.start_program(_script())
+    clock[0] += 5.0
+    c.tick()
+    assert c.runtime_state == 2  # once
