@@ -20,6 +20,7 @@ import socket
 import struct
 import subprocess
 import sys
+import tempfile
 import textwrap
 import threading
 import time
@@ -51,6 +52,12 @@ Q_B = np.array([-0.4, -1.6, 1.1, -1.2, -1.7, -0.5])
 KIN = URKinematics("ur5e")
 #: the module emulator's safety box: the TCP must stay above z = 0.05 m
 SAFETY_BOX = "-2,-2,0.05,2,2,2"
+
+
+@pytest.fixture(autouse=True)
+def _worker_logs_in_tmp_path(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The logs ur-rtde's failed processes leave (on purpose, for the user) stay in the test's folder."""
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
 
 
 @pytest.fixture(scope="module")
