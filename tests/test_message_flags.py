@@ -131,8 +131,9 @@ def unknown_flags(text: str) -> list[str]:
 def test_every_flag_a_message_names_exists() -> None:
     found = messages()
     assert len(found) > 50  # the scan sees the package's messages (not an empty walk)
+    # a module that is its own program (python -m brave6d.ros_interface.ros1.example_agent) may name its own options
     wrong = [f"{file}:{line}: {flags} in {text[:160]!r}" for file, line, text in found
-             if (flags := unknown_flags(text))]
+             if (flags := [f for f in unknown_flags(text) if f not in script_flags(file)])]
     assert not wrong, "messages name flags that do not exist:\n" + "\n".join(wrong)
 
 
