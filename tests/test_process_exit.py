@@ -193,7 +193,8 @@ def test_serve_closes_open_episodes_and_exits_within_2_s_of_a_signal(bundle_dir:
             proc.wait()
     logs = list((tmp_path / "episodes").glob("*.jsonl"))
     assert len(logs) == 1, logs
-    assert json.loads(logs[0].read_text().splitlines()[-1])["event"] == "close"
+    events = [json.loads(line)["event"] for line in logs[0].read_text().splitlines()]
+    assert events[-2:] == ["close", "digest"], events  # the close record, then the log's digest (issue 63)
     closed = logs[0].stat().st_mtime - t0
     assert closed <= 2.0, f"brave6d serve closed the episode {closed:.2f} s after {sig.name}"
     assert exited <= 2.0, f"brave6d serve exited {exited:.2f} s after {sig.name}"  # it skips the teardown (cli.console)

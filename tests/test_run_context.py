@@ -84,7 +84,7 @@ def test_the_rig_stages_use_the_runs_rig(scene_root: Path) -> None:
 
     ctx = RunContext.for_scene(scene_root, rig=Rig("ur:10.0.0.9", "sim"))  # refused by the rig, before any motion
     for stage in (stage_calibrate, stage_capture):
-        with pytest.raises(BraveError, match=r"--robot ur:10\.0\.0\.9 --camera sim: .*both must be 'sim'"):
+        with pytest.raises(BraveError, match=r"--robot ur:10\.0\.0\.9 --camera sim: a simulated camera cannot film"):
             stage(ctx)
     assert not ctx.scene.frames_path.exists() and not ctx.scene.board_capture.frames_path.exists()
 
