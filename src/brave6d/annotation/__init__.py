@@ -12,7 +12,9 @@ name is used). Other stages import only these names:
 - the BOP dataset format (:mod:`brave6d.annotation.bop_format`, the one reader of BOP files in the
   project): ``BopLayout``, ``read_scene_camera``, ``read_scene_gt``, ``read_scene_gt_info``,
   ``read_models_info``, ``model_file``, ``dataset_image_size``, ``bop_cam_K``, ``dump_bop_json``,
-  ``SceneCamera``, ``GtPose``, ``GtInfo``;
+  ``SceneCamera``, ``GtPose``, ``GtInfo``; a split's images for training and estimation
+  (:mod:`brave6d.annotation.bop_split`: JPEG or PNG ``rgb/``, depth in mm by each image's ``depth_scale``):
+  ``read_bop_split``, ``read_split_scene``, ``SplitImage``, ``read_split_rgb``, ``read_depth_mm``, ``find_rgb_file``;
 - meshes: ``read_ply_mesh``, ``write_ply_mesh``, ``MeshData`` (:mod:`brave6d.annotation.ply_mesh`, the one
   reader and writer of mesh PLY files), ``load_mesh`` (any mesh format, PLY through that reader),
   ``model_diameter`` (largest point distance, the BOP ``diameter``), ``write_bop_models`` (a BOP models
@@ -43,6 +45,8 @@ _LAZY = {
     "read_scene_gt_info": ".bop_format", "read_models_info": ".bop_format", "model_file": ".bop_format",
     "dataset_image_size": ".bop_format", "bop_cam_K": ".bop_format", "dump_bop_json": ".bop_format",
     "SceneCamera": ".bop_format", "BOP19_MIN_VISIB_FRACT": ".bop_format", "GtPose": ".bop_format", "GtInfo": ".bop_format",
+    "read_bop_split": ".bop_split", "read_split_scene": ".bop_split", "SplitImage": ".bop_split",
+    "read_split_rgb": ".bop_split", "read_depth_mm": ".bop_split", "find_rgb_file": ".bop_split",
     "read_ply_mesh": ".ply_mesh", "write_ply_mesh": ".ply_mesh", "MeshData": ".ply_mesh", "load_mesh": ".models",
     "SilhouetteCaster": ".visibility", "Silhouette": ".visibility", "bbox_xywh": ".visibility",
     "model_diameter": ".models", "write_bop_models": ".models", "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".toy_scene",

@@ -206,9 +206,10 @@ def _floats(value: Any, count: int, where: str) -> NDArray[np.float64]:
     return arr
 
 
-def read_scene_camera(path: Path | str) -> dict[int, SceneCamera]:
+def read_scene_camera(path: Path | str, require_depth_scale: bool = False) -> dict[int, SceneCamera]:
     """``scene_camera.json`` -> ``{im_id: SceneCamera}`` (``cam_K`` in the project's convention,
-    ``depth_scale`` 1 when absent, the world pose when both ``cam_R_w2c`` and ``cam_t_w2c`` are given)."""
+    ``depth_scale`` 1 when absent unless ``require_depth_scale`` (a split with depth images: never
+    guess their unit), the world pose when both ``cam_R_w2c`` and ``cam_t_w2c`` are given)."""
     p = Path(path)
     out: dict[int, SceneCamera] = {}
     for im_id, entry in _int_keys(read_json(p), p, "image id").items():
@@ -216,7 +217,12 @@ def read_scene_camera(path: Path | str) -> dict[int, SceneCamera]:
         if not isinstance(entry, dict) or "cam_K" not in entry:
             raise DataError(f"{where}: missing 'cam_K'")
         K = opencv_K(_floats(entry["cam_K"], 9, f"{where} cam_K"))
+        if require_depth_scale and "depth_scale" not in entry:
+            raise DataError(f"{where}: missing 'depth_scale' (mm per unit of the depth PNGs: 1 = mm, "
+                            "0.1 as BlenderProc writes)")
         scale = float(_floats(entry.get("depth_scale", 1.0), 1, f"{where} depth_scale")[0])
+        if not scale > 0:
+            raise DataError(f"{where}: 'depth_scale' must be a positive number of mm per unit, got {scale}")
         R = t = None
         if "cam_R_w2c" in entry and "cam_t_w2c" in entry:
             R = _floats(entry["cam_R_w2c"], 9, f"{where} cam_R_w2c").reshape(3, 3)

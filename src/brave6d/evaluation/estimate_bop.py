@@ -1,8 +1,8 @@
 """The single-frame estimator over a BOP split: one estimate per ground-truth box, as a BOP results CSV.
 
 For every image of every scene folder of a BOP split (``test/000002/...``): the depth
-(``depth/{im_id:06d}.png`` at the image's ``depth_scale``), the colour image when there is a PNG
-(``rgb/{im_id:06d}.png``: with models that have vertex colours it tells a flip apart), ``cam_K`` (``scene_camera.json``, read by
+(``depth/{im_id:06d}.png`` at the image's ``depth_scale``, which must be given), the colour image when there is one
+(``rgb/{im_id:06d}.png`` or ``.jpg``: with models that have vertex colours it tells a flip apart), ``cam_K`` (``scene_camera.json``, read by
 ``annotation``), and one hint per instance of ``scene_gt.json`` whose ``visib_fract`` reaches BOP19's
 0.1, its box from ``scene_gt_info.json`` (``bbox_visib``, or ``bbox_obj``). The boxes and object ids
 come from the ground truth: an oracle detector, as BOP's "GT boxes" runs use; a method with its own
@@ -25,7 +25,6 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from brave6d.core.atomic import read_png
 from brave6d.core.errors import DataError
 from brave6d.evaluation.agents.frame import (
     BoxHint,
@@ -85,6 +84,7 @@ def estimate_bop_split(split_dir: Path | str, models_dir: Path | str, *, scene_i
     ``models_dir``: ``models_info.json`` (diameters) and ``obj_{id:06d}.ply`` in mm; ``scene_ids`` /
     ``im_ids`` / ``obj_ids`` restrict the run; ``hint_box``: which ``scene_gt_info`` box is the hint."""
     from brave6d.annotation import model_file, read_models_info, read_scene_camera, read_scene_gt, read_scene_gt_info
+    from brave6d.annotation import find_rgb_file, read_split_rgb
 
     if hint_box not in HINT_BOXES:
         raise DataError(f"hint_box must be one of {HINT_BOXES}, got {hint_box!r}")
@@ -96,7 +96,7 @@ def estimate_bop_split(split_dir: Path | str, models_dir: Path | str, *, scene_i
     run = SplitRun()
     for scene in scene_folders(split_dir, scene_ids):
         scene_id = int(scene.name)
-        cams = read_scene_camera(scene / "scene_camera.json")
+        cams = read_scene_camera(scene / "scene_camera.json", require_depth_scale=True)  # depth is read
         gt = read_scene_gt(scene / "scene_gt.json")
         gt_info = read_scene_gt_info(scene / "scene_gt_info.json")
         for im_id in sorted(gt):
@@ -111,8 +111,9 @@ def estimate_bop_split(split_dir: Path | str, models_dir: Path | str, *, scene_i
                 continue
             cam = cams[im_id]
             depth = read_depth_png(scene / "depth" / f"{im_id:06d}.png", cam.depth_scale)
-            rgb_path = scene / "rgb" / f"{im_id:06d}.png"  # colour tells a flip apart when the models have it
-            rgb = read_png(rgb_path, "rgb") if rgb_path.is_file() else None
+            # colour tells a flip apart when the models have it (PNG or JPEG, as annotation's split reader finds it)
+            rgb_path = find_rgb_file(scene, im_id)
+            rgb = read_split_rgb(rgb_path) if rgb_path is not None else None
             run.images += 1
             image_estimates: list[tuple[int, float, NDArray[np.float64], NDArray[np.float64]]] = []
             t_image = time.perf_counter()

@@ -27,6 +27,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "(default %(default)s): header (45 bytes: truncated or foreign files, wrong size or "
                              "kind), crc (every byte, ~3x header's time), decode (a full decode, ~20-40x); a "
                              "damaged image is rendered again. Costs on this machine: brave6d report, section 8")
+    parser.add_argument("--convention", choices=("brave6d", "blenderproc"), default="brave6d",
+                        help="how the files are written: brave6d (PNG rgb/, depth PNGs in mm, depth_scale 1; "
+                             "default) or blenderproc (as BlenderProc's BOP-challenge scripts: JPEG rgb/ of "
+                             "quality 95, depth PNGs in 0.1 mm, depth_scale 0.1)")
     parser.add_argument("--mesh-dir", type=Path, action="append", default=[], metavar="DIR",
                         help="for a dataset.yaml: also accept meshes that lie under DIR (repeatable); by default "
                              "every file it names must lie in its own folder")
@@ -42,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
                                                            width=args.width, height=args.height,
                                                            mesh_dirs=tuple(args.mesh_dir),
                                                            scene_dirs=tuple(args.scene_dir),
-                                                           resume_check=args.resume_check))
+                                                           resume_check=args.resume_check,
+                                                           convention=args.convention))
     print(f"synth: {result.images} images in {result.out / 'train_pbr'} ({result.rendered} rendered, "
           f"{result.skipped} already complete); {result.images_per_s:.2f} images/s with {args.workers} worker(s), "
           f"{result.seconds:.1f} s in all")

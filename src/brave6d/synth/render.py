@@ -31,6 +31,7 @@ class RenderedImage:
     scene_camera: dict[str, Any]
     scene_gt: list[dict[str, Any]]
     scene_gt_info: list[dict[str, Any]]
+    depth_m: NDArray[np.float32] | None = None  # the rendered depth before rounding (writers in finer units)
 
 
 def render_image(scene: ImageScene, assets: LibraryAssets, seed: int) -> RenderedImage:
@@ -79,7 +80,8 @@ def render_image(scene: ImageScene, assets: LibraryAssets, seed: int) -> Rendere
     scene_camera = {"cam_K": bop_cam_K(cam.K).reshape(-1).tolist(), "depth_scale": 1.0,
                     "cam_R_w2c": cam_T_world[:3, :3].reshape(-1).tolist(),
                     "cam_t_w2c": (cam_T_world[:3, 3] * 1000.0).tolist()}
-    return RenderedImage(frame.rgb, depth_mm, tuple(masks), tuple(masks_visib), scene_camera, gt, info)
+    return RenderedImage(frame.rgb, depth_mm, tuple(masks), tuple(masks_visib), scene_camera, gt, info,
+                         np.asarray(frame.depth_m, dtype=np.float32))
 
 
 def gt_info(mask: NDArray[np.bool_], mask_visib: NDArray[np.bool_], px_count_all: int,

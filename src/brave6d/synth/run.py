@@ -23,7 +23,14 @@ from brave6d.core.png_check import CHECKS, DEFAULT_CHECK
 from brave6d.synth.randomize import LibraryAssets, Randomization, sample_image_scene
 from brave6d.synth.render import render_image
 from brave6d.synth.source import SynthSource, load_synth_source
-from brave6d.synth.writer import check_settings, gather_scene_files, has_record, image_problem, write_image
+from brave6d.synth.writer import (
+    CONVENTIONS,
+    check_settings,
+    gather_scene_files,
+    has_record,
+    image_problem,
+    write_image,
+)
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +42,8 @@ class SynthOptions:
     ``resume_check``: how the PNGs of images already written are checked before they count as
     complete (:mod:`brave6d.core.png_check`: ``header``, ``crc`` or ``decode``); ``mesh_dirs``: folders besides a
     dataset.yaml's own that its meshes may lie in (``--mesh-dir``); ``scene_dirs``: the same for its
-    captured scene directories (``--scene-dir``). Bounds: :mod:`brave6d.synth.limits`."""
+    captured scene directories (``--scene-dir``); ``convention``: ``brave6d`` (PNG, depth in mm) or
+    ``blenderproc`` (JPEG, depth in 0.1 mm: :mod:`brave6d.synth.writer`). Bounds: :mod:`brave6d.synth.limits`."""
 
     images: int
     seed: int = 0
@@ -46,6 +54,7 @@ class SynthOptions:
     resume_check: str = DEFAULT_CHECK
     mesh_dirs: tuple[Path, ...] = ()
     scene_dirs: tuple[Path, ...] = ()
+    convention: str = "brave6d"
 
     def __post_init__(self) -> None:
         for name in limits.BOUNDS:
@@ -54,6 +63,8 @@ class SynthOptions:
                 object.__setattr__(self, name, limits.check_option(name, value))
         if self.resume_check not in CHECKS:
             raise BraveError(f"synth: resume_check must be one of {', '.join(CHECKS)}, got {self.resume_check!r}")
+        if self.convention not in CONVENTIONS:
+            raise BraveError(f"synth: convention must be one of {', '.join(CONVENTIONS)}, got {self.convention!r}")
 
 
 @dataclass(frozen=True)
@@ -90,7 +101,7 @@ def synthesize(spec_path: Path | str, out: Path | str, options: SynthOptions) ->
     root.mkdir(parents=True, exist_ok=True)
     check_settings(root, _settings(source, options))
     recorded = [i for i in range(options.images) if has_record(root, i)]
-    damaged = _damaged(root, recorded, size, options.resume_check)
+    damaged = _damaged(root, recorded, size, options.resume_check, options.convention)
     pending = sorted(set(range(options.images)) - set(recorded) | set(damaged))
     skipped = options.images - len(pending)
     reason = damaged[min(damaged)] if damaged else None
@@ -100,7 +111,7 @@ def synthesize(spec_path: Path | str, out: Path | str, options: SynthOptions) ->
     if skipped:
         log.info("%s: %d of %d images already complete, rendering %d", root, skipped, options.images, len(pending))
     job = _Job(source.path, options.width, options.height, options.randomization, options.seed, root,
-               options.mesh_dirs, options.scene_dirs)
+               options.mesh_dirs, options.scene_dirs, options.convention)
     render_start = time.perf_counter()
     try:
         _render_all(job, pending, options.workers, options.images)
@@ -116,7 +127,8 @@ def synthesize(spec_path: Path | str, out: Path | str, options: SynthOptions) ->
                        len(damaged), reason)
 
 
-def _damaged(root: Path, indices: list[int], size: tuple[int, int], check: str) -> dict[int, str]:
+def _damaged(root: Path, indices: list[int], size: tuple[int, int], check: str,
+             convention: str = "brave6d") -> dict[int, str]:
     """Image index -> its first problem, for the images of ``indices`` whose record or PNGs are
     damaged (:func:`brave6d.synth.writer.image_problem`; on a few threads: reading, CRC-32 and decoding
     release the GIL)."""
@@ -126,7 +138,8 @@ def _damaged(root: Path, indices: list[int], size: tuple[int, int], check: str) 
     bar = progress_bar(len(indices), desc=f"synth: checking ({check})", unit="img")
     try:
         with ThreadPoolExecutor(min(limits.usable_cpus(), 4)) as pool:
-            for i, problem in zip(indices, pool.map(lambda i: image_problem(root, i, size, check), indices)):
+            for i, problem in zip(indices, pool.map(lambda i: image_problem(root, i, size, check, convention),
+                                                        indices)):
                 if problem is not None:
                     found[i] = problem
                 bar.update(1)
@@ -157,10 +170,13 @@ def _render_all(job: _Job, pending: list[int], workers: int, images: int) -> Non
 
 def _settings(source: SynthSource, options: SynthOptions) -> dict[str, object]:
     """What ``OUT/synth.json`` records: a resumed run must match every field."""
-    return {"source": str(source.path), "source_digest": source.fingerprint(), "seed": options.seed,
-            "width": source.camera.width, "height": source.camera.height,
-            "effects": source.effects.enabled(), "randomization": options.randomization.to_json(),
-            "obj_ids": {o.name: o.obj_id for o in source.objects}}
+    settings = {"source": str(source.path), "source_digest": source.fingerprint(), "seed": options.seed,
+                "width": source.camera.width, "height": source.camera.height,
+                "effects": source.effects.enabled(), "randomization": options.randomization.to_json(),
+                "obj_ids": {o.name: o.obj_id for o in source.objects}}
+    if options.convention != "brave6d":  # the default leaves the file as before: older splits resume
+        settings["convention"] = options.convention
+    return settings
 
 
 @dataclass(frozen=True)
@@ -173,6 +189,7 @@ class _Job:
     out: Path
     mesh_dirs: tuple[Path, ...] = ()
     scene_dirs: tuple[Path, ...] = ()
+    convention: str = "brave6d"
 
 
 _STATE: dict[str, object] = {}
@@ -189,5 +206,5 @@ def _render_one(index: int) -> int:
     job: _Job = _STATE["job"]  # type: ignore[assignment]
     assets: LibraryAssets = _STATE["assets"]  # type: ignore[assignment]
     scene = sample_image_scene(assets, job.seed, index, job.randomization)
-    write_image(job.out, index, render_image(scene, assets, job.seed))
+    write_image(job.out, index, render_image(scene, assets, job.seed), job.convention)
     return index

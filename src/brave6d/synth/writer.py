@@ -6,6 +6,12 @@ JSON writer) and its own bookkeeping files, owned here::
                         scene_gt_info.json   1000 images per folder (BOP's PBR convention)
     OUT/work/IIIIII.json                     one record per finished image (its three JSON entries)
 
+Two conventions (``CONVENTIONS``): ``brave6d`` (PNG ``rgb/``, depth PNGs in mm, ``depth_scale`` 1)
+and ``blenderproc``, as BlenderProc's BOP-challenge scripts call its ``write_bop`` (``color_file_format
+"JPEG"``, ``jpg_quality`` 95, ``depth_scale`` 0.1: ``rgb/XXXXXX.jpg``, depth PNGs in tenths of a mm
+rounded from the rendered depth, ``scene_camera.json``'s ``depth_scale`` 0.1). Masks and JSON files
+are the same in both.
+
 Each image's PNGs are written atomically, then its record: an image with a record was complete, so
 a run stopped at any point resumes where it stopped. A resumed run checks the record and PNGs of
 every such image (:func:`image_problem`) and renders a damaged one again (its files and record
@@ -31,6 +37,10 @@ IMAGES_PER_FOLDER = 1000
 SETTINGS_FILE = "synth.json"
 FORMAT = "brave6d-synth/1"
 RECORD_FIELDS = ("scene_camera", "scene_gt", "scene_gt_info")
+CONVENTIONS = ("brave6d", "blenderproc")
+#: BlenderProc's BOP-challenge settings: depth PNGs in 0.1 mm, colour as JPEG of quality 95.
+BLENDERPROC_DEPTH_SCALE = 0.1
+BLENDERPROC_JPEG_QUALITY = 95
 
 
 def image_address(index: int) -> tuple[int, int]:
@@ -55,10 +65,17 @@ def has_record(out: Path, index: int) -> bool:
     return record_path(out, index).is_file()
 
 
-def image_problem(out: Path, index: int, size: tuple[int, int], check: str = DEFAULT_CHECK) -> str | None:
+def rgb_path(out: Path, index: int, convention: str = "brave6d") -> Path:
+    """The colour image of image ``index``: ``.png``, or ``.jpg`` in BlenderProc's convention."""
+    path = layout_of(out, index).rgb_path(image_address(index)[1])
+    return path.with_suffix(".jpg") if convention == "blenderproc" else path
+
+
+def image_problem(out: Path, index: int, size: tuple[int, int], check: str = DEFAULT_CHECK,
+                  convention: str = "brave6d") -> str | None:
     """Why image ``index`` (``size``: width, height) is not complete and whole, naming the first bad
     file: its record missing or malformed, or a PNG it lists missing or failing ``check``
-    (:mod:`brave6d.core.png_check`); None when it is."""
+    (:mod:`brave6d.core.png_check`; a JPEG: its header, size and end marker); None when it is."""
     path = record_path(out, index)
     try:
         record = _record_fields(path, read_json(path))
@@ -66,13 +83,38 @@ def image_problem(out: Path, index: int, size: tuple[int, int], check: str = DEF
         return str(exc)
     layout = layout_of(out, index)
     _, im_id = image_address(index)
-    files = [(layout.rgb_path(im_id), "rgb"), (layout.depth_path(im_id), "depth")]
+    files = [(layout.depth_path(im_id), "depth")]
+    if convention == "blenderproc":
+        problem = _jpeg_problem(rgb_path(out, index, convention), size)
+        if problem is not None:
+            return problem
+    else:
+        files.insert(0, (layout.rgb_path(im_id), "rgb"))
     for gt_id in range(len(record["scene_gt"])):
         files += [(layout.mask_path(im_id, gt_id), "mask"), (layout.mask_visib_path(im_id, gt_id), "mask")]
     for file, kind in files:
         problem = png_problem(file, kind, size, check)
         if problem is not None:
             return f"{file}: {problem}"
+    return None
+
+
+def _jpeg_problem(path: Path, size: tuple[int, int]) -> str | None:
+    """Why the JPEG ``path`` is not whole (header, size, the end-of-image marker), naming it; None when it is."""
+    from brave6d.core.png_check import image_header_problem
+
+    problem = image_header_problem(path)
+    if problem is not None:
+        return f"{path}: {problem}"
+    from PIL import Image
+
+    with Image.open(path) as im:
+        if im.format != "JPEG" or tuple(im.size) != tuple(size):
+            return f"{path}: expected a {size[0]}x{size[1]} JPEG, got {im.format} {im.size[0]}x{im.size[1]}"
+    with open(path, "rb") as handle:
+        handle.seek(-2, 2)
+        if handle.read(2) != b"\xff\xd9":
+            return f"{path}: truncated JPEG (no end-of-image marker)"
     return None
 
 
@@ -86,18 +128,48 @@ def _record_fields(path: Path, record: Any) -> dict[str, Any]:
     return record
 
 
-def write_image(out: Path, index: int, image: RenderedImage) -> None:
-    """Write image ``index``'s PNGs, then its record (see the module docstring)."""
+def write_image(out: Path, index: int, image: RenderedImage, convention: str = "brave6d") -> None:
+    """Write image ``index``'s files in ``convention``, then its record (see the module docstring)."""
     layout = layout_of(out, index)
     _, im_id = image_address(index)
-    write_png(layout.rgb_path(im_id), image.rgb)
-    write_png(layout.depth_path(im_id), image.depth_mm)
+    scene_camera = dict(image.scene_camera)
+    if convention == "blenderproc":
+        _write_jpeg(rgb_path(out, index, convention), image.rgb)
+        write_png(layout.depth_path(im_id), _depth_units(image, BLENDERPROC_DEPTH_SCALE))
+        scene_camera["depth_scale"] = BLENDERPROC_DEPTH_SCALE
+    elif convention == "brave6d":
+        write_png(layout.rgb_path(im_id), image.rgb)
+        write_png(layout.depth_path(im_id), image.depth_mm)
+    else:
+        raise DataError(f"synth: convention must be one of {', '.join(CONVENTIONS)}, got {convention!r}")
     for gt_id, (mask, visib) in enumerate(zip(image.masks, image.masks_visib)):
         write_png(layout.mask_path(im_id, gt_id), mask.astype(np.uint8) * 255)
         write_png(layout.mask_visib_path(im_id, gt_id), visib.astype(np.uint8) * 255)
-    atomic_write_json(record_path(out, index), {"scene_camera": image.scene_camera, "scene_gt": image.scene_gt,
+    atomic_write_json(record_path(out, index), {"scene_camera": scene_camera, "scene_gt": image.scene_gt,
                                                 "scene_gt_info": image.scene_gt_info}, indent=None)
     # record last: a stale record of a damaged image is only replaced once the new PNGs are in place
+
+
+def _depth_units(image: RenderedImage, depth_scale: float) -> np.ndarray:
+    """The rendered depth as uint16 in units of ``depth_scale`` mm (0 = no data, saturating at 65535)."""
+    if image.depth_m is None:  # only the rounded mm are known
+        mm = image.depth_mm.astype(np.float64)
+    else:
+        d = np.asarray(image.depth_m, dtype=np.float64)
+        mm = np.where(np.isfinite(d) & (d > 0) & (image.depth_mm > 0), d * 1000.0, 0.0)
+    return np.clip(np.rint(mm / depth_scale), 0, 65535).astype(np.uint16)
+
+
+def _write_jpeg(path: Path, rgb: np.ndarray) -> None:
+    import cv2
+
+    from brave6d.core.atomic import atomic_write_bytes
+
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[:, :, ::-1]),
+                           [cv2.IMWRITE_JPEG_QUALITY, BLENDERPROC_JPEG_QUALITY])
+    if not ok:
+        raise DataError(f"{path}: JPEG encoding failed")
+    atomic_write_bytes(path, buf.tobytes())
 
 
 def gather_scene_files(out: Path, count: int) -> list[Path]:

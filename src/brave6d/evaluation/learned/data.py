@@ -19,6 +19,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -93,6 +94,13 @@ class ImageRecord:
     rgb_crop: NDArray[np.uint8]
     K_crop: Array
     instances: list[int] = field(default_factory=list)
+    depth_scale: float = 1.0  # mm per unit of the depth PNG (the image's scene_camera.json entry)
+
+    def read_depth_mm(self) -> Array:
+        """The image's depth in mm (its PNG times its ``depth_scale``)."""
+        from brave6d.annotation import read_depth_mm
+
+        return read_depth_mm(self.depth_path, self.depth_scale)
 
 
 @dataclass
@@ -168,35 +176,27 @@ def scene_folders(root: Path | str) -> list[Path]:
 def load_training_data(train_pbr: Path | str, models_dir: Path | str, work_width: int, heldout_every: int,
                        max_images: int | None = None, show_progress: bool = True,
                        crop_width: int | None = None) -> TrainingData:
-    """Read ``train_pbr`` and the models (see the module docstring); ``max_images`` reads the first n
-    only; ``crop_width``: the crops' source width (default ``work_width``)."""
-    from brave6d.annotation import BopLayout, read_scene_camera, read_scene_gt, read_scene_gt_info
+    """Read ``train_pbr`` (through annotation's BOP split reader: JPEG or PNG ``rgb/``, depth by
+    each image's ``depth_scale``) and the models (see the module docstring); ``max_images`` reads
+    the first n only; ``crop_width``: the crops' source width (default ``work_width``)."""
+    from brave6d.annotation import read_split_scene
     from brave6d.core.progress import progress
 
     scenes = scene_folders(train_pbr)
     root = scenes[0].parent
     objects = load_objects(models_dir)
-    entries = []
-    for folder in scenes:
-        layout = BopLayout(root.parent, root.name, int(folder.name))
-        cams = read_scene_camera(layout.scene_camera_path)
-        gts = read_scene_gt(layout.scene_gt_path)
-        infos = read_scene_gt_info(layout.scene_gt_info_path)
-        for im_id in sorted(gts):
-            if im_id not in cams or im_id not in infos or len(infos[im_id]) != len(gts[im_id]):
-                raise DataError(f"{folder}: image {im_id}: scene_gt, scene_gt_info and scene_camera disagree")
-            entries.append((layout, im_id, cams[im_id], gts[im_id], infos[im_id]))
+    entries = [image for folder in scenes for image in read_split_scene(folder)]
     if max_images is not None:
         entries = entries[:max_images]
-    unknown = sorted({g.obj_id for *_, gts, _ in entries for g in gts} - set(objects))
+    unknown = sorted({g.obj_id for image in entries for g in image.gts} - set(objects))
     if unknown:
         raise DataError(f"{train_pbr}: objects {unknown} appear in scene_gt but have no model in {models_dir}")
     digest, _ = split_digest(root)
     casters = _Casters(objects)
     data = TrainingData(root, [], [], objects, digest)
-    for n, (layout, im_id, cam, gts, infos) in enumerate(progress(entries, total=len(entries), desc="learn: read",
-                                                                  unit="img", disable=not show_progress)):
-        _add_image(data, casters, layout, im_id, cam, gts, infos, work_width, crop_width or work_width,
+    for n, image in enumerate(progress(entries, total=len(entries), desc="learn: read", unit="img",
+                                       disable=not show_progress)):
+        _add_image(data, casters, image, work_width, crop_width or work_width,
                    heldout=(n % heldout_every == heldout_every - 1))
     if not data.instances_of(False):
         raise DataError(f"{train_pbr}: no object instance at least {MIN_VISIB_FRACT:.0%} visible to train on")
@@ -226,24 +226,26 @@ def resize_to_width(rgb: NDArray[np.uint8], K: Array, width: int) -> tuple[NDArr
     return out, scale_K(np.asarray(K, dtype=np.float64), s), s
 
 
-def _add_image(data: TrainingData, casters: _Casters, layout: object, im_id: int, cam: object, gts: list, infos: list,
-               work_width: int, crop_width: int, heldout: bool) -> None:
+def _add_image(data: TrainingData, casters: _Casters, image: Any, work_width: int, crop_width: int,
+               heldout: bool) -> None:
+    """Add one :class:`brave6d.annotation.SplitImage` and its instances to ``data``."""
     import cv2
 
     from brave6d.core.atomic import read_png
 
-    rgb_full = read_png(layout.rgb_path(im_id), expect="rgb")  # type: ignore[attr-defined]
-    rgb_work, K_work, s_work = resize_to_width(rgb_full, cam.cam_K, work_width)  # type: ignore[attr-defined]
-    rgb, K, s = resize_to_width(rgb_full, cam.cam_K, crop_width)  # type: ignore[attr-defined]
-    record = ImageRecord(int(layout.scene_id), im_id, rgb_work, K_work, np.asarray(cam.cam_K),  # type: ignore[attr-defined]
-                         (rgb_full.shape[1], rgb_full.shape[0]), heldout, layout.depth_path(im_id),  # type: ignore[attr-defined]
-                         rgb, K)
+    cam = image.camera
+    rgb_full = image.read_rgb()
+    rgb_work, K_work, s_work = resize_to_width(rgb_full, cam.cam_K, work_width)
+    rgb, K, s = resize_to_width(rgb_full, cam.cam_K, crop_width)
+    record = ImageRecord(image.scene_id, image.im_id, rgb_work, K_work, np.asarray(cam.cam_K),
+                         (rgb_full.shape[1], rgb_full.shape[0]), heldout, image.depth_path, rgb, K,
+                         depth_scale=cam.depth_scale)
     data.images.append(record)
     h, w = rgb.shape[:2]
-    for gt_id, (gt, info) in enumerate(zip(gts, infos)):
+    for gt_id, (gt, info) in enumerate(zip(image.gts, image.infos)):
         if info.visib_fract < MIN_VISIB_FRACT or info.bbox_visib is None or info.bbox_obj is None:
             continue
-        mask_full = read_png(layout.mask_visib_path(im_id, gt_id))  # type: ignore[attr-defined]
+        mask_full = read_png(image.mask_visib_path(gt_id))
         visible = cv2.resize((mask_full > 0).astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
         bx, by, bw, bh = info.bbox_visib
         box = (bx * s, by * s, (bx + bw + 1) * s, (by + bh + 1) * s)  # crop-source pixels

@@ -107,7 +107,6 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
     ``keep_estimates``: return the ground truths and estimates too (:class:`HeldoutScores`)."""
     import cv2
 
-    from brave6d.core.atomic import read_png
     from brave6d.core.progress import progress
     from brave6d.evaluation.metrics import DepthRenderer, Estimate, GTInstance, evaluate_bop19, load_models
 
@@ -124,7 +123,7 @@ def score_heldout(estimator: LearnedEstimator, data: TrainingData, models_dir: P
     for i in progress(images, total=len(images), desc="learn: held-out", unit="img", disable=not show_progress):
         record = data.images[i]
         rgb, K = record.rgb_crop, record.K_crop
-        depth_full_mm = read_png(record.depth_path, expect="depth").astype(np.float64)
+        depth_full_mm = record.read_depth_mm()  # the PNG times the image's depth_scale
         h, w = rgb.shape[:2]
         depth_work = cv2.resize(depth_full_mm, (w, h), interpolation=cv2.INTER_NEAREST) / 1000.0
         t0 = time.perf_counter()

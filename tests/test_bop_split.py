@@ -1,0 +1,170 @@
+"""BOP splits as BlenderProc and the BOP toolkit write them (issue 66, item 1): the shipped sample
+(``data/samples/blenderproc_train_pbr``: JPEG ``rgb/``, depth PNGs in 0.1 mm, ``depth_scale`` 0.1)
+reads and scores as the same images written as PNG + mm; ``gray/`` and a missing ``depth_scale`` are
+refused in one line naming the file and field."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from brave6d.annotation import read_bop_split, read_split_scene
+from brave6d.core.atomic import read_png, write_png
+from brave6d.core.errors import DataError
+
+ROOT = Path(__file__).resolve().parent.parent
+SAMPLE = ROOT / "data" / "samples" / "blenderproc_train_pbr"
+SPLIT = SAMPLE / "train_pbr"
+MODELS = SAMPLE / "models"
+
+
+def as_png_and_mm(src: Path, dest: Path) -> Path:
+    """The sample's images written the brave6d way: the decoded JPEG as PNG (the same pixels), the
+    depth rounded to mm as PNG with depth_scale 1."""
+    shutil.copytree(src, dest)
+    for scene in sorted(p for p in dest.iterdir() if p.is_dir()):
+        cams = json.loads((scene / "scene_camera.json").read_text())
+        for key, cam in cams.items():
+            im_id = int(key)
+            jpg = scene / "rgb" / f"{im_id:06d}.jpg"
+            write_png(jpg.with_suffix(".png"), read_png(jpg, "rgb"))
+            jpg.unlink()
+            depth = scene / "depth" / f"{im_id:06d}.png"
+            mm = read_png(depth, "depth").astype(np.float64) * float(cam["depth_scale"])
+            write_png(depth, np.clip(np.rint(mm), 0, 65535).astype(np.uint16))
+            cam["depth_scale"] = 1.0
+        (scene / "scene_camera.json").write_text(json.dumps(cams))
+    return dest
+
+
+@pytest.fixture(scope="module")
+def png_mm(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return as_png_and_mm(SPLIT, tmp_path_factory.mktemp("png_mm") / "train_pbr")
+
+
+def test_the_sample_is_written_as_blenderproc_writes_it() -> None:
+    """JPEG colour, depth_scale 0.1 on every image, depth in tenths of a mm (a table ~25 cm away
+    reads ~2500 units), masks as PNG; small enough to ship (< 2.5 MB with its models)."""
+    images = read_bop_split(SPLIT)
+    assert len(images) >= 12
+    assert {im.rgb_path.suffix for im in images} == {".jpg"}
+    assert {im.camera.depth_scale for im in images} == {0.1}
+    raw = read_png(images[0].depth_path, "depth")
+    assert 1500 < np.median(raw[raw > 0]) < 6000  # 15-60 cm in 0.1 mm units
+    assert images[0].read_rgb().shape == (200, 320, 3)
+    size = sum(p.stat().st_size for p in SAMPLE.rglob("*") if p.is_file())
+    assert size < 2.5e6, size
+    assert (SAMPLE / "README.md").is_file()
+
+
+def test_jpeg_and_tenths_of_mm_read_as_the_same_training_data_as_png_and_mm(png_mm: Path) -> None:
+    """The learned estimator's reader: the same images, cameras, instances and target coordinates;
+    depth in mm within the rounding to whole mm (the old reader refused the JPEG split, and read
+    0.1 mm depth as mm: ten times too far)."""
+    from brave6d.evaluation.learned.data import load_training_data
+
+    jpeg = load_training_data(SPLIT, MODELS, 160, 5, show_progress=False)
+    png = load_training_data(png_mm, MODELS, 160, 5, show_progress=False)
+    assert len(jpeg.images) == len(png.images) and len(jpeg.instances) == len(png.instances) > 10
+    for a, b in zip(jpeg.images, png.images):
+        assert (a.scene_id, a.im_id, a.heldout, a.instances) == (b.scene_id, b.im_id, b.heldout, b.instances)
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        np.testing.assert_allclose(a.K, b.K)
+        da, db = a.read_depth_mm(), b.read_depth_mm()
+        assert np.array_equal(da > 0, db > 0)
+        assert np.abs(da - db).max() <= 0.5 + 1e-9
+        assert 150 < np.median(da[da > 0]) < 600  # mm, not tenths
+    for a, b in zip(jpeg.instances, png.instances):
+        assert (a.obj_id, a.box, a.region) == (b.obj_id, b.box, b.region)
+        np.testing.assert_array_equal(a.coords, b.coords)
+
+
+def test_the_weight_free_estimator_scores_both_the_same_within_noise(png_mm: Path, tmp_path: Path) -> None:
+    """The weight-free estimator (depth + true boxes) over the first 2 images of both splits: BOP19
+    AR equal within 0.03 (depth rounded to 1 mm vs 0.1 mm, JPEG vs its decoded PNG)."""
+    from brave6d.evaluation.estimate_bop import estimate_bop_split, score_results_csv
+    from brave6d.evaluation.metrics import write_bop_results
+
+    ars = []
+    for split in (SPLIT, png_mm):
+        run = estimate_bop_split(split, MODELS, im_ids=range(2))
+        csv = write_bop_results(tmp_path / f"{len(ars)}.csv", run.estimates)
+        line = score_results_csv(csv, split, MODELS, images=range(2))
+        ars.append(float(line.split()[1]))
+    assert ars[0] > 0.3, ars
+    assert abs(ars[0] - ars[1]) <= 0.03, ars
+
+
+def test_a_grey_split_is_refused_naming_gray(tmp_path: Path) -> None:
+    scene = tmp_path / "train_pbr" / "000000"
+    shutil.copytree(SPLIT / "000000", scene)
+    (scene / "rgb").rename(scene / "gray")
+    with pytest.raises(DataError) as info:
+        read_bop_split(tmp_path / "train_pbr")
+    message = str(info.value)
+    assert "\n" not in message and str(scene / "gray") in message and "colour" in message
+
+
+def test_a_missing_depth_scale_is_refused_naming_file_and_field(tmp_path: Path) -> None:
+    scene = tmp_path / "train_pbr" / "000000"
+    shutil.copytree(SPLIT / "000000", scene)
+    cams = json.loads((scene / "scene_camera.json").read_text())
+    del cams["3"]["depth_scale"]
+    (scene / "scene_camera.json").write_text(json.dumps(cams))
+    for read in (lambda: read_split_scene(scene),
+                 lambda: __import__("brave6d.evaluation.learned.data", fromlist=["x"]).load_training_data(
+                     tmp_path / "train_pbr", MODELS, 160, 5, show_progress=False)):
+        with pytest.raises(DataError) as info:
+            read()
+        message = str(info.value)
+        assert "\n" not in message
+        assert str(scene / "scene_camera.json") in message and "image 3" in message and "'depth_scale'" in message
+
+
+def test_learn_train_refuses_a_missing_depth_scale_in_one_line(tmp_path: Path) -> None:
+    """The command line: one line on stderr, exit status 2, no traceback, no model written."""
+    scene = tmp_path / "train_pbr" / "000000"
+    shutil.copytree(SPLIT / "000000", scene)
+    cams = json.loads((scene / "scene_camera.json").read_text())
+    del cams["0"]["depth_scale"]
+    (scene / "scene_camera.json").write_text(json.dumps(cams))
+    brave6d = Path(sys.executable).with_name("brave6d")
+    proc = subprocess.run([str(brave6d), "learn", "train", str(tmp_path / "train_pbr"),
+                           "--models", str(MODELS), "--out", str(tmp_path / "model"), "--preset", "tiny"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "depth_scale" in lines[0] and "scene_camera.json" in lines[0], proc.stderr
+    assert not (tmp_path / "model" / "model.pt").exists()
+
+
+def test_synth_writes_the_blenderproc_convention(tmp_path: Path) -> None:
+    """``brave6d synth --convention blenderproc``: JPEG colour (quality 95), depth in 0.1 mm with
+    depth_scale 0.1, the same ground truth and pixels (within JPEG's loss) as the brave6d convention."""
+    from brave6d.synth import SynthOptions, synthesize
+
+    spec = ROOT / "data" / "demo" / "scene.yaml"
+    for convention in ("brave6d", "blenderproc"):
+        synthesize(spec, tmp_path / convention, SynthOptions(images=1, width=160, height=100, convention=convention))
+    a = read_bop_split(tmp_path / "brave6d" / "train_pbr")[0]
+    b = read_bop_split(tmp_path / "blenderproc" / "train_pbr")[0]
+    assert (a.rgb_path.suffix, b.rgb_path.suffix) == (".png", ".jpg")
+    assert (a.camera.depth_scale, b.camera.depth_scale) == (1.0, 0.1)
+    assert [g.obj_id for g in a.gts] == [g.obj_id for g in b.gts]
+    import cv2
+
+    ok, jpeg = cv2.imencode(".jpg", a.read_rgb()[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
+    np.testing.assert_array_equal(b.read_rgb(), cv2.imdecode(jpeg, cv2.IMREAD_COLOR)[:, :, ::-1])  # the same pixels, JPEG'd
+    da, db = a.read_depth_mm(), b.read_depth_mm()
+    assert np.array_equal(da > 0, db > 0) and np.abs(da - db).max() <= 0.5 + 1e-6
+    assert not np.array_equal(db, np.rint(db))  # finer than mm
+    # resumable like the default: a second run finds the image complete
+    result = synthesize(spec, tmp_path / "blenderproc", SynthOptions(images=1, width=160, height=100,
+                                                                    convention="blenderproc"))
+    assert (result.rendered, result.skipped) == (0, 1)
