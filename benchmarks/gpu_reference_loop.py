@@ -70,7 +70,6 @@ def load(scene_dir: Path, steps: int, device: torch.device) -> tuple[Any, Any, A
     from brave6d.training.colmap_init import initial_points
     from brave6d.training.model import GaussianModel
     from brave6d.training.presets import get_preset
-    from brave6d.training.scene_frame import SceneFrame
     from brave6d.training.views import load_scene
 
     preset = get_preset("fast").with_steps(steps).with_values(time_budget_s=None)
@@ -79,10 +78,10 @@ def load(scene_dir: Path, steps: int, device: torch.device) -> tuple[Any, Any, A
     start = preset.initialisation
     init = initial_points(scene, data, max_points=start.max_init_points, seed=preset.seed, method="random",
                           write_sparse=False)  # no sparse/0 (nor pycolmap) for a benchmark
-    frame = SceneFrame.of_data(data)  # training in the scene's frame, as brave6d train does
+    frame = data.training_frame()  # training in the scene's frame, as brave6d train does
     model = GaussianModel.from_points(frame.points(init.points), init.colors, start.sh_degree, start.init_opacity,
                                       start.init_scale, device=device)
-    return frame.training_data(data), preset, model
+    return data.in_frame(frame), preset, model
 
 
 def run_project(data: Any, preset: Any, model: Any, device: torch.device, first: int, sync_steps: int

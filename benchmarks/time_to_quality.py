@@ -186,11 +186,6 @@ class Run:
         from brave6d.training.colmap_init import initial_points
         from brave6d.training.trainer import Trainer
 
-        try:
-            from brave6d.training.scene_frame import SceneFrame
-        except ImportError:  # a revision before the training frame (issue 67) trains in world units, as it did
-            SceneFrame = None  # type: ignore[assignment,misc]
-
         # no time budget: the benchmark measures the time to quality of the whole schedule
         self.name, self.preset = name, configure(preset, {"eval_every": every, "time_budget_s": None})
         values = self.preset.to_json()  # flat names in any tree, before and after the composed presets
@@ -198,9 +193,11 @@ class Run:
         init = initial_points(scene, self.data, max_points=values["max_init_points"], seed=values["seed"],
                               method=init_method)
         points = init.points
-        if SceneFrame is not None:  # training in the scene's frame, as brave6d train does
-            frame = SceneFrame.of_data(self.data)
-            self.data, points = frame.training_data(self.data), frame.points(init.points)
+        # training in the scene's frame, as brave6d train does; a revision before the training frame (issue 67)
+        # trains in world units, as it did
+        if hasattr(self.data, "in_frame"):
+            frame = self.data.training_frame()
+            self.data, points = self.data.in_frame(frame), frame.points(init.points)
         model = GaussianModel.from_points(points, init.colors, values["sh_degree"], values["init_opacity"],
                                           values["init_scale"], device=device)
         self.points: list[dict[str, float]] = []

@@ -54,7 +54,6 @@ def main(argv: list[str] | None = None) -> int:
     from brave6d.training.model import GaussianModel
     from brave6d.training.pipeline import require_capture
     from brave6d.training.presets import get_preset
-    from brave6d.training.scene_frame import SceneFrame
     from brave6d.training.trainer import Trainer, resolve_device
 
     setup_logging(1)
@@ -73,8 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     init = initial_points(scene, data, max_points=start.max_init_points, seed=preset.seed, method=args.init,
                           write_sparse=not args.no_sparse_model)
     init_s = time.perf_counter() - t0
-    frame = SceneFrame.of_data(data)  # training in the scene's frame, as brave6d train does
-    data = frame.training_data(data)
+    frame = data.training_frame()  # training in the scene's frame, as brave6d train does
+    data = data.in_frame(frame)
     model = GaussianModel.from_points(frame.points(init.points), init.colors, start.sh_degree, start.init_opacity,
                                       start.init_scale, device=device)
     rows: list[dict[str, Any]] = []

@@ -275,16 +275,16 @@ from brave6d.training.toy_scenes import plane_views, write_scene
 
 try:  # issue 67's training frame and lengths in scene extents change every training by design; what this test
     # guards is the presets' composition, so today's tree trains here in world units with the lengths of before
-    from brave6d.training import model as model_module, scene_frame, trainer as trainer_module
+    from brave6d.training import model as model_module, scene_frame, trainer as trainer_module, views
 except ImportError:  # the tree before the parts
     pass
 else:
     world = scene_frame.SceneFrame((0.0, 0.0, 0.0), 1.0)
-    scene_frame.SceneFrame.of_data = classmethod(lambda cls, data: world)
-    scene_frame.SceneFrame.training_data = lambda self, data: data
+    views.TrainingData.training_frame = lambda self: world
+    views.TrainingData.in_frame = lambda self, frame: self
     trainer_module.near_far = scene_frame.near_far = lambda extent: (0.01, 1e10)
     trainer_module.adam_epsilon = lambda name, preset, extent: preset.learning_rates.adam_eps
-    scene_frame.MIN_INIT_DISTANCE, model_module.LONE_POINT_SCALE = 1e-7 ** 0.5, 1e-3
+    model_module.MIN_INIT_DISTANCE, model_module.LONE_POINT_SCALE = 1e-7 ** 0.5, 1e-3
 
 quick = FAST.with_steps(150).with_overrides(name="fast-quick", downscale=4, time_budget_s=180.0,
                                             max_gaussians=30_000, max_init_points=20_000)

@@ -129,16 +129,16 @@ def test_a_planted_absolute_threshold_is_caught(toy: TrainingData, toy_seeds: li
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     """The check above must be able to fail: plant the old trainer's near plane, 0.01 world units (1 cm
     in metres) whatever the scene's size, into the trainer (in the training frame: 0.01 / unit extents)."""
-    from brave6d.training import scene_frame, trainer
+    from brave6d.training import trainer
 
     units: list[float] = []
-    to_frame = scene_frame.SceneFrame.training_data
+    to_frame = TrainingData.in_frame
 
-    def recording(self, data):  # type: ignore[no-untyped-def]
-        units.append(self.unit)
-        return to_frame(self, data)
+    def recording(self, frame):  # type: ignore[no-untyped-def]
+        units.append(frame.unit)
+        return to_frame(self, frame)
 
-    monkeypatch.setattr(scene_frame.SceneFrame, "training_data", recording)
+    monkeypatch.setattr(TrainingData, "in_frame", recording)
     monkeypatch.setattr(trainer, "near_far", lambda extent: (0.01 / units[-1] * extent, 1e10 * extent))
     planted = {s: run(scaled(toy, s)) for s in SCALES}
     with pytest.raises(AssertionError, match="scale (0.07|100.0)"):
@@ -202,8 +202,8 @@ def test_a_checkpoint_in_world_units_resumes_in_the_training_frame(toy: Training
     ckpt["version"] = 1
     del ckpt["frame"]
     torch.save(ckpt, path)
-    frame = SceneFrame.of_data(world)
-    inside = frame.training_data(world)
+    frame = world.training_frame()
+    inside = world.in_frame(frame)
     resumed = Trainer(inside, GaussianModel.from_points([[0.0, 0.0, 0.0]], None, 2), preset.with_steps(20),
                       tmp_path / "ck", show_progress=False)
     assert resumed.load_latest_checkpoint() == 10
@@ -219,8 +219,7 @@ def test_a_checkpoint_of_cameras_that_moved_is_refused(toy: TrainingData, tmp_pa
     from brave6d.training.trainer import Trainer
 
     def trainer(data: TrainingData) -> Trainer:
-        frame = SceneFrame.of_data(data)
-        return Trainer(frame.training_data(data), GaussianModel.from_points(np.zeros((4, 3)), None, 2),
+        return Trainer(data.in_frame(data.training_frame()), GaussianModel.from_points(np.zeros((4, 3)), None, 2),
                        PRESET.with_steps(4), tmp_path / "ck", show_progress=False)
 
     trainer(toy).train()

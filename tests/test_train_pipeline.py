@@ -14,7 +14,7 @@ from plyfile import PlyData
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import BraveError
 from brave6d.core.layout import SceneDir
-from brave6d.training import cli
+from brave6d.training import cli, run_outcome
 from brave6d.training.ply import inria_attribute_names, read_ply
 from brave6d.training.toy_scenes import plane_views, write_scene
 
@@ -106,11 +106,12 @@ def test_a_run_its_budget_stops_says_how_far_short_and_how_to_continue(tmp_path:
 def test_the_budget_line_gives_the_time_the_steps_left_need() -> None:
     metrics = {"steps": 631, "planned_steps": 2000, "stopped_by": "time budget", "train_time_s": 631 * 1.2,
                "init_time_s": 60.0, "time_budget": {"budget_s": 840.0}}
-    line = cli.budget_stop_line(metrics, "S", "fast")
+    line = run_outcome.budget_stop_line(metrics, "S", "fast")
     assert line == ("stopped by the time budget (840 s) after 631 of 2000 steps, 1369 short (about 27 min more at "
                     "1.20 s per step): continue with brave6d train S --preset fast --resume --time-budget 1920")
-    assert cli.budget_stop_line({**metrics, "steps": 2000, "stopped_by": "steps"}, "S") is None
-    assert cli.steps_text(metrics) == "631 of 2000 planned steps (stopped by the time budget: 840 s, the whole command)"
+    assert run_outcome.budget_stop_line({**metrics, "steps": 2000, "stopped_by": "steps"}, "S") is None
+    assert run_outcome.steps_text(metrics) == ("631 of 2000 planned steps (stopped by the time budget: 840 s, "
+                                               "the whole command)")
 
 
 def test_bad_frame_stops_without_the_flag(trained: SceneDir) -> None:

@@ -14,6 +14,7 @@ from brave6d.core.progress import StageResult
 from brave6d.core.run_context import RunContext
 from brave6d.training.colmap_init import ColmapOptions
 from brave6d.training.presets import Preset, get_preset
+from brave6d.training.run_outcome import budget_stop_line
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,6 @@ def run_preset(name: str | None, quick: bool = False) -> Preset:
 
 def stage_train(ctx: RunContext) -> StageResult:
     """Train the scene with the run's preset (:func:`run_preset`) and evaluate the holdout."""
-    from brave6d.training.cli import budget_stop_line
     from brave6d.training.pipeline import require_capture, train_scene
 
     preset = run_preset(ctx.preset, ctx.quick)  # an unknown name fails here, before anything is loaded

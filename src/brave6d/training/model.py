@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from brave6d.training.ply import SH_C0, SplatData, read_ply, write_ply
+from brave6d.training.scene_frame import MIN_INIT_DISTANCE, SceneFrame
 
 PARAM_NAMES = ("means", "quats", "scales", "opacities", "sh0", "shN")
 
@@ -37,8 +38,6 @@ def initial_log_scales(points: np.ndarray, extent: float = 1.0) -> np.ndarray:
     :mod:`brave6d.training.scene_frame`). Coincident points get the floor ``MIN_INIT_DISTANCE``
     extents (Inria's ``sqrt(1e-7)`` on the demo's scene); a lone point gets ``LONE_POINT_SCALE`` extents.
     """
-    from brave6d.training.scene_frame import MIN_INIT_DISTANCE
-
     if not (math.isfinite(extent) and extent > 0.0):
         raise ValueError(f"initial_log_scales: the extent must be a positive number, got {extent}")
     n = len(points)
@@ -122,6 +121,18 @@ class GaussianModel:
     def from_ply(cls, path: str | Path, device: torch.device | str = "cpu") -> GaussianModel:
         """Load a 3DGS PLY (this project's or another trainer's)."""
         return cls.from_splat(read_ply(path), device)
+
+    def in_world(self, frame: SceneFrame) -> GaussianModel:
+        """This model, trained in ``frame`` (:mod:`brave6d.training.scene_frame`), in the world: centres
+        moved back, scales and the 3D filter times ``frame.unit`` (log scales plus ``log(unit)``);
+        rotations, opacities and colours unchanged."""
+        p = {k: v.detach() for k, v in self.params.items()}
+        means = frame.world_points(p["means"].cpu().double().numpy())
+        tensors = {**p, "means": torch.from_numpy(means), "scales": p["scales"].double() + math.log(frame.unit)}
+        out = GaussianModel.from_tensors(tensors, self.sh_degree, self.device)
+        if self.filter_3d is not None:
+            out.filter_3d = (self.filter_3d.double() * frame.unit).to(self.filter_3d.dtype)
+        return out
 
     def save_ply(self, path: str | Path) -> Path:
         """Export in the Inria layout (see :mod:`brave6d.training.ply`)."""

@@ -8,7 +8,10 @@ converts the scene once, here, into the **training frame**: ``p_train = (p_world
 with ``centre`` the mean of the camera centres and ``unit`` Inria's scene radius (1.1 times the
 largest distance of a camera centre from that mean, :func:`scene_radius`). In the training frame the
 scene's extent is exactly 1 whatever the world's units, every length below is a number of extents,
-and the trained Gaussians go back to the world once, at the end (:meth:`SceneFrame.world_model`).
+and the trained Gaussians go back to the world once, at the end. The two conversions belong to what
+they convert (:meth:`brave6d.training.views.TrainingData.in_frame`,
+:meth:`brave6d.training.model.GaussianModel.in_world`); this module holds the frame and the lengths and
+imports nothing else of training, so that both can use it.
 The poses, the initial points and the depth targets are converted in float64 and then rounded to
 float32, so two worlds that differ by a scale give the same float32 inputs (up to the rare number
 whose float64 value lies on a float32 rounding boundary) and hence the same training, step for step.
@@ -34,16 +37,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from brave6d.core.errors import DataError
-
-if TYPE_CHECKING:
-    from brave6d.training.model import GaussianModel
-    from brave6d.training.views import TrainingData
 
 #: Inria's scene radius is this times the largest distance of a camera centre from their mean.
 RADIUS_MARGIN = 1.1
@@ -94,11 +93,6 @@ class SceneFrame:
         mean = c.mean(axis=0)
         return cls((float(mean[0]), float(mean[1]), float(mean[2])), unit)
 
-    @classmethod
-    def of_data(cls, data: TrainingData) -> SceneFrame:
-        """The frame of ``data``'s cameras (train and holdout views), in ``data``'s world."""
-        return cls.of_cameras([v.base_T_cam[:3, 3] for v in data.views])
-
     @property
     def centre_array(self) -> NDArray[np.float64]:
         return np.asarray(self.centre, np.float64)
@@ -114,40 +108,10 @@ class SceneFrame:
         out[:3, 3] = self.points(out[:3, 3])[0]
         return out
 
-    def training_data(self, data: TrainingData) -> TrainingData:
-        """``data`` with every pose in the training frame (images, camera and split unchanged), whose
-        extent is 1 by definition and whose depth targets are divided by :attr:`unit`."""
-        from dataclasses import replace
-
-        from brave6d.training.views import View
-
-        if data.frame is not None:
-            raise ValueError("training_data: the views are already in a training frame")
-
-        def moved(v: View) -> View:
-            return replace(v, base_T_cam=self.pose(v.base_T_cam))
-
-        return replace(data, train=[moved(v) for v in data.train], test=[moved(v) for v in data.test], frame=self)
-
     # ------------------------------------------------------------------ training frame -> world
     def world_points(self, p_train: ArrayLike) -> NDArray[np.float64]:
         """Training-frame points [N, 3] in the world (float64)."""
         return np.asarray(p_train, np.float64).reshape(-1, 3) * self.unit + self.centre_array
-
-    def world_model(self, model: GaussianModel) -> GaussianModel:
-        """The trained ``model`` (training frame) in the world: centres moved back, scales and the 3D
-        filter times :attr:`unit` (log scales plus ``log(unit)``); rotations, opacities and colours unchanged."""
-        import torch
-
-        from brave6d.training.model import GaussianModel
-
-        p = {k: v.detach() for k, v in model.params.items()}
-        means = self.world_points(p["means"].cpu().double().numpy())
-        tensors = {**p, "means": torch.from_numpy(means), "scales": p["scales"].double() + math.log(self.unit)}
-        out = GaussianModel.from_tensors(tensors, model.sh_degree, model.device)
-        if model.filter_3d is not None:
-            out.filter_3d = (model.filter_3d.double() * self.unit).to(model.filter_3d.dtype)
-        return out
 
     def to_json(self) -> dict[str, Any]:
         near, far = near_far(self.unit)

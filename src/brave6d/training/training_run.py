@@ -110,8 +110,9 @@ def train(
     counts from (``brave6d train``: the command's start); None: now, so that the initial points count.
 
     Training happens in the scene's training frame (:class:`~brave6d.training.scene_frame.SceneFrame`
-    of ``data``'s cameras): ``data`` and the initial points are moved into it once, the model comes
-    back to the world once; the holdout scores during training are taken in it.
+    of ``data``'s cameras, :meth:`~brave6d.training.views.TrainingData.training_frame`): ``data`` and the
+    initial points are moved into it once, the model comes back to the world once; the holdout scores
+    during training are taken in it.
     """
     started = time.perf_counter() if budget_started_at is None else budget_started_at
     pose_check = "pose check: not run (--skip-pose-check)"
@@ -122,7 +123,7 @@ def train(
     dev = resolve_device(device)
     set_seed(preset.seed)
     t0 = time.perf_counter()
-    frame = SceneFrame.of_data(data)
+    frame = data.training_frame()
     continuing = resume and checkpoint_dir is not None and bool(list_checkpoints(checkpoint_dir))
     init_info: dict[str, Any]
     if continuing:
@@ -139,7 +140,7 @@ def train(
     init_seconds = time.perf_counter() - t0
     log.info("training frame: the scene's extent is %.6g world units (near plane %.3g), centred at %s",
              frame.unit, frame.to_json()["near_plane"], [round(c, 6) for c in frame.centre])
-    data = frame.training_data(data)
+    data = data.in_frame(frame)
     curve: list[HoldoutPoint] = []
 
     def score_holdout(trainer: Trainer) -> float:
@@ -152,5 +153,5 @@ def train(
     trainer = Trainer(data, model, preset, checkpoint_dir, dev, show_progress=show_progress,
                       eval_callback=score_holdout, checkpoint_hook=checkpoint_hook, budget_started_at=started)
     result = trainer.train(resume=continuing)
-    return TrainedSplat(frame.world_model(trainer.model), result, init_info, init_seconds, curve, pose_check, frame,
+    return TrainedSplat(trainer.model.in_world(frame), result, init_info, init_seconds, curve, pose_check, frame,
                         trainer.model, data)

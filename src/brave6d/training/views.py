@@ -12,7 +12,7 @@ recorded frames, so skipping a bad frame never moves another frame between the s
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -95,6 +95,21 @@ class TrainingData:
         if self.frame is not None:
             return 1.0
         return scene_radius([v.base_T_cam[:3, 3] for v in self.views])
+
+    def training_frame(self) -> SceneFrame:
+        """The training frame of these cameras (train and holdout views), in their world."""
+        return SceneFrame.of_cameras([v.base_T_cam[:3, 3] for v in self.views])
+
+    def in_frame(self, frame: SceneFrame) -> TrainingData:
+        """These views with every pose in ``frame`` (images, camera and split unchanged): the training
+        frame's data, whose extent is 1 by definition and whose depth targets are divided by ``frame.unit``."""
+        if self.frame is not None:
+            raise ValueError("in_frame: the views are already in a training frame")
+
+        def moved(v: View) -> View:
+            return replace(v, base_T_cam=frame.pose(v.base_T_cam))
+
+        return replace(self, train=[moved(v) for v in self.train], test=[moved(v) for v in self.test], frame=frame)
 
     @property
     def length_unit(self) -> float:
