@@ -120,9 +120,9 @@ def test_every_learned_agent_hands_its_estimator_the_targets_mesh(bundle, tmp_pa
     target = bundle.objects[0]
     with ServerThread(app) as server, BraveClient(server.url) as client:
         agent = make_agent(name, client, AgentSetup(learned_model=model))
-        assert target.obj_id not in agent.estimator.silhouettes
+        assert target.obj_id not in agent.pose_estimator.estimator.silhouettes
         _check_finite(run_episode(client, agent, target.gt_id, seed=3, width=160, height=120))
-    assert target.obj_id in agent.estimator.silhouettes and target.obj_id in agent.estimator.surfaces
+    assert target.obj_id in agent.pose_estimator.estimator.silhouettes and target.obj_id in agent.pose_estimator.estimator.surfaces
 
 
 def test_held_out_recall_counts_the_detections_the_agents_use() -> None:

@@ -29,7 +29,7 @@ from brave6d.core.errors import BraveError
 if TYPE_CHECKING:
     from brave6d.core.run_context import RunContext
     from brave6d.core.progress import StageResult
-    from brave6d.evaluation.agents import EpisodeOutcome
+    from brave6d.evaluation.agents import AgentSetup, EpisodeOutcome
     from brave6d.evaluation.metrics import AgentRuns, Leaderboard
 
 log = logging.getLogger(__name__)
@@ -70,11 +70,14 @@ def clear_logs(folder: Path) -> None:
 
 def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: int = 0,
                   width: int = IMAGE_WIDTH, episodes_per_object: int = 1,
-                  agents: Sequence[str] | None = None, learned_model: Path | None = None) -> BaselineRun:
+                  agents: Sequence[str] | None = None, learned_model: Path | None = None,
+                  setup: AgentSetup | None = None) -> BaselineRun:
     """Serve ``bundle_dir`` on loopback, run the registered ``agents`` (default: every agent that can
     run, in registry order: the learned ones only with ``learned_model``) on every object,
     ``episodes_per_object`` times from seeded random starts (seed ``seed + gt_id + 1000 r`` for
-    repeat ``r``: every agent starts alike), score the logs; writes nothing but the logs. The server
+    repeat ``r``: every agent starts alike), score the logs; writes nothing but the logs. ``setup``
+    (default ``AgentSetup(learned_model)``) may give the learned agents a detector and pose estimator
+    of the user's (:mod:`brave6d.evaluation.estimators`). The server
     runs in scored mode and the leaderboard ranks the scored episodes whose digest verifies."""
     from brave6d.evaluation.agents import LEARNED_AGENTS, AgentSetup, make_agent, run_episode, runnable_agents
     from brave6d.evaluation.metrics import models_from_bundle, read_episodes, score_episodes
@@ -89,8 +92,8 @@ def run_baselines(bundle_dir: Path, out_dir: Path, device: str = "auto", seed: i
     app = create_app(bundle, device=device, log_dir=logs, mode=SCORED)
     outcomes = []
     with ServerThread(app) as server, BraveClient(server.url) as client:
-        setup = AgentSetup(learned_model)
-        if agents is None and learned_model is None:
+        setup = setup or AgentSetup(learned_model)
+        if agents is None and not setup.has_estimators:
             log.info("no learned model given: the learned agents (%s) do not play", ", ".join(LEARNED_AGENTS))
         players = [make_agent(name, client, setup) for name in (agents if agents is not None else runnable_agents(setup))]
         for repeat in range(episodes_per_object):

@@ -84,10 +84,24 @@ _LAZY = {
 @dataclass(frozen=True)
 class AgentSetup:
     """What agents may need besides the client: ``learned_model``, a folder with a trained
-    ``model.pt`` (``brave6d learn train``) for the learned agents; ``device`` for their networks."""
+    ``model.pt`` (``brave6d learn train``) for the learned agents; ``device`` for their networks.
+    ``detector`` / ``pose_estimator``: what the learned agents play with instead of the trained
+    networks: an object implementing :class:`~brave6d.evaluation.estimators.Detector` /
+    :class:`~brave6d.evaluation.estimators.PoseEstimator`, ``"MODULE:FACTORY"`` (a callable of no
+    arguments that makes one) or a built-in name (``"learned"``, ``"registration"``: pose only);
+    None: the trained model's (docs/GUIDE.md, "Your own estimator")."""
 
     learned_model: Path | None = None
     device: str = "cpu"
+    detector: Any = None
+    pose_estimator: Any = None
+
+    @property
+    def has_estimators(self) -> bool:
+        """Whether the learned agents can play: a trained model, or a detector and a pose estimator
+        that need none."""
+        needs_model = [x for x in (self.detector, self.pose_estimator) if x is None or x == "learned"]
+        return self.learned_model is not None or not needs_model
 
 
 def _static_baseline(client: Any, setup: AgentSetup) -> Agent:
@@ -111,17 +125,45 @@ def _estimator(model_dir: Path, device: str) -> Any:
     return LearnedEstimator.load(model_dir, device)
 
 
+def _implementation(setup: AgentSetup, role: str, name: str, min_score: float) -> Any:
+    """The detector or pose estimator (``role``) ``setup`` names for agent ``name``: its object, a
+    ``MODULE:FACTORY``, a built-in name, or None: the trained model's."""
+    from brave6d.evaluation.estimators.loading import BUILT_IN, check_role, load_factory
+
+    given = getattr(setup, role)
+    if given is None or isinstance(given, str) and given in BUILT_IN:
+        kind = given or "learned"
+        if role not in BUILT_IN[kind]:
+            raise BraveError(f"agent {name!r}: {role} {kind!r}: the built-in {kind!r} is only a "
+                             f"{' or '.join(BUILT_IN[kind])}")
+        if kind == "registration":
+            from brave6d.evaluation.estimators import RegistrationPoseEstimator
+
+            return RegistrationPoseEstimator()
+        if setup.learned_model is None:
+            raise BraveError(f"agent {name!r} needs a trained model: give its folder (brave6d learn train ... --out "
+                             "MODEL_DIR) as AgentSetup(learned_model=MODEL_DIR), or to the benchmark script as "
+                             "python benchmarks/baselines.py --learned-model MODEL_DIR (or give AgentSetup a "
+                             "detector and a pose_estimator of your own)")
+        from brave6d.evaluation.estimators import LearnedDetector, LearnedPoseEstimator
+
+        estimator = _estimator(Path(setup.learned_model).resolve(), setup.device)
+        return LearnedDetector(estimator, min_score) if role == "detector" else LearnedPoseEstimator(estimator)
+    if isinstance(given, str):
+        return load_factory(given, role)
+    check_role(given, role, f"given to agent {name!r}")
+    return given
+
+
 def _learned(name: str, active: bool, use_depth: bool, part: str | None = None) -> Callable[[Any, AgentSetup], Agent]:
     def factory(client: Any, setup: AgentSetup) -> Agent:
         from brave6d.evaluation.agents.learned import LearnedAgent, LearnedAgentOptions
         from brave6d.evaluation.agents.learned.ablation import ABLATIONS
 
-        if setup.learned_model is None:
-            raise BraveError(f"agent {name!r} needs a trained model: give its folder (brave6d learn train ... --out "
-                             "MODEL_DIR) as AgentSetup(learned_model=MODEL_DIR), or to the benchmark script as "
-                             "python benchmarks/baselines.py --learned-model MODEL_DIR")
-        return LearnedAgent(client, _estimator(Path(setup.learned_model).resolve(), setup.device), name, active,
-                            use_depth, ABLATIONS[part] if part is not None else LearnedAgentOptions())
+        options = ABLATIONS[part] if part is not None else LearnedAgentOptions()
+        return LearnedAgent(client, _implementation(setup, "detector", name, options.min_score),
+                            _implementation(setup, "pose_estimator", name, options.min_score), name, active,
+                            use_depth, options)
 
     return factory
 
@@ -141,9 +183,10 @@ POLICIES: dict[str, Callable[[Any, AgentSetup], Agent]] = {
 
 
 def runnable_agents(setup: AgentSetup | None = None) -> list[str]:
-    """The registered agents ``setup`` can build, in registry order (the learned ones need a model)."""
+    """The registered agents ``setup`` can build, in registry order (the learned ones need a model, or a
+    detector and a pose estimator of the user's)."""
     setup = setup or AgentSetup()
-    return [n for n in POLICIES if n not in ABLATION_AGENTS and (n not in LEARNED_AGENTS or setup.learned_model is not None)]
+    return [n for n in POLICIES if n not in ABLATION_AGENTS and (n not in LEARNED_AGENTS or setup.has_estimators)]
 
 
 def make_agent(name: str, client: Any, setup: AgentSetup | None = None) -> Agent:

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.core.errors import BraveError
+from brave6d.evaluation.estimators.protocol import Detection, EstimatorRefused
 from brave6d.evaluation.learned.crops import box_crop, crop_size, crop_to_image, iou, normalise, warp_rgb
 from brave6d.evaluation.learned.data import resize_to_width
 from brave6d.evaluation.learned.model_file import LearnedModel, read_model
@@ -64,26 +65,8 @@ NMS_IOU = 0.5
 UPSCALED_MAX_BOX_PX = 24.0
 
 
-class LearnedRefused(BraveError):
+class LearnedRefused(EstimatorRefused):
     """The learned estimator cannot give a pose; ``cause`` is one of :data:`REFUSAL_CAUSES`."""
-
-    def __init__(self, cause: str, message: str) -> None:
-        super().__init__(message)
-        self.cause = cause
-
-
-@dataclass(frozen=True)
-class Detection:
-    """A detected object: its obj_id, box (x0, y0, x1, y1; pixel edges of the input image) and score in [0, 1]."""
-
-    obj_id: int
-    box: tuple[float, float, float, float]
-    score: float
-
-    @property
-    def size_px(self) -> float:
-        """Geometric mean of the box's width and height."""
-        return math.sqrt(max(self.box[2] - self.box[0], 0.0) * max(self.box[3] - self.box[1], 0.0))
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,8 @@ from numpy.typing import NDArray
 from brave6d.core.errors import BraveError
 from brave6d.evaluation.agents.active import look_candidates
 from brave6d.evaluation.agents.episode import scene_bundle
+from brave6d.evaluation.estimators.protocol import Detection, Detector, EstimatorRefused, MultiViewRefiner, \
+    PoseEstimator
 from brave6d.evaluation.learned import DETECTION_THRESHOLD
 
 Array = NDArray[np.float64]
@@ -70,13 +72,18 @@ VIEW_CHOICES = ("best", "nearest", "start")
 
 
 class LearnedAgent:
-    """An :class:`~brave6d.evaluation.agents.Agent` over a :class:`~brave6d.evaluation.learned.LearnedEstimator`."""
+    """An :class:`~brave6d.evaluation.agents.Agent` over any
+    :class:`~brave6d.evaluation.estimators.Detector` and :class:`~brave6d.evaluation.estimators.PoseEstimator`
+    (the built-in ones: the trained networks, :mod:`brave6d.evaluation.estimators.learned`). Their answers
+    are checked (:mod:`brave6d.evaluation.estimators.checks`); they see the served image, its K, the
+    depth (``use_depth`` only) and the target's CAD model, never the ground truth."""
 
-    def __init__(self, client: Any, estimator: Any, name: str, active: bool, use_depth: bool,
-                 options: LearnedAgentOptions = LearnedAgentOptions()) -> None:
-        self.client, self.estimator, self.name = client, estimator, name
-        #: episodes this agent plays ask for images this wide (its pose network's training resolution)
-        self.image_width = int(getattr(estimator, "crop_source_width", 0)) or None
+    def __init__(self, client: Any, detector: Detector, pose_estimator: PoseEstimator, name: str, active: bool,
+                 use_depth: bool, options: LearnedAgentOptions = LearnedAgentOptions()) -> None:
+        self.client, self.detector, self.pose_estimator, self.name = client, detector, pose_estimator, name
+        #: episodes this agent plays ask for images this wide (the pose estimator's ``image_width``, when it has one)
+        self.image_width = int(getattr(pose_estimator, "image_width", 0) or 0) or None
+        self._models_given: set[int] = set()
         self.active, self.use_depth, self.options = active, use_depth, options
         self._bundles: dict[Any, dict[str, Any]] = {}
         self._reset_state()
@@ -138,8 +145,7 @@ class LearnedAgent:
             notes["refused"] = view["cause"]
             notes["refusal"] = view["message"]
             return Submission([], notes)
-        notes.update(inliers=pose.inliers, correspondences=pose.correspondences, depth_scale=pose.depth_scale,
-                     icp=pose.icp)
+        notes.update(pose.notes)
         cam_T_obj = invert(final["obs"].world_T_cam) @ view["obs"].world_T_cam @ pose.cam_T_obj
         if self.active and self.options.fuse_views:
             cam_T_obj, notes["fused"] = self._fused(final, cam_T_obj)
@@ -159,9 +165,10 @@ class LearnedAgent:
         if self.use_depth:
             near = [(T, v) for T, v in posed
                     if np.linalg.norm((T @ v["pose"].cam_T_obj)[:3, 3] - cam_T_obj[:3, 3]) <= 0.5 * self.diameter_m]
-            if len(near) < 2 or any(v["obs"].depth is None for _, v in near):
+            if len(near) < 2 or any(v["obs"].depth is None for _, v in near) or \
+                    not isinstance(self.pose_estimator, MultiViewRefiner):
                 return cam_T_obj, None
-            fused, refined, _ = self.estimator.refine_views(
+            fused, refined, _ = self.pose_estimator.refine_views(
                 self.obj_id, cam_T_obj, [(T, v["obs"].K, v["obs"].depth, v["detection"].box) for T, v in near])
             return (fused, f"icp over {len(near)} views") if refined else (cam_T_obj, None)
         origins = np.array([T[:3, 3] for T, _ in posed])
@@ -195,33 +202,44 @@ class LearnedAgent:
         return True, (pose.fit or 0.0) if self.use_depth else 0.0, pose.score
 
     def _give_surface(self) -> None:
-        """Hand the estimator the target's mesh from the server (``GET /models``): the RGB-only
-        distance from the mask's area and the depth ICP need it."""
+        """Hand the pose estimator the target's CAD model from the server (``GET /models``), once per
+        object: the built-in's RGB-only distance from the mask's area and its depth ICP need it."""
         from brave6d.evaluation.agents.model import read_model_ply
 
-        if self.obj_id in self.estimator.surfaces or self.obj_id not in self.estimator.model.objects:
+        if self.obj_id in self._models_given:
             return
         scene = getattr(self.client, "scene", None)
         data = self.client.model(self.obj_id, scene) if scene is not None else self.client.model(self.obj_id)
         vertices_mm, faces, _ = read_model_ply(data)
         if faces is not None and len(faces):
-            self.estimator.set_surface(self.obj_id, np.asarray(vertices_mm) / 1000.0, faces)
+            self.pose_estimator.add_model(self.obj_id, np.asarray(vertices_mm) / 1000.0, faces)
+        self._models_given.add(self.obj_id)
 
     # ------------------------------------------------------------------ perception
     def _look(self, obs: Any) -> dict[str, Any]:
         """Detect and estimate the target in ``obs``; a failure is recorded with its cause."""
-        from brave6d.evaluation.learned import LearnedRefused
+        from brave6d.evaluation.estimators.checks import checked_detections, checked_pose
 
         view: dict[str, Any] = {"obs": obs, "detection": None, "pose": None, "score": 0.0, "size_px": 0.0,
                                 "cause": None, "message": None}
         try:
-            det = self.estimator.best_detection(obs.rgb, obs.K, self.obj_id, self.options.min_score)
+            det = self._best_detection(checked_detections(self.detector.detect(obs.rgb, obs.K, self.obj_id),
+                                                          self.detector, self.obj_id))
             view.update(detection=det, score=det.score, size_px=det.size_px)
-            view["pose"] = self.estimator.estimate(obs.rgb, obs.K, self.obj_id, det.box,
-                                                   obs.depth if self.use_depth else None, det.score)
-        except LearnedRefused as exc:
+            view["pose"] = checked_pose(self.pose_estimator.estimate(obs.rgb, obs.depth if self.use_depth else None,
+                                                                     obs.K, det), self.pose_estimator)
+        except EstimatorRefused as exc:
             view.update(cause=exc.cause, message=str(exc))
         return view
+
+    def _best_detection(self, found: list[Detection]) -> Detection:
+        """The highest-scoring detection of at least ``options.min_score`` (the first of equals), or
+        refused (``no-detection``)."""
+        kept = [d for d in found if d.score >= self.options.min_score]
+        if not kept:
+            raise EstimatorRefused("no-detection", f"{self.name}: no detection of object {self.obj_id} scoring "
+                                                   f">= {self.options.min_score}")
+        return max(kept, key=lambda d: d.score)
 
     # ------------------------------------------------------------------ moves
     def _plan(self) -> Array | None:
