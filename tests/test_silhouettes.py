@@ -8,6 +8,8 @@ import threading
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from brave6d.annotation import SilhouetteCaster, bbox_xywh
 from brave6d.annotation.models import MeshData
@@ -144,3 +146,62 @@ def test_served_visibility_is_the_same_from_many_threads() -> None:
 def test_non_rigid_instance_poses_are_refused(bad: np.ndarray) -> None:
     with pytest.raises(NonRigidTransformError, match="instance 0: world_T_model"):
         SilhouetteCaster({1: A}, [(1, bad)])
+
+
+def needle(length: float = 0.2, width: float = 0.002) -> tuple[np.ndarray, np.ndarray]:
+    """A thin tetrahedron along its bounding box's diagonal: it fills little of the box's projection."""
+    v = np.array([[0.0, 0.0, 0.0], [width, 0.0, 0.0], [0.0, width, 0.0], [length, length, length]], dtype=float)
+    return v, np.array([(0, 2, 1), (0, 1, 3), (0, 3, 2), (1, 2, 3)], dtype=np.int64)
+
+
+def full_canvas_hits(caster: SilhouetteCaster, n: int, world_T_cam: np.ndarray, camera: PinholeCamera
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Instance ``n`` alone cast at every pixel of the 3x canvas (no region of interest): hit pixels and depths."""
+    from brave6d.annotation.visibility import pixel_rays
+    from brave6d.core.transforms import invert
+
+    key, world_T_model = caster.instances[n]
+    u, v = np.meshgrid(np.arange(-camera.width, 2 * camera.width, dtype=np.float64),
+                       np.arange(-camera.height, 2 * camera.height, dtype=np.float64))
+    rays = pixel_rays(camera, u.ravel(), v.ravel())
+    model_T_cam = invert(world_T_model) @ world_T_cam
+    t, _ = caster._cast(caster._model_scenes[key], model_T_cam[:3, 3], model_T_cam[:3, :3], rays)
+    hit = np.isfinite(t)
+    return u.ravel()[hit].astype(np.int64), v.ravel()[hit].astype(np.int64), t[hit]
+
+
+# eye positions around the plates (at z 0.5-1 m) and the needle: far, close (truncated), beside and behind them
+EYES = st.tuples(st.floats(-0.6, 0.6), st.floats(-0.6, 0.6), st.floats(-0.5, 1.6))
+AIMS = st.tuples(st.floats(-0.3, 0.3), st.floats(-0.3, 0.3), st.floats(0.3, 1.2))
+
+
+@given(views=st.lists(st.tuples(EYES, AIMS), min_size=1, max_size=4),
+       exact=st.sampled_from([None, 0.005, 0.0025]))
+@settings(max_examples=25, deadline=None)
+def test_many_cameras_cast_every_pixel_that_can_be_hit(views: list, exact: float | None) -> None:
+    """silhouettes_many casts only the pixels near the projected bounding box's hull: for any pose
+    (objects whole, truncated, behind the camera; plate edges exactly on pixel centres) its pixels
+    and depths are those of a cast at every canvas pixel, and those of silhouettes() one view at a time."""
+    models = {**MODELS, 4: needle()}
+    instances = [*INSTANCES, (4, make_transform(np.eye(3), [-0.1, -0.05, 0.6]))]
+    if exact is not None:  # a plate whose edges project onto pixel centres (u, v = 31.5 + 100 x / 1 m)
+        models[5] = plate(-exact - 0.1, exact, -exact, exact + 0.1)
+        instances.append((5, at(1.0)))
+    caster = SilhouetteCaster(models, instances)
+    poses = [EYE]  # the plates' edges exactly as documented above
+    for eye, aim in views:
+        try:
+            poses.append(look_at(eye, aim))
+        except NonRigidTransformError:
+            continue
+    poses = np.stack(poses)
+    for n, batch in enumerate(caster.silhouettes_many(poses, CAMERA)):
+        for c, T in enumerate(poses):
+            mine = batch.owner == c
+            xs, ys, depth = full_canvas_hits(caster, n, T, CAMERA)
+            np.testing.assert_array_equal(batch.xs[mine], xs)
+            np.testing.assert_array_equal(batch.ys[mine], ys)
+            np.testing.assert_array_equal(batch.depth[mine], depth)
+            one = list(caster.silhouettes(T, CAMERA))[n]
+            np.testing.assert_array_equal(batch.xs[mine], one.xs)
+            np.testing.assert_array_equal(batch.rays[mine], one.rays)

@@ -27,7 +27,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import open3d as o3d
@@ -105,25 +105,33 @@ class Silhouette:
 class SilhouetteBatch:
     """One instance's silhouettes seen from many cameras (:meth:`SilhouetteCaster.silhouettes_many`):
     the hit pixels of all cameras, camera ``owner[i]``'s pixel ``(xs[i], ys[i])`` with its z-depth and
-    camera-frame ray, grouped by camera in camera order."""
+    camera-frame ray ``(ray_x[i], ray_y[i], 1)``, grouped by camera in camera order."""
 
     cameras: int
     owner: NDArray[np.int64]
     xs: NDArray[np.int64]
     ys: NDArray[np.int64]
     depth: NDArray[np.float32]
-    rays: NDArray[np.float32]
+    ray_x: NDArray[np.float32]
+    ray_y: NDArray[np.float32]
 
     @property
     def px_count_all(self) -> NDArray[np.int64]:
         """(cameras,) pixels of each camera's whole silhouette."""
         return np.bincount(self.owner, minlength=self.cameras)
 
+    @property
+    def rays(self) -> NDArray[np.float32]:
+        """(N, 3) camera-frame rays of the pixels (z = 1), as :func:`pixel_rays` gives them."""
+        rays = np.empty((len(self.ray_x), 3), dtype=np.float32)
+        rays[:, 0], rays[:, 1], rays[:, 2] = self.ray_x, self.ray_y, 1.0
+        return rays
+
     def within(self, width: int, height: int) -> SilhouetteBatch:
         """The pixels inside a ``width`` x ``height`` image."""
         inside = (self.xs >= 0) & (self.xs < width) & (self.ys >= 0) & (self.ys < height)
         return SilhouetteBatch(self.cameras, self.owner[inside], self.xs[inside], self.ys[inside], self.depth[inside],
-                               self.rays[inside])
+                               self.ray_x[inside], self.ray_y[inside])
 
 
 _EMPTY = Silhouette(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32),
@@ -172,6 +180,7 @@ class SilhouetteCaster:
         for gid, n in owner.items():
             self._owner[gid] = n
         self._lock = threading.Lock()
+        self._canvas: dict[tuple[Any, ...], tuple[NDArray[np.float32], NDArray[np.float32], int, int]] = {}
 
     def _cast(self, scene: o3d.t.geometry.RaycastingScene, origin: NDArray[np.float64], R: NDArray[np.float64],
               rays_cam: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
@@ -216,58 +225,137 @@ class SilhouetteCaster:
     def silhouettes_many(self, world_T_cams: ArrayLike, camera: PinholeCamera) -> Iterator[SilhouetteBatch]:
         """:meth:`silhouettes` of many camera poses at once (many agents), one ray cast per instance
         for all of them: each instance's :class:`SilhouetteBatch`, in instance order. Its pixels of
-        camera ``c`` equal ``silhouettes(world_T_cams[c], camera)``'s of that instance bit for bit
-        (the same operations per pose and per ray)."""
+        camera ``c`` equal ``silhouettes(world_T_cams[c], camera)``'s of that instance bit for bit:
+        each pixel's ray is cast with the same operations, and only the pixels that cannot be hit
+        are left out (:meth:`_roi_rows`: rows of the projected bounding box's hull, with the same
+        one-pixel margin as :meth:`_roi`, instead of its whole bounding rectangle)."""
         poses = np.asarray(world_T_cams, dtype=np.float64).reshape(-1, 4, 4)
-        cam_T_world = np.stack([invert(T) for T in poses]) if len(poses) else np.zeros((0, 4, 4))
+        cam_T_world = _invert_many(poses)
+        ray_x, ray_y, lo_u, lo_v = self._canvas_rays(camera)
         for (key, world_T_model), model_T_world in zip(self.instances, self._model_T_world):
-            rois = self._rois(key, cam_T_world @ world_T_model, camera)
-            sizes = (rois[:, 1] - rois[:, 0] + 1) * (rois[:, 3] - rois[:, 2] + 1)
-            owner = np.repeat(np.arange(len(poses)), sizes)
-            index = np.arange(len(owner)) - np.repeat(np.cumsum(sizes) - sizes, sizes)
-            width = np.repeat(rois[:, 1] - rois[:, 0] + 1, sizes)
-            u = (np.repeat(rois[:, 0], sizes) + index % np.maximum(width, 1)).astype(np.float64)
-            v = (np.repeat(rois[:, 2], sizes) + index // np.maximum(width, 1)).astype(np.float64)
-            rays = pixel_rays(camera, u, v)
+            cams, v, u0, u1 = self._roi_rows(key, cam_T_world @ world_T_model, camera)
+            sizes = u1 - u0 + 1
+            starts = np.cumsum(sizes) - sizes
+            owner = np.repeat(cams, sizes)
+            u = np.repeat(u0 - starts, sizes) + np.arange(len(owner))
+            vs = np.repeat(v, sizes)
+            x, y = ray_x[u - lo_u], ray_y[vs - lo_v]
             model_T_cam = model_T_world @ poses
-            t, _ = self._cast_many(self._model_scenes[key], model_T_cam[owner, :3, 3], model_T_cam[:, :3, :3], owner,
-                                   rays)
+            t, _ = self._cast_many(self._model_scenes[key], model_T_cam[:, :3, 3], model_T_cam[:, :3, :3], owner,
+                                   x, y)
             hit = np.isfinite(t)
-            yield SilhouetteBatch(len(poses), owner[hit], u[hit].astype(np.int64), v[hit].astype(np.int64), t[hit],
-                                  rays[hit])
+            yield SilhouetteBatch(len(poses), owner[hit], u[hit], vs[hit], t[hit], x[hit], y[hit])
 
-    def first_instance_many(self, world_T_cams: ArrayLike, owner: NDArray[np.int64],
-                            rays_cam: NDArray[np.float32]) -> NDArray[np.int64]:
-        """:meth:`first_instance` of rays from many camera poses: ray ``r`` leaves camera ``owner[r]``."""
+    def first_instance_many(self, world_T_cams: ArrayLike, owner: NDArray[np.int64], ray_x: NDArray[np.float32],
+                            ray_y: NDArray[np.float32]) -> NDArray[np.int64]:
+        """:meth:`first_instance` of rays from many camera poses: ray ``r`` is ``(ray_x[r], ray_y[r], 1)``
+        (a :class:`SilhouetteBatch`'s columns) from camera ``owner[r]``."""
         poses = np.asarray(world_T_cams, dtype=np.float64).reshape(-1, 4, 4)
-        _, geometry = self._cast_many(self._world, poses[owner, :3, 3], poses[:, :3, :3], owner, rays_cam)
+        _, geometry = self._cast_many(self._world, poses[:, :3, 3], poses[:, :3, :3], owner, ray_x, ray_y)
         return self._owner[geometry]
 
     def _cast_many(self, scene: o3d.t.geometry.RaycastingScene, origins: NDArray[np.float64],
-                   Rs: NDArray[np.float64], owner: NDArray[np.int64], rays_cam: NDArray[np.float32]
+                   Rs: NDArray[np.float64], owner: NDArray[np.int64], x: NDArray[np.float32], y: NDArray[np.float32]
                    ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
-        """:meth:`_cast` of rays from many cameras in one call: ray ``r`` from ``origins[r]`` along
-        ``Rs[owner[r]] @ d`` (the same float32 arithmetic per ray)."""
-        rays = np.empty((len(rays_cam), 6), dtype=np.float32)
-        rays[:, :3] = origins
-        R32 = np.asarray(Rs, dtype=np.float32)[owner]
+        """:meth:`_cast` of rays from many cameras in one call: ray ``r`` from ``origins[owner[r]]`` along
+        ``Rs[owner[r]] @ (x[r], y[r], 1)``, the same float32 arithmetic per ray as :meth:`_cast`'s
+        (its ``1 * R`` is ``R`` exactly). Built column by column with 1-D gathers, so that building
+        the rays costs less than casting them."""
+        n = len(owner)
+        rays = np.empty((n, 6), dtype=np.float32)
+        rays[:, :3] = np.asarray(origins, dtype=np.float32)[owner]
+        R9 = np.asarray(Rs, dtype=np.float32).reshape(-1, 9).T.copy()  # (9, cameras): one row per entry
+        g, tmp, acc = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)
         for k in range(3):
-            rays[:, 3 + k] = rays_cam[:, 0] * R32[:, k, 0] + rays_cam[:, 1] * R32[:, k, 1] + rays_cam[:, 2] * R32[:, k, 2]
+            np.take(R9[3 * k], owner, out=g)
+            np.multiply(x, g, out=acc)
+            np.take(R9[3 * k + 1], owner, out=g)
+            np.multiply(y, g, out=tmp)
+            acc += tmp
+            np.take(R9[3 * k + 2], owner, out=g)
+            acc += g
+            rays[:, 3 + k] = acc
         with self._lock:
             out = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
         t = out["t_hit"].numpy()
         geometry = out["geometry_ids"].numpy().astype(np.int64)
         return t, np.where(np.isfinite(t), geometry, -1)
 
-    def _rois(self, key: int, cam_T_models: NDArray[np.float64], camera: PinholeCamera) -> NDArray[np.int64]:
-        """(C, 4) :meth:`_roi` of each pose; an empty range (``u1 < u0``) where it is None."""
-        out = np.zeros((len(cam_T_models), 4), dtype=np.int64)
-        out[:, 1] = -1
-        for c, cam_T_model in enumerate(cam_T_models):
-            roi = self._roi(key, cam_T_model, camera)
-            if roi is not None:
-                out[c] = roi
-        return out
+    def _canvas_rays(self, camera: PinholeCamera) -> tuple[NDArray[np.float32], NDArray[np.float32], int, int]:
+        """:func:`pixel_rays`' x per canvas column and y per canvas row (each depends on one
+        coordinate only, computed as there), with the canvas' first column and row; kept per camera."""
+        key = (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
+        with self._lock:
+            cached = self._canvas.get(key)
+        if cached is None:
+            pad = (CANVAS_FACTOR - 1) // 2
+            u = np.arange(-pad * camera.width, (pad + 1) * camera.width, dtype=np.float64)
+            v = np.arange(-pad * camera.height, (pad + 1) * camera.height, dtype=np.float64)
+            cached = (((u - camera.cx) / camera.fx).astype(np.float32), ((v - camera.cy) / camera.fy).astype(np.float32),
+                      -pad * camera.width, -pad * camera.height)
+            with self._lock:
+                if len(self._canvas) > 8:
+                    self._canvas.clear()
+                self._canvas[key] = cached
+        return cached
+
+    def _roi_rows(self, key: int, cam_T_models: NDArray[np.float64], camera: PinholeCamera
+                  ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        """The canvas pixels that can hold each pose's silhouette, row by row: ``(camera, v, u0, u1)``
+        per row (inclusive, camera then row order). :meth:`_roi`'s rectangle, narrowed on each row to
+        the pixels within one pixel of the convex hull of the bounding box's projected corners (a
+        box wholly in front of the camera projects onto that hull, and the model lies in its box);
+        a box partly behind the camera keeps the whole canvas, as in :meth:`_roi`."""
+        w, h = camera.width, camera.height
+        pad = (CANVAS_FACTOR - 1) // 2
+        lo_u, hi_u, lo_v, hi_v = -pad * w, (pad + 1) * w - 1, -pad * h, (pad + 1) * h - 1
+        pts = np.einsum("cij,kj->cki", cam_T_models[:, :3, :3], self._corners[key]) + cam_T_models[:, None, :3, 3]
+        z = pts[..., 2]
+        whole = np.all(z > _NEAR, axis=1)  # the box wholly in front: its projection is the corners' hull
+        seen = np.any(z > _NEAR, axis=1)
+        safe_z = np.where(whole[:, None], z, 1.0)
+        pu_all = camera.fx * pts[..., 0] / safe_z + camera.cx  # (cameras, 8)
+        pv_all = camera.fy * pts[..., 1] / safe_z + camera.cy
+        rois = np.zeros((len(pts), 4), dtype=np.int64)  # _roi's rectangle per camera; empty: u1 < u0
+        rois[:] = lo_u, hi_u, lo_v, hi_v
+        rois[~seen, 1] = lo_u - 1
+        if np.any(whole):
+            rois[whole, 0] = np.maximum(lo_u, np.floor(pu_all[whole].min(axis=1)).astype(np.int64) - 1)
+            rois[whole, 1] = np.minimum(hi_u, np.ceil(pu_all[whole].max(axis=1)).astype(np.int64) + 1)
+            rois[whole, 2] = np.maximum(lo_v, np.floor(pv_all[whole].min(axis=1)).astype(np.int64) - 1)
+            rois[whole, 3] = np.minimum(hi_v, np.ceil(pv_all[whole].max(axis=1)).astype(np.int64) + 1)
+        rows = np.maximum(rois[:, 3] - rois[:, 2] + 1, 0) * (rois[:, 1] >= rois[:, 0])
+        cams = np.repeat(np.arange(len(rois)), rows)
+        v = np.repeat(rois[:, 2] - (np.cumsum(rows) - rows), rows) + np.arange(len(cams))
+        u0, u1 = rois[cams, 0], rois[cams, 1]
+        narrow = whole[cams]
+        if np.any(narrow):
+            c, vv = cams[narrow], v[narrow].astype(np.float64)
+            pu, pv = pu_all[c], pv_all[c]  # (rows, 8)
+            lo_band, hi_band = vv - 1.0, vv + 1.0
+            in_band = (pv >= lo_band[:, None]) & (pv <= hi_band[:, None])
+            umin = np.where(in_band, pu, np.inf).min(axis=1)
+            umax = np.where(in_band, pu, -np.inf).max(axis=1)
+            i, j = _CORNER_PAIRS
+            au, av, bu, bv = pu[:, i], pv[:, i], pu[:, j], pv[:, j]
+            dv = bv - av
+            flat = dv == 0.0
+            for line in (lo_band, hi_band):
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    s = (line[:, None] - av) / np.where(flat, 1.0, dv)
+                cross = ~flat & (s >= 0.0) & (s <= 1.0)
+                uu = au + s * (bu - au)
+                umin = np.minimum(umin, np.where(cross, uu, np.inf).min(axis=1))
+                umax = np.maximum(umax, np.where(cross, uu, -np.inf).max(axis=1))
+            empty = ~np.isfinite(umin)
+            lo = np.floor(np.where(empty, 0.0, umin)).astype(np.int64) - 1
+            hi = np.ceil(np.where(empty, 0.0, umax)).astype(np.int64) + 1
+            nu0, nu1 = u0.copy(), u1.copy()
+            nu0[narrow] = np.maximum(u0[narrow], lo)
+            nu1[narrow] = np.where(empty, nu0[narrow] - 1, np.minimum(u1[narrow], hi))
+            u0, u1 = nu0, nu1
+        keep = u1 >= u0
+        return cams[keep], v[keep], u0[keep], u1[keep]
 
     def _roi(self, key: int, cam_T_model: NDArray[np.float64],
              camera: PinholeCamera) -> tuple[int, int, int, int] | None:
@@ -334,6 +422,20 @@ class MaskRenderer:
         seen = sil.within(w, h)
         mask[seen.ys, seen.xs] = True
         return InstanceMasks(mask, mask & (visible == n), sil.px_count_all, sil.bbox_all)
+
+
+#: The 28 pairs of a box's 8 corners: every edge of the hull of their projection is one of them.
+_CORNER_PAIRS = np.triu_indices(8, 1)
+
+
+def _invert_many(poses: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`invert` of each rigid pose of ``poses`` (C, 4, 4)."""
+    out = np.zeros_like(poses)
+    Rt = np.swapaxes(poses[:, :3, :3], 1, 2)
+    out[:, :3, :3] = Rt
+    out[:, :3, 3] = -np.einsum("cij,cj->ci", Rt, poses[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
 
 
 def _box_corners(vertices: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -108,20 +108,24 @@ class VisibilityComputer:
         for sil in self._caster.silhouettes_many(poses, camera):
             seen = sil.within(camera.width, camera.height)
             per_instance.append((sil, seen, np.searchsorted(seen.owner, np.arange(n_views + 1))))
-        owners = np.concatenate([seen.owner for _, seen, _ in per_instance])
-        first = self._caster.first_instance_many(poses, owners, np.concatenate([seen.rays for _, seen, _ in per_instance]))
+        first = self._caster.first_instance_many(poses, np.concatenate([seen.owner for _, seen, _ in per_instance]),
+                                                 np.concatenate([seen.ray_x for _, seen, _ in per_instance]),
+                                                 np.concatenate([seen.ray_y for _, seen, _ in per_instance]))
         occluders: list[NDArray[np.float32] | None] = [None] * len(per_instance)
         if occluder_depths is not None:  # one call: per instance and view, the rays of compute's
-            pairs = [(n, c) for n in range(len(per_instance)) for c in range(n_views)]
-            segments = [per_instance[n][1].rays[per_instance[n][2][c]:per_instance[n][2][c + 1]] for n, c in pairs]
-            depths = occluder_depths([poses[c] for _, c in pairs], segments)
+            segments, segment_poses = [], []
+            for _, seen, bounds in per_instance:
+                rays = seen.rays
+                segments += [rays[bounds[c]:bounds[c + 1]] for c in range(n_views)]
+                segment_poses += list(poses)
+            depths = occluder_depths(segment_poses, segments)
             for n in range(len(per_instance)):
                 occluders[n] = np.concatenate(depths[n * n_views:(n + 1) * n_views]) if n_views else np.zeros(0, np.float32)
         elif splat_depths is not None:
-            for n, (_, seen, _) in enumerate(per_instance):
+            for n, (_, seen, bounds) in enumerate(per_instance):
                 sd = np.zeros(len(seen.owner), np.float32)
                 for c in range(n_views):
-                    lo, hi = per_instance[n][2][c], per_instance[n][2][c + 1]
+                    lo, hi = bounds[c], bounds[c + 1]
                     sd[lo:hi] = splat_depths[c][seen.ys[lo:hi], seen.xs[lo:hi]]
                 occluders[n] = sd
         out: list[list[Visibility]] = [[] for _ in range(n_views)]
