@@ -28,9 +28,13 @@ def test_many_views_equal_single_views(scene: SceneServer) -> None:
     poses = [scene.random_start(scene.bundle.objects[i % 2], rng) for i in range(12)]
     poses += [look_at((0.45 + 0.01 * rng.normal(), 0.01 * rng.normal(), 0.05), (0.46, 0.0, 0.0)) for _ in range(3)]
     poses += [look_at((0.3, 0.0, 0.3), (0.0, 0.5, 0.3))]  # looking away: nothing seen
+    poses += [look_at((0.49, 0.11 + 0.01 * k, 0.03), (0.45, -0.03, 0.01)) for k in range(2)]  # blue before red
     poses = np.stack(poses)
     vc, ref = scene.visibility, scene.reference
     assert vc is not None and ref is not None
+    caster = vc._caster  # the cubes hide each other in some views: pixels of one hit first by the other
+    assert any((caster.first_instance(T, sil.within(160, 120).rays) != n).any()
+               for T in poses for n, sil in enumerate(caster.silhouettes(T, cam)))
     many = vc.compute_many(poses, cam, occluder_depths=ref.depth_along_many)
     assert many == [vc.compute(T, cam, None, partial(ref.depth_along, T)) for T in poses]
     seen = [v for views in many for v in views]

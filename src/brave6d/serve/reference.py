@@ -294,15 +294,19 @@ class ReferenceGeometry:
         from the camera at ``world_T_cam``; 0 = no surface. Never NaN/inf."""
         return self._cast(self._world_rays(world_T_cam, rays_cam))
 
-    def depth_along_many(self, world_T_cams: Sequence[NDArray[np.float64]],
-                         rays_cam: Sequence[NDArray[np.float32]]) -> list[NDArray[np.float32]]:
-        """:meth:`depth_along` of many cameras' rays in one cast (many agents): the ``k``-th array
-        equals ``depth_along(world_T_cams[k], rays_cam[k])`` bit for bit."""
+    def depth_along_many(self, world_T_cams: Sequence[NDArray[np.float64]], rays_cam: Sequence[NDArray[np.float32]],
+                         needed: NDArray[np.bool_] | None = None) -> NDArray[np.float32]:
+        """:meth:`depth_along` of many cameras' rays in one cast (many agents), concatenated: the part of
+        ray set ``k`` equals ``depth_along(world_T_cams[k], rays_cam[k])`` bit for bit. ``needed`` (one
+        flag per ray, concatenated): only those rays are cast, the others get 0 (no surface)."""
         if not len(rays_cam):
-            return []
-        rays = [self._world_rays(T, d) for T, d in zip(world_T_cams, rays_cam)]
-        t = self._cast(np.concatenate(rays))
-        return np.split(t, np.cumsum([len(r) for r in rays])[:-1])
+            return np.zeros(0, dtype=np.float32)
+        rays = np.concatenate([self._world_rays(T, d) for T, d in zip(world_T_cams, rays_cam)])
+        if needed is None:
+            return self._cast(rays)
+        out = np.zeros(len(rays), dtype=np.float32)
+        out[needed] = self._cast(rays[needed])
+        return out
 
     @staticmethod
     def _world_rays(world_T_cam: NDArray[np.float64], rays_cam: NDArray[np.float32]) -> NDArray[np.float32]:

@@ -98,10 +98,11 @@ class VisibilityComputer:
                      splat_depths: Sequence[NDArray[np.float32]] | None = None,
                      occluder_depths: ManyOccluders | None = None) -> list[list[Visibility]]:
         """:meth:`compute` of many views at once (many agents on one scene): one ray cast per
-        instance for all silhouettes, one for all first hits, one for all occluder depths
-        (``occluder_depths(poses, rays per view) -> depths per view``, the reference geometry's
-        ``depth_along_many``) instead of one per view and instance. ``result[c]`` equals
-        ``compute(world_T_cams[c], camera, splat_depths[c], its occluders)`` bit for bit."""
+        instance for all silhouettes, one for all first hits, one for the occluder depths
+        (:data:`ManyOccluders`, the reference geometry's ``depth_along_many``) of the pixels where the
+        instance is hit first (elsewhere it is not visible whatever the occluders) instead of one per
+        view and instance. ``result[c]`` equals ``compute(world_T_cams[c], camera, splat_depths[c], its
+        occluders)`` bit for bit."""
         poses = np.asarray(world_T_cams, dtype=np.float64).reshape(-1, 4, 4)
         n_views = len(poses)
         per_instance = []
@@ -111,6 +112,8 @@ class VisibilityComputer:
         first = self._caster.first_instance_many(poses, np.concatenate([seen.owner for _, seen, _ in per_instance]),
                                                  np.concatenate([seen.ray_x for _, seen, _ in per_instance]),
                                                  np.concatenate([seen.ray_y for _, seen, _ in per_instance]))
+        owner_of = np.concatenate([np.full(len(seen.owner), n) for n, (_, seen, _) in enumerate(per_instance)])
+        first_is_own = first == owner_of  # where another instance is in front, no occluder can matter
         occluders: list[NDArray[np.float32] | None] = [None] * len(per_instance)
         if occluder_depths is not None:  # one call: per instance and view, the rays of compute's
             segments, segment_poses = [], []
@@ -118,9 +121,11 @@ class VisibilityComputer:
                 rays = seen.rays
                 segments += [rays[bounds[c]:bounds[c + 1]] for c in range(n_views)]
                 segment_poses += list(poses)
-            depths = occluder_depths(segment_poses, segments)
-            for n in range(len(per_instance)):
-                occluders[n] = np.concatenate(depths[n * n_views:(n + 1) * n_views]) if n_views else np.zeros(0, np.float32)
+            depths = occluder_depths(segment_poses, segments, first_is_own)
+            offset = 0
+            for n, (_, seen, _) in enumerate(per_instance):
+                occluders[n] = depths[offset:offset + len(seen.owner)]
+                offset += len(seen.owner)
         elif splat_depths is not None:
             for n, (_, seen, bounds) in enumerate(per_instance):
                 sd = np.zeros(len(seen.owner), np.float32)
@@ -131,7 +136,7 @@ class VisibilityComputer:
         out: list[list[Visibility]] = [[] for _ in range(n_views)]
         offset = 0
         for n, (sil, seen, bounds) in enumerate(per_instance):
-            vis = first[offset:offset + len(seen.owner)] == n
+            vis = first_is_own[offset:offset + len(seen.owner)]
             offset += len(seen.owner)
             sd = occluders[n]
             if sd is not None:
@@ -147,8 +152,10 @@ class VisibilityComputer:
         return out
 
 
-#: Occluder depths of many views: ``(poses, camera-frame rays per view) -> z-depths per view``.
-ManyOccluders = Callable[[Sequence[NDArray[np.float64]], Sequence[NDArray[np.float32]]], list[NDArray[np.float32]]]
+#: Occluder depths of many views: ``(poses, camera-frame rays per view, needed rays or None) -> the z-depths of
+#: all views' rays, concatenated`` (0 where not needed).
+ManyOccluders = Callable[[Sequence[NDArray[np.float64]], Sequence[NDArray[np.float32]], NDArray[np.bool_] | None],
+                         NDArray[np.float32]]
 
 
 def _bboxes(owner: NDArray[np.int64], xs: NDArray[np.int64], ys: NDArray[np.int64], n: int
