@@ -10,7 +10,8 @@ robot      ur-rtde, depthai             ``--robot ur:HOST`` and ``--camera oak``
 ros2       ros-rclpy, rosidl (ROS 2)    ``brave6d ros2`` (a ROS 2 node on rclpy; brave6d_msgs built)
 cluster    submitit                     ``brave6d dataset run`` (one job per scene, local or Slurm)
 cuda       gsplat                       training and rendering on a GPU (``--device cuda``)
-all        robot, cluster, cuda         everything but ros2, whose top-level std_msgs ... would
+onnx       onnx, onnxruntime            ``brave6d learn export-onnx``, the learned estimator on ONNX Runtime
+all        robot, cluster, cuda, onnx   everything but ros2, whose top-level std_msgs ... would
                                         shadow Debian's ROS 1 (setup.sh --with-ros2: .venv-ros2)
 =========  ===========================  =======================================================
 
@@ -34,6 +35,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
              "ros-rosidl-typesupport-c", "ros-rosidl-typesupport-fastrtps-c", "ros-rosidl-typesupport-introspection-c"),
     "cluster": ("submitit",),
     "cuda": ("gsplat",),
+    "onnx": ("onnx", "onnxruntime"),
 }
 
 

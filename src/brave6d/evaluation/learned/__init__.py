@@ -11,13 +11,15 @@ Public API (imported lazily: ``import brave6d.evaluation.learned`` loads no torc
 - inference: ``LearnedEstimator`` (``detect``, ``best_detection``, ``refine_box``, ``estimate``,
   ``estimate_both``, ``refine_views``), ``Detection``,
   ``LearnedPose``, ``LearnedRefused`` (``cause`` in ``REFUSAL_CAUSES``), ``solve_pnp``;
+- ONNX: ``export_onnx`` (``brave6d learn export-onnx``: both networks, opset ``ONNX_OPSET``) and
+  ``use_onnx`` (an estimator running them in ONNX Runtime instead of torch; the ``onnx`` extra);
 - held-out figures: ``score_heldout``, ``HeldoutScores``, ``DETECTION_THRESHOLD`` (the score a
   detection needs there and, by default, in the learned agents); the data: ``load_training_data``,
   ``TrainingData``.
 
 Modules, one job each: ``data`` (train_pbr -> images, boxes, model coordinates), ``crops`` (zoomed-in
 crops), ``silhouette`` (the RGB-only distance from the mask's area), ``targets`` (training
-batches), ``networks``, ``losses``, ``training``, ``model_file``
+batches), ``networks``, ``losses``, ``training``, ``model_file``, ``onnx_export``
 (the model and checkpoint files), ``inference``, ``heldout``, ``card``, ``cli``.
 """
 
@@ -32,6 +34,7 @@ _LAZY = {
     "LearnedRefused": ".inference", "REFUSAL_CAUSES": ".inference", "solve_pnp": ".inference",
     "score_heldout": ".heldout", "HeldoutScores": ".heldout", "DETECTION_THRESHOLD": ".presets",
     "load_training_data": ".data", "TrainingData": ".data",
+    "export_onnx": ".onnx_export", "use_onnx": ".onnx_export", "ONNX_OPSET": ".onnx_export",
 }
 
 __all__ = sorted(_LAZY)

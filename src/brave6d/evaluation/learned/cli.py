@@ -1,5 +1,7 @@
-"""``brave6d learn``: train the learned estimator on a train_pbr split, or score one on its held-out images.
+"""``brave6d learn``: train the learned estimator on a train_pbr split, score one on its held-out images, or
+export its networks as ONNX.
 
+    brave6d learn export-onnx MODEL_DIR [--out ONNX_DIR]
     brave6d learn train TRAIN_PBR --models MODELS_DIR --out MODEL_DIR [--preset fast|long|paper] [--device ...] [--resume]
         [--set FIELD=VALUE ...]
     brave6d learn heldout MODEL_DIR TRAIN_PBR --models MODELS_DIR [--detect-scales 1,1.375]
@@ -36,6 +38,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--heldout-split", type=Path, default=None, metavar="HELDOUT_PBR",
                        help="score the card's held-out figures on every image of this split (rendered apart, "
                             "e.g. brave6d synth with another seed) instead of TRAIN_PBR's held-out slice")
+    export = sub.add_parser("export-onnx", help="write the detector and the coordinate net as ONNX (opset 17) for "
+                                                "ONNX Runtime (the 'onnx' extra)")
+    export.add_argument("model_dir", type=Path, metavar="MODEL_DIR")
+    export.add_argument("--out", type=Path, default=None, metavar="ONNX_DIR", help="default: MODEL_DIR/onnx")
     heldout = sub.add_parser("heldout", help="score a trained model on the held-out images of its train_pbr "
                                                 "(every image of another split)")
     heldout.add_argument("model_dir", type=Path, metavar="MODEL_DIR")
@@ -82,6 +88,13 @@ def parse_overrides(preset: LearnPreset, items: list[str]) -> dict[str, int | fl
 def run(args: argparse.Namespace) -> int:
     from brave6d.evaluation.learned.pipeline import heldout_only, learn_and_card
 
+    if args.action == "export-onnx":
+        from brave6d.evaluation.learned.onnx_export import export_onnx
+
+        done = export_onnx(args.model_dir, args.out)
+        print(f"export-onnx: {done.detector} and {done.pose} (opset {done.opset}); run them with "
+              "brave6d.evaluation.learned.onnx_export.use_onnx")
+        return 0
     if args.action == "train":
         from brave6d.evaluation.learned.presets import get_learn_preset
 
