@@ -185,3 +185,42 @@ def test_vector_env_logs_and_submissions_equal_single_episodes(scene: SceneServe
         assert (tmp_path / "vec" / depth.format(vec._ids[i])).read_bytes() == (
             tmp_path / "one" / depth.format(ids[i])).read_bytes()
     vec.close()
+
+
+def test_infos_are_gymnasiums_add_info(scene: SceneServer) -> None:
+    """The step's infos, gathered key by key, equal gymnasium's ``_add_info`` of each sub-environment's
+    info in turn (key order, masks, dtypes, values): resets, null twists and moves mixed."""
+    vec = make_vector(scene, 4)
+    entries = [(2, {"episode_id": "c", "accepted": True, "collided": False, "adjustments": 0}),
+               (0, {"episode_id": "a", "accepted": True, "noop": True}),
+               (3, {"episode_id": "d", "accepted": False, "collided": True, "adjustments": 5}),
+               (1, {"episode_id": "b", "accepted": True, "collided": True, "adjustments": 2})]
+    expected: dict = {}
+    for i, info in entries:
+        expected = vec._add_info(expected, info, i)
+    got = vec._infos(entries)
+    assert list(got) == list(expected)
+    for key in expected:
+        assert got[key].dtype == expected[key].dtype, key
+        assert got[key].tolist() == expected[key].tolist(), key
+    assert vec._infos([]) == {}
+
+
+@pytest.mark.parametrize("bad", [
+    MoveRequest("", (0, 0, float("nan")), (0, 0, 0), 0.5), MoveRequest("", (0, 0, 0.01, 0), (0, 0, 0), 0.5),
+    MoveRequest("", (0, 0, 0.01), (0, 0, 99.0), 0.5), MoveRequest("", (0, 0, 0.01), (0, 0, 0), 0.0),
+    MoveRequest("", "abc", (0, 0, 0), 0.5), MoveRequest("", (0, 0, 0.01), (0, 0, 0), float("inf"))])
+def test_move_many_refuses_a_bad_twist_as_move_does(scene: SceneServer, bad: MoveRequest) -> None:
+    """The batch's twists are checked together; a bad one among good ones gets move's own error and
+    nothing moves."""
+    manager = EpisodeManager(scene)
+    ids = [manager.reset(target="cube_red", width=W, height=H, seed=s).episode_id for s in range(3)]
+    with pytest.raises(Exception) as one:
+        manager.move(ids[1], bad.linear, bad.angular, bad.duration)
+    requests = [MoveRequest(ids[0], (0, 0, 0.01), (0, 0, 0), 0.5),
+                MoveRequest(ids[1], bad.linear, bad.angular, bad.duration),
+                MoveRequest(ids[2], (0, 0, 0.01), (0, 0, 0), 0.5)]
+    with pytest.raises(type(one.value)) as many:
+        manager.move_many(requests)
+    assert type(many.value) is type(one.value) and str(many.value) == str(one.value)
+    assert [manager.get(i).steps for i in ids] == [0, 0, 0]

@@ -46,6 +46,7 @@ from brave6d.serve.episodes import (
     check_estimate,
     check_pose,
     check_twist,
+    check_twists,
     free_pose,
     submission_record,
     target_ref,
@@ -327,7 +328,7 @@ class EpisodeManager:
     def _plan_moves(self, eps: list[Episode], requests: Sequence[MoveRequest]) -> list[_MovePlan]:
         """:meth:`_plan_move` of each request, the twists of episodes on one scene integrated together
         (:func:`brave6d.serve.twist_batch.integrate_twists`, equal to one by one bit for bit)."""
-        checked = [check_twist(r.linear, r.angular, r.duration) for r in requests]
+        checked = check_twists([(r.linear, r.angular, r.duration) for r in requests])
         groups: dict[int, list[int]] = {}
         for k, ep in enumerate(eps):
             groups.setdefault(id(self._scene(ep)), []).append(k)

@@ -133,10 +133,13 @@ class Ticket:
 
 # ----------------------------------------------------------------------------- views
 def object_state(obj: BundleObject, cam_T_obj: Matrix4, visibility: Visibility | None, is_target: bool) -> ObjectState:
-    """The wire/log record of one object in one view (visibility fields None when not computed)."""
+    """The wire/log record of one object in one view (visibility fields None when not computed).
+    Built without pydantic's validation (a view's hot path): every value already has the type
+    validation would give it, a finite float64 4x4 pose and :meth:`Visibility.to_json`'s counts."""
     vis = visibility.to_json() if visibility is not None else {}
-    return ObjectState(gt_id=obj.gt_id, obj_id=obj.obj_id, name=obj.name, is_target=is_target,
-                       cam_T_obj=cam_T_obj, **vis)
+    return ObjectState.model_construct(gt_id=int(obj.gt_id), obj_id=int(obj.obj_id), name=str(obj.name),
+                                       is_target=bool(is_target), cam_T_obj=np.asarray(cam_T_obj, dtype=np.float64),
+                                       **vis)
 
 
 @dataclass(frozen=True)
@@ -423,6 +426,25 @@ def check_twist(linear: Any, angular: Any, duration: Any) -> tuple[NDArray[np.fl
     if not (np.isfinite(d) and 0.0 < d <= MAX_MOVE_DURATION_S):
         raise InvalidAction(f"duration: must be a finite number in (0, {MAX_MOVE_DURATION_S:g}] seconds", "duration")
     return out[0], out[1], d
+
+
+def check_twists(twists: Sequence[tuple[Any, Any, Any]]) -> list[tuple[NDArray[np.float64], NDArray[np.float64], float]]:
+    """:func:`check_twist` of each ``(linear, angular, duration)``, checked together in arrays (many
+    agents' moves); when any is malformed or out of its limits, one by one, so that the first bad
+    one raises :func:`check_twist`'s error."""
+    n = len(twists)
+    try:
+        lin = np.array([t[0] for t in twists], dtype=np.float64).reshape(n, -1)
+        ang = np.array([t[1] for t in twists], dtype=np.float64).reshape(n, -1)
+        dur = np.array([float(t[2]) for t in twists], dtype=np.float64)
+    except (TypeError, ValueError):
+        return [check_twist(*t) for t in twists]
+    fine = (lin.shape == (n, 3) and ang.shape == (n, 3) and bool(np.all(np.isfinite(lin)) and np.all(np.isfinite(ang)))
+            and bool(np.all(np.abs(lin) <= MAX_LINEAR_SPEED_M_S) and np.all(np.abs(ang) <= MAX_ANGULAR_SPEED_RAD_S))
+            and bool(np.all(np.isfinite(dur) & (dur > 0.0) & (dur <= MAX_MOVE_DURATION_S))))
+    if not fine:
+        return [check_twist(*t) for t in twists]
+    return [(lin[k], ang[k], float(dur[k])) for k in range(n)]
 
 
 def submission_record(ep: Episode, estimates: list[LoggedEstimate], bundle: Bundle, depth_file: str | None,

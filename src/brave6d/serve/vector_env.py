@@ -106,11 +106,11 @@ class BraveVectorEnv(VectorEnv):  # type: ignore[misc]
         if isinstance(seed, (int, np.integer)):
             self.action_space.seed(int(seed))
         target = (options or {}).get("target", self.target)
-        infos: dict[str, Any] = {}
+        entries = []
         for i, s in enumerate(sub_seeds(seed, self.num_envs)):
             self._rngs[i] = np.random.default_rng(s)
-            infos = self._add_info(infos, self._reset_one(i, s, target), i)
-        return self._batch_obs(), infos
+            entries.append((i, self._reset_one(i, s, target)))
+        return self._batch_obs(), self._infos(entries)
 
     def step(self, actions: Any) -> tuple[Obs, NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_], dict[str, Any]]:
         """One step of every sub-environment; the accepted moves' views are rendered in one batch."""
@@ -118,27 +118,26 @@ class BraveVectorEnv(VectorEnv):  # type: ignore[misc]
             raise RuntimeError("call reset() before step()")
         twists = self._twists(actions)
         rewards = np.zeros(self.num_envs, np.float64)
-        truncated = np.zeros(self.num_envs, bool)
-        infos: dict[str, Any] = {}
+        entries: list[tuple[int, dict[str, Any]]] = []  # (sub-environment, its info), in _add_info's order
+        moving = np.any(twists != 0.0, axis=1)
+        linear, angular = twists[:, :3] * self.max_linear, twists[:, 3:] * self.max_angular
         requests: dict[int, MoveRequest] = {}
         for i in range(self.num_envs):
             if self._needs_reset[i]:  # NEXT_STEP autoreset: this step starts a new episode
                 seed = int(self._rngs[i].integers(2**31))
-                infos = self._add_info(infos, self._reset_one(i, seed, self.target), i)
-            elif not np.any(twists[i]):  # a null twist: nothing moves, nothing is rendered
+                entries.append((i, self._reset_one(i, seed, self.target)))
+            elif not moving[i]:  # a null twist: nothing moves, nothing is rendered
                 self._steps[i] += 1
-                infos = self._add_info(infos, {"episode_id": self._ids[i], "accepted": True, "noop": True}, i)
+                entries.append((i, {"episode_id": self._ids[i], "accepted": True, "noop": True}))
             else:
-                requests[i] = MoveRequest(str(self._ids[i]), twists[i, :3] * self.max_linear,
-                                          twists[i, 3:] * self.max_angular, self.step_duration, self.frame)
+                requests[i] = MoveRequest(str(self._ids[i]), linear[i], angular[i], self.step_duration, self.frame)
         results = self.manager.move_many(list(requests.values()))
         for i, result in zip(requests, results):
             rewards[i] = self._record_move(i, result)
-            infos = self._add_info(infos, self._info(result), i)
-        for i in range(self.num_envs):
-            truncated[i] = not self._needs_reset[i] and self._steps[i] >= self.max_steps
+            entries.append((i, self._info(result)))
+        truncated = ~self._needs_reset & (self._steps >= self.max_steps)
         self._end_truncated(truncated)
-        return self._batch_obs(), rewards, np.zeros(self.num_envs, bool), truncated, infos
+        return self._batch_obs(), rewards, np.zeros(self.num_envs, bool), truncated, self._infos(entries)
 
     def close_extras(self, **kwargs: Any) -> None:
         """Close the open episodes (their logs get their close records)."""
@@ -179,6 +178,31 @@ class BraveVectorEnv(VectorEnv):  # type: ignore[misc]
         eid = self._ids[i]
         if eid is not None and not self._needs_reset[i] and not self.manager.get(eid).closed:
             self.manager.close(eid)
+
+    def _infos(self, entries: list[tuple[int, dict[str, Any]]]) -> dict[str, Any]:
+        """Gymnasium's vector info of the sub-environments' flat ``(index, info)`` entries, key by key
+        instead of entry by entry: what :meth:`VectorEnv._add_info` gives for them in this order (keys
+        in order of first appearance, each with its ``_key`` mask; the array's type from the first value)."""
+        columns: dict[str, tuple[list[int], list[Any]]] = {}
+        for i, info in entries:
+            for key, value in info.items():
+                rows, values = columns.setdefault(key, ([], []))
+                rows.append(i)
+                values.append(value)
+        infos: dict[str, Any] = {}
+        for key, (rows, values) in columns.items():
+            first = values[0]
+            if type(first) in (int, float, bool) or issubclass(type(first), np.number):
+                array = np.zeros(self.num_envs, dtype=type(first))
+                array[rows] = values
+            else:  # ids (str) and None: an object array, as gymnasium makes for unknown types
+                array = np.full(self.num_envs, fill_value=None, dtype=object)
+                for i, value in zip(rows, values):
+                    array[i] = value
+            mask = np.zeros(self.num_envs, dtype=np.bool_)
+            mask[rows] = True
+            infos[key], infos[f"_{key}"] = array, mask
+        return infos
 
     @staticmethod
     def _info(result: ActionResult) -> dict[str, Any]:
