@@ -5,6 +5,7 @@ export its networks as ONNX.
     brave6d learn train TRAIN_PBR --models MODELS_DIR --out MODEL_DIR [--preset fast|long|paper] [--device ...] [--resume]
         [--set FIELD=VALUE ...]
     brave6d learn heldout MODEL_DIR TRAIN_PBR --models MODELS_DIR [--detect-scales 1,1.375]
+    brave6d learn bop-results MODEL_DIR SPLIT_DIR --models MODELS_DIR --out RESULTS.csv [--depth] [--score]
 """
 
 from __future__ import annotations
@@ -51,6 +52,21 @@ def configure(parser: argparse.ArgumentParser) -> None:
                          help="the detector's input widths as multiples of the training width (default 1: one pass; "
                               "1,1.375: a second, wider pass for small objects, 3x the detection time; "
                               "docs/BENCHMARKS.md prices them)")
+    results = sub.add_parser("bop-results", help="run a trained model over a BOP split (test, or a held-out "
+                                                  "train_pbr) and write bop_toolkit's results CSV")
+    results.add_argument("model_dir", type=Path, metavar="MODEL_DIR")
+    results.add_argument("split", type=Path, metavar="SPLIT_DIR", help="a BOP split folder (000000/, ...: rgb/ PNG "
+                                                                        "or JPEG, depth/ at each image's depth_scale)")
+    results.add_argument("--models", type=Path, required=True, metavar="MODELS_DIR",
+                         help="BOP models folder (the depth refinement fits these surfaces; --score scores with them)")
+    results.add_argument("--out", type=Path, required=True, metavar="RESULTS.csv",
+                         help="the CSV (scene_id,im_id,obj_id,score,R,t,time; name it METHOD_DATASET-SPLIT.csv "
+                              "for bop_toolkit)")
+    results.add_argument("--depth", action="store_true", help="refine each pose with the split's depth")
+    results.add_argument("--max-images", type=int_in(1, 10_000_000), default=None, metavar="N",
+                         help="the first N images only")
+    results.add_argument("--score", action="store_true",
+                         help="print the CSV's BOP19 AR against the split's ground truth (brave6d's scoring)")
 
 
 def _scales(text: str) -> tuple[float, ...]:
@@ -95,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"export-onnx: {done.detector} and {done.pose} (opset {done.opset}); run them with "
               "brave6d.evaluation.learned.onnx_export.use_onnx")
         return 0
+    if args.action == "bop-results":
+        return _bop_results(args)
     if args.action == "train":
         from brave6d.evaluation.learned.presets import get_learn_preset
 
@@ -115,4 +133,26 @@ def run(args: argparse.Namespace) -> int:
               f"(+ depth {h['pose_ar']['true_box_depth']:.3f}), detected {h['pose_ar']['detected_rgb']:.3f} "
               f"(+ depth {h['pose_ar']['detected_depth']:.3f}); detection recall "
               + ", ".join(f"obj {k}: {v:.2f}" for k, v in h["detection_recall_iou50"].items()))
+    return 0
+
+
+def _bop_results(args: argparse.Namespace) -> int:
+    """``learn bop-results``: the CSV, a line of what was estimated, with ``--score`` its AR."""
+    from brave6d.evaluation.estimate_bop import score_results_csv
+    from brave6d.evaluation.learned.inference import LearnedEstimator
+    from brave6d.evaluation.learned.split_results import estimate_split
+    from brave6d.evaluation.metrics import write_bop_results
+
+    estimator = LearnedEstimator.load(args.model_dir, models_dir=args.models)
+    run = estimate_split(estimator, args.split, with_depth=args.depth, max_images=args.max_images)
+    write_bop_results(args.out, run.estimates)
+    refused = ", ".join(f"{n} {cause}" for cause, n in sorted(run.refusals.items())) or "none"
+    print(f"bop-results: {len(run.estimates)} estimates of {run.targets} targets in {run.images} images "
+          f"({'RGB + depth' if args.depth else 'RGB only'}), median {run.median_ms_per_image:.0f} ms per image; "
+          f"not estimated: {refused}; CSV: {args.out}")
+    if args.score:
+        ids = run.image_ids if args.max_images is not None else None
+        print(score_results_csv(args.out, args.split, args.models,
+                                scenes=None if ids is None else sorted({s for s, _ in ids}),
+                                images=None if ids is None else {i for _, i in ids}))
     return 0

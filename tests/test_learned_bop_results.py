@@ -1,0 +1,77 @@
+"""``brave6d learn bop-results`` (issue 66, item 2): a trained model over a BOP split as bop_toolkit's
+results CSV: BOP's columns, R row-major, t in mm, one time per image; brave6d's scoring of the CSV
+gives the held-out scoring's AR of the detected boxes on the same images."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from brave6d.evaluation.learned import LearnedEstimator, get_learn_preset, score_heldout, train_learned
+from brave6d.evaluation.learned.data import load_training_data
+
+ROOT = Path(__file__).resolve().parent.parent
+SAMPLE = ROOT / "data" / "samples" / "blenderproc_train_pbr"
+SPLIT, MODELS = SAMPLE / "train_pbr", SAMPLE / "models"
+PRESET = get_learn_preset("tiny").with_overrides(detector_steps=80, pose_steps=60, checkpoint_every=80)
+IMAGES = 8
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("bop_results") / "model"
+    train_learned(SPLIT, MODELS, out, PRESET, "cpu", show_progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def csv(model: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    out = tmp_path_factory.mktemp("csv") / "brave6d_demo-test.csv"
+    proc = subprocess.run([str(Path(sys.executable).with_name("brave6d")), "learn", "bop-results", str(model),
+                           str(SPLIT), "--models", str(MODELS), "--out", str(out), "--max-images", str(IMAGES),
+                           "--score"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    return out, proc.stdout
+
+
+def test_the_csv_has_bops_columns_rotations_mm_and_one_time_per_image(csv: tuple[Path, str]) -> None:
+    path, stdout = csv
+    lines = path.read_text().splitlines()
+    assert lines[0] == "scene_id,im_id,obj_id,score,R,t,time"
+    assert len(lines) > 3, stdout  # the model finds something in 8 images
+    times: dict[tuple[int, int], set[float]] = {}
+    depths: list[float] = []
+    for line in lines[1:]:
+        scene_id, im_id, obj_id, score, R, t, seconds = line.split(",")
+        R9 = np.array(R.split(), dtype=float).reshape(3, 3)  # row-major, space-separated
+        t3 = np.array(t.split(), dtype=float)
+        np.testing.assert_allclose(R9 @ R9.T, np.eye(3), atol=1e-9)
+        assert np.linalg.det(R9) > 0
+        assert t3.shape == (3,) and t3[2] > 0
+        depths.append(t3[2])
+        assert 0 <= float(score) <= 1 and int(obj_id) in (1, 2, 3, 4) and int(im_id) < IMAGES
+        times.setdefault((int(scene_id), int(im_id)), set()).add(float(seconds))
+    assert all(len(v) == 1 and next(iter(v)) > 0 for v in times.values())  # BOP: one time per image
+    assert np.median(depths) > 10  # mm (the camera is 15-60 cm away: metres would be below 1)
+    assert "estimates of" in stdout and "ms per image" in stdout and stdout.splitlines()[-1].startswith("AR ")
+
+
+def test_scoring_the_csv_gives_the_heldout_scoring_of_the_detected_boxes(model: Path, csv: tuple[Path, str]) -> None:
+    """The same images through ``score_heldout``'s detected-box variant (the agents' way) and through
+    the CSV: the same BOP19 AR (one instance per object per image in this split)."""
+    path, stdout = csv
+    estimator = LearnedEstimator.load(model, models_dir=MODELS)
+    data = load_training_data(SPLIT, MODELS, PRESET.work_width, PRESET.heldout_every, show_progress=False,
+                              crop_width=estimator.crop_source_width)
+    held = score_heldout(estimator, data, MODELS, show_progress=False, images=list(range(IMAGES)))
+    from brave6d.evaluation.metrics import evaluate_bop19, load_models, load_scene_gt_instances, read_bop_results
+
+    gts = [g for g in load_scene_gt_instances(SPLIT / "000000") if g.im_id < IMAGES]
+    scored = evaluate_bop19(gts, read_bop_results(path), load_models(MODELS, [1, 2, 3, 4]))
+    assert held.pose_ar["detected_rgb"] > 0.01, held.pose_ar  # something to compare
+    assert scored.ar == pytest.approx(held.pose_ar["detected_rgb"], abs=1e-9), (stdout, held.pose_ar)
+    assert stdout.splitlines()[-1].startswith(f"AR {scored.ar:.3f} ")  # what --score printed
