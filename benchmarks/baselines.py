@@ -9,6 +9,8 @@ margin over the static one, and the pooled figures. The episode logs of each set
 
     python benchmarks/baselines.py [--bundle DIR] [--offsets 0 50000 90000 130000] [--json out.json]
         [--learned-model MODEL_DIR]   # also the four learned agents (brave6d learn train), and their margin
+        [--detector MODULE:FACTORY] [--pose-estimator MODULE:FACTORY]  # the learned agents on your own
+                                      # estimators (brave6d.evaluation.estimators; docs/GUIDE.md)
 
 Default bundle: ``runs/demo/scene/bundle`` (what ``bash scripts/demo.sh`` writes).
 """
@@ -47,18 +49,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
     ap.add_argument("--learned-model", type=Path, default=None,
                     help="a trained model folder: the learned agents play too (default: the weight-free ones only)")
+    ap.add_argument("--detector", default=None, metavar="MODULE:FACTORY",
+                    help="the learned agents' detector: a factory of your own (brave6d.evaluation.estimators.Detector), "
+                         "or 'learned' (default: the trained model's)")
+    ap.add_argument("--pose-estimator", default=None, metavar="MODULE:FACTORY",
+                    help="the learned agents' pose estimator: a factory of your own, 'learned' or 'registration' "
+                         "(weight-free, the -depth agents only)")
     args = ap.parse_args(argv)
     if not (args.bundle / "manifest.json").is_file():
         ap.error(f"{args.bundle}: no bundle (run `bash scripts/demo.sh` first, or pass --bundle)")
     out_root = args.out or Path(tempfile.mkdtemp(prefix="brave6d_baselines_"))
-    names = runnable_agents(AgentSetup(learned_model=args.learned_model))
+    setup = AgentSetup(learned_model=args.learned_model, detector=args.detector, pose_estimator=args.pose_estimator)
+    names = runnable_agents(setup)
     rows = []
     print(f"{'seed offset':>11} | " + " | ".join(f"{name:>15}" for name in names) +
           f" | {'active - static':>15} | {'adjustments':>11} | {'seconds':>7}", flush=True)
     for offset in args.offsets:
         t0 = time.perf_counter()
         run = run_baselines(args.bundle, out_root / f"set_{offset}", device="cpu", seed=offset,
-                            episodes_per_object=args.episodes, learned_model=args.learned_model)
+                            episodes_per_object=args.episodes, setup=setup)
         agents = {a.agent: a for a in run.board.agents}
         static, active = agents[STATIC_AGENT], agents[ACTIVE_AGENT]
         row = {"offset": offset, "episodes": static.episodes, "ar": {name: agents[name].ar for name in names},
