@@ -30,7 +30,9 @@ so the split is laid out as a dataset named ``brave6d`` (``test/`` linking to th
 ``models_eval/`` to the models) and ``dataset_params`` is told its objects, scenes and image size
 before each script runs. Prints bop_toolkit's AR, AR_VSD, AR_MSSD, AR_MSPD beside brave6d's own
 scoring of the same CSV (``brave6d.evaluation.metrics.evaluate_bop19``); exit status 0 when every
-figure agrees to 1e-6.
+figure agrees to ``--tolerance`` (1e-6). MSSD and MSPD need no rendering and agree exactly; VSD
+compares renders, where bop_toolkit's OpenGL rasterisation and brave6d's ray casting may differ by
+a pixel on a triangle's edge (docs/BENCHMARKS.md gives the measured difference).
 """
 
 from __future__ import annotations
@@ -56,6 +58,8 @@ def main() -> int:
     parser.add_argument("--results", type=Path, help="a BOP results CSV to evaluate (instead of a release)")
     parser.add_argument("--split", type=Path, help="with --results: the BOP split folder it was estimated on")
     parser.add_argument("--models", type=Path, help="with --results: the BOP models folder (mm)")
+    parser.add_argument("--tolerance", type=float, default=AGREEMENT,
+                        help="with --results: the largest difference of an AR accepted (default %(default)g)")
     parser.add_argument("--bop-toolkit", type=Path, required=True, help="a checkout of github.com/thodan/bop_toolkit")
     parser.add_argument("--venv", type=Path, default=Path(".venv-bop-toolkit"), help="where the virtualenv goes")
     args = parser.parse_args()
@@ -66,7 +70,7 @@ def main() -> int:
         try:
             if args.results is not None:
                 return evaluate_inside(Path(os.environ["BRAVE6D_BOP_DATASET"]), args.bop_toolkit.resolve(),
-                                       json.loads(os.environ["BRAVE6D_BOP_OURS"]))
+                                       json.loads(os.environ["BRAVE6D_BOP_OURS"]), args.tolerance)
             return check(Path(os.environ["BRAVE6D_BOP_DATASET"]))
         except (OSError, KeyError, ValueError) as exc:  # a file bop_toolkit cannot read
             return _fail(f"{type(exc).__name__}: {exc}")
@@ -230,7 +234,7 @@ def _run_script(toolkit: Path, base: Path, script: str, arguments: list[str]) ->
         raise ValueError(f"bop_toolkit's {script} failed: {done.stderr.strip().splitlines()[-1:]}")
 
 
-def evaluate_inside(base: Path, toolkit: Path, ours: dict[str, float]) -> int:
+def evaluate_inside(base: Path, toolkit: Path, ours: dict[str, float], tolerance: float = AGREEMENT) -> int:
     """eval_bop19_pose.py's loop over eval_calc_errors.py and eval_calc_scores.py; bop_toolkit's
     figures against ``ours`` (see the module docstring)."""
     import numpy as np
@@ -277,9 +281,9 @@ def evaluate_inside(base: Path, toolkit: Path, ours: dict[str, float]) -> int:
               f"  difference {theirs[k] - ours[k]:+.2e}")
     if n_targets != ours["targets"]:
         return _fail(f"bop_toolkit counts {n_targets} targets, brave6d {ours['targets']}")
-    if worst > AGREEMENT:
-        return _fail(f"the figures differ by up to {worst:.2e} (more than {AGREEMENT:g})")
-    print(f"bop_toolkit and brave6d agree to {AGREEMENT:g} (largest difference {worst:.1e})")
+    if worst > tolerance:
+        return _fail(f"the figures differ by up to {worst:.2e} (more than {tolerance:g})")
+    print(f"bop_toolkit and brave6d agree to {tolerance:g} (largest difference {worst:.1e})")
     return 0
 
 
