@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from brave6d.core.errors import BraveError
 from brave6d.evaluation.agents import LEARNED_ACTIVE_AGENT, LEARNED_ACTIVE_DEPTH_AGENT, LEARNED_AGENTS, \
@@ -161,3 +163,47 @@ def test_a_wrong_pose_stops_with_one_line_naming_the_estimator(matrix: np.ndarra
         good = np.eye(4)
         good[2, 3] = 0.3
         checked_pose(EstimatedPose(good, math.nan), CentroidPoseEstimator())
+
+
+def test_the_weight_free_registration_plays_as_a_pose_estimator_and_needs_depth(bundle_dir: Path, tmp_path: Path) -> None:
+    from brave6d.evaluation.demo import run_baselines
+
+    setup = AgentSetup(detector="test_estimator_protocol:make_detector", pose_estimator="registration")
+    run = run_baselines(bundle_dir, tmp_path, device="cpu", width=160, setup=setup,
+                        agents=[LEARNED_STATIC_AGENT, LEARNED_STATIC_DEPTH_AGENT])
+    board = {a.agent: a.ar for a in run.board.agents}
+    print(board)
+    assert board[LEARNED_STATIC_DEPTH_AGENT] > 0.3  # FPFH + ICP on the CAD model: the centroid's 0.26 and better
+    rgb_only = [o for o in run.outcomes if o.agent == LEARNED_STATIC_AGENT]
+    assert rgb_only and all(o.estimates == [] and o.notes["refused"] == "needs-depth" for o in rgb_only)
+
+
+finite = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(finite, min_size=16, max_size=16), st.one_of(finite, st.integers(-2, 2)))
+def test_no_pose_passes_the_checks_unless_finite_rigid_and_in_front(values: list[float], score: float) -> None:
+    T = np.array(values, dtype=np.float64).reshape(4, 4)
+    try:
+        checked_pose(EstimatedPose(T, score), CentroidPoseEstimator())
+    except BraveError as exc:
+        assert "\n" not in str(exc) and "CentroidPoseEstimator" in str(exc)
+        return
+    R = T[:3, :3]
+    assert np.all(np.isfinite(T)) and np.allclose(R.T @ R, np.eye(3), atol=1e-3) and T[2, 3] > 0 and 0 <= score <= 1
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(finite, min_size=4, max_size=4), finite)
+def test_no_detection_passes_the_checks_unless_its_box_and_score_are_sound(box: list[float], score: float) -> None:
+    from brave6d.evaluation.estimators import checked_detections
+
+    try:
+        (d,) = checked_detections([Detection(1, tuple(box), score)], ColourDetector({}), obj_id=1)  # type: ignore[arg-type]
+    except BraveError as exc:
+        assert "\n" not in str(exc) and "ColourDetector" in str(exc)
+        return
+    assert all(math.isfinite(b) for b in d.box) and d.box[2] > d.box[0] and d.box[3] > d.box[1] and 0 <= d.score <= 1
+    with pytest.raises(BraveError, match="asked for object 2"):
+        checked_detections([d], ColourDetector({}), obj_id=2)

@@ -61,7 +61,7 @@ def checked_pose(pose: Any, source: Any) -> Any:
         raise BraveError(f"{who}.estimate: cam_T_obj must be a finite 4x4 matrix, got shape {T.shape}"
                          + ("" if T.shape != (4, 4) else " with NaN or inf"))
     R = T[:3, :3]
-    if not (np.allclose(R.T @ R, np.eye(3), atol=RIGID_TOLERANCE) and abs(np.linalg.det(R) - 1.0) < RIGID_TOLERANCE
+    if not (np.abs(R).max() <= 1.0 + RIGID_TOLERANCE and np.allclose(R.T @ R, np.eye(3), atol=RIGID_TOLERANCE) and abs(np.linalg.det(R) - 1.0) < RIGID_TOLERANCE
             and np.allclose(T[3], [0.0, 0.0, 0.0, 1.0])):
         raise BraveError(f"{who}.estimate: cam_T_obj is not a rigid transform (a rotation and a translation)")
     if not T[2, 3] > 0:
