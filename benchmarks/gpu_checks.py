@@ -47,9 +47,15 @@ about 4.5 MB, carried with the wheels: 16 MB together, the tree 15 MB, of the 64
    whole train_pbr carried as JPEG (``prepare --learned-full WORKDIR/learned/synth
    --learned-full-models WORKDIR/scene/annotation/bop/models``: the demo's 300 images in 32 MB,
    JPEG 90 4:4:4, which cost 0.008 AR RGB-only on the CPU); its
-   model comes back for ``score-learned ... --full-split SPLIT --full-models MODELS`` here.
-   ``--learned-full-only`` runs it alone, as a
-   call of its own (4800:16000: about 7 min at the rates an H200 showed on 2026-11-29, an estimate).
+   model comes back for ``score-learned ... --full-split SPLIT --full-models MODELS`` here. It runs
+   only with ``--learned-full-only``, alone, in a device call of its own (4800:16000: about 7 min at
+   the rates an H200 showed on 2026-11-29, an estimate), never inside the main run, which must fit
+   one call.
+
+The report (``gpu_checks.md``) opens with issue #68's targets, each measured figure beside its goal
+(:func:`issue_targets`: the fast step, the ratio to gsplat's loop, host syncs per step in the
+reference-loop run and in the lean-step test, 64 agents' steps per second, the holdout PSNR against
+the figure before), and ends with each step's seconds against the call's budget.
 
 Without a GPU the CUDA parts are reported as not run (so the wiring is tested on the CPU).
 """
@@ -101,6 +107,13 @@ LEARNED_SPEC = ROOT / "data" / "demo" / "scene.yaml"
 #: demo's 300 images in about 32 MB: with the tree and the wheels inside a call's 64 MiB)
 LEARNED_FULL = ROOT / ".whl" / "learned_full"
 LEARNED_FULL_JPEG = 90
+#: issue #68's targets, the first table of every report (the 64-agent host side is a CPU benchmark:
+#: benchmarks/vector_env_host.py; it needs Open3D, which the GPU image lacks)
+FAST_STEP_MS, LOOP_RATIO, HOST_SYNCS, AGENT_STEPS_PER_S = 4.5, 1.25, 4.0, 1000.0
+#: the toy plane's holdout PSNR at 2000 GPU steps before issue #68 (the H200's, 2026-11-29), and how
+#: far below it a run may end
+PSNR_BEFORE_DB, PSNR_STEPS, PSNR_TOLERANCE_DB = 27.97, 2000, 0.1
+LEAN_STEP_TEST = "test_cuda_lean_step_waits_for_the_device_at_most_4_times_per_step"
 
 
 def prepare(dest: Path) -> list[Path]:
@@ -584,11 +597,97 @@ def vector_env_markdown(runs: dict[str, Any]) -> list[str]:
     return lines
 
 
+def issue_targets(report: dict[str, Any]) -> list[dict[str, Any]]:
+    """Issue #68's rows, each measured figure beside its goal: ``{"target", "goal", "measured",
+    "text", "met"}`` (``met`` None and ``text`` saying why when the run did not measure it)."""
+    cuda = report.get("cuda")
+
+    def missing(part: Any, skipped_by: str) -> str:
+        if not cuda:
+            return "not measured: no CUDA GPU"
+        if part is None:
+            return f"not measured: step not run ({skipped_by}, or the run stopped before it)"
+        return f"not measured: the step failed ({part.get('error') or 'exit ' + str(part.get('exit'))})"
+
+    rows: list[dict[str, Any]] = []
+
+    def row(target: str, goal: str, value: float | None, text: str, met: bool | None) -> None:
+        rows.append({"target": target, "goal": goal, "measured": value, "text": text, "met": met})
+
+    ref = report.get("reference_loop")
+    project = ref.get("project") if ref and ref.get("ok") else None
+    goal = f"<= {FAST_STEP_MS:g} ms"
+    if project:
+        ms = project["ms_per_step"]
+        row("fast step on the toy plane", goal, ms, f"{ms:.2f} ms (steps {ref['window'][0]}-{ref['window'][1]})",
+            ms <= FAST_STEP_MS)
+        ratio, loop = ref["project_over_reference"], ref["reference"]["ms_per_step"]
+        row("vs gsplat's minimal loop, same start and schedule", f"<= {LOOP_RATIO:g}x", ratio,
+            f"{ratio:.2f}x (loop {loop:.2f} ms)", ratio <= LOOP_RATIO)
+        syncs = project.get("syncs_per_step")
+        row("host syncs per step, reference-loop run", f"<= {HOST_SYNCS:g}", syncs,
+            "not counted" if syncs is None else f"{syncs:.1f}", None if syncs is None else syncs <= HOST_SYNCS)
+    else:
+        why = missing(ref, "--skip-reference-loop")
+        for target, g in (("fast step on the toy plane", goal),
+                          ("vs gsplat's minimal loop, same start and schedule", f"<= {LOOP_RATIO:g}x"),
+                          ("host syncs per step, reference-loop run", f"<= {HOST_SYNCS:g}")):
+            row(target, g, None, why, None)
+    tests = report.get("tests")
+    lean = ((tests or {}).get("measured") or {}).get(LEAN_STEP_TEST, {}).get("host_syncs_per_step")
+    if lean is not None:
+        row("host syncs per step, lean-step test", f"<= {HOST_SYNCS:g}", lean, f"{lean:.1f}", lean <= HOST_SYNCS)
+    else:
+        why = "not measured: the lean-step test recorded nothing" if cuda and tests else missing(tests, "--skip-tests")
+        row("host syncs per step, lean-step test", f"<= {HOST_SYNCS:g}", None, why, None)
+    vector = report.get("vector_env", {}).get("cuda")
+    rows64 = [r for r in (vector or {}).get("rows", []) if r["agents"] == 64] if vector and vector.get("ok") else []
+    goal = f">= {AGENT_STEPS_PER_S:g}"
+    if rows64:
+        rate = rows64[0]["env_batched"]
+        w, h = vector["size"]
+        row(f"64 agents at {w}x{h}, agent steps/s", goal, rate,
+            f"{rate:.0f} batched ({rows64[0]['env_loop']:.0f} as a loop)", rate >= AGENT_STEPS_PER_S)
+    else:
+        row("64 agents at 320x240, agent steps/s", goal, None, missing(vector, "--skip-vector-env"), None)
+    training = report.get("training", {}).get("cuda")
+    goal = f">= {PSNR_BEFORE_DB - PSNR_TOLERANCE_DB:.2f} dB (within {PSNR_TOLERANCE_DB:g} of {PSNR_BEFORE_DB:.2f})"
+    if training and training.get("ok") and training["steps"] == PSNR_STEPS:
+        psnr = training["holdout_psnr"]
+        row(f"holdout PSNR, toy plane, {PSNR_STEPS} steps", goal, psnr,
+            f"{psnr:.2f} dB ({psnr - PSNR_BEFORE_DB:+.2f})", psnr >= PSNR_BEFORE_DB - PSNR_TOLERANCE_DB)
+    elif training and training.get("ok"):
+        row(f"holdout PSNR, toy plane, {PSNR_STEPS} steps", goal, None,
+            f"not comparable: {training['steps']} steps (the figure before is at {PSNR_STEPS})", None)
+    else:
+        row(f"holdout PSNR, toy plane, {PSNR_STEPS} steps", goal, None, missing(training, "training"), None)
+    return rows
+
+
+def targets_markdown(rows: list[dict[str, Any]]) -> list[str]:
+    """The targets' table: measured beside goal, met yes / no / not measured."""
+    lines = ["| issue #68's target | measured | goal | met |", "|---|---|---|---|"]
+    lines += [f"| {r['target']} | {r['text']} | {r['goal']} | "
+              f"{'-' if r['met'] is None else 'yes' if r['met'] else '**no**'} |" for r in rows]
+    return lines
+
+
+def seconds_markdown(seconds: dict[str, float]) -> list[str]:
+    """Each step's seconds and their total against the call's budget (does the run fit one call?)."""
+    if not seconds:
+        return []
+    budget = os.environ.get("GPU_CHECKS_BUDGET_S", "480")
+    return ["", "Seconds per step: " + ", ".join(f"{k} {v:.0f}" for k, v in seconds.items())
+            + f"; total {sum(seconds.values()):.0f} of the call's budget {budget} s"]
+
+
 def markdown(report: dict[str, Any]) -> str:
     """The report as a short page (what a session pastes into its note and docs/BENCHMARKS.md)."""
     cuda = report["cuda"]
     lines = [f"# GPU checks ({cuda['name'] if cuda else 'no CUDA GPU: CUDA parts not run'})", "",
              f"torch {report['torch']}, Python {report['python']}, commit {report['commit']}", ""]
+    if "training" in report:  # a main run (not step 7's call of its own): the issue's targets first
+        lines += [*targets_markdown(issue_targets(report)), ""]
     if report.get("gsplat_build"):
         b = report["gsplat_build"]
         lines.append(f"- gsplat CUDA extension: {'built' if b['ok'] else 'FAILED'} in {b['seconds']:.0f} s"
@@ -631,6 +730,7 @@ def markdown(report: dict[str, Any]) -> str:
     lines += vector_env_markdown(report.get("vector_env", {}))
     lines += learned_markdown(report.get("learned", {}), report.get("learned_ratio"))
     lines += learned_full_markdown(report.get("learned_full"))
+    lines += seconds_markdown(report.get("step_seconds", {}))
     return "\n".join(lines) + "\n"
 
 
@@ -705,24 +805,35 @@ def run(args: argparse.Namespace) -> int:
                               "commit": commit.stdout.strip() or "unknown", "training": {}, "render": {}}
     devices = (["cuda"] if args.skip_cpu else ["cuda", "cpu"]) if cuda else ["cpu"]
 
-    def save() -> None:
-        """After each step: what is known so far on disk and on screen (a run cut short keeps it)."""
+    report["step_seconds"] = {}
+    mark = [time.perf_counter()]
+
+    def save(step: str | None = None) -> None:
+        """After each step: what is known so far on disk and on screen (a run cut short keeps it),
+        with the step's seconds and the targets' table."""
+        if step is not None:
+            now = time.perf_counter()
+            report["step_seconds"][step] = report["step_seconds"].get(step, 0.0) + now - mark[0]
+            mark[0] = now
+        if "training" in report and not args.learned_full_only:
+            report["targets"] = issue_targets(report)
         write_report(out, report)
 
     if args.learned_full_only:  # a call of its own for step 7 (no gsplat build, no other step)
+        del report["training"], report["render"]
         report["learned_full"] = (train_learned_full(args.learned_full, out, args.learned_full_steps) if cuda else
                                   {"ok": False, "skipped": "no CUDA GPU"})
-        save()
+        save("7 learned, whole split")
         return 0 if report["learned_full"].get("ok") else 1
     # every GPU figure first, the CPU's rows after them: a run cut short by the device's time keeps
     # what only the GPU can show
     if cuda:
         report["gsplat_build"] = build_gsplat()
-        save()
+        save("1 gsplat build")
     if not args.skip_tests:
         # on the GPU only its own tests (their CPU neighbours run in CI), on a CPU the whole files
         report["tests"] = run_tests(out, CUDA_TESTS, GPU_ONLY_TESTS if cuda else ())
-        save()
+        save("2 tests")
     if not args.skip_vector_env:
         report["vector_env"] = {}
     if not args.skip_learned:
@@ -731,38 +842,35 @@ def run(args: argparse.Namespace) -> int:
         steps = args.steps if device == "cuda" else args.cpu_steps
         report["training"][device] = train_toy(out, device, steps, args.cpu_steps, args.width, args.views_per_ring)
         report["same_step"] = same_step_ratio(report["training"])
-        save()
+        save(f"3 training {device}")
         if device == "cuda" and not args.skip_reference_loop:
             report["reference_loop"] = reference_loop(out, args.steps, args.width, args.views_per_ring)
-            save()
+            save("3b reference loop")
         report["render"][device] = render_timing(device, args.gaussians, args.repeats)
         if device == "cuda" and args.large_render_gaussians > 0:  # the issue's second serving row
             report["render"]["cuda 1280x800"] = render_timing("cuda", args.large_render_gaussians,
                                                               args.repeats, 1280, 800)
-        save()
+        save(f"4 render {device}")
         if not args.skip_vector_env:
             report["vector_env"][device] = vector_env_check(out, device, args.gaussians)
-            save()
+            save(f"5 vector env {device}")
         if args.skip_learned:
             continue
         report["learned"][device] = train_learned_check(args.learned_bundle, out, device, args.learned_steps)
         report["learned_ratio"] = learned_ratio(report["learned"])
-        save()
+        save(f"6 learned {device}")
         if device == "cuda":  # what bfloat16 buys on the GPU (the CPU's figure: docs/BENCHMARKS.md), and
             # the paper preset's networks at the same steps (its whole schedule's time, extrapolated)
             report["learned"]["cuda bf16"] = train_learned_check(args.learned_bundle, out, "cuda", args.learned_steps,
                                                                  "bf16")
-            save()
+            save("6 learned cuda bf16")
             report["learned"]["cuda paper bf16"] = train_learned_check(args.learned_bundle, out, "cuda",
                                                                        args.learned_steps, "bf16", "paper")
-            save()
+            save("6 learned cuda paper")
             # what making batches ahead buys: the same run with each batch made in line, as before
             report["learned"]["cuda, batches in line"] = train_learned_check(args.learned_bundle, out, "cuda",
                                                                              args.learned_steps, ahead=0)
-            save()
-    if cuda and args.learned_full_steps:  # step 7: a long training on the whole split, GPU only
-        report["learned_full"] = train_learned_full(args.learned_full, out, args.learned_full_steps)
-        save()
+            save("6 learned cuda in line")
     failed = (report.get("gsplat_build", {"ok": True})["ok"] is False
               or report.get("tests", {"exit": 0})["exit"] != 0
               or not all(r.get("ok") for part in ("training", "render") for r in report[part].values())
@@ -816,8 +924,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="learned estimator: training steps per network, on each device")
     r.add_argument("--learned-bundle", type=Path, default=LEARNED_BUNDLE, help="the split prepare made")
     r.add_argument("--learned-full-steps", type=_steps_pair, default=None, metavar="DETECTOR:POSE",
-                   help="step 7 (GPU only): the fast preset with these steps on the whole split that "
-                        "`prepare --learned-full` made, e.g. 4800:16000")
+                   help="step 7 (GPU only, with --learned-full-only: a call of its own): the fast preset with "
+                        "these steps on the whole split that `prepare --learned-full` made, e.g. 4800:16000")
     r.add_argument("--learned-full", type=Path, default=LEARNED_FULL, help="the whole split prepare made")
     r.add_argument("--learned-full-only", action="store_true",
                    help="run step 7 alone (with --learned-full-steps; a device call of its own)")
@@ -832,6 +940,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.command == "run" and args.learned_full_only and not args.learned_full_steps:
         ap.error("--learned-full-only needs --learned-full-steps DETECTOR:POSE")
+    if args.command == "run" and args.learned_full_steps and not args.learned_full_only:
+        ap.error("step 7 (--learned-full-steps) runs in a device call of its own: add --learned-full-only "
+                 "(bash benchmarks/gpu_checks.sh --learned-full-only --learned-full-steps DETECTOR:POSE)")
     if args.command == "prepare":
         if (args.learned_full is None) != (args.learned_full_models is None):
             raise SystemExit("gpu_checks prepare: --learned-full and --learned-full-models go together")

@@ -3,8 +3,12 @@
 #   here:   python benchmarks/gpu_checks.py prepare     (wheels and the learned split into .whl/, ignored by git)
 #   device: run(command="bash benchmarks/gpu_checks.sh", carry=[".whl"], timeout_s=560)
 #   after:  python benchmarks/gpu_checks.py score-learned FILES_AT --out DIR   (held-out scores of the returned model)
-# Extra arguments go to `gpu_checks.py run` (e.g. --steps 1000 --skip-tests --learned-steps 500 --skip-learned
-# --skip-vector-env, or --learned-full-steps 4800:16000 after `prepare --learned-full ...`).
+# $OUT/gpu_checks.md opens with issue #68's targets (each measured figure beside its goal) and ends with
+# each step's seconds against the budget. Extra arguments go to `gpu_checks.py run` (e.g. --steps 1000
+# --skip-tests --learned-steps 500 --skip-learned --skip-vector-env --skip-cpu).
+# Step 7 (the learned estimator's long training, after `prepare --learned-full ...`) is a call of its own:
+#   device: run(command="bash benchmarks/gpu_checks.sh --learned-full-only --learned-full-steps 4800:16000",
+#               carry=[".whl"], timeout_s=560)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out="${OUT:-/tmp/gpu_checks}"

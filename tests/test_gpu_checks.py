@@ -51,6 +51,12 @@ def test_the_run_trains_and_renders_on_the_cpu_and_says_the_cuda_parts_did_not_r
     assert report["same_step"] is None  # nothing to compare without a GPU
     # the learned step without its prepared split: said, not a failure of the other checks
     assert not report["learned"]["cpu"]["ok"] and "skipped (no prepared split" in page
+    # issue #68's targets open the page, none measured without a GPU; each step's seconds close it
+    assert page.index("| issue #68's target |") < page.index("| training (toy plane")
+    assert len(report["targets"]) == 6 and all(t["met"] is None and "no CUDA GPU" in t["text"]
+                                               for t in report["targets"])
+    assert {"3 training cpu", "4 render cpu", "5 vector env cpu", "6 learned cpu"} <= set(report["step_seconds"])
+    assert "Seconds per step: 3 training cpu" in page and "of the call's budget" in page
 
 
 def test_the_gpu_only_tests_are_counted_and_their_measurements_read(tmp_path: Path) -> None:
@@ -195,3 +201,50 @@ def test_the_long_runs_steps_are_two_positive_numbers(text: str) -> None:
     with pytest.raises(argparse.ArgumentTypeError, match="DETECTOR:POSE|positive"):
         gpu_checks._steps_pair(text)
     assert gpu_checks._steps_pair("4800:16000") == (4800, 16000)
+
+
+def gpu_report(**parts: object) -> dict:
+    """A GPU run's report as run() builds it, with the figures of the targets' rows."""
+    report = {"cuda": {"name": "NVIDIA H100"}, "torch": "2.11", "python": "3.12", "commit": "abc", "render": {},
+              "tests": {"exit": 0, "seconds": 30.0,
+                        "measured": {gpu_checks.LEAN_STEP_TEST: {"host_syncs_per_step": 3.5}}},
+              "training": {"cuda": {"ok": True, "steps": 2000, "holdout_psnr": 27.9}},
+              "reference_loop": {"ok": True, "window": [320, 2000], "project_over_reference": 5.0 / 4.1,
+                                 "project": {"ms_per_step": 5.0, "syncs_per_step": 4.8, "gaussians": 9,
+                                             "holdout_psnr": 27.9},
+                                 "reference": {"ms_per_step": 4.1, "syncs_per_step": None, "gaussians": 9,
+                                               "holdout_psnr": 27.0}},
+              "vector_env": {"cuda": {"ok": True, "size": [320, 240], "depth_mode": "median", "rows": [
+                  {"agents": 8, "env_batched": 400.0, "env_loop": 150.0, "render_batched": 800.0, "render_loop": 200.0},
+                  {"agents": 64, "env_batched": 1100.0, "env_loop": 200.0, "render_batched": 900.0,
+                   "render_loop": 210.0}]}}}
+    return {**report, **parts}
+
+
+def test_the_report_puts_each_of_issue_68s_figures_beside_its_target() -> None:
+    rows = {r["target"]: r for r in gpu_checks.issue_targets(gpu_report())}
+    assert [(r["measured"], r["met"]) for r in rows.values()] == [
+        (5.0, False), (pytest.approx(1.2195, abs=1e-4), True), (4.8, False), (3.5, True), (1100.0, True), (27.9, True)]
+    assert rows["fast step on the toy plane"]["text"] == "5.00 ms (steps 320-2000)"
+    assert rows["64 agents at 320x240, agent steps/s"]["text"] == "1100 batched (200 as a loop)"
+    assert rows["holdout PSNR, toy plane, 2000 steps"]["goal"] == ">= 27.87 dB (within 0.1 of 27.97)"
+    page = gpu_checks.markdown({**gpu_report(), "training": {}, "step_seconds": {"1 gsplat build": 61.0}})
+    assert "| fast step on the toy plane | 5.00 ms (steps 320-2000) | <= 4.5 ms | **no** |" in page
+    assert "| host syncs per step, lean-step test | 3.5 | <= 4 | yes |" in page
+    assert "Seconds per step: 1 gsplat build 61; total 61 of the call's budget" in page
+    # what a run did not measure is said, with why, and counts as neither met nor missed
+    short = {r["target"]: r for r in gpu_checks.issue_targets(gpu_report(
+        reference_loop={"ok": False, "exit": 1}, vector_env={}, tests=None,
+        training={"cuda": {"ok": True, "steps": 500, "holdout_psnr": 25.0}}))}
+    assert all(r["met"] is None for r in short.values())
+    assert short["fast step on the toy plane"]["text"] == "not measured: the step failed (exit 1)"
+    assert "step not run (--skip-vector-env" in short["64 agents at 320x240, agent steps/s"]["text"]
+    assert "step not run (--skip-tests" in short["host syncs per step, lean-step test"]["text"]
+    assert short["holdout PSNR, toy plane, 2000 steps"]["text"].startswith("not comparable: 500 steps")
+
+
+def test_step_7_runs_only_in_a_call_of_its_own(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        gpu_checks.main(["run", "--out", str(tmp_path), "--learned-full-steps", "4800:16000"])
+    assert exc.value.code == 2 and "runs in a device call of its own: add --learned-full-only" in capsys.readouterr().err
+    assert not (tmp_path / "gpu_checks.json").exists()
