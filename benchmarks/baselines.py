@@ -51,9 +51,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="a trained model folder: the learned agents play too (default: the weight-free ones only)")
     ap.add_argument("--detector", default=None, metavar="MODULE:FACTORY",
                     help="the learned agents' detector: a factory of your own (brave6d.evaluation.estimators.Detector), "
-                         "or 'learned' (default: the trained model's)")
+                         "'learned' (default: the trained model's) or 'learned-onnx' (its ONNX export on ONNX Runtime)")
     ap.add_argument("--pose-estimator", default=None, metavar="MODULE:FACTORY",
-                    help="the learned agents' pose estimator: a factory of your own, 'learned' or 'registration' "
+                    help="the learned agents' pose estimator: a factory of your own, 'learned', 'learned-onnx' or "
+                         "'registration' "
                          "(weight-free, the -depth agents only)")
     args = ap.parse_args(argv)
     if not (args.bundle / "manifest.json").is_file():

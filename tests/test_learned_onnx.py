@@ -132,3 +132,17 @@ def test_the_command_line_exports_and_names_the_missing_extra(tmp_path: Path, mo
     assert main(["learn", "export-onnx", str(folder)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "needs the 'onnx' extra" in err and "pip install 'brave6d[onnx]'" in err
+
+
+def test_the_learned_agents_play_on_onnx_runtime(exported: Path, tmp_path: Path) -> None:
+    from brave6d.evaluation.agents import LEARNED_ACTIVE_DEPTH_AGENT, AgentSetup, make_agent, run_episode
+    from brave6d.serve import BraveClient, ServerThread, create_app, load_bundle, make_synthetic_bundle
+
+    bundle = load_bundle(make_synthetic_bundle(tmp_path / "scene", n_gaussians=5_000))
+    setup = AgentSetup(learned_model=exported, detector="learned-onnx", pose_estimator="learned-onnx")
+    with ServerThread(create_app(bundle, device="cpu", warm_up=False)) as server, BraveClient(server.url) as client:
+        agent = make_agent(LEARNED_ACTIVE_DEPTH_AGENT, client, setup)
+        assert agent.detector.estimator.runtime == agent.pose_estimator.estimator.runtime == "onnxruntime"
+        outcome = run_episode(client, agent, bundle.objects[0].gt_id, seed=3, width=160, height=120)
+    # this untrained model knows objects 3, 5, 8, not the toy scene's: refused by name, as on torch
+    assert outcome.estimates == [] and outcome.notes["refused"] == "unknown-object"

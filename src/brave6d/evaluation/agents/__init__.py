@@ -88,7 +88,8 @@ class AgentSetup:
     ``detector`` / ``pose_estimator``: what the learned agents play with instead of the trained
     networks: an object implementing :class:`~brave6d.evaluation.estimators.Detector` /
     :class:`~brave6d.evaluation.estimators.PoseEstimator`, ``"MODULE:FACTORY"`` (a callable of no
-    arguments that makes one) or a built-in name (``"learned"``, ``"registration"``: pose only);
+    arguments that makes one) or a built-in name (``"learned"``, ``"learned-onnx"``: its ONNX export on
+    ONNX Runtime, ``"registration"``: pose only);
     None: the trained model's (docs/GUIDE.md, "Your own estimator")."""
 
     learned_model: Path | None = None
@@ -100,7 +101,7 @@ class AgentSetup:
     def has_estimators(self) -> bool:
         """Whether the learned agents can play: a trained model, or a detector and a pose estimator
         that need none."""
-        needs_model = [x for x in (self.detector, self.pose_estimator) if x is None or x == "learned"]
+        needs_model = [x for x in (self.detector, self.pose_estimator) if x is None or x in ("learned", "learned-onnx")]
         return self.learned_model is not None or not needs_model
 
 
@@ -119,9 +120,13 @@ def _active_baseline(client: Any, setup: AgentSetup) -> Agent:
 
 
 @lru_cache(maxsize=4)
-def _estimator(model_dir: Path, device: str) -> Any:
+def _estimator(model_dir: Path, device: str, onnx: bool = False) -> Any:
     from brave6d.evaluation.learned import LearnedEstimator
 
+    if onnx:
+        from brave6d.evaluation.learned import use_onnx
+
+        return use_onnx(LearnedEstimator.load(model_dir), model_dir)
     return LearnedEstimator.load(model_dir, device)
 
 
@@ -147,7 +152,7 @@ def _implementation(setup: AgentSetup, role: str, name: str, min_score: float) -
                              "detector and a pose_estimator of your own)")
         from brave6d.evaluation.estimators import LearnedDetector, LearnedPoseEstimator
 
-        estimator = _estimator(Path(setup.learned_model).resolve(), setup.device)
+        estimator = _estimator(Path(setup.learned_model).resolve(), setup.device, kind == "learned-onnx")
         return LearnedDetector(estimator, min_score) if role == "detector" else LearnedPoseEstimator(estimator)
     if isinstance(given, str):
         return load_factory(given, role)

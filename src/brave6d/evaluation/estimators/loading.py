@@ -1,6 +1,7 @@
 """A user's detector or pose estimator named on a command line: ``MODULE:FACTORY`` (``FACTORY`` a
 callable of no arguments in an importable module, e.g. ``my_lab.pose:make_estimator``) or one of the
 built-in names of :data:`BUILT_IN` (``learned``: the trained model of ``--learned-model``;
+``learned-onnx``: the same model's ONNX export run by ONNX Runtime, ``brave6d learn export-onnx``;
 ``registration``: the weight-free depth registration, a pose estimator only)."""
 
 from __future__ import annotations
@@ -12,7 +13,10 @@ from brave6d.core.errors import BraveError
 from brave6d.evaluation.estimators.protocol import Detector, PoseEstimator
 
 #: The built-in implementations by name, and what each can be.
-BUILT_IN = {"learned": ("detector", "pose_estimator"), "registration": ("pose_estimator",)}
+BUILT_IN = {"learned": ("detector", "pose_estimator"), "learned-onnx": ("detector", "pose_estimator"),
+            "registration": ("pose_estimator",)}
+#: The built-in names that need the trained model (``AgentSetup.learned_model``).
+NEEDS_MODEL = ("learned", "learned-onnx")
 _INTERFACES = {"detector": Detector, "pose_estimator": PoseEstimator}
 
 
