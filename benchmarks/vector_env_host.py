@@ -10,9 +10,14 @@ checks, visible fractions (Open3D ray casts), refusals, logs, observation packin
 Figures: process CPU time and wall time per agent step (the machine may be shared: CPU time is
 the steadier one), each the median over ``--repeats`` child processes of the median over
 ``--steps`` steps. With ``--baseline REV`` the same measurement runs on the package as committed at
-``REV`` (``git archive``), the two alternating, child by child, in one run.
+``REV`` (``git archive``), the two alternating, child by child, in one run. ``--breakdown`` (the
+current tree only) also splits the CPU time: the Open3D ray casts (every ``cast_rays``), the rest of
+the visible fractions (``VisibilityComputer.compute_many`` without its casts), the log records
+(``ActionRecord`` and its JSON line), the observation stack (``_batch_obs``: the images copied into
+the batch) and everything else (moves, checks, views, infos), each summed over the timed steps.
 
-    python benchmarks/vector_env_host.py [--agents 64] [--mode scored|training] [--baseline REV] [--json out.json]
+    python benchmarks/vector_env_host.py [--agents 64] [--mode scored|training] [--baseline REV] [--breakdown]
+                                         [--json out.json]
 """
 
 from __future__ import annotations
@@ -32,7 +37,8 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 
 
-def child(src: str, bundle: str, agents: int, steps: int, width: int, height: int, mode: str) -> dict[str, float]:
+def child(src: str, bundle: str, agents: int, steps: int, width: int, height: int, mode: str,
+          breakdown: bool = False) -> dict[str, Any]:
     """One measurement in this process on the package under ``src`` (see the module docstring)."""
     sys.path.insert(0, src)
     import numpy as np
@@ -63,6 +69,7 @@ def child(src: str, bundle: str, agents: int, steps: int, width: int, height: in
             return self.render_batch([pose], camera, **kw)[0]
 
     stand_in = StandInRenderer()
+    parts = timed_parts() if breakdown else None
     scene = SceneServer(load_bundle(bundle), "cpu", renderer=stand_in)
     env = BraveVectorEnv(scene, agents, target="cube_red", width=width, height=height, max_steps=10**6, mode=mode)
     rng = np.random.default_rng(0)
@@ -70,6 +77,8 @@ def child(src: str, bundle: str, agents: int, steps: int, width: int, height: in
     env.reset(seed=0)
     env.step(actions[0])  # warm-up
     cpu, wall, accepted = [], [], 0
+    if parts is not None:
+        parts.update(dict.fromkeys(parts, 0.0))
     for a in actions[1:]:
         stand_in.seconds = 0.0
         c0, t0 = time.process_time(), time.perf_counter()
@@ -79,8 +88,47 @@ def child(src: str, bundle: str, agents: int, steps: int, width: int, height: in
         wall.append((t1 - t0 - stand_in.seconds) / agents * 1000.0)
         accepted += int(np.sum(info["accepted"]))
     env.close()
-    return {"cpu_ms": statistics.median(cpu), "wall_ms": statistics.median(wall),
-            "accepted": accepted / (agents * steps)}
+    out: dict[str, Any] = {"cpu_ms": statistics.median(cpu), "wall_ms": statistics.median(wall),
+                           "accepted": accepted / (agents * steps)}
+    if parts is not None:  # CPU ms per agent step, each part summed over the timed steps
+        per = {k: v * 1000.0 / (agents * steps) for k, v in parts.items()}
+        total = statistics.fmean(cpu)
+        out["parts"] = {"ray casts (Open3D)": per["casts"],
+                        "visible fractions' array code": per["visibility"] - per["casts"],
+                        "log records (ActionRecord + JSON)": per["log"], "observation stack": per["obs"],
+                        "the rest (moves, checks, views, infos)": total - per["visibility"] - per["log"] - per["obs"],
+                        "total (mean)": total}
+    return out
+
+
+def timed_parts() -> dict[str, float]:
+    """Wraps the parts of a step that ``--breakdown`` reports so that each adds its CPU seconds to
+    the returned dict (this child process only; the arithmetic is unchanged)."""
+    import open3d as o3d
+
+    from brave6d.serve import episode_manager, vector_env, visibility
+
+    parts = {"casts": 0.0, "visibility": 0.0, "log": 0.0, "obs": 0.0}
+
+    def timing(key: str, fn: Any) -> Any:
+        def run(*args: Any, **kwargs: Any) -> Any:
+            t0 = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                parts[key] += time.process_time() - t0
+        return run
+
+    scene_class = o3d.t.geometry.RaycastingScene
+    scene_class.cast_rays = timing("casts", scene_class.cast_rays)
+    computer = visibility.VisibilityComputer
+    computer.compute_many = timing("visibility", computer.compute_many)
+    record, fmt = episode_manager.ActionRecord, episode_manager.EpisodeLog.format
+    episode_manager.ActionRecord = timing("log", record)  # type: ignore[misc]
+    episode_manager.EpisodeLog.format = staticmethod(timing("log", fmt))  # type: ignore[method-assign]
+    env_class = vector_env.BraveVectorEnv
+    env_class._batch_obs = timing("obs", env_class._batch_obs)
+    return parts
 
 
 def baseline_src(rev: str, workdir: Path) -> Path:
@@ -102,12 +150,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="child processes per variant (default 3)")
     ap.add_argument("--mode", choices=("scored", "training"), default="scored")
     ap.add_argument("--baseline", default=None, help="also measure the package at this git revision")
+    ap.add_argument("--breakdown", action="store_true", help="split the current tree's CPU time into its parts")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--child", nargs=2, metavar=("SRC", "BUNDLE"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
         print(json.dumps(child(args.child[0], args.child[1], args.agents, args.steps, args.width, args.height,
-                               args.mode)))
+                               args.mode, args.breakdown)))
         return 0
     sys.path.insert(0, str(REPO / "src"))
     from brave6d.serve.toy_scene import make_synthetic_bundle
@@ -121,9 +170,10 @@ def main(argv: list[str] | None = None) -> int:
         env = {**os.environ, "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
         for _ in range(args.repeats):
             for name, src in variants.items():
+                split = ["--breakdown"] if args.breakdown and name == "current" else []
                 out = subprocess.run([sys.executable, __file__, "--child", str(src), str(bundle),
                                       "--agents", str(args.agents), "--steps", str(args.steps), "--width",
-                                      str(args.width), "--height", str(args.height), "--mode", args.mode],
+                                      str(args.width), "--height", str(args.height), "--mode", args.mode, *split],
                                      check=True, capture_output=True, text=True, env=env)
                 runs[name].append(json.loads(out.stdout.strip().splitlines()[-1]))
     print(f"{args.agents} agents, {args.width}x{args.height}, {args.mode} mode, renders replaced by a stand-in "
@@ -135,6 +185,14 @@ def main(argv: list[str] | None = None) -> int:
         row = {k: statistics.median(r[k] for r in rows) for k in ("cpu_ms", "wall_ms", "accepted")}
         report["rows"][name] = row
         print(f"| {name} | {row['cpu_ms']:.3f} | {row['wall_ms']:.3f} | {row['accepted']:.0%} |")
+    split = [r["parts"] for r in runs["current"] if "parts" in r]
+    if split:
+        parts = {k: statistics.median(p[k] for p in split) for k in split[0]}
+        report["breakdown"] = parts
+        print("\n| current tree, CPU ms per agent step (median of the processes, mean over their steps) | ms |"
+              "\n|---|---|")
+        for k, v in parts.items():
+            print(f"| {k} | {v:.3f} |")
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=2))
     return 0

@@ -263,9 +263,12 @@ class SilhouetteCaster:
         the rays costs less than casting them."""
         n = len(owner)
         rays = np.empty((n, 6), dtype=np.float32)
-        rays[:, :3] = np.asarray(origins, dtype=np.float32)[owner]
-        R9 = np.asarray(Rs, dtype=np.float32).reshape(-1, 9).T.copy()  # (9, cameras): one row per entry
         g, tmp, acc = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)
+        o3 = np.asarray(origins, dtype=np.float32).reshape(-1, 3).T.copy()  # (3, cameras)
+        for k in range(3):
+            np.take(o3[k], owner, out=g)
+            rays[:, k] = g
+        R9 = np.asarray(Rs, dtype=np.float32).reshape(-1, 9).T.copy()  # (9, cameras): one row per entry
         for k in range(3):
             np.take(R9[3 * k], owner, out=g)
             np.multiply(x, g, out=acc)
@@ -328,32 +331,40 @@ class SilhouetteCaster:
         cams = np.repeat(np.arange(len(rois)), rows)
         v = np.repeat(rois[:, 2] - (np.cumsum(rows) - rows), rows) + np.arange(len(cams))
         u0, u1 = rois[cams, 0], rois[cams, 1]
-        narrow = whole[cams]
-        if np.any(narrow):
-            c, vv = cams[narrow], v[narrow].astype(np.float64)
-            pu, pv = pu_all[c], pv_all[c]  # (rows, 8)
-            lo_band, hi_band = vv - 1.0, vv + 1.0
-            in_band = (pv >= lo_band[:, None]) & (pv <= hi_band[:, None])
-            umin = np.where(in_band, pu, np.inf).min(axis=1)
-            umax = np.where(in_band, pu, -np.inf).max(axis=1)
-            i, j = _CORNER_PAIRS
-            au, av, bu, bv = pu[:, i], pv[:, i], pu[:, j], pv[:, j]
+        narrow_cams = np.flatnonzero(whole & (rows > 0))
+        if len(narrow_cams):
+            # the hull's extent on every line v = -1 .. rows + 1 of each narrowed camera (its edges are box
+            # edges), then per row v the extent over the band [v - 1, v + 1]: its two lines and the
+            # corners inside it
+            lines = rows[narrow_cams] + 2
+            first_line = np.cumsum(lines) - lines
+            lc = np.repeat(narrow_cams, lines)
+            at = (np.repeat(rois[narrow_cams, 2] - 1 - first_line, lines) + np.arange(len(lc))).astype(np.float64)
+            i, j = _BOX_EDGES
+            au, av, bu, bv = pu_all[lc][:, i], pv_all[lc][:, i], pu_all[lc][:, j], pv_all[lc][:, j]
             dv = bv - av
             flat = dv == 0.0
-            for line in (lo_band, hi_band):
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    s = (line[:, None] - av) / np.where(flat, 1.0, dv)
-                cross = ~flat & (s >= 0.0) & (s <= 1.0)
-                uu = au + s * (bu - au)
-                umin = np.minimum(umin, np.where(cross, uu, np.inf).min(axis=1))
-                umax = np.maximum(umax, np.where(cross, uu, -np.inf).max(axis=1))
+            s = (at[:, None] - av) / np.where(flat, 1.0, dv)
+            cross = ~flat & (s >= 0.0) & (s <= 1.0)
+            uu = au + s * (bu - au)
+            line_min, line_max = np.where(cross, uu, np.inf).min(axis=1), np.where(cross, uu, -np.inf).max(axis=1)
+            narrow = whole[cams]
+            c, vv = cams[narrow], v[narrow]
+            block = np.zeros(len(rois), dtype=np.int64)
+            block[narrow_cams] = first_line
+            below = block[c] + (vv - rois[c, 2])  # line v - 1 of row v
+            pv = pv_all[c]
+            in_band = (pv >= (vv - 1)[:, None]) & (pv <= (vv + 1)[:, None])
+            umin = np.minimum(np.minimum(line_min[below], line_min[below + 2]),
+                              np.where(in_band, pu_all[c], np.inf).min(axis=1))
+            umax = np.maximum(np.maximum(line_max[below], line_max[below + 2]),
+                              np.where(in_band, pu_all[c], -np.inf).max(axis=1))
             empty = ~np.isfinite(umin)
             lo = np.floor(np.where(empty, 0.0, umin)).astype(np.int64) - 1
             hi = np.ceil(np.where(empty, 0.0, umax)).astype(np.int64) + 1
-            nu0, nu1 = u0.copy(), u1.copy()
-            nu0[narrow] = np.maximum(u0[narrow], lo)
-            nu1[narrow] = np.where(empty, nu0[narrow] - 1, np.minimum(u1[narrow], hi))
-            u0, u1 = nu0, nu1
+            u0, u1 = u0.copy(), u1.copy()
+            u0[narrow] = np.maximum(u0[narrow], lo)
+            u1[narrow] = np.where(empty, u0[narrow] - 1, np.minimum(u1[narrow], hi))
         keep = u1 >= u0
         return cams[keep], v[keep], u0[keep], u1[keep]
 
@@ -424,8 +435,10 @@ class MaskRenderer:
         return InstanceMasks(mask, mask & (visible == n), sil.px_count_all, sil.bbox_all)
 
 
-#: The 28 pairs of a box's 8 corners: every edge of the hull of their projection is one of them.
-_CORNER_PAIRS = np.triu_indices(8, 1)
+#: The 12 edges of a box as pairs of :func:`_box_corners`' indices (corner ``4 x + 2 y + z``): the
+#: projection of a box wholly in front of a camera is the hull of its corners, bounded by box edges.
+_BOX_EDGES = (np.array([a for bit in (1, 2, 4) for a in range(8) if not a & bit]),
+              np.array([a | bit for bit in (1, 2, 4) for a in range(8) if not a & bit]))
 
 
 def _invert_many(poses: NDArray[np.float64]) -> NDArray[np.float64]:
