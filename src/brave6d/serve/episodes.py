@@ -133,13 +133,10 @@ class Ticket:
 
 # ----------------------------------------------------------------------------- views
 def object_state(obj: BundleObject, cam_T_obj: Matrix4, visibility: Visibility | None, is_target: bool) -> ObjectState:
-    """The wire/log record of one object in one view (visibility fields None when not computed).
-    Built without pydantic's validation (a view's hot path): every value already has the type
-    validation would give it, a finite float64 4x4 pose and :meth:`Visibility.to_json`'s counts."""
+    """The wire/log record of one object in one view (visibility fields None when not computed)."""
     vis = visibility.to_json() if visibility is not None else {}
-    return ObjectState.model_construct(gt_id=int(obj.gt_id), obj_id=int(obj.obj_id), name=str(obj.name),
-                                       is_target=bool(is_target), cam_T_obj=np.asarray(cam_T_obj, dtype=np.float64),
-                                       **vis)
+    return ObjectState(gt_id=obj.gt_id, obj_id=obj.obj_id, name=obj.name, is_target=is_target,
+                       cam_T_obj=cam_T_obj, **vis)
 
 
 @dataclass(frozen=True)
