@@ -111,12 +111,18 @@ def test_a_grey_split_is_refused_naming_gray(tmp_path: Path) -> None:
     assert "\n" not in message and str(scene / "gray") in message and "colour" in message
 
 
-def test_a_missing_depth_scale_is_refused_naming_file_and_field(tmp_path: Path) -> None:
+def without_depth_scale(tmp_path: Path, im_id: int) -> Path:
+    """A copy of the sample's scene folder whose image ``im_id`` lacks ``depth_scale``."""
     scene = tmp_path / "train_pbr" / "000000"
     shutil.copytree(SPLIT / "000000", scene)
     cams = json.loads((scene / "scene_camera.json").read_text())
-    del cams["3"]["depth_scale"]
+    del cams[str(im_id)]["depth_scale"]
     (scene / "scene_camera.json").write_text(json.dumps(cams))
+    return scene
+
+
+def test_a_missing_depth_scale_is_refused_naming_file_and_field(tmp_path: Path) -> None:
+    scene = without_depth_scale(tmp_path, 3)
     for read in (lambda: read_split_scene(scene),
                  lambda: __import__("brave6d.evaluation.learned.data", fromlist=["x"]).load_training_data(
                      tmp_path / "train_pbr", MODELS, 160, 5, show_progress=False)):
@@ -129,11 +135,7 @@ def test_a_missing_depth_scale_is_refused_naming_file_and_field(tmp_path: Path) 
 
 def test_learn_train_refuses_a_missing_depth_scale_in_one_line(tmp_path: Path) -> None:
     """The command line: one line on stderr, exit status 2, no traceback, no model written."""
-    scene = tmp_path / "train_pbr" / "000000"
-    shutil.copytree(SPLIT / "000000", scene)
-    cams = json.loads((scene / "scene_camera.json").read_text())
-    del cams["0"]["depth_scale"]
-    (scene / "scene_camera.json").write_text(json.dumps(cams))
+    without_depth_scale(tmp_path, 0)
     brave6d = Path(sys.executable).with_name("brave6d")
     proc = subprocess.run([str(brave6d), "learn", "train", str(tmp_path / "train_pbr"),
                            "--models", str(MODELS), "--out", str(tmp_path / "model"), "--preset", "tiny"],

@@ -115,14 +115,14 @@ def find_rgb_file(scene_dir: Path | str, im_id: int) -> Path | None:
     return None
 
 
-def split_scene_folders(split_dir: Path | str) -> list[Path]:
-    """The six-digit scene folders of a split folder, in order."""
+def split_scene_folders(split_dir: Path | str, hint: str = "") -> list[Path]:
+    """The six-digit scene folders of a split folder, in order (``hint``: added to the message when there is none)."""
     d = Path(split_dir)
     if not d.is_dir():
         raise DataError(f"{d}: split folder not found")
     scenes = sorted(p for p in d.iterdir() if p.is_dir() and re.fullmatch(r"\d{6}", p.name))
     if not scenes:
-        raise DataError(f"{d}: no scene folders (000000, 000001, ...)")
+        raise DataError(f"{d}: no scene folders (000000, 000001, ...){hint}")
     return scenes
 
 

@@ -15,7 +15,6 @@ The CSV is written by the one owner of that format, :func:`brave6d.evaluation.me
 
 from __future__ import annotations
 
-import re
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
@@ -60,18 +59,16 @@ class SplitRun:
 
 def scene_folders(split_dir: Path | str, scene_ids: Iterable[int] | None = None) -> list[Path]:
     """The six-digit scene folders of a BOP split folder (all, or those of ``scene_ids``)."""
+    from brave6d.annotation import split_scene_folders
+
     d = Path(split_dir)
-    if not d.is_dir():
-        raise DataError(f"{d}: split folder not found")
-    scenes = sorted(p for p in d.iterdir() if p.is_dir() and re.fullmatch(r"\d{6}", p.name))
+    scenes = split_scene_folders(d)
     if scene_ids is not None:
         wanted = {int(s) for s in scene_ids}
         missing = wanted - {int(p.name) for p in scenes}
         if missing:
             raise DataError(f"{d}: no scene folder for scene id(s) {sorted(missing)}")
         scenes = [p for p in scenes if int(p.name) in wanted]
-    if not scenes:
-        raise DataError(f"{d}: no scene folders (000000, 000001, ...)")
     return scenes
 
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -167,10 +166,9 @@ def scene_folders(root: Path | str) -> list[Path]:
         root = root / "train_pbr"
     if not root.is_dir():
         raise DataError(f"{root}: train_pbr folder not found")
-    scenes = sorted(p for p in root.iterdir() if p.is_dir() and re.fullmatch(r"\d{6}", p.name))
-    if not scenes:
-        raise DataError(f"{root}: no scene folders (000000, ...); render one with 'brave6d synth'")
-    return scenes
+    from brave6d.annotation import split_scene_folders
+
+    return split_scene_folders(root, "; render one with 'brave6d synth'")
 
 
 def load_training_data(train_pbr: Path | str, models_dir: Path | str, work_width: int, heldout_every: int,

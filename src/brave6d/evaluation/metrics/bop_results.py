@@ -188,7 +188,8 @@ def load_scene_gt_instances(
         if not re.fullmatch(r"\d+", d.name):
             raise DataError(f"{d}: folder name is not a scene id; pass scene_id")
         scene_id = int(d.name)
-    cams = read_scene_camera(d / "scene_camera.json")
+    # VSD reads the depth: its unit is never guessed
+    cams = read_scene_camera(d / "scene_camera.json", require_depth_scale=with_depth and (d / "depth").is_dir())
     gt = read_scene_gt(d / "scene_gt.json")
     info = read_scene_gt_info(d / "scene_gt_info.json")
     im_ids = sorted(gt)
@@ -215,12 +216,9 @@ def load_scene_gt_instances(
 
 def load_split_gt_instances(split_dir: Path | str, image_size: tuple[int, int] | None = None, with_depth: bool = True) -> list[GTInstance]:
     """GT instances of every scene folder (six-digit names) of a BOP split folder (e.g. ``test``)."""
-    d = Path(split_dir)
-    if not d.is_dir():
-        raise DataError(f"{d}: split folder not found")
-    scenes = sorted(p for p in d.iterdir() if p.is_dir() and re.fullmatch(r"\d{6}", p.name))
-    if not scenes:
-        raise DataError(f"{d}: no scene folders (000000, 000001, ...)")
+    from brave6d.annotation import split_scene_folders
+
+    scenes = split_scene_folders(split_dir)
     out: list[GTInstance] = []
     for s in scenes:
         out.extend(load_scene_gt_instances(s, int(s.name), image_size, with_depth))
