@@ -54,3 +54,23 @@ def test_observe_batch_equals_observe(scene: SceneServer) -> None:
         one = scene.observe(T, cam, gt)
         assert [o.model_dump(mode="json") for o in view.objects] == [o.model_dump(mode="json") for o in one.objects]
         np.testing.assert_array_equal(view.depth, one.depth)
+
+
+def test_a_scored_batch_holds_the_targets_truth_and_completes_to_observes(scene: SceneServer) -> None:
+    """targets_only (what a scored manager asks): each view holds its target's truth alone, equal to
+    observe's; complete() adds every object's, equal to observe's bit for bit."""
+    rng = np.random.default_rng(2)
+    cam = scene.camera_for(64, 48)
+    poses = [scene.random_start(scene.bundle.objects[k % 2], rng) for k in range(4)]
+    poses.append(look_at((0.49, 0.12, 0.03), (0.45, -0.03, 0.01)))  # the blue cube before the red one
+    targets = [0, 1, None, 1, 0]
+    for view, T, gt in zip(scene.observe_batch(poses, cam, targets, targets_only=True), poses, targets):
+        one = scene.observe(T, cam, gt)
+        assert not view.complete and one.complete
+        assert [o.model_dump(mode="json") for o in view.objects] == [
+            o.model_dump(mode="json") for o in one.objects if o.is_target]
+        full = scene.complete(view)
+        assert full.complete and scene.complete(full) is full
+        assert [o.model_dump(mode="json") for o in full.objects] == [o.model_dump(mode="json") for o in one.objects]
+        np.testing.assert_array_equal(full.depth, one.depth)
+    assert any(0 < o.visib_fract < 1 for o in scene.observe(poses[-1], cam, 0).objects)

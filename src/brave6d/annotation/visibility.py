@@ -222,17 +222,20 @@ class SilhouetteCaster:
         _, geometry = self._cast(self._world, T[:3, 3], T[:3, :3], rays_cam)
         return self._owner[geometry]  # -1 indexes the sentinel
 
-    def silhouettes_many(self, world_T_cams: ArrayLike, camera: PinholeCamera) -> Iterator[SilhouetteBatch]:
+    def silhouettes_many(self, world_T_cams: ArrayLike, camera: PinholeCamera,
+                         instances: Sequence[int] | None = None) -> Iterator[SilhouetteBatch]:
         """:meth:`silhouettes` of many camera poses at once (many agents), one ray cast per instance
         for all of them: each instance's :class:`SilhouetteBatch`, in instance order. Its pixels of
         camera ``c`` equal ``silhouettes(world_T_cams[c], camera)``'s of that instance bit for bit:
         each pixel's ray is cast with the same operations, and only the pixels that cannot be hit
         are left out (:meth:`_roi_rows`: rows of the projected bounding box's hull, with the same
-        one-pixel margin as :meth:`_roi`, instead of its whole bounding rectangle)."""
+        one-pixel margin as :meth:`_roi`, instead of its whole bounding rectangle). ``instances``: only
+        these instance indices, in this order (default: all)."""
         poses = np.asarray(world_T_cams, dtype=np.float64).reshape(-1, 4, 4)
         cam_T_world = _invert_many(poses)
         ray_x, ray_y, lo_u, lo_v = self._canvas_rays(camera)
-        for (key, world_T_model), model_T_world in zip(self.instances, self._model_T_world):
+        for n in range(len(self.instances)) if instances is None else instances:
+            (key, world_T_model), model_T_world = self.instances[n], self._model_T_world[n]
             cams, v, u0, u1 = self._roi_rows(key, cam_T_world @ world_T_model, camera)
             sizes = u1 - u0 + 1
             starts = np.cumsum(sizes) - sizes

@@ -321,7 +321,8 @@ class EpisodeManager:
         for members in groups.values():
             scene, camera = self._scene(eps[members[0]]), eps[members[0]].camera
             rendered = scene.observe_batch([plans[k].T for k in members], camera,
-                                           [eps[k].target.gt_id for k in members])
+                                           [eps[k].target.gt_id for k in members],
+                                           targets_only=self.mode == SCORED)  # scored: nothing shows the rest
             views.update(zip(members, rendered))
         return views
 
@@ -421,6 +422,7 @@ class EpisodeManager:
             if ep.last is None:
                 raise InvalidAction("the episode has no observation to refer the estimates to", "episode_id")
             scene = self._scene(ep)
+            ep.last = scene.complete(ep.last)  # every object's truth, for the submit record
             known = {o.obj_id for o in scene.bundle.objects}
             clean = [check_estimate(i, e.get("obj_id", -1), e.get("R", ()), e.get("t_m", ()), e.get("score", 1.0),
                                     known) for i, e in enumerate(estimates)]

@@ -156,6 +156,9 @@ class RenderedView:
     timings_ms: dict[str, float]
     reference: ReferenceGeometry | None = None  # the scene's, when its bundle has one
     geometry: str = SPLAT_GEOMETRY
+    #: False: ``objects`` holds only the target's truth (a scored batch computes no more per step);
+    #: :meth:`SceneServer.complete` adds every object's, as :meth:`SceneServer.observe` gives them
+    complete: bool = True
 
     @cached_property
     def test_depth(self) -> NDArray[np.float32]:
@@ -246,30 +249,51 @@ class SceneServer:
         return self._view(out, world_T_cam, camera, target_gt_id, time.perf_counter() - t0)
 
     def observe_batch(self, poses: Sequence[Matrix4], camera: PinholeCamera,
-                      target_gt_ids: Sequence[int | None]) -> list[RenderedView]:
+                      target_gt_ids: Sequence[int | None], targets_only: bool = False) -> list[RenderedView]:
         """The views at ``poses`` (one camera), rendered in one batched call
-        (:meth:`SplatRenderer.render_batch`: many agents on one scene), each what :meth:`observe` gives."""
+        (:meth:`SplatRenderer.render_batch`: many agents on one scene), each what :meth:`observe` gives.
+        ``targets_only``: each view holds only its target's truth (``complete`` False; a scored step
+        logs no more, and :meth:`complete` adds the rest when a submit needs it): the other objects'
+        silhouettes are not cast."""
         if len(poses) != len(target_gt_ids):
             raise ValueError(f"observe_batch: {len(poses)} poses but {len(target_gt_ids)} targets")
         t0 = time.perf_counter()
         outs = self.renderer.render_batch(poses, camera, **self._render_settings())
         render_s = time.perf_counter() - t0
         t1 = time.perf_counter()
-        vis = self._visibilities(poses, camera, outs)
+        index = {o.gt_id: n for n, o in enumerate(self.bundle.objects)}
+        wanted = sorted({index[g] for g in target_gt_ids if g in index}) if targets_only else None
+        vis = self._visibilities(poses, camera, outs, wanted)
         vis_s = (time.perf_counter() - t1) / max(len(poses), 1)  # each view's share of the batch
-        return [self._view(out, T, camera, gt_id, render_s, (v, vis_s))
+        return [self._view(out, T, camera, gt_id, render_s, (v, vis_s), wanted)
                 for out, T, gt_id, v in zip(outs, poses, target_gt_ids, vis)]
 
-    def _visibilities(self, poses: Sequence[Matrix4], camera: PinholeCamera, outs: Sequence[RenderOutput]
-                      ) -> list[list[Visibility | None]]:
-        """Every object's visibility in each view, all views at once
+    def complete(self, view: RenderedView) -> RenderedView:
+        """``view`` with every object's truth (:meth:`observe`'s, bit for bit: the one-view
+        visibility equals the batch's); a complete view as it is."""
+        if view.complete:
+            return view
+        vis: list[Visibility | None] = [None] * len(self.bundle.objects)
+        if self.visibility is not None:
+            occluders = partial(self.reference.depth_along, view.world_T_cam) if self.reference is not None else None
+            vis = list(self.visibility.compute(view.world_T_cam, view.camera, view.depth, occluders))
+        target = view.target()
+        return replace(view, objects=self._objects(view.world_T_cam, vis, None if target is None else target.gt_id),
+                       complete=True)
+
+    def _visibilities(self, poses: Sequence[Matrix4], camera: PinholeCamera, outs: Sequence[RenderOutput],
+                      wanted: list[int] | None = None) -> list[list[Visibility | None]]:
+        """Every object's (or the ``wanted`` instances') visibility in each view, all views at once
         (:meth:`VisibilityComputer.compute_many`, equal to :meth:`_view`'s one view at a time)."""
+        count = len(self.bundle.objects) if wanted is None else len(wanted)
         if self.visibility is None or not len(poses):
-            return [[None] * len(self.bundle.objects) for _ in poses]
+            return [[None] * count for _ in poses]
         if self.reference is not None:
-            many = self.visibility.compute_many(np.asarray(poses), camera, occluder_depths=self.reference.depth_along_many)
+            many = self.visibility.compute_many(np.asarray(poses), camera, occluder_depths=self.reference.depth_along_many,
+                                                instances=wanted)
         else:
-            many = self.visibility.compute_many(np.asarray(poses), camera, splat_depths=[out.depth for out in outs])
+            many = self.visibility.compute_many(np.asarray(poses), camera, splat_depths=[out.depth for out in outs],
+                                                instances=wanted)
         return [list(v) for v in many]
 
     def _render_settings(self) -> dict[str, Any]:
@@ -279,9 +303,11 @@ class SceneServer:
                 "depth_mode": r.depth_mode}
 
     def _view(self, out: RenderOutput, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None,
-              render_s: float, computed: tuple[list[Visibility | None], float] | None = None) -> RenderedView:
+              render_s: float, computed: tuple[list[Visibility | None], float] | None = None,
+              instances: list[int] | None = None) -> RenderedView:
         """One rendered view plus its visible fractions and objects' poses (``render_s``: the render's
-        wall time; ``computed``: the visible fractions and their seconds, when computed for a batch)."""
+        wall time; ``computed``: the visible fractions and their seconds, when computed for a batch,
+        of the ``instances`` given: then the view holds its target's truth only, ``complete`` False)."""
         t1 = time.perf_counter()
         vis: list[Visibility | None] = [None] * len(self.bundle.objects)
         if computed is not None:
@@ -289,14 +315,23 @@ class SceneServer:
         elif self.visibility is not None:
             occluders = partial(self.reference.depth_along, world_T_cam) if self.reference is not None else None
             vis = list(self.visibility.compute(world_T_cam, camera, out.depth, occluders))
+        complete = instances is None
+        if not complete:  # only the target's truth: its visibility among the instances computed
+            by_index = dict(zip(instances, vis))
+            vis = [by_index.get(n) if o.gt_id == target_gt_id else None for n, o in enumerate(self.bundle.objects)]
         t2 = time.perf_counter()
-        cam_T_world = invert(world_T_cam)
-        objects = tuple(object_state(o, cam_T_world @ o.world_T_obj, v, o.gt_id == target_gt_id)
-                        for o, v in zip(self.bundle.objects, vis))
+        objects = self._objects(world_T_cam, vis, target_gt_id, complete)
         timings = {"render": out.render_ms, "render_queue": out.queue_ms, "visibility": (t2 - t1) * 1000.0,
                    "observe": render_s * 1000.0 + (t2 - t1) * 1000.0}
         return RenderedView(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), objects, timings,
-                            self.reference, self.geometry)
+                            self.reference, self.geometry, complete)
+
+    def _objects(self, world_T_cam: Matrix4, vis: list[Visibility | None], target_gt_id: int | None,
+                 every: bool = True) -> tuple[ObjectState, ...]:
+        """The objects' truth records at ``world_T_cam`` (``every`` False: the target's alone)."""
+        cam_T_world = invert(world_T_cam)
+        return tuple(object_state(o, cam_T_world @ o.world_T_obj, v, o.gt_id == target_gt_id)
+                     for o, v in zip(self.bundle.objects, vis) if every or o.gt_id == target_gt_id)
 
     def random_start(self, target: BundleObject, rng: np.random.Generator, tries: int = 500) -> Matrix4:
         """A free pose on a spherical cap around the target, looking at its model centre."""

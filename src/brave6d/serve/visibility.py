@@ -68,6 +68,7 @@ class VisibilityComputer:
         self._bbox = bbox_xywh
         self.tol = float(occlusion_tolerance)
         self._caster = SilhouetteCaster(dict(enumerate(models)), list(enumerate(world_T_objs)))
+        self._instances = len(models)
 
     def compute(self, world_T_cam: NDArray[np.float64], camera: PinholeCamera,
                 splat_depth: NDArray[np.float32] | None = None,
@@ -96,23 +97,28 @@ class VisibilityComputer:
 
     def compute_many(self, world_T_cams: NDArray[np.float64], camera: PinholeCamera,
                      splat_depths: Sequence[NDArray[np.float32]] | None = None,
-                     occluder_depths: ManyOccluders | None = None) -> list[list[Visibility]]:
+                     occluder_depths: ManyOccluders | None = None,
+                     instances: Sequence[int] | None = None) -> list[list[Visibility]]:
         """:meth:`compute` of many views at once (many agents on one scene): one ray cast per
         instance for all silhouettes, one for all first hits, one for the occluder depths
         (:data:`ManyOccluders`, the reference geometry's ``depth_along_many``) of the pixels where the
         instance is hit first (elsewhere it is not visible whatever the occluders) instead of one per
         view and instance. ``result[c]`` equals ``compute(world_T_cams[c], camera, splat_depths[c], its
-        occluders)`` bit for bit."""
+        occluders)`` bit for bit; with ``instances``, its entries of those instance indices, in that
+        order (the others are not cast at all; every instance still occludes them)."""
         poses = np.asarray(world_T_cams, dtype=np.float64).reshape(-1, 4, 4)
         n_views = len(poses)
+        wanted = list(range(self._instances)) if instances is None else [int(n) for n in instances]
+        if not wanted:
+            return [[] for _ in range(n_views)]
         per_instance = []
-        for sil in self._caster.silhouettes_many(poses, camera):
+        for sil in self._caster.silhouettes_many(poses, camera, wanted):
             seen = sil.within(camera.width, camera.height)
             per_instance.append((sil, seen, np.searchsorted(seen.owner, np.arange(n_views + 1))))
         first = self._caster.first_instance_many(poses, np.concatenate([seen.owner for _, seen, _ in per_instance]),
                                                  np.concatenate([seen.ray_x for _, seen, _ in per_instance]),
                                                  np.concatenate([seen.ray_y for _, seen, _ in per_instance]))
-        owner_of = np.concatenate([np.full(len(seen.owner), n) for n, (_, seen, _) in enumerate(per_instance)])
+        owner_of = np.concatenate([np.full(len(seen.owner), n) for n, (_, seen, _) in zip(wanted, per_instance)])
         first_is_own = first == owner_of  # where another instance is in front, no occluder can matter
         occluders: list[NDArray[np.float32] | None] = [None] * len(per_instance)
         if occluder_depths is not None:  # one call: per instance and view, the rays of compute's
