@@ -58,8 +58,9 @@ class ObjectInfo:
 
 @dataclass
 class Instance:
-    """One annotated object in one image. ``box``: visible box (x0, y0, x1, y1; pixel edges) in the
-    detector's working resolution, ``box_crop`` in the crops' source resolution, where ``region``
+    """One annotated object in one image. ``R``, ``t_mm``: its pose as ``scene_gt.json`` gives it (what
+    BOP scores against; the coordinates are of its canonical symmetric pose). ``box``: visible box
+    (x0, y0, x1, y1; pixel edges) in the detector's working resolution, ``box_crop`` in the crops' source resolution, where ``region``
     ((x0, y0) of ``coords`` / ``mask``), ``coords`` (normalised canonical model coordinates, (h, w, 3)
     float16) and ``mask`` (visible pixels of the object) lie too."""
 
@@ -255,7 +256,7 @@ def _add_image(data: TrainingData, casters: _Casters, image: Any, work_width: in
         if x1 - x0 < 2 or y1 - y0 < 2:
             continue
         obj = data.objects[gt.obj_id]
-        R, t_mm, sym = obj.canonical(gt.cam_R_m2c, gt.cam_t_m2c)
+        _, _, sym = obj.canonical(gt.cam_R_m2c, gt.cam_t_m2c)
         coords, hit = casters.coordinates(gt.obj_id, gt.cam_R_m2c, gt.cam_t_m2c, K, x0, y0, x1, y1)
         # canonical coordinates: q = R_s^T (p - t_s), normalised by the model's centre and radius
         q = (coords - obj.sym_t[sym]) @ obj.sym_R[sym]
@@ -263,7 +264,7 @@ def _add_image(data: TrainingData, casters: _Casters, image: Any, work_width: in
         mask = hit & visible[y0:y1, x0:x1]
         if mask.sum() < 4:
             continue
-        data.instances.append(Instance(len(data.images) - 1, gt.obj_id, obj.class_index, R, t_mm,
+        data.instances.append(Instance(len(data.images) - 1, gt.obj_id, obj.class_index, gt.cam_R_m2c, gt.cam_t_m2c,
                                        float(info.visib_fract), box_work, (x0, y0),  # type: ignore[arg-type]
                                        np.where(mask[..., None], q, 0.0).astype(np.float16), mask, box))
         record.instances.append(len(data.instances) - 1)
