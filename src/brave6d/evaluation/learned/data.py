@@ -60,9 +60,9 @@ class ObjectInfo:
 class Instance:
     """One annotated object in one image. ``R``, ``t_mm``: its pose as ``scene_gt.json`` gives it (what
     BOP scores against; the coordinates are of its canonical symmetric pose). ``box``: visible box
-    (x0, y0, x1, y1; pixel edges) in the detector's working resolution, ``box_crop`` in the crops' source resolution, where ``region``
-    ((x0, y0) of ``coords`` / ``mask``), ``coords`` (normalised canonical model coordinates, (h, w, 3)
-    float16) and ``mask`` (visible pixels of the object) lie too."""
+    (x0, y0, x1, y1; pixel edges) in the detector's working resolution, ``box_crop`` in the crops'
+    source resolution, where ``region`` ((x0, y0) of ``coords`` / ``mask``), ``coords`` (normalised
+    canonical model coordinates, (h, w, 3) float16) and ``mask`` (visible pixels of the object) lie too."""
 
     image: int
     obj_id: int
