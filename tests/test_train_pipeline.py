@@ -110,6 +110,10 @@ def test_the_budget_line_gives_the_time_the_steps_left_need() -> None:
     assert line == ("stopped by the time budget (840 s) after 631 of 2000 steps, 1369 short (about 27 min more at "
                     "1.20 s per step): continue with brave6d train S --preset fast --resume --time-budget 1920")
     assert run_outcome.budget_stop_line({**metrics, "steps": 2000, "stopped_by": "steps"}, "S") is None
+    near = run_outcome.budget_stop_line({**metrics, "steps": 1990, "train_time_s": 1990 * 1.2}, "S", "fast", 2000)
+    assert near == ("stopped by the time budget (840 s) after 1990 of 2000 steps, 10 short (about 12 s more at "
+                    "1.20 s per step): continue with brave6d train S --preset fast --steps 2000 --resume "
+                    "--time-budget 120")
     assert run_outcome.steps_text(metrics) == ("631 of 2000 planned steps (stopped by the time budget: 840 s, "
                                                "the whole command)")
 

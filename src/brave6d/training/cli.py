@@ -76,9 +76,12 @@ def summary(metrics: dict) -> str:
     rows = [(f"level {lvl} ({m['distance_m']:.2f} m)", m["n_views"], f"{m['psnr']:.2f}", f"{m['ssim']:.4f}")
             for lvl, m in hold["per_level"].items()]
     rows.append(("all", hold["n_views"], f"{hold['psnr']:.2f}", f"{hold['ssim']:.4f}"))
+    # a resumed run's training time and CPU time count from step 0; the command's own times are this run's
+    resumed = metrics.get("resumed_from_step")
+    since = f", from step 0: this command resumed at step {resumed}" if resumed else ""
     head = (f"preset {metrics['preset']} on {metrics['device']}: {steps_text(metrics)} in "
-            f"{metrics['train_time_s']:.0f} s of training ({metrics['train_cpu_s']:.0f} CPU-s; "
-            f"{metrics['total_time_s']:.0f} s in all, {metrics['init_time_s']:.0f} s of it loading and initial points), "
+            f"{metrics['train_time_s']:.0f} s of training ({metrics['train_cpu_s']:.0f} CPU-s{since}); this command "
+            f"{metrics['total_time_s']:.0f} s in all, {metrics['init_time_s']:.0f} s of it loading and initial points; "
             f"{metrics['num_gaussians']} Gaussians, {metrics['images']['metrics_resolution']} images")
     if metrics.get("pose_check"):
         head += "\n" + metrics["pose_check"]

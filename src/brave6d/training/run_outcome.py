@@ -39,5 +39,10 @@ def budget_stop_line(metrics: dict, scene_dir: Path | str, preset: str = "fast",
     per_step = float(metrics["train_time_s"]) / done
     # the steps left at this pace, 10 % more, and a minute to load the images again
     more = int(math.ceil(((planned - done) * per_step * 1.1 + 60.0) / 60.0) * 60)
-    return (f"{head} (about {(planned - done) * per_step / 60.0:.0f} min more at {per_step:.2f} s per step): "
+    return (f"{head} (about {_duration((planned - done) * per_step)} more at {per_step:.2f} s per step): "
             f"continue with {command} --time-budget {more}")
+
+
+def _duration(seconds: float) -> str:
+    """``12 s`` under a minute and a half, else ``27 min``."""
+    return f"{seconds:.0f} s" if seconds < 90.0 else f"{seconds / 60.0:.0f} min"
