@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     images = list(range(len(data.images)))[:args.max_images]
     estimators = {name: LearnedEstimator.load(args.model, models_dir=args.models)
                   for name in ("torch", "onnxruntime", "torch + 1e-6 noise")}
-    use_onnx(estimators["onnxruntime"], args.model, export.folder)
+    estimators["onnxruntime"] = use_onnx(estimators["onnxruntime"], args.model, export.folder)
     noisy = estimators["torch + 1e-6 noise"]
     noisy.detector, noisy.pose = _Noisy(noisy.detector, 1e-6, 1), _Noisy(noisy.pose, 1e-6, 2)
     runs, rows = {}, []

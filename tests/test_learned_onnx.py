@@ -1,10 +1,11 @@
 """``brave6d learn export-onnx``: both networks as ONNX (opset 17, any image and crop size), ONNX
 Runtime's outputs equal to torch's within ``TOLERANCE`` on sample images and crops, the estimator on
-ONNX Runtime detecting and cropping as on torch, a stale or missing export refused in one line, and
-the missing extra named."""
+ONNX Runtime detecting and cropping as on torch and running where torch cannot be imported, a stale
+or missing export refused in one line, and the missing extra named."""
 
 from __future__ import annotations
 
+import subprocess
 import sys
 from pathlib import Path
 
@@ -106,6 +107,39 @@ def test_the_estimator_on_onnx_runtime_detects_and_crops_as_on_torch(exported: P
     for obj_id in OBJECTS:
         ct, co = on_torch._crop_outputs(image, K, obj_id, box), on_onnx._crop_outputs(image, K, obj_id, box)
         assert np.abs(ct.coords - co.coords).max() <= TOLERANCE and np.abs(ct.probability - co.probability).max() <= TOLERANCE
+
+
+NO_TORCH = """
+import sys
+class NoTorch:
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch" or name.startswith("torch."):
+            raise ImportError(name + " blocked")
+sys.meta_path.insert(0, NoTorch())
+import numpy as np
+from brave6d.evaluation.learned.onnx_export import OnnxEstimator
+e = OnnxEstimator.from_export(sys.argv[1])
+image = np.load(sys.argv[2])
+K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+found = e.detect(image, K, min_score=0.0)
+crop = e._crop_outputs(image, K, found[0].obj_id, (250.0, 180.0, 330.0, 260.0))
+np.save(sys.argv[3], np.concatenate([[len(found), found[0].score, *found[0].box], crop.coords.ravel()]))
+assert "torch" not in sys.modules
+"""
+
+
+def test_the_onnx_estimator_runs_without_torch_and_answers_as_torch(exported: Path, tmp_path: Path) -> None:
+    image = _image(3, 480, 640)
+    np.save(tmp_path / "image.npy", image)
+    subprocess.run([sys.executable, "-c", NO_TORCH, str(exported / "onnx"), str(tmp_path / "image.npy"),
+                    str(tmp_path / "out.npy")], check=True, timeout=120)
+    got = np.load(tmp_path / "out.npy")
+    on_torch = LearnedEstimator.load(exported)
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    found = on_torch.detect(image, K, min_score=0.0)
+    coords = on_torch._crop_outputs(image, K, found[0].obj_id, (250.0, 180.0, 330.0, 260.0)).coords
+    assert got[0] == len(found) and abs(got[1] - found[0].score) < 1e-5 and np.allclose(got[2:6], found[0].box, atol=1e-3)
+    assert np.abs(got[6:] - coords.ravel()).max() <= TOLERANCE
 
 
 def test_a_missing_or_stale_export_is_refused_in_one_line(tmp_path: Path) -> None:

@@ -11,8 +11,9 @@ Public API (imported lazily: ``import brave6d.evaluation.learned`` loads no torc
 - inference: ``LearnedEstimator`` (``detect``, ``best_detection``, ``refine_box``, ``estimate``,
   ``estimate_both``, ``refine_views``), ``Detection``,
   ``LearnedPose``, ``LearnedRefused`` (``cause`` in ``REFUSAL_CAUSES``), ``solve_pnp``;
-- ONNX: ``export_onnx`` (``brave6d learn export-onnx``: both networks, opset ``ONNX_OPSET``) and
-  ``use_onnx`` (an estimator running them in ONNX Runtime instead of torch; the ``onnx`` extra);
+- ONNX: ``export_onnx`` (``brave6d learn export-onnx``: both networks, opset ``ONNX_OPSET``),
+  ``OnnxEstimator`` (the estimator on an export, ONNX Runtime, no torch; ``from_export``) and
+  ``use_onnx`` (one in place of a torch estimator of the same model); the ``onnx`` extra;
 - held-out figures: ``score_heldout``, ``HeldoutScores``, ``DETECTION_THRESHOLD`` (the score a
   detection needs there and, by default, in the learned agents); the data: ``load_training_data``,
   ``TrainingData``.
@@ -35,6 +36,7 @@ _LAZY = {
     "score_heldout": ".heldout", "HeldoutScores": ".heldout", "DETECTION_THRESHOLD": ".presets",
     "load_training_data": ".data", "TrainingData": ".data",
     "export_onnx": ".onnx_export", "use_onnx": ".onnx_export", "ONNX_OPSET": ".onnx_export",
+    "OnnxEstimator": ".onnx_export",
 }
 
 __all__ = sorted(_LAZY)

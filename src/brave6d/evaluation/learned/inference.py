@@ -22,7 +22,6 @@ from brave6d.evaluation.estimators.protocol import Detection, EstimatorRefused
 from brave6d.evaluation.learned.crops import box_crop, crop_size, crop_to_image, iou, normalise, warp_rgb
 from brave6d.evaluation.learned.data import resize_to_width
 from brave6d.evaluation.learned.model_file import LearnedModel, read_model
-from brave6d.evaluation.learned.networks import DETECTOR_STRIDE
 from brave6d.evaluation.learned.refine import ICP_MAX_POINTS, Surface, box_points, thinned, icp_refine, \
     sample_surface
 from brave6d.evaluation.learned.silhouette import Silhouette, mask_area_scale
@@ -37,7 +36,8 @@ MIN_CORRESPONDENCES = 6
 #: Second singular value of the centred 3D (and 2D) points, relative to the first, below which
 #: they are taken as collinear.
 MIN_SPREAD = 0.05
-_MAX_DETECTIONS = 20
+#: Detections one image gives at most.
+MAX_DETECTIONS = 20
 #: A visible mask of fewer cells than this does not refine a detection's box.
 MIN_MASK_CELLS = 3
 #: The detector looks at each image at these multiples of its training width (never wider than the
@@ -102,8 +102,7 @@ class LearnedEstimator:
 
         from brave6d.evaluation.learned.networks import CoordinateNet, Detector
 
-        self.model = model
-        self.preset = model.preset
+        self._init_state(model)
         self.device = torch.device(device)
         classes = len(model.objects)
         self.detector = Detector(classes, int(self.preset["detector_width"]))
@@ -112,6 +111,13 @@ class LearnedEstimator:
         self.pose.load_state_dict(model.pose_state)
         self.detector.to(self.device).eval()
         self.pose.to(self.device).eval()
+
+    def _init_state(self, model: LearnedModel) -> None:
+        """What the estimator keeps besides its networks (the ONNX Runtime estimator shares it)."""
+        self.model = model
+        self.preset = model.preset
+        #: which library runs the two networks
+        self.runtime = "torch"
         self._by_class = {o.class_index: o for o in model.objects.values()}
         self.surfaces: dict[int, Surface] = {}
         self.silhouettes: dict[int, Silhouette] = {}
@@ -128,12 +134,16 @@ class LearnedEstimator:
         surfaces the depth refinement fits (agents give them with :meth:`set_surface`)."""
         estimator = cls(read_model(model_dir), device)
         if models_dir is not None:
-            from brave6d.evaluation.metrics import load_models
-
-            for obj_id, m in load_models(models_dir, estimator.obj_ids).items():
-                if m.faces is not None:
-                    estimator.set_surface(obj_id, m.points / 1000.0, m.faces)
+            estimator.add_surfaces(models_dir)
         return estimator
+
+    def add_surfaces(self, models_dir: Path | str) -> None:
+        """:meth:`set_surface` of every object it knows from a BOP models folder."""
+        from brave6d.evaluation.metrics import load_models
+
+        for obj_id, m in load_models(models_dir, self.obj_ids).items():
+            if m.faces is not None:
+                self.set_surface(obj_id, m.points / 1000.0, m.faces)
 
     def set_surface(self, obj_id: int, vertices_m: Array, faces: NDArray[np.int64]) -> None:
         """The mesh of ``obj_id`` (metres, model frame): with it the RGB-only distance comes from the
@@ -191,17 +201,35 @@ class LearnedEstimator:
         for d in found:
             if all(k.obj_id != d.obj_id or iou(k.box, d.box) < NMS_IOU for k in kept):
                 kept.append(d)
-                if len(kept) == _MAX_DETECTIONS:
+                if len(kept) == MAX_DETECTIONS:
                     break
         return kept
 
     def _detect_at(self, rgb: NDArray[np.uint8], K: Array, width: int, min_score: float,
                    obj_id: int | None) -> list[Detection]:
         """One detector pass on ``rgb`` resized to ``width``: its heatmap peaks (best first, at most 20)."""
+        work, _, s = self._work(rgb, K, width)
+        idx, scores, size, offset, stride = self._detector_peaks(work, min_score, obj_id)
+        out = []
+        for (c, gy, gx), score in zip(idx, scores):
+            cx = (gx + offset[0, gy, gx]) * stride
+            cy = (gy + offset[1, gy, gx]) * stride
+            w, h = (math.exp(float(np.clip(v, -5.0, 8.0))) for v in size[:, gy, gx])
+            box = ((cx - w / 2) / s, (cy - h / 2) / s, (cx + w / 2) / s, (cy + h / 2) / s)
+            if all(math.isfinite(b) for b in box):
+                out.append(Detection(self._by_class[int(c)].obj_id, box, float(score)))
+        return out
+
+    def _detector_peaks(self, work: NDArray[np.uint8], min_score: float, obj_id: int | None
+                        ) -> tuple[NDArray[np.int64], NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], int]:
+        """The detector on the work image: the heatmap's peaks (class, row, column; best first, at most
+        20), their scores, the box size and offset maps (2, H, W) and the maps' stride. (torch here;
+        ``onnx_export.OnnxEstimator`` does the same in NumPy on ONNX Runtime's maps.)"""
         import torch
         from torch.nn import functional as F
 
-        work, _, s = self._work(rgb, K, width)
+        from brave6d.evaluation.learned.networks import DETECTOR_STRIDE
+
         with torch.no_grad():
             x = torch.from_numpy(normalise(work)[None]).to(self.device)
             heat, size, offset = self.detector(x)
@@ -212,19 +240,11 @@ class LearnedEstimator:
                 p = p * keep
             peaks = (p == F.max_pool2d(p[None], 3, 1, 1)[0]) & (p >= min_score)
             scores = p[peaks]
-            order = torch.argsort(scores, descending=True)[:_MAX_DETECTIONS]
+            order = torch.argsort(scores, descending=True)[:MAX_DETECTIONS]
             idx = peaks.nonzero()[order].cpu().numpy()
             scores = scores[order].cpu().numpy()
             size, offset = size[0].cpu().numpy(), offset[0].cpu().numpy()
-        out = []
-        for (c, gy, gx), score in zip(idx, scores):
-            cx = (gx + offset[0, gy, gx]) * DETECTOR_STRIDE
-            cy = (gy + offset[1, gy, gx]) * DETECTOR_STRIDE
-            w, h = (math.exp(float(np.clip(v, -5.0, 8.0))) for v in size[:, gy, gx])
-            box = ((cx - w / 2) / s, (cy - h / 2) / s, (cx + w / 2) / s, (cy + h / 2) / s)
-            if all(math.isfinite(b) for b in box):
-                out.append(Detection(self._by_class[int(c)].obj_id, box, float(score)))
-        return out
+        return idx, scores, size, offset, DETECTOR_STRIDE
 
     def best_detection(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, min_score: float = 0.05,
                        refine: bool = True) -> Detection:
@@ -280,8 +300,6 @@ class LearnedEstimator:
                       box: tuple[float, float, float, float], size: int | None = None) -> _CropOutputs:
         """The coordinate net on the crop around ``box`` (``rgb``'s pixels), at the crops' source width,
         ``size`` pixels (None: :meth:`crop_px` of the box)."""
-        import torch
-
         self._check_object(obj_id)
         obj = self.model.objects[int(obj_id)]
         work, K_work, s = self._work(rgb, K, self.crop_source_width)
@@ -290,12 +308,20 @@ class LearnedEstimator:
             raise LearnedRefused("bad-input", f"learned estimator: box {tuple(box)} is empty or not finite")
         centre, side = box_crop(box_w)  # type: ignore[arg-type]
         crop = warp_rgb(work, centre, side, self.crop_px(work.shape[1], box_w) if size is None else size)
+        coords, probability = self._coordinates(crop, obj.class_index)
+        return _CropOutputs(coords, probability >= 0.5, centre, side, s, K_work, probability,
+                            (work.shape[1], work.shape[0]))
+
+    def _coordinates(self, crop: NDArray[np.uint8], class_index: int) -> tuple[Array, Array]:
+        """The coordinate net on one crop: coordinates (3, S, S) and mask probabilities (S, S), float64.
+        (torch here; ``onnx_export.OnnxEstimator``: ONNX Runtime.)"""
+        import torch
+
         with torch.no_grad():
             coords, mask = self.pose(torch.from_numpy(normalise(crop)[None]).to(self.device),
-                                     torch.tensor([obj.class_index], device=self.device))
+                                     torch.tensor([class_index], device=self.device))
         probability = torch.sigmoid(mask[0, 0]).float().cpu().numpy().astype(np.float64)
-        return _CropOutputs(coords[0].cpu().numpy().astype(np.float64), probability >= 0.5, centre, side, s, K_work,
-                            probability, (work.shape[1], work.shape[0]))
+        return coords[0].cpu().numpy().astype(np.float64), probability
 
     def estimate(self, rgb: NDArray[np.uint8], K: Array, obj_id: int, box: tuple[float, float, float, float],
                  depth_m: NDArray[np.floating] | None = None, score: float = 1.0) -> LearnedPose:
