@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from brave6d.annotation import read_bop_split, read_split_scene
 from brave6d.core.atomic import read_png, write_png
@@ -170,3 +172,24 @@ def test_synth_writes_the_blenderproc_convention(tmp_path: Path) -> None:
     result = synthesize(spec, tmp_path / "blenderproc", SynthOptions(images=1, width=160, height=100,
                                                                     convention="blenderproc"))
     assert (result.rendered, result.skipped) == (0, 1)
+
+
+@settings(max_examples=60, deadline=None)
+@given(scale=st.one_of(st.floats(allow_nan=False, allow_infinity=False), st.integers(-10**6, 10**6),
+                       st.text(max_size=5), st.none(), st.booleans(), st.lists(st.floats(-1, 1), max_size=2)))
+def test_any_depth_scale_is_a_positive_finite_number_or_refused_naming_it(tmp_path_factory: pytest.TempPathFactory,
+                                                                          scale: object) -> None:
+    """Whatever a scene_camera.json gives as depth_scale: a positive finite number read as given, or
+    one line naming the file, the image and the field; never a zero, negative or non-finite scale."""
+    from brave6d.annotation import read_scene_camera
+
+    path = tmp_path_factory.mktemp("cam") / "scene_camera.json"
+    path.write_text(json.dumps({"0": {"cam_K": [500, 0, 320, 0, 500, 240, 0, 0, 1], "depth_scale": scale}}))
+    try:
+        cam = read_scene_camera(path, require_depth_scale=True)[0]
+    except DataError as exc:
+        message = str(exc)
+        assert "\n" not in message and str(path) in message and "image 0" in message and "depth_scale" in message
+        return
+    assert np.isfinite(cam.depth_scale) and cam.depth_scale > 0
+    assert isinstance(scale, (int, float)) and not isinstance(scale, bool) and cam.depth_scale == float(scale)

@@ -220,7 +220,10 @@ def read_scene_camera(path: Path | str, require_depth_scale: bool = False) -> di
         if require_depth_scale and "depth_scale" not in entry:
             raise DataError(f"{where}: missing 'depth_scale' (mm per unit of the depth PNGs: 1 = mm, "
                             "0.1 as BlenderProc writes)")
-        scale = float(_floats(entry.get("depth_scale", 1.0), 1, f"{where} depth_scale")[0])
+        given = entry.get("depth_scale", 1.0)
+        if isinstance(given, bool) or not isinstance(given, (int, float)):
+            raise DataError(f"{where}: 'depth_scale' must be a number of mm per unit, got {given!r}")
+        scale = float(_floats(given, 1, f"{where} depth_scale")[0])
         if not scale > 0:
             raise DataError(f"{where}: 'depth_scale' must be a positive number of mm per unit, got {scale}")
         R = t = None
