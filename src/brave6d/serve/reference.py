@@ -301,7 +301,13 @@ class ReferenceGeometry:
         flag per ray, concatenated): only those rays are cast, the others get 0 (no surface)."""
         if not len(rays_cam):
             return np.zeros(0, dtype=np.float32)
-        rays = np.concatenate([self._world_rays(T, d) for T, d in zip(world_T_cams, rays_cam)])
+        sets = [np.asarray(d, dtype=np.float32).reshape(-1, 3) for d in rays_cam]
+        rays = np.empty((sum(len(d) for d in sets), 6), dtype=np.float32)
+        end = 0
+        for T, d in zip(world_T_cams, sets):  # _world_rays of each set, into one array (empty sets skipped)
+            start, end = end, end + len(d)
+            if end > start:
+                self._fill_world_rays(rays[start:end], T, d)
         if needed is None:
             return self._cast(rays)
         out = np.zeros(len(rays), dtype=np.float32)
@@ -310,12 +316,17 @@ class ReferenceGeometry:
 
     @staticmethod
     def _world_rays(world_T_cam: NDArray[np.float64], rays_cam: NDArray[np.float32]) -> NDArray[np.float32]:
-        T = np.asarray(world_T_cam, dtype=np.float64)
         d = np.asarray(rays_cam, dtype=np.float32).reshape(-1, 3)
         rays = np.empty((len(d), 6), dtype=np.float32)
+        ReferenceGeometry._fill_world_rays(rays, world_T_cam, d)
+        return rays
+
+    @staticmethod
+    def _fill_world_rays(rays: NDArray[np.float32], world_T_cam: NDArray[np.float64], d: NDArray[np.float32]) -> None:
+        """``rays`` (N, 6): the world-frame rays from the camera at ``world_T_cam`` along camera-frame ``d`` (N, 3)."""
+        T = np.asarray(world_T_cam, dtype=np.float64)
         rays[:, :3] = T[:3, 3]
         rays[:, 3:] = d @ T[:3, :3].T.astype(np.float32)  # z = 1 in the camera: t is the z-depth
-        return rays
 
     def _cast(self, rays: NDArray[np.float32]) -> NDArray[np.float32]:
         with self._lock:
