@@ -50,8 +50,9 @@ DEMO_BUNDLE = REPO / "runs" / "demo" / "scene" / "bundle"
 class OneByOneScene(SceneServer):
     """The same scene, but a batch of views is rendered one ``render`` call at a time (the baseline)."""
 
-    def observe_batch(self, poses: Sequence[np.ndarray], camera: Any, target_gt_ids: Sequence[int | None]
-                      ) -> list[RenderedView]:
+    def observe_batch(self, poses: Sequence[np.ndarray], camera: Any, target_gt_ids: Sequence[int | None],
+                      targets_only: bool = False) -> list[RenderedView]:
+        """Each view as a single env's move gives it (every object's truth, whatever ``targets_only``)."""
         return [self.observe(T, camera, gt_id) for T, gt_id in zip(poses, target_gt_ids)]
 
 
