@@ -184,10 +184,15 @@ _RECORD = TypeAdapter(LogRecord)
 
 
 # ----------------------------------------------------------------------------- writing
+#: ``json.dumps(..., allow_nan=False)``'s encoder, made once (``dumps`` with an argument makes one a call:
+#: 40 us against 28 to encode a step's line here); stateless between calls, so threads share it
+_LINE_ENCODER = json.JSONEncoder(allow_nan=False)
+
+
 def format_record(record: AnyRecord) -> str:
     """One JSONL line of ``record`` (``ValueError`` for a value that is not finite, so that a step
     can format its record before it changes anything)."""
-    return json.dumps(record.model_dump(mode="json"), allow_nan=False) + "\n"
+    return _LINE_ENCODER.encode(record.model_dump(mode="json")) + "\n"
 
 
 class EpisodeLog:
