@@ -37,8 +37,8 @@ a name is used). Other stages import only these names:
   ``read_reference``, ``ReferenceGeometryError``, ``REFERENCE`` (its file name in a bundle);
 - test scenes: ``make_synthetic_bundle``, ``make_synthetic_scene``;
 - the modes (:mod:`brave6d.serve.modes`): ``SCORED`` (the default: no ground truth reaches an agent),
-  ``TRAINING``, ``MODES``, ``check_mode``; the serving commands' flags ``add_mode_flags`` (``--training``,
-  ``--log-key``) and ``mode_of``;
+  ``TRAINING``, ``MODES``, ``check_mode``, ``public_bundle`` (``GET /bundle`` as a mode shows it); the
+  serving commands' flags ``add_mode_flags`` (``--training``, ``--log-key``) and ``mode_of``;
 - the episode logs' keyed digest (:mod:`brave6d.serve.log_digest`): ``LogKey``, ``server_log_key`` (made on
   first use), ``evaluation_log_key``, ``read_log_key``, ``default_log_key_path``, ``LOG_KEY_ENV``,
   ``check_log_digest``, ``DigestCheck``, and the log's ``DigestRecord``.
@@ -85,7 +85,7 @@ _LAZY = {
     "build_scene_reference": ".reference", "ReferenceSettings": ".reference", "ReferenceGeometry": ".reference",
     "ReferenceGeometryError": ".reference", "read_reference": ".reference", "REFERENCE": ".bundle",
     "make_synthetic_bundle": ".toy_scene", "make_synthetic_scene": ".toy_scene",
-    "SCORED": ".modes", "TRAINING": ".modes", "MODES": ".modes", "check_mode": ".modes",
+    "SCORED": ".modes", "TRAINING": ".modes", "MODES": ".modes", "check_mode": ".modes", "public_bundle": ".modes",
     "add_mode_flags": ".cli", "mode_of": ".cli",
     "LogKey": ".log_digest", "server_log_key": ".log_digest", "evaluation_log_key": ".log_digest",
     "read_log_key": ".log_digest", "default_log_key_path": ".log_digest", "LOG_KEY_ENV": ".log_digest",
