@@ -1,20 +1,22 @@
-"""The agents' episode client and its transports: the same agent objects play over HTTP, gym and ROS 2.
+"""The agents' episode client and its transports: the same agent objects play over HTTP, gym and ROS.
 
 An agent and :func:`~brave6d.evaluation.agents.episode.run_episode` use a client only through
 :class:`EpisodeClient`: ``reset`` / ``set_pose`` / ``submit`` and what a benchmark user is given
 about the scene (``bundle``: ``GET /bundle``'s scored description, ``model``: an object's BOP PLY).
 A step answers with :class:`EpisodeStep` (``action``, ``accepted``, ``target``, ``episode_id`` and
-the ``observation``'s ``rgb``, ``depth``, ``K``, ``world_T_cam``). Three implementations:
+the ``observation``'s ``rgb``, ``depth``, ``K``, ``world_T_cam``). The implementations:
 
 - HTTP: ``serve``'s :class:`~brave6d.serve.BraveClient` itself.
 - gym: :class:`GymEpisodeClient` over a :class:`~brave6d.serve.BraveEnv` (its ``reset``, the
   ``{"world_T_cam": ...}`` action and ``submit``); the scene description and models come from the
   env's server (Gymnasium's API has no call for them).
 - ROS 2: :class:`Ros2EpisodeClient` over a :class:`~brave6d.ros_interface.ros2.agent.Ros2Agent`
-  (the node's reset / set_pose / submit services, images, camera info and /tf); the scene
-  description and models from the bundle folder the node serves (the node publishes neither).
-  Its images are the node's size (``brave6d ros2 --width/--height``), its episode logs carry the
-  node's ``--agent`` name, and ``submit`` answers with the episode's score (``ar``).
+  (the node's reset / set_pose / submit services, images, camera info and /tf); ROS 1:
+  :class:`Ros1EpisodeClient` over a :class:`~brave6d.ros_interface.ros1.client.Ros1Client` (its
+  reset / submit services and ``~set_pose`` topic). The scene description and models come from
+  the bundle folder the node serves (the nodes publish neither). The images are the node's size
+  (``--width/--height``), the episode logs carry the node's ``--agent`` name, and ``submit``
+  answers with the episode's score (``ar``).
 
 None of them forwards anything beyond what the transport itself gives the agent: in a scored run
 no ground truth exists to forward.
@@ -130,24 +132,23 @@ class GymEpisodeClient:
                          np.asarray(obs["world_T_cam"], dtype=np.float64)))
 
 
-class Ros2EpisodeClient:
-    """:class:`EpisodeClient` over a :class:`~brave6d.ros_interface.ros2.agent.Ros2Agent` driving
-    ``brave6d ros2 BUNDLE``; ``bundle_dir`` is that bundle (its description and models)."""
+class _BundleFolder:
+    """The scene's scored description and object models from the bundle folder a ROS node serves
+    (the nodes publish neither): what ``GET /bundle`` and ``GET /bundle/models/{obj_id}`` answer."""
 
-    def __init__(self, ros_agent: Any, bundle_dir: Path | str) -> None:
+    def __init__(self, bundle_dir: Path | str) -> None:
         from brave6d.serve import SCORED, load_bundle, public_bundle
 
-        self.ros = ros_agent
         self._bundle = load_bundle(bundle_dir)
         self._description = public_bundle(self._bundle.summary(), SCORED)
         self.scene: str | int | None = None
 
     def bundle(self, scene: str | int | None = None) -> dict[str, Any]:
-        _one_scene(scene, "Ros2EpisodeClient.bundle")
+        _one_scene(scene, f"{type(self).__name__}.bundle")
         return dict(self._description)
 
     def model(self, obj_id: int, scene: str | int | None = None) -> bytes:
-        _one_scene(scene, "Ros2EpisodeClient.model")
+        _one_scene(scene, f"{type(self).__name__}.model")
         obj = next((o for o in self._bundle.objects if o.obj_id == int(obj_id)), None)
         if obj is None:
             raise BraveError(f"{self._bundle.root}: no object with obj_id {obj_id} "
@@ -159,17 +160,30 @@ class Ros2EpisodeClient:
             raise BraveError(f"{path}: the model is larger than {MAX_MODEL_BYTES >> 20} MiB")
         return data
 
+    def _checked_size(self, step: Step, width: int | None, height: int | None, close: Any) -> Step:
+        """``step`` when its images are ``width`` x ``height`` (None: any); else the episode is closed
+        (``close()``) and refused in one line: the node's image size is set when it starts."""
+        h, w = step.observation.rgb.shape[:2]
+        if (width is not None and width != w) or (height is not None and height != h):
+            close()
+            raise BraveError(f"{type(self).__name__}: the node serves {w}x{h} images, the agent asked for "
+                             f"{width}x{height}: start the node with --width {width} --height {height} or ask for "
+                             "its size")
+        return step
+
+
+class Ros2EpisodeClient(_BundleFolder):
+    """:class:`EpisodeClient` over a :class:`~brave6d.ros_interface.ros2.agent.Ros2Agent` driving
+    ``brave6d ros2 BUNDLE``; ``bundle_dir`` is that bundle (its description and models)."""
+
+    def __init__(self, ros_agent: Any, bundle_dir: Path | str) -> None:
+        super().__init__(bundle_dir)
+        self.ros = ros_agent
+
     def reset(self, target: int | str | None = None, width: int | None = None, height: int | None = None,
               seed: int | None = None, agent: str | None = None, scene: str | int | None = None) -> Step:
         _one_scene(scene, "Ros2EpisodeClient.reset")
-        step = self._step(self.ros.reset(target=target, seed=seed))
-        h, w = step.observation.rgb.shape[:2]
-        if (width is not None and width != w) or (height is not None and height != h):
-            self.ros.close()
-            raise BraveError(f"Ros2EpisodeClient: the node serves {w}x{h} images, the agent asked for "
-                             f"{width}x{height}: start it with brave6d ros2 --width {width} --height {height} "
-                             "or ask for its size")
-        return step
+        return self._checked_size(self._step(self.ros.reset(target=target, seed=seed)), width, height, self.ros.close)
 
     def set_pose(self, world_T_cam: ArrayLike) -> Step:
         return self._step(self.ros.set_pose(np.asarray(world_T_cam, dtype=np.float64)))
@@ -185,3 +199,43 @@ class Ros2EpisodeClient:
         status = obs.status
         return Step(str(status["episode_id"]), str(status["action"]), bool(status["accepted"]),
                     dict(status["target"] or {}), View(obs.rgb, obs.depth_m, obs.K, obs.world_T_cam))
+
+
+class Ros1EpisodeClient(_BundleFolder):
+    """:class:`EpisodeClient` over a :class:`~brave6d.ros_interface.ros1.client.Ros1Client` driving
+    ``brave6d ros1 BUNDLE`` (``rospy.init_node`` is the caller's); ``bundle_dir`` is that bundle."""
+
+    def __init__(self, ros_client: Any, bundle_dir: Path | str) -> None:
+        super().__init__(bundle_dir)
+        self.ros = ros_client
+
+    def reset(self, target: int | str | None = None, width: int | None = None, height: int | None = None,
+              seed: int | None = None, agent: str | None = None, scene: str | int | None = None) -> Step:
+        _one_scene(scene, "Ros1EpisodeClient.reset")
+        obs = self.ros.reset("", "" if target is None else str(target), -1 if seed is None else int(seed))
+        return self._checked_size(self._step(obs), width, height, self.ros.close)
+
+    def set_pose(self, world_T_cam: ArrayLike) -> Step:
+        return self._step(self.ros.set_pose(np.asarray(world_T_cam, dtype=np.float64)))
+
+    def submit(self, estimates: list[Any], agent: str | None = None) -> dict[str, Any]:
+        from brave6d.serve import ClientLimits, parse_reply
+
+        res = self.ros.submit([(int(e.obj_id), np.asarray(e.cam_T_obj, dtype=np.float64), float(e.score))
+                               for e in estimates])
+        if not res.success:
+            raise BraveError(f"Ros1EpisodeClient.submit: the node refused: {res.message}")
+        out = parse_reply(res.json.encode("utf-8", "surrogatepass"), ClientLimits(), "SubmitEstimates.json")
+        if not isinstance(out, dict):
+            raise BraveError("Ros1EpisodeClient.submit: the node's SubmitEstimates.json is not a JSON object")
+        return out
+
+    @staticmethod
+    def _step(obs: Any) -> Step:
+        from brave6d.ros_interface import FRAME_CAMERA_OPTICAL
+
+        status = obs.status_json
+        return Step(str(status["episode_id"]), str(status["action"]), bool(status["accepted"]),
+                    dict(status["target"] or {}),
+                    View(obs.rgb_array(), obs.depth_array(), np.asarray(obs.rgb_info.K, dtype=np.float64).reshape(3, 3),
+                         obs.frames()[FRAME_CAMERA_OPTICAL]))
