@@ -6,6 +6,10 @@ rotation only roughly (tens of degrees on 20 px objects); the measured depth fix
 start is close enough. It starts from PnP's own translation (the mask-area distance of
 :mod:`~brave6d.evaluation.learned.silhouette` is the RGB-only pose's; the depth replaces it anyway). ICP keeps its result only when it is finite, moves the object by less than
 half its diameter and fits at least as many depth points as the start did.
+
+ICP runs on one Open3D thread: on several, its sums are split among TBB's threads as they steal
+work, so the same inputs gave poses a few ULP apart, which the keep-or-reject test and the next
+round can grow to millimetres (docs/BENCHMARKS.md, learned/bop section).
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+
+from brave6d.evaluation.agents.pointclouds import one_thread
 
 Array = NDArray[np.float64]
 #: Surface points sampled per model for ICP.
@@ -96,8 +102,9 @@ def icp_refine(cam_T_obj: Array, points_cam: Array, surface: Surface, iterations
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(surface.points[facing]))
         target.normals = o3d.utility.Vector3dVector(surface.normals[facing])
         obj_T_cam = np.linalg.inv(T)
-        res = reg.registration_icp(source, target, reach, obj_T_cam, reg.TransformationEstimationPointToPlane(),
-                                   reg.ICPConvergenceCriteria(max_iteration=int(iterations)))
+        with one_thread():  # repeatable: the same inputs give the same pose bit for bit (module docstring)
+            res = reg.registration_icp(source, target, reach, obj_T_cam, reg.TransformationEstimationPointToPlane(),
+                                       reg.ICPConvergenceCriteria(max_iteration=int(iterations)))
         M = np.asarray(res.transformation)
         if res.fitness <= 0 or not np.all(np.isfinite(M)):
             return cam_T_obj, False, before
