@@ -1,7 +1,7 @@
 """The rospy side of tests/test_ros1_learned_agents.py (its own process: ``rospy.init_node`` once per
 process): learned-static and learned-active with the Protocol-only estimator of
 tests/test_estimator_protocol.py play every object of BUNDLE through
-:class:`~brave6d.evaluation.agents.transports.Ros1EpisodeClient`, seed gt_id, as ``run_baselines`` does.
+:class:`~brave6d.ros_interface.episode_clients.Ros1EpisodeClient`, seed gt_id, as ``run_baselines`` does.
 
     python tests/ros1_learned_player.py BUNDLE WIDTH HEIGHT OUT.json
 """
@@ -24,7 +24,7 @@ def main(bundle_dir: str, width: int, height: int, out: str) -> None:
 
     from brave6d.evaluation.agents import LEARNED_ACTIVE_AGENT, LEARNED_STATIC_AGENT, AgentSetup, make_agent, \
         run_episode
-    from brave6d.evaluation.agents.transports import Ros1EpisodeClient
+    from brave6d.ros_interface import Ros1EpisodeClient
     from brave6d.ros_interface.ros1.client import Ros1Client
     from brave6d.serve import load_bundle
 

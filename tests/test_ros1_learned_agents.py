@@ -1,7 +1,7 @@
 """The same agent objects play over ROS 1 as over HTTP: the Protocol-only detector and pose estimator
 of test_estimator_protocol drive learned-static and learned-active through a rospy
 :class:`~brave6d.ros_interface.ros1.client.Ros1Client` against ``brave6d ros1`` in its default, scored
-mode (:class:`~brave6d.evaluation.agents.transports.Ros1EpisodeClient`, tests/ros1_learned_player.py),
+mode (:class:`~brave6d.ros_interface.episode_clients.Ros1EpisodeClient`, tests/ros1_learned_player.py),
 each submission is scored by the node, and the scores equal the HTTP client's run for the same seeds.
 Skipped, naming the Debian packages, when ROS 1 is absent."""
 

@@ -1,7 +1,7 @@
 """The same agent objects play over ROS 2 as over HTTP: the Protocol-only detector and pose estimator
 of tests/test_estimator_protocol.py drive learned-static and learned-active through an rclpy
 :class:`~brave6d.ros_interface.ros2.agent.Ros2Agent` against ``brave6d ros2`` in its default, scored
-mode (:class:`~brave6d.evaluation.agents.transports.Ros2EpisodeClient`), each submission is scored by
+mode (:class:`~brave6d.ros_interface.episode_clients.Ros2EpisodeClient`), each submission is scored by
 the node, and the scores equal the HTTP client's run for the same seeds."""
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ WIDTH, HEIGHT = 160, 120  # the node's images (--width/--height): quick, and the
 def ros_client(bundle_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     import rclpy
 
-    from brave6d.evaluation.agents.transports import Ros2EpisodeClient
+    from brave6d.ros_interface import Ros2EpisodeClient
     from brave6d.ros_interface.ros2.agent import Ros2Agent
 
     proc = NodeProcess(bundle_dir, tmp_path_factory.mktemp("ros2_learned_logs"), "--domain-id", str(DOMAIN),

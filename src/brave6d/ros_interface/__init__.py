@@ -9,6 +9,8 @@ Public API (lazy: ``import ros_interface`` loads neither torch nor any ROS libra
 - ROS conventions as numpy (:mod:`brave6d.ros_interface.frames`): ``FRAME_WORLD``, ``FRAME_CAMERA_OPTICAL``,
   ``GT_FRAME_PREFIX``, ``gt_frame``, ``matrix_to_pose``, ``pose_to_matrix`` (quaternions x, y, z, w),
   ``camera_info_arrays``, ``depth_to_rep118``, ``stamp_parts``;
+- the benchmark's agents over ROS (:mod:`brave6d.ros_interface.episode_clients`): ``Ros2EpisodeClient``,
+  ``Ros1EpisodeClient`` (``brave6d.evaluation.agents.EpisodeClient`` over the rclpy / rospy agent clients);
 - the agents' interfaces wheel (:mod:`brave6d.ros_interface.ros2.interfaces`): ``build_ros2_interfaces_wheel``
   (writes ``brave6d_msgs`` as a pip wheel; needs the ROS 2 wheels, not ROS).
 
@@ -26,6 +28,7 @@ _LAZY = {
     "gt_frame": ".frames", "matrix_to_pose": ".frames", "pose_to_matrix": ".frames",
     "camera_info_arrays": ".frames", "depth_to_rep118": ".frames", "stamp_parts": ".frames",
     "build_ros2_interfaces_wheel": ".ros2.interfaces",
+    "Ros2EpisodeClient": ".episode_clients", "Ros1EpisodeClient": ".episode_clients",
 }
 
 __all__ = sorted(_LAZY)

@@ -4,6 +4,10 @@ Public API (imported lazily, so ``import brave6d.evaluation.agents`` stays cheap
 
 - :class:`Agent` (observe, decide, submit), :class:`Submission`, :func:`run_episode` (the episode
   loop, written once for any agent) and :class:`EpisodeOutcome`.
+- The client they play through, :class:`EpisodeClient` (reset, set_pose, submit, bundle, model;
+  steps as :class:`EpisodeStep`): ``serve``'s HTTP ``BraveClient``, :class:`GymEpisodeClient` (over a
+  ``BraveEnv``), or ``brave6d.ros_interface``'s ``Ros2EpisodeClient`` / ``Ros1EpisodeClient``, whose
+  steps are :class:`TransportStep` with a :class:`TransportView` (:mod:`.transports`).
 - :data:`POLICIES`: agent name -> factory ``(client, setup) -> Agent``; the demo and the benchmarks
   run every registered agent. :func:`make_agent` builds one by name; :class:`AgentSetup` carries
   what some agents need beyond the client (the learned agents: a trained model folder), and
@@ -54,7 +58,8 @@ __all__ = ["ABLATION_AGENTS", "ACTIVE_AGENT", "LEARNED_ACTIVE_AGENT", "LEARNED_A
            "BaselineAgent", "BaselineOptions", "BoxHint", "CameraPolicy", "Cluster", "EpisodeOutcome", "EpisodeState",
            "EstimateRefused", "FrameOptions", "FramePose", "ModelCloud", "ModelOptions", "Perception",
            "PerceptionOptions", "PixelHint", "Plane", "Registration", "RegistrationOptions", "StaticPolicy",
-           "Submission", "View", "ViewScene", "estimate_pose", "make_agent", "multiview_icp", "one_thread",
+           "Submission", "View", "ViewScene", "EpisodeClient", "EpisodeStep", "GymEpisodeClient",
+           "TransportStep", "TransportView", "estimate_pose", "make_agent", "multiview_icp", "one_thread",
            "perceive", "perceive_near", "perceive_up", "prepare_model", "read_depth_png", "read_model_ply",
            "register_model", "register_scene", "register_views", "run_episode", "sample_model", "standoff_m",
            "table_plane", "view_scene", "view_weights", "voxel_size"]
@@ -62,6 +67,8 @@ __all__ = ["ABLATION_AGENTS", "ACTIVE_AGENT", "LEARNED_ACTIVE_AGENT", "LEARNED_A
 _LAZY = {
     "Agent": ".protocol", "Submission": ".protocol",
     "run_episode": ".episode", "EpisodeOutcome": ".episode",
+    "EpisodeClient": ".transports", "EpisodeStep": ".transports", "GymEpisodeClient": ".transports",
+    "TransportStep": ".transports", "TransportView": ".transports",
     "BaselineAgent": ".baseline", "BaselineOptions": ".baseline",
     "CameraPolicy": ".policy", "EpisodeState": ".policy",
     "StaticPolicy": ".static",
@@ -195,7 +202,9 @@ def runnable_agents(setup: AgentSetup | None = None) -> list[str]:
 
 
 def make_agent(name: str, client: Any, setup: AgentSetup | None = None) -> Agent:
-    """The registered agent ``name`` playing through ``client`` (``serve``'s ``BraveClient``)."""
+    """The registered agent ``name`` playing through ``client`` (an :class:`EpisodeClient`: ``serve``'s
+    ``BraveClient``, :class:`GymEpisodeClient`, ``brave6d.ros_interface``'s ``Ros2EpisodeClient`` or
+    ``Ros1EpisodeClient``)."""
     factory = POLICIES.get(name)
     if factory is None:
         raise BraveError(f"no agent named {name!r}; registered: {', '.join(POLICIES)}")

@@ -38,7 +38,8 @@ def scene_bundle(client: Any, cache: dict[Any, dict[str, Any]]) -> dict[str, Any
 
 def run_episode(client: Any, agent: Agent, target: int | str, *, seed: int, width: int, height: int,
                 scene: str | int | None = None) -> EpisodeOutcome:
-    """Reset an episode on ``client`` (``serve``'s ``BraveClient``) for ``target`` (gt_id or
+    """Reset an episode on ``client`` (an :class:`~brave6d.evaluation.agents.transports.EpisodeClient`:
+    ``serve``'s ``BraveClient``, gym, ROS 2 or ROS 1) for ``target`` (gt_id or
     name) of ``scene`` (None: the server's only scene) from the seeded random start, let
     ``agent`` observe and move until it decides to submit, and submit its estimates under its name."""
     t0 = time.perf_counter()
