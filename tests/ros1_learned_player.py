@@ -1,7 +1,8 @@
 """The rospy side of tests/test_ros1_learned_agents.py (its own process: ``rospy.init_node`` once per
 process): learned-static and learned-active with the Protocol-only estimator of
 tests/test_estimator_protocol.py play every object of BUNDLE through
-:class:`~brave6d.ros_interface.episode_clients.Ros1EpisodeClient`, seed gt_id, as ``run_baselines`` does.
+:class:`~brave6d.ros_interface.episode_clients.Ros1EpisodeClient`, seed gt_id, as ``run_baselines`` does;
+then the seed-0 start view of gt_id 1 is saved (OUT.npz) and another image size asked for.
 
     python tests/ros1_learned_player.py BUNDLE WIDTH HEIGHT OUT.json
 """
@@ -11,6 +12,8 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # test_estimator_protocol's stand-ins
 
@@ -37,6 +40,9 @@ def main(bundle_dir: str, width: int, height: int, out: str) -> None:
     record = [{"agent": o.agent, "target": o.target, "adjustments": o.adjustments, "ar": o.submission["ar"],
                "mode": o.submission["mode"], "submitted": o.submission["submitted"],
                "cam_T_obj": [e.cam_T_obj.tolist() for e in o.estimates]} for o in outcomes]
+    view = client.reset(target=1, width=width, height=height, seed=0).observation  # the HTTP view's twin
+    np.savez(Path(out).with_suffix(".npz"), rgb=view.rgb, depth=view.depth, K=view.K, world_T_cam=view.world_T_cam)
+    client.ros.close()
     try:  # a node image size other than the one asked for: one line
         client.reset(target=1, width=width * 2, height=height * 2, seed=0)
         refusal = None

@@ -2,7 +2,8 @@
 of test_estimator_protocol drive learned-static and learned-active through a scored
 :class:`~brave6d.serve.BraveEnv` (:class:`~brave6d.evaluation.agents.transports.GymEpisodeClient`),
 are scored from the episode logs, and score what the HTTP client's run scores for the same seeds,
-every estimate equal. (ROS 2: tests/ros2/test_rclpy_learned_agents.py.)"""
+every estimate equal; a ROS depth image becomes the served depth (ROS 2 and ROS 1:
+tests/ros2/test_rclpy_learned_agents.py, tests/test_ros1_learned_agents.py)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 from test_estimator_protocol import make_detector, make_pose_estimator
 
 from brave6d.core.errors import BraveError
@@ -93,3 +97,18 @@ def test_the_gym_client_refuses_a_scene_and_a_truncated_episode_in_one_line(bund
             assert "\n" not in str(info.value)
         finally:
             env.close()
+
+
+@settings(max_examples=200, deadline=None)
+@given(hnp.arrays(np.float32, hnp.array_shapes(min_dims=2, max_dims=2, max_side=6),
+                  elements=st.floats(width=32, allow_nan=True, allow_infinity=True)))
+def test_a_ros_depth_image_becomes_the_served_depth(depth: np.ndarray) -> None:
+    """REP 118's NaN (and any other non-depth: inf, 0, negative) is the server's 0; every positive
+    finite depth passes unchanged."""
+    from brave6d.ros_interface.episode_clients import served_depth
+
+    out = served_depth(depth)
+    valid = np.isfinite(depth) & (depth > 0)
+    assert out.dtype == np.float32 and out.shape == depth.shape and np.isfinite(out).all()
+    np.testing.assert_array_equal(out[valid], depth[valid])
+    assert (out[~valid] == 0).all()

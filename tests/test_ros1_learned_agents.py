@@ -2,7 +2,8 @@
 of test_estimator_protocol drive learned-static and learned-active through a rospy
 :class:`~brave6d.ros_interface.ros1.client.Ros1Client` against ``brave6d ros1`` in its default, scored
 mode (:class:`~brave6d.ros_interface.episode_clients.Ros1EpisodeClient`, tests/ros1_learned_player.py),
-each submission is scored by the node, and the scores equal the HTTP client's run for the same seeds.
+each submission is scored by the node, and the scores equal the HTTP client's run for the same seeds;
+a start view over ROS 1 is the HTTP view (image, depth, K, pose).
 Skipped, naming the Debian packages, when ROS 1 is absent."""
 
 from __future__ import annotations
@@ -65,5 +66,17 @@ def test_the_learned_agents_play_a_users_estimator_over_ros1_as_over_http(tmp_pa
     assert ros_ar == pytest.approx(http_ar, abs=1e-9)
     for r, h in zip(ros, http.outcomes, strict=True):  # poses travel as quaternions over ROS: equal to rounding
         np.testing.assert_allclose(np.asarray(r["cam_T_obj"][0]), h.estimates[0].cam_T_obj, atol=1e-9)
+    # the same seeded start over HTTP: the same image, depth (no data 0, not REP 118's NaN), K and pose
+    from brave6d.serve import BraveClient, ServerThread, create_app, load_bundle
+
+    ros_view = np.load(tmp_path / "ros.npz")
+    with ServerThread(create_app(load_bundle(bundle_dir), device="cpu", warm_up=False)) as server, \
+            BraveClient(server.url) as client:
+        view = client.reset(target=1, width=WIDTH, height=HEIGHT, seed=0).observation
+    assert (view.depth == 0).any()  # the start view has pixels without depth
+    np.testing.assert_array_equal(ros_view["rgb"], view.rgb)
+    np.testing.assert_array_equal(ros_view["depth"], view.depth)
+    np.testing.assert_allclose(ros_view["K"], view.K, atol=1e-9)
+    np.testing.assert_allclose(ros_view["world_T_cam"], view.world_T_cam, atol=1e-9)
     refusal = record["size_refusal"]
     assert refusal is not None and f"serves {WIDTH}x{HEIGHT} images" in refusal and "\n" not in refusal, refusal

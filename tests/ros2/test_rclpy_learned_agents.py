@@ -72,6 +72,23 @@ def test_the_learned_agents_play_a_users_estimator_over_ros2_as_over_http(ros_cl
         np.testing.assert_allclose(r.estimates[0].cam_T_obj, h.estimates[0].cam_T_obj, atol=1e-9)
 
 
+def test_a_view_over_ros2_is_the_http_view(ros_client: Any, bundle_dir: Path) -> None:
+    """The same seeded start over ROS 2 and HTTP: the same image, the same depth (no data 0, not
+    REP 118's NaN: what the estimators' interface promises), K and camera pose."""
+    from brave6d.serve import BraveClient, ServerThread, create_app, load_bundle
+
+    ros = ros_client.reset(target=1, width=WIDTH, height=HEIGHT, seed=0).observation
+    ros_client.ros.close()
+    with ServerThread(create_app(load_bundle(bundle_dir), device="cpu", warm_up=False)) as server, \
+            BraveClient(server.url) as client:
+        http = client.reset(target=1, width=WIDTH, height=HEIGHT, seed=0).observation
+    assert (http.depth == 0).any()  # the start view has pixels without depth
+    np.testing.assert_array_equal(ros.rgb, http.rgb)
+    np.testing.assert_array_equal(ros.depth, http.depth)
+    np.testing.assert_allclose(ros.K, http.K, atol=1e-9)
+    np.testing.assert_allclose(ros.world_T_cam, http.world_T_cam, atol=1e-9)
+
+
 def test_the_ros2_client_refuses_another_image_size_in_one_line(ros_client: Any) -> None:
     with pytest.raises(BraveError, match=f"serves {WIDTH}x{HEIGHT} images") as info:
         ros_client.reset(target=1, width=320, height=240, seed=0)

@@ -7,7 +7,8 @@ the rospy :class:`~brave6d.ros_interface.ros1.client.Ros1Client` (its reset / su
 ``~set_pose`` topic; ``rospy.init_node`` is the caller's). The nodes publish neither the scene's
 description nor its models: both come from the bundle folder the node serves, as ``GET /bundle``
 shows it in scored mode (no object poses) and ``GET /bundle/models/{obj_id}``. The images are the
-node's size (``--width/--height``: another size asked for is refused in one line), the episode logs
+node's size (``--width/--height``: another size asked for is refused in one line), the depth the
+server's (metres, 0 = no data: REP 118's NaN for no data is turned back), the episode logs
 carry the node's ``--agent`` name, and ``submit`` answers with the node's score of the episode
 (``ar``, ``adjustments``, ...).
 """
@@ -18,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from brave6d.core.errors import BraveError
 from brave6d.evaluation.agents import TransportStep, TransportView
@@ -27,6 +28,14 @@ from brave6d.ros_interface.frames import FRAME_CAMERA_OPTICAL
 
 #: The largest object model (BOP PLY) read from the bundle folder.
 MAX_MODEL_BYTES = 256 << 20
+
+
+def served_depth(depth_m: NDArray[np.floating]) -> NDArray[np.float32]:
+    """A ROS depth image (``32FC1`` metres, REP 118: NaN = no data) as the server and the estimators'
+    interface give depth (float32 metres, 0 = no data): every value that is not a positive finite
+    number becomes 0."""
+    d = np.asarray(depth_m, dtype=np.float32)
+    return np.where(np.isfinite(d) & (d > 0), d, np.float32(0.0)).astype(np.float32)
 
 
 class _BundleFolder:
@@ -96,8 +105,9 @@ class Ros2EpisodeClient(_BundleFolder):
     @staticmethod
     def _step(obs: Any) -> TransportStep:
         status = obs.status
+        view = TransportView(obs.rgb, served_depth(obs.depth_m), obs.K, obs.world_T_cam)
         return TransportStep(str(status["episode_id"]), str(status["action"]), bool(status["accepted"]),
-                             dict(status["target"] or {}), TransportView(obs.rgb, obs.depth_m, obs.K, obs.world_T_cam))
+                             dict(status["target"] or {}), view)
 
 
 class Ros1EpisodeClient(_BundleFolder):
@@ -132,7 +142,7 @@ class Ros1EpisodeClient(_BundleFolder):
     @staticmethod
     def _step(obs: Any) -> TransportStep:
         status = obs.status_json
-        view = TransportView(obs.rgb_array(), obs.depth_array(), np.asarray(obs.rgb_info.K, dtype=np.float64).reshape(3, 3),
-                             obs.frames()[FRAME_CAMERA_OPTICAL])
+        K = np.asarray(obs.rgb_info.K, dtype=np.float64).reshape(3, 3)
+        view = TransportView(obs.rgb_array(), served_depth(obs.depth_array()), K, obs.frames()[FRAME_CAMERA_OPTICAL])
         return TransportStep(str(status["episode_id"]), str(status["action"]), bool(status["accepted"]),
                              dict(status["target"] or {}), view)
