@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import zipfile
 from pathlib import Path
@@ -16,16 +17,119 @@ from brave6d.synth import SynthOptions, synthesize
 pytestmark = pytest.mark.slow  # two exported, bundled scenes and a release (~15 s)
 
 
-@pytest.fixture(scope="module")
-def release(tmp_path_factory: pytest.TempPathFactory) -> Path:
+#: The shipped train_pbr in BlenderProc's conventions (JPEG rgb/, depth_scale 0.1).
+BLENDERPROC_SAMPLE = Path(__file__).resolve().parent.parent / "data" / "samples" / "blenderproc_train_pbr" / "train_pbr"
+
+
+_WORKDIRS: dict[Path, Path] = {}
+
+
+def _synth_workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two exported, bundled scenes and a synthetic split (brave6d's PNG + mm), made once per session."""
+    if tmp_path_factory.getbasetemp() in _WORKDIRS:
+        return _WORKDIRS[tmp_path_factory.getbasetemp()]
     root = tmp_path_factory.mktemp("dataset")
     _make_scene(root / "scenes" / "scene_a", 4, depth=True, psnr=27.5)
     _make_scene(root / "scenes" / "scene_b", 3, depth=False, psnr=None)
     _write_dataset(root, ["cube_red", "cube_blue"])
     synthesize(root / "dataset.yaml", root / "synth", SynthOptions(images=3, width=64, height=48))
+    _WORKDIRS[tmp_path_factory.getbasetemp()] = root
+    return root
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _synth_workdir(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def release(tmp_path_factory: pytest.TempPathFactory) -> Path:  # self-contained: test_release_hostile_zips imports it
     out = tmp_path_factory.mktemp("release") / "out"
-    build_release(root, out)
+    build_release(_synth_workdir(tmp_path_factory), out)
     return out
+
+
+def _with_blenderproc_split(workdir: Path, into: Path) -> Path:
+    """A copy of the work directory whose synthetic split is the shipped BlenderProc sample, its
+    obj_ids 3 and 4 (the demo's, which this dataset lacks) relabelled 1 and 2 (the release checks
+    that each obj_id has a model, not what the images show)."""
+    root = Path(shutil.copytree(workdir, into, ignore=shutil.ignore_patterns("synth")))
+    split = Path(shutil.copytree(BLENDERPROC_SAMPLE, root / "synth" / "train_pbr"))
+    gt_file = split / "000000" / "scene_gt.json"
+    gt = json.loads(gt_file.read_text())
+    for instances in gt.values():
+        for g in instances:
+            g["obj_id"] = {3: 1, 4: 2}.get(g["obj_id"], g["obj_id"])
+    gt_file.write_text(json.dumps(gt))
+    return root
+
+
+@pytest.fixture(scope="module")
+def blenderproc_workdir(workdir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _with_blenderproc_split(workdir, tmp_path_factory.mktemp("bp") / "dataset")
+
+
+def test_a_blenderproc_split_builds_and_verifies(blenderproc_workdir: Path, tmp_path: Path) -> None:
+    """JPEG colour and depth in 0.1 mm (depth_scale 0.1), as read_bop_split reads them, are packed as
+    they are and verify, every JPEG decoded."""
+    out = tmp_path / "out"
+    build_release(blenderproc_workdir, out)
+    with zipfile.ZipFile(out / f"{NAME}_train_pbr.zip") as zf:
+        names = set(zf.namelist())
+        cameras = json.loads(zf.read("train_pbr/000000/scene_camera.json"))
+        assert zf.read("train_pbr/000000/rgb/000004.jpg") == (BLENDERPROC_SAMPLE / "000000/rgb/000004.jpg").read_bytes()
+    assert not any(n.startswith("train_pbr/000000/rgb/") and n.endswith(".png") for n in names)
+    assert {c["depth_scale"] for c in cameras.values()} == {0.1}
+    assert verify_release(out).train_pbr_images == 20
+    # a damaged JPEG (its end cut off, the zip's CRC recomputed) is found by verify's decoding
+    copy = Path(shutil.copytree(out, tmp_path / "copy"))
+    member = "train_pbr/000000/rgb/000007.jpg"
+    with zipfile.ZipFile(copy / f"{NAME}_train_pbr.zip") as zf:
+        data = zf.read(member)
+    _rewrite_zip(copy / f"{NAME}_train_pbr.zip", replace={member: data[:len(data) // 2]})
+    _resum(copy)
+    with pytest.raises(ReleaseError, match=rf"{member}: JPEG cut short"):
+        verify_release(copy)
+
+
+def test_a_gray_split_is_refused_in_one_line(blenderproc_workdir: Path, tmp_path: Path) -> None:
+    root = _with_blenderproc_split(blenderproc_workdir, tmp_path / "gray")
+    scene = root / "synth" / "train_pbr" / "000000"
+    (scene / "rgb").rename(scene / "gray")
+    with pytest.raises(ReleaseError) as err:
+        build_release(root, tmp_path / "out")
+    assert str(err.value) == (f"{scene / 'gray'}: grey images (gray/) are not packed: the synthetic split needs "
+                              "colour images in rgb/ (.png or .jpg or .jpeg)")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_split_without_depth_scale_is_refused_naming_the_image(workdir: Path, tmp_path: Path) -> None:
+    """brave6d's own PNG + mm split with one image's depth_scale gone: its depth's unit is unknown
+    (packed as it was before: a user would read it as mm)."""
+    root = Path(shutil.copytree(workdir, tmp_path / "noscale"))
+    cam_file = root / "synth" / "train_pbr" / "000000" / "scene_camera.json"
+    cameras = json.loads(cam_file.read_text())
+    assert {c["depth_scale"] for c in cameras.values()} == {1.0}
+    del cameras["2"]["depth_scale"]
+    cam_file.write_text(json.dumps(cameras))
+    with pytest.raises(ReleaseError, match=r"scene_camera.json: image 2: missing 'depth_scale'") as err:
+        build_release(root, tmp_path / "out")
+    assert "\n" not in str(err.value)
+
+
+def test_verify_refuses_a_gray_split(release: Path, tmp_path: Path) -> None:
+    copy = Path(shutil.copytree(release, tmp_path / "copy"))
+    path = copy / f"{NAME}_train_pbr.zip"
+    with zipfile.ZipFile(path) as src, zipfile.ZipFile(path.with_suffix(".tmp"), "w") as dst:
+        for info in src.infolist():
+            data = src.read(info)
+            info.filename = info.filename.replace("/rgb/", "/gray/")
+            dst.writestr(info, data)
+    path.with_suffix(".tmp").replace(path)
+    _resum(copy)
+    with pytest.raises(ReleaseError, match=rf"{NAME}_train_pbr.zip:train_pbr/000000/gray: grey images \(gray/\) "
+                                           "are not packed"):
+        verify_release(copy)
 
 
 def test_the_release_packs_and_verifies_the_synthetic_split(release: Path) -> None:

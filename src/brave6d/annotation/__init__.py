@@ -14,7 +14,8 @@ name is used). Other stages import only these names:
   ``read_models_info``, ``model_file``, ``dataset_image_size``, ``bop_cam_K``, ``dump_bop_json``,
   ``SceneCamera``, ``GtPose``, ``GtInfo``; a split's images for training and estimation
   (:mod:`brave6d.annotation.bop_split`: JPEG or PNG ``rgb/``, depth in mm by each image's ``depth_scale``):
-  ``read_bop_split``, ``read_split_scene``, ``SplitImage``, ``read_split_rgb``, ``read_depth_mm``, ``find_rgb_file``, ``split_scene_folders``;
+  ``read_bop_split``, ``read_split_scene``, ``SplitImage``, ``read_split_rgb``, ``read_depth_mm``, ``find_rgb_file``, ``split_scene_folders``,
+  ``RGB_SUFFIXES`` (the colour image suffixes ``rgb/`` may hold);
 - meshes: ``read_ply_mesh``, ``write_ply_mesh``, ``MeshData`` (:mod:`brave6d.annotation.ply_mesh`, the one
   reader and writer of mesh PLY files), ``load_mesh`` (any mesh format, PLY through that reader),
   ``model_diameter`` (largest point distance, the BOP ``diameter``), ``write_bop_models`` (a BOP models
@@ -47,7 +48,7 @@ _LAZY = {
     "SceneCamera": ".bop_format", "BOP19_MIN_VISIB_FRACT": ".bop_format", "GtPose": ".bop_format", "GtInfo": ".bop_format",
     "read_bop_split": ".bop_split", "read_split_scene": ".bop_split", "SplitImage": ".bop_split",
     "read_split_rgb": ".bop_split", "read_depth_mm": ".bop_split", "find_rgb_file": ".bop_split",
-    "split_scene_folders": ".bop_split",
+    "split_scene_folders": ".bop_split", "RGB_SUFFIXES": ".bop_split",
     "read_ply_mesh": ".ply_mesh", "write_ply_mesh": ".ply_mesh", "MeshData": ".ply_mesh", "load_mesh": ".models",
     "SilhouetteCaster": ".visibility", "Silhouette": ".visibility", "bbox_xywh": ".visibility",
     "model_diameter": ".models", "write_bop_models": ".models", "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".toy_scene",

@@ -3,9 +3,14 @@
 
 Both sides read the split's JSON files through annotation's BOP readers (the format's owner) and
 check that every image the ``scene_gt.json`` files list has its rgb, depth and masks, and that
-every ``obj_id`` has a model in the release's models zip. Every PNG is checked too
-(:mod:`brave6d.dataset.release.images`): its header and tail when packing (a damaged synthetic image is not
-packed), decoded when verifying; all images of one ``train_pbr/XXXXXX`` folder share one size.
+every ``obj_id`` has a model in the release's models zip. The layouts are those annotation's split
+reader (``read_bop_split``) reads: colour in ``rgb/`` as PNG or JPEG (``RGB_SUFFIXES``; BlenderProc
+writes JPEG), a grey-only folder (``gray/``) refused naming it, and every image's ``depth_scale`` in
+``scene_camera.json`` (mm per depth unit: 1 as brave6d writes, 0.1 as BlenderProc does; a missing one
+is refused, never taken as mm). Every image is checked too (:mod:`brave6d.dataset.release.images`):
+its header and end when packing (a damaged synthetic image is not packed), decoded when verifying
+(the pixel limit checked from the header first); all images of one ``train_pbr/XXXXXX`` folder share
+one size.
 The zip is read through :func:`brave6d.dataset.release.zips.open_zip` (names, sizes, streamed CRCs).
 """
 
@@ -17,9 +22,11 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from brave6d.annotation import read_scene_camera, read_scene_gt, read_scene_gt_info
+from brave6d.annotation import RGB_SUFFIXES, read_scene_camera, read_scene_gt, read_scene_gt_info
+from brave6d.core.errors import DataError
 from brave6d.dataset.release.formats import SYNTH_DIR, TRAIN_PBR
-from brave6d.dataset.release.images import check_png_file, decode_zip_images, image_kind
+from brave6d.dataset.release.images import check_jpeg_file, check_png_file, decode_zip_images, decode_zip_jpegs, \
+    image_kind, is_rgb_jpeg
 from brave6d.dataset.release.source import ReleaseError
 from brave6d.dataset.release.zips import open_zip
 
@@ -44,9 +51,12 @@ def train_pbr_files(split: Path, models: Mapping[int, Any]) -> list[tuple[Path, 
                       str(folder))
         size = None
         for p in files:
-            kind = image_kind(p.relative_to(folder).as_posix())
+            rel = p.relative_to(folder).as_posix()
+            kind = image_kind(rel)
             if kind is not None:
                 size = check_png_file(p, kind, size)
+            elif is_rgb_jpeg(rel):
+                size = check_jpeg_file(p, size)
     return [(p, f"{TRAIN_PBR}/{p.relative_to(split).as_posix()}") for p in sorted(split.rglob("*")) if p.is_file()]
 
 
@@ -66,7 +76,8 @@ def check_train_pbr_zip(path: Path, models: Mapping[int, Any]) -> int:
                 return zf.run_reader(reader, f"{TRAIN_PBR}/{f}/{name}", Path(tmp))
 
             images += _check_folder(folder, read, members, models, f"{path.name}:{TRAIN_PBR}/{folder}")
-            decode_zip_images(zf, f"{TRAIN_PBR}/{folder}")
+            _, size = decode_zip_jpegs(zf, f"{TRAIN_PBR}/{folder}", Path(tmp))
+            decode_zip_images(zf, f"{TRAIN_PBR}/{folder}", size)
         zf.check_unread()
     return images
 
@@ -74,20 +85,32 @@ def check_train_pbr_zip(path: Path, models: Mapping[int, Any]) -> int:
 def _read_local(reader: Callable[[Path], Any], file: Path) -> Any:
     if not file.is_file():
         raise ReleaseError(f"{file}: missing")
-    return reader(file)
+    try:
+        return reader(file)
+    except DataError as exc:  # annotation's readers: one line naming the file and field, as a release error
+        raise ReleaseError(str(exc)) from None
+
+
+def _read_cameras(path: Path) -> dict[int, Any]:
+    """``scene_camera.json`` with every image's ``depth_scale`` required: the split always has depth."""
+    return read_scene_camera(path, require_depth_scale=True)
 
 
 def _check_folder(folder: str, read: Callable[[str, Callable[[Path], Any]], Any], members: set[str],
                   models: Mapping[int, Any], where: str) -> int:
     """Check one ``train_pbr/XXXXXX`` folder; returns its number of images."""
+    if not any(m.startswith("rgb/") for m in members) and any(m.startswith("gray/") for m in members):
+        raise ReleaseError(f"{where}/gray: grey images (gray/) are not packed: the synthetic split needs colour "
+                           f"images in rgb/ ({' or '.join(RGB_SUFFIXES)})")
     gt = read("scene_gt.json", read_scene_gt)
-    for name, reader in (("scene_camera.json", read_scene_camera), ("scene_gt_info.json", read_scene_gt_info)):
+    for name, reader in (("scene_camera.json", _read_cameras), ("scene_gt_info.json", read_scene_gt_info)):
         ids = read(name, reader)
         if set(ids) != set(gt):
             raise ReleaseError(f"{where}/{name}: lists other images than scene_gt.json "
                                f"(e.g. {sorted(set(ids) ^ set(gt))[:3]})")
     for im_id, gts in sorted(gt.items()):
-        needed = [f"rgb/{im_id:06d}.png", f"depth/{im_id:06d}.png"]
+        rgb = [f"rgb/{im_id:06d}{suffix}" for suffix in RGB_SUFFIXES]
+        needed = [next((r for r in rgb if r in members), rgb[0]), f"depth/{im_id:06d}.png"]
         for gt_id, g in enumerate(gts):
             if g.obj_id not in models:
                 raise ReleaseError(f"{where}/scene_gt.json: image {im_id} instance {gt_id}: obj_id {g.obj_id} has no "
