@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import json
 import shutil
+import tempfile
 import zipfile
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_release import NAME, _make_scene, _resum, _rewrite_zip, _write_dataset
 
 from brave6d.dataset.release import ReleaseError, build_release, verify_release
@@ -161,3 +164,63 @@ def test_a_zipped_scene_estimates_the_memory_of_its_unpacked_bundle(release: Pat
     assert any((s.locate() / REFERENCE).is_file() for s in sources)  # the case this test is about
     for source in sources:
         assert source.memory_bytes == bundle_scene_source(source.locate()).memory_bytes, source.name
+
+
+def _edited(data: bytes, edits: dict[int, int]) -> bytes:
+    out = bytearray(data)
+    for i, value in edits.items():
+        out[i] = value
+    return bytes(out)
+
+
+def _jpeg_cases() -> st.SearchStrategy[bytes]:
+    """A real JPEG of the sample cut anywhere, with bytes changed, or any bytes at all."""
+    real = (BLENDERPROC_SAMPLE / "000000" / "rgb" / "000003.jpg").read_bytes()
+    cut = st.integers(0, len(real)).map(lambda n: real[:n])
+    flipped = st.lists(st.tuples(st.integers(0, len(real) - 1), st.integers(0, 255)), min_size=1, max_size=8).map(
+        lambda edits: _edited(real, dict(edits)))
+    # the SOF0 segment's height and width bytes (after the marker, length and precision): a huge size declared
+    sof = real.index(b"\xff\xc0") + 5
+    huge = st.integers(20000, 65535).map(lambda n: real[:sof] + n.to_bytes(2, "big") * 2 + real[sof + 4:])
+    return st.one_of(cut, flipped, huge, st.binary(max_size=600))
+
+
+@settings(max_examples=80, deadline=None)
+@given(data=_jpeg_cases())
+def test_any_jpeg_bytes_pass_both_checks_as_an_image_or_are_refused_in_one_line(data: bytes) -> None:
+    """Build's header check and verify's decoding of an ``rgb/`` JPEG: a (width, height) within the
+    pixel limit that both agree on, or a ReleaseError of one line naming the image; never another
+    exception, never a decode of a huge declared size (refused from the header)."""
+    from brave6d.core.png_check import MAX_PIXELS
+    from brave6d.dataset.release.images import check_jpeg_file
+    from brave6d.dataset.release.zips import open_zip
+
+    with tempfile.TemporaryDirectory() as tmp:
+        file = Path(tmp) / "rgb" / "000000.jpg"
+        file.parent.mkdir()
+        file.write_bytes(data)
+        with zipfile.ZipFile(Path(tmp) / "x.zip", "w") as zf:
+            zf.writestr("train_pbr/000000/rgb/000000.jpg", data)
+        answers = []
+        for check in (lambda: check_jpeg_file(file),
+                      lambda: _decode_one(open_zip(Path(tmp) / "x.zip", inside="train_pbr", shown="x.zip"), tmp)):
+            try:
+                answers.append(check())
+            except ReleaseError as exc:
+                assert "\n" not in str(exc) and ("000000.jpg" in str(exc)), str(exc)
+                answers.append(None)
+        for size in answers:
+            assert size is None or (0 < size[0] * size[1] <= MAX_PIXELS)
+        if answers[1] is not None:  # what verify decodes, build's header check accepted, at the same size
+            assert answers[0] == answers[1]
+        if len(data) > 200 and data[:3] == b"\xff\xd8\xff" and answers[0] is not None and answers[0][0] >= 20000:
+            raise AssertionError("a huge declared size passed the header check")
+
+
+def _decode_one(zf: object, tmp: str) -> tuple[int, int] | None:
+    from brave6d.dataset.release.images import decode_zip_jpegs
+
+    with zf:  # type: ignore[attr-defined]
+        count, size = decode_zip_jpegs(zf, "train_pbr/000000", Path(tmp))  # type: ignore[arg-type]
+    assert count == 1
+    return size
