@@ -410,8 +410,10 @@ def test_ctrl_c_during_a_move_stops_the_arm(faults: Emulator) -> None:
     """)
     events = faults.link.events()
     since = events[-1][0] if events else 0  # the test run alone: the emulator has logged nothing yet
+    # SIGINT at its default, as in a terminal: a test run started in the background of a non-interactive
+    # shell (as CI may be) has it ignored, and a child inherits that, so Python would install no handler
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert proc.stdout is not None
     for expected in ("moving", "interrupted", "moving linearly"):
         if expected == "interrupted":
