@@ -106,6 +106,23 @@ def test_a_gray_split_is_refused_in_one_line(blenderproc_workdir: Path, tmp_path
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("stray", ["notes.txt", "tmp"])
+def test_build_refuses_what_is_not_a_scene_folder_in_the_split(workdir: Path, tmp_path: Path, stray: str) -> None:
+    """A file or a non-six-digit folder beside train_pbr/000000 is named by build; it used to be packed
+    (a file) and then refused by verify as lying outside train_pbr/XXXXXX/, or read as a scene (a folder)."""
+    root = Path(shutil.copytree(workdir, tmp_path / "stray"))
+    path = root / "synth" / "train_pbr" / stray
+    if stray.endswith(".txt"):
+        path.write_text("the user's notes")
+    else:
+        path.mkdir()
+        (path / "x.png").write_bytes(b"")
+    with pytest.raises(ReleaseError) as err:
+        build_release(root, tmp_path / "out")
+    assert str(err.value).startswith(f"{path}: not a scene folder (six digits) of the synthetic split")
+    assert path.exists() and not (tmp_path / "out").exists()
+
+
 def test_a_split_without_depth_scale_is_refused_naming_the_image(workdir: Path, tmp_path: Path) -> None:
     """brave6d's own PNG + mm split with one image's depth_scale gone: its depth's unit is unknown
     (packed as it was before: a user would read it as mm)."""

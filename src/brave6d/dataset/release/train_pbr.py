@@ -22,7 +22,8 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from brave6d.annotation import RGB_SUFFIXES, read_scene_camera, read_scene_gt, read_scene_gt_info
+from brave6d.annotation import RGB_SUFFIXES, read_scene_camera, read_scene_gt, read_scene_gt_info, \
+    split_scene_folders
 from brave6d.core.errors import DataError
 from brave6d.dataset.release.formats import SYNTH_DIR, TRAIN_PBR
 from brave6d.dataset.release.images import check_jpeg_file, check_png_file, decode_zip_images, decode_zip_jpegs, \
@@ -41,9 +42,14 @@ def synthetic_split(workdir: Path) -> Path | None:
 
 def train_pbr_files(split: Path, models: Mapping[int, Any]) -> list[tuple[Path, str]]:
     """``(file, member)`` of every file of the split (sorted), after checking it (module docstring)."""
-    folders = sorted(p for p in split.iterdir() if p.is_dir())
-    if not folders:
-        raise ReleaseError(f"{split}: the synthetic split holds no image folders; run 'brave6d synth' again")
+    try:
+        folders = split_scene_folders(split, "; run 'brave6d synth' again")
+    except DataError as exc:
+        raise ReleaseError(str(exc)) from exc
+    strays = sorted(set(split.iterdir()) - set(folders))
+    if strays:  # verify refuses any member outside train_pbr/XXXXXX/: never pack one
+        raise ReleaseError(f"{strays[0]}: not a scene folder (six digits) of the synthetic split; move it out of "
+                           f"{split} (the release packs train_pbr/XXXXXX/ folders only)")
     for folder in folders:
         files = sorted(p for p in folder.rglob("*") if p.is_file())
         members = {p.relative_to(folder).as_posix() for p in files}
