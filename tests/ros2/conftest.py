@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +60,30 @@ class NodeProcess:
             self.proc.kill()
             self.proc.wait()
         return self.output()
+
+
+@contextmanager
+def agent_on_own_node(bundle: Path, log_dir: Path, domain: int, node_name: str, *extra: str) -> Iterator[Any]:
+    """``brave6d ros2`` on a domain of its own and a connected rclpy ``Ros2Agent`` in a context of its
+    own; both are shut down after (the node's last output printed for a failing test)."""
+    import rclpy
+
+    from brave6d.ros_interface.ros2.agent import Ros2Agent
+
+    proc = NodeProcess(bundle, log_dir, "--domain-id", str(domain), *extra)
+    ctx = rclpy.Context()
+    try:
+        proc.wait_ready()
+        rclpy.init(context=ctx, domain_id=domain)
+        agent = Ros2Agent(timeout_s=60, context=ctx, node_name=node_name)
+        try:
+            agent.wait_until_connected(timeout_s=60)
+            yield agent
+        finally:
+            agent.destroy()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        print(proc.stop()[-3000:])
 
 
 @pytest.fixture(scope="session")

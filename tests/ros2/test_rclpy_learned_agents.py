@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import NodeProcess
+from conftest import agent_on_own_node
 from test_estimator_protocol import make_detector, make_pose_estimator
 
 from brave6d.core.errors import BraveError
@@ -27,26 +27,11 @@ WIDTH, HEIGHT = 160, 120  # the node's images (--width/--height): quick, and the
 
 @pytest.fixture(scope="module")
 def ros_client(bundle_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
-    import rclpy
-
     from brave6d.ros_interface import Ros2EpisodeClient
-    from brave6d.ros_interface.ros2.agent import Ros2Agent
 
-    proc = NodeProcess(bundle_dir, tmp_path_factory.mktemp("ros2_learned_logs"), "--domain-id", str(DOMAIN),
-                       "--width", str(WIDTH), "--height", str(HEIGHT))
-    ctx = rclpy.Context()
-    try:
-        proc.wait_ready()
-        rclpy.init(context=ctx, domain_id=DOMAIN)
-        agent = Ros2Agent(timeout_s=60, context=ctx, node_name="learned_agent")
-        try:
-            agent.wait_until_connected(timeout_s=60)
-            yield Ros2EpisodeClient(agent, bundle_dir)
-        finally:
-            agent.destroy()
-    finally:
-        rclpy.try_shutdown(context=ctx)
-        print(proc.stop()[-3000:])
+    with agent_on_own_node(bundle_dir, tmp_path_factory.mktemp("ros2_learned_logs"), DOMAIN, "learned_agent",
+                           "--width", str(WIDTH), "--height", str(HEIGHT)) as agent:
+        yield Ros2EpisodeClient(agent, bundle_dir)
 
 
 def test_the_learned_agents_play_a_users_estimator_over_ros2_as_over_http(ros_client: Any, bundle_dir: Path,

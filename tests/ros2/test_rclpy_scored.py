@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import NodeProcess
+from conftest import agent_on_own_node
 from truth_search import target_truths, truth_found
 
 from brave6d.core.transforms import look_at
@@ -28,22 +28,9 @@ FREE2 = look_at((0.30, 0.10, 0.35), (0.46, 0.0, 0.01))
 
 @pytest.fixture(scope="module")
 def scored_agent(bundle_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros2Agent]:
-    import rclpy
-
-    proc = NodeProcess(bundle_dir, tmp_path_factory.mktemp("ros2_scored_logs"), "--domain-id", str(SCORED_DOMAIN))
-    ctx = rclpy.Context()
-    try:
-        proc.wait_ready()
-        rclpy.init(context=ctx, domain_id=SCORED_DOMAIN)
-        agent = Ros2Agent(timeout_s=60, context=ctx, node_name="scored_agent")
-        try:
-            agent.wait_until_connected(timeout_s=60)
-            yield agent
-        finally:
-            agent.destroy()
-    finally:
-        rclpy.try_shutdown(context=ctx)
-        print(proc.stop()[-3000:])
+    with agent_on_own_node(bundle_dir, tmp_path_factory.mktemp("ros2_scored_logs"), SCORED_DOMAIN,
+                           "scored_agent") as agent:
+        yield agent
 
 
 def play(agent: Ros2Agent) -> tuple[list[Any], list[np.ndarray]]:
