@@ -94,3 +94,96 @@ def test_bop_toolkit_evaluates_the_weight_free_csv_as_brave6d_does(tmp_path: Pat
                            os.environ["BOP_TOOLKIT"], "--venv", venv], capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "agree to 1e-06" in proc.stdout
+
+
+def _without_ground_truth(tmp_path: Path) -> tuple[Path, Path]:
+    """The sample's split as a BOP test split whose ground truth is withheld (no scene_gt*.json, no
+    masks), and the targets file bop_toolkit's enumerate_test_targets.py would write for the first
+    IMAGES images (objects with instances >= 10 % visible, and their counts)."""
+    import json
+    import shutil
+
+    from brave6d.annotation import read_bop_split
+    from brave6d.evaluation.learned.split_results import bop19_targets
+
+    split = Path(shutil.copytree(SPLIT, tmp_path / "test"))
+    targets = []
+    for image in read_bop_split(SPLIT)[:IMAGES]:
+        targets += [{"im_id": image.im_id, "inst_count": n, "obj_id": o, "scene_id": image.scene_id}
+                    for o, n in sorted(bop19_targets(image.infos, image.gts).items())]
+    for scene in split.iterdir():
+        for name in ("scene_gt.json", "scene_gt_info.json"):
+            (scene / name).unlink()
+        for folder in ("mask", "mask_visib"):
+            shutil.rmtree(scene / folder, ignore_errors=True)
+    targets_file = tmp_path / "test_targets_bop19.json"
+    targets_file.write_text(json.dumps(targets))
+    return split, targets_file
+
+
+def test_a_test_split_without_ground_truth_is_estimated_from_its_targets_file(
+        model: Path, csv: tuple[Path, str], tmp_path: Path) -> None:
+    """The same images, targets from test_targets_bop19.json instead of scene_gt*.json: the same
+    estimates, line for line but the time; without the targets file, one line naming scene_gt.json;
+    --score where no ground truth is, one line."""
+    split, targets_file = _without_ground_truth(tmp_path)
+    brave6d = str(Path(sys.executable).with_name("brave6d"))
+    out = tmp_path / "test.csv"
+    proc = subprocess.run([brave6d, "learn", "bop-results", str(model), str(split), "--models", str(MODELS),
+                           "--out", str(out), "--targets", str(targets_file)], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+
+    def without_time(p: Path) -> list[str]:
+        return [line.rsplit(",", 1)[0] for line in p.read_text().splitlines()]
+
+    assert len(without_time(out)) > 3 and without_time(out) == without_time(csv[0])
+    for extra, expect in (([], f"{split / '000000' / 'scene_gt.json'}: not found: a test split without ground "
+                                "truth is estimated from its targets file (--targets test_targets_bop19.json)"),
+                          (["--targets", str(targets_file), "--score"], f"{split}: --score needs the split's "
+                                                                        "ground truth (scene_gt.json)")):
+        bad = subprocess.run([brave6d, "learn", "bop-results", str(model), str(split), "--models", str(MODELS),
+                              "--out", str(tmp_path / "bad.csv"), *extra], capture_output=True, text=True,
+                             timeout=300)
+        assert bad.returncode != 0 and expect in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
+        assert not (tmp_path / "bad.csv").exists()
+
+
+@pytest.mark.parametrize("entries, expect", [
+    ({"scene_id": 0}, "expected a JSON list of targets"),
+    ([{"scene_id": 0, "im_id": 1, "obj_id": 2}], "entry 0: 'inst_count' must be a positive integer, got None"),
+    ([{"scene_id": 0, "im_id": 1, "obj_id": 2, "inst_count": 0}], "entry 0: 'inst_count' must be a positive"),
+    ([{"scene_id": 0, "im_id": -1, "obj_id": 2, "inst_count": 1}], "entry 0: 'im_id' must be a non-negative"),
+    ([{"scene_id": 0, "im_id": 1, "obj_id": True, "inst_count": 1}], "entry 0: 'obj_id' must be a non-negative"),
+    ([{"scene_id": 0, "im_id": 1, "obj_id": 2.0, "inst_count": 1}], "entry 0: 'obj_id' must be a non-negative"),
+    ([{"scene_id": 0, "im_id": 1, "obj_id": 2, "inst_count": 1}] * 2, "entry 1: scene 0 image 1 object 2 is listed twice"),
+    (["x"], "entry 0: expected an object"),
+])
+def test_a_malformed_targets_file_is_refused_naming_the_entry_and_field(tmp_path: Path, entries: object,
+                                                                          expect: str) -> None:
+    import json
+
+    from brave6d.annotation import read_test_targets
+    from brave6d.core.errors import DataError
+
+    path = tmp_path / "test_targets_bop19.json"
+    path.write_text(json.dumps(entries))
+    with pytest.raises(DataError) as err:
+        read_test_targets(path)
+    assert str(err.value).startswith(f"{path}: ") and expect in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_target_whose_image_is_missing_is_refused_naming_it(tmp_path: Path) -> None:
+    import json
+
+    from brave6d.annotation import read_split_targets
+    from brave6d.core.errors import DataError
+
+    split, targets_file = _without_ground_truth(tmp_path)
+    assert [(i.scene_id, i.im_id) for i in read_split_targets(split, targets_file)[0]] == [(0, i) for i in range(IMAGES)]
+    for entry, expect in (({"scene_id": 3}, f"scene 3 has no folder {split / '000003'}"),
+                          ({"im_id": 999}, f"{split / '000000' / 'scene_camera.json'}: no entry for image 999")):
+        bad = tmp_path / "bad.json"
+        bad.write_text(json.dumps([{"scene_id": 0, "im_id": 0, "obj_id": 1, "inst_count": 1, **entry}]))
+        with pytest.raises(DataError, match=expect):
+            read_split_targets(split, bad)

@@ -279,6 +279,37 @@ def read_scene_gt_info(path: Path | str) -> dict[int, list[GtInfo]]:
     return out
 
 
+def read_test_targets(path: Path | str) -> dict[tuple[int, int], dict[int, int]]:
+    """``test_targets_bop19.json`` (a list of ``{scene_id, im_id, obj_id, inst_count}``, as the BOP
+    datasets ship it beside their test splits) -> ``{(scene_id, im_id): {obj_id: inst_count}}``: the
+    instances to estimate in each image, for splits whose ``scene_gt.json`` is withheld. Every entry
+    needs the four fields as non-negative integers (``inst_count`` positive); one target listed twice
+    is refused, naming the entry."""
+    p = Path(path)
+    data = read_json(p)
+    if not isinstance(data, list):
+        raise DataError(f"{p}: expected a JSON list of targets (scene_id, im_id, obj_id, inst_count), "
+                        f"got {type(data).__name__}")
+    out: dict[tuple[int, int], dict[int, int]] = {}
+    for index, entry in enumerate(data):
+        where = f"{p}: entry {index}"
+        if not isinstance(entry, dict):
+            raise DataError(f"{where}: expected an object with scene_id, im_id, obj_id, inst_count")
+        values = {}
+        for key in ("scene_id", "im_id", "obj_id", "inst_count"):
+            value = entry.get(key)
+            if isinstance(value, bool) or not isinstance(value, int) or value < (1 if key == "inst_count" else 0):
+                raise DataError(f"{where}: '{key}' must be a {'positive' if key == 'inst_count' else 'non-negative'} "
+                                f"integer, got {value!r}")
+            values[key] = value
+        image = out.setdefault((values["scene_id"], values["im_id"]), {})
+        if values["obj_id"] in image:
+            raise DataError(f"{where}: scene {values['scene_id']} image {values['im_id']} object {values['obj_id']} "
+                            "is listed twice")
+        image[values["obj_id"]] = values["inst_count"]
+    return out
+
+
 def _bbox(values: Any) -> tuple[int, int, int, int] | None:
     if values is None:
         return None

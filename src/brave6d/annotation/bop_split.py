@@ -35,6 +35,7 @@ from brave6d.annotation.bop_format import (
     read_scene_camera,
     read_scene_gt,
     read_scene_gt_info,
+    read_test_targets,
 )
 from brave6d.core.errors import DataError
 
@@ -150,3 +151,30 @@ def read_split_scene(scene_dir: Path | str) -> list[SplitImage]:
 def read_bop_split(split_dir: Path | str) -> list[SplitImage]:
     """Every image of every scene folder of a split, in (scene, image) order."""
     return [image for scene in split_scene_folders(split_dir) for image in read_split_scene(scene)]
+
+
+def read_split_targets(split_dir: Path | str, targets_file: Path | str) -> tuple[list[SplitImage],
+                                                                                 dict[tuple[int, int], dict[int, int]]]:
+    """The images a targets file (``test_targets_bop19.json``) lists, in (scene, image) order, and its
+    targets: for a test split without ``scene_gt.json`` (the images' ``gts`` and ``infos`` are empty).
+    Each listed image needs its scene folder, its ``scene_camera.json`` entry and its colour image;
+    a missing one is refused naming it."""
+    d = Path(split_dir)
+    targets = read_test_targets(targets_file)
+    if not targets:
+        raise DataError(f"{targets_file}: lists no targets")
+    folders = {int(f.name): f for f in split_scene_folders(d)}
+    cameras: dict[int, dict[int, SceneCamera]] = {}
+    images = []
+    for scene_id, im_id in sorted(targets):
+        folder = folders.get(scene_id)
+        if folder is None:
+            raise DataError(f"{targets_file}: scene {scene_id} has no folder {d / f'{scene_id:06d}'}")
+        if scene_id not in cameras:
+            cameras[scene_id] = read_scene_camera(folder / "scene_camera.json",
+                                                  require_depth_scale=(folder / "depth").is_dir())
+        camera = cameras[scene_id].get(im_id)
+        if camera is None:
+            raise DataError(f"{folder / 'scene_camera.json'}: no entry for image {im_id} of {targets_file}")
+        images.append(SplitImage(folder, scene_id, im_id, rgb_file(folder, im_id), camera, (), ()))
+    return images, targets

@@ -6,6 +6,7 @@ export its networks as ONNX.
         [--set FIELD=VALUE ...]
     brave6d learn heldout MODEL_DIR TRAIN_PBR --models MODELS_DIR [--detect-scales 1,1.375]
     brave6d learn bop-results MODEL_DIR SPLIT_DIR --models MODELS_DIR --out RESULTS.csv [--depth] [--score]
+                              [--targets test_targets_bop19.json]
 """
 
 from __future__ import annotations
@@ -67,6 +68,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                          help="the first N images only")
     results.add_argument("--score", action="store_true",
                          help="print the CSV's BOP19 AR against the split's ground truth (brave6d's scoring)")
+    results.add_argument("--targets", type=Path, default=None, metavar="TARGETS.json",
+                         help="the dataset's test_targets_bop19.json: estimate the targets it lists instead of "
+                              "those of the split's ground truth (a test split whose scene_gt.json is withheld)")
 
 
 def _scales(text: str) -> tuple[float, ...]:
@@ -138,13 +142,18 @@ def run(args: argparse.Namespace) -> int:
 
 def _bop_results(args: argparse.Namespace) -> int:
     """``learn bop-results``: the CSV, a line of what was estimated, with ``--score`` its AR."""
+    from brave6d.core.errors import BraveError
     from brave6d.evaluation.estimate_bop import score_results_csv
     from brave6d.evaluation.learned.inference import LearnedEstimator
     from brave6d.evaluation.learned.split_results import estimate_split
     from brave6d.evaluation.metrics import write_bop_results
 
+    if args.score and args.targets is not None and not any(args.split.glob("[0-9]*/scene_gt.json")):
+        raise BraveError(f"{args.split}: --score needs the split's ground truth (scene_gt.json), which this split "
+                         "withholds: evaluate the CSV where the ground truth is (bop_toolkit's evaluation server)")
     estimator = LearnedEstimator.load(args.model_dir, models_dir=args.models)
-    run = estimate_split(estimator, args.split, with_depth=args.depth, max_images=args.max_images)
+    run = estimate_split(estimator, args.split, with_depth=args.depth, max_images=args.max_images,
+                         targets_file=args.targets)
     write_bop_results(args.out, run.estimates)
     refused = ", ".join(f"{n} {cause}" for cause, n in sorted(run.refusals.items())) or "none"
     print(f"bop-results: {len(run.estimates)} estimates of {run.targets} targets in {run.images} images "

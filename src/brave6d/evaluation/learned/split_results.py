@@ -4,7 +4,9 @@ reader reads (a test split, a held-out train_pbr; JPEG or PNG, any ``depth_scale
 
 Per image: the targets are BOP19's (the objects with instances at least 10 % visible, and their
 counts: ``test_targets_bop19.json``'s ``inst_count``, derived from ``scene_gt_info.json`` as
-bop_toolkit's ``enumerate_test_targets.py`` does). The image is resized to the crops' source width,
+bop_toolkit's ``enumerate_test_targets.py`` does), or, for a test split whose ground truth is
+withheld, read from the dataset's ``test_targets_bop19.json`` itself (only the images it lists).
+Targets of objects the model was not trained on are counted as ``unknown-object`` refusals. The image is resized to the crops' source width,
 as the held-out scoring (:mod:`~brave6d.evaluation.learned.heldout`) and the agents see it; the
 detector runs once, each detection's box is refined by the coordinate net's mask, and each target
 object takes its ``inst_count`` best detections scoring at least the agents' threshold, each
@@ -28,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from brave6d.core.errors import DataError
 from brave6d.evaluation.learned.data import MIN_VISIB_FRACT, resize_to_width
 from brave6d.evaluation.learned.inference import LearnedEstimator, LearnedRefused
 from brave6d.evaluation.learned.presets import DETECTION_THRESHOLD
@@ -61,19 +64,35 @@ def bop19_targets(infos: tuple, gts: tuple) -> dict[int, int]:
 
 
 def estimate_split(estimator: LearnedEstimator, split_dir: Path | str, with_depth: bool = False,
-                   max_images: int | None = None, progress: Callable[[str], None] | None = None) -> SplitResults:
+                   max_images: int | None = None, progress: Callable[[str], None] | None = None,
+                   targets_file: Path | str | None = None) -> SplitResults:
     """Estimate every BOP19 target of ``split_dir`` (module docstring); ``with_depth``: refine with
-    the split's depth; ``max_images``: the first n images only."""
+    the split's depth; ``max_images``: the first n images only; ``targets_file``: the targets from
+    ``test_targets_bop19.json`` instead of the split's ground truth (a test split whose
+    ``scene_gt.json`` is withheld: only the images it lists are read)."""
     import cv2
 
-    from brave6d.annotation import read_bop_split
+    from brave6d.annotation import read_bop_split, read_split_targets, split_scene_folders
 
     out = SplitResults()
-    images = read_bop_split(split_dir)[:max_images]
+    listed: dict[tuple[int, int], dict[int, int]] | None = None
+    if targets_file is not None:
+        images, listed = read_split_targets(split_dir, targets_file)
+    else:
+        for scene in split_scene_folders(split_dir):
+            if not (scene / "scene_gt.json").is_file() and (scene / "scene_camera.json").is_file():
+                raise DataError(f"{scene / 'scene_gt.json'}: not found: a test split without ground truth is "
+                                "estimated from its targets file (--targets test_targets_bop19.json)")
+        images = read_bop_split(split_dir)
+    images = images[:max_images]
     width = estimator.crop_source_width
     for image in images:
         out.image_ids.append((image.scene_id, image.im_id))
-        targets = {o: n for o, n in bop19_targets(image.infos, image.gts).items() if o in estimator.obj_ids}
+        wanted = listed[(image.scene_id, image.im_id)] if listed is not None else bop19_targets(image.infos, image.gts)
+        targets = {o: n for o, n in wanted.items() if o in estimator.obj_ids}
+        unknown = sum(n for o, n in wanted.items() if o not in estimator.obj_ids)
+        if unknown:
+            out.refusals["unknown-object"] += unknown
         if not targets:
             continue
         full = image.read_rgb()
