@@ -25,8 +25,7 @@ def main(bundle_dir: str, width: int, height: int, out: str) -> None:
     import rospy
     from test_estimator_protocol import make_detector, make_pose_estimator
 
-    from brave6d.evaluation.agents import LEARNED_ACTIVE_AGENT, LEARNED_STATIC_AGENT, AgentSetup, make_agent, \
-        run_episode
+    from brave6d.evaluation.agents import LEARNED_AGENTS, AgentSetup, make_agent, run_episode
     from brave6d.ros_interface import Ros1EpisodeClient
     from brave6d.ros_interface.ros1.client import Ros1Client
     from brave6d.serve import load_bundle
@@ -34,7 +33,7 @@ def main(bundle_dir: str, width: int, height: int, out: str) -> None:
     rospy.init_node("brave6d_learned_player", anonymous=True, disable_signals=True)
     client = Ros1EpisodeClient(Ros1Client(timeout_s=120), bundle_dir)
     setup = AgentSetup(detector=make_detector(), pose_estimator=make_pose_estimator())
-    players = [make_agent(name, client, setup) for name in (LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT)]
+    players = [make_agent(name, client, setup) for name in LEARNED_AGENTS]  # RGB-only, then with depth
     outcomes = [run_episode(client, agent, obj.gt_id, seed=obj.gt_id, width=width, height=height)
                 for obj in load_bundle(bundle_dir).objects for agent in players]
     record = [{"agent": o.agent, "target": o.target, "adjustments": o.adjustments, "ar": o.submission["ar"],

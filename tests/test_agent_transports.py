@@ -1,5 +1,6 @@
 """The same agent objects play over gym as over HTTP: the Protocol-only detector and pose estimator
-of test_estimator_protocol drive learned-static and learned-active through a scored
+of test_estimator_protocol drive learned-static and learned-active, RGB-only and with the served
+depth, through a scored
 :class:`~brave6d.serve.BraveEnv` (:class:`~brave6d.evaluation.agents.transports.GymEpisodeClient`),
 are scored from the episode logs, and score what the HTTP client's run scores for the same seeds,
 every estimate equal; a ROS depth image becomes the served depth (ROS 2 and ROS 1:
@@ -17,10 +18,19 @@ from hypothesis.extra import numpy as hnp
 from test_estimator_protocol import make_detector, make_pose_estimator
 
 from brave6d.core.errors import BraveError
-from brave6d.evaluation.agents import LEARNED_ACTIVE_AGENT, LEARNED_STATIC_AGENT, AgentSetup, make_agent, run_episode
+from brave6d.evaluation.agents import (
+    LEARNED_ACTIVE_AGENT,
+    LEARNED_ACTIVE_DEPTH_AGENT,
+    LEARNED_STATIC_AGENT,
+    LEARNED_STATIC_DEPTH_AGENT,
+    AgentSetup,
+    make_agent,
+    run_episode,
+)
 
 pytestmark = pytest.mark.slow
-AGENTS = [LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT]
+AGENTS = [LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT, LEARNED_STATIC_DEPTH_AGENT, LEARNED_ACTIVE_DEPTH_AGENT]
+ACTIVE = {LEARNED_ACTIVE_AGENT, LEARNED_ACTIVE_DEPTH_AGENT}
 WIDTH = 160
 
 
@@ -68,8 +78,10 @@ def test_the_learned_agents_play_a_users_estimator_over_gym_as_over_http(bundle_
     assert not gym_board.not_ranked and set(gym_ar) == set(AGENTS)  # scored mode: every episode ranked
     assert all(a.episodes == 2 for a in gym_board.agents)
     assert gym_ar[LEARNED_STATIC_AGENT] > 0.0 or gym_ar[LEARNED_ACTIVE_AGENT] > 0.0  # it was scored, not all zero
+    # the served depth reached the -depth agents' estimator: above their RGB-only twins (the cube's centre)
+    assert gym_ar[LEARNED_STATIC_DEPTH_AGENT] > gym_ar[LEARNED_STATIC_AGENT]
     # the active agent moved (the cube is ~8 px at 160 px wide), the static one did not
-    assert all((o.adjustments >= 2) == (o.agent == LEARNED_ACTIVE_AGENT) for o in gym_outcomes)
+    assert all((o.adjustments >= 2) == (o.agent in ACTIVE) for o in gym_outcomes)
     # the same seeds over HTTP: the same moves, every estimate and the AR equal
     assert gym_ar == http_ar
     assert [(o.agent, o.target, o.adjustments) for o in gym_outcomes] == \

@@ -1,5 +1,6 @@
 """The same agent objects play over ROS 1 as over HTTP: the Protocol-only detector and pose estimator
-of test_estimator_protocol drive learned-static and learned-active through a rospy
+of test_estimator_protocol drive learned-static and learned-active (RGB-only and with the node's
+depth) through a rospy
 :class:`~brave6d.ros_interface.ros1.client.Ros1Client` against ``brave6d ros1`` in its default, scored
 mode (:class:`~brave6d.ros_interface.episode_clients.Ros1EpisodeClient`, tests/ros1_learned_player.py),
 each submission is scored by the node, and the scores equal the HTTP client's run for the same seeds;
@@ -18,12 +19,19 @@ import pytest
 from test_estimator_protocol import make_detector, make_pose_estimator
 from test_ros1_e2e import MISSING, ROOT, _env, _stop
 
-from brave6d.evaluation.agents import LEARNED_ACTIVE_AGENT, LEARNED_STATIC_AGENT, AgentSetup
+from brave6d.evaluation.agents import (
+    LEARNED_ACTIVE_AGENT,
+    LEARNED_ACTIVE_DEPTH_AGENT,
+    LEARNED_STATIC_AGENT,
+    LEARNED_STATIC_DEPTH_AGENT,
+    AgentSetup,
+)
 from brave6d.ros_interface.ros1.ros_env import loopback_environment
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(bool(MISSING), reason="ROS 1 not installed: apt-get install " + " ".join(MISSING))]
-AGENTS = [LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT]
+AGENTS = [LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT, LEARNED_STATIC_DEPTH_AGENT, LEARNED_ACTIVE_DEPTH_AGENT]
+ACTIVE = {LEARNED_ACTIVE_AGENT, LEARNED_ACTIVE_DEPTH_AGENT}
 WIDTH, HEIGHT = 160, 120
 
 
@@ -60,7 +68,10 @@ def test_the_learned_agents_play_a_users_estimator_over_ros1_as_over_http(tmp_pa
     print({"ros1": ros_ar, "http": http_ar})  # the figures, for a failing run's log
     assert all(o["mode"] == "scored" and o["submitted"] == 1 for o in ros)
     assert any(ar > 0.0 for ar in ros_ar.values())  # scored, not all zero
-    assert all((o["adjustments"] >= 2) == (o["agent"] == LEARNED_ACTIVE_AGENT) for o in ros)  # only the active moved
+    assert all((o["adjustments"] >= 2) == (o["agent"] in ACTIVE) for o in ros)  # only the active ones moved
+    # the ROS depth image reached the -depth agents' estimator: above their RGB-only twins
+    assert sum(ar for (a, _), ar in ros_ar.items() if a == LEARNED_STATIC_DEPTH_AGENT) > \
+        sum(ar for (a, _), ar in ros_ar.items() if a == LEARNED_STATIC_AGENT)
     assert [(o["agent"], o["target"], o["adjustments"]) for o in ros] == \
         [(o.agent, o.target, o.adjustments) for o in http.outcomes]
     assert ros_ar == pytest.approx(http_ar, abs=1e-9)

@@ -1,5 +1,6 @@
 """The same agent objects play over ROS 2 as over HTTP: the Protocol-only detector and pose estimator
-of tests/test_estimator_protocol.py drive learned-static and learned-active through an rclpy
+of tests/test_estimator_protocol.py drive learned-static and learned-active (RGB-only and with the
+node's depth) through an rclpy
 :class:`~brave6d.ros_interface.ros2.agent.Ros2Agent` against ``brave6d ros2`` in its default, scored
 mode (:class:`~brave6d.ros_interface.episode_clients.Ros2EpisodeClient`), each submission is scored by
 the node, and the scores equal the HTTP client's run for the same seeds."""
@@ -16,12 +17,21 @@ from conftest import agent_on_own_node
 from test_estimator_protocol import make_detector, make_pose_estimator
 
 from brave6d.core.errors import BraveError
-from brave6d.evaluation.agents import LEARNED_ACTIVE_AGENT, LEARNED_STATIC_AGENT, AgentSetup, make_agent, run_episode
+from brave6d.evaluation.agents import (
+    LEARNED_ACTIVE_AGENT,
+    LEARNED_ACTIVE_DEPTH_AGENT,
+    LEARNED_STATIC_AGENT,
+    LEARNED_STATIC_DEPTH_AGENT,
+    AgentSetup,
+    make_agent,
+    run_episode,
+)
 
 pytestmark = pytest.mark.slow
 
 DOMAIN = 63
-AGENTS = [LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT]
+AGENTS = [LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT, LEARNED_STATIC_DEPTH_AGENT, LEARNED_ACTIVE_DEPTH_AGENT]
+ACTIVE = {LEARNED_ACTIVE_AGENT, LEARNED_ACTIVE_DEPTH_AGENT}
 WIDTH, HEIGHT = 160, 120  # the node's images (--width/--height): quick, and the HTTP run's at width 160
 
 
@@ -50,7 +60,10 @@ def test_the_learned_agents_play_a_users_estimator_over_ros2_as_over_http(ros_cl
     print({"ros2": ros_ar, "http": http_ar})  # the figures, for a failing run's log
     assert all(o.submission["mode"] == "scored" and o.submission["submitted"] == 1 for o in ros)
     assert any(ar > 0.0 for ar in ros_ar.values())  # scored, not all zero
-    assert all((o.adjustments >= 2) == (o.agent == LEARNED_ACTIVE_AGENT) for o in ros)  # only the active one moved
+    assert all((o.adjustments >= 2) == (o.agent in ACTIVE) for o in ros)  # only the active ones moved
+    # the ROS depth image reached the -depth agents' estimator: above their RGB-only twins
+    assert sum(ar for (a, _), ar in ros_ar.items() if a == LEARNED_STATIC_DEPTH_AGENT) > \
+        sum(ar for (a, _), ar in ros_ar.items() if a == LEARNED_STATIC_AGENT)
     assert [(o.agent, o.target, o.adjustments) for o in ros] == [(o.agent, o.target, o.adjustments) for o in http.outcomes]
     assert ros_ar == pytest.approx(http_ar, abs=1e-9)
     for r, h in zip(ros, http.outcomes, strict=True):  # poses travel as quaternions over ROS: equal to rounding
