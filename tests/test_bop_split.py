@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 from brave6d.annotation import read_bop_split, read_split_scene
 from brave6d.core.atomic import read_png, write_png
@@ -168,10 +169,76 @@ def test_synth_writes_the_blenderproc_convention(tmp_path: Path) -> None:
     da, db = a.read_depth_mm(), b.read_depth_mm()
     assert np.array_equal(da > 0, db > 0) and np.abs(da - db).max() <= 0.5 + 1e-6
     assert not np.array_equal(db, np.rint(db))  # finer than mm
-    # resumable like the default: a second run finds the image complete
+    # BlenderProc's scene_gt_coco.json beside them (the brave6d convention writes none)
+    from brave6d.annotation import read_scene_gt_coco, rle_to_mask
+
+    assert not (a.scene_dir / "scene_gt_coco.json").exists()
+    coco_file = b.scene_dir / "scene_gt_coco.json"
+    coco = read_scene_gt_coco(coco_file)
+    kept = [gt_id for gt_id in range(len(b.gts)) if (read_png(b.mask_visib_path(gt_id)) > 0).any()]
+    assert [ann["category_id"] for ann in coco[0]] == [b.gts[i].obj_id for i in kept] and kept
+    for ann, gt_id in zip(coco[0], kept):
+        np.testing.assert_array_equal(rle_to_mask(ann["segmentation"]), read_png(b.mask_visib_path(gt_id)) > 0)
+    before = coco_file.read_bytes()
+    # resumable like the default: a second run finds the image complete, and gathers the same files
     result = synthesize(spec, tmp_path / "blenderproc", SynthOptions(images=1, width=160, height=100,
                                                                     convention="blenderproc"))
-    assert (result.rendered, result.skipped) == (0, 1)
+    assert (result.rendered, result.skipped) == (0, 1) and coco_file.read_bytes() == before
+
+
+def test_the_samples_coco_file_is_its_masks_as_bop_toolkit_writes_them() -> None:
+    """The shipped scene_gt_coco.json is what annotation's writer makes from the sample's masks
+    (checked once against bop_toolkit's own pycoco_utils on these 47 instances: every field equal);
+    each RLE decodes to its visible mask, each box is the full mask's, ``ignore`` below 10 % visible."""
+    from brave6d.annotation import read_scene_gt_coco, read_scene_gt, read_scene_gt_info, rle_to_mask, scene_gt_coco
+
+    d = SAMPLE / "train_pbr" / "000000"
+    gts, infos = read_scene_gt(d / "scene_gt.json"), read_scene_gt_info(d / "scene_gt_info.json")
+    made = scene_gt_coco(d, {i: [g.obj_id for g in v] for i, v in gts.items()},
+                         {i: [g.visib_fract for g in v] for i, v in infos.items()}, ".jpg", "blenderproc_train_pbr",
+                         [g.obj_id for v in gts.values() for g in v])
+    assert json.loads((d / "scene_gt_coco.json").read_text()) == made
+    by_image = read_scene_gt_coco(d / "scene_gt_coco.json")
+    assert sorted(by_image) == sorted(gts) and sum(map(len, by_image.values())) == 47
+    for im_id, anns in by_image.items():
+        for gt_id, ann in enumerate(anns):  # every instance of this sample is visible
+            visib = read_png(d / "mask_visib" / f"{im_id:06d}_{gt_id:06d}.png") > 0
+            full = read_png(d / "mask" / f"{im_id:06d}_{gt_id:06d}.png") > 0
+            np.testing.assert_array_equal(rle_to_mask(ann["segmentation"]), visib)
+            ys, xs = np.nonzero(full)
+            assert ann["bbox"] == [xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1]
+            assert ann["area"] == visib.sum() and ann["ignore"] == (infos[im_id][gt_id].visib_fract < 0.1)
+
+
+@settings(max_examples=150, deadline=None)
+@given(hnp.arrays(np.bool_, hnp.array_shapes(min_dims=2, max_dims=2, min_side=0, max_side=12)))
+def test_any_mask_survives_coco_rle(mask: np.ndarray) -> None:
+    """Column-major runs that start with zeros and cover every pixel; decoding gives the mask back."""
+    from brave6d.annotation import mask_to_rle, rle_to_mask
+
+    rle = mask_to_rle(mask)
+    assert rle["size"] == list(mask.shape) and sum(rle["counts"]) == mask.size
+    assert all(c > 0 for c in rle["counts"][1:])
+    if mask.size:
+        assert (rle["counts"][0] == 0) == bool(mask.ravel(order="F")[0])
+    np.testing.assert_array_equal(rle_to_mask(rle), mask)
+
+
+@pytest.mark.parametrize("rle, expect", [
+    ({"size": [2, 2], "counts": [1, 2]}, "the runs cover 3 pixels, the mask has 2 x 2 = 4"),
+    ({"size": [2, 2], "counts": [5, -1]}, "'counts' must be a list of non-negative integers"),
+    ({"size": [2, 2], "counts": "PQ0"}, "'counts' must be a list of non-negative integers (uncompressed RLE)"),
+    ({"size": [2], "counts": [4]}, "'size' must be [height, width]"),
+    ({"size": [2, True], "counts": [2]}, "'size' must be [height, width]"),
+])
+def test_a_bad_rle_is_refused_in_one_line(rle: dict, expect: str) -> None:
+    from brave6d.annotation import rle_to_mask
+    from brave6d.core.errors import DataError
+
+    with pytest.raises(DataError) as err:
+        rle_to_mask(rle, "x.json: annotations[3] segmentation")
+    assert str(err.value) == f"x.json: annotations[3] segmentation: {expect}" or expect in str(err.value)
+    assert str(err.value).startswith("x.json: annotations[3] segmentation: ")
 
 
 @settings(max_examples=60, deadline=None)

@@ -83,6 +83,7 @@ def test_a_blenderproc_split_builds_and_verifies(blenderproc_workdir: Path, tmp_
         assert zf.read("train_pbr/000000/rgb/000004.jpg") == (BLENDERPROC_SAMPLE / "000000/rgb/000004.jpg").read_bytes()
     assert not any(n.startswith("train_pbr/000000/rgb/") and n.endswith(".png") for n in names)
     assert {c["depth_scale"] for c in cameras.values()} == {0.1}
+    assert "train_pbr/000000/scene_gt_coco.json" in names  # BlenderProc's COCO masks travel with it
     assert verify_release(out).train_pbr_images == 20
     # a damaged JPEG (its end cut off, the zip's CRC recomputed) is found by verify's decoding
     copy = Path(shutil.copytree(out, tmp_path / "copy"))
@@ -93,6 +94,21 @@ def test_a_blenderproc_split_builds_and_verifies(blenderproc_workdir: Path, tmp_
     _resum(copy)
     with pytest.raises(ReleaseError, match=rf"{member}: JPEG cut short"):
         verify_release(copy)
+
+
+def test_a_damaged_coco_file_is_refused_naming_it(blenderproc_workdir: Path, tmp_path: Path) -> None:
+    """BlenderProc's scene_gt_coco.json is packed (the sample's: its RLE checked on build); one whose
+    runs do not cover its image is named with the annotation and field."""
+    root = _with_blenderproc_split(blenderproc_workdir, tmp_path / "coco")
+    coco_file = root / "synth" / "train_pbr" / "000000" / "scene_gt_coco.json"
+    coco = json.loads(coco_file.read_text())
+    coco["annotations"][2]["segmentation"]["counts"][-1] += 1
+    coco_file.write_text(json.dumps(coco))
+    with pytest.raises(ReleaseError) as err:
+        build_release(root, tmp_path / "out")
+    assert str(err.value) == (f"{coco_file}: annotations[2] segmentation: the runs cover 64001 pixels, the mask "
+                              "has 200 x 320 = 64000")
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_gray_split_is_refused_in_one_line(blenderproc_workdir: Path, tmp_path: Path) -> None:

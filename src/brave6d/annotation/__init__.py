@@ -16,7 +16,9 @@ name is used). Other stages import only these names:
   (:mod:`brave6d.annotation.bop_split`: JPEG or PNG ``rgb/``, depth in mm by each image's ``depth_scale``):
   ``read_bop_split``, ``read_split_scene``, ``SplitImage``, ``read_split_rgb``, ``read_depth_mm``, ``find_rgb_file``, ``split_scene_folders``,
   ``RGB_SUFFIXES`` (the colour image suffixes ``rgb/`` may hold); a test split without ground truth through its
-  targets file: ``read_test_targets`` (``test_targets_bop19.json``), ``read_split_targets``;
+  targets file: ``read_test_targets`` (``test_targets_bop19.json``), ``read_split_targets``; a scene's masks as
+  COCO annotations (``scene_gt_coco.json``, :mod:`brave6d.annotation.bop_coco`): ``scene_gt_coco``,
+  ``read_scene_gt_coco``, ``mask_to_rle``, ``rle_to_mask``, ``COCO_FILE``;
 - meshes: ``read_ply_mesh``, ``write_ply_mesh``, ``MeshData`` (:mod:`brave6d.annotation.ply_mesh`, the one
   reader and writer of mesh PLY files), ``load_mesh`` (any mesh format, PLY through that reader),
   ``model_diameter`` (largest point distance, the BOP ``diameter``), ``write_bop_models`` (a BOP models
@@ -51,6 +53,8 @@ _LAZY = {
     "read_split_rgb": ".bop_split", "read_depth_mm": ".bop_split", "find_rgb_file": ".bop_split",
     "split_scene_folders": ".bop_split", "RGB_SUFFIXES": ".bop_split", "read_split_targets": ".bop_split",
     "read_test_targets": ".bop_format",
+    "scene_gt_coco": ".bop_coco", "read_scene_gt_coco": ".bop_coco", "mask_to_rle": ".bop_coco",
+    "rle_to_mask": ".bop_coco", "COCO_FILE": ".bop_coco",
     "read_ply_mesh": ".ply_mesh", "write_ply_mesh": ".ply_mesh", "MeshData": ".ply_mesh", "load_mesh": ".models",
     "SilhouetteCaster": ".visibility", "Silhouette": ".visibility", "bbox_xywh": ".visibility",
     "model_diameter": ".models", "write_bop_models": ".models", "mask_iou_against_sim_truth": ".validation", "make_synthetic_scene": ".toy_scene",

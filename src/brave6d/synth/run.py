@@ -122,7 +122,7 @@ def synthesize(spec_path: Path | str, out: Path | str, options: SynthOptions) ->
                          f"estimate {limits.render_memory_bytes(*size) / limits.GIB:.1f} GiB per worker; "
                          "use fewer --workers or smaller --width/--height") from None
     render_seconds = time.perf_counter() - render_start
-    gather_scene_files(root, options.images)
+    gather_scene_files(root, options.images, options.convention)
     return SynthResult(root, options.images, len(pending), skipped, time.perf_counter() - start, render_seconds,
                        len(damaged), reason)
 

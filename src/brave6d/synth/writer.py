@@ -9,8 +9,9 @@ JSON writer) and its own bookkeeping files, owned here::
 Two conventions (``CONVENTIONS``): ``brave6d`` (PNG ``rgb/``, depth PNGs in mm, ``depth_scale`` 1)
 and ``blenderproc``, as BlenderProc's BOP-challenge scripts call its ``write_bop`` (``color_file_format
 "JPEG"``, ``jpg_quality`` 95, ``depth_scale`` 0.1: ``rgb/XXXXXX.jpg``, depth PNGs in tenths of a mm
-rounded from the rendered depth, ``scene_camera.json``'s ``depth_scale`` 0.1). Masks and JSON files
-are the same in both.
+rounded from the rendered depth, ``scene_camera.json``'s ``depth_scale`` 0.1, and each folder's
+``scene_gt_coco.json``, as ``write_bop``'s ``calc_mask_info_coco`` adds). Masks and the other JSON
+files are the same in both.
 
 Each image's PNGs are written atomically, then its record: an image with a record was complete, so
 a run stopped at any point resumes where it stopped. A resumed run checks the record and PNGs of
@@ -172,10 +173,11 @@ def _write_jpeg(path: Path, rgb: np.ndarray) -> None:
     atomic_write_bytes(path, buf.tobytes())
 
 
-def gather_scene_files(out: Path, count: int) -> list[Path]:
+def gather_scene_files(out: Path, count: int, convention: str = "brave6d") -> list[Path]:
     """Write each folder's ``scene_camera``/``scene_gt``/``scene_gt_info.json`` from the records of
-    images ``0 .. count-1`` (annotation's BOP JSON writer); returns the folders."""
-    from brave6d.annotation import dump_bop_json
+    images ``0 .. count-1`` (annotation's BOP JSON writer), and in BlenderProc's convention its
+    ``scene_gt_coco.json`` (annotation's COCO writer, from the masks on disk); returns the folders."""
+    from brave6d.annotation import COCO_FILE, dump_bop_json, scene_gt_coco
 
     folders: dict[int, dict[str, dict[int, Any]]] = {}
     for index in range(count):
@@ -191,6 +193,12 @@ def gather_scene_files(out: Path, count: int) -> list[Path]:
         atomic_write_text(layout.scene_camera_path, dump_bop_json(files["scene_camera"]))
         atomic_write_text(layout.scene_gt_path, dump_bop_json(files["scene_gt"]))
         atomic_write_text(layout.scene_gt_info_path, dump_bop_json(files["scene_gt_info"]))
+        if convention == "blenderproc":
+            gts, infos = files["scene_gt"], files["scene_gt_info"]
+            coco = scene_gt_coco(layout.scene_dir, {i: [g["obj_id"] for g in gts[i]] for i in gts},
+                                 {i: [g["visib_fract"] for g in infos[i]] for i in infos}, ".jpg", Path(out).name,
+                                 [g["obj_id"] for i in gts for g in gts[i]])
+            atomic_write_json(layout.scene_dir / COCO_FILE, coco, indent=None)
         written.append(layout.scene_dir)
     return written
 

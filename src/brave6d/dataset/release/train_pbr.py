@@ -22,8 +22,8 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from brave6d.annotation import RGB_SUFFIXES, read_scene_camera, read_scene_gt, read_scene_gt_info, \
-    split_scene_folders
+from brave6d.annotation import COCO_FILE, RGB_SUFFIXES, read_scene_camera, read_scene_gt, read_scene_gt_info, \
+    read_scene_gt_coco, split_scene_folders
 from brave6d.core.errors import DataError
 from brave6d.dataset.release.formats import SYNTH_DIR, TRAIN_PBR
 from brave6d.dataset.release.images import check_jpeg_file, check_png_file, decode_zip_images, decode_zip_jpegs, \
@@ -114,6 +114,11 @@ def _check_folder(folder: str, read: Callable[[str, Callable[[Path], Any]], Any]
         if set(ids) != set(gt):
             raise ReleaseError(f"{where}/{name}: lists other images than scene_gt.json "
                                f"(e.g. {sorted(set(ids) ^ set(gt))[:3]})")
+    if COCO_FILE in members:  # BlenderProc's COCO masks: packed as they are, their RLE and images checked
+        coco = read(COCO_FILE, read_scene_gt_coco)
+        if not set(coco) <= set(gt):
+            raise ReleaseError(f"{where}/{COCO_FILE}: lists images scene_gt.json does not "
+                               f"(e.g. {sorted(set(coco) - set(gt))[:3]})")
     for im_id, gts in sorted(gt.items()):
         rgb = [f"rgb/{im_id:06d}{suffix}" for suffix in RGB_SUFFIXES]
         needed = [next((r for r in rgb if r in members), rgb[0]), f"depth/{im_id:06d}.png"]
