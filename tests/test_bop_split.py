@@ -230,6 +230,7 @@ def test_any_mask_survives_coco_rle(mask: np.ndarray) -> None:
     ({"size": [2, 2], "counts": "PQ0"}, "'counts' must be a list of non-negative integers (uncompressed RLE)"),
     ({"size": [2], "counts": [4]}, "'size' must be [height, width]"),
     ({"size": [2, True], "counts": [2]}, "'size' must be [height, width]"),
+    ({"size": [100_000, 100_000], "counts": [10**10]}, "a 100000 x 100000 mask is over the pixel limit"),
 ])
 def test_a_bad_rle_is_refused_in_one_line(rle: dict, expect: str) -> None:
     from brave6d.annotation import rle_to_mask

@@ -46,9 +46,9 @@ def mask_to_rle(mask: NDArray[Any]) -> dict[str, list[int]]:
     return {"counts": [int(c) for c in counts], "size": [int(m.shape[0]), int(m.shape[1])]}
 
 
-def rle_to_mask(rle: Mapping[str, Any], where: str = "segmentation") -> NDArray[np.bool_]:
-    """The binary mask of an uncompressed COCO RLE; counts that are not non-negative integers
-    summing to ``h * w`` are refused naming ``where``."""
+def check_rle(rle: Mapping[str, Any], where: str = "segmentation") -> tuple[int, int]:
+    """(height, width) of an uncompressed COCO RLE whose counts are non-negative integers summing to
+    ``height * width``; anything else refused naming ``where``. Linear in the counts; decodes nothing."""
     size, counts = rle.get("size"), rle.get("counts")
     if (not isinstance(size, list) or len(size) != 2
             or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in size)):
@@ -59,6 +59,18 @@ def rle_to_mask(rle: Mapping[str, Any], where: str = "segmentation") -> NDArray[
     h, w = size
     if sum(counts) != h * w:
         raise DataError(f"{where}: the runs cover {sum(counts)} pixels, the mask has {h} x {w} = {h * w}")
+    return h, w
+
+
+def rle_to_mask(rle: Mapping[str, Any], where: str = "segmentation") -> NDArray[np.bool_]:
+    """The binary mask of an uncompressed COCO RLE (:func:`check_rle`; a mask over the project's
+    pixel limit is refused before anything is allocated)."""
+    from brave6d.core.png_check import MAX_PIXELS
+
+    h, w = check_rle(rle, where)
+    if h * w > MAX_PIXELS:
+        raise DataError(f"{where}: a {h} x {w} mask is over the pixel limit ({MAX_PIXELS})")
+    counts = rle["counts"]
     values = np.zeros(len(counts), dtype=bool)
     values[1::2] = True
     flat = np.repeat(values, counts)
@@ -114,7 +126,8 @@ def scene_gt_coco(scene_dir: Path | str, obj_ids: Mapping[int, Sequence[int]],
 
 def read_scene_gt_coco(path: Path | str) -> dict[int, list[dict[str, Any]]]:
     """``scene_gt_coco.json`` -> ``{image_id: [annotation, ...]}``, every annotation's RLE checked
-    against its size and its image's (one line naming the file, annotation and field)."""
+    against its size and its image's (one line naming the file, annotation and field), without
+    decoding: linear in the file's size, whatever sizes it declares."""
     from brave6d.core.atomic import read_json
 
     p = Path(path)
@@ -138,6 +151,6 @@ def read_scene_gt_coco(path: Path | str) -> dict[int, list[dict[str, Any]]]:
         if tuple(ann["segmentation"].get("size", ())) != sizes[image_id]:
             raise DataError(f"{where}: segmentation size {ann['segmentation'].get('size')!r} is not its image's "
                             f"{list(sizes[image_id])}")
-        rle_to_mask(ann["segmentation"], f"{where} segmentation")
+        check_rle(ann["segmentation"], f"{where} segmentation")
         out[image_id].append(ann)
     return out
