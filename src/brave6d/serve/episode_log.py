@@ -32,10 +32,12 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import operator
 import os
 from pathlib import Path
 from typing import IO, Annotated, Any, Literal
 
+import numpy as np
 from pydantic import Field, TypeAdapter, ValidationError
 
 from brave6d.core.errors import DataError, validation_error_field
@@ -193,6 +195,64 @@ def format_record(record: AnyRecord) -> str:
     """One JSONL line of ``record`` (``ValueError`` for a value that is not finite, so that a step
     can format its record before it changes anything)."""
     return _LINE_ENCODER.encode(record.model_dump(mode="json")) + "\n"
+
+
+#: JSON of recently written 4x4 matrices, by their float64 bytes: a step's ``world_T_cam_before`` is the
+#: previous step's ``world_T_cam`` (a refused one's both), and a float's shortest repr is most of a line's cost
+_MATRIX_JSON: dict[bytes, str] = {}
+_MATRIX_JSON_MAX = 4096
+
+
+def _matrix_json(value: Any, field: str) -> str:
+    """A 4x4 matrix field's JSON, as ``Matrix4`` serialises it (nested lists of floats) and the line's
+    encoder writes it; ``ValueError`` naming the field for another size or a value that is not finite."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.size != 16:
+        raise ValueError(f"{field}: must be a 4x4 matrix (16 numbers), got {arr.size}")
+    key = arr.tobytes()
+    text = _MATRIX_JSON.get(key)
+    if text is None:
+        try:
+            text = _LINE_ENCODER.encode(arr.reshape(4, 4).tolist())
+        except ValueError:
+            raise ValueError(f"{field}: must be finite (NaN and inf are refused)") from None
+        if len(_MATRIX_JSON) >= _MATRIX_JSON_MAX:
+            _MATRIX_JSON.clear()
+        _MATRIX_JSON[key] = text
+    return text
+
+
+def format_action(*, event: str, step: int, accepted: bool, collided: bool, refusal: dict[str, Any] | None,
+                  requested: dict[str, Any], world_T_cam_before: Any, world_T_cam: Any, adjustments: int,
+                  move: dict[str, Any] | None, timings_ms: dict[str, float], target_cam_T_obj: Any = None,
+                  target_visib_fract: float | None = None, time: str | None = None) -> str:
+    """The JSONL line of the :class:`ActionRecord` with these fields, byte for byte what
+    ``format_record(ActionRecord(...))`` writes (tested: any values; the line reads back as a valid
+    record), made without building the model: the fields are checked as the model checks them
+    (``event``, types, 4x4 finite matrices, finite numbers: ``ValueError`` before anything is written)
+    and the line is joined from its fields' JSON as the encoder joins a dict's, a matrix written
+    before reused (:data:`_MATRIX_JSON`). Why: the vector env writes one line per agent and step."""
+    if event not in ("set_pose", "move"):
+        raise ValueError(f"event: must be 'set_pose' or 'move', got {event!r}")
+    for name, flag in (("accepted", accepted), ("collided", collided)):
+        if not isinstance(flag, (bool, np.bool_)):
+            raise ValueError(f"{name}: must be a bool, got {type(flag).__name__}")
+    for name, mapping, optional in (("refusal", refusal, True), ("requested", requested, False), ("move", move, True),
+                                    ("timings_ms", timings_ms, False)):
+        if not (isinstance(mapping, dict) or (optional and mapping is None)):
+            raise ValueError(f"{name}: must be a mapping, got {type(mapping).__name__}")
+    if target_visib_fract is not None and isinstance(target_visib_fract, (bool, np.bool_)):
+        raise ValueError("target_visib_fract: must be a number")
+    enc = _LINE_ENCODER.encode  # three calls (each makes an encoder) and the matrices' JSON, joined as one dict's
+    head = enc({"time": _now() if time is None else str(time), "event": event, "step": operator.index(step),
+                "accepted": bool(accepted), "collided": bool(collided), "refusal": refusal, "requested": requested})
+    mid = enc({"adjustments": operator.index(adjustments), "move": move,
+               "timings_ms": {str(k): float(v) for k, v in timings_ms.items()}})
+    target = "null" if target_cam_T_obj is None else _matrix_json(target_cam_T_obj, "target_cam_T_obj")
+    fract = enc(None if target_visib_fract is None else float(target_visib_fract))
+    return (f'{head[:-1]}, "world_T_cam_before": {_matrix_json(world_T_cam_before, "world_T_cam_before")}, '
+            f'"world_T_cam": {_matrix_json(world_T_cam, "world_T_cam")}, {mid[1:-1]}, '
+            f'"target_cam_T_obj": {target}, "target_visib_fract": {fract}}}\n')
 
 
 class EpisodeLog:
