@@ -221,8 +221,13 @@ class SplatRenderer:
     def render_batch(self, world_T_cams: Sequence[NDArray[np.float64]] | NDArray[np.float64],
                      camera: PinholeCamera, *, near: float = 0.01, far: float = 100.0,
                      background: tuple[float, float, float] = (0.0, 0.0, 0.0), depth_alpha_min: float = 0.5,
-                     depth_mode: str = "median") -> list[RenderOutput]:
+                     depth_mode: str = "median",
+                     out: Sequence[tuple[NDArray[np.uint8], NDArray[np.float32]] | None] | None = None
+                     ) -> list[RenderOutput]:
         """Render one view per pose in ``world_T_cams`` ([C, 4, 4] or a list), the cameras batched.
+        ``out[k]``: ``(rgb (H, W, 3) uint8, depth (H, W) float32)`` arrays that view ``k``'s images are
+        written into (its :class:`RenderOutput` holds those arrays): the vector env's observation batch,
+        so that the images are not copied into it afterwards.
 
         Why: many agents on one scene. The rasterizer takes C cameras at once: on CUDA gsplat
         batches them (one call for all), on the CPU the Numba kernels run their ``prange`` loops over
@@ -259,6 +264,11 @@ class SplatRenderer:
                                             K.expand(c, 3, 3).contiguous(), camera, near, far,
                                             bg.expand(c, 3).contiguous(), depth_alpha_min, depth_mode)
                     for i, view in zip(members, views):
+                        target = out[i] if out is not None else None
+                        if target is not None:  # written into the caller's arrays
+                            np.copyto(target[0], view[0])
+                            np.copyto(target[1], view[1])
+                            view = (target[0], target[1], view[2])
                         images[i] = view
             t1 = time.perf_counter()
             self.renders += len(poses)
