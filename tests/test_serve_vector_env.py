@@ -38,8 +38,9 @@ def scene(bundle: Bundle) -> SceneServer:
     return SceneServer(bundle, "cpu")
 
 
-def make_vector(scene: SceneServer, n: int = N, mode: str = "scored") -> BraveVectorEnv:
-    return BraveVectorEnv(scene, n, target="cube_red", width=W, height=H, max_steps=MAX_STEPS, mode=mode)
+def make_vector(scene: SceneServer, n: int = N, mode: str = "scored", stride: int | None = None) -> BraveVectorEnv:
+    return BraveVectorEnv(scene, n, target="cube_red", width=W, height=H, max_steps=MAX_STEPS, mode=mode,
+                          visibility_stride=stride)
 
 
 def assert_same_obs(batched: dict[str, np.ndarray], i: int, single: dict[str, np.ndarray]) -> None:
@@ -47,10 +48,13 @@ def assert_same_obs(batched: dict[str, np.ndarray], i: int, single: dict[str, np
         np.testing.assert_array_equal(batched[key][i], single[key], err_msg=key)
 
 
-def test_vector_env_equals_independent_single_envs(bundle: Bundle, scene: SceneServer) -> None:
-    # training mode: the rewards (the target's visible area) are compared too; scored, they are all 0
-    app = create_app(bundle, device="cpu", scene=scene, warm_up=False, mode="training")
-    vec = make_vector(scene, mode="training")
+@pytest.mark.parametrize("stride", [1, 2])
+def test_vector_env_equals_independent_single_envs(bundle: Bundle, scene: SceneServer, stride: int) -> None:
+    # training mode: the rewards (the target's visible area) are compared too; scored, they are all 0.
+    # The server and the vector env at one visible-fraction stride (every pixel; one per 2x2 block)
+    app = create_app(bundle, device="cpu", scene=scene, warm_up=False, mode="training", visibility_stride=stride)
+    vec = make_vector(scene, mode="training", stride=stride)
+    assert vec.manager.visibility_stride == stride
     with ServerThread(app) as server:
         singles = [BraveEnv(server.url, target="cube_red", width=W, height=H, max_steps=MAX_STEPS, mode="training")
                    for _ in range(N)]
@@ -147,15 +151,18 @@ def log_records(log_dir, episode_id: str) -> list[dict]:
     return records
 
 
-@pytest.mark.parametrize("mode", ["scored", "training"])
-def test_vector_env_logs_and_submissions_equal_single_episodes(scene: SceneServer, tmp_path, mode: str) -> None:
+@pytest.mark.parametrize(("mode", "stride"), [("scored", 1), ("training", 1), ("scored", 4), ("training", 2)])
+def test_vector_env_logs_and_submissions_equal_single_episodes(scene: SceneServer, tmp_path, mode: str,
+                                                               stride: int) -> None:
     """Random walks of 6 agents (free, stopped and refused moves, null twists) through the vector
     env and through one ``EpisodeManager.move`` at a time: the same observations, rewards and log
-    lines, and the same submissions (final view, every object's truth, the final depth file)."""
+    lines, and the same submissions (final view, every object's truth, the final depth file), at
+    any visible-fraction stride the two share."""
     n, steps = 6, 12
-    vec = BraveVectorEnv(EpisodeManager(scene, tmp_path / "vec", mode=mode, log_key=None), n, target="cube_red",
-                         width=W, height=H, max_steps=100, mode=mode, max_linear=0.2)
-    single = EpisodeManager(scene, tmp_path / "one", mode=mode, log_key=None)
+    vec = BraveVectorEnv(EpisodeManager(scene, tmp_path / "vec", mode=mode, log_key=None, visibility_stride=stride),
+                         n, target="cube_red", width=W, height=H, max_steps=100, mode=mode, max_linear=0.2)
+    single = EpisodeManager(scene, tmp_path / "one", mode=mode, log_key=None, visibility_stride=stride)
+    assert vec.manager.visibility_stride == stride
     obs, _ = vec.reset(seed=SEED)
     ids = [single.reset(target="cube_red", width=W, height=H, seed=SEED + i).episode_id for i in range(n)]
     rng = np.random.default_rng(5)

@@ -593,14 +593,15 @@ class TokenMiddleware:
 def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "auto", log_dir: Path | str | None = None,
                limits: ServerLimits = ServerLimits(), scene: SceneServer | None = None,
                verify: bool = True, warm_up: bool = True, allowed_hosts: Sequence[str] = (),
-               token: str | None = None, mode: str = SCORED, log_key: LogKey | str | None = "default") -> FastAPI:
+               token: str | None = None, mode: str = SCORED, log_key: LogKey | str | None = "default",
+               visibility_stride: int = 1) -> FastAPI:
     """The FastAPI app serving ``bundle``: a loaded :class:`Bundle` or a bundle folder (verified,
     loaded now), or a :class:`brave6d.serve.catalog.SceneCatalog` of several scenes (loaded on first use).
 
     Requests must name one of :data:`LOOPBACK_HOSTS` or ``allowed_hosts`` (``"*"``: any;
     ``"*.example.org"``: its subdomains) in their ``Host`` header, else 400; with ``token``,
     every request outside :data:`PUBLIC_PATHS` must carry it (see :class:`TokenMiddleware`).
-    ``mode`` (``"scored"`` or ``"training"``) and ``log_key`` are the :class:`EpisodeManager`'s.
+    ``mode`` (``"scored"`` or ``"training"``), ``log_key`` and ``visibility_stride`` are the :class:`EpisodeManager`'s.
     """
     if token is not None:
         check_token(token)
@@ -616,7 +617,7 @@ def create_app(bundle: Bundle | Path | str | SceneCatalog, *, device: str = "aut
     single = catalog.sources[0].name if len(catalog.sources) == 1 else None
     manager = EpisodeManager(catalog, log_dir, max_episodes=limits.max_episodes,
                              idle_timeout_s=limits.idle_timeout_s, lock_timeout_s=limits.request_timeout_s,
-                             mode=mode, log_key=log_key)
+                             mode=mode, log_key=log_key, visibility_stride=visibility_stride)
     executor = ThreadPoolExecutor(max_workers=limits.workers, thread_name_prefix="brave6d-serve")
     inflight = InFlight(executor, limits.request_timeout_s)
     json_parser = ThreadPoolExecutor(max_workers=1, thread_name_prefix="brave6d-json")

@@ -82,6 +82,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log-dir", type=Path, default=None,
                         help="where episode logs (JSONL) go (default: 'episodes' beside the bundle)")
     add_mode_flags(parser)
+    parser.add_argument("--visibility-stride", type=int, choices=range(1, 65), metavar="S", default=1,
+                        help="visible fractions (training rewards, logs) from one pixel per SxS block (default 1: "
+                             "every pixel, BOP's definition; the vector env's default is 4, give the same to "
+                             "compare); submits record the exact fractions either way")
     d = ServerLimits()
     parser.add_argument("--max-episodes", type=limit_arg("max_episodes"), default=d.max_episodes,
                         help=f"open episodes at most (default {d.max_episodes})")
@@ -205,7 +209,8 @@ def run(args: argparse.Namespace, sources_of: SourcesOf) -> int:
     mode = mode_of(args)
     key = server_log_key(args.log_key)
     app = create_app(scenes, device=args.device, log_dir=log_dir, limits=limits,
-                     allowed_hosts=access.allowed_hosts, token=access.token, mode=mode, log_key=key)
+                     allowed_hosts=access.allowed_hosts, token=access.token, mode=mode, log_key=key,
+                     visibility_stride=args.visibility_stride)
     try:
         sock = listening_socket(args.host, args.port)
     except OSError as exc:

@@ -10,6 +10,11 @@ The manager's ``mode`` (:mod:`brave6d.serve.modes`) decides what its results sho
 mode every :class:`ActionResult`'s observation is the view without its ground truth (no objects),
 whatever front end (HTTP, ROS, the vector env) passes it on; the log keeps the truth either way.
 With a log folder, every log is signed with the server's key (:mod:`brave6d.serve.log_digest`).
+
+``visibility_stride`` is the stride of every step's visible fractions (:mod:`brave6d.serve.visibility`:
+1, the default, casts every pixel, as BOP's export does; ``s`` one pixel per ``s x s`` block, the
+vector env's default), the same for single moves and batches; a submit records the final view's
+exact truth whatever the stride (:meth:`SceneServer.complete`), so scores do not depend on it.
 """
 
 from __future__ import annotations
@@ -26,11 +31,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from brave6d.core.atomic import atomic_write_bytes, depth_m_to_mm_u16, png_bytes
 from brave6d.core.camera import PinholeCamera
 from brave6d.serve.catalog import SceneCatalog
-from brave6d.serve.episode_log import FINAL_DEPTH_SUFFIX, ActionRecord, CloseRecord, EpisodeLog, ResetRecord
+from brave6d.serve.episode_log import FINAL_DEPTH_SUFFIX, CloseRecord, EpisodeLog, ResetRecord, format_action
 from brave6d.serve.episodes import (
     ActionResult,
     Episode,
@@ -110,10 +116,15 @@ class EpisodeManager:
 
     def __init__(self, scenes: Any, log_dir: Path | str | None = None, max_episodes: int = 32,
                  idle_timeout_s: float = 900.0, keep_closed: int = 256, lock_timeout_s: float = 30.0,
-                 mode: str = SCORED, log_key: LogKey | str | None = "default") -> None:
+                 mode: str = SCORED, log_key: LogKey | str | None = "default",
+                 visibility_stride: int = 1) -> None:
         self.scenes: SceneCatalog = scenes if isinstance(scenes, SceneCatalog) else SceneCatalog.of_scene(scenes)
         self.log_dir = Path(log_dir) if log_dir is not None else None
         self.mode = check_mode(mode)
+        if isinstance(visibility_stride, bool) or not isinstance(visibility_stride, (int, np.integer)) \
+                or not 1 <= visibility_stride <= 64:
+            raise ValueError(f"visibility_stride must be an integer in [1, 64], got {visibility_stride!r}")
+        self.visibility_stride = int(visibility_stride)
         self.log_key: LogKey | None = None
         if self.log_dir is not None and log_key is not None:
             self.log_key = server_log_key() if log_key == "default" else (
@@ -229,7 +240,7 @@ class EpisodeManager:
         try:
             t0 = time.perf_counter()
             try:
-                obs = server.observe(T0, camera, tgt.gt_id)
+                obs = server.observe(T0, camera, tgt.gt_id, self.visibility_stride)
                 timings = {**obs.timings_ms, "step": (time.perf_counter() - t0) * 1000.0}
                 line = ep.log.format(ResetRecord(
                     episode_id=eid, bundle=bundle.name, agent=agent, target=target_ref(tgt), scene=scene_name,
@@ -289,12 +300,16 @@ class EpisodeManager:
         finally:
             ep.lock.release()
 
-    def move_many(self, requests: Sequence[MoveRequest]) -> list[ActionResult]:
+    def move_many(self, requests: Sequence[MoveRequest],
+                  out: Sequence[tuple[NDArray[np.uint8], NDArray[np.float32]] | None] | None = None
+                  ) -> list[ActionResult]:
         """Run one ``move`` in each of several episodes with their renders batched: the views of the
         accepted moves that share a scene and a camera are drawn in one
         :meth:`SceneServer.observe_batch` call (many agents stepping together). Each result, log
         line and counter is what :meth:`move` gives for that request; a bad request (unknown,
-        closed or repeated episode, invalid twist) refuses the whole batch before anything changes."""
+        closed or repeated episode, invalid twist) refuses the whole batch before anything changes.
+        ``out[k]``: arrays request ``k``'s view is rendered into when its move is accepted
+        (:meth:`SplatRenderer.render_batch`'s ``out``; the vector env's observation batch)."""
         ids = [r.episode_id for r in requests]
         if len(set(ids)) != len(ids):
             raise InvalidAction("move_many: each episode may appear once per batch", "episode_id")
@@ -305,13 +320,15 @@ class EpisodeManager:
                 self._acquire(ep)
                 held.append(ep)
             plans = self._plan_moves(eps, requests)
-            views = self._observe_accepted(eps, plans)
+            views = self._observe_accepted(eps, plans, out)
             return [self._finish_move(ep, plan, None, views.get(k)) for k, (ep, plan) in enumerate(zip(eps, plans))]
         finally:
             for ep in held:
                 ep.lock.release()
 
-    def _observe_accepted(self, eps: list[Episode], plans: list[_MovePlan]) -> dict[int, RenderedView]:
+    def _observe_accepted(self, eps: list[Episode], plans: list[_MovePlan],
+                          out: Sequence[tuple[NDArray[np.uint8], NDArray[np.float32]] | None] | None = None
+                          ) -> dict[int, RenderedView]:
         """The views of the accepted plans (by index), one batched render per (scene, camera) group."""
         groups: dict[tuple[int, PinholeCamera], list[int]] = {}
         for k, (ep, plan) in enumerate(zip(eps, plans)):
@@ -322,7 +339,9 @@ class EpisodeManager:
             scene, camera = self._scene(eps[members[0]]), eps[members[0]].camera
             rendered = scene.observe_batch([plans[k].T for k in members], camera,
                                            [eps[k].target.gt_id for k in members],
-                                           targets_only=self.mode == SCORED)  # scored: nothing shows the rest
+                                           targets_only=self.mode == SCORED,  # scored: nothing shows the rest
+                                           stride=self.visibility_stride,
+                                           out=None if out is None else [out[k] for k in members])
             views.update(zip(members, rendered))
         return views
 
@@ -382,7 +401,7 @@ class EpisodeManager:
         accepted = refusal is None
         if accepted:
             if obs is None:  # not rendered beforehand in a batch (move_many)
-                obs = self._scene(ep).observe(T, ep.camera, ep.target.gt_id)
+                obs = self._scene(ep).observe(T, ep.camera, ep.target.gt_id, self.visibility_stride)
             after, timings, shown = T, {**obs.timings_ms}, self.shown(obs)
         else:
             assert ep.last is not None and ep.shown is not None
@@ -392,10 +411,10 @@ class EpisodeManager:
         collided = refusal is not None or stopped_by is not None
         reason = refusal or stopped_by
         timings["step"] = (time.perf_counter() - t0) * 1000.0
-        line = ep.log.format(ActionRecord(
+        line = format_action(  # ActionRecord's line, without building the model (the same bytes)
             event=action, step=steps, accepted=accepted, collided=collided,
             refusal=reason.to_json() if reason else None, requested=requested, world_T_cam_before=before,
-            world_T_cam=after, adjustments=adjustments, move=move, timings_ms=timings, **_target_truth(obs)))
+            world_T_cam=after, adjustments=adjustments, move=move, timings_ms=timings, **_target_truth(obs))
 
         def apply() -> None:
             ep.log.append(line)  # first: a failed write leaves the state as it was

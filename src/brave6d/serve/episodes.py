@@ -63,7 +63,7 @@ from brave6d.serve.modes import SCORED
 from brave6d.serve.reference import SPLAT_GEOMETRY, ReferenceGeometry, bundle_reference
 from brave6d.serve.renderer import RenderOutput, SplatRenderer
 from brave6d.serve.schema import ObjectState, TargetRef
-from brave6d.serve.visibility import Visibility, VisibilityComputer
+from brave6d.serve.visibility import Visibility, VisibilityComputer, effective_stride
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +159,8 @@ class RenderedView:
     #: False: ``objects`` holds only the target's truth (a scored batch computes no more per step);
     #: :meth:`SceneServer.complete` adds every object's, as :meth:`SceneServer.observe` gives them
     complete: bool = True
+    #: the visible fractions' stride (:mod:`brave6d.serve.visibility`; 1: every pixel, exact)
+    visibility_stride: int = 1
 
     @cached_property
     def test_depth(self) -> NDArray[np.float32]:
@@ -242,36 +244,43 @@ class SceneServer:
                    "observe": (time.perf_counter() - t0) * 1000.0}
         return RenderedView(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), (), timings)
 
-    def observe(self, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None) -> RenderedView:
-        """The view at ``world_T_cam``: the rendered images and every object's ground truth."""
+    def observe(self, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None,
+                stride: int = 1) -> RenderedView:
+        """The view at ``world_T_cam``: the rendered images and every object's ground truth (visible
+        fractions at ``stride``, :mod:`brave6d.serve.visibility`; 1: exact)."""
         t0 = time.perf_counter()
         out = self.renderer.render(world_T_cam, camera, **self._render_settings())
-        return self._view(out, world_T_cam, camera, target_gt_id, time.perf_counter() - t0)
+        return self._view(out, world_T_cam, camera, target_gt_id, time.perf_counter() - t0, stride=stride)
 
     def observe_batch(self, poses: Sequence[Matrix4], camera: PinholeCamera,
-                      target_gt_ids: Sequence[int | None], targets_only: bool = False) -> list[RenderedView]:
+                      target_gt_ids: Sequence[int | None], targets_only: bool = False,
+                      stride: int = 1, out: Sequence[tuple[NDArray[np.uint8], NDArray[np.float32]] | None] | None = None
+                      ) -> list[RenderedView]:
         """The views at ``poses`` (one camera), rendered in one batched call
         (:meth:`SplatRenderer.render_batch`: many agents on one scene), each what :meth:`observe` gives.
         ``targets_only``: each view holds only its target's truth (``complete`` False; a scored step
         logs no more, and :meth:`complete` adds the rest when a submit needs it): the other objects'
-        silhouettes are not cast."""
+        silhouettes are not cast. ``stride``: :meth:`observe`'s. ``out``: the arrays each view's images
+        are rendered into (:meth:`SplatRenderer.render_batch`'s)."""
         if len(poses) != len(target_gt_ids):
             raise ValueError(f"observe_batch: {len(poses)} poses but {len(target_gt_ids)} targets")
         t0 = time.perf_counter()
-        outs = self.renderer.render_batch(poses, camera, **self._render_settings())
+        settings = self._render_settings() if out is None else {**self._render_settings(), "out": out}
+        outs = self.renderer.render_batch(poses, camera, **settings)
         render_s = time.perf_counter() - t0
         t1 = time.perf_counter()
         index = {o.gt_id: n for n, o in enumerate(self.bundle.objects)}
         wanted = sorted({index[g] for g in target_gt_ids if g in index}) if targets_only else None
-        vis = self._visibilities(poses, camera, outs, wanted)
+        vis = self._visibilities(poses, camera, outs, wanted, stride)
         vis_s = (time.perf_counter() - t1) / max(len(poses), 1)  # each view's share of the batch
-        return [self._view(out, T, camera, gt_id, render_s, (v, vis_s), wanted)
+        return [self._view(out, T, camera, gt_id, render_s, (v, vis_s), wanted, stride)
                 for out, T, gt_id, v in zip(outs, poses, target_gt_ids, vis)]
 
     def complete(self, view: RenderedView) -> RenderedView:
-        """``view`` with every object's truth (:meth:`observe`'s, bit for bit: the one-view
-        visibility equals the batch's); a complete view as it is."""
-        if view.complete:
+        """``view`` with every object's exact truth (:meth:`observe`'s at stride 1, bit for bit: the
+        one-view visibility equals the batch's): a submit records this, whatever stride the steps
+        used; a complete view at stride 1 as it is."""
+        if view.complete and effective_stride(view.camera, view.visibility_stride) == 1:
             return view
         vis: list[Visibility | None] = [None] * len(self.bundle.objects)
         if self.visibility is not None:
@@ -279,10 +288,10 @@ class SceneServer:
             vis = list(self.visibility.compute(view.world_T_cam, view.camera, view.depth, occluders))
         target = view.target()
         return replace(view, objects=self._objects(view.world_T_cam, vis, None if target is None else target.gt_id),
-                       complete=True)
+                       complete=True, visibility_stride=1)
 
     def _visibilities(self, poses: Sequence[Matrix4], camera: PinholeCamera, outs: Sequence[RenderOutput],
-                      wanted: list[int] | None = None) -> list[list[Visibility | None]]:
+                      wanted: list[int] | None = None, stride: int = 1) -> list[list[Visibility | None]]:
         """Every object's (or the ``wanted`` instances') visibility in each view, all views at once
         (:meth:`VisibilityComputer.compute_many`, equal to :meth:`_view`'s one view at a time)."""
         count = len(self.bundle.objects) if wanted is None else len(wanted)
@@ -290,10 +299,10 @@ class SceneServer:
             return [[None] * count for _ in poses]
         if self.reference is not None:
             many = self.visibility.compute_many(np.asarray(poses), camera, occluder_depths=self.reference.depth_along_many,
-                                                instances=wanted)
+                                                instances=wanted, stride=stride)
         else:
             many = self.visibility.compute_many(np.asarray(poses), camera, splat_depths=[out.depth for out in outs],
-                                                instances=wanted)
+                                                instances=wanted, stride=stride)
         return [list(v) for v in many]
 
     def _render_settings(self) -> dict[str, Any]:
@@ -304,7 +313,7 @@ class SceneServer:
 
     def _view(self, out: RenderOutput, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None,
               render_s: float, computed: tuple[list[Visibility | None], float] | None = None,
-              instances: list[int] | None = None) -> RenderedView:
+              instances: list[int] | None = None, stride: int = 1) -> RenderedView:
         """One rendered view plus its visible fractions and objects' poses (``render_s``: the render's
         wall time; ``computed``: the visible fractions and their seconds, when computed for a batch,
         of the ``instances`` given: then the view holds its target's truth only, ``complete`` False)."""
@@ -314,7 +323,7 @@ class SceneServer:
             vis, t1 = computed[0], t1 - computed[1]
         elif self.visibility is not None:
             occluders = partial(self.reference.depth_along, world_T_cam) if self.reference is not None else None
-            vis = list(self.visibility.compute(world_T_cam, camera, out.depth, occluders))
+            vis = list(self.visibility.compute(world_T_cam, camera, out.depth, occluders, stride))
         complete = instances is None
         if not complete:  # only the target's truth: its visibility among the instances computed
             by_index = dict(zip(instances, vis))
@@ -324,7 +333,7 @@ class SceneServer:
         timings = {"render": out.render_ms, "render_queue": out.queue_ms, "visibility": (t2 - t1) * 1000.0,
                    "observe": render_s * 1000.0 + (t2 - t1) * 1000.0}
         return RenderedView(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), objects, timings,
-                            self.reference, self.geometry, complete)
+                            self.reference, self.geometry, complete, stride)
 
     def _objects(self, world_T_cam: Matrix4, vis: list[Visibility | None], target_gt_id: int | None,
                  every: bool = True) -> tuple[ObjectState, ...]:

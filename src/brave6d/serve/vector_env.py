@@ -30,6 +30,17 @@ with a start seed drawn from the sub-environment's generator, so a seeded run re
 ``mode`` is :class:`BraveEnv`'s: ``"scored"`` (default; the episodes run on an
 :class:`EpisodeManager` of that mode, whose views carry no ground truth, so the reward is 0) or
 ``"training"`` (the visible-area reward). Given an :class:`EpisodeManager`, its mode must be ``mode``.
+
+**Observations** are read-only (``writeable`` False: an agent cannot change the images it is
+scored on) and fresh each step: the renders are drawn straight into a new batch (the renderer's
+``out``), only the sub-environments that did not render (a refusal, a null twist, a reset) have
+their image copied in, and no later step writes into a batch already returned.
+
+``visibility_stride`` (default :data:`VECTOR_VISIBILITY_STRIDE`; given an :class:`EpisodeManager`,
+its stride unless one is named, which must then be the manager's) is the episodes' stride of the
+visible fractions, hence of the training reward: one pixel per ``s x s`` block
+(:mod:`brave6d.serve.visibility`). A server computes every pixel unless started with ``--visibility-stride``;
+a single env equals the vector env bit for bit when both use the same stride.
 """
 
 from __future__ import annotations
@@ -50,10 +61,9 @@ from brave6d.serve.modes import SCORED, check_mode
 
 Obs = dict[str, NDArray[Any]]
 
-
-def view_obs(view: RenderedView) -> Obs:
-    """One agent's observation of ``view`` (what :class:`BraveEnv` decodes from the server)."""
-    return {"rgb": view.rgb, "depth": view.depth, "K": view.camera.K, "world_T_cam": view.world_T_cam}
+#: the vector env's visible-fraction stride unless one is given: chosen by measurement (docs/BENCHMARKS.md,
+#: the host side of a batched step: its time and its error against every pixel)
+VECTOR_VISIBILITY_STRIDE = 4
 
 
 def sub_seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
@@ -76,14 +86,19 @@ class BraveVectorEnv(VectorEnv):  # type: ignore[misc]
     def __init__(self, scene: SceneServer | EpisodeManager, num_envs: int, *, target: int | str | None = None,
                  width: int = 320, height: int = 240, max_steps: int = 100, step_duration: float = 0.5,
                  max_linear: float = 0.1, max_angular: float = 0.5, frame: str = "camera",
-                 agent: str | None = None, mode: str = SCORED) -> None:
+                 agent: str | None = None, mode: str = SCORED,
+                 visibility_stride: int | None = None) -> None:
         if num_envs < 1:
             raise BraveError(f"BraveVectorEnv: num_envs must be at least 1, got {num_envs}")
         mode = check_mode(mode, "BraveVectorEnv: mode")
         if isinstance(scene, EpisodeManager) and scene.mode != mode:
             raise BraveError(f"BraveVectorEnv(mode={mode!r}): the episode manager given runs in {scene.mode} mode")
-        self.manager = scene if isinstance(scene, EpisodeManager) else EpisodeManager(scene, max_episodes=num_envs,
-                                                                                       mode=mode)
+        if isinstance(scene, EpisodeManager) and visibility_stride not in (None, scene.visibility_stride):
+            raise BraveError(f"BraveVectorEnv(visibility_stride={visibility_stride}): the episode manager given "
+                             f"computes visible fractions at stride {scene.visibility_stride}")
+        self.manager = scene if isinstance(scene, EpisodeManager) else EpisodeManager(
+            scene, max_episodes=num_envs, mode=mode,
+            visibility_stride=VECTOR_VISIBILITY_STRIDE if visibility_stride is None else visibility_stride)
         self.mode = mode
         self.num_envs = int(num_envs)
         self.target, self.agent, self.frame = target, agent, frame
@@ -117,6 +132,8 @@ class BraveVectorEnv(VectorEnv):  # type: ignore[misc]
         if any(i is None for i in self._ids):
             raise RuntimeError("call reset() before step()")
         twists = self._twists(actions)
+        rgb = np.empty((self.num_envs, self.height, self.width, 3), np.uint8)
+        depth = np.empty((self.num_envs, self.height, self.width), np.float32)
         rewards = np.zeros(self.num_envs, np.float64)
         entries: list[tuple[int, dict[str, Any]]] = []  # (sub-environment, its info), in _add_info's order
         moving = np.any(twists != 0.0, axis=1)
@@ -131,13 +148,15 @@ class BraveVectorEnv(VectorEnv):  # type: ignore[misc]
                 entries.append((i, {"episode_id": self._ids[i], "accepted": True, "noop": True}))
             else:
                 requests[i] = MoveRequest(str(self._ids[i]), linear[i], angular[i], self.step_duration, self.frame)
-        results = self.manager.move_many(list(requests.values()))
+        slots = {i: (rgb[i], depth[i]) for i in requests}  # each move's view is rendered into the batch
+        results = self.manager.move_many(list(requests.values()), list(slots.values()))
         for i, result in zip(requests, results):
             rewards[i] = self._record_move(i, result)
             entries.append((i, self._info(result)))
         truncated = ~self._needs_reset & (self._steps >= self.max_steps)
         self._end_truncated(truncated)
-        return self._batch_obs(), rewards, np.zeros(self.num_envs, bool), truncated, self._infos(entries)
+        return (self._batch_obs(rgb, depth, slots), rewards, np.zeros(self.num_envs, bool), truncated,
+                self._infos(entries))
 
     def close_extras(self, **kwargs: Any) -> None:
         """Close the open episodes (their logs get their close records)."""
@@ -209,6 +228,19 @@ class BraveVectorEnv(VectorEnv):  # type: ignore[misc]
         return {"episode_id": result.episode_id, "accepted": result.accepted, "collided": result.collided,
                 "adjustments": result.adjustments}
 
-    def _batch_obs(self) -> Obs:
-        views = [view_obs(v) for v in self._views if v is not None]
-        return {key: np.stack([v[key] for v in views]) for key in ("rgb", "depth", "K", "world_T_cam")}
+    def _batch_obs(self, rgb: NDArray[np.uint8] | None = None, depth: NDArray[np.float32] | None = None,
+                   slots: dict[int, tuple[NDArray[np.uint8], NDArray[np.float32]]] | None = None) -> Obs:
+        """The batch of the current views, read-only: ``rgb`` / ``depth`` (fresh arrays) hold the views
+        rendered into ``slots``; every other view's images are copied in (all of them without ``rgb``)."""
+        views = [v for v in self._views if v is not None]
+        if rgb is None or depth is None:
+            rgb, depth = np.stack([v.rgb for v in views]), np.stack([v.depth for v in views])
+        else:
+            slots = slots or {}
+            for i, v in enumerate(views):
+                slot = slots.get(i)
+                if slot is None or v.rgb is not slot[0] or v.depth is not slot[1]:  # not rendered into the batch
+                    rgb[i], depth[i] = v.rgb, v.depth
+        rgb.flags.writeable = depth.flags.writeable = False
+        return {"rgb": rgb, "depth": depth, "K": np.stack([v.camera.K for v in views]),
+                "world_T_cam": np.stack([v.world_T_cam for v in views])}
