@@ -1,7 +1,16 @@
-"""Depth rendering of object meshes for the VSD pose error (CPU ray casting, BOP units).
+"""Depth rendering of object meshes for the VSD pose error (CPU, BOP units).
 
-The renderer casts one ray per pixel through the pixel centre with Open3D's
-``RaycastingScene`` (tensor API). Conventions, as in the rest of the project:
+Two methods, the same conventions:
+
+- ``"gl"`` (the default): OpenGL's rasterisation rules as bop_toolkit's renderer meets them on
+  Mesa's llvmpipe (float32 projection, vertices snapped to 1/256 px, the top-left fill rule,
+  a 16-bit depth buffer; :mod:`brave6d.evaluation.metrics.gl_raster`), so VSD's errors equal
+  bop_toolkit's to the pixel.
+- ``"raycast"``: one ray per pixel centre with Open3D's ``RaycastingScene`` (tensor API): exact
+  hits in float32, but a pixel whose centre lies within ~1e-3 px of a silhouette edge may be
+  decided unlike a rasteriser (VSD errors then differ from bop_toolkit's by a pixel).
+
+Conventions, as in the rest of the project:
 
 - OpenCV pinhole camera without distortion (the project's K): pixel ``(u, v)`` (column, row)
   has its centre at integer coordinates, its ray is ``((u - cx) / fx, (v - cy) / fy, 1)`` in
@@ -15,10 +24,11 @@ The renderer casts one ray per pixel through the pixel centre with Open3D's
 - The pose ``(R, t)`` maps model points to the camera frame: ``x_cam = R @ x_model + t``.
 - Millimetres: vertices and ``t`` in mm, the returned z-depth in mm; 0 where no surface is hit.
 
-Each object is put into its own ray-casting scene once, in the model frame; a render transforms
-the rays into the model frame instead of the mesh, so the acceleration structure is reused for
-every pose. Only the pixels inside the projected bounding box of the mesh are cast when the whole
-mesh lies in front of the camera, which keeps renders of small objects cheap.
+For ray casting each object is put into its own ray-casting scene once, in the model frame; a
+render transforms the rays into the model frame instead of the mesh, so the acceleration
+structure is reused for every pose. Only the pixels inside the projected bounding box of the
+mesh are cast when the whole mesh lies in front of the camera, which keeps renders of small
+objects cheap.
 """
 
 from __future__ import annotations
@@ -31,15 +41,21 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from brave6d.core.errors import DataError
+from brave6d.evaluation.metrics.gl_raster import bbox_corners, gl_depth
 
 RenderFn = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 """``render_fn(R, t_mm) -> depth_mm (H, W)``: the renderer of one object for a fixed camera."""
 
 
+METHODS = ("gl", "raycast")
+
+
 @dataclass
 class _Mesh:
-    scene: Any  # open3d.t.geometry.RaycastingScene
+    scene: Any  # open3d.t.geometry.RaycastingScene (method "raycast"), else None
     vertices: NDArray[np.float64]
+    faces: NDArray[np.int64]
+    corners: NDArray[np.float64]
 
 
 def _check_mesh(vertices_mm: ArrayLike, faces: ArrayLike, name: str) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
@@ -77,21 +93,26 @@ class DepthRenderer:
     >>> depth = r.render(1, R, t_mm, K, 640, 480)      # doctest: +SKIP
     """
 
-    def __init__(self, nthreads: int = 0) -> None:
+    def __init__(self, nthreads: int = 0, method: str = "gl") -> None:
+        if method not in METHODS:
+            raise DataError(f"renderer: method must be one of {METHODS}, got {method!r}")
         self._meshes: dict[int, _Mesh] = {}
         self._nthreads = int(nthreads)
+        self.method = method
 
     def __contains__(self, obj_id: object) -> bool:
         return obj_id in self._meshes
 
     def add_object(self, obj_id: int, vertices_mm: ArrayLike, faces: ArrayLike) -> None:
         """Register a triangle mesh (vertices in mm, model frame) under ``obj_id``."""
-        import open3d as o3d
-
         v, f = _check_mesh(vertices_mm, faces, f"object {obj_id}")
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
-        self._meshes[int(obj_id)] = _Mesh(scene=scene, vertices=v)
+        scene = None
+        if self.method == "raycast":
+            import open3d as o3d
+
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+        self._meshes[int(obj_id)] = _Mesh(scene=scene, vertices=v, faces=f, corners=bbox_corners(v))
 
     def render(
         self,
@@ -103,8 +124,6 @@ class DepthRenderer:
         height: int,
     ) -> NDArray[np.float64]:
         """Z-depth image (height, width) in mm of object ``obj_id`` at pose (R, t); 0 = no hit."""
-        import open3d as o3d
-
         try:
             mesh = self._meshes[int(obj_id)]
         except KeyError:
@@ -116,6 +135,9 @@ class DepthRenderer:
         depth = np.zeros((h, w), dtype=np.float64)
         if not (np.all(np.isfinite(Rm)) and np.all(np.isfinite(t))):
             return depth
+        if self.method == "gl":
+            return gl_depth(mesh.vertices, mesh.faces, mesh.corners, Rm, t, k, w, h)
+        import open3d as o3d
 
         box = _projected_box(mesh.vertices, Rm, t, k, w, h)
         if box is None:
@@ -180,8 +202,9 @@ def render_depth(
     K: ArrayLike,
     width: int,
     height: int,
+    method: str = "gl",
 ) -> NDArray[np.float64]:
     """One-off z-depth render (mm, 0 = no hit) of a mesh; use :class:`DepthRenderer` for many poses."""
-    r = DepthRenderer()
+    r = DepthRenderer(method=method)
     r.add_object(0, vertices_mm, faces)
     return r.render(0, R, t_mm, K, width, height)
