@@ -239,3 +239,15 @@ def test_observations_are_read_only_and_never_change_after_they_are_returned(sce
         for key in copy:
             np.testing.assert_array_equal(returned[key], copy[key], err_msg=key)
     vec.close()
+
+
+def test_a_view_without_truth_keeps_every_other_field(scene: SceneServer) -> None:
+    """RenderedView.without_truth builds the view field by field: it equals dataclasses.replace's."""
+    import dataclasses
+
+    view = scene.observe(scene.random_start(scene.bundle.objects[0], np.random.default_rng(0)),
+                         scene.camera_for(64, 48), 0, 2)
+    bare, replaced = view.without_truth(), dataclasses.replace(view, objects=())
+    assert bare.objects == () and view.objects
+    for f in dataclasses.fields(view):
+        assert getattr(bare, f.name) is getattr(replaced, f.name), f.name

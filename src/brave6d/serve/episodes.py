@@ -46,7 +46,7 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from functools import cached_property, partial
+from functools import cached_property, lru_cache, partial
 from typing import Any
 
 import numpy as np
@@ -172,8 +172,10 @@ class RenderedView:
         return next((o for o in self.objects if o.is_target), None)
 
     def without_truth(self) -> RenderedView:
-        """This view as a scored server shows it: the images, camera and pose, no objects."""
-        return replace(self, objects=())
+        """This view as a scored server shows it: the images, camera and pose, no objects (``replace``'s
+        result, built directly: every scored step makes one)."""
+        return RenderedView(self.rgb, self.depth, self.camera, self.world_T_cam, (), self.timings_ms, self.reference,
+                            self.geometry, self.complete, self.visibility_stride)
 
 
 @dataclass
@@ -506,5 +508,10 @@ def submission_record(ep: Episode, estimates: list[LoggedEstimate], bundle: Bund
 
 
 def target_ref(obj: BundleObject) -> TargetRef:
-    """The wire/log reference of a target instance."""
-    return TargetRef(gt_id=obj.gt_id, obj_id=obj.obj_id, name=obj.name)
+    """The wire/log reference of a target instance (one frozen model per instance: every step's result holds it)."""
+    return _target_ref(obj.gt_id, obj.obj_id, obj.name)
+
+
+@lru_cache(maxsize=4096)
+def _target_ref(gt_id: int, obj_id: int, name: str) -> TargetRef:
+    return TargetRef(gt_id=gt_id, obj_id=obj_id, name=name)
