@@ -31,8 +31,9 @@ so the split is laid out as a dataset named ``brave6d`` (``test/`` linking to th
 before each script runs. Prints bop_toolkit's AR, AR_VSD, AR_MSSD, AR_MSPD beside brave6d's own
 scoring of the same CSV (``brave6d.evaluation.metrics.evaluate_bop19``); exit status 0 when every
 figure agrees to ``--tolerance`` (1e-6). MSSD and MSPD need no rendering and agree exactly; VSD
-compares renders, where bop_toolkit's OpenGL rasterisation and brave6d's ray casting may differ by
-a pixel on a triangle's edge (docs/BENCHMARKS.md gives the measured difference).
+compares renders, which agree as well: brave6d's VSD renderer follows the OpenGL rules
+bop_toolkit's vispy renderer meets on Mesa's llvmpipe (``brave6d.evaluation.metrics.gl_raster``:
+the same pixels and depths; docs/BENCHMARKS.md gives the measurement).
 """
 
 from __future__ import annotations
