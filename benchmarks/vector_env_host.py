@@ -13,8 +13,8 @@ the steadier one), each the median over ``--repeats`` child processes of the med
 ``REV`` (``git archive``), the two alternating, child by child, in one run. ``--breakdown`` (the
 current tree only) also splits the CPU time: the Open3D ray casts (every ``cast_rays``), the rest of
 the visible fractions (``VisibilityComputer.compute_many`` without its casts), the log records
-(``ActionRecord`` and its JSON line), the observation stack (``_batch_obs``: the images copied into
-the batch) and everything else (moves, checks, views, infos), each summed over the timed steps.
+(``format_action``: an action's JSON line), the observation batch (``_batch_obs``: the images of
+the views not rendered into it copied in, K and poses stacked) and everything else (moves, checks, views, infos), each summed over the timed steps.
 
     python benchmarks/vector_env_host.py [--agents 64] [--mode scored|training] [--baseline REV] [--breakdown]
                                          [--json out.json]
@@ -49,7 +49,8 @@ def child(src: str, bundle: str, agents: int, steps: int, width: int, height: in
     from brave6d.serve.vector_env import BraveVectorEnv
 
     class StandInRenderer:
-        """Returns fixed images (slices of one batch array, as the real renderer's) and records its own time."""
+        """Returns fixed images (slices of one batch array, as the real renderer's, or written into the
+        caller's ``out`` arrays, as the real renderer does) and records its own time."""
 
         device, num_gaussians = "cpu", 0
 
@@ -59,11 +60,18 @@ def child(src: str, bundle: str, agents: int, steps: int, width: int, height: in
             self.depth = np.full((agents, height, width), 0.3, np.float32)
             self.alpha = np.ones((agents, height, width), np.float32)
 
-        def render_batch(self, poses: Any, camera: Any, **_: Any) -> list[Any]:
+        def render_batch(self, poses: Any, camera: Any, out: Any = None, **_: Any) -> list[Any]:
             t0 = time.perf_counter()
-            out = [RenderOutput(self.rgb[i], self.depth[i], self.alpha[i], 0.0, 0.0, 0) for i in range(len(poses))]
+            views = []
+            for i in range(len(poses)):
+                rgb, depth = self.rgb[i], self.depth[i]
+                if out is not None and out[i] is not None:  # as SplatRenderer: the images written into ``out``
+                    np.copyto(out[i][0], rgb)
+                    np.copyto(out[i][1], depth)
+                    rgb, depth = out[i]
+                views.append(RenderOutput(rgb, depth, self.alpha[i], 0.0, 0.0, 0))
             self.seconds += time.perf_counter() - t0
-            return out
+            return views
 
         def render(self, pose: Any, camera: Any, **kw: Any) -> Any:
             return self.render_batch([pose], camera, **kw)[0]
@@ -95,7 +103,7 @@ def child(src: str, bundle: str, agents: int, steps: int, width: int, height: in
         total = statistics.fmean(cpu)
         out["parts"] = {"ray casts (Open3D)": per["casts"],
                         "visible fractions' array code": per["visibility"] - per["casts"],
-                        "log records (ActionRecord + JSON)": per["log"], "observation stack": per["obs"],
+                        "log records (format_action)": per["log"], "observation batch": per["obs"],
                         "the rest (moves, checks, views, infos)": total - per["visibility"] - per["log"] - per["obs"],
                         "total (mean)": total}
     return out
@@ -123,9 +131,7 @@ def timed_parts() -> dict[str, float]:
     scene_class.cast_rays = timing("casts", scene_class.cast_rays)
     computer = visibility.VisibilityComputer
     computer.compute_many = timing("visibility", computer.compute_many)
-    record, fmt = episode_manager.ActionRecord, episode_manager.EpisodeLog.format
-    episode_manager.ActionRecord = timing("log", record)  # type: ignore[misc]
-    episode_manager.EpisodeLog.format = staticmethod(timing("log", fmt))  # type: ignore[method-assign]
+    episode_manager.format_action = timing("log", episode_manager.format_action)  # type: ignore[assignment]
     env_class = vector_env.BraveVectorEnv
     env_class._batch_obs = timing("obs", env_class._batch_obs)
     return parts
