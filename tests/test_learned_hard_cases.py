@@ -102,6 +102,54 @@ def test_random_correspondences_give_a_finite_pose_or_a_named_refusal() -> None:
             assert math.isclose(np.linalg.det(R), 1.0, abs_tol=1e-6)
 
 
+def _noisy_correspondences(seed: int, n: int, outliers: float) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` points of a 6 cm object 20-60 cm away, their projections with 0.7 px of noise, a share
+    ``outliers`` of them anywhere in the image (a coordinate net's wrong cells)."""
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-0.03, 0.03, size=(n, 3))
+    R, t = Rotation.random(random_state=seed).as_matrix(), np.array([0.01, -0.02, rng.uniform(0.2, 0.6)])
+    image = _project(points, R, t) + rng.normal(0.0, 0.7, size=(n, 2))
+    wrong = rng.random(n) < outliers
+    image[wrong] = rng.uniform(0.0, 320.0, size=(int(wrong.sum()), 2))
+    return points, image
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**16), n=st.integers(30, 600), outliers=st.floats(0.0, 0.3),
+       size=st.floats(1e-7, 1e-6))
+def test_pnp_is_continuous_in_its_inputs(seed: int, n: int, outliers: float, size: float) -> None:
+    """Moving every correspondence by float noise (1e-7..1e-6, the size of torch's and ONNX Runtime's
+    differences) moves the pose by about as much: no other consensus, no flipped pose."""
+    points, image = _noisy_correspondences(seed, n, outliers)
+    R, t, _ = solve_pnp(points, image, K, reprojection_px=3.0)
+    rng = np.random.default_rng(seed + 1)
+    for _ in range(3):
+        R2, t2, _ = solve_pnp(points + rng.uniform(-size, size, points.shape) * 1e-2,
+                              image + rng.uniform(-size, size, image.shape), K, reprojection_px=3.0)
+        assert np.abs(R2 - R).max() < 1e-4 and np.abs(t2 - t).max() < 1e-4
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**16), n=st.integers(6, 200), behind=st.floats(0.05, 1.0),
+       outliers=st.floats(0.0, 1.0))
+def test_points_behind_the_camera_give_a_pose_in_front_or_a_named_refusal(seed: int, n: int, behind: float,
+                                                                          outliers: float) -> None:
+    """Image points projected from an object behind the camera (and any share of them random): a finite
+    rotation and a translation in front of the camera, or a refusal naming its cause."""
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-0.03, 0.03, size=(n, 3))
+    image = _project(points, Rotation.random(random_state=seed).as_matrix(), np.array([0.0, 0.0, -behind]))
+    wrong = rng.random(n) < outliers
+    image[wrong] = rng.uniform(0.0, 320.0, size=(int(wrong.sum()), 2))
+    try:
+        R, t, inliers = solve_pnp(points, image, K)
+    except LearnedRefused as exc:
+        assert exc.cause in REFUSAL_CAUSES
+    else:
+        assert np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and t[2] > 0
+        assert math.isclose(np.linalg.det(R), 1.0, abs_tol=1e-6) and len(inliers) >= 6
+
+
 @settings(max_examples=30, deadline=None)
 @given(x0=st.floats(-400.0, 400.0), y0=st.floats(-300.0, 300.0), w=st.floats(0.5, 300.0), h=st.floats(0.5, 300.0),
        use_depth=st.booleans(), value=st.integers(0, 255))

@@ -65,7 +65,7 @@ def card_markdown(card: dict[str, Any]) -> str:
     """The human-readable card."""
     p = card["preset"]
     lines = ["# Learned estimator: model card", "",
-             "A CenterNet-style detector and a GDR-Net-style coordinate network (PnP-RANSAC), trained from "
+             "A CenterNet-style detector and a GDR-Net-style coordinate network (robust PnP), trained from "
              "scratch on the dataset's own synthetic train_pbr; no pretrained weights.", "",
              f"- train_pbr: `{card['train_pbr']}`, {card['images']} images (sha256 `{card['train_pbr_sha256'][:16]}...`), "
              f"{card['trained_on_images']} trained on, {card['heldout_images']} held out (every "

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from brave6d.evaluation.learned.crops import iou
 from brave6d.evaluation.learned.data import MIN_VISIB_FRACT, TrainingData
-from brave6d.evaluation.learned.inference import Detection, LearnedEstimator, LearnedRefused
+from brave6d.evaluation.learned.inference import Detection, LearnedEstimator, LearnedRefused, pnp_method
 from brave6d.evaluation.learned.presets import DETECTION_THRESHOLD
 
 log = logging.getLogger(__name__)
@@ -68,7 +68,7 @@ class HeldoutScores:
                 "detection_ap_iou50_unrefined": {str(k): v for k, v in self.ap_raw.items()},
                 "seconds_per_detection": dict(self.seconds_per_detection),
                 "detection_threshold": DETECTION_THRESHOLD, "detect_widths": list(self.detect_widths),
-                "crop_zooms": list(self.crop_zooms)}
+                "crop_zooms": list(self.crop_zooms), "pnp": pnp_method()}
 
     def detection_summary(self) -> dict[str, Any]:
         """The detection figures the benchmarks tabulate per setting (JSON keys): images, instances,

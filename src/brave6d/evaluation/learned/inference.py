@@ -1,4 +1,4 @@
-"""The learned estimator at work: detect, crop (at a few zooms), regress coordinates, one PnP-RANSAC
+"""The learned estimator at work: detect, crop (at a few zooms), regress coordinates, one robust PnP
 over every crop's correspondences, the distance from the mask's area where the model's mesh is known (:mod:`~brave6d.evaluation.learned.silhouette`),
 optionally refine the translation with a depth image.
 
@@ -48,15 +48,30 @@ MIN_MASK_CELLS = 3
 #: (benchmarks/learned_detect_scale.py).
 DETECT_SCALES: tuple[float, ...] = (1.0,)
 #: The coordinate net looks at a box's crop at these zooms (the crop's side over the box's padded
-#: side) and one PnP-RANSAC fits the correspondences of all of them (the mask-area distance is the
+#: side) and one robust PnP fits the correspondences of all of them (the mask-area distance is the
 #: geometric mean of theirs): the net's errors at different scales partly cancel, which pins the
 #: rotation down (test-time augmentation, as GDR-Net's dynamic zoom-in trains for). (1.0,): one
 #: crop, a third of the time. Priced in docs/BENCHMARKS.md (benchmarks/learned_rgb_distance.py).
 CROP_ZOOMS: tuple[float, ...] = (1.0, 0.75, 1.25)
-#: PnP-RANSAC's inlier threshold, in the coordinate net's output cells of the zoom-1 crop (a cell
-#: spans 3 px of a far object's crop and 15 of a near one's: a threshold in pixels would be loose on
-#: one and strict on the other). Priced in docs/BENCHMARKS.md.
+#: Robust PnP's inlier threshold (MSAC's truncation, the Cauchy loss's scale), in the coordinate
+#: net's output cells of the zoom-1 crop (a cell spans 3 px of a far object's crop and 15 of a near
+#: one's: a threshold in pixels would be loose on one and strict on the other). Priced in
+#: docs/BENCHMARKS.md.
 PNP_REPROJECTION_CELLS = 1.5
+#: Robust PnP's fixed hypothesis set: this many seeded minimal samples of ``PNP_SAMPLE``
+#: correspondences each (EPnP), every one scored (no adaptive stopping: the same samples whatever
+#: the inputs' values). Priced in docs/BENCHMARKS.md.
+PNP_HYPOTHESES = 100
+PNP_SAMPLE = 6
+PNP_SEED = 0
+#: At most this many Levenberg-Marquardt steps of the robust least squares that refines the best hypothesis.
+PNP_REFINE_STEPS = 100
+
+
+def pnp_method() -> str:
+    """What :func:`solve_pnp` does, as the held-out figures record it (a card scored by another PnP
+    is stale): fixed hypotheses x sample size, MSAC score, Cauchy-loss refinement."""
+    return f"msac-{PNP_HYPOTHESES}x{PNP_SAMPLE}-seed{PNP_SEED}+cauchy-lm"
 #: Detections of one object overlapping a better one at least this much (IoU) are dropped.
 NMS_IOU = 0.5
 #: Beside a narrower pass, a wider one keeps only detections whose box (geometric mean of w, h)
@@ -446,9 +461,17 @@ def _rigid(R: Array, t: Array) -> Array:
 
 def solve_pnp(points_3d: Array, points_2d: Array, K: Array, obj_id: int = 0,
               reprojection_px: float = 2.0) -> tuple[Array, Array, NDArray[np.int64]]:
-    """PnP-RANSAC (OpenCV EPnP, then Levenberg-Marquardt on the inliers): rotation, translation (the
-    units of ``points_3d``) and inlier indices; refused with a named cause when the correspondences
-    are too few, degenerate (collinear), or no finite pose in front of the camera comes out."""
+    """Robust PnP that is continuous in its inputs: rotation, translation (the units of
+    ``points_3d``) and inlier indices (reprojection error within ``reprojection_px``); refused with
+    a named cause when the correspondences are too few, degenerate (collinear), or no finite pose in
+    front of the camera comes out.
+
+    A fixed set of :data:`PNP_HYPOTHESES` seeded minimal samples (EPnP on :data:`PNP_SAMPLE`
+    points; no adaptive stopping) is scored by MSAC's truncated quadratic cost, and the best
+    hypotheses are refined by a smooth robust least squares over all correspondences
+    (:func:`_robust_refine`, Cauchy loss at ``reprojection_px``; no hard inlier set inside the fit).
+    So float noise of 1e-6 on the inputs moves the pose by about as much, where an inlier count's
+    consensus (PnP-RANSAC) flips between poses on integer ties now and then."""
     import cv2
 
     n = len(points_3d)
@@ -457,8 +480,9 @@ def solve_pnp(points_3d: Array, points_2d: Array, K: Array, obj_id: int = 0,
                                                     f"PnP needs at least {MIN_CORRESPONDENCES}")
     if not (math.isfinite(reprojection_px) and reprojection_px > 0):
         raise BraveError(f"solve_pnp: reprojection_px must be a positive finite number of pixels, got {reprojection_px}")
-    p3 = np.asarray(points_3d, dtype=np.float64)
-    p2 = np.asarray(points_2d, dtype=np.float64)
+    p3 = np.asarray(points_3d, dtype=np.float64).reshape(n, 3)
+    p2 = np.asarray(points_2d, dtype=np.float64).reshape(n, 2)
+    K = np.asarray(K, dtype=np.float64)
     if not (np.all(np.isfinite(p3)) and np.all(np.isfinite(p2))):
         raise LearnedRefused("bad-input", f"learned estimator: object {obj_id}: non-finite correspondences")
     for what, pts in (("3D", p3), ("2D", p2)):
@@ -467,20 +491,90 @@ def solve_pnp(points_3d: Array, points_2d: Array, K: Array, obj_id: int = 0,
             raise LearnedRefused("degenerate-correspondences",
                                  f"learned estimator: object {obj_id}: the {what} points are collinear or coincide "
                                  f"(spread {sv[1] / sv[0] if sv[0] > 0 else 0.0:.3g} < {MIN_SPREAD})")
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(p3, p2, K, None, iterationsCount=100,
-                                                 reprojectionError=reprojection_px, confidence=0.99,
-                                                 flags=cv2.SOLVEPNP_EPNP)
-    if not ok or inliers is None or len(inliers) < MIN_CORRESPONDENCES:
-        raise LearnedRefused("pnp-failed", f"learned estimator: object {obj_id}: PnP-RANSAC found no pose with "
-                                           f">= {MIN_CORRESPONDENCES} inliers among {n} correspondences")
-    inliers = inliers.reshape(-1)
-    rvec, tvec = cv2.solvePnPRefineLM(p3[inliers], p2[inliers], K, None, rvec, tvec)
-    R = cv2.Rodrigues(rvec)[0]
-    t = tvec.reshape(3)
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))) or t[2] <= 0:
-        raise LearnedRefused("pnp-failed", f"learned estimator: object {obj_id}: PnP gave no finite pose in front "
-                                           f"of the camera (t = {t.tolist()})")
-    return R, t, inliers
+    rng = np.random.default_rng(PNP_SEED)
+    hypotheses = []
+    for _ in range(PNP_HYPOTHESES):
+        sample = rng.choice(n, size=PNP_SAMPLE, replace=False)
+        try:
+            ok, rvec, tvec = cv2.solvePnP(p3[sample], p2[sample], K, None, flags=cv2.SOLVEPNP_EPNP)
+        except cv2.error:  # a degenerate sample
+            continue
+        if ok and np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)):
+            hypotheses.append(np.concatenate([rvec.reshape(3), tvec.reshape(3)]))
+    threshold2 = reprojection_px ** 2
+    if hypotheses:
+        costs = np.minimum(_squared_errors(np.array(hypotheses), p3, p2, K), threshold2).sum(axis=1)
+        best = hypotheses[int(np.argmin(costs))]
+        if int((_squared_errors(best[None], p3, p2, K)[0] < threshold2).sum()) >= MIN_CORRESPONDENCES:
+            x = _robust_refine(best, p3, p2, K, reprojection_px)
+            inliers = np.flatnonzero(_squared_errors(x[None], p3, p2, K)[0] < threshold2).astype(np.int64)
+            if len(inliers) >= MIN_CORRESPONDENCES:
+                R, t = cv2.Rodrigues(x[:3])[0], x[3:].copy()
+                if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))) or t[2] <= 0:
+                    raise LearnedRefused("pnp-failed", f"learned estimator: object {obj_id}: PnP gave no finite pose "
+                                                       f"in front of the camera (t = {t.tolist()})")
+                return R, t, inliers
+    raise LearnedRefused("pnp-failed", f"learned estimator: object {obj_id}: robust PnP found no pose with "
+                                       f">= {MIN_CORRESPONDENCES} inliers among {n} correspondences")
+
+
+def _squared_errors(poses: Array, p3: Array, p2: Array, K: Array) -> Array:
+    """Squared reprojection errors (px^2, (H, N)) of ``poses`` (H, 6: rotation vector, translation);
+    a point on or behind the camera's plane counts as infinitely far."""
+    from scipy.spatial.transform import Rotation
+
+    cam = np.matmul(p3, Rotation.from_rotvec(poses[:, :3]).as_matrix().transpose(0, 2, 1)) + poses[:, None, 3:]
+    z = cam[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * cam[..., 0] / z + K[0, 2] - p2[:, 0]
+        v = K[1, 1] * cam[..., 1] / z + K[1, 2] - p2[:, 1]
+        errors = u * u + v * v
+    return np.where((z > 1e-12) & np.isfinite(errors), errors, np.inf)
+
+
+def _robust_refine(x0: Array, p3: Array, p2: Array, K: Array, scale_px: float) -> Array:
+    """Pose ``x0`` (rotation vector, translation) refined over every correspondence by Levenberg-
+    Marquardt on the Cauchy loss of its reprojection error (scale ``scale_px``: weights
+    1 / (1 + e^2 / scale^2), iteratively reweighted; the Jacobian from OpenCV's ``projectPoints``),
+    a step kept only where it lowers the loss, run to a step of 1e-12 so the result depends smoothly
+    on the inputs (no inlier set inside the fit); ``x0`` where nothing lowers the loss."""
+    import cv2
+
+    s2 = scale_px ** 2
+
+    def loss(x: Array) -> float:  # a point behind the camera counts as 1e6 px off
+        return float(np.log1p(np.minimum(_squared_errors(x[None], p3, p2, K)[0], 1e12) / s2).sum())
+
+    x, current, damping = np.asarray(x0, dtype=np.float64).copy(), loss(x0), 1e-3
+    for _ in range(PNP_REFINE_STEPS):
+        uv, jac = cv2.projectPoints(p3, x[:3], x[3:], K, None)
+        r = (uv.reshape(-1, 2) - p2).ravel()
+        J = jac[:, :6]
+        in_front = p3 @ cv2.Rodrigues(x[:3])[0][2] + x[5] > 1e-12
+        w = np.repeat(np.where(in_front, 1.0 / (1.0 + (r.reshape(-1, 2) ** 2).sum(axis=1) / s2), 0.0), 2)
+        if not np.all(np.isfinite(r[w > 0])):
+            break
+        r, J = np.where(w > 0, r, 0.0), np.where(w[:, None] > 0, J, 0.0)
+        A, g = J.T @ (w[:, None] * J), J.T @ (w * r)
+        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(g))):
+            break
+        while damping < 1e12:
+            try:
+                step = np.linalg.solve(A + damping * np.diag(np.diag(A) + 1e-12), -g)
+            except np.linalg.LinAlgError:
+                damping *= 10.0
+                continue
+            trial = x + step
+            value = loss(trial) if np.all(np.isfinite(trial)) else math.inf
+            if value <= current:
+                x, current, damping = trial, value, max(damping / 10.0, 1e-9)
+                break
+            damping *= 10.0
+        else:
+            break  # no step lowers the loss: a minimum to float precision
+        if np.abs(step).max() < 1e-12:
+            break
+    return x
 
 
 def _depth_scaled(R: Array, t: Array, points_3d: Array, points_2d: Array,

@@ -4,7 +4,7 @@
   quarter of the image's resolution, plus the box size and the sub-cell offset of each centre. No
   anchors and no NMS operator (a 3x3 max-pool keeps the peaks), so it needs nothing beyond torch.
 - :class:`CoordinateNet`: GDR-Net's geometric half on a zoomed-in crop: per pixel, the object's
-  (normalised) model coordinates and a visible-mask logit, one head per class; PnP-RANSAC turns
+  (normalised) model coordinates and a visible-mask logit, one head per class; a robust PnP turns
   them into a pose (:mod:`brave6d.evaluation.learned.inference`).
 
 torchvision's detection models were the other candidate; on PyPI its wheel is built against

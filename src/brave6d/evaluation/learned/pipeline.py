@@ -94,15 +94,16 @@ def heldout_only(model_dir: Path | str, train_pbr: Path | str, models_dir: Path 
 def _heldout_is_current(card: dict[str, Any], model: Any, source_digest: str) -> bool:
     """Whether the card's held-out figures were scored on the split of checksum ``source_digest`` as
     the estimator of ``model`` (a :class:`LearnedModel` in memory) now works: its detector's input
-    widths, the detection threshold and the coordinate net's crop zooms."""
+    widths, the detection threshold, the coordinate net's crop zooms and the PnP."""
     from brave6d.evaluation.learned.presets import DETECTION_THRESHOLD
-    from brave6d.evaluation.learned.inference import LearnedEstimator
+    from brave6d.evaluation.learned.inference import LearnedEstimator, pnp_method
 
     h = card.get("heldout")
     estimator = LearnedEstimator(model)
     return (isinstance(h, dict) and h.get("detect_widths") == estimator.detect_widths
             and h.get("detection_threshold") == DETECTION_THRESHOLD
             and h.get("crop_zooms") == [float(z) for z in estimator.crop_zooms]
+            and h.get("pnp") == pnp_method()
             and h.get("source_sha256", card.get("train_pbr_sha256")) == source_digest)
 
 

@@ -668,7 +668,7 @@ def render_learned(m: Measurement | None, out_dir: Path, cost: dict[str, Any] | 
               *(f"{fmt(r[f'real_{v}'], 2)} / {fmt(r[f'splat_{v}'], 2)} ({fmt(r[f'gap_{v}'], 2)} ± {fmt(r[f'gap_se_{v}'], 2)})"
                 for v in VARIANTS)) for r in rows]
     body = ("The learned estimator of the demo (`" + str(m.summary.get("model")) + "`: a detector and a coordinate "
-            "network trained from scratch on the scene's own synthetic train_pbr, one PnP-RANSAC over each box's crops at a few zooms, "
+            "network trained from scratch on the scene's own synthetic train_pbr, one robust PnP over each box's crops at a few zooms, "
             "the distance from the mask's area, optionally scaled and ICP-refined with depth) on held-out synthetic images, then on the captured frames of the annotation's BOP "
             "export and on the splat's renders of the same poses, each target estimated four ways (true or detected "
             "box; RGB alone or with depth) and scored on the captured frame's test depth. The gap per ring is the "
