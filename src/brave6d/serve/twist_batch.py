@@ -129,18 +129,24 @@ def integrate_twists(world: CollisionWorld, starts: ArrayLike, linear: ArrayLike
     steps = _norms(centres - previous)
     flagged = _screen(world, centres, previous, steps)
     results: list[MoveResult] = []
-    for i in range(n_cams):
-        lo, n = int(first[i]), int(counts[i])
+    flagged_rows = np.flatnonzero(flagged)
+    flagged_from = np.searchsorted(flagged_rows, first).tolist()  # each camera's first flagged substep
+    flagged_rows = flagged_rows.tolist()
+    step_lengths = steps.tolist()
+    for i, (lo, n) in enumerate(zip(first.tolist(), counts.tolist())):
         stop, refusal = n, None
-        for row in np.flatnonzero(flagged[lo:lo + n]).tolist():  # in substep order: the first real refusal stops
-            refusal = world.check(poses[lo + row])
+        f = flagged_from[i]
+        while f < len(flagged_rows) and flagged_rows[f] < lo + n:  # in substep order: the first real refusal stops
+            at = flagged_rows[f]
+            refusal = world.check(poses[at])
             if refusal is None:
-                refusal = world.check_segment(previous[lo + row], centres[lo + row])
+                refusal = world.check_segment(previous[at], centres[at])
             if refusal is not None:
-                stop = row
+                stop = at - lo
                 break
+            f += 1
         path = 0.0
-        for length in steps[lo:lo + stop].tolist():  # sequential, as the scalar loop adds them
+        for length in step_lengths[lo:lo + stop]:  # sequential, as the scalar loop adds them
             path += length
         if refusal is not None:
             last = T0[i] if stop == 0 else poses[lo + stop - 1]
