@@ -129,7 +129,7 @@ def _unorm16(z: np.float32) -> int:
 @njit(cache=True, error_model="numpy")
 def _raster_triangle(
     xs: NDArray[np.float32], ys: NDArray[np.float32], zs: NDArray[np.float32],
-    zbuf: NDArray[np.int64], width: int, height: int, qmax: int, box: NDArray[np.int64],
+    zbuf: NDArray[np.int64], org: NDArray[np.int64], width: int, height: int, qmax: int, box: NDArray[np.int64],
 ) -> None:
     """One triangle (window x, y, z in float32, memory rows) into the z-buffer, GL_LESS.
 
@@ -153,10 +153,11 @@ def _raster_triangle(
     c0, dx0, dy0 = _edge_setup(xf, yf, 0, 1)
     c1, dx1, dy1 = _edge_setup(xf, yf, 1, 2)
     c2, dx2, dy2 = _edge_setup(xf, yf, 2, 0)
-    px0 = max((min(xf[0], xf[1], xf[2]) >> FIXED_ORDER) - 1, 0)
-    px1 = min((max(xf[0], xf[1], xf[2]) >> FIXED_ORDER) + 1, width - 1)
-    py0 = max((min(yf[0], yf[1], yf[2]) >> FIXED_ORDER) - 1, 0)
-    py1 = min((max(yf[0], yf[1], yf[2]) >> FIXED_ORDER) + 1, height - 1)
+    # zbuf holds the pixels [org[0], org[0] + rows) x [org[1], org[1] + cols) of the framebuffer
+    px0 = max((min(xf[0], xf[1], xf[2]) >> FIXED_ORDER) - 1, 0, org[1])
+    px1 = min((max(xf[0], xf[1], xf[2]) >> FIXED_ORDER) + 1, width - 1, org[1] + zbuf.shape[1] - 1)
+    py0 = max((min(yf[0], yf[1], yf[2]) >> FIXED_ORDER) - 1, 0, org[0])
+    py1 = min((max(yf[0], yf[1], yf[2]) >> FIXED_ORDER) + 1, height - 1, org[0] + zbuf.shape[0] - 1)
     if px0 > px1 or py0 > py1:
         return
     # Depth plane as llvmpipe's setup (lp_state_setup.c, init_args + calc_coef4) computes it, in
@@ -208,8 +209,8 @@ def _raster_triangle(
             else:
                 z64 = z64_0 + z64_dx * (px - x64_0) + z64_dy * (py - y64_0)
                 q = np.int64(np.rint(min(max(z64, 0.0), 1.0) * qmax)) if np.isfinite(z64) else qmax
-            if q < zbuf[py, px]:
-                zbuf[py, px] = q
+            if q < zbuf[py - org[0], px - org[1]]:
+                zbuf[py - org[0], px - org[1]] = q
                 box[0] = min(box[0], py)
                 box[1] = max(box[1], py)
                 box[2] = min(box[2], px)
@@ -285,7 +286,7 @@ def _interp(t: np.float32, cout: NDArray[np.float32], cin: NDArray[np.float32],
 @njit(cache=True, error_model="numpy")
 def _clip_triangle(
     clip3: NDArray[np.float32], win3: NDArray[np.float32], clipmask: int, guard: np.float32,
-    width: int, height: int, zbuf: NDArray[np.int64], qmax: int, box: NDArray[np.int64],
+    width: int, height: int, zbuf: NDArray[np.int64], org: NDArray[np.int64], qmax: int, box: NDArray[np.int64],
 ) -> None:
     """draw_pipe_clip's do_clip_tri: Sutherland-Hodgman over the planes in ``clipmask``, drawn as a fan."""
     cap = 3 + 2 * 6 + 1
@@ -346,13 +347,13 @@ def _clip_triangle(
     for i in range(2, n):  # emit_poly, provoking vertex last: (i-1, i, 0)
         for k, vi in enumerate((inl[i - 1], inl[i], inl[0])):
             xs[k], ys[k], zs[k] = n_win[vi, 0], n_win[vi, 1], n_win[vi, 2]
-        _raster_triangle(xs, ys, zs, zbuf, width, height, qmax, box)
+        _raster_triangle(xs, ys, zs, zbuf, org, width, height, qmax, box)
 
 
 @njit(cache=True, error_model="numpy")
 def _raster_mesh(
     verts: NDArray[np.float32], faces: NDArray[np.int64], mvp: NDArray[np.float32], guard: np.float32,
-    width: int, height: int, zbuf: NDArray[np.int64], qmax: int, box: NDArray[np.int64],
+    width: int, height: int, zbuf: NDArray[np.int64], org: NDArray[np.int64], qmax: int, box: NDArray[np.int64],
 ) -> None:
     """Every face, in index order, into ``zbuf``: vertex shader, clip test, clipping, setup, rasterisation."""
     nv = verts.shape[0]
@@ -382,7 +383,7 @@ def _raster_mesh(
         if m_or == 0:
             for k, vi in enumerate((a, b, c)):
                 xs[k], ys[k], zs[k] = win[vi, 0], win[vi, 1], win[vi, 2]
-            _raster_triangle(xs, ys, zs, zbuf, width, height, qmax, box)
+            _raster_triangle(xs, ys, zs, zbuf, org, width, height, qmax, box)
             continue
         if (mask[a] & mask[b] & mask[c]) != 0 or (m_or & 64) != 0:
             continue  # all outside one plane, or not finite
@@ -393,7 +394,27 @@ def _raster_mesh(
                 win3[k] = win[vi]
             else:
                 win3[k, 0], win3[k, 1], win3[k, 2] = _window(clip[vi], width, height)
-        _clip_triangle(clip3, win3, m_or, guard, width, height, zbuf, qmax, box)
+        _clip_triangle(clip3, win3, m_or, guard, width, height, zbuf, org, qmax, box)
+
+
+def _window_box(
+    v32: NDArray[np.float32], R: NDArray[np.float64], t: NDArray[np.float64], K: NDArray[np.float64], w: int, h: int,
+) -> tuple[NDArray[np.int64], int, int]:
+    """A framebuffer window (origin row, col; rows; cols) that holds every pixel the mesh can cover:
+    its projected vertices' box and 2 px, or the whole image when a vertex is not in front."""
+    cam = v32.astype(np.float64) @ np.asarray(R, dtype=np.float64).T + np.asarray(t, dtype=np.float64).reshape(3)
+    z = cam[:, 2]
+    if not (np.all(np.isfinite(cam)) and np.all(z > _MIN_NEAR_MM)):
+        return np.zeros(2, dtype=np.int64), h, w
+    u = K[0, 0] * cam[:, 0] / z + K[0, 1] * cam[:, 1] / z + K[0, 2]
+    v = K[1, 1] * cam[:, 1] / z + K[1, 2]
+    c0 = int(np.clip(np.floor(u.min()) - 2, 0, w))
+    c1 = int(np.clip(np.ceil(u.max()) + 3, 0, w))
+    r0 = int(np.clip(np.floor(h - 1 - v.max()) - 2, 0, h))  # framebuffer rows run bottom-up
+    r1 = int(np.clip(np.ceil(h - 1 - v.min()) + 3, 0, h))
+    if c1 <= c0 or r1 <= r0:
+        return np.zeros(2, dtype=np.int64), 1, 1
+    return np.array([r0, c0], dtype=np.int64), r1 - r0, c1 - c0
 
 
 def gl_depth(
@@ -409,14 +430,16 @@ def gl_depth(
     mvp, near, far, parity = gl_matrices(R, t, K, w, h, corners)
     qmax = _DEPTH_MAX if parity else _Q_FINE
     v32 = np.asarray(vertices, dtype=np.float32)
-    zbuf = np.full((h, w), qmax, dtype=np.int64)
+    org, rows, cols = _window_box(v32, R, t, K, w, h)
+    zbuf = np.full((rows, cols), qmax, dtype=np.int64)
     box = np.array([h, -1, w, -1], dtype=np.int64)  # rows, columns drawn: min, max
-    _raster_mesh(v32, np.ascontiguousarray(faces, dtype=np.int64), mvp, np.float32(GUARD_BAND), w, h, zbuf, qmax, box)
+    _raster_mesh(v32, np.ascontiguousarray(faces, dtype=np.int64), mvp, np.float32(GUARD_BAND), w, h, zbuf, org,
+                 qmax, box)
     out = np.zeros((h, w), dtype=np.float64)
     if box[1] < 0:
         return out
     r0, r1, c0, c1 = int(box[0]), int(box[1]) + 1, int(box[2]), int(box[3]) + 1
-    q = zbuf[r0:r1, c0:c1]
+    q = zbuf[r0 - org[0]:r1 - org[0], c0 - org[1]:c1 - org[1]]
     drawn = q < qmax
     if parity:  # read back (GL_FLOAT from a 16-bit unorm) and bop_toolkit's conversion, in float32 as there
         zwin = q.astype(np.float32) * np.float32(1.0 / _DEPTH_MAX)
@@ -438,5 +461,6 @@ def triangle_coverage(xy: NDArray[np.floating], width: int, height: int) -> NDAr
     zbuf = np.full((int(height), int(width)), _DEPTH_MAX, dtype=np.int64)
     box = np.array([height, -1, width, -1], dtype=np.int64)
     _raster_triangle(np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1]),
-                     np.full(3, 0.5, dtype=np.float32), zbuf, int(width), int(height), _DEPTH_MAX, box)
+                     np.full(3, 0.5, dtype=np.float32), zbuf, np.zeros(2, dtype=np.int64), int(width), int(height),
+                     _DEPTH_MAX, box)
     return zbuf < _DEPTH_MAX
