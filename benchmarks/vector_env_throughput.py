@@ -51,9 +51,10 @@ class OneByOneScene(SceneServer):
     """The same scene, but a batch of views is rendered one ``render`` call at a time (the baseline)."""
 
     def observe_batch(self, poses: Sequence[np.ndarray], camera: Any, target_gt_ids: Sequence[int | None],
-                      targets_only: bool = False) -> list[RenderedView]:
-        """Each view as a single env's move gives it (every object's truth, whatever ``targets_only``)."""
-        return [self.observe(T, camera, gt_id) for T, gt_id in zip(poses, target_gt_ids)]
+                      targets_only: bool = False, stride: int = 1, out: Any = None) -> list[RenderedView]:
+        """Each view as a single env's move gives it (every object's truth, whatever ``targets_only``; its own
+        images, whatever ``out``: the vector env copies them into its batch)."""
+        return [self.observe(T, camera, gt_id, stride) for T, gt_id in zip(poses, target_gt_ids)]
 
 
 def median_seconds(runs: dict[str, Callable[[], Any]], repeats: int, sync: Callable[[], None]) -> dict[str, float]:

@@ -193,9 +193,12 @@ def test_action_lines_are_the_models_bytes(event, step, accepted, collided, refu
     line = format_action(**fields)
     assert line == format_action(**fields)  # the second time from the matrices' cache
     assert line == format_record(ActionRecord(**fields))
-    from brave6d.serve.episode_log import _RECORD
+    from pydantic import TypeAdapter
 
-    assert _RECORD.validate_json(line).model_dump(mode="json") == ActionRecord(**fields).model_dump(mode="json")
+    from brave6d.serve.episode_log import LogRecord
+
+    assert TypeAdapter(LogRecord).validate_json(line).model_dump(mode="json") == ActionRecord(**fields).model_dump(
+        mode="json")
 
 
 @pytest.mark.parametrize("bad", [
@@ -251,3 +254,22 @@ def test_a_view_without_truth_keeps_every_other_field(scene: SceneServer) -> Non
     assert bare.objects == () and view.objects
     for f in dataclasses.fields(view):
         assert getattr(bare, f.name) is getattr(replaced, f.name), f.name
+
+
+def test_render_batch_writes_into_the_arrays_given(scene: SceneServer) -> None:
+    """SplatRenderer.render_batch(out=...): the views' images are written into the arrays given (their
+    RenderOutputs hold them), equal to a render without them; a None entry keeps the renderer's own."""
+    cam = scene.camera_for(64, 48)
+    rng = np.random.default_rng(3)
+    poses = [scene.random_start(scene.bundle.objects[k % 2], rng) for k in range(3)]
+    rgb, depth = np.zeros((3, 48, 64, 3), np.uint8), np.zeros((3, 48, 64), np.float32)
+    out = [(rgb[0], depth[0]), None, (rgb[2], depth[2])]
+    given = scene.renderer.render_batch(poses, cam, out=out)
+    plain = scene.renderer.render_batch(poses, cam)
+    for k in range(3):
+        np.testing.assert_array_equal(given[k].rgb, plain[k].rgb)
+        np.testing.assert_array_equal(given[k].depth, plain[k].depth)
+    assert given[0].rgb is rgb[0] or np.shares_memory(given[0].rgb, rgb)
+    np.testing.assert_array_equal(rgb[2], plain[2].rgb)
+    np.testing.assert_array_equal(depth[0], plain[0].depth)
+    assert not rgb[1].any() and not np.shares_memory(given[1].rgb, rgb)
