@@ -203,7 +203,7 @@ def _raster_triangle(
             if c2 - dx2 * X + dy2 * Y <= 0:
                 continue
             if qmax == _DEPTH_MAX:
-                # fragment z: fmuladd(dady, y, fmuladd(dadx, x, a0)), fused (exact through float64)
+                # fragment z: fmuladd(dady, y, fmuladd(dadx, x, a0)), fused (see _window on float64)
                 z = np.float32(np.float64(np.float32(np.float64(dzdx) * px + np.float64(a0))) + np.float64(dzdy) * py)
                 q = _unorm16(z)
             else:
@@ -220,8 +220,9 @@ def _raster_triangle(
 @njit(cache=True, error_model="numpy")
 def _window(clip: NDArray[np.float32], width: int, height: int) -> tuple[np.float32, np.float32, np.float32]:
     """Perspective divide and viewport transform in float32 as draw_llvm's generate_viewport:
-    ``x * (1 / w)``, then ``fmuladd(x, scale, translate)``, fused on a CPU with FMA (an exact
-    float32 product and sum, rounded once: through float64 here)."""
+    ``x * (1 / w)``, then ``fmuladd(x, scale, translate)``, fused on a CPU with FMA (one rounding).
+    Here through float64: the float32 product is exact there, the sum rounds to float64 and then to
+    float32, which differs from one rounding only when the first rounding makes a float32 tie."""
     inv_w = np.float32(1.0) / clip[3]
     half_w = np.float64(np.float32(width * 0.5))
     half_h = np.float64(np.float32(height * 0.5))
