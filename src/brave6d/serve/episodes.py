@@ -54,7 +54,7 @@ from numpy.typing import NDArray
 
 from brave6d.core.camera import PinholeCamera
 from brave6d.core.errors import BraveError, NonRigidTransformError
-from brave6d.core.transforms import invert, look_at, nearest_rotation
+from brave6d.core.transforms import look_at, nearest_rotation
 from brave6d.serve.bundle import Bundle, BundleObject, load_model_m
 from brave6d.serve.episode_log import EpisodeLog, FinalView, LoggedEstimate, SubmitRecord
 from brave6d.serve.geometry import CollisionWorld, Refusal
@@ -132,11 +132,56 @@ class Ticket:
 
 
 # ----------------------------------------------------------------------------- views
-def object_state(obj: BundleObject, cam_T_obj: Matrix4, visibility: Visibility | None, is_target: bool) -> ObjectState:
-    """The wire/log record of one object in one view (visibility fields None when not computed)."""
+def object_state(obj: BundleObject, cam_T_obj: Matrix4, visibility: Visibility | None, is_target: bool,
+                 finite: bool | None = None) -> ObjectState:
+    """The wire/log record of one object in one view (visibility fields None when not computed).
+
+    When every value already is what the model's validation makes of it (exact ``int``/``str``/``bool``
+    ids and flag, a float64 4x4 array, finite, ``finite``: already checked by the caller; counts that are
+    ``int``, a finite ``float`` fraction, boxes of four ``int``), the model is built without running the
+    validation (the same fields, fields set and dump: tested); anything else is validated. Why: a
+    training step records every object of every agent's view."""
+    if (type(obj.gt_id) is int and type(obj.obj_id) is int and type(obj.name) is str and type(is_target) is bool
+            and type(cam_T_obj) is np.ndarray and cam_T_obj.dtype == np.float64 and cam_T_obj.shape == (4, 4)
+            and (finite if finite is not None else bool(np.isfinite(cam_T_obj).all()))):
+        values = {"gt_id": obj.gt_id, "obj_id": obj.obj_id, "name": obj.name, "is_target": is_target,
+                  "cam_T_obj": cam_T_obj}
+        if visibility is None:
+            return _unvalidated_object_state({**values, **_NO_VISIBILITY}, _BASE_FIELDS)
+        v = visibility
+        if (type(v.px_count_all) is int and type(v.px_count_visib) is int and type(v.visib_fract) is float
+                and math.isfinite(v.visib_fract) and _int_box(v.bbox_obj) and _int_box(v.bbox_visib)):
+            values.update(px_count_all=v.px_count_all, px_count_visib=v.px_count_visib, visib_fract=v.visib_fract,
+                          bbox_obj=list(v.bbox_obj) if v.bbox_obj else None,
+                          bbox_visib=list(v.bbox_visib) if v.bbox_visib else None)
+            return _unvalidated_object_state(values, _ALL_FIELDS)
     vis = visibility.to_json() if visibility is not None else {}
     return ObjectState(gt_id=obj.gt_id, obj_id=obj.obj_id, name=obj.name, is_target=is_target,
                        cam_T_obj=cam_T_obj, **vis)
+
+
+_NO_VISIBILITY = {"px_count_all": None, "px_count_visib": None, "visib_fract": None, "bbox_obj": None,
+                  "bbox_visib": None}
+_BASE_FIELDS = frozenset(("gt_id", "obj_id", "name", "is_target", "cam_T_obj"))
+_ALL_FIELDS = frozenset(ObjectState.model_fields)
+_set_attribute = object.__setattr__
+
+
+def _int_box(box: Any) -> bool:
+    """True for None or an empty box (both recorded as None) or a tuple of four ``int``."""
+    return not box or (type(box) is tuple and len(box) == 4 and type(box[0]) is int and type(box[1]) is int
+                       and type(box[2]) is int and type(box[3]) is int)
+
+
+def _unvalidated_object_state(values: dict[str, Any], fields_set: frozenset[str]) -> ObjectState:
+    """``ObjectState.model_construct(**values)`` without its per-field default and alias lookups:
+    ``values`` holds every field, in the model's order, already valid (:func:`object_state` checks)."""
+    state = ObjectState.__new__(ObjectState)
+    _set_attribute(state, "__dict__", values)
+    _set_attribute(state, "__pydantic_fields_set__", set(fields_set))
+    _set_attribute(state, "__pydantic_extra__", None)
+    _set_attribute(state, "__pydantic_private__", None)
+    return state
 
 
 @dataclass(frozen=True)
@@ -169,6 +214,11 @@ class RenderedView:
         return self.depth if self.reference is None else self.reference.depth(self.world_T_cam, self.camera)
 
     def target(self) -> ObjectState | None:
+        return self._target
+
+    @cached_property
+    def _target(self) -> ObjectState | None:
+        """The target's record, found once (each step asks for it three times: reward, log, shown view)."""
         return next((o for o in self.objects if o.is_target), None)
 
     def without_truth(self) -> RenderedView:
@@ -275,8 +325,11 @@ class SceneServer:
         wanted = sorted({index[g] for g in target_gt_ids if g in index}) if targets_only else None
         vis = self._visibilities(poses, camera, outs, wanted, stride)
         vis_s = (time.perf_counter() - t1) / max(len(poses), 1)  # each view's share of the batch
-        return [self._view(out, T, camera, gt_id, render_s, (v, vis_s), wanted, stride)
-                for out, T, gt_id, v in zip(outs, poses, target_gt_ids, vis)]
+        if wanted is not None:  # only the target's truth: its visibility among the instances computed
+            vis = [self._target_only(v, wanted, gt_id) for v, gt_id in zip(vis, target_gt_ids)]
+        objects = self._objects_many(poses, vis, target_gt_ids, wanted is None)
+        return [self._view(out, T, camera, gt_id, render_s, (v, vis_s), wanted, stride, objs)
+                for out, T, gt_id, v, objs in zip(outs, poses, target_gt_ids, vis, objects)]
 
     def complete(self, view: RenderedView) -> RenderedView:
         """``view`` with every object's exact truth (:meth:`observe`'s at stride 1, bit for bit: the
@@ -315,10 +368,12 @@ class SceneServer:
 
     def _view(self, out: RenderOutput, world_T_cam: Matrix4, camera: PinholeCamera, target_gt_id: int | None,
               render_s: float, computed: tuple[list[Visibility | None], float] | None = None,
-              instances: list[int] | None = None, stride: int = 1) -> RenderedView:
+              instances: list[int] | None = None, stride: int = 1,
+              objects: tuple[ObjectState, ...] | None = None) -> RenderedView:
         """One rendered view plus its visible fractions and objects' poses (``render_s``: the render's
-        wall time; ``computed``: the visible fractions and their seconds, when computed for a batch,
-        of the ``instances`` given: then the view holds its target's truth only, ``complete`` False)."""
+        wall time; ``computed``: the visible fractions, one per object, and their seconds, when computed
+        for a batch of the ``instances`` given: then the view holds its target's truth only, ``complete``
+        False; ``objects``: the view's records when made for the batch, :meth:`_objects_many`)."""
         t1 = time.perf_counter()
         vis: list[Visibility | None] = [None] * len(self.bundle.objects)
         if computed is not None:
@@ -327,22 +382,42 @@ class SceneServer:
             occluders = partial(self.reference.depth_along, world_T_cam) if self.reference is not None else None
             vis = list(self.visibility.compute(world_T_cam, camera, out.depth, occluders, stride))
         complete = instances is None
-        if not complete:  # only the target's truth: its visibility among the instances computed
-            by_index = dict(zip(instances, vis))
-            vis = [by_index.get(n) if o.gt_id == target_gt_id else None for n, o in enumerate(self.bundle.objects)]
         t2 = time.perf_counter()
-        objects = self._objects(world_T_cam, vis, target_gt_id, complete)
+        if objects is None:
+            objects = self._objects(world_T_cam, vis, target_gt_id, complete)
         timings = {"render": out.render_ms, "render_queue": out.queue_ms, "visibility": (t2 - t1) * 1000.0,
                    "observe": render_s * 1000.0 + (t2 - t1) * 1000.0}
         return RenderedView(out.rgb, out.depth, camera, np.array(world_T_cam, dtype=np.float64), objects, timings,
                             self.reference, self.geometry, complete, stride)
 
+    def _target_only(self, vis: list[Visibility | None], instances: list[int], target_gt_id: int | None
+                     ) -> list[Visibility | None]:
+        """One visibility per object from those of ``instances``: the target's, None for the others."""
+        by_index = dict(zip(instances, vis))
+        return [by_index.get(n) if o.gt_id == target_gt_id else None for n, o in enumerate(self.bundle.objects)]
+
     def _objects(self, world_T_cam: Matrix4, vis: list[Visibility | None], target_gt_id: int | None,
                  every: bool = True) -> tuple[ObjectState, ...]:
         """The objects' truth records at ``world_T_cam`` (``every`` False: the target's alone)."""
-        cam_T_world = invert(world_T_cam)
-        return tuple(object_state(o, cam_T_world @ o.world_T_obj, v, o.gt_id == target_gt_id)
-                     for o, v in zip(self.bundle.objects, vis) if every or o.gt_id == target_gt_id)
+        return self._objects_many([world_T_cam], [vis], [target_gt_id], every)[0]
+
+    def _objects_many(self, poses: Sequence[Matrix4], vis: Sequence[list[Visibility | None]],
+                      target_gt_ids: Sequence[int | None], every: bool = True) -> list[tuple[ObjectState, ...]]:
+        """:meth:`_objects` of many views: the views' ``cam_T_world`` (:func:`invert_stack`) and each object's
+        ``cam_T_obj`` in one matrix product of the stack each (each 4x4 product computed as one view's, bit
+        for bit: tested), their finiteness checked once."""
+        objects = self.bundle.objects
+        if not len(poses):
+            return []
+        cam_T_world = invert_stack(np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4))
+        cam_T_objs = [cam_T_world @ o.world_T_obj for o in objects]
+        finite = (np.isfinite(np.stack(cam_T_objs)).all(axis=(2, 3)).tolist() if objects
+                  else [[] for _ in poses])
+        out = []
+        for c, (views_vis, target) in enumerate(zip(vis, target_gt_ids)):
+            out.append(tuple(object_state(o, cam_T_objs[n][c], v, o.gt_id == target, finite[n][c])
+                             for n, (o, v) in enumerate(zip(objects, views_vis)) if every or o.gt_id == target))
+        return out
 
     def random_start(self, target: BundleObject, rng: np.random.Generator, tries: int = 500) -> Matrix4:
         """A free pose on a spherical cap around the target, looking at its model centre."""
@@ -505,6 +580,18 @@ def submission_record(ep: Episode, estimates: list[LoggedEstimate], bundle: Bund
                              depth_sha256=depth_sha256 if depth_file is not None else None),
         objects=list(obs.objects), adjustments=ep.adjustments, steps=ep.steps, refusals=ep.refusals,
         collisions=ep.collisions, elapsed_s=time.monotonic() - ep.created)
+
+
+def invert_stack(poses: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(C, 4, 4) :func:`brave6d.core.transforms.invert` of each rigid pose of ``poses`` (C, 4, 4), bit for bit:
+    the same ``(-R^T) @ t`` product (NumPy's matrix product of a stack computes each as one product does;
+    tested), in two array operations instead of one call per pose."""
+    out = np.zeros_like(poses)
+    rt = np.swapaxes(poses[:, :3, :3], 1, 2)
+    out[:, :3, :3] = rt
+    out[:, :3, 3] = np.matmul(-rt, poses[:, :3, 3:4])[:, :, 0]
+    out[:, 3, 3] = 1.0
+    return out
 
 
 def target_ref(obj: BundleObject) -> TargetRef:
