@@ -234,9 +234,19 @@ class SilhouetteCaster:
         poses = np.asarray(world_T_cams, dtype=np.float64).reshape(-1, 4, 4)
         cam_T_world = _invert_many(poses)
         ray_x, ray_y, lo_u, lo_v = self._canvas_rays(camera)
-        for n in range(len(self.instances)) if instances is None else instances:
+        chosen = list(range(len(self.instances))) if instances is None else [int(n) for n in instances]
+        if not chosen:
+            return
+        # every instance's rows at once (each camera's rows depend on its own box alone): instance k's are
+        # those of the "cameras" k * C .. (k + 1) * C - 1
+        c_count = len(poses)
+        corners = [self._box_points(self.instances[n][0], cam_T_world @ self.instances[n][1]) for n in chosen]
+        rows = self._hull_rows(np.concatenate(corners), camera)
+        bounds = np.searchsorted(rows[0], np.arange(len(chosen) + 1) * c_count).tolist()
+        for k, n in enumerate(chosen):
             (key, world_T_model), model_T_world = self.instances[n], self._model_T_world[n]
-            cams, v, u0, u1 = self._roi_rows(key, cam_T_world @ world_T_model, camera)
+            lo, hi = bounds[k], bounds[k + 1]
+            cams, v, u0, u1 = rows[0][lo:hi] - k * c_count, rows[1][lo:hi], rows[2][lo:hi], rows[3][lo:hi]
             sizes = u1 - u0 + 1
             starts = np.cumsum(sizes) - sizes
             owner = np.repeat(cams, sizes)
@@ -312,10 +322,19 @@ class SilhouetteCaster:
         the pixels within one pixel of the convex hull of the bounding box's projected corners (a
         box wholly in front of the camera projects onto that hull, and the model lies in its box);
         a box partly behind the camera keeps the whole canvas, as in :meth:`_roi`."""
+        return self._hull_rows(self._box_points(key, cam_T_models), camera)
+
+    def _box_points(self, key: int, cam_T_models: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(cameras, 8, 3) the bounding box corners of model ``key`` in each camera's frame."""
+        return np.einsum("cij,kj->cki", cam_T_models[:, :3, :3], self._corners[key]) + cam_T_models[:, None, :3, 3]
+
+    @staticmethod
+    def _hull_rows(pts: NDArray[np.float64], camera: PinholeCamera
+                   ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        """:meth:`_roi_rows` of the box corners ``pts`` (cameras, 8, 3) in the camera frames."""
         w, h = camera.width, camera.height
         pad = (CANVAS_FACTOR - 1) // 2
         lo_u, hi_u, lo_v, hi_v = -pad * w, (pad + 1) * w - 1, -pad * h, (pad + 1) * h - 1
-        pts = np.einsum("cij,kj->cki", cam_T_models[:, :3, :3], self._corners[key]) + cam_T_models[:, None, :3, 3]
         z = pts[..., 2]
         whole = np.all(z > _NEAR, axis=1)  # the box wholly in front: its projection is the corners' hull
         seen = np.any(z > _NEAR, axis=1)

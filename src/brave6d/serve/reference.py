@@ -287,46 +287,54 @@ class ReferenceGeometry:
 
     def depth(self, world_T_cam: NDArray[np.float64], camera: PinholeCamera) -> NDArray[np.float32]:
         """(H, W) z-depth in metres of the first surface at each pixel centre; 0 = no surface."""
-        return self.depth_along(world_T_cam, self._camera_rays(camera)).reshape(camera.height, camera.width)
+        return self._cast(self._world_rays(world_T_cam, self._camera_rays(camera))).reshape(camera.height, camera.width)
 
     def depth_along(self, world_T_cam: NDArray[np.float64], rays_cam: NDArray[np.float32]) -> NDArray[np.float32]:
         """(N,) z-depth in metres of the first surface along camera-frame rays ``(x, y, 1)`` (N, 3)
-        from the camera at ``world_T_cam``; 0 = no surface. Never NaN/inf."""
-        return self._cast(self._world_rays(world_T_cam, rays_cam))
+        from the camera at ``world_T_cam``; 0 = no surface. Never NaN/inf. :meth:`depth_along_many` of
+        this one set (the visible fractions' occluders, one view or many alike)."""
+        return self.depth_along_many([world_T_cam], [rays_cam])
 
     def depth_along_many(self, world_T_cams: Sequence[NDArray[np.float64]], rays_cam: Sequence[NDArray[np.float32]],
                          needed: NDArray[np.bool_] | None = None) -> NDArray[np.float32]:
-        """:meth:`depth_along` of many cameras' rays in one cast (many agents), concatenated: the part of
-        ray set ``k`` equals ``depth_along(world_T_cams[k], rays_cam[k])`` bit for bit. ``needed`` (one
-        flag per ray, concatenated): only those rays are cast, the others get 0 (no surface)."""
-        if not len(rays_cam):
-            return np.zeros(0, dtype=np.float32)
+        """:meth:`depth_along` of many cameras' rays in one cast (many agents), concatenated: ray set ``k``
+        from the camera at ``world_T_cams[k]``. Each ray's world direction is the float32 sum
+        ``x R[:, 0] + y R[:, 1] + z R[:, 2]`` (products and sums rounded one by one, the rotation and
+        origin rounded to float32), computed for all rays at once from per-ray copies of their camera's
+        entries: a ray's depth does not depend on the other rays cast with it (:meth:`depth`, the test
+        depth, keeps its matrix product). ``needed`` (one flag per ray, concatenated): only those rays
+        are cast, the others get 0 (no surface)."""
         sets = [np.asarray(d, dtype=np.float32).reshape(-1, 3) for d in rays_cam]
-        rays = np.empty((sum(len(d) for d in sets), 6), dtype=np.float32)
-        end = 0
-        for T, d in zip(world_T_cams, sets):  # _world_rays of each set, into one array (empty sets skipped)
-            start, end = end, end + len(d)
-            if end > start:
-                self._fill_world_rays(rays[start:end], T, d)
+        if not sets:
+            return np.zeros(0, dtype=np.float32)
+        d = np.concatenate(sets)
+        owner = np.repeat(np.arange(len(sets)), [len(s) for s in sets])
+        if needed is not None:
+            d, owner = d[needed], owner[needed]
+        poses = np.asarray([np.asarray(T, dtype=np.float64) for T in world_T_cams]).reshape(-1, 4, 4)
+        origins = poses[:, :3, 3].astype(np.float32).T.copy()  # (3, cameras)
+        rotations = poses[:, :3, :3].astype(np.float32).reshape(-1, 9).T.copy()  # (9, cameras), row by row
+        rays = np.empty((len(d), 6), dtype=np.float32)
+        for k in range(3):
+            rays[:, k] = origins[k].take(owner)
+            rays[:, 3 + k] = (d[:, 0] * rotations[3 * k].take(owner) + d[:, 1] * rotations[3 * k + 1].take(owner)
+                              + d[:, 2] * rotations[3 * k + 2].take(owner))
         if needed is None:
             return self._cast(rays)
-        out = np.zeros(len(rays), dtype=np.float32)
-        out[needed] = self._cast(rays[needed])
+        out = np.zeros(len(needed), dtype=np.float32)
+        if len(rays):
+            out[needed] = self._cast(rays)
         return out
 
     @staticmethod
     def _world_rays(world_T_cam: NDArray[np.float64], rays_cam: NDArray[np.float32]) -> NDArray[np.float32]:
+        """(N, 6) the world-frame rays from the camera at ``world_T_cam`` along camera-frame ``rays_cam`` (N, 3)."""
         d = np.asarray(rays_cam, dtype=np.float32).reshape(-1, 3)
-        rays = np.empty((len(d), 6), dtype=np.float32)
-        ReferenceGeometry._fill_world_rays(rays, world_T_cam, d)
-        return rays
-
-    @staticmethod
-    def _fill_world_rays(rays: NDArray[np.float32], world_T_cam: NDArray[np.float64], d: NDArray[np.float32]) -> None:
-        """``rays`` (N, 6): the world-frame rays from the camera at ``world_T_cam`` along camera-frame ``d`` (N, 3)."""
         T = np.asarray(world_T_cam, dtype=np.float64)
+        rays = np.empty((len(d), 6), dtype=np.float32)
         rays[:, :3] = T[:3, 3]
         rays[:, 3:] = d @ T[:3, :3].T.astype(np.float32)  # z = 1 in the camera: t is the z-depth
+        return rays
 
     def _cast(self, rays: NDArray[np.float32]) -> NDArray[np.float32]:
         with self._lock:

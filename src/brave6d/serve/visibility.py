@@ -98,14 +98,6 @@ def _block_box(box: tuple[int, int, int, int] | None, s: int) -> tuple[int, int,
     return (x * s, y * s, w * s + s - 1, h * s + s - 1)
 
 
-def _scaled(v: Visibility, s: int) -> Visibility:
-    """A lattice visibility at full resolution: counts times ``s**2``, the fraction kept, boxes of blocks."""
-    if v.px_count_all == 0:
-        return _NOT_SEEN
-    return Visibility(v.px_count_all * s * s, v.px_count_visib * s * s, v.visib_fract,
-                      _block_box(v.bbox_obj, s), _block_box(v.bbox_visib, s))
-
-
 class VisibilityComputer:
     """Per-view visibility of object instances (see the module docstring); thread-safe.
 
@@ -172,13 +164,13 @@ class VisibilityComputer:
         if s == 1:
             return self._exact_many(poses, camera, splat_depths, occluder_depths, instances)
         o = s // 2
-        coarse = self._exact_many(poses, lattice_camera(camera, s),
-                                  None if splat_depths is None else [d[o::s, o::s] for d in splat_depths],
-                                  occluder_depths, instances)
+        out = self._exact_many(poses, lattice_camera(camera, s),
+                               None if splat_depths is None else [d[o::s, o::s] for d in splat_depths],
+                               occluder_depths, instances, s)  # at full resolution
         wanted = list(range(self._instances)) if instances is None else [int(n) for n in instances]
-        out = [[_scaled(v, s) for v in views] for views in coarse]
+        small_below = EXACT_BELOW_SAMPLES * s * s  # scaled counts: fewer samples than EXACT_BELOW_SAMPLES
         for j, n in enumerate(wanted):  # small silhouettes: exact, in the views where they are small
-            small = [c for c in range(len(poses)) if coarse[c][j].px_count_all < EXACT_BELOW_SAMPLES]
+            small = [c for c in range(len(poses)) if out[c][j].px_count_all < small_below]
             if small:
                 exact = self._exact_many(poses[small], camera,
                                          None if splat_depths is None else [splat_depths[c] for c in small],
@@ -189,8 +181,10 @@ class VisibilityComputer:
 
     def _exact_many(self, poses: NDArray[np.float64], camera: PinholeCamera,
                     splat_depths: Sequence[NDArray[np.float32]] | None, occluder_depths: ManyOccluders | None,
-                    instances: Sequence[int] | None) -> list[list[Visibility]]:
-        """:meth:`compute_many` at every pixel of ``camera`` (stride 1)."""
+                    instances: Sequence[int] | None, scale: int = 1) -> list[list[Visibility]]:
+        """:meth:`compute_many` at every pixel of ``camera`` (stride 1); ``scale`` > 1: ``camera`` is the
+        lattice of that stride and each result is at full resolution, built once: counts times ``scale**2``,
+        the fraction the lattice's, boxes of the samples' blocks (:func:`_block_box`)."""
         n_views = len(poses)
         wanted = list(range(self._instances)) if instances is None else [int(n) for n in instances]
         if not wanted:
@@ -205,13 +199,21 @@ class VisibilityComputer:
         owner_of = np.concatenate([np.full(len(seen.owner), n) for n, (_, seen, _) in zip(wanted, per_instance)])
         first_is_own = first == owner_of  # where another instance is in front, no occluder can matter
         occluders: list[NDArray[np.float32] | None] = [None] * len(per_instance)
-        if occluder_depths is not None:  # one call: per instance and view, the rays of compute's
-            segments, segment_poses = [], []
-            for _, seen, bounds in per_instance:
-                rays = seen.rays
-                segments += [rays[bounds[c]:bounds[c + 1]] for c in range(n_views)]
-                segment_poses += list(poses)
-            depths = occluder_depths(segment_poses, segments, first_is_own)
+        if occluder_depths is not None:  # one call, one ray set per view: its instances' rays (compute's), in order
+            owners = np.concatenate([seen.owner for _, seen, _ in per_instance])
+            rays = np.empty((len(owners), 3), dtype=np.float32)
+            rays[:, 0], rays[:, 1], rays[:, 2] = np.concatenate([seen.ray_x for _, seen, _ in per_instance]), \
+                np.concatenate([seen.ray_y for _, seen, _ in per_instance]), 1.0
+            order = np.argsort(owners, kind="stable") if len(per_instance) > 1 else None  # view by view
+            needed = first_is_own if order is None else first_is_own[order]
+            if order is not None:
+                rays, owners = rays[order], owners[order]
+            at = np.searchsorted(owners, np.arange(n_views + 1)).tolist()
+            by_view = occluder_depths(list(poses), [rays[at[c]:at[c + 1]] for c in range(n_views)], needed)
+            depths = by_view
+            if order is not None:  # back to instance by instance
+                depths = np.empty_like(by_view)
+                depths[order] = by_view
             offset = 0
             for n, (_, seen, _) in enumerate(per_instance):
                 occluders[n] = depths[offset:offset + len(seen.owner)]
@@ -233,12 +235,13 @@ class VisibilityComputer:
                 vis &= ~((sd > 0) & (sd < seen.depth - self.tol))
             all_counts = sil.px_count_all
             vis_counts = np.bincount(seen.owner[vis], minlength=n_views)
-            box_all = _bboxes(sil.owner, sil.xs, sil.ys, n_views)
-            box_vis = _bboxes(seen.owner[vis], seen.xs[vis], seen.ys[vis], n_views)
-            for c in range(n_views):
-                px_all, px_vis = int(all_counts[c]), int(vis_counts[c])
+            box_all = _bboxes(sil.owner, sil.xs, sil.ys, n_views, scale)
+            box_vis = _bboxes(seen.owner[vis], seen.xs[vis], seen.ys[vis], n_views, scale)
+            area = scale * scale
+            for c, (px_all, px_vis) in enumerate(zip(all_counts.tolist(), vis_counts.tolist())):
                 out[c].append(_NOT_SEEN if px_all == 0 else
-                              Visibility(px_all, px_vis, px_vis / px_all, box_all[c] if px_vis else None, box_vis[c]))
+                              Visibility(px_all * area, px_vis * area, px_vis / px_all, box_all[c] if px_vis else None,
+                                         box_vis[c]))
         return out
 
 
@@ -263,9 +266,10 @@ def _one_view_occluders(occluder_depth: Callable[[NDArray[np.float32]], NDArray[
     return many
 
 
-def _bboxes(owner: NDArray[np.int64], xs: NDArray[np.int64], ys: NDArray[np.int64], n: int
+def _bboxes(owner: NDArray[np.int64], xs: NDArray[np.int64], ys: NDArray[np.int64], n: int, scale: int = 1
             ) -> list[tuple[int, int, int, int] | None]:
-    """Per view ``c < n``, ``bbox_xywh`` of the pixels whose ``owner`` is ``c`` (grouped by owner, in order)."""
+    """Per view ``c < n``, ``bbox_xywh`` of the pixels whose ``owner`` is ``c`` (grouped by owner, in order);
+    ``scale`` > 1: lattice pixels, the box of their blocks (:func:`_block_box`)."""
     out: list[tuple[int, int, int, int] | None] = [None] * n
     if not len(owner):
         return out
@@ -273,5 +277,6 @@ def _bboxes(owner: NDArray[np.int64], xs: NDArray[np.int64], ys: NDArray[np.int6
     x0, x1 = np.minimum.reduceat(xs, starts).tolist(), np.maximum.reduceat(xs, starts).tolist()
     y0, y1 = np.minimum.reduceat(ys, starts).tolist(), np.maximum.reduceat(ys, starts).tolist()
     for k, c in enumerate(owner[starts].tolist()):
-        out[c] = (x0[k], y0[k], x1[k] - x0[k], y1[k] - y0[k])
+        out[c] = (x0[k], y0[k], x1[k] - x0[k], y1[k] - y0[k]) if scale == 1 else _block_box(
+            (x0[k], y0[k], x1[k] - x0[k], y1[k] - y0[k]), scale)
     return out
