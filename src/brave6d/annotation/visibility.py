@@ -363,7 +363,8 @@ class SilhouetteCaster:
             lc = np.repeat(narrow_cams, lines)
             at = (np.repeat(rois[narrow_cams, 2] - 1 - first_line, lines) + np.arange(len(lc))).astype(np.float64)
             i, j = _BOX_EDGES
-            au, av, bu, bv = pu_all[lc][:, i], pv_all[lc][:, i], pu_all[lc][:, j], pv_all[lc][:, j]
+            pu_lines, pv_lines = pu_all[lc], pv_all[lc]
+            au, av, bu, bv = pu_lines[:, i], pv_lines[:, i], pu_lines[:, j], pv_lines[:, j]
             dv = bv - av
             flat = dv == 0.0
             s = (at[:, None] - av) / np.where(flat, 1.0, dv)
@@ -375,12 +376,12 @@ class SilhouetteCaster:
             block = np.zeros(len(rois), dtype=np.int64)
             block[narrow_cams] = first_line
             below = block[c] + (vv - rois[c, 2])  # line v - 1 of row v
-            pv = pv_all[c]
+            pu, pv = pu_all[c], pv_all[c]
             in_band = (pv >= (vv - 1)[:, None]) & (pv <= (vv + 1)[:, None])
             umin = np.minimum(np.minimum(line_min[below], line_min[below + 2]),
-                              np.where(in_band, pu_all[c], np.inf).min(axis=1))
+                              np.where(in_band, pu, np.inf).min(axis=1))
             umax = np.maximum(np.maximum(line_max[below], line_max[below + 2]),
-                              np.where(in_band, pu_all[c], -np.inf).max(axis=1))
+                              np.where(in_band, pu, -np.inf).max(axis=1))
             empty = ~np.isfinite(umin)
             lo = np.floor(np.where(empty, 0.0, umin)).astype(np.int64) - 1
             hi = np.ceil(np.where(empty, 0.0, umax)).astype(np.int64) + 1

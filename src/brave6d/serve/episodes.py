@@ -142,24 +142,28 @@ def object_state(obj: BundleObject, cam_T_obj: Matrix4, visibility: Visibility |
     validation (the same fields, fields set and dump: tested); anything else is validated. Why: a
     training step records every object of every agent's view."""
     if (type(obj.gt_id) is int and type(obj.obj_id) is int and type(obj.name) is str and type(is_target) is bool
-            and type(cam_T_obj) is np.ndarray and cam_T_obj.dtype == np.float64 and cam_T_obj.shape == (4, 4)
+            and type(cam_T_obj) is np.ndarray and cam_T_obj.dtype is _FLOAT64 and cam_T_obj.shape == (4, 4)
             and (finite if finite is not None else bool(np.isfinite(cam_T_obj).all()))):
-        values = {"gt_id": obj.gt_id, "obj_id": obj.obj_id, "name": obj.name, "is_target": is_target,
-                  "cam_T_obj": cam_T_obj}
-        if visibility is None:
-            return _unvalidated_object_state({**values, **_NO_VISIBILITY}, _BASE_FIELDS)
         v = visibility
-        if (type(v.px_count_all) is int and type(v.px_count_visib) is int and type(v.visib_fract) is float
-                and math.isfinite(v.visib_fract) and _int_box(v.bbox_obj) and _int_box(v.bbox_visib)):
-            values.update(px_count_all=v.px_count_all, px_count_visib=v.px_count_visib, visib_fract=v.visib_fract,
-                          bbox_obj=list(v.bbox_obj) if v.bbox_obj else None,
-                          bbox_visib=list(v.bbox_visib) if v.bbox_visib else None)
-            return _unvalidated_object_state(values, _ALL_FIELDS)
+        if v is None:
+            return _unvalidated_object_state({"gt_id": obj.gt_id, "obj_id": obj.obj_id, "name": obj.name,
+                                              "is_target": is_target, "cam_T_obj": cam_T_obj, **_NO_VISIBILITY},
+                                             _BASE_FIELDS)
+        fract, box, box_visib = v.visib_fract, v.bbox_obj, v.bbox_visib
+        if (type(v.px_count_all) is int and type(v.px_count_visib) is int and type(fract) is float
+                and math.isfinite(fract) and _int_box(box) and _int_box(box_visib)):
+            return _unvalidated_object_state(
+                {"gt_id": obj.gt_id, "obj_id": obj.obj_id, "name": obj.name, "is_target": is_target,
+                 "cam_T_obj": cam_T_obj, "px_count_all": v.px_count_all, "px_count_visib": v.px_count_visib,
+                 "visib_fract": fract, "bbox_obj": list(box) if box else None,
+                 "bbox_visib": list(box_visib) if box_visib else None}, _ALL_FIELDS)
     vis = visibility.to_json() if visibility is not None else {}
     return ObjectState(gt_id=obj.gt_id, obj_id=obj.obj_id, name=obj.name, is_target=is_target,
                        cam_T_obj=cam_T_obj, **vis)
 
 
+_UNSET = object()
+_FLOAT64 = np.dtype(np.float64)  # NumPy's one native float64 dtype (another byte order: validated)
 _NO_VISIBILITY = {"px_count_all": None, "px_count_visib": None, "visib_fract": None, "bbox_obj": None,
                   "bbox_visib": None}
 _BASE_FIELDS = frozenset(("gt_id", "obj_id", "name", "is_target", "cam_T_obj"))
@@ -214,12 +218,11 @@ class RenderedView:
         return self.depth if self.reference is None else self.reference.depth(self.world_T_cam, self.camera)
 
     def target(self) -> ObjectState | None:
-        return self._target
-
-    @cached_property
-    def _target(self) -> ObjectState | None:
-        """The target's record, found once (each step asks for it three times: reward, log, shown view)."""
-        return next((o for o in self.objects if o.is_target), None)
+        """The target's record (found once: each step asks for it three times, for its log line and reward)."""
+        found = self.__dict__.get("_target", _UNSET)
+        if found is _UNSET:
+            found = self.__dict__["_target"] = next((o for o in self.objects if o.is_target), None)
+        return found
 
     def without_truth(self) -> RenderedView:
         """This view as a scored server shows it: the images, camera and pose, no objects (``replace``'s

@@ -50,14 +50,12 @@ def se3_exps(v: NDArray[np.float64], w: NDArray[np.float64]) -> NDArray[np.float
     theta = _norms(w)
     R = Rotation.from_rotvec(w).as_matrix()
     W = _hats(w)
-    cos, sin = np.cos(theta).tolist(), np.sin(theta).tolist()
-    a = np.empty(len(w))
-    b = np.empty(len(w))
-    for k, t in enumerate(theta.tolist()):  # Python's float power, as the scalar code's (numpy's differs in the last bit)
-        if t < 1e-6:
-            a[k], b[k] = 0.5 - t**2 / 24.0, 1.0 / 6.0 - t**2 / 120.0
-        else:
-            a[k], b[k] = (1.0 - cos[k]) / t**2, (t - sin[k]) / t**3
+    thetas, cos, sin = theta.tolist(), np.cos(theta).tolist(), np.sin(theta).tolist()
+    # Python's float power, as the scalar code's (numpy's differs in the last bit)
+    a = np.array([0.5 - t**2 / 24.0 if t < 1e-6 else (1.0 - c) / t**2 for t, c in zip(thetas, cos)],
+                 dtype=np.float64)
+    b = np.array([1.0 / 6.0 - t**2 / 120.0 if t < 1e-6 else (t - s) / t**3 for t, s in zip(thetas, sin)],
+                 dtype=np.float64)
     V = np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
     T = np.zeros((len(w), 4, 4))
     T[:, :3, :3] = R
