@@ -16,8 +16,12 @@ the visible fractions (``VisibilityComputer.compute_many`` without its casts), t
 (``format_action``: an action's JSON line), the observation batch (``_batch_obs``: the images of
 the views not rendered into it copied in, K and poses stacked) and everything else (moves, checks, views, infos), each summed over the timed steps.
 
+``--logs``: the vector env gets a manager with a log folder (every action's line made, written and
+flushed, as a server's); without it (the default) the vector env's own manager has none, and a log
+without a file makes no lines.
+
     python benchmarks/vector_env_host.py [--agents 64] [--mode scored|training] [--baseline REV] [--breakdown]
-                                         [--json out.json]
+                                         [--logs] [--json out.json]
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 def child(src: str, bundle: str, agents: int, steps: int, width: int, height: int, mode: str,
-          breakdown: bool = False) -> dict[str, Any]:
+          breakdown: bool = False, log_dir: str | None = None) -> dict[str, Any]:
     """One measurement in this process on the package under ``src`` (see the module docstring)."""
     sys.path.insert(0, src)
     import numpy as np
@@ -79,7 +83,19 @@ def child(src: str, bundle: str, agents: int, steps: int, width: int, height: in
     stand_in = StandInRenderer()
     parts = timed_parts() if breakdown else None
     scene = SceneServer(load_bundle(bundle), "cpu", renderer=stand_in)
-    env = BraveVectorEnv(scene, agents, target="cube_red", width=width, height=height, max_steps=10**6, mode=mode)
+    if log_dir is None:  # the vector env's own manager: no log folder, nothing written
+        env = BraveVectorEnv(scene, agents, target="cube_red", width=width, height=height, max_steps=10**6, mode=mode)
+    else:  # --logs: every episode's log written (and flushed) line by line, as a server's
+        from brave6d.serve.episode_manager import EpisodeManager
+
+        try:  # the vector env's own stride
+            from brave6d.serve.vector_env import VECTOR_VISIBILITY_STRIDE
+            stride = {"visibility_stride": VECTOR_VISIBILITY_STRIDE}
+        except ImportError:  # a revision before the stride: every pixel
+            stride = {}
+        manager = EpisodeManager(scene, log_dir, max_episodes=agents, mode=mode, log_key=None, **stride)
+        env = BraveVectorEnv(manager, agents, target="cube_red", width=width, height=height, max_steps=10**6,
+                             mode=mode)
     rng = np.random.default_rng(0)
     actions = [rng.uniform(-0.5, 0.5, (agents, 6)) for _ in range(steps + 1)]
     env.reset(seed=0)
@@ -157,12 +173,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mode", choices=("scored", "training"), default="scored")
     ap.add_argument("--baseline", default=None, help="also measure the package at this git revision")
     ap.add_argument("--breakdown", action="store_true", help="split the current tree's CPU time into its parts")
+    ap.add_argument("--logs", action="store_true",
+                    help="give the vector env a manager with a log folder (every action's line written and flushed)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--child", nargs=2, metavar=("SRC", "BUNDLE"), help=argparse.SUPPRESS)
+    ap.add_argument("--child-logs", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
         print(json.dumps(child(args.child[0], args.child[1], args.agents, args.steps, args.width, args.height,
-                               args.mode, args.breakdown)))
+                               args.mode, args.breakdown, args.child_logs)))
         return 0
     sys.path.insert(0, str(REPO / "src"))
     from brave6d.serve.toy_scene import make_synthetic_bundle
@@ -177,16 +196,20 @@ def main(argv: list[str] | None = None) -> int:
         for _ in range(args.repeats):
             for name, src in variants.items():
                 split = ["--breakdown"] if args.breakdown and name == "current" else []
+                if args.logs:
+                    logs = Path(tmp) / "logs" / f"{name.replace(' ', '_')}_{len(runs[name])}"
+                    split += ["--child-logs", str(logs)]
                 out = subprocess.run([sys.executable, __file__, "--child", str(src), str(bundle),
                                       "--agents", str(args.agents), "--steps", str(args.steps), "--width",
                                       str(args.width), "--height", str(args.height), "--mode", args.mode, *split],
                                      check=True, capture_output=True, text=True, env=env)
                 runs[name].append(json.loads(out.stdout.strip().splitlines()[-1]))
     print(f"{args.agents} agents, {args.width}x{args.height}, {args.mode} mode, renders replaced by a stand-in "
-          f"(fixed images, its time subtracted); median of {args.repeats} processes x {args.steps} steps")
+          f"(fixed images, its time subtracted); median of {args.repeats} processes x {args.steps} steps; "
+          + ("logs written to a folder" if args.logs else "no log folder (the vector env's default)"))
     print("| variant | host CPU ms / agent step | host wall ms / agent step | moves accepted |\n|---|---|---|---|")
     report: dict[str, Any] = {"agents": args.agents, "size": [args.width, args.height], "mode": args.mode,
-                              "steps": args.steps, "repeats": args.repeats, "rows": {}}
+                              "steps": args.steps, "repeats": args.repeats, "logs": args.logs, "rows": {}}
     for name, rows in runs.items():
         row = {k: statistics.median(r[k] for r in rows) for k in ("cpu_ms", "wall_ms", "accepted")}
         report["rows"][name] = row

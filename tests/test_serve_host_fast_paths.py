@@ -220,3 +220,30 @@ def test_training_views_hold_the_objects_of_one_move_at_a_time(scene: SceneServe
             seen += sum(o.px_count_visib or 0 for o in one.objects) > 0
     assert seen > 0  # some views see the cubes
     vec.close()
+
+
+def test_a_log_without_a_file_makes_no_lines(scene: SceneServer, tmp_path, monkeypatch) -> None:
+    """An episode log without a file (a manager without a log folder, the vector env's own) writes nothing,
+    so no action line is made for it; with a folder every action's line is made and written as before."""
+    from brave6d.serve import episode_manager
+
+    made: list[str] = []
+    real = episode_manager.format_action
+
+    def counting(**fields):
+        made.append(real(**fields))
+        return made[-1]
+
+    monkeypatch.setattr(episode_manager, "format_action", counting)
+    for log_dir in (None, tmp_path / "logs"):
+        made.clear()
+        manager = EpisodeManager(scene, log_dir, mode="training", log_key=None)
+        eid = manager.reset(target="cube_red", width=W, height=H, seed=1).episode_id
+        manager.move(eid, (0.0, 0.0, 0.02), (0.0, 0.0, 0.0), 0.5)
+        manager.move(eid, (0.0, 0.0, 0.0), (0.0, 0.1, 0.0), 0.5)
+        if log_dir is None:
+            assert made == []
+            assert manager.get(eid).log.writes is False
+        else:
+            lines = (log_dir / f"{eid}.jsonl").read_text().splitlines(keepends=True)
+            assert len(made) == 2 and lines[1:3] == made

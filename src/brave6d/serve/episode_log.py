@@ -315,6 +315,11 @@ class EpisodeLog:
             # newline="\n": the bytes on disk are the ones the digest saw
             self._handle = open(path, "a", encoding="utf-8", newline="\n")  # noqa: SIM115 - kept open
 
+    @property
+    def writes(self) -> bool:
+        """False for a log without a file: its lines go nowhere, so its callers need not make them."""
+        return self._handle is not None
+
     @staticmethod
     def format(record: ResetRecord | ActionRecord | SubmitRecord | CloseRecord) -> str:
         return format_record(record)

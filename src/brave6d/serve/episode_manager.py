@@ -411,10 +411,12 @@ class EpisodeManager:
         collided = refusal is not None or stopped_by is not None
         reason = refusal or stopped_by
         timings["step"] = (time.perf_counter() - t0) * 1000.0
-        line = format_action(  # ActionRecord's line, without building the model (the same bytes)
-            event=action, step=steps, accepted=accepted, collided=collided,
-            refusal=reason.to_json() if reason else None, requested=requested, world_T_cam_before=before,
-            world_T_cam=after, adjustments=adjustments, move=move, timings_ms=timings, **_target_truth(obs))
+        line = ""  # a log without a file (no log folder: the vector env's own manager) writes nothing: no line made
+        if ep.log.writes:
+            line = format_action(  # ActionRecord's line, without building the model (the same bytes)
+                event=action, step=steps, accepted=accepted, collided=collided,
+                refusal=reason.to_json() if reason else None, requested=requested, world_T_cam_before=before,
+                world_T_cam=after, adjustments=adjustments, move=move, timings_ms=timings, **_target_truth(obs))
 
         def apply() -> None:
             ep.log.append(line)  # first: a failed write leaves the state as it was
