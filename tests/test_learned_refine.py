@@ -1,7 +1,9 @@
 """The learned estimator's depth refinement is repeatable: the same inputs give the same pose bit
-for bit. On several Open3D (TBB) threads ICP's sums were split as the threads stole work, and about
-one repeat in 20 came out a few ULP apart on a 2-core machine (thread-timing: on one core it cannot
-show); ``brave6d learn bop-results --depth`` moved 2 of 239 poses between two runs, one by 12 mm."""
+for bit. When ICP was Open3D's, on several (TBB) threads its sums were split as the threads stole
+work, and about one repeat in 20 came out a few ULP apart on a 2-core machine; ``brave6d learn
+bop-results --depth`` moved 2 of 239 poses between two runs, one by 12 mm. The ICP is now the
+project's own numpy point-to-plane (:mod:`brave6d.evaluation.learned.refine`), which this still
+holds to, and it leaves Open3D's process-wide thread limit as it found it."""
 
 from __future__ import annotations
 
@@ -43,4 +45,4 @@ def test_the_same_inputs_give_the_same_pose_bit_for_bit(box_case: tuple[np.ndarr
     assert refined and fit > 0.9  # a real refinement, not the start returned unchanged
     assert np.linalg.norm(pose[:3, 3] - start[:3, 3]) > 0.005
     assert len(results) == 1, f"{len(results)} different poses from {REPEATS} identical refinements"
-    assert o3d.utility.get_max_threads() == threads  # Open3D's thread limit is restored afterwards
+    assert o3d.utility.get_max_threads() == threads  # Open3D's thread limit untouched
