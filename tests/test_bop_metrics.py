@@ -225,13 +225,32 @@ def test_vsd_from_depths_by_hand():
 
 
 def test_depth_to_distance():
+    """bop_toolkit's formula on the BOP cam_K (the project's K + 0.5 px): the pixel at the BOP
+    principal point (1.5, 1.5) lies between pixels, so pixel (1, 1) is half a pixel off-axis."""
     d = np.full((3, 3), 100.0)
     d[0, 0] = np.nan
     k = np.array([[1.0, 0, 1.0], [0, 1.0, 1.0], [0, 0, 1]])
     dist = depth_to_distance(d, k)
     assert dist[0, 0] == 0.0
-    assert dist[1, 1] == pytest.approx(100.0)
-    assert dist[1, 2] == pytest.approx(100.0 * math.sqrt(2.0))
+    assert dist[1, 1] == pytest.approx(100.0 * math.sqrt(1.5))
+    assert dist[1, 2] == pytest.approx(100.0 * math.sqrt(1.5))  # x - cx = +0.5, y - cy = -0.5
+    assert dist[2, 2] == pytest.approx(100.0 * math.sqrt(1.5))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(0.0, 3000.0, width=32), min_size=12, max_size=12),
+       st.floats(100.0, 2000.0), st.floats(-50.0, 700.0), st.floats(100.0, 2000.0), st.floats(-50.0, 500.0))
+def test_depth_to_distance_is_bop_toolkits_arithmetic_bit_for_bit(depths: list[float], fx: float, cx: float,
+                                                                 fy: float, cy: float) -> None:
+    """The same float64 operations as bop_toolkit's depth_im_to_dist_im_fast on the BOP cam_K
+    (restated here from its source, misc.py): VSD's threshold decisions then fall the same way."""
+    d = np.array(depths, dtype=np.float32).reshape(3, 4)
+    k = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    xs, ys = np.meshgrid(np.arange(4), np.arange(3))
+    pre_x = (xs - (cx + 0.5)) / np.float64(fx)
+    pre_y = (ys - (cy + 0.5)) / np.float64(fy)
+    theirs = np.sqrt(np.multiply(pre_x, d) ** 2 + np.multiply(pre_y, d) ** 2 + d.astype(np.float64) ** 2)
+    np.testing.assert_array_equal(depth_to_distance(d, k), theirs)
 
 
 def _scene_depth(renderer: DepthRenderer, objects, background_mm: float | None = 900.0) -> np.ndarray:

@@ -258,33 +258,35 @@ def mspd_normalized(mspd_px: float, image_width: int) -> float:
 
 # ----------------------------------------------------------------------------- VSD
 @lru_cache(maxsize=8)
-def _ray_norm_factor(h: int, w: int, K_key: tuple[float, ...]) -> NDArray[np.float64]:
+def _pixel_rays(h: int, w: int, K_key: tuple[float, ...]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """bop_toolkit's ``Precomputer``: ``(x - cx) / fx`` and ``(y - cy) / fy`` per pixel (integer x, y)."""
     fx, cx, fy, cy = K_key
-    xs = (np.arange(w, dtype=np.float64) - cx) / fx
-    ys = (np.arange(h, dtype=np.float64) - cy) / fy
-    f = np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
-    f.setflags(write=False)
-    return f
+    xs, ys = np.meshgrid(np.arange(w), np.arange(h))
+    pre_x, pre_y = (xs - cx) / np.float64(fx), (ys - cy) / np.float64(fy)
+    pre_x.setflags(write=False)
+    pre_y.setflags(write=False)
+    return pre_x, pre_y
 
 
 def depth_to_distance(depth_mm: ArrayLike, K: ArrayLike) -> NDArray[np.float64]:
-    """Z-depth image -> distance from the camera centre along each pixel's ray (0 stays 0).
-
-    Pixel centres are at integer coordinates (as bop_toolkit's ``depth_im_to_dist_im_fast``), with
-    ``K`` the project's (OpenCV) K. bop_toolkit applies that formula to a BOP ``cam_K``, which its
-    own renderer reads with pixel centres at +0.5 (see ``brave6d.evaluation.metrics.depth_renderer``); the difference
-    scales the test and the rendered distances alike by at most 0.25 / fx (0.04 % at fx = 600 px).
-    Non-finite or negative depth is treated as missing (0).
+    """Z-depth image -> distance from the camera centre along each pixel's ray (0 stays 0), with
+    bop_toolkit's arithmetic (``misc.depth_im_to_dist_im_fast``), so VSD's decisions are its own to
+    the last bit: ``sqrt((px * d)^2 + (py * d)^2 + d^2)`` with ``px = (x - cx) / fx`` at integer
+    pixel coordinates and ``cx, cy`` the BOP ``cam_K``'s (the project's (OpenCV) ``K`` + 0.5 px, as
+    the split's ``scene_camera.json`` holds it: bop_toolkit applies the formula to that K while its
+    renderer puts pixel centres at +0.5; the two conventions scale the test and the rendered
+    distances alike by at most 0.25 / fx). Non-finite or negative depth is treated as missing (0).
     """
     d = np.asarray(depth_mm, dtype=np.float64)
     if d.ndim != 2:
         raise ValueError(f"depth image must be (H, W), got shape {d.shape}")
     d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
     k = np.asarray(K, dtype=np.float64).reshape(3, 3)
-    key = (float(k[0, 0]), float(k[0, 2]), float(k[1, 1]), float(k[1, 2]))
+    key = (float(k[0, 0]), float(k[0, 2]) + 0.5, float(k[1, 1]), float(k[1, 2]) + 0.5)
     if not (math.isfinite(sum(key)) and key[0] > 0 and key[2] > 0):
         raise ValueError(f"K must be finite with positive focal lengths, got {k.tolist()}")
-    return d * _ray_norm_factor(d.shape[0], d.shape[1], key)
+    pre_x, pre_y = _pixel_rays(d.shape[0], d.shape[1], key)
+    return np.sqrt(np.multiply(pre_x, d) ** 2 + np.multiply(pre_y, d) ** 2 + d ** 2)
 
 
 def estimate_visib_mask(
