@@ -21,6 +21,7 @@ from brave6d.core.errors import BraveError
 from brave6d.evaluation.agents import (
     LEARNED_ACTIVE_AGENT,
     LEARNED_ACTIVE_DEPTH_AGENT,
+    LEARNED_AGENTS,
     LEARNED_STATIC_AGENT,
     LEARNED_STATIC_DEPTH_AGENT,
     AgentSetup,
@@ -29,7 +30,7 @@ from brave6d.evaluation.agents import (
 )
 
 pytestmark = pytest.mark.slow
-AGENTS = [LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT, LEARNED_STATIC_DEPTH_AGENT, LEARNED_ACTIVE_DEPTH_AGENT]
+AGENTS = list(LEARNED_AGENTS)  # RGB-only static and active, then with depth
 ACTIVE = {LEARNED_ACTIVE_AGENT, LEARNED_ACTIVE_DEPTH_AGENT}
 WIDTH = 160
 

@@ -22,6 +22,7 @@ from test_ros1_e2e import MISSING, ROOT, _env, _stop
 from brave6d.evaluation.agents import (
     LEARNED_ACTIVE_AGENT,
     LEARNED_ACTIVE_DEPTH_AGENT,
+    LEARNED_AGENTS,
     LEARNED_STATIC_AGENT,
     LEARNED_STATIC_DEPTH_AGENT,
     AgentSetup,
@@ -30,7 +31,7 @@ from brave6d.ros_interface.ros1.ros_env import loopback_environment
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(bool(MISSING), reason="ROS 1 not installed: apt-get install " + " ".join(MISSING))]
-AGENTS = [LEARNED_STATIC_AGENT, LEARNED_ACTIVE_AGENT, LEARNED_STATIC_DEPTH_AGENT, LEARNED_ACTIVE_DEPTH_AGENT]
+AGENTS = list(LEARNED_AGENTS)  # RGB-only static and active, then with depth
 ACTIVE = {LEARNED_ACTIVE_AGENT, LEARNED_ACTIVE_DEPTH_AGENT}
 WIDTH, HEIGHT = 160, 120
 

@@ -25,6 +25,17 @@ CAMERA = PinholeCamera(64, 64, 100.0, 100.0, 31.5, 31.5)
 EYE = np.eye(4)
 
 
+def camera_poses(first: np.ndarray, views: list) -> np.ndarray:
+    """``first`` and the ``look_at`` pose of every (eye, aim) view that has one, stacked (N, 4, 4)."""
+    poses = [first]
+    for eye, aim in views:
+        try:
+            poses.append(look_at(eye, aim))
+        except NonRigidTransformError:
+            continue
+    return np.stack(poses)
+
+
 def plate(x0: float, x1: float, y0: float, y1: float) -> tuple[np.ndarray, np.ndarray]:
     """A 1 mm thick box whose face nearest the camera is the model's z = 0 plane (metres)."""
     v = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (0.0, 0.001)], dtype=float)
@@ -188,13 +199,7 @@ def test_many_cameras_cast_every_pixel_that_can_be_hit(views: list, exact: float
         models[5] = plate(-exact - 0.1, exact, -exact, exact + 0.1)
         instances.append((5, at(1.0)))
     caster = SilhouetteCaster(models, instances)
-    poses = [EYE]  # the plates' edges exactly as documented above
-    for eye, aim in views:
-        try:
-            poses.append(look_at(eye, aim))
-        except NonRigidTransformError:
-            continue
-    poses = np.stack(poses)
+    poses = camera_poses(EYE, views)  # the first: the plates' edges exactly as documented above
     for n, batch in enumerate(caster.silhouettes_many(poses, CAMERA)):
         for c, T in enumerate(poses):
             mine = batch.owner == c

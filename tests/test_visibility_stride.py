@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_silhouettes import camera_poses
 
 from brave6d.core.camera import PinholeCamera
-from brave6d.core.errors import BraveError, NonRigidTransformError
+from brave6d.core.errors import BraveError
 from brave6d.core.transforms import look_at, make_transform
 from brave6d.serve import EpisodeManager, SceneServer
 from brave6d.serve import visibility as vis_module
@@ -71,13 +72,7 @@ def test_strided_fractions_are_sane_and_equal_one_view_at_a_time(views: list, st
     samples is exactly stride 1's (so a tiny visible object is never unseen); a hidden or unseen object
     is 0 with no boxes; the batch equals compute() one view at a time bit for bit."""
     computer = VisibilityComputer(MODELS, POSES)
-    poses = [np.eye(4)]
-    for eye, aim in views:
-        try:
-            poses.append(look_at(eye, aim))
-        except NonRigidTransformError:
-            continue
-    poses = np.stack(poses)
+    poses = camera_poses(np.eye(4), views)
     rng = np.random.default_rng(len(poses))
     depths = [rng.uniform(0.0, 1.5, (CAMERA.height, CAMERA.width)).astype(np.float32) for _ in poses] if splat else None
     s = effective_stride(CAMERA, stride)
