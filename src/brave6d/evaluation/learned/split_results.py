@@ -72,18 +72,19 @@ def estimate_split(estimator: LearnedEstimator, split_dir: Path | str, with_dept
     ``scene_gt.json`` is withheld: only the images it lists are read)."""
     import cv2
 
-    from brave6d.annotation import read_bop_split, read_split_targets, split_scene_folders
+    from brave6d.annotation import read_split_scene, read_split_targets, split_scene_folders
 
     out = SplitResults()
     listed: dict[tuple[int, int], dict[int, int]] | None = None
     if targets_file is not None:
         images, listed = read_split_targets(split_dir, targets_file)
     else:
-        for scene in split_scene_folders(split_dir):
+        scenes = split_scene_folders(split_dir)
+        for scene in scenes:
             if not (scene / "scene_gt.json").is_file() and (scene / "scene_camera.json").is_file():
                 raise DataError(f"{scene / 'scene_gt.json'}: not found: a test split without ground truth is "
                                 "estimated from its targets file (--targets test_targets_bop19.json)")
-        images = read_bop_split(split_dir)
+        images = [image for scene in scenes for image in read_split_scene(scene)]  # read_bop_split's order
     images = images[:max_images]
     width = estimator.crop_source_width
     for image in images:
