@@ -63,3 +63,23 @@ def test_an_error_inside_a_section_still_restores_the_count() -> None:
     except ValueError:
         pass
     assert _threads() == before
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 5).flatmap(lambda n: st.tuples(st.just(n), st.permutations(range(n)))))
+def test_opencvs_switch_shares_the_same_rule(case: tuple[int, list[int]]) -> None:
+    """calibration's opencv_one_thread, the same mechanism (core.process_setting.HeldSetting) over
+    OpenCV's thread count: one thread while any section is open, the count from before after the last."""
+    import cv2
+
+    from brave6d.calibration.opencv_threads import opencv_one_thread
+
+    n, exit_order = case
+    before = cv2.getNumThreads()
+    sections = [opencv_one_thread() for _ in range(n)]
+    for section in sections:
+        section.__enter__()
+        assert cv2.getNumThreads() == 1
+    for left, index in enumerate(exit_order, start=1):
+        sections[index].__exit__(None, None, None)
+        assert cv2.getNumThreads() == (before if left == n else 1), (exit_order, left)

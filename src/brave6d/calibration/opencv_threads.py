@@ -17,18 +17,21 @@ from typing import Any, TypeVar
 
 import cv2
 
+from brave6d.core.process_setting import HeldSetting
+
 F = TypeVar("F", bound=Callable[..., Any])
+
+
+_OPENCV_THREADS = HeldSetting(cv2.getNumThreads, cv2.setNumThreads, 1)
 
 
 @contextmanager
 def opencv_one_thread() -> Iterator[None]:
-    """OpenCV's parallel loops on one thread for the duration (restored afterwards)."""
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
+    """OpenCV's parallel loops on one thread for the duration; overlapping sections share OpenCV's
+    one process-wide thread count (:class:`~brave6d.core.process_setting.HeldSetting`): restored
+    when the last of them leaves, never under one still running."""
+    with _OPENCV_THREADS.held():
         yield
-    finally:
-        cv2.setNumThreads(threads)
 
 
 def on_one_opencv_thread(fn: F) -> F:

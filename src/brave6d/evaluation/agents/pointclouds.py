@@ -11,6 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brave6d.core.errors import BraveError
+from brave6d.core.process_setting import HeldSetting
 
 
 def open3d() -> Any:
@@ -22,9 +23,8 @@ def open3d() -> Any:
     return o3d
 
 
-_ONE_THREAD_LOCK = threading.Lock()
-_one_thread_holders = 0
-_threads_before: int | None = None
+_OPEN3D_THREADS: HeldSetting | None = None  # made at first use: Open3D is imported lazily
+_OPEN3D_THREADS_MADE = threading.Lock()
 
 
 @contextmanager
@@ -32,23 +32,15 @@ def one_thread() -> Iterator[None]:
     """Open3D on one thread for the duration: its seeded RANSAC and its parallel sums (ICP,
     plane fits) are reproducible only then; the agent's clouds are small, so it costs little.
     Open3D's thread count is one setting for the whole process, so overlapping sections (threads of
-    one server, nested calls) share it: the first to enter sets one thread, the last to leave
-    restores the count from before, under a lock (one section's exit never undoes another's)."""
-    global _one_thread_holders, _threads_before
-    o3d = open3d()
-    with _ONE_THREAD_LOCK:
-        if _one_thread_holders == 0:
-            _threads_before = o3d.utility.get_max_threads()
-            o3d.utility.set_max_threads(1)
-        _one_thread_holders += 1
-    try:
+    one server, nested calls) share it (:class:`~brave6d.core.process_setting.HeldSetting`): the
+    first to enter sets one thread, the last to leave restores the count from before."""
+    global _OPEN3D_THREADS
+    with _OPEN3D_THREADS_MADE:
+        if _OPEN3D_THREADS is None:
+            o3d = open3d()
+            _OPEN3D_THREADS = HeldSetting(o3d.utility.get_max_threads, o3d.utility.set_max_threads, 1)
+    with _OPEN3D_THREADS.held():
         yield
-    finally:
-        with _ONE_THREAD_LOCK:
-            _one_thread_holders -= 1
-            if _one_thread_holders == 0 and _threads_before is not None:
-                o3d.utility.set_max_threads(_threads_before)
-                _threads_before = None
 
 
 def point_cloud(points: NDArray[np.floating], normals: NDArray[np.floating] | None = None) -> Any:
